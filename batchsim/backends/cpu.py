@@ -1,0 +1,89 @@
+"""The `cpu` backend: MuJoCo 4's threaded batch, `mujoco.batch.Batch`, in exact float64.
+
+Host arrays are the batch's own live bindings, so write() and read() copy nothing but
+the interface columns. Results are bit-identical to a loop of `mujoco.mj_step` over one
+`MjData` per world, at any thread count.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import mujoco
+import numpy as np
+from mujoco import batch as mjbatch
+
+from batchsim.hardware import BatchedSystem, Status
+
+_W = mujoco.mjtWarning
+# MuJoCo warnings that mean a world's numbers can no longer be trusted
+_DIVERGED_WARNINGS = [int(_W.mjWARN_BADQPOS), int(_W.mjWARN_BADQVEL), int(_W.mjWARN_BADQACC)]
+_OVERFLOW_WARNINGS = [int(_W.mjWARN_CONTACTFULL), int(_W.mjWARN_CNSTRFULL)]
+
+
+class CpuSystem(BatchedSystem):
+    """`nworld` worlds on `mujoco.batch.Batch`, stepped on `nthread` threads.
+
+    Options:
+      nthread: worker threads, including the caller's; 0 means one per CPU core, capped
+        at nworld.
+    """
+
+    name: ClassVar[str] = "cpu"
+    OPTIONS: ClassVar[dict[str, Any]] = {"nthread": 0}
+
+    def _open(self) -> None:
+        nthread = int(self.options["nthread"]) or min(self.nworld, os.cpu_count() or 1)
+        self._batch = mjbatch.Batch(self.model, self.nworld, nthread=nthread)
+        b = self._batch
+        self._fields = {
+            "qpos": b.bind("qpos"),
+            "qvel": b.bind("qvel"),
+            "qfrc_actuator": b.bind("qfrc_actuator"),
+            "sensordata": b.bind("sensordata"),
+            "time": b.bind("time"),
+        }
+        self._ctrl = b.bind("ctrl")
+        self._warning_count = b.warning[:, :, 1]  # (nworld, mjNWARNING) live counters
+        self.nthread = b.nthread
+
+    def _close(self) -> None:
+        del self._batch, self._fields, self._ctrl, self._warning_count
+
+    def _ctrl_host(self) -> np.ndarray:
+        return self._ctrl
+
+    def _download(self) -> Mapping[str, np.ndarray]:
+        return self._fields
+
+    def _step(self, nstep: int) -> None:
+        frozen = self.frozen
+        try:
+            if not frozen.any():
+                self._batch.step(nstep=nstep)
+            elif not frozen.all():
+                self._batch.step(ids=np.flatnonzero(~frozen).astype(np.int32), nstep=nstep)
+        except mjbatch.SimulationError as e:
+            # mju_error in some worlds: they kept their previous state, the others ran
+            self.status[e.ids] |= np.uint8(Status.DIVERGED)
+        self._check_worlds()
+
+    def _check_worlds(self) -> None:
+        """Freeze the worlds that went non-finite or tripped a MuJoCo warning."""
+        count = self._warning_count
+        diverged = count[:, _DIVERGED_WARNINGS].any(axis=1)
+        overflow = count[:, _OVERFLOW_WARNINGS].any(axis=1)
+        if not (diverged.any() or overflow.any()):
+            # MuJoCo catches bad qpos/qvel/qacc itself; this is the cheap belt and braces
+            fields = self._fields
+            if np.isfinite(fields["qpos"]).all() and np.isfinite(fields["qvel"]).all():
+                return
+        diverged |= ~np.isfinite(self._fields["qpos"]).all(axis=1)
+        diverged |= ~np.isfinite(self._fields["qvel"]).all(axis=1)
+        self.status[diverged] |= np.uint8(Status.DIVERGED)
+        self.status[overflow] |= np.uint8(Status.OVERFLOW)
+
+    def _reset(self, worlds: np.ndarray | None) -> None:
+        self._batch.reset(ids=None if worlds is None else worlds.astype(np.int32))

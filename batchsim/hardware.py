@@ -1,0 +1,439 @@
+"""The contract: a batched mirror of ros2_control's `hardware_interface::SystemInterface`.
+
+`SystemInterface` is the lifecycle alone, transition for transition as ros2_control's
+`hardware_interface::System` drives it (UNKNOWN -> UNCONFIGURED -> INACTIVE -> ACTIVE,
+FINALIZED; `on_init` ... `on_error` returning SUCCESS / FAILURE / ERROR). The table is
+enforced here, once; an illegal transition raises `LifecycleError` naming the state.
+
+`BatchedSystem` is the contract every backend honours, for `nworld` copies of one robot:
+
+- `export_state_interfaces()` / `export_command_interfaces()`: ros2_control names.
+- `state` `(nworld, nstate)` float64, refreshed by `read(time, period)`.
+- `command` `(nworld, ncommand)` float64, applied by `write(time, period)` into `ctrl`;
+  `write` does nothing unless ACTIVE.
+- `step(nstep)`, `reset(worlds=None)`, `status` `(nworld,)` bitmask of `Status`,
+  `sensordata[name]` `(nworld, dim)`, `time` `(nworld,)`.
+
+A backend subclasses `BatchedSystem` and implements the engine hooks (`_open`, `_close`,
+`_upload_ctrl`, `_download`, `_step`, `_reset`); everything a user sees, checks and
+bookkeeping included, lives here so that every backend behaves the same.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
+
+import numpy as np
+
+from batchsim.model import RobotSpec, initial_command
+
+
+class LifecycleState(enum.IntEnum):
+    """Primary lifecycle states, with the ids of lifecycle_msgs/msg/State."""
+
+    UNKNOWN = 0
+    UNCONFIGURED = 1
+    INACTIVE = 2
+    ACTIVE = 3
+    FINALIZED = 4
+
+
+class CallbackReturn(enum.Enum):
+    """What a lifecycle callback returns (rclcpp_lifecycle's CallbackReturn)."""
+
+    SUCCESS = "success"
+    FAILURE = "failure"
+    ERROR = "error"
+
+
+class ReturnType(enum.Enum):
+    """What read() and write() return (hardware_interface::return_type)."""
+
+    OK = 0
+    ERROR = 1
+    DEACTIVATE = 2
+
+
+class Status(enum.IntFlag):
+    """Per-world status bits. One bad world never stops the others."""
+
+    OK = 0
+    DIVERGED = 1  # NaN/inf or a MuJoCo instability warning: frozen until reset
+    OVERFLOW = 2  # contact or constraint buffer overflow: frozen until reset
+    BAD_COMMAND = 4  # the last write's command for this world was rejected, not applied
+
+
+FROZEN = Status.DIVERGED | Status.OVERFLOW
+
+
+class LifecycleError(RuntimeError):
+    """A lifecycle transition or call that the current state does not allow."""
+
+
+S = LifecycleState
+R = CallbackReturn
+
+# transition -> (states it starts from, callback, outcome -> next state).
+# An outcome missing from the table (ERROR, and FAILURE where ros2_control says so) goes
+# through error(), as in hardware_interface::System.
+_TABLE: dict[str, tuple[frozenset[LifecycleState], str, dict[CallbackReturn, LifecycleState]]] = {
+    "configure": (frozenset({S.UNCONFIGURED}), "on_configure", {R.SUCCESS: S.INACTIVE, R.FAILURE: S.UNCONFIGURED}),
+    "cleanup": (frozenset({S.INACTIVE}), "on_cleanup", {R.SUCCESS: S.UNCONFIGURED}),
+    "activate": (frozenset({S.INACTIVE}), "on_activate", {R.SUCCESS: S.ACTIVE, R.FAILURE: S.INACTIVE}),
+    "deactivate": (frozenset({S.ACTIVE}), "on_deactivate", {R.SUCCESS: S.INACTIVE, R.FAILURE: S.ACTIVE}),
+    "shutdown": (
+        frozenset({S.UNCONFIGURED, S.INACTIVE, S.ACTIVE}),
+        "on_shutdown",
+        {R.SUCCESS: S.FINALIZED},
+    ),
+}
+
+
+class SystemInterface:
+    """ros2_control's hardware lifecycle. Subclasses override the `on_*` callbacks.
+
+    Call the transitions (`initialize`, `configure`, `activate`, `deactivate`, `cleanup`,
+    `shutdown`, `error`); each runs its callback and moves to the state the callback's
+    result selects, and returns that state. A callback that raises counts as ERROR: the
+    system goes through `on_error`, then the exception propagates.
+    """
+
+    def __init__(self) -> None:
+        self._lifecycle = LifecycleState.UNKNOWN
+
+    @property
+    def lifecycle_state(self) -> LifecycleState:
+        return self._lifecycle
+
+    # --- callbacks (override) ---
+    def on_init(self) -> CallbackReturn:
+        return CallbackReturn.SUCCESS
+
+    def on_configure(self, previous_state: LifecycleState) -> CallbackReturn:
+        return CallbackReturn.SUCCESS
+
+    def on_cleanup(self, previous_state: LifecycleState) -> CallbackReturn:
+        return CallbackReturn.SUCCESS
+
+    def on_activate(self, previous_state: LifecycleState) -> CallbackReturn:
+        return CallbackReturn.SUCCESS
+
+    def on_deactivate(self, previous_state: LifecycleState) -> CallbackReturn:
+        return CallbackReturn.SUCCESS
+
+    def on_shutdown(self, previous_state: LifecycleState) -> CallbackReturn:
+        return CallbackReturn.SUCCESS
+
+    def on_error(self, previous_state: LifecycleState) -> CallbackReturn:
+        return CallbackReturn.SUCCESS
+
+    # --- transitions ---
+    def initialize(self) -> LifecycleState:
+        """UNKNOWN -> UNCONFIGURED through on_init; FINALIZED if it fails."""
+        self._require("initialize", frozenset({S.UNKNOWN}))
+        try:
+            result = self.on_init()
+        except BaseException:
+            self._lifecycle = S.FINALIZED
+            raise
+        self._lifecycle = S.UNCONFIGURED if result is R.SUCCESS else S.FINALIZED
+        return self._lifecycle
+
+    def configure(self) -> LifecycleState:
+        return self._transition("configure")
+
+    def cleanup(self) -> LifecycleState:
+        return self._transition("cleanup")
+
+    def activate(self) -> LifecycleState:
+        return self._transition("activate")
+
+    def deactivate(self) -> LifecycleState:
+        return self._transition("deactivate")
+
+    def shutdown(self) -> LifecycleState:
+        return self._transition("shutdown")
+
+    def error(self) -> LifecycleState:
+        """Run on_error: UNCONFIGURED if it handles the error, else FINALIZED."""
+        self._require("error", frozenset(set(S) - {S.UNKNOWN, S.FINALIZED}))
+        try:
+            result = self.on_error(self._lifecycle)
+        except BaseException:
+            self._lifecycle = S.FINALIZED
+            raise
+        self._lifecycle = S.UNCONFIGURED if result is R.SUCCESS else S.FINALIZED
+        return self._lifecycle
+
+    def _transition(self, name: str) -> LifecycleState:
+        allowed, callback, outcomes = _TABLE[name]
+        self._require(name, allowed)
+        previous = self._lifecycle
+        try:
+            result = getattr(self, callback)(previous)
+        except BaseException:
+            self.error()
+            raise
+        if result in outcomes:
+            self._lifecycle = outcomes[result]
+        else:
+            self.error()
+        return self._lifecycle
+
+    def _require(self, what: str, allowed: frozenset[LifecycleState]) -> None:
+        if self._lifecycle not in allowed:
+            names = " or ".join(sorted(s.name for s in allowed))
+            raise LifecycleError(
+                f"cannot {what}: the system is {self._lifecycle.name}, and {what} needs {names}"
+            )
+
+
+class SensorData(Mapping[str, np.ndarray]):
+    """Every MJCF sensor by name: `sim.sensordata["wrist_force"]` is `(nworld, dim)`."""
+
+    def __init__(self, views: dict[str, np.ndarray]):
+        self._views = views
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        try:
+            return self._views[name]
+        except KeyError:
+            raise KeyError(f"no sensor named {name!r}; sensors: {', '.join(self._views)}") from None
+
+    def __iter__(self):
+        return iter(self._views)
+
+    def __len__(self) -> int:
+        return len(self._views)
+
+
+class BatchedSystem(SystemInterface):
+    """`nworld` copies of one robot behind ros2_control's SystemInterface.
+
+    Attributes (valid from on_configure on):
+      nworld: number of worlds.
+      state: (nworld, nstate) float64, the state interfaces, refreshed by read().
+      command: (nworld, ncommand) float64, the command interfaces, applied by write().
+      status: (nworld,) uint8 bitmask of Status, current after step() and write().
+      time: (nworld,) float64 simulation time of each world, refreshed by read().
+      sensordata: every MJCF sensor by name, (nworld, dim) each, refreshed by read().
+    """
+
+    #: the registry name of the backend ("cpu", "mjx", "warp")
+    name: ClassVar[str] = ""
+    #: keyword options the backend's constructor takes, with their defaults
+    OPTIONS: ClassVar[dict[str, Any]] = {}
+
+    def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
+        super().__init__()
+        if int(nworld) != nworld or nworld < 1:
+            raise ValueError(f"nworld must be a positive integer, got {nworld!r}")
+        unknown = sorted(set(options) - set(self.OPTIONS))
+        if unknown:
+            known = ", ".join(self.OPTIONS) or "none"
+            raise ValueError(f"unknown option {unknown[0]!r} for backend {self.name} (options: {known})")
+        self.spec = spec
+        self.nworld = int(nworld)
+        self.options = {**self.OPTIONS, **options}
+        self.reason = ""  # why this backend was chosen, for `batchsim info` and the status line
+        m = spec.mjmodel
+        self.model = m
+        self.dt = float(m.opt.timestep)
+
+        nstate, ncommand = len(spec.state), len(spec.commands)
+        self.state = np.zeros((self.nworld, nstate))
+        self._command = np.zeros((self.nworld, ncommand))
+        self.status = np.zeros(self.nworld, np.uint8)
+        self.time = np.zeros(self.nworld)
+        self._initial_command = initial_command(spec)
+        self._command[:] = self._initial_command
+        self._sensor_host = np.zeros((self.nworld, m.nsensordata))
+        self.sensordata = SensorData(
+            {s.name: self._sensor_host[:, s.adr : s.adr + s.dim] for s in spec.sensors}
+        )
+        # state columns gathered per source field: (state columns, field indices)
+        self._gather: list[tuple[str, np.ndarray, np.ndarray]] = []
+        for source in ("qpos", "qvel", "qfrc_actuator", "sensordata"):
+            cols = [i for i, c in enumerate(spec.state) if c.source == source]
+            if cols:
+                idx = [spec.state[i].index for i in cols]
+                self._gather.append((source, np.array(cols), np.array(idx)))
+        self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
+        self._opened = False
+
+    # --- interfaces ---
+    def export_state_interfaces(self) -> list[str]:
+        """State interface names, `"<joint>/<interface>"` and `"<sensor>/<field>"`, in column order."""
+        return self.spec.state_interfaces
+
+    def export_command_interfaces(self) -> list[str]:
+        """Command interface names, `"<joint>/<interface>"`, in column order."""
+        return self.spec.command_interfaces
+
+    # --- lifecycle ---
+    def on_configure(self, previous_state: LifecycleState) -> CallbackReturn:
+        if self.spec.problems:
+            raise ConfigurationError(f"{self.spec.name}: " + "; ".join(self.spec.problems))
+        if not self._opened:
+            self._open()
+            self._opened = True
+        self.reset()
+        return CallbackReturn.SUCCESS
+
+    def on_cleanup(self, previous_state: LifecycleState) -> CallbackReturn:
+        self._release()
+        return CallbackReturn.SUCCESS
+
+    def on_shutdown(self, previous_state: LifecycleState) -> CallbackReturn:
+        self._release()
+        return CallbackReturn.SUCCESS
+
+    def on_error(self, previous_state: LifecycleState) -> CallbackReturn:
+        self._release()
+        return CallbackReturn.SUCCESS
+
+    def _release(self) -> None:
+        if self._opened:
+            self._close()
+            self._opened = False
+
+    # --- read / write ---
+    def read(self, time: float | None = None, period: float | None = None) -> ReturnType:
+        """Refresh `state`, `sensordata` and `time` from the simulation (INACTIVE or ACTIVE)."""
+        if self._lifecycle not in (S.INACTIVE, S.ACTIVE):
+            return ReturnType.OK
+        self._refresh()
+        return ReturnType.OK
+
+    def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
+        """Apply `command` to every world's `ctrl`; a no-op unless ACTIVE.
+
+        A world whose command row holds NaN or inf gets BAD_COMMAND and keeps its previous
+        `ctrl`; the other worlds are applied as usual.
+        """
+        if self._lifecycle is not S.ACTIVE:
+            return ReturnType.OK
+        command = self._command
+        good = np.isfinite(command).all(axis=1)
+        ctrl = self._ctrl_host()
+        if good.all():
+            ctrl[:, self._ctrl_index] = command
+            self.status &= ~np.uint8(Status.BAD_COMMAND)
+        else:
+            rows = np.flatnonzero(good)
+            ctrl[np.ix_(rows, self._ctrl_index)] = command[rows]
+            self.status[good] &= ~np.uint8(Status.BAD_COMMAND)
+            self.status[~good] |= np.uint8(Status.BAD_COMMAND)
+        self._upload_ctrl()
+        return ReturnType.OK
+
+    @property
+    def command(self) -> np.ndarray:
+        """(nworld, ncommand) float64: the commands the next write() applies. Edit in place."""
+        return self._command
+
+    @command.setter
+    def command(self, value: Any) -> None:
+        self.set_command(value)
+
+    def set_command(self, command: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
+        """Copy `command` into `self.command` for all or the listed worlds; `(ncommand,)` broadcasts.
+
+        Raises ValueError naming the expected and actual shapes.
+        """
+        command = np.asarray(command, dtype=np.float64)
+        rows = self._worlds(worlds)
+        n = self.nworld if rows is None else len(rows)
+        ncommand = len(self.spec.commands)
+        if command.shape not in ((ncommand,), (n, ncommand)):
+            raise ValueError(
+                f"command must have shape ({n}, {ncommand}) or ({ncommand},), got {command.shape}"
+                + (f"; command interfaces: {', '.join(self.spec.command_interfaces)}" if ncommand else "")
+            )
+        self._command[slice(None) if rows is None else rows] = command
+
+    # --- stepping ---
+    def step(self, nstep: int = 1) -> None:
+        """Advance every world `nstep` physics steps; frozen (diverged, overflowed) worlds stay put."""
+        self._require("step", frozenset({S.INACTIVE, S.ACTIVE}))
+        if nstep < 1:
+            raise ValueError(f"nstep must be >= 1, got {nstep}")
+        self._step(int(nstep))
+
+    def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
+        """Reset all worlds, or only the listed ones, to the initial state and command.
+
+        Clears their status bits and refreshes `state`; no other world changes.
+        """
+        self._require("reset", frozenset({S.UNCONFIGURED, S.INACTIVE, S.ACTIVE}))
+        if not self._opened:
+            raise LifecycleError("cannot reset: the system is UNCONFIGURED; configure it first")
+        rows = self._worlds(worlds)
+        sel = np.arange(self.nworld) if rows is None else rows
+        self._reset(rows)
+        self._command[sel] = self._initial_command
+        ctrl = self._ctrl_host()
+        ctrl[sel] = 0.0
+        ctrl[np.ix_(sel, self._ctrl_index)] = self._initial_command
+        self._upload_ctrl()
+        self.status[sel] = 0
+        self._refresh()
+
+    @property
+    def frozen(self) -> np.ndarray:
+        """(nworld,) bool: the worlds step() leaves alone until they are reset."""
+        return (self.status & np.uint8(FROZEN)) != 0
+
+    def _worlds(self, worlds: Sequence[int] | np.ndarray | None) -> np.ndarray | None:
+        if worlds is None:
+            return None
+        rows = np.asarray(worlds)
+        if rows.dtype == bool:
+            if rows.shape != (self.nworld,):
+                raise ValueError(f"a world mask must have shape ({self.nworld},), got {rows.shape}")
+            return np.flatnonzero(rows)
+        rows = np.unique(rows.astype(np.int64).reshape(-1))
+        if rows.size and (rows[0] < 0 or rows[-1] >= self.nworld):
+            bad = rows[0] if rows[0] < 0 else rows[-1]
+            raise ValueError(f"world {bad} is out of range: worlds are 0..{self.nworld - 1}")
+        return rows
+
+    def _refresh(self) -> None:
+        fields = self._download()
+        for source, cols, idx in self._gather:
+            self.state[:, cols] = fields[source][:, idx]
+        self._sensor_host[:] = fields["sensordata"]
+        self.time[:] = fields["time"]
+
+    # --- engine hooks, one set per backend ---
+    def _open(self) -> None:
+        """Allocate the engine and its buffers (on_configure)."""
+        raise NotImplementedError
+
+    def _close(self) -> None:
+        """Free the engine (on_cleanup, on_shutdown, on_error)."""
+
+    def _ctrl_host(self) -> np.ndarray:
+        """The host (nworld, nu) float64 ctrl array that write() fills."""
+        raise NotImplementedError
+
+    def _upload_ctrl(self) -> None:
+        """Make the host ctrl the engine's ctrl (a no-op where they are the same memory)."""
+
+    def _download(self) -> Mapping[str, np.ndarray]:
+        """Host arrays qpos, qvel, qfrc_actuator, sensordata (nworld, ...) and time (nworld,)."""
+        raise NotImplementedError
+
+    def _step(self, nstep: int) -> None:
+        """Advance the unfrozen worlds nstep steps; set DIVERGED / OVERFLOW bits of worlds that fail."""
+        raise NotImplementedError
+
+    def _reset(self, worlds: np.ndarray | None) -> None:
+        """Reset the listed worlds (None: all) to the model's initial state."""
+        raise NotImplementedError
+
+
+class ConfigurationError(ValueError):
+    """The model or its ros2_control block asks for something the simulation cannot serve."""
