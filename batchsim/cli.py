@@ -1,0 +1,190 @@
+"""The `batchsim` command.
+
+    batchsim --worlds 16                     16 arms, over ROS 2, in real time
+    batchsim --worlds 64 --model quadruped --rtf 0 --no-ros
+    batchsim info arm                        interfaces and sensors of a model
+
+Errors a user can fix (a missing file, malformed XML, an unknown model, a bad flag) print
+one line and exit with code 2; Ctrl-C and SIGTERM end the run cleanly with code 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import batchsim
+from batchsim.backends import BackendUnavailable, resolve
+from batchsim.hardware import BatchedSystem, ConfigurationError, LifecycleError
+from batchsim.loop import SimLoop, format_stats
+from batchsim.model import ModelError
+
+EXIT_USAGE = 2
+
+
+class UsageError(Exception):
+    """A problem the user can fix; printed as one line, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
+        raise UsageError(message)
+
+
+def run_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="batchsim",
+        description="Run N copies of one MuJoCo robot, each on its own ROS 2 namespace.",
+        epilog="`batchsim info MODEL` lists a model's interfaces and sensors.",
+    )
+    p.add_argument("--worlds", type=int, default=16, help="number of worlds (default 16)")
+    p.add_argument("--model", default="arm", help="shipped model name or MJCF path (default arm)")
+    p.add_argument(
+        "--backend", default="auto", help="cpu, mjx, warp or auto (default auto: picked for the hardware)"
+    )
+    p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds")
+    p.add_argument("--rtf", type=float, default=1.0, help="real-time factor; 0 runs as fast as possible")
+    p.add_argument("--control-rate", type=float, default=None, help="Hz: commands applied, state read")
+    p.add_argument("--threads", type=int, default=None, help="cpu backend: worker threads (default: all cores)")
+    p.add_argument("--ros2-control", default=None, help="URDF/XML file with a <ros2_control> block")
+    p.add_argument("--no-ros", action="store_true", help="run without the ROS 2 bridge")
+    p.add_argument("--quiet", action="store_true", help="no live status line")
+    ros = p.add_argument_group("ROS 2 bridge")
+    ros.add_argument("--namespace", default="world_{i}", help="per-world namespace template (default world_{i})")
+    ros.add_argument("--publish-rate", type=float, default=None, help="Hz for topics (default: the control rate)")
+    ros.add_argument("--lockstep", action="store_true", help="each period waits for every world's command")
+    ros.add_argument("--lockstep-timeout", type=float, default=1.0, help="seconds a lockstep period waits")
+    ros.add_argument("--qos-depth", type=int, default=None, help="queue depth (default 10, or the MJCF's)")
+    ros.add_argument("--reliability", choices=("reliable", "best_effort"), default=None)
+    ros.add_argument("--command-timeout", type=float, default=None, help="seconds without commands before a world goes safe")
+    ros.add_argument("--controllers", default=None, help="ros2_control controller_manager YAML")
+    return p
+
+
+def info_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="batchsim info", description="List a model's interfaces and sensors.")
+    p.add_argument("model", help="shipped model name or MJCF path")
+    p.add_argument("--worlds", type=int, default=16, help="world count the backend choice is for")
+    p.add_argument("--backend", default="auto")
+    p.add_argument("--ros2-control", default=None)
+    return p
+
+
+def info(argv: Sequence[str]) -> int:
+    args = info_parser().parse_args(argv)
+    spec = batchsim.load(args.model, ros2_control=args.ros2_control)
+    chosen, reason = resolve(args.backend, spec, args.worlds)
+    m = spec.mjmodel
+    out = [
+        f"model      {spec.name}  ({spec.path or 'string'})",
+        f"timestep   {m.opt.timestep:g} s   nq {m.nq}  nv {m.nv}  nu {m.nu}",
+        f"backend    {chosen.value} for {args.worlds} worlds ({reason})",
+    ]
+    if spec.ros is not None:
+        r = spec.ros
+        out.append(
+            f"mujoco.ros2 ros_namespace={r.ros_namespace!r} topic_queue_size={r.topic_queue_size} "
+            f"topic_reliability={r.topic_reliability}"
+        )
+    out.append(f"\nstate interfaces ({len(spec.state)})")
+    out += [f"  {i:3d}  {c.name}" for i, c in enumerate(spec.state)]
+    out.append(f"\ncommand interfaces ({len(spec.commands)})")
+    out += [f"  {i:3d}  {c.name:32s} actuator {c.actuator}" for i, c in enumerate(spec.commands)]
+    out.append(f"\nsensors ({len(spec.sensors)})")
+    out += [
+        f"  {s.name:24s} {s.type:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors
+    ]
+    if spec.problems:
+        out.append("\nproblems (configure will fail)")
+        out += [f"  {p}" for p in spec.problems]
+    print("\n".join(out))
+    return 0
+
+
+def build(args: argparse.Namespace) -> BatchedSystem:
+    if args.worlds < 1:
+        raise UsageError(f"--worlds must be >= 1, got {args.worlds}")
+    options: dict[str, Any] = {}
+    if args.threads is not None:
+        options["nthread"] = args.threads
+    sim = batchsim.make(args.model, args.worlds, args.backend, ros2_control=args.ros2_control, **options)
+    sim.configure()
+    sim.activate()
+    return sim
+
+
+def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace):
+    """The ROS 2 bridge for this run, or None if this version has none yet."""
+    try:
+        from ros_bridge.bridge import start_bridge
+    except ModuleNotFoundError as e:
+        if e.name and e.name.startswith("ros_bridge"):
+            print("batchsim: the ROS 2 bridge is not available yet; running without ROS", file=sys.stderr)
+            return None
+        raise UsageError(
+            f"ROS 2 is not installed ({e.name} is missing): pip install 'batchsim[ros]', or pass --no-ros"
+        ) from None
+    return start_bridge(sim, loop, args)
+
+
+def run(argv: Sequence[str]) -> int:
+    args = run_parser().parse_args(argv)
+    sim = build(args)
+    loop = SimLoop(sim, control_rate=args.control_rate, rtf=args.rtf, duration=args.duration)
+    bridge = None if args.no_ros else start_ros(sim, loop, args)
+
+    def on_signal(signum: int, frame: Any) -> None:
+        loop.stop()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+
+    backend = f"{sim.name} ({sim.reason})"
+    tty = sys.stderr.isatty()
+
+    def report(stats) -> None:
+        if args.quiet:
+            return
+        line = format_stats(stats, sim.nworld, backend)
+        print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
+
+    print(
+        f"batchsim: {sim.nworld} x {sim.spec.name} on {backend}, control {loop.control_rate:g} Hz "
+        f"({loop.substeps} x {sim.dt:g} s), rtf {'max' if args.rtf == 0 else f'{args.rtf:g}'}"
+        + ("" if bridge is None else f", ROS 2 namespaces {bridge.describe()}"),
+        file=sys.stderr,
+        flush=True,
+    )
+    try:
+        stats = loop.run(report)
+    finally:
+        if bridge is not None:
+            bridge.close()
+        sim.shutdown()
+    if tty and not args.quiet:
+        print(file=sys.stderr)
+    print(f"batchsim: stopped at sim time {stats.sim_time:.3f} s", file=sys.stderr, flush=True)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv and argv[0] == "info":
+            return info(argv[1:])
+        return run(argv)
+    except (UsageError, ModelError, ConfigurationError, BackendUnavailable, LifecycleError, ValueError) as e:
+        print(f"batchsim: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return 0
+    except BrokenPipeError:  # `batchsim info arm | head`
+        sys.stderr.close()
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,201 @@
+"""The simulation loop: read, update, write, step, once per control period, paced to a
+real-time factor. It is controller_manager's loop, batched over worlds.
+
+Participants (controllers, the ROS bridge) plug in through `Participant.update`, called
+every control period between `read()` and `write()`, exactly where ros2_control calls
+controllers. Nothing here imports rclpy: the bridge is one participant among others.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time as wallclock
+from collections.abc import Callable, Sequence
+from typing import Protocol
+
+import numpy as np
+
+from batchsim.hardware import BatchedSystem, ReturnType, Status
+
+
+DEFAULT_CONTROL_RATE = 100.0  # Hz
+
+
+class Participant(Protocol):
+    """Something that runs once per control period, between read() and write()."""
+
+    def update(self, sim: BatchedSystem, time: float, period: float) -> None: ...
+
+
+@dataclasses.dataclass
+class LoopStats:
+    """What the status line shows, over the last reporting window."""
+
+    sim_time: float = 0.0
+    rtf: float = 0.0
+    steps_per_second: float = 0.0
+    diverged: int = 0
+    overflow: int = 0
+    bad_command: int = 0
+    periods: int = 0
+
+
+class SimLoop:
+    """Runs a configured, active system period after period.
+
+    Args:
+      sim: the system, ACTIVE (or INACTIVE: it then steps without applying commands).
+      control_rate: Hz at which commands are applied and state read; it must be a whole
+        number of physics steps. None: the nearest to DEFAULT_CONTROL_RATE.
+      rtf: real-time factor to hold; 0 runs as fast as possible.
+      duration: stop after this much simulated time (seconds); None runs until stop().
+      participants: called every period between read() and write().
+    """
+
+    def __init__(
+        self,
+        sim: BatchedSystem,
+        *,
+        control_rate: float | None = None,
+        rtf: float = 1.0,
+        duration: float | None = None,
+        participants: Sequence[Participant] = (),
+    ):
+        if rtf < 0:
+            raise ValueError(f"--rtf must be >= 0, got {rtf}")
+        self.sim = sim
+        dt = sim.dt
+        if control_rate is None:
+            self.substeps = max(1, round(1.0 / (DEFAULT_CONTROL_RATE * dt)))
+        else:
+            if control_rate <= 0:
+                raise ValueError(f"--control-rate must be > 0, got {control_rate}")
+            ratio = 1.0 / (control_rate * dt)
+            self.substeps = max(1, round(ratio))
+            if abs(self.substeps - ratio) > 1e-6 * ratio:
+                raise ValueError(
+                    f"--control-rate {control_rate:g} Hz is not a whole number of physics steps "
+                    f"of {dt:g} s (the model's timestep): try {1.0 / (self.substeps * dt):g} Hz"
+                )
+        self.period = self.substeps * dt
+        self.control_rate = 1.0 / self.period
+        self.rtf = float(rtf)
+        self.duration = duration
+        self.participants = list(participants)
+        self.sim_time = 0.0
+        self.stats = LoopStats()
+        self._stop = threading.Event()
+        self._paused = threading.Event()
+        self._single_steps = 0
+        self._lock = threading.Lock()
+        self.gate: Callable[[float], bool] | None = None  # lockstep: wait for commands
+
+    # --- control from other threads (signal handlers, ROS services) ---
+    def stop(self) -> None:
+        self._stop.set()
+
+    @property
+    def stopped(self) -> bool:
+        return self._stop.is_set()
+
+    def pause(self, paused: bool) -> None:
+        if paused:
+            self._paused.set()
+        else:
+            self._paused.clear()
+
+    @property
+    def paused(self) -> bool:
+        return self._paused.is_set()
+
+    def single_step(self) -> None:
+        """While paused, advance one control period."""
+        with self._lock:
+            self._single_steps += 1
+
+    # --- the loop ---
+    def run_period(self) -> None:
+        """One control period: read, participants, write, step."""
+        sim = self.sim
+        t, period = self.sim_time, self.period
+        if sim.read(t, period) is ReturnType.ERROR:
+            raise RuntimeError("read() failed")
+        for p in self.participants:
+            p.update(sim, t, period)
+        sim.write(t, period)
+        sim.step(self.substeps)
+        self.sim_time += period
+        self.stats.periods += 1
+
+    def run(self, report: Callable[[LoopStats], None] | None = None, report_every: float = 1.0) -> LoopStats:
+        """Run until stop() or `duration`; call `report` about every `report_every` wall seconds."""
+        start = wallclock.perf_counter()
+        anchor_wall, anchor_sim = start, self.sim_time
+        window_wall, window_sim, window_steps = start, self.sim_time, 0
+        nworld = self.sim.nworld
+        while not self._stop.is_set():
+            if self.duration is not None and self.sim_time >= self.duration - 1e-9:
+                break
+            if self._paused.is_set():
+                with self._lock:
+                    go = self._single_steps > 0
+                    if go:
+                        self._single_steps -= 1
+                if not go:
+                    self._idle_participants()
+                    wallclock.sleep(0.002)
+                    anchor_wall, anchor_sim = wallclock.perf_counter(), self.sim_time
+                    continue
+            if self.gate is not None and not self.gate(self.sim_time):
+                continue
+            self.run_period()
+            window_steps += self.substeps * nworld
+            now = wallclock.perf_counter()
+            if self.rtf > 0:
+                target = anchor_wall + (self.sim_time - anchor_sim) / self.rtf
+                if target > now:
+                    wallclock.sleep(target - now)
+                elif now - target > 0.5:  # fell behind: hold the rate from here, don't sprint
+                    anchor_wall, anchor_sim = now, self.sim_time
+            now = wallclock.perf_counter()
+            if now - window_wall >= report_every:
+                self._update_stats(now - window_wall, self.sim_time - window_sim, window_steps)
+                if report is not None:
+                    report(self.stats)
+                window_wall, window_sim, window_steps = now, self.sim_time, 0
+        now = wallclock.perf_counter()
+        if now > window_wall and window_steps:
+            self._update_stats(now - window_wall, self.sim_time - window_sim, window_steps)
+        return self.stats
+
+    def _idle_participants(self) -> None:
+        for p in self.participants:
+            idle = getattr(p, "idle", None)
+            if idle is not None:
+                idle(self.sim, self.sim_time)
+
+    def _update_stats(self, wall: float, sim_elapsed: float, steps: int) -> None:
+        status = self.sim.status
+        s = self.stats
+        s.sim_time = self.sim_time
+        s.rtf = sim_elapsed / wall if wall > 0 else 0.0
+        s.steps_per_second = steps / wall if wall > 0 else 0.0
+        s.diverged = int(np.count_nonzero(status & np.uint8(Status.DIVERGED)))
+        s.overflow = int(np.count_nonzero(status & np.uint8(Status.OVERFLOW)))
+        s.bad_command = int(np.count_nonzero(status & np.uint8(Status.BAD_COMMAND)))
+
+
+def format_stats(stats: LoopStats, nworld: int, backend: str) -> str:
+    """The live status line."""
+    sps = stats.steps_per_second
+    rate = f"{sps / 1e6:.2f}M" if sps >= 1e6 else f"{sps / 1e3:.1f}k"
+    line = (
+        f"sim {stats.sim_time:8.2f} s | rtf {stats.rtf:5.2f} | {rate} steps/s | "
+        f"diverged {stats.diverged}/{nworld}"
+    )
+    if stats.overflow:
+        line += f" | overflow {stats.overflow}"
+    if stats.bad_command:
+        line += f" | bad command {stats.bad_command}"
+    return line + f" | {backend}"
