@@ -166,7 +166,11 @@ def run(argv: Sequence[str]) -> int:
         sim.shutdown()
     if tty and not args.quiet:
         print(file=sys.stderr)
-    print(f"batchsim: stopped at sim time {stats.sim_time:.3f} s", file=sys.stderr, flush=True)
+    print(
+        f"batchsim: stopped at sim time {loop.sim_time:.3f} s; last: {format_stats(stats, sim.nworld, backend)}",
+        file=sys.stderr,
+        flush=True,
+    )
     return 0
 
 

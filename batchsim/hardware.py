@@ -66,6 +66,7 @@ class Status(enum.IntFlag):
 
 
 FROZEN = Status.DIVERGED | Status.OVERFLOW
+MAX_COMMAND = 1e10  # MuJoCo's mjMAXVAL: a ctrl beyond it trips mjWARN_BADCTRL
 
 
 class LifecycleError(RuntimeError):
@@ -310,13 +311,14 @@ class BatchedSystem(SystemInterface):
     def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
         """Apply `command` to every world's `ctrl`; a no-op unless ACTIVE.
 
-        A world whose command row holds NaN or inf gets BAD_COMMAND and keeps its previous
-        `ctrl`; the other worlds are applied as usual.
+        A world whose command row holds NaN, inf or a value beyond MAX_COMMAND gets
+        BAD_COMMAND and keeps its previous `ctrl`; the other worlds are applied as usual.
         """
         if self._lifecycle is not S.ACTIVE:
             return ReturnType.OK
         command = self._command
-        good = np.isfinite(command).all(axis=1)
+        # MuJoCo itself zeroes ctrl beyond mjMAXVAL; reject it here, per world, with a status bit
+        good = (np.abs(command) < MAX_COMMAND).all(axis=1)
         ctrl = self._ctrl_host()
         if good.all():
             ctrl[:, self._ctrl_index] = command

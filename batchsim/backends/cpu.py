@@ -19,7 +19,7 @@ from batchsim.hardware import BatchedSystem, Status
 
 _W = mujoco.mjtWarning
 # MuJoCo warnings that mean a world's numbers can no longer be trusted
-_DIVERGED_WARNINGS = [int(_W.mjWARN_BADQPOS), int(_W.mjWARN_BADQVEL), int(_W.mjWARN_BADQACC)]
+_DIVERGED_WARNINGS = [int(_W.mjWARN_BADQPOS), int(_W.mjWARN_BADQVEL), int(_W.mjWARN_BADQACC), int(_W.mjWARN_BADCTRL)]
 _OVERFLOW_WARNINGS = [int(_W.mjWARN_CONTACTFULL), int(_W.mjWARN_CNSTRFULL)]
 
 

@@ -1,0 +1,387 @@
+"""The contract suite: every backend must pass it unchanged.
+
+It checks the ros2_control lifecycle table, interface names for each shipped model,
+shapes and dtypes, that write() does nothing unless ACTIVE, that reset touches only the
+listed worlds, determinism, and bad input (wrong-shaped and NaN commands).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import batchsim
+from batchsim import CallbackReturn, LifecycleError, LifecycleState, ReturnType, Status
+
+S = LifecycleState
+NWORLD = 4
+
+
+def active(model: str, backend: str, nworld: int = NWORLD) -> batchsim.BatchedSystem:
+    sim = batchsim.make(model, nworld, backend)
+    assert sim.configure() is S.INACTIVE
+    assert sim.activate() is S.ACTIVE
+    return sim
+
+
+@pytest.fixture(scope="module")
+def arm(backend):
+    """One active arm fleet per backend, shared: tests reset the worlds they dirty."""
+    sim = active("arm", backend)
+    yield sim
+    sim.shutdown()
+
+
+# ---------------------------------------------------------------- lifecycle
+
+
+def test_lifecycle_happy_path(backend):
+    sim = batchsim.make("arm", 2, backend)
+    assert sim.lifecycle_state is S.UNCONFIGURED
+    assert sim.configure() is S.INACTIVE
+    assert sim.activate() is S.ACTIVE
+    assert sim.deactivate() is S.INACTIVE
+    assert sim.activate() is S.ACTIVE
+    assert sim.deactivate() is S.INACTIVE
+    assert sim.cleanup() is S.UNCONFIGURED
+    assert sim.configure() is S.INACTIVE
+    assert sim.shutdown() is S.FINALIZED
+
+
+@pytest.mark.parametrize(
+    "path, transition",
+    [
+        ([], "activate"),
+        ([], "deactivate"),
+        ([], "cleanup"),
+        (["configure"], "configure"),
+        (["configure"], "deactivate"),
+        (["configure", "activate"], "activate"),
+        (["configure", "activate"], "cleanup"),
+        (["shutdown"], "configure"),
+        (["shutdown"], "shutdown"),
+    ],
+)
+def test_illegal_transitions_name_the_state(backend, path, transition):
+    sim = batchsim.make("arm", 1, backend)
+    for t in path:
+        getattr(sim, t)()
+    state = sim.lifecycle_state
+    with pytest.raises(LifecycleError, match=f"the system is {state.name}"):
+        getattr(sim, transition)()
+    assert sim.lifecycle_state is state
+
+
+class _Scripted(batchsim.SystemInterface):
+    """A lifecycle whose callbacks return what the test says."""
+
+    def __init__(self, **results):
+        super().__init__()
+        self.results = results
+        self.calls = []
+
+    def __getattribute__(self, name):
+        if name.startswith("on_") and name in object.__getattribute__(self, "results"):
+            result = object.__getattribute__(self, "results")[name]
+
+            def callback(*args):
+                object.__getattribute__(self, "calls").append(name)
+                return result
+
+            return callback
+        return object.__getattribute__(self, name)
+
+
+F, E, OK = CallbackReturn.FAILURE, CallbackReturn.ERROR, CallbackReturn.SUCCESS
+
+
+@pytest.mark.parametrize(
+    "results, path, expected",
+    [
+        # ros2_control's hardware_interface::System table, outcome by outcome
+        ({"on_init": F}, ["initialize"], S.FINALIZED),
+        ({"on_init": E}, ["initialize"], S.FINALIZED),
+        ({"on_configure": F}, ["initialize", "configure"], S.UNCONFIGURED),
+        ({"on_configure": E, "on_error": OK}, ["initialize", "configure"], S.UNCONFIGURED),
+        ({"on_configure": E, "on_error": F}, ["initialize", "configure"], S.FINALIZED),
+        ({"on_activate": F}, ["initialize", "configure", "activate"], S.INACTIVE),
+        ({"on_activate": E}, ["initialize", "configure", "activate"], S.UNCONFIGURED),
+        ({"on_deactivate": F}, ["initialize", "configure", "activate", "deactivate"], S.ACTIVE),
+        ({"on_deactivate": E}, ["initialize", "configure", "activate", "deactivate"], S.UNCONFIGURED),
+        ({"on_cleanup": F}, ["initialize", "configure", "cleanup"], S.UNCONFIGURED),
+        ({"on_cleanup": F, "on_error": E}, ["initialize", "configure", "cleanup"], S.FINALIZED),
+        ({"on_shutdown": F}, ["initialize", "configure", "shutdown"], S.UNCONFIGURED),
+        ({"on_shutdown": OK}, ["initialize", "configure", "activate", "shutdown"], S.FINALIZED),
+    ],
+)
+def test_transition_table(results, path, expected):
+    system = _Scripted(**results)
+    for t in path:
+        getattr(system, t)()
+    assert system.lifecycle_state is expected
+
+
+def test_callback_exception_runs_on_error_then_propagates():
+    class Broken(batchsim.SystemInterface):
+        def on_configure(self, previous_state):
+            raise RuntimeError("no device")
+
+    system = Broken()
+    system.initialize()
+    with pytest.raises(RuntimeError, match="no device"):
+        system.configure()
+    assert system.lifecycle_state is S.UNCONFIGURED
+
+
+# ---------------------------------------------------------------- interfaces
+
+ARM_JOINTS = [f"joint{i}" for i in range(1, 7)]
+QUAD_JOINTS = [f"{leg}_{j}" for leg in ("FL", "FR", "HL", "HR") for j in ("hip_abduction", "hip_flexion", "knee")]
+
+
+@pytest.mark.parametrize(
+    "model, commands, some_states",
+    [
+        (
+            "arm",
+            [f"{j}/position" for j in ARM_JOINTS],
+            ["joint1/position", "joint1/velocity", "joint1/effort", "wrist_force/force.x", "wrist_torque/torque.z"],
+        ),
+        (
+            "car",
+            ["left_wheel_joint/effort", "right_wheel_joint/effort"],
+            ["left_wheel_joint/velocity", "left_wheel_torque/effort"],
+        ),
+        (
+            "quadruped",
+            [f"{j}/effort" for j in QUAD_JOINTS],
+            [
+                "FL_knee/position",
+                "imu_orientation/orientation.w",
+                "imu_gyro/angular_velocity.x",
+                "imu_accel/linear_acceleration.z",
+                "HR_foot_touch/force",
+            ],
+        ),
+    ],
+)
+def test_interface_names(backend, model, commands, some_states):
+    sim = batchsim.make(model, 2, backend)
+    assert sim.export_command_interfaces() == commands
+    states = sim.export_state_interfaces()
+    assert len(states) == len(set(states))
+    for name in some_states:
+        assert name in states
+    joints = {s.split("/")[0] for s in states if s.endswith(("/position", "/velocity", "/effort"))}
+    for c in commands:
+        joint = c.split("/")[0]
+        assert f"{joint}/position" in states and f"{joint}/velocity" in states and f"{joint}/effort" in states
+        assert joint in joints
+
+
+def test_shapes_and_dtypes(arm):
+    n, nstate, ncmd = NWORLD, len(arm.export_state_interfaces()), len(arm.export_command_interfaces())
+    assert arm.state.shape == (n, nstate) and arm.state.dtype == np.float64
+    assert arm.command.shape == (n, ncmd) and arm.command.dtype == np.float64
+    assert arm.status.shape == (n,)
+    assert arm.time.shape == (n,) and arm.time.dtype == np.float64
+    assert set(arm.sensordata) == {s.name for s in arm.spec.sensors}
+    assert arm.sensordata["wrist_force"].shape == (n, 3)
+    assert arm.sensordata["joint1_pos"].shape == (n, 1)
+    assert arm.read() is ReturnType.OK and arm.write() is ReturnType.OK
+
+
+def test_state_columns_follow_the_simulation(arm):
+    arm.reset()
+    arm.command[:, 0] = 0.4
+    for _ in range(50):
+        arm.write()
+        arm.step(10)
+    arm.read()
+    names = arm.export_state_interfaces()
+    pos = arm.state[:, names.index("joint1/position")]
+    assert np.allclose(pos, 0.4, atol=0.02)
+    # the jointpos sensor is one substep behind the state, as with mj_step
+    assert np.allclose(arm.sensordata["joint1_pos"][:, 0], pos, atol=1e-3)
+    assert np.allclose(arm.time, 0.5, atol=1e-9)
+    # gravity on the tool: the wrist force sensor sees its weight
+    assert np.all(np.abs(arm.sensordata["wrist_force"]).max(axis=1) > 1.0)
+    arm.reset()
+
+
+# ---------------------------------------------------------------- write / read gating
+
+
+def test_write_is_ignored_unless_active(backend):
+    sim = batchsim.make("arm", 2, backend)
+    sim.command[:] = 1.0
+    assert sim.write() is ReturnType.OK  # UNCONFIGURED: nothing to write to
+    sim.configure()
+    sim.command[:] = 1.0
+    assert sim.write() is ReturnType.OK  # INACTIVE: ignored
+    sim.step(100)
+    sim.read()
+    pos = sim.state[:, sim.export_state_interfaces().index("joint1/position")]
+    assert np.allclose(pos, 0.0, atol=1e-3)
+    sim.activate()
+    sim.command[:] = 0.3
+    sim.write()
+    sim.step(300)
+    sim.read()
+    pos = sim.state[:, sim.export_state_interfaces().index("joint1/position")]
+    assert np.all(np.abs(pos - 0.3) < 0.05)
+    sim.shutdown()
+
+
+def test_step_needs_a_configured_system(backend):
+    sim = batchsim.make("arm", 1, backend)
+    with pytest.raises(LifecycleError, match="UNCONFIGURED"):
+        sim.step(1)
+
+
+# ---------------------------------------------------------------- reset
+
+
+def test_reset_touches_only_listed_worlds(arm):
+    arm.reset()
+    arm.command[:] = np.linspace(0.1, 0.4, NWORLD)[:, None]
+    for _ in range(20):
+        arm.write()
+        arm.step(10)
+    arm.read()
+    before = arm.state.copy()
+    time_before = arm.time.copy()
+    arm.reset(worlds=[1, 3])
+    after = arm.state
+    assert np.array_equal(after[[0, 2]], before[[0, 2]])
+    assert np.array_equal(arm.time[[0, 2]], time_before[[0, 2]])
+    assert np.allclose(arm.time[[1, 3]], 0.0)
+    names = arm.export_state_interfaces()
+    assert np.allclose(after[[1, 3], names.index("joint1/position")], 0.0)
+    # the reset worlds' commands go back to holding the initial pose
+    assert np.allclose(arm.command[[1, 3]], 0.0)
+    assert np.allclose(arm.command[[0, 2], 0], [0.1, 0.3])
+    arm.reset()
+
+
+def test_reset_rejects_unknown_worlds(arm):
+    with pytest.raises(ValueError, match="world 4 is out of range"):
+        arm.reset(worlds=[4])
+
+
+# ---------------------------------------------------------------- determinism
+
+
+def _rollout(backend: str, model: str, nworld: int, nperiod: int) -> np.ndarray:
+    sim = active(model, backend, nworld)
+    rng = np.random.default_rng(0)
+    ncmd = len(sim.export_command_interfaces())
+    out = []
+    for _ in range(nperiod):
+        sim.command = rng.uniform(-0.5, 0.5, (nworld, ncmd))
+        sim.write()
+        sim.step(5)
+        sim.read()
+        out.append(sim.state.copy())
+    sim.shutdown()
+    return np.stack(out)
+
+
+@pytest.mark.parametrize("model", ["arm", "quadruped"])
+def test_determinism(backend, model):
+    a = _rollout(backend, model, 3, 20)
+    b = _rollout(backend, model, 3, 20)
+    assert np.array_equal(a, b)
+    assert np.isfinite(a).all()
+
+
+# ---------------------------------------------------------------- bad input
+
+
+def test_wrong_shape_command_raises_naming_shapes(arm):
+    ncmd = len(arm.export_command_interfaces())
+    with pytest.raises(ValueError, match=rf"\({NWORLD}, {ncmd}\).*got \({NWORLD}, {ncmd + 1}\)"):
+        arm.command = np.zeros((NWORLD, ncmd + 1))
+    with pytest.raises(ValueError, match=rf"got \({ncmd - 1},\)"):
+        arm.set_command(np.zeros(ncmd - 1))
+    assert arm.command.shape == (NWORLD, ncmd)
+
+
+def test_nan_command_sets_bad_command_and_spares_the_others(arm):
+    arm.reset()
+    arm.command[:] = 0.2
+    arm.write()
+    arm.step(50)
+    arm.read()
+    reference = arm.state.copy()
+    # world 2 gets a NaN: not applied, BAD_COMMAND; the others take their new command
+    arm.command[:] = 0.25
+    arm.command[2, 3] = np.nan
+    assert arm.write() is ReturnType.OK
+    assert arm.status[2] & Status.BAD_COMMAND
+    assert not np.any(arm.status[[0, 1, 3]] & Status.BAD_COMMAND)
+    arm.step(200)
+    arm.read()
+    names = arm.export_state_interfaces()
+    j1 = names.index("joint1/position")
+    # world 2 kept holding 0.2 (its last good command), the others moved to 0.25
+    assert abs(arm.state[2, j1] - 0.2) < 0.02
+    assert np.all(np.abs(arm.state[[0, 1, 3], j1] - 0.25) < 0.02)
+    assert np.isfinite(arm.state).all()
+    assert not np.any(arm.status & (Status.DIVERGED | Status.OVERFLOW))
+    # a good command clears the bit
+    arm.command[:] = 0.0
+    arm.write()
+    assert not np.any(arm.status & Status.BAD_COMMAND)
+    del reference
+    arm.reset()
+
+
+@pytest.mark.parametrize("value", [np.inf, -np.inf, 1e11])
+def test_inf_and_huge_commands_are_rejected_too(arm, value):
+    arm.reset()
+    arm.command[1, 0] = value
+    arm.write()
+    assert arm.status[1] & Status.BAD_COMMAND
+    arm.reset(worlds=[1])
+    assert arm.status[1] == 0
+
+
+UNSTABLE = """
+<mujoco model="unstable">
+  <worldbody>
+    <body><joint name="hinge" type="hinge" damping="0"/><geom type="capsule" size=".01" fromto="0 0 0 .1 0 0" mass="1e-3"/></body>
+  </worldbody>
+  <actuator><motor name="motor" joint="hinge"/></actuator>
+  <sensor><jointvel name="vel" joint="hinge"/></sensor>
+</mujoco>
+"""
+
+
+def test_a_diverging_world_is_frozen_and_the_others_go_on(backend, tmp_path):
+    path = tmp_path / "unstable.xml"
+    path.write_text(UNSTABLE)
+    sim = active(str(path), backend, 3)
+    sim.command[:] = 0.0
+    # an absurd but finite torque on an unlimited motor of a tiny link blows world 1 up
+    sim.command[1] = 1e9
+    for _ in range(20):
+        sim.write()
+        sim.step(5)
+    sim.read()
+    assert sim.status[1] & Status.DIVERGED
+    assert not np.any(sim.status[[0, 2]] & Status.DIVERGED)
+    assert np.isfinite(sim.state[[0, 2]]).all()
+    frozen_time = sim.time[1]
+    sim.step(5)
+    sim.read()
+    assert sim.time[1] == frozen_time  # frozen until reset
+    assert sim.time[0] > frozen_time or sim.time[0] > 0
+    sim.reset(worlds=[1])
+    assert sim.status[1] == 0
+    sim.command[1] = 0.0
+    sim.write()
+    sim.step(5)
+    sim.read()
+    assert np.isfinite(sim.state).all()
+    sim.shutdown()
