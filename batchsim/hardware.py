@@ -260,8 +260,9 @@ class BatchedSystem(SystemInterface):
             cols = [i for i, c in enumerate(spec.state) if c.source == source]
             if cols:
                 idx = [spec.state[i].index for i in cols]
-                self._gather.append((source, np.array(cols), np.array(idx)))
+                self._gather.append((source, _as_slice(cols), _as_slice(idx)))
         self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
+        self._ctrl_cols = _as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster
         self._opened = False
 
     # --- interfaces ---
@@ -321,8 +322,9 @@ class BatchedSystem(SystemInterface):
         good = (np.abs(command) < MAX_COMMAND).all(axis=1)
         ctrl = self._ctrl_host()
         if good.all():
-            ctrl[:, self._ctrl_index] = command
-            self.status &= ~np.uint8(Status.BAD_COMMAND)
+            ctrl[:, self._ctrl_cols] = command
+            if self.status.any():
+                self.status &= ~np.uint8(Status.BAD_COMMAND)
         else:
             rows = np.flatnonzero(good)
             ctrl[np.ix_(rows, self._ctrl_index)] = command[rows]
@@ -435,6 +437,16 @@ class BatchedSystem(SystemInterface):
     def _reset(self, worlds: np.ndarray | None) -> None:
         """Reset the listed worlds (None: all) to the model's initial state."""
         raise NotImplementedError
+
+
+def _as_slice(index: list[int]) -> slice | np.ndarray:
+    """An index list as a slice when it is an arithmetic progression (a view, not a gather)."""
+    if not index:
+        return np.array(index, dtype=np.intp)
+    step = index[1] - index[0] if len(index) > 1 else 1
+    if step > 0 and all(b - a == step for a, b in zip(index, index[1:], strict=False)):
+        return slice(index[0], index[-1] + 1, step)
+    return np.array(index, dtype=np.intp)
 
 
 class ConfigurationError(ValueError):

@@ -18,9 +18,12 @@ from mujoco import batch as mjbatch
 from batchsim.hardware import BatchedSystem, Status
 
 _W = mujoco.mjtWarning
-# MuJoCo warnings that mean a world's numbers can no longer be trusted
-_DIVERGED_WARNINGS = [int(_W.mjWARN_BADQPOS), int(_W.mjWARN_BADQVEL), int(_W.mjWARN_BADQACC), int(_W.mjWARN_BADCTRL)]
-_OVERFLOW_WARNINGS = [int(_W.mjWARN_CONTACTFULL), int(_W.mjWARN_CNSTRFULL)]
+# MuJoCo warnings that mean a world's numbers can no longer be trusted (mjWARN_INERTIA is
+# a model property, not a world's): the overflow and instability warnings are contiguous
+_OVERFLOW_WARNINGS = slice(int(_W.mjWARN_CONTACTFULL), int(_W.mjWARN_CNSTRFULL) + 1)
+_DIVERGED_WARNINGS = slice(int(_W.mjWARN_BADQPOS), int(_W.mjWARN_BADCTRL) + 1)
+_WATCHED = slice(_OVERFLOW_WARNINGS.start, _DIVERGED_WARNINGS.stop)
+assert _OVERFLOW_WARNINGS.stop == _DIVERGED_WARNINGS.start
 
 
 class CpuSystem(BatchedSystem):
@@ -71,17 +74,17 @@ class CpuSystem(BatchedSystem):
         self._check_worlds()
 
     def _check_worlds(self) -> None:
-        """Freeze the worlds that went non-finite or tripped a MuJoCo warning."""
+        """Freeze the worlds that tripped a MuJoCo instability or overflow warning.
+
+        MuJoCo checks qpos, qvel and qacc for NaN, inf and huge values at every step
+        (mj_checkPos/Vel/Acc), resets a world that fails and counts the warning, so the
+        counters, which only mj_resetData clears, catch every divergence.
+        """
         count = self._warning_count
+        if not count[:, _WATCHED].any():
+            return
         diverged = count[:, _DIVERGED_WARNINGS].any(axis=1)
         overflow = count[:, _OVERFLOW_WARNINGS].any(axis=1)
-        if not (diverged.any() or overflow.any()):
-            # MuJoCo catches bad qpos/qvel/qacc itself; this is the cheap belt and braces
-            fields = self._fields
-            if np.isfinite(fields["qpos"]).all() and np.isfinite(fields["qvel"]).all():
-                return
-        diverged |= ~np.isfinite(self._fields["qpos"]).all(axis=1)
-        diverged |= ~np.isfinite(self._fields["qvel"]).all(axis=1)
         self.status[diverged] |= np.uint8(Status.DIVERGED)
         self.status[overflow] |= np.uint8(Status.OVERFLOW)
 
