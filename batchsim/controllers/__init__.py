@@ -1,0 +1,55 @@
+"""ros2_control-style controllers, vectorized over worlds with NumPy; no ROS imports here.
+
+    manager = load_controllers("controllers.yaml", sim.spec, sim.nworld)
+    loop = SimLoop(sim, control_rate=manager.update_rate, participants=[manager])
+    manager["arm_controller"].set_trajectory(5, joints, times, positions)
+
+The YAML is ros2_control's controller_manager file; the ROS topics of each controller are
+bound in ros_bridge/controllers.py.
+"""
+
+from __future__ import annotations
+
+from batchsim.controllers.base import Controller, ControllerManager, Params
+from batchsim.controllers.broadcasters import (
+    ForceTorqueSensorBroadcaster,
+    IMUSensorBroadcaster,
+    JointStateBroadcaster,
+)
+from batchsim.controllers.config import (
+    CONTROLLER_TYPES,
+    ManagerConfig,
+    build,
+    default_controllers,
+    load_controllers,
+    parse,
+)
+from batchsim.controllers.diff_drive import DiffDriveController
+from batchsim.controllers.forward_command import (
+    ForwardCommandController,
+    JointGroupEffortController,
+    JointGroupPositionController,
+    JointGroupVelocityController,
+)
+from batchsim.controllers.joint_trajectory import JointTrajectoryController
+
+__all__ = [
+    "CONTROLLER_TYPES",
+    "Controller",
+    "ControllerManager",
+    "DiffDriveController",
+    "ForceTorqueSensorBroadcaster",
+    "ForwardCommandController",
+    "IMUSensorBroadcaster",
+    "JointGroupEffortController",
+    "JointGroupPositionController",
+    "JointGroupVelocityController",
+    "JointStateBroadcaster",
+    "JointTrajectoryController",
+    "ManagerConfig",
+    "Params",
+    "build",
+    "default_controllers",
+    "load_controllers",
+    "parse",
+]

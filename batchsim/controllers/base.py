@@ -1,0 +1,284 @@
+"""The controller base class, the parameter reader, and the ControllerManager participant.
+
+A controller is built from its ros2_control parameters and the robot's interfaces, and
+from then on touches the simulation only through the hardware-interface contract: it
+reads `sim.state` columns and writes `sim.command` columns, by interface name, resolved
+once into index arrays. `update` runs once per control period for every world at once.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, ClassVar
+
+import numpy as np
+
+from batchsim.hardware import ConfigurationError
+from batchsim.model import RobotSpec
+
+_MISSING = object()
+
+
+class Params:
+    """A controller's `ros__parameters`, flattened to dotted keys (`linear.x.max_velocity`).
+
+    Every getter names the file, the controller and the key in the ConfigurationError it
+    raises; `unused()` lists the keys nobody asked for, so that typos can be reported.
+    """
+
+    def __init__(self, values: Mapping[str, Any], *, where: str, controller: str):
+        self.values = dict(values)
+        self.where = where
+        self.controller = controller
+        self._read: set[str] = set()
+
+    def error(self, key: str, message: str) -> ConfigurationError:
+        return ConfigurationError(f"{self.where}: controller {self.controller!r}: {key}: {message}")
+
+    def has(self, key: str) -> bool:
+        return key in self.values
+
+    def keys_under(self, prefix: str) -> list[str]:
+        """The keys that start with `prefix.`, marked as read."""
+        keys = [k for k in self.values if k.startswith(prefix + ".")]
+        self._read.update(keys)
+        return keys
+
+    def raw(self, key: str, default: Any = _MISSING) -> Any:
+        self._read.add(key)
+        if key in self.values:
+            return self.values[key]
+        if default is _MISSING:
+            raise self.error(key, "missing (required)")
+        return default
+
+    def string_list(self, key: str, default: Any = _MISSING, *, nonempty: bool = False) -> list[str]:
+        value = self.raw(key, default)
+        if value is None:
+            value = []
+        if isinstance(value, str) or not isinstance(value, Sequence):
+            raise self.error(key, f"must be a list of names, got {value!r}")
+        if not all(isinstance(v, str) and v for v in value):
+            raise self.error(key, f"must be a list of names, got {list(value)!r}")
+        if nonempty and not value:
+            raise self.error(key, "must name at least one entry")
+        dup = sorted({v for v in value if list(value).count(v) > 1})
+        if dup:
+            raise self.error(key, f"{dup[0]!r} is listed twice")
+        return list(value)
+
+    def string(self, key: str, default: Any = _MISSING) -> str:
+        value = self.raw(key, default)
+        if not isinstance(value, str):
+            raise self.error(key, f"must be a string, got {value!r}")
+        return value
+
+    def number(
+        self,
+        key: str,
+        default: Any = _MISSING,
+        *,
+        minimum: float | None = None,
+        positive: bool = False,
+        allow_nan: bool = False,
+    ) -> float:
+        value = self.raw(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.error(key, f"must be a number, got {value!r}")
+        value = float(value)
+        if math.isnan(value):
+            if allow_nan:
+                return value
+            raise self.error(key, "must be a number, got nan")
+        if math.isinf(value):
+            raise self.error(key, f"must be finite, got {value!r}")
+        if positive and not value > 0:
+            raise self.error(key, f"must be > 0, got {value:g}")
+        if minimum is not None and value < minimum:
+            raise self.error(key, f"must be >= {minimum:g}, got {value:g}")
+        return value
+
+    def boolean(self, key: str, default: Any = _MISSING) -> bool:
+        value = self.raw(key, default)
+        if not isinstance(value, bool):
+            raise self.error(key, f"must be true or false, got {value!r}")
+        return value
+
+    def choice(self, key: str, choices: Sequence[str], default: Any = _MISSING) -> str:
+        value = self.string(key, default)
+        if value not in choices:
+            raise self.error(key, f"must be one of {', '.join(choices)}, got {value!r}")
+        return value
+
+    def unused(self, accepted: Iterable[str] = ()) -> list[str]:
+        """Keys never read and not under one of the `accepted` names or prefixes."""
+        accepted = tuple(accepted)
+        return sorted(
+            k
+            for k in self.values
+            if k not in self._read and not any(k == a or k.startswith(a + ".") for a in accepted)
+        )
+
+
+class Controller:
+    """One ros2_control controller over every world.
+
+    Subclasses set TYPE (the plugin name the YAML's `type` gives), read their parameters
+    in `__init__`, claim command interfaces through `claim()`, and implement `update`.
+
+    Attributes:
+      name: the controller's name in the YAML (its topics live under `<ns>/<name>/`).
+      nworld: number of worlds.
+      command_interfaces: the command interfaces it claims, `"<joint>/<interface>"`.
+      state_interfaces: the state interfaces it reads.
+    """
+
+    TYPE: ClassVar[str] = ""
+    #: stock parameters accepted for compatibility that batchsim does not act on
+    ACCEPTED: ClassVar[tuple[str, ...]] = ("update_rate", "is_async")
+
+    def __init__(self, name: str, params: Params, spec: RobotSpec, nworld: int):
+        self.name = name
+        self.params = params
+        self.spec = spec
+        self.nworld = int(nworld)
+        self.command_interfaces: list[str] = []
+        self.state_interfaces: list[str] = []
+        self._command_names = spec.command_interfaces
+        self._state_names = spec.state_interfaces
+        self.time = 0.0  # the loop time of the last update
+
+    # --- interface resolution, at configuration time ---
+    def check_joints(self, key: str, joints: Sequence[str]) -> None:
+        known = {j.name for j in self.spec.joints}
+        for j in joints:
+            if j not in known:
+                raise self.params.error(
+                    key, f"the model has no joint {j!r} (joints: {', '.join(sorted(known)) or 'none'})"
+                )
+
+    def claim(self, key: str, names: Sequence[str]) -> np.ndarray:
+        """Command columns for `names`, claimed by this controller; ConfigurationError if absent."""
+        cols = []
+        for n in names:
+            if n not in self._command_names:
+                joint = n.rsplit("/", 1)[0]
+                served = [c.rsplit("/", 1)[1] for c in self._command_names if c.rsplit("/", 1)[0] == joint]
+                have = f"{joint} has: {', '.join(served)}" if served else f"{joint} has none"
+                raise self.params.error(key, f"the model has no command interface {n!r} ({have})")
+            cols.append(self._command_names.index(n))
+            self.command_interfaces.append(n)
+        return np.array(cols, dtype=np.intp)
+
+    def state_columns(self, key: str, names: Sequence[str]) -> np.ndarray:
+        """State columns for `names`; ConfigurationError if the model lacks one."""
+        cols = []
+        for n in names:
+            if n not in self._state_names:
+                raise self.params.error(key, f"the model has no state interface {n!r}")
+            cols.append(self._state_names.index(n))
+            if n not in self.state_interfaces:
+                self.state_interfaces.append(n)
+        return np.array(cols, dtype=np.intp)
+
+    # --- the loop ---
+    def activate(self, sim: Any, time: float) -> None:
+        """First period: take the current state as the starting point (hold where the robot is)."""
+        self.reset(sim, np.arange(self.nworld))
+
+    def reset(self, sim: Any, worlds: np.ndarray) -> None:
+        """The listed worlds were reset: drop their goals and hold them where they are now."""
+
+    def update(self, sim: Any, time: float, period: float) -> None:
+        raise NotImplementedError
+
+    def _world(self, world: int) -> int:
+        if isinstance(world, bool) or int(world) != world or not 0 <= world < self.nworld:
+            raise ValueError(f"{self.name}: world {world!r} is out of range: worlds are 0..{self.nworld - 1}")
+        return int(world)
+
+
+class ControllerManager:
+    """ros2_control's controller_manager over every world: a SimLoop participant.
+
+    `update(sim, time, period)` runs every controller, in the YAML's order, between the
+    loop's read() and write(); controllers write only the command columns they claim.
+    A world whose simulation time went backwards since the last period was reset: its
+    controllers drop their goals and hold the reset pose.
+
+    Attributes:
+      update_rate: the controller_manager's update_rate (Hz), or None if the YAML has none.
+      controllers: name -> Controller, in the YAML's order.
+      claimed: every command interface some controller claims.
+      warnings: one line per parameter that was ignored (unknown to the stock controller).
+      source: the YAML file's name, for messages.
+    """
+
+    def __init__(
+        self,
+        controllers: Sequence[Controller],
+        *,
+        update_rate: float | None = None,
+        source: str = "controllers",
+        warnings: Sequence[str] = (),
+    ):
+        self.controllers = {c.name: c for c in controllers}
+        self.update_rate = update_rate
+        self.source = source
+        self.warnings = list(warnings)
+        owner: dict[str, str] = {}
+        for c in controllers:
+            for iface in c.command_interfaces:
+                if iface in owner:
+                    raise ConfigurationError(
+                        f"{source}: controller {c.name!r}: command interface {iface!r} is already "
+                        f"claimed by controller {owner[iface]!r}"
+                    )
+                owner[iface] = c.name
+        self.claimed = frozenset(owner)
+        self.owner = owner
+        self._last_time: np.ndarray | None = None
+
+    def __getitem__(self, name: str) -> Controller:
+        try:
+            return self.controllers[name]
+        except KeyError:
+            raise KeyError(
+                f"no controller named {name!r}; controllers: {', '.join(self.controllers)}"
+            ) from None
+
+    def __iter__(self):
+        return iter(self.controllers.values())
+
+    def __len__(self) -> int:
+        return len(self.controllers)
+
+    def of_type(self, cls: type) -> list[Controller]:
+        return [c for c in self.controllers.values() if isinstance(c, cls)]
+
+    def update(self, sim: Any, time: float, period: float) -> None:
+        world_time = np.asarray(sim.time)
+        if self._last_time is None:
+            for c in self.controllers.values():
+                c.time = time
+                c.activate(sim, time)
+            self._last_time = world_time.copy()
+        else:
+            reset = world_time < self._last_time
+            if reset.any():
+                worlds = np.flatnonzero(reset)
+                for c in self.controllers.values():
+                    c.reset(sim, worlds)
+            self._last_time[:] = world_time
+        for c in self.controllers.values():
+            c.time = time
+            c.update(sim, time, period)
+
+    def reset(self, sim: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
+        """Tell every controller that the listed worlds (None: all) were reset."""
+        rows = np.arange(sim.nworld) if worlds is None else np.asarray(worlds, dtype=np.intp).reshape(-1)
+        for c in self.controllers.values():
+            c.reset(sim, rows)
+        if self._last_time is not None:
+            self._last_time[rows] = np.asarray(sim.time)[rows]
