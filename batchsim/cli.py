@@ -2,6 +2,7 @@
 
     batchsim --worlds 16                     16 arms, over ROS 2, in real time
     batchsim --worlds 64 --model quadruped --rtf 0 --no-ros
+    batchsim --worlds 16 --controllers controllers.yaml   ros2_control controllers in every world
     batchsim info arm                        interfaces and sensors of a model
 
 Errors a user can fix (a missing file, malformed XML, an unknown model, a bad flag) print
@@ -18,9 +19,10 @@ from typing import Any
 
 import batchsim
 from batchsim.backends import BackendUnavailable, resolve
+from batchsim.controllers import ControllerManager, default_controllers, load_controllers
 from batchsim.hardware import BatchedSystem, ConfigurationError, LifecycleError
 from batchsim.loop import SimLoop, format_stats
-from batchsim.model import ModelError
+from batchsim.model import ModelError, model_names
 
 EXIT_USAGE = 2
 
@@ -60,7 +62,11 @@ def run_parser() -> argparse.ArgumentParser:
     ros.add_argument("--qos-depth", type=int, default=None, help="queue depth (default 10, or the MJCF's)")
     ros.add_argument("--reliability", choices=("reliable", "best_effort"), default=None)
     ros.add_argument("--command-timeout", type=float, default=None, help="seconds without commands before a world goes safe")
-    ros.add_argument("--controllers", default=None, help="ros2_control controller_manager YAML")
+    p.add_argument(
+        "--controllers",
+        default=None,
+        help="ros2_control controller_manager YAML; none: no controllers (default: the shipped model's own)",
+    )
     return p
 
 
@@ -116,6 +122,35 @@ def build(args: argparse.Namespace) -> BatchedSystem:
     return sim
 
 
+def setup_controllers(sim: BatchedSystem, args: argparse.Namespace) -> tuple[ControllerManager | None, float | None]:
+    """The run's controllers and the control rate their YAML's update_rate asks for.
+
+    --controllers names a controller_manager YAML; without it a shipped model gets its
+    default (models/<name>.yaml), any other model none; `--controllers none` runs none.
+    Every configuration error is raised here, before the loop starts.
+    """
+    source = args.controllers
+    if source is not None and source.lower() == "none":
+        return None, None
+    if source is None:
+        if str(args.model) not in model_names():
+            return None, None
+        source = default_controllers(str(args.model))
+        if source is None:
+            return None, None
+    manager = load_controllers(source, sim.spec, sim.nworld)
+    rate = manager.update_rate
+    if rate is not None and args.control_rate is None:
+        ratio = 1.0 / (rate * sim.dt)
+        if abs(round(ratio) - ratio) > 1e-6 * ratio or round(ratio) < 1:
+            ok = 1.0 / (max(1, round(ratio)) * sim.dt)
+            raise ConfigurationError(
+                f"{manager.source}: controller_manager: update_rate: {rate:g} Hz is not a whole number of "
+                f"physics steps of {sim.dt:g} s (the model's timestep): try {ok:g} Hz"
+            )
+    return manager, rate
+
+
 def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace):
     """The ROS 2 bridge for this run, or None if this version has none yet."""
     try:
@@ -133,8 +168,19 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace):
 def run(argv: Sequence[str]) -> int:
     args = run_parser().parse_args(argv)
     sim = build(args)
-    loop = SimLoop(sim, control_rate=args.control_rate, rtf=args.rtf, duration=args.duration)
+    manager, update_rate = setup_controllers(sim, args)
+    control_rate = args.control_rate if args.control_rate is not None else update_rate
+    loop = SimLoop(sim, control_rate=control_rate, rtf=args.rtf, duration=args.duration)
     bridge = None if args.no_ros else start_ros(sim, loop, args)
+    if manager is not None:
+        for warning in manager.warnings:
+            print(f"batchsim: warning: {warning}", file=sys.stderr)
+        if bridge is not None:
+            from ros_bridge.controllers import bind_controllers
+
+            bind_controllers(bridge, manager)
+        else:
+            loop.participants.append(manager)
 
     def on_signal(signum: int, frame: Any) -> None:
         loop.stop()
@@ -154,7 +200,8 @@ def run(argv: Sequence[str]) -> int:
     print(
         f"batchsim: {sim.nworld} x {sim.spec.name} on {backend}, control {loop.control_rate:g} Hz "
         f"({loop.substeps} x {sim.dt:g} s), rtf {'max' if args.rtf == 0 else f'{args.rtf:g}'}"
-        + ("" if bridge is None else f", ROS 2 namespaces {bridge.describe()}"),
+        + ("" if bridge is None else f", ROS 2 namespaces {bridge.describe()}")
+        + ("" if manager is None else f", controllers {', '.join(manager.controllers) or 'none'}"),
         file=sys.stderr,
         flush=True,
     )

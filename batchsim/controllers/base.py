@@ -184,8 +184,10 @@ class Controller:
 
     # --- the loop ---
     def activate(self, sim: Any, time: float) -> None:
-        """First period: take the current state as the starting point (hold where the robot is)."""
-        self.reset(sim, np.arange(self.nworld))
+        """First period: take the current state as the starting point (hold where the robot is).
+
+        Inputs given before it (a trajectory, a command) are kept.
+        """
 
     def reset(self, sim: Any, worlds: np.ndarray) -> None:
         """The listed worlds were reset: drop their goals and hold them where they are now."""

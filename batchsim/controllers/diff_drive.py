@@ -191,6 +191,9 @@ class DiffDriveController(Controller):
         state = sim.state
         return np.stack([state[:, self._lpos].mean(axis=1), state[:, self._rpos].mean(axis=1)], axis=1)
 
+    def activate(self, sim: Any, time: float) -> None:
+        self._last_wheel[:] = self._wheels(sim)
+
     def reset(self, sim: Any, worlds: np.ndarray) -> None:
         self.odom_pose[worlds] = 0.0
         self.odom_twist[worlds] = 0.0

@@ -347,7 +347,8 @@ class JointTrajectoryController(Controller):
     # --- the loop ---
     def activate(self, sim: Any, time: float) -> None:
         self._read(sim)
-        self.reset(sim, np.arange(self.nworld))
+        self._hold[:] = self.feedback_position
+        self.reference_position[:] = self.feedback_position
 
     def reset(self, sim: Any, worlds: np.ndarray) -> None:
         self._read(sim)

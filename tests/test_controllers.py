@@ -1,0 +1,642 @@
+"""ros2_control-style controllers: the issue's behaviours in-process, through the contract.
+
+The controllers' own inputs (set_trajectory, set_cmd_vel, set_commands) are what the ROS
+bridge calls with each message; the test marked `ros` sends a real JointTrajectory to a
+`batchsim` process.
+"""
+
+from __future__ import annotations
+
+import math
+import textwrap
+
+import numpy as np
+import pytest
+
+import batchsim
+from batchsim.controllers import (
+    CONTROLLER_TYPES,
+    ControllerManager,
+    default_controllers,
+    load_controllers,
+    parse,
+)
+from batchsim.hardware import ConfigurationError
+from batchsim.loop import SimLoop
+
+ARM_JOINTS = [f"joint{i}" for i in range(1, 7)]
+
+
+def running(model: str, nworld: int, yaml_source=None):
+    sim = batchsim.make(model, nworld, "cpu", nthread=1)
+    sim.configure()
+    sim.activate()
+    manager = load_controllers(yaml_source or default_controllers(model), sim.spec, nworld)
+    loop = SimLoop(sim, control_rate=manager.update_rate, rtf=0, participants=[manager])
+    return sim, manager, loop
+
+
+def run_until(loop: SimLoop, t: float) -> None:
+    while loop.sim_time < t - 1e-9:
+        loop.run_period()
+
+
+# ---------------------------------------------------------------- the issue's scenarios
+
+
+def test_trajectory_to_world_5_of_8_is_followed_and_the_others_hold_still():
+    sim, manager, loop = running("arm", 8)
+    jtc = manager["joint_trajectory_controller"]
+    loop.run_period()
+    pos_cols = [sim.export_state_interfaces().index(f"{j}/position") for j in ARM_JOINTS]
+    start = sim.state[:, pos_cols].copy()
+    goal = np.array([0.5, -0.4, 0.6, 0.3, -0.5, 0.8])
+    # a cubic trajectory (velocities given), joints in a different order than the controller's
+    order = [5, 0, 3, 1, 4, 2]
+    t_now = loop.sim_time
+    jtc.set_trajectory(
+        5,
+        [ARM_JOINTS[k] for k in order],
+        [1.0, 2.0],
+        [goal[order] / 2, goal[order]],
+        [goal[order] / 2, np.zeros(6)],
+    )
+    run_until(loop, t_now + 1.0)
+    assert jtc.executing[5] and not jtc.executing[np.arange(8) != 5].any()
+    # half way: the reference is the middle point, and the arm is near it
+    np.testing.assert_allclose(jtc.reference_position[5], goal / 2, atol=0.02)
+    run_until(loop, t_now + 3.0)
+    assert not jtc.executing.any()
+    np.testing.assert_allclose(jtc.reference_position[5], goal, atol=1e-12)  # holds the last point
+    # tolerance: the position servos (kp 30..200) sag under gravity by up to ~0.03 rad
+    tolerance = 0.04
+    np.testing.assert_allclose(sim.state[5, pos_cols], goal, atol=tolerance)
+    others = np.arange(8) != 5
+    np.testing.assert_allclose(sim.state[others][:, pos_cols], start[others], atol=1e-9)
+
+
+def test_car_cmd_vel_for_2_s_moves_about_1_m_and_odometry_agrees():
+    sim, manager, loop = running("car", 3)
+    dd = manager["diff_drive_controller"]
+    qpos = sim._download()["qpos"]  # the free joint's x, y: the simulated base position
+    start = qpos[:, :2].copy()
+    while loop.sim_time < 2.0 - 1e-9:
+        dd.set_cmd_vel(0, 0.5, 0.0)
+        dd.set_cmd_vel(1, 0.5, 0.0)  # world 2 gets nothing and stays put
+        loop.run_period()
+    moved = np.linalg.norm(qpos[:, :2] - start, axis=1)
+    # from standstill through a wheel-velocity loop on torque motors: 0.9 .. 1.0 m
+    assert 0.9 < moved[0] < 1.02, moved
+    odom = np.linalg.norm(dd.odom_pose[:, :2], axis=1)
+    assert abs(odom[0] - moved[0]) < 0.05 * moved[0], (odom, moved)
+    assert moved[1] == pytest.approx(moved[0], abs=1e-9)  # worlds are independent and equal
+    assert moved[2] < 1e-3 and odom[2] < 1e-3
+    assert dd.odom_twist[0, 0] == pytest.approx(0.5, abs=0.05)
+    # cmd_vel_timeout (0.5 s): silence stops the wheels
+    run_until(loop, 3.5)
+    assert abs(dd.command_velocity[0, 0]) < 1e-12
+    assert abs(sim.state[0, sim.export_state_interfaces().index("left_wheel_joint/velocity")]) < 0.5
+
+
+DOCS_STYLE = """\
+# in the style of the ros2_control documentation's examples (ros2_control_demos)
+controller_manager:
+  ros__parameters:
+    update_rate: 100  # Hz
+
+    joint_state_broadcaster:
+      type: joint_state_broadcaster/JointStateBroadcaster
+
+    forward_position_controller:
+      type: forward_command_controller/ForwardCommandController
+
+    joint_trajectory_controller:
+      type: joint_trajectory_controller/JointTrajectoryController
+
+    ft_sensor_broadcaster:
+      type: force_torque_sensor_broadcaster/ForceTorqueSensorBroadcaster
+
+forward_position_controller:
+  ros__parameters:
+    joints:
+      - joint1
+      - joint2
+    interface_name: position
+
+joint_trajectory_controller:
+  ros__parameters:
+    joints:
+      - joint3
+      - joint4
+      - joint5
+      - joint6
+    command_interfaces:
+      - position
+    state_interfaces:
+      - position
+      - velocity
+    state_publish_rate: 50.0 # Defaults to 50
+    action_monitor_rate: 20.0 # Defaults to 20
+    allow_partial_joints_goal: false # Defaults to false
+    open_loop_control: true
+    allow_integration_in_goal_trajectories: true
+    constraints:
+      stopped_velocity_tolerance: 0.01 # Defaults to 0.01
+      goal_time: 0.0 # Defaults to 0.0 (start immediately)
+
+ft_sensor_broadcaster:
+  ros__parameters:
+    interface_names.force.x: wrist_force/force.x
+    interface_names.force.y: wrist_force/force.y
+    interface_names.force.z: wrist_force/force.z
+    interface_names.torque.x: wrist_torque/torque.x
+    interface_names.torque.y: wrist_torque/torque.y
+    interface_names.torque.z: wrist_torque/torque.z
+    frame_id: wrist
+"""
+
+DIFFBOT_STYLE = """\
+/**/controller_manager:
+  ros__parameters:
+    update_rate: 50
+    joint_state_broadcaster:
+      type: joint_state_broadcaster/JointStateBroadcaster
+    diffbot_base_controller:
+      type: diff_drive_controller/DiffDriveController
+
+/**/diffbot_base_controller:
+  ros__parameters:
+    left_wheel_names: ["left_wheel_joint"]
+    right_wheel_names: ["right_wheel_joint"]
+    wheel_separation: 0.30
+    wheel_radius: 0.06
+    wheel_separation_multiplier: 1.0
+    left_wheel_radius_multiplier: 1.0
+    right_wheel_radius_multiplier: 1.0
+    publish_rate: 50.0
+    odom_frame_id: odom
+    base_frame_id: base_link
+    pose_covariance_diagonal : [0.001, 0.001, 0.0, 0.0, 0.0, 0.01]
+    twist_covariance_diagonal: [0.001, 0.0, 0.0, 0.0, 0.0, 0.01]
+    open_loop: false
+    enable_odom_tf: true
+    cmd_vel_timeout: 0.5
+    publish_limited_velocity: true
+    velocity_rolling_window_size: 10
+    linear.x.has_velocity_limits: true
+    linear.x.has_acceleration_limits: true
+    linear.x.has_jerk_limits: false
+    linear.x.max_velocity: 1.0
+    linear.x.min_velocity: -1.0
+    linear.x.max_acceleration: 1.0
+    linear.x.max_jerk: 0.0
+    linear.x.min_jerk: 0.0
+    angular.z.has_velocity_limits: true
+    angular.z.has_acceleration_limits: true
+    angular.z.has_jerk_limits: false
+    angular.z.max_velocity: 1.0
+    angular.z.min_velocity: -1.0
+    angular.z.max_acceleration: 1.0
+    angular.z.min_acceleration: -1.0
+    angular.z.max_jerk: 0.0
+    angular.z.min_jerk: 0.0
+"""
+
+
+def test_a_yaml_in_the_style_of_the_ros2_control_docs_loads():
+    sim, manager, loop = running("arm", 2, DOCS_STYLE)
+    assert manager.update_rate == 100.0
+    assert list(manager.controllers) == [
+        "joint_state_broadcaster",
+        "forward_position_controller",
+        "joint_trajectory_controller",
+        "ft_sensor_broadcaster",
+    ]
+    assert manager.warnings == []
+    assert manager.claimed == {f"joint{i}/position" for i in range(1, 7)}
+    manager["forward_position_controller"].set_commands(1, [0.3, -0.2])
+    run_until(loop, 0.5)
+    names = sim.export_state_interfaces()
+    assert sim.state[1, names.index("joint1/position")] == pytest.approx(0.3, abs=0.02)
+    assert sim.state[0, names.index("joint1/position")] == pytest.approx(0.0, abs=1e-9)
+    jsb = manager["joint_state_broadcaster"]
+    assert jsb.names == ARM_JOINTS
+    np.testing.assert_array_equal(
+        jsb.position, sim.state[:, [names.index(f"{j}/position") for j in ARM_JOINTS]]
+    )
+    ft = manager["ft_sensor_broadcaster"]
+    np.testing.assert_array_equal(ft.force, sim.sensordata["wrist_force"])
+    np.testing.assert_array_equal(ft.torque, sim.sensordata["wrist_torque"])
+
+    car = batchsim.load("car")
+    dd = load_controllers(DIFFBOT_STYLE, car, 1)["diffbot_base_controller"]
+    assert dd.linear.max_v == 1.0 and dd.angular.min_a == -1.0 and dd.linear.min_a == -1.0
+
+
+def test_shipped_defaults_and_sensor_broadcasters():
+    sim, manager, loop = running("quadruped", 2)
+    assert list(manager.controllers) == [
+        "joint_state_broadcaster",
+        "imu_sensor_broadcaster",
+        "effort_controller",
+    ]
+    run_until(loop, 0.1)
+    imu = manager["imu_sensor_broadcaster"]
+    w, x, y, z = sim.sensordata["imu_orientation"].T
+    np.testing.assert_array_equal(imu.orientation, np.stack([x, y, z, w], axis=1))
+    np.testing.assert_array_equal(imu.angular_velocity, sim.sensordata["imu_gyro"])
+    np.testing.assert_array_equal(imu.linear_acceleration, sim.sensordata["imu_accel"])
+    for model in ("arm", "car"):
+        assert load_controllers(default_controllers(model), batchsim.load(model), 1).warnings == []
+
+
+# ---------------------------------------------------------------- bad configuration
+
+HEAD = """\
+controller_manager:
+  ros__parameters:
+    update_rate: 100
+"""
+
+
+def arm_yaml(controllers: str, params: str = "") -> str:
+    return HEAD + textwrap.indent(textwrap.dedent(controllers), "    ") + textwrap.dedent(params)
+
+
+BAD = {
+    "unknown type": (
+        arm_yaml("c:\n  type: fancy_controllers/Fancy\n"),
+        ["controller 'c'", "type", "fancy_controllers/Fancy", *CONTROLLER_TYPES],
+    ),
+    "missing type": (arm_yaml("c:\n  joints: [joint1]\n"), ["controller 'c'", "type: missing"]),
+    "unknown joint": (
+        arm_yaml(
+            "c:\n  type: position_controllers/JointGroupPositionController\n",
+            "c:\n  ros__parameters:\n    joints: [joint1, joint9]\n",
+        ),
+        ["controller 'c'", "joints", "the model has no joint 'joint9'"],
+    ),
+    "interface the model lacks": (
+        arm_yaml(
+            "c:\n  type: forward_command_controller/ForwardCommandController\n",
+            "c:\n  ros__parameters:\n    joints: [joint1]\n    interface_name: velocity\n",
+        ),
+        ["controller 'c'", "interface_name", "'joint1/velocity'", "joint1 has: position"],
+    ),
+    "state interface the model lacks": (
+        arm_yaml(
+            "t:\n  type: joint_trajectory_controller/JointTrajectoryController\n",
+            "t:\n  ros__parameters:\n    joints: [joint1]\n    command_interfaces: [position]\n"
+            "    state_interfaces: [position, velocity, acceleration]\n",
+        ),
+        ["controller 't'", "state_interfaces", "'joint1/acceleration'"],
+    ),
+    "two controllers claim one interface": (
+        arm_yaml(
+            "a:\n  type: position_controllers/JointGroupPositionController\n"
+            "b:\n  type: joint_trajectory_controller/JointTrajectoryController\n",
+            "a:\n  ros__parameters:\n    joints: [joint1, joint2]\n"
+            "b:\n  ros__parameters:\n    joints: [joint2, joint3]\n    command_interfaces: [position]\n"
+            "    state_interfaces: [position]\n",
+        ),
+        ["controller 'b'", "'joint2/position'", "already claimed by controller 'a'"],
+    ),
+    "missing required parameter": (
+        arm_yaml("c:\n  type: position_controllers/JointGroupPositionController\n"),
+        ["controller 'c'", "joints: missing"],
+    ),
+    "unknown sensor": (
+        arm_yaml(
+            "i:\n  type: imu_sensor_broadcaster/IMUSensorBroadcaster\n",
+            "i:\n  ros__parameters:\n    sensor_name: imu\n",
+        ),
+        ["controller 'i'", "sensor_name", "no IMU sensor 'imu'"],
+    ),
+    "bad update_rate": (HEAD.replace("100", "-5"), ["controller_manager", "update_rate"]),
+    "no controller_manager": ("c:\n  ros__parameters:\n    joints: [joint1]\n", ["controller_manager"]),
+    "malformed YAML": (HEAD + "    c: [\n", ["malformed YAML"]),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_bad_configuration_is_one_line_naming_controller_and_key(case, tmp_path):
+    text, expected = BAD[case]
+    path = tmp_path / "controllers.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigurationError) as info:
+        load_controllers(str(path), batchsim.load("arm"), 2)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(str(path))
+    for part in expected:
+        assert part in message, (part, message)
+
+
+def test_cli_reports_bad_configuration_before_starting(tmp_path, capsys):
+    from batchsim.cli import main
+
+    path = tmp_path / "controllers.yaml"
+    path.write_text(BAD["unknown joint"][0])
+    assert main(["--worlds", "2", "--no-ros", "--controllers", str(path), "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "joint9" in err[0] and "controller 'c'" in err[0]
+
+
+def test_cli_runs_with_default_and_no_controllers(capsys):
+    from batchsim.cli import main
+
+    for model in ("car", "arm"):
+        assert (
+            main(
+                ["--worlds", "2", "--model", model, "--no-ros", "--rtf", "0", "--duration", "0.05", "--quiet"]
+            )
+            == 0
+        )
+    assert (
+        main(["--worlds", "2", "--no-ros", "--rtf", "0", "--duration", "0.05", "--controllers", "none"]) == 0
+    )
+    err = capsys.readouterr().err
+    assert "diff_drive_controller" in err and "joint_trajectory_controller" in err
+
+
+def test_update_rate_sets_the_control_rate(tmp_path):
+    from batchsim.cli import run_parser, setup_controllers
+
+    path = tmp_path / "c.yaml"
+    path.write_text(
+        HEAD.replace("100", "250") + "    jsb:\n      type: joint_state_broadcaster/JointStateBroadcaster\n"
+    )
+    args = run_parser().parse_args(["--controllers", str(path)])
+    sim = batchsim.make("arm", 1, "cpu")
+    manager, rate = setup_controllers(sim, args)
+    assert rate == 250.0 and list(manager.controllers) == ["jsb"]
+    path.write_text(HEAD.replace("100", "300"))  # 3.33 physics steps of 1 ms
+    with pytest.raises(ConfigurationError, match="update_rate.*whole number of physics steps"):
+        setup_controllers(sim, run_parser().parse_args(["--controllers", str(path)]))
+
+
+# ---------------------------------------------------------------- trajectory semantics
+
+
+def test_trajectory_rejections_leave_the_world_unchanged():
+    sim, manager, loop = running("arm", 2)
+    jtc = manager["joint_trajectory_controller"]
+    loop.run_period()
+    p = np.zeros((2, 6))
+    with pytest.raises(ValueError, match="unknown joint 'joint9'"):
+        jtc.set_trajectory(0, [*ARM_JOINTS[:5], "joint9"], [1, 2], p)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        jtc.set_trajectory(0, ARM_JOINTS, [1, 1], p)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        jtc.set_trajectory(0, ARM_JOINTS, [2, 1], p)
+    with pytest.raises(ValueError, match="lacks joint 'joint6'"):
+        jtc.set_trajectory(0, ARM_JOINTS[:5], [1, 2], p[:, :5])
+    with pytest.raises(ValueError, match="positions must be 2 points x 6 joints"):
+        jtc.set_trajectory(0, ARM_JOINTS, [1, 2], np.zeros((2, 5)))
+    with pytest.raises(ValueError, match="finite"):
+        jtc.set_trajectory(0, ARM_JOINTS, [1, 2], np.full((2, 6), np.nan))
+    with pytest.raises(ValueError, match="out of range"):
+        jtc.set_trajectory(2, ARM_JOINTS, [1, 2], p)
+    assert not jtc._pending
+    run_until(loop, 0.2)
+    assert not jtc.executing.any()
+
+
+def test_a_new_trajectory_replaces_the_old_one_from_its_start_time():
+    sim, manager, loop = running("arm", 1)
+    jtc = manager["joint_trajectory_controller"]
+    loop.run_period()
+    a = np.full(6, 0.2)
+    jtc.set_trajectory(0, ARM_JOINTS, [2.0], [a])  # linear ramp to 0.2 over 2 s
+    run_until(loop, 0.5)
+    b = np.full(6, -0.1)
+    jtc.set_trajectory(0, ARM_JOINTS, [0.5], [b], start_time=1.0)  # starts at t = 1 s
+    run_until(loop, 0.99)
+    # still on the first trajectory: ~0.2 * (0.99 - 0.01) / 2
+    np.testing.assert_allclose(jtc.reference_position[0], 0.2 * (loop.sim_time - 0.01 - 0.01) / 2, atol=0.004)
+    run_until(loop, 1.6)
+    np.testing.assert_allclose(jtc.reference_position[0], b)
+    # an empty trajectory stops the world where it is
+    jtc.set_trajectory(0, ARM_JOINTS, [1.0], [a])
+    run_until(loop, 1.8)
+    jtc.set_trajectory(0, [], [], np.zeros((0, 0)))
+    loop.run_period()
+    held = jtc.reference_position[0].copy()
+    run_until(loop, 2.5)
+    np.testing.assert_array_equal(jtc.reference_position[0], held)
+
+
+def test_a_reset_world_drops_its_trajectory_and_holds_the_reset_pose():
+    sim, manager, loop = running("arm", 3)
+    jtc = manager["joint_trajectory_controller"]
+    loop.run_period()
+    for w in range(3):
+        jtc.set_trajectory(w, ARM_JOINTS, [1.0], [np.full(6, 0.3)])
+    run_until(loop, 0.5)
+    sim.reset([1])
+    run_until(loop, 1.5)
+    assert np.abs(jtc.reference_position[1]).max() < 1e-12
+    np.testing.assert_allclose(jtc.reference_position[[0, 2]], 0.3)
+
+
+# ---------------------------------------------------------------- batched == per world
+
+
+class FakeSim:
+    """The contract's arrays only: state driven by the test, command read back."""
+
+    def __init__(self, spec, nworld, rng):
+        self.spec, self.nworld, self.rng = spec, nworld, rng
+        self.state = rng.normal(size=(nworld, len(spec.state)))
+        self.command = np.zeros((nworld, len(spec.commands)))
+        self.time = np.zeros(nworld)
+
+    def advance(self, period):
+        self.state += self.rng.normal(scale=0.01, size=self.state.shape)
+        self.time += period
+
+
+def reference_sample(points, mode, t):
+    """One world's trajectory at time t, from (time, p, v, a) points: textbook splines."""
+    if t >= points[-1][0]:
+        return points[-1][1], np.zeros_like(points[-1][1])
+    i = max(k for k in range(len(points)) if points[k][0] <= t + 1e-12)
+    (ta, p0, v0, a0), (tb, p1, v1, a1) = points[i], points[i + 1]
+    T, s = tb - ta, t - ta
+    if mode == "linear":
+        return p0 + (p1 - p0) * s / T, (p1 - p0) / T
+    if mode == "cubic":  # Hermite basis
+        u = s / T
+        h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
+        d00, d10, d01, d11 = (
+            (6 * u**2 - 6 * u) / T,
+            3 * u**2 - 4 * u + 1,
+            (-6 * u**2 + 6 * u) / T,
+            3 * u**2 - 2 * u,
+        )
+        return h00 * p0 + h10 * T * v0 + h01 * p1 + h11 * T * v1, d00 * p0 + d10 * v0 + d01 * p1 + d11 * v1
+    # quintic: solve for the coefficients
+    M = np.array(
+        [
+            [1, 0, 0, 0, 0, 0],
+            [0, 1, 0, 0, 0, 0],
+            [0, 0, 2, 0, 0, 0],
+            [1, T, T**2, T**3, T**4, T**5],
+            [0, 1, 2 * T, 3 * T**2, 4 * T**3, 5 * T**4],
+            [0, 0, 2, 6 * T, 12 * T**2, 20 * T**3],
+        ]
+    )
+    c = np.linalg.solve(M, np.stack([p0, v0, a0, p1, v1, a1]))
+    return (
+        sum(c[k] * s**k for k in range(6)),
+        sum(k * c[k] * s ** (k - 1) for k in range(1, 6)),
+    )
+
+
+def test_batched_update_matches_a_per_world_reference():
+    rng = np.random.default_rng(3)
+    spec = batchsim.load("arm")
+    nworld, period = 6, 0.01
+    sim = FakeSim(spec, nworld, rng)
+    yaml_text = arm_yaml(
+        "t:\n  type: joint_trajectory_controller/JointTrajectoryController\n",
+        "t:\n  ros__parameters:\n    joints: [joint1, joint2, joint3, joint4, joint5, joint6]\n"
+        "    command_interfaces: [position]\n    state_interfaces: [position, velocity]\n",
+    )
+    manager = load_controllers(yaml_text, spec, nworld)
+    jtc = manager["t"]
+    names = spec.state_interfaces
+    pcol = [names.index(f"{j}/position") for j in ARM_JOINTS]
+    vcol = [names.index(f"{j}/velocity") for j in ARM_JOINTS]
+    ccol = [spec.command_interfaces.index(f"{j}/position") for j in ARM_JOINTS]
+
+    # world -> (send time, start stamp, times, positions, velocities, accelerations, mode)
+    goals = {}
+    for w, mode in enumerate(["linear", "cubic", "quintic", "cubic", None, "linear"]):
+        if mode is None:
+            continue
+        n = int(rng.integers(1, 5))
+        times = np.cumsum(rng.uniform(0.05, 0.3, n))
+        P = rng.normal(size=(n, 6))
+        V = rng.normal(size=(n, 6)) if mode != "linear" else None
+        A = rng.normal(size=(n, 6)) if mode == "quintic" else None
+        send = float(rng.choice([0.0, 0.05, 0.13]))
+        stamp = 0.0 if w != 3 else send + 0.2  # world 3 starts in the future
+        goals[w] = (send, stamp, times, P, V, A, mode)
+
+    ref_points: dict[int, list] = {}
+    hold = sim.state[:, pcol].copy()  # an idle world holds where it was at activation
+    t = 0.0
+    for _ in range(120):
+        for w, (send, stamp, times, P, V, A, _mode) in goals.items():
+            if abs(t - send) < 1e-9:
+                jtc.set_trajectory(w, ARM_JOINTS, times, P, V, A, start_time=stamp)
+        # the reference's view: the trajectory starts at the first update at or after its stamp
+        for w, (send, stamp, times, P, V, A, _mode) in goals.items():
+            begin = max(send, stamp)
+            if w not in ref_points and t >= begin - 1e-9:
+                t0 = stamp if stamp > 0 else t
+                start = (t, sim.state[w, pcol].copy(), sim.state[w, vcol].copy(), np.zeros(6))
+                ref_points[w] = [start] + [
+                    (
+                        t0 + times[k],
+                        P[k],
+                        np.zeros(6) if V is None else V[k],
+                        np.zeros(6) if A is None else A[k],
+                    )
+                    for k in range(len(times))
+                ]
+        manager.update(sim, t, period)
+        for w in range(nworld):
+            if w in ref_points:
+                p, v = reference_sample(ref_points[w], goals[w][6], t)
+            else:
+                p, v = hold[w], np.zeros(6)
+            np.testing.assert_allclose(jtc.reference_position[w], p, atol=1e-9, err_msg=f"world {w} t {t}")
+            np.testing.assert_allclose(jtc.reference_velocity[w], v, atol=1e-7, err_msg=f"world {w} t {t}")
+            np.testing.assert_allclose(sim.command[w, ccol], p, atol=1e-9)
+        np.testing.assert_allclose(jtc.error_position, jtc.reference_position - sim.state[:, pcol])
+        sim.advance(period)
+        t += period
+
+
+def test_batched_diff_drive_matches_a_per_world_reference():
+    rng = np.random.default_rng(5)
+    spec = batchsim.load("car")
+    nworld, period = 5, 0.01
+    sim = FakeSim(spec, nworld, rng)
+    manager = load_controllers(default_controllers("car"), spec, nworld)
+    dd = manager["diff_drive_controller"]
+    names = spec.state_interfaces
+    lp, rp = names.index("left_wheel_joint/position"), names.index("right_wheel_joint/position")
+    lv, rv = names.index("left_wheel_joint/velocity"), names.index("right_wheel_joint/velocity")
+    lc = spec.command_interfaces.index("left_wheel_joint/effort")
+    rc = spec.command_interfaces.index("right_wheel_joint/effort")
+    sep, r = 0.30, 0.06
+    ref = [
+        dict(x=0.0, y=0.0, th=0.0, last=None, cmd=(0.0, 0.0), stamp=-1e9, i=[0.0, 0.0]) for _ in range(nworld)
+    ]
+    t = 0.0
+    for _ in range(150):
+        for w in range(nworld):
+            if rng.random() < 0.2:
+                cmd = (float(rng.uniform(-2, 2)), float(rng.uniform(-5, 5)) * (w % 2))
+                dd.set_cmd_vel(w, *cmd, stamp=t)
+                ref[w]["cmd"], ref[w]["stamp"] = cmd, t
+        manager.update(sim, t, period)
+        for w in range(nworld):
+            s = ref[w]
+            lin, ang = s["cmd"] if t - s["stamp"] <= 0.5 else (0.0, 0.0)
+            lin, ang = min(max(lin, -1.5), 1.5), min(max(ang, -4.0), 4.0)
+            wheels = (sim.state[w, lp], sim.state[w, rp])
+            if s["last"] is not None:
+                dl, dr = (wheels[0] - s["last"][0]) * r, (wheels[1] - s["last"][1]) * r
+                d, a = (dl + dr) / 2, (dr - dl) / sep
+                if abs(a) < 1e-6:
+                    s["x"] += d * math.cos(s["th"] + a / 2)
+                    s["y"] += d * math.sin(s["th"] + a / 2)
+                else:
+                    rad = d / a
+                    s["x"] += rad * (math.sin(s["th"] + a) - math.sin(s["th"]))
+                    s["y"] -= rad * (math.cos(s["th"] + a) - math.cos(s["th"]))
+                s["th"] += a
+            s["last"] = wheels
+            want = ((lin - ang * sep / 2) / r, (lin + ang * sep / 2) / r)
+            efforts = []
+            for k, (target, measured) in enumerate(
+                zip(want, (sim.state[w, lv], sim.state[w, rv]), strict=True)
+            ):
+                e = target - measured
+                i = min(max(s["i"][k] + 1.0 * e * period, -2.0), 2.0)
+                u = 0.1 * e + i
+                clipped = min(max(u, -2.0), 2.0)
+                if clipped == u:
+                    s["i"][k] = i
+                efforts.append(clipped)
+            np.testing.assert_allclose(
+                dd.odom_pose[w], [s["x"], s["y"], s["th"]], atol=1e-9, err_msg=f"world {w}"
+            )
+            np.testing.assert_allclose(sim.command[w, [lc, rc]], efforts, atol=1e-9, err_msg=f"world {w}")
+        sim.advance(period)
+        t += period
+
+
+def test_forward_command_batched_and_validated():
+    spec = batchsim.load("quadruped")
+    sim = FakeSim(spec, 4, np.random.default_rng(0))
+    manager = load_controllers(default_controllers("quadruped"), spec, 4)
+    fcc = manager["effort_controller"]
+    manager.update(sim, 0.0, 0.01)
+    assert not sim.command.any()  # nothing received yet: interfaces keep their values
+    fcc.set_commands(2, np.arange(12.0))
+    with pytest.raises(ValueError, match="has 3 values, the controller has 12 joints"):
+        fcc.set_commands(1, [1, 2, 3])
+    manager.update(sim, 0.01, 0.01)
+    cols = [spec.command_interfaces.index(f"{j}/effort") for j in fcc.joints]
+    np.testing.assert_array_equal(sim.command[2, cols], np.arange(12.0))
+    assert not np.delete(sim.command, 2, axis=0).any()
+
+
+def test_manager_is_a_plain_participant():
+    assert isinstance(load_controllers(HEAD, batchsim.load("arm"), 1), ControllerManager)
+    assert parse(HEAD).controllers == []
