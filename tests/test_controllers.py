@@ -640,3 +640,61 @@ def test_forward_command_batched_and_validated():
 def test_manager_is_a_plain_participant():
     assert isinstance(load_controllers(HEAD, batchsim.load("arm"), 1), ControllerManager)
     assert parse(HEAD).controllers == []
+
+
+# ---------------------------------------------------------------- over real ROS 2
+
+
+@pytest.mark.ros
+def test_trajectory_over_ros_to_world_5_of_8(tmp_path):
+    """`batchsim --worlds 8` with the arm's default controllers; a JointTrajectory from here."""
+    pytest.importorskip("rclpy")
+    pytest.importorskip("ros_bridge.bridge")
+    from builtin_interfaces.msg import Duration
+    from ros_fleet import Fleet, domain_id
+    from sensor_msgs.msg import JointState
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    args = [
+        "--worlds",
+        "8",
+        "--model",
+        "arm",
+        "--backend",
+        "cpu",
+        "--controllers",
+        str(default_controllers("arm")),
+    ]
+    with Fleet(domain_id(30), args, tmp_path / "arms.log") as fleet:
+        js5 = fleet.latest(JointState, "/world_5/joint_states")
+        js2 = fleet.latest(JointState, "/world_2/joint_states")
+        ref5 = fleet.latest(JointState, "/world_5/joint_trajectory_controller/controller_state/reference")
+        err5 = fleet.latest(JointState, "/world_5/joint_trajectory_controller/controller_state/error")
+        fleet.wait(lambda: js5.count > 0 and js2.count > 0 and ref5.count > 0, what="joint_states")
+        goal = [0.5, -0.4, 0.6, 0.3, -0.5, 0.8]
+        msg = JointTrajectory()
+        msg.joint_names = ARM_JOINTS
+        msg.points = [
+            JointTrajectoryPoint(
+                positions=[g / 2 for g in goal], time_from_start=Duration(sec=0, nanosec=500_000_000)
+            ),
+            JointTrajectoryPoint(positions=goal, time_from_start=Duration(sec=1)),
+        ]
+        topic = "/world_5/joint_trajectory_controller/joint_trajectory"
+        fleet.publish(
+            JointTrajectory, topic, JointTrajectory()
+        )  # create the publisher, then wait for the match
+        fleet.wait_subscribed(topic)
+        fleet.publish(JointTrajectory, topic, msg)
+        tolerance = 0.04  # rad: the arm's position servos sag under gravity by up to ~0.03
+        fleet.wait(
+            lambda: (
+                np.abs(np.array(js5.msg.position) - goal).max() < tolerance
+                and list(ref5.msg.position) == goal
+            ),
+            timeout=20,
+            what="world 5 at the trajectory's last point",
+        )
+        assert np.abs(np.array(err5.msg.position)).max() < tolerance
+        assert np.abs(np.array(js2.msg.position)).max() < 1e-6  # the other worlds hold still
+        assert list(js5.msg.name) == ARM_JOINTS
