@@ -191,12 +191,15 @@ class JointTrajectoryController(Controller):
         W, nj = self.nworld, len(self.joints)
         times = np.full((W, cap), np.inf)
         arrays = [np.zeros((W, cap, nj)) for _ in range(3)]
+        coefficients = np.zeros((W, cap, nj, 6))
         if self._capacity:
             times[:, : self._capacity] = self._times
             for new, old in zip(arrays, (self._P, self._V, self._A), strict=True):
                 new[:, : self._capacity] = old
+            coefficients[:, : self._capacity] = self._C
         self._times = times
         self._P, self._V, self._A = arrays
+        self._C = coefficients  # (W, cap, nj, 6): segment k's polynomial in the time since point k
         self._capacity = cap
 
     # --- input (from the loop thread) ---
@@ -339,9 +342,13 @@ class JointTrajectoryController(Controller):
         self._P[w, 0], self._V[w, 0], self._A[w, 0] = here, here_v, 0.0
         self._P[w, 1:npt], self._V[w, 1:npt], self._A[w, 1:npt] = P, V, A
         self._npt[w] = npt
-        self._mode[w] = (
-            QUINTIC if goal.accelerations is not None else CUBIC if goal.velocities is not None else LINEAR
-        )
+        mode = QUINTIC if goal.accelerations is not None else CUBIC if goal.velocities is not None else LINEAR
+        self._mode[w] = mode
+        # each segment's polynomial, once per trajectory rather than every period
+        P, V, A = self._P[w, :npt], self._V[w, :npt], self._A[w, :npt]
+        T = np.diff(self._times[w, :npt])
+        T = np.where(T > 0, T, 1.0)[:, None]  # a zero-length segment is never sampled
+        self._C[w, : npt - 1] = _coefficients(mode, P[:-1], P[1:], V[:-1], V[1:], A[:-1], A[1:], T)
         self._i_term[w] = 0.0
 
     # --- the loop ---
@@ -403,27 +410,18 @@ class JointTrajectoryController(Controller):
         k = np.minimum(k, np.maximum(last - 1, 0))
         rows = np.arange(W)
         t_a, t_b = self._times[rows, k], self._times[rows, k + 1]
-        T = np.where(np.isfinite(t_b) & (t_b > t_a), t_b - t_a, 1.0)[:, None]
-        s = np.clip(rel - t_a, 0.0, None)[:, None]
-        p0, p1 = self._P[rows, k], self._P[rows, k + 1]
         if self.interpolation == "none":
             # hold the start point, then each point from its time on
             at_b = (rel >= t_b)[:, None]
-            p = np.where(at_b, p1, p0)
+            p = np.where(at_b, self._P[rows, k + 1], self._P[rows, k])
             v = np.where(at_b, self._V[rows, k + 1], self._V[rows, k])
             a = np.where(at_b, self._A[rows, k + 1], self._A[rows, k])
         else:
-            p, v, a = _spline(
-                self._mode,
-                p0,
-                p1,
-                self._V[rows, k],
-                self._V[rows, k + 1],
-                self._A[rows, k],
-                self._A[rows, k + 1],
-                T,
-                s,
-            )
+            s = np.clip(rel - t_a, 0.0, None)[:, None]
+            c0, c1, c2, c3, c4, c5 = np.moveaxis(self._C[rows, k], -1, 0)  # (W, nj) each
+            p = c0 + s * (c1 + s * (c2 + s * (c3 + s * (c4 + s * c5))))
+            v = c1 + s * (2 * c2 + s * (3 * c3 + s * (4 * c4 + s * 5 * c5)))
+            a = 2 * c2 + s * (6 * c3 + s * (12 * c4 + s * 20 * c5))
         end = self._P[rows, last]
         d = done[:, None]
         r = running[:, None]
@@ -462,31 +460,24 @@ def _order(kind: str) -> int:
     )
 
 
-def _spline(mode, p0, p1, v0, v1, a0, a1, T, s):
-    """Sample each world's segment: linear, cubic or quintic by `mode`, as one quintic.
+def _coefficients(mode, p0, p1, v0, v1, a0, a1, T):
+    """Segment polynomials, (..., 6) coefficients of s^0..s^5: linear, cubic or quintic by `mode`.
 
-    A linear segment is the quintic whose end velocities are the chord slope and end
-    accelerations zero; a cubic one is the quintic with the cubic's own end accelerations.
+    All three are one quintic: a linear segment is the quintic whose end velocities are the
+    chord slope and end accelerations zero; a cubic one has the cubic Hermite spline's own
+    end accelerations.
     """
     h = p1 - p0
-    m = mode[:, None]
-    chord = h / T
-    lin = m == LINEAR
-    v0 = np.where(lin, chord, v0)
-    v1 = np.where(lin, chord, v1)
-    # cubic Hermite end accelerations
-    c2 = (3 * h - (2 * v0 + v1) * T) / T**2
-    c3 = (-2 * h + (v0 + v1) * T) / T**3
-    cub = m == CUBIC
-    a0 = np.where(lin, 0.0, np.where(cub, 2 * c2, a0))
-    a1 = np.where(lin, 0.0, np.where(cub, 2 * c2 + 6 * c3 * T, a1))
+    if mode == LINEAR:
+        v0 = v1 = h / T
+        a0 = a1 = np.zeros_like(h)
+    elif mode == CUBIC:
+        c2 = (3 * h - (2 * v0 + v1) * T) / T**2
+        c3 = (-2 * h + (v0 + v1) * T) / T**3
+        a0, a1 = 2 * c2, 2 * c2 + 6 * c3 * T
     T2 = T * T
     T3 = T2 * T
     b3 = (20 * h - (8 * v1 + 12 * v0) * T - (3 * a0 - a1) * T2) / (2 * T3)
     b4 = (-30 * h + (14 * v1 + 16 * v0) * T + (3 * a0 - 2 * a1) * T2) / (2 * T3 * T)
     b5 = (12 * h - 6 * (v1 + v0) * T + (a1 - a0) * T2) / (2 * T3 * T2)
-    b2 = a0 / 2
-    p = p0 + s * (v0 + s * (b2 + s * (b3 + s * (b4 + s * b5))))
-    v = v0 + s * (2 * b2 + s * (3 * b3 + s * (4 * b4 + s * 5 * b5)))
-    a = 2 * b2 + s * (6 * b3 + s * (12 * b4 + s * 20 * b5))
-    return p, v, a
+    return np.stack([p0, v0, a0 / 2, b3, b4, b5], axis=-1)
