@@ -27,6 +27,9 @@ class Participant(Protocol):
 
     def update(self, sim: BatchedSystem, time: float, period: float) -> None: ...
 
+    # Optional, looked up with getattr: `after_write(sim, time, period)` runs right after
+    # write(); `idle(sim, time)` runs instead of update() while the loop is paused.
+
 
 @dataclasses.dataclass
 class LoopStats:
@@ -124,6 +127,10 @@ class SimLoop:
         for p in self.participants:
             p.update(sim, t, period)
         sim.write(t, period)
+        for p in self.participants:  # optional: e.g. the bridge re-marks commands it rejected
+            after = getattr(p, "after_write", None)
+            if after is not None:
+                after(sim, t, period)
         sim.step(self.substeps)
         self.sim_time += period
         self.stats.periods += 1
