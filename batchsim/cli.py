@@ -57,6 +57,7 @@ def run_parser() -> argparse.ArgumentParser:
     ros = p.add_argument_group("ROS 2 bridge")
     ros.add_argument("--namespace", default="world_{i}", help="per-world namespace template (default world_{i})")
     ros.add_argument("--publish-rate", type=float, default=None, help="Hz for topics (default: the control rate)")
+    ros.add_argument("--sensor-rate", type=float, default=None, help="Hz for sensors/<sensor> topics (default: the publish rate)")
     ros.add_argument("--lockstep", action="store_true", help="each period waits for every world's command")
     ros.add_argument("--lockstep-timeout", type=float, default=1.0, help="seconds a lockstep period waits")
     ros.add_argument("--qos-depth", type=int, default=None, help="queue depth (default 10, or the MJCF's)")
