@@ -1,0 +1,93 @@
+"""ROS names for a fleet: world namespaces from a template, topic-safe sensor and actuator names.
+
+No rclpy here, so the rules are testable without a ROS graph.
+
+- A world's namespace is the template with `{i}` replaced by the world index
+  (`world_{i}` -> `world_3`), without leading or trailing slashes.
+- With one world, the default template, and an MJCF whose `mujoco.ros2` extension block
+  sets `ros_namespace`, the namespace is that key's value, so topic names are exactly the
+  plugin's (`ros_namespace="car/"` -> `/car/sensors/<sensor>`).
+- A ROS name token holds letters, digits and underscores and does not start with a
+  digit. MJCF names may hold anything else (`.`, `-`, spaces): each such character
+  becomes `_`, a leading digit gets a `_` in front, and a name that then collides with
+  another gets `_2`, `_3`, ... appended. `ros_name("wrist.force")` is `wrist_force`.
+"""
+
+from __future__ import annotations
+
+import re
+
+DEFAULT_TEMPLATE = "world_{i}"
+
+_BAD = re.compile(r"[^A-Za-z0-9_]")
+_NS_TOKEN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+class NamingError(ValueError):
+    """A namespace template or MJCF namespace that cannot make valid, distinct ROS names."""
+
+
+def ros_name(name: str) -> str:
+    """`name` as one valid ROS name token (letters, digits, `_`; no leading digit)."""
+    token = _BAD.sub("_", name) or "_"
+    if token[0].isdigit():
+        token = "_" + token
+    return token
+
+
+def ros_names(names: list[str]) -> list[str]:
+    """Each name as a ROS token, made distinct: a collision gets `_2`, `_3`, ... appended."""
+    out: list[str] = []
+    seen: set[str] = set()
+    for name in names:
+        token = ros_name(name)
+        candidate, k = token, 2
+        while candidate in seen:
+            candidate, k = f"{token}_{k}", k + 1
+        seen.add(candidate)
+        out.append(candidate)
+    return out
+
+
+def world_namespaces(
+    nworld: int, template: str = DEFAULT_TEMPLATE, plugin_namespace: str | None = None
+) -> list[str]:
+    """One namespace per world, without leading or trailing `/` (`"world_3"`, `"a/b"`).
+
+    Args:
+      nworld: number of worlds.
+      template: a namespace with `{i}` for the world index.
+      plugin_namespace: the MJCF's `mujoco.ros2` `ros_namespace`; used, when set, for a
+        single world whose template is the default.
+
+    Raises:
+      NamingError: a template without `{i}` for several worlds, or one that does not make
+        valid ROS namespaces, naming the template and the offending result.
+    """
+    if nworld == 1 and plugin_namespace and template == DEFAULT_TEMPLATE:
+        ns = plugin_namespace.strip("/")
+        _check_namespace(ns, f"the MJCF's mujoco.ros2 ros_namespace {plugin_namespace!r}")
+        return [ns]
+    if nworld > 1 and "{i}" not in template:
+        raise NamingError(
+            f"--namespace {template!r} has no {{i}}: {nworld} worlds need distinct namespaces "
+            "(e.g. 'robot_{i}')"
+        )
+    out = []
+    for i in range(nworld):
+        try:
+            ns = template.format(i=i).strip("/")
+        except (KeyError, IndexError, ValueError) as e:
+            raise NamingError(f"--namespace {template!r}: only {{i}} may be substituted ({e})") from None
+        _check_namespace(ns, f"--namespace {template!r} gives {ns!r}, which")
+        out.append(ns)
+    return out
+
+
+def _check_namespace(ns: str, what: str) -> None:
+    tokens = ns.split("/")
+    if not ns or not all(_NS_TOKEN.match(t) for t in tokens):
+        raise NamingError(
+            f"{what} is not a valid ROS namespace: use letters, digits and '_' between '/', "
+            "not starting with a digit"
+        )
