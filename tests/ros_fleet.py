@@ -1,0 +1,169 @@
+"""Test helper: a `batchsim` process on its own ROS domain, and an rclpy client beside it.
+
+    with Fleet(domain=20, args=["--worlds", "4"], log=tmp_path / "fleet.log") as fleet:
+        js = fleet.latest(JointState, "/world_2/joint_states")
+        fleet.wait(lambda: js.count > 3)
+
+Each fleet runs on its own ROS_DOMAIN_ID with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, so
+tests never see each other's fleets or anything else on the machine. The process is
+always stopped (SIGINT, then SIGKILL) when the fleet closes.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+from rclpy.signals import SignalHandlerOptions
+
+LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+
+
+def domain_id(base: int) -> int:
+    """`base`, shifted per pytest-xdist worker so parallel workers never share a domain."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    return base + 10 * int(worker.removeprefix("gw") or 0)
+
+
+class Latest:
+    """A subscription that keeps the last message and counts them."""
+
+    def __init__(self) -> None:
+        self.msg: Any = None
+        self.count = 0
+        self.history: list[Any] = []
+        self.keep = 0
+
+    def __call__(self, msg: Any) -> None:
+        self.msg = msg
+        self.count += 1
+        if self.keep:
+            self.history.append(msg)
+            del self.history[: -self.keep]
+
+
+class Fleet:
+    """A `batchsim` subprocess and a client node on the same, private ROS domain."""
+
+    def __init__(self, domain: int, args: Sequence[str], log: Path):
+        self.domain = domain
+        self.log_path = log
+        env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain), "PYTHONUNBUFFERED": "1"}
+        self._log = open(log, "w+")
+        self.proc = subprocess.Popen(
+            # --controllers none: the raw bridge, without a shipped model's default controllers
+            [sys.executable, "-m", "batchsim.cli", "--quiet", "--controllers", "none", *args],
+            env=env,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+        )
+        os.environ.update(LOCALHOST)  # for this process's context, before init
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = Node(f"test_client_{domain}", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._running = True
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+        self._publishers: dict[str, Any] = {}
+
+    def _spin(self) -> None:
+        while self._running:
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except (ExternalShutdownException, rclpy.executors.ShutdownException):
+                return
+            except Exception:
+                if not self._running:
+                    return
+
+    def __enter__(self) -> Fleet:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def latest(self, msg_type: type, topic: str, keep: int = 0, qos: QoSProfile | int = 10) -> Latest:
+        sink = Latest()
+        sink.keep = keep
+        self.node.create_subscription(msg_type, topic, sink, qos)
+        return sink
+
+    def publish(self, msg_type: type, topic: str, msg: Any, qos: QoSProfile | int = 10) -> None:
+        pub = self._publishers.get(topic)
+        if pub is None:
+            pub = self._publishers[topic] = self.node.create_publisher(msg_type, topic, qos)
+        pub.publish(msg)
+
+    def publish_until(
+        self, msg_type: type, topic: str, msg: Any, predicate: Callable[[], Any], timeout: float = 20.0, what: str = ""
+    ) -> None:
+        """Publish `msg` every 50 ms until `predicate()` holds: the first messages after
+        discovery may be lost (best_effort), and a command is meant to be held anyway."""
+        deadline = time.monotonic() + timeout
+        while True:
+            self.publish(msg_type, topic, msg)
+            if predicate():
+                return
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.wait(predicate, 0.0, what or f"the effect of {topic}")
+            time.sleep(0.05)
+
+    def wait_subscribed(self, topic: str, timeout: float = 20.0) -> None:
+        """Wait until the fleet subscribes to `topic` (our publisher matched it)."""
+        self.wait(lambda: self._publishers[topic].get_subscription_count() > 0, timeout, f"{topic} matched")
+
+    def call(self, srv_type: type, name: str, request: Any, timeout: float = 20.0) -> Any:
+        client = self.node.create_client(srv_type, name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                raise TimeoutError(f"service {name} did not appear in {timeout} s\n{self.log()}")
+            future = client.call_async(request)
+            self.wait(future.done, timeout, f"a reply from {name}")
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def wait(self, predicate: Callable[[], Any], timeout: float = 20.0, what: str = "condition") -> None:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"batchsim exited with {self.proc.returncode} while waiting for {what}\n{self.log()}")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no {what} within {timeout} s\n{self.log()[-3000:]}")
+            time.sleep(0.02)
+
+    def log(self) -> str:
+        self._log.flush()
+        return self.log_path.read_text()
+
+    def close(self) -> int | None:
+        """Stop batchsim (SIGINT, as Ctrl-C) and the client; the process's exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        if self._running:
+            self._running = False
+            self.executor.shutdown(timeout_sec=1.0)
+            self._thread.join(timeout=2.0)
+            self.node.destroy_node()
+            rclpy.try_shutdown(context=self.context)
+            self._log.close()
+        return self.proc.returncode
