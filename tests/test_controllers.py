@@ -698,3 +698,43 @@ def test_trajectory_over_ros_to_world_5_of_8(tmp_path):
         assert np.abs(np.array(err5.msg.position)).max() < tolerance
         assert np.abs(np.array(js2.msg.position)).max() < 1e-6  # the other worlds hold still
         assert list(js5.msg.name) == ARM_JOINTS
+
+
+@pytest.mark.ros
+def test_car_over_ros_cmd_vel_and_odometry(tmp_path):
+    """`batchsim --model car` with its default controllers: TwistStamped in, Odometry out."""
+    pytest.importorskip("rclpy")
+    pytest.importorskip("ros_bridge.bridge")
+    from geometry_msgs.msg import TwistStamped
+    from nav_msgs.msg import Odometry
+    from ros_fleet import Fleet, domain_id
+
+    args = [
+        "--worlds",
+        "2",
+        "--model",
+        "car",
+        "--backend",
+        "cpu",
+        "--controllers",
+        str(default_controllers("car")),
+    ]
+    with Fleet(domain_id(31), args, tmp_path / "cars.log") as fleet:
+        odom1 = fleet.latest(Odometry, "/world_1/diff_drive_controller/odom")
+        odom0 = fleet.latest(Odometry, "/world_0/diff_drive_controller/odom")
+        fleet.wait(lambda: odom1.count > 0 and odom0.count > 0, what="odometry")
+        topic = "/world_1/diff_drive_controller/cmd_vel"
+        cmd = TwistStamped()  # stamp zero: now, as the stock controller takes it
+        cmd.twist.linear.x = 0.5
+        fleet.publish(TwistStamped, topic, cmd)
+        fleet.wait_subscribed(topic)
+
+        def driving() -> bool:
+            fleet.publish(TwistStamped, topic, cmd)
+            return odom1.msg.pose.pose.position.x > 0.3
+
+        fleet.wait(driving, timeout=20, what="world 1 driving")
+        msg = odom1.msg
+        assert (msg.header.frame_id, msg.child_frame_id) == ("odom", "base_link")
+        assert msg.twist.twist.linear.x == pytest.approx(0.5, abs=0.1)
+        assert abs(odom0.msg.pose.pose.position.x) < 1e-3  # world 0 got no cmd_vel
