@@ -96,7 +96,11 @@ def feeder(model: str, manager, nworld: int, rng: np.random.Generator):
 def measure(model: str, nworld: int, seconds: float, only: str | None = None) -> tuple[float, float]:
     """(physics seconds per period, controller update seconds per period)."""
     sim, manager, substeps, period = setup(model, nworld, only)
-    feed = feeder(model, manager, nworld, np.random.default_rng(0)) if not only or "Broadcaster" not in only else None
+    feed = (
+        feeder(model, manager, nworld, np.random.default_rng(0))
+        if not only or "Broadcaster" not in only
+        else None
+    )
     clock = {"t": 0.0}
 
     def physics() -> None:
@@ -148,9 +152,13 @@ def main() -> None:
     for model in args.models.split(","):
         cases: list[tuple[str, str | None]] = [("default YAML", None)]
         if model == "arm":
-            cases.append(("JointTrajectoryController only", "joint_trajectory_controller/JointTrajectoryController"))
+            cases.append(
+                ("JointTrajectoryController only", "joint_trajectory_controller/JointTrajectoryController")
+            )
         for label, only in cases:
-            names = ", ".join(load_controllers(default_controllers(model), batchsim.load(model), 1).controllers)
+            names = ", ".join(
+                load_controllers(default_controllers(model), batchsim.load(model), 1).controllers
+            )
             what = names if only is None else label
             for nworld in (int(n) for n in args.worlds.split(",")):
                 phys, ctrl = measure(model, nworld, args.seconds, only)
