@@ -47,7 +47,7 @@ def main(args: list[str] | None = None) -> None:
     try:
         while rclpy.ok() and (opts.seconds is None or time.monotonic() - start < opts.seconds):
             rclpy.spin_once(node, timeout_sec=0.1)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):  # Ctrl-C, SIGTERM
         pass
     finally:
         node.destroy_node()
