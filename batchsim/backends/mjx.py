@@ -1,0 +1,245 @@
+"""The `mjx` backend: MuJoCo XLA (`mujoco.mjx`, its JAX implementation) in float32.
+
+The worlds are one `jax.vmap` of `mjx.step`; one control period is one jitted call that
+runs the `nstep` substeps in `lax.scan` on the device and then checks every world, with
+the Data buffers donated so that XLA steps them in place. On a GPU or TPU a program is
+compiled once per (model, nworld, nstep): a static trip count spares a device-to-host sync
+per substep. On JAX's CPU device, where loops run on the host anyway, `nstep` is data
+(`lax.fori_loop`) and one program per (model, nworld) serves every nstep, which keeps the
+test suite's compile time down. Programs are shared by every system of one model and size
+in the process.
+
+A world whose qpos, qvel or qacc goes non-finite or beyond MuJoCo's mjMAXVAL gets
+DIVERGED and is frozen as on the other backends: it reads as it was when it failed while,
+on the device, it is parked (reset, ctrl held at zero) until `reset()` lists it. MJX's
+JAX implementation sizes contacts and constraints statically from the model, so its
+buffers cannot overflow and OVERFLOW is never set here.
+
+`device_arrays()` hands out the live JAX arrays (zero copy, DLPack-capable) for users who
+stay on the device.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+from collections.abc import Callable, Mapping
+from typing import Any, ClassVar, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from batchsim.backends import unsupported_error
+from batchsim.hardware import MAX_COMMAND, BatchedSystem, Status
+from batchsim.model import RobotSpec
+
+_SOURCES = ("qpos", "qvel", "qfrc_actuator", "sensordata")
+_CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device)
+
+
+class _Programs(NamedTuple):
+    """The jitted programs of one (model, nworld, device)."""
+
+    period: Callable[..., Any]  # (d, nstep: int) -> (d, flags)
+    reset: Callable[..., Any]  # (d, d0, mask) -> d
+    read: Callable[..., Any]  # (d) -> (state, sensordata, time)
+
+
+_PROGRAMS: OrderedDict[tuple[Any, ...], _Programs] = OrderedDict()
+
+
+def _fingerprint(m: mujoco.MjModel) -> str:
+    """A digest of everything in the model, so that equal models share compiled programs."""
+    buffer = np.empty(mujoco.mj_sizeModel(m), np.uint8)
+    mujoco.mj_saveModel(m, None, buffer)
+    return hashlib.sha256(buffer.tobytes()).hexdigest()
+
+
+def _programs(mx: mjx.Model, spec: RobotSpec, nworld: int, device: jax.Device) -> _Programs:
+    key = (_fingerprint(spec.mjmodel), tuple(c.name for c in spec.state), nworld, device)
+    if key in _PROGRAMS:
+        _PROGRAMS.move_to_end(key)
+        return _PROGRAMS[key]
+    step = jax.vmap(mjx.step, in_axes=(None, 0))
+
+    def check(d: mjx.Data) -> jax.Array:
+        bad = jnp.zeros(nworld, bool)
+        for x in (d.qpos, d.qvel, d.qacc):
+            bad |= (jnp.isnan(x) | (jnp.abs(x) > MAX_COMMAND)).any(axis=1)
+        return jnp.where(bad, jnp.int32(Status.DIVERGED), jnp.int32(0))
+
+    def period(d: mjx.Data, nstep: Any) -> tuple[mjx.Data, jax.Array]:
+        if isinstance(nstep, int):  # a static trip count: XLA runs the loop without asking the host
+            d = jax.lax.scan(lambda d, _: (step(mx, d), None), d, None, length=nstep)[0]
+        else:
+            d = jax.lax.fori_loop(0, nstep, lambda _, d: step(mx, d), d)
+        return d, check(d)
+
+    def reset(d: mjx.Data, d0: mjx.Data, mask: jax.Array) -> mjx.Data:
+        def pick(x, x0):
+            return jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x0[None], x)
+
+        return jax.tree.map(pick, d, d0)
+
+    m = spec.mjmodel
+    offset = dict(zip(_SOURCES, np.cumsum([0, m.nq, m.nv, m.nv]), strict=True))
+    take = np.array([offset[c.source] + c.index for c in spec.state], dtype=np.int32)
+
+    def read(d: mjx.Data) -> tuple[jax.Array, jax.Array, jax.Array]:
+        fields = jnp.concatenate([getattr(d, s) for s in _SOURCES], axis=1)
+        return fields[:, take], d.sensordata, d.time
+
+    if device.platform == "cpu":
+        # XLA:CPU runs loops on the host anyway: nstep as data, one program for every nstep
+        jitted = jax.jit(period, donate_argnums=0)
+
+        def run(d: mjx.Data, nstep: int) -> tuple[mjx.Data, jax.Array]:
+            return jitted(d, np.int32(nstep))
+    else:
+        # on an accelerator a data-dependent trip count costs a device-to-host sync per
+        # substep; a static one does not, so nstep is compiled in (once per control rate)
+        run = jax.jit(period, static_argnums=1, donate_argnums=0)
+
+    programs = _Programs(
+        period=run,
+        reset=jax.jit(reset, donate_argnums=0),
+        read=jax.jit(read),
+    )
+    _PROGRAMS[key] = programs
+    while len(_PROGRAMS) > _CACHE_SIZE:
+        _PROGRAMS.popitem(last=False)
+    return programs
+
+
+def _device(option: Any) -> jax.Device:
+    if option is None:
+        return jax.devices()[0]
+    if isinstance(option, jax.Device):
+        return option
+    platform, _, index = str(option).partition(":")
+    platform = {"cuda": "gpu"}.get(platform, platform)
+    return jax.devices(platform)[int(index or 0)]
+
+
+class MjxSystem(BatchedSystem):
+    """`nworld` worlds on MJX (JAX), one jitted device loop per control period.
+
+    Options:
+      device: a JAX device, or "cpu", "gpu", "gpu:1", "tpu"; None is JAX's default (the
+        first accelerator if there is one).
+    """
+
+    name: ClassVar[str] = "mjx"
+    OPTIONS: ClassVar[dict[str, Any]] = {"device": None}
+
+    def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
+        super().__init__(spec, nworld, **options)
+        self.device = _device(self.options["device"])
+        try:
+            self._mx = mjx.put_model(self.model, device=self.device, impl="jax")
+        except NotImplementedError as e:
+            raise unsupported_error("mjx", spec, _feature(e)) from None
+
+    @staticmethod
+    def unsupported(spec: RobotSpec) -> str | None:
+        """The model feature MJX cannot simulate, or None."""
+        try:
+            mjx.put_model(spec.mjmodel, impl="jax")
+        except NotImplementedError as e:
+            return _feature(e)
+        return None
+
+    # --- engine hooks ---
+    def _open(self) -> None:
+        m = self.model
+        mjd = mujoco.MjData(m)
+        mujoco.mj_forward(m, mjd)  # a reset world reads mj_forward's values, as on the cpu backend
+        self._d0 = mjx.put_data(m, mjd, device=self.device, impl="jax")
+        self._programs = _programs(self._mx, self.spec, self.nworld, self.device)
+        self._d = jax.tree.map(lambda x: jnp.repeat(x[None], self.nworld, axis=0), self._d0)
+        self._ctrl = np.zeros((self.nworld, m.nu))
+        self._ctrl32 = np.zeros((self.nworld, m.nu), np.float32)
+        self._parked = np.zeros(self.nworld, bool)
+        self._held: dict[str, np.ndarray] = {}
+
+    def _close(self) -> None:
+        del self._d, self._d0, self._programs
+
+    def _ctrl_host(self) -> np.ndarray:
+        return self._ctrl
+
+    def _upload_ctrl(self) -> None:
+        np.copyto(self._ctrl32, self._ctrl, casting="same_kind")
+        if self._parked.any():
+            self._ctrl32[self._parked] = 0.0
+        self._d = self._d.replace(ctrl=jax.device_put(self._ctrl32, self.device))
+
+    def _download(self) -> Mapping[str, np.ndarray]:
+        """Host float64 copies of the raw fields; read() itself takes the faster path of _refresh."""
+        fields = jax.device_get({f: getattr(self._d, f) for f in (*_SOURCES, "time")})
+        return {f: np.asarray(x, dtype=np.float64) for f, x in fields.items()}
+
+    def _refresh(self) -> None:
+        state, sensordata, time = jax.device_get(self._programs.read(self._d))
+        np.copyto(self.state, state)
+        np.copyto(self._sensor_host, sensordata)
+        np.copyto(self.time, time)
+        if self._parked.any():
+            parked = self._parked
+            self.state[parked] = self._held["state"][parked]
+            self._sensor_host[parked] = self._held["sensordata"][parked]
+            self.time[parked] = self._held["time"][parked]
+
+    def _step(self, nstep: int) -> None:
+        self._d, flags = self._programs.period(self._d, nstep)
+        flags = np.asarray(flags)
+        if flags.any():
+            failed = (flags != 0) & ~self._parked
+            if failed.any():
+                self._freeze(np.flatnonzero(failed), flags)
+
+    def _freeze(self, worlds: np.ndarray, flags: np.ndarray) -> None:
+        """Hold what the failed worlds read now, then park them on the device."""
+        self.status[worlds] |= flags[worlds].astype(np.uint8)
+        self._refresh()  # the newly failed worlds are not parked yet: they read live, once
+        for key, array in (("state", self.state), ("sensordata", self._sensor_host), ("time", self.time)):
+            held = self._held.setdefault(key, np.zeros_like(array))
+            held[worlds] = array[worlds]
+        self._parked[worlds] = True
+        self._reset_on_device(worlds)
+        self._upload_ctrl()
+
+    def _reset_on_device(self, worlds: np.ndarray | None) -> None:
+        if worlds is None:
+            mask = np.ones(self.nworld, bool)
+        else:
+            mask = np.zeros(self.nworld, bool)
+            mask[worlds] = True
+        self._d = self._programs.reset(self._d, self._d0, jax.device_put(mask, self.device))
+
+    def _reset(self, worlds: np.ndarray | None) -> None:
+        self._reset_on_device(worlds)
+        if worlds is None:
+            self._parked[:] = False
+        else:
+            self._parked[worlds] = False
+
+    # --- for users who stay on the device ---
+    def device_arrays(self) -> dict[str, jax.Array]:
+        """The simulation's JAX arrays, zero copy: qpos, qvel, qfrc_actuator, sensordata, ctrl
+        `(nworld, ...)` and time `(nworld,)`, float32, on `self.device`.
+
+        Each step() donates these buffers to the next period, so the arrays are valid until
+        the next step(), write() or reset(): call device_arrays() again after those. Pass
+        them on with DLPack (`torch.from_dlpack(a)`). Rows of frozen worlds (see `status`)
+        are parked and meaningless until reset.
+        """
+        d = self._d
+        return {f: getattr(d, f) for f in ("qpos", "qvel", "qfrc_actuator", "sensordata", "ctrl", "time")}
+
+
+def _feature(e: NotImplementedError) -> str:
+    return str(e).strip().rstrip(".") or type(e).__name__

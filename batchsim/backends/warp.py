@@ -1,0 +1,489 @@
+"""The `warp` backend: MuJoCo Warp (`mujoco_warp`) in float32, on an NVIDIA GPU or Warp's CPU device.
+
+One control period is one CUDA graph: the `nstep` physics steps and a per-world check
+kernel, captured once per `nstep` and launched with one call. Commands go up and state
+comes down once per period (`write`, `read`), through pinned host buffers allocated once
+at configure; nothing crosses the bus per physics step. On Warp's CPU device (a machine
+without a GPU) the same kernels run as plain launches.
+
+Failures are data, as in MuJoCo Warp itself: a world whose qpos, qvel or qacc goes
+non-finite or beyond MuJoCo's mjMAXVAL gets DIVERGED, a world whose contact or constraint
+buffers overflow gets OVERFLOW. Such a world is frozen: its state and time read as they
+were when it failed, while on the device it is parked (reset, ctrl held at zero) so that
+it costs the others nothing, until `reset()` lists it.
+
+Contact and constraint buffers (`nconmax` per world on average, pooled over the worlds as
+MuJoCo Warp does, and `njmax` per world) are sized from a short CPU rollout of the model,
+with headroom; both are options of `batchsim.make`. A contact-pool overflow cannot be
+pinned to one world, so it sets OVERFLOW on every world; a constraint overflow is per
+world. Each kind is reported once, in one line naming the option that fixes it.
+
+`device_arrays()` hands out the live Warp arrays (zero copy, DLPack-capable) for users
+who stay on the device.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import mujoco
+import numpy as np
+import warp as wp
+
+wp.config.quiet = True  # no banner on stdout: `batchsim info` and the CLI print there
+if wp.config.log_level <= wp.LOG_INFO:
+    wp.config.log_level = wp.LOG_WARNING  # no "Module ... load on device" line per kernel
+
+import mujoco_warp as mjw  # noqa: E402  (after the config above)
+
+from batchsim.backends import unsupported_error  # noqa: E402
+from batchsim.hardware import MAX_COMMAND, BatchedSystem, Status  # noqa: E402
+from batchsim.model import RobotSpec  # noqa: E402
+
+log = logging.getLogger("batchsim.warp")
+
+_O = mjw.OverflowType
+# Buffers that, once full, drop contacts or constraints: the world's results are wrong.
+# ITERATIONS / LS_ITERATIONS only say the solver stopped early, as MuJoCo's does.
+_BUFFER_OVERFLOWS = int(
+    _O.NEFC
+    | _O.NJMAX_NNZ
+    | _O.BROADPHASE
+    | _O.NARROWPHASE
+    | _O.CCD
+    | _O.HFIELD
+    | _O.CONTACT_MATCH
+    | _O.NVMAX
+    | _O.EPA_HORIZON
+    | _O.TACTILE
+)
+# what to tell the user for each kind: (what filled up, the option that fixes it)
+_OVERFLOW_FIX = {
+    _O.NEFC: ("constraint rows (njmax)", "njmax"),
+    _O.NJMAX_NNZ: ("constraint Jacobian non-zeros (njmax)", "njmax"),
+    _O.BROADPHASE: ("contact candidates (nconmax, pooled over worlds)", "nconmax"),
+    _O.NARROWPHASE: ("contacts (nconmax, pooled over worlds)", "nconmax"),
+    _O.CCD: ("convex-collision contacts (nconmax)", "nconmax"),
+    _O.HFIELD: ("height-field contacts (nconmax)", "nconmax"),
+    _O.CONTACT_MATCH: ("contact-sensor matches", "nconmax"),
+    _O.NVMAX: ("island degrees of freedom", "njmax"),
+    _O.EPA_HORIZON: ("the convex-collision EPA horizon", "nconmax"),
+    _O.TACTILE: ("tactile-sensor pairs", "nconmax"),
+}
+_SOURCES = ("qpos", "qvel", "qfrc_actuator", "sensordata")
+
+# buffer sizing from a CPU rollout
+_SIZING_SECONDS = 2.0
+_SIZING_MAX_STEPS = 2000
+_HEADROOM = 2.0
+
+
+# ---------------------------------------------------------------- kernels
+
+
+@wp.kernel
+def _check_worlds(
+    qpos: wp.array2d(dtype=wp.float32),
+    qvel: wp.array2d(dtype=wp.float32),
+    qacc: wp.array2d(dtype=wp.float32),
+    overflow: wp.array(dtype=wp.int32),
+    overflow_mask: wp.int32,
+    maxval: wp.float32,
+    flags: wp.array(dtype=wp.int32),
+):
+    """flags[w]: DIVERGED if qpos/qvel/qacc is NaN or beyond mjMAXVAL, OVERFLOW if a buffer overflowed."""
+    w = wp.tid()
+    bad = int(0)  # noqa: UP018  (int(): a mutable Warp variable, not a constant)
+    for i in range(qpos.shape[1]):
+        x = qpos[w, i]
+        if wp.isnan(x) or wp.abs(x) > maxval:
+            bad = 1
+    for i in range(qvel.shape[1]):
+        x = qvel[w, i]
+        y = qacc[w, i]
+        if wp.isnan(x) or wp.abs(x) > maxval or wp.isnan(y) or wp.abs(y) > maxval:
+            bad = 1
+    f = int(0)  # noqa: UP018
+    if bad != 0:
+        f = int(Status.DIVERGED)
+    if (overflow[w] & overflow_mask) != 0:
+        f = f | int(Status.OVERFLOW)
+    flags[w] = f
+
+
+@wp.kernel
+def _narrow_ctrl(
+    ctrl64: wp.array2d(dtype=wp.float64),
+    parked: wp.array(dtype=wp.int32),
+    ctrl: wp.array2d(dtype=wp.float32),
+):
+    """The host's float64 ctrl into the simulation's float32 ctrl; parked worlds get zero."""
+    w, j = wp.tid()
+    if parked[w] != 0:
+        ctrl[w, j] = wp.float32(0.0)
+    else:
+        ctrl[w, j] = wp.float32(ctrl64[w, j])
+
+
+@wp.kernel
+def _gather_state(
+    qpos: wp.array2d(dtype=wp.float32),
+    qvel: wp.array2d(dtype=wp.float32),
+    qfrc_actuator: wp.array2d(dtype=wp.float32),
+    sensordata: wp.array2d(dtype=wp.float32),
+    time: wp.array(dtype=wp.float32),
+    source: wp.array(dtype=wp.int32),
+    index: wp.array(dtype=wp.int32),
+    nstate: wp.int32,
+    state_out: wp.array2d(dtype=wp.float64),
+    sensordata_out: wp.array2d(dtype=wp.float64),
+    time_out: wp.array(dtype=wp.float64),
+):
+    """The state interfaces, sensordata and time of every world, widened to float64.
+
+    Column c < nstate is state column c, read from field source[c] at index[c]; the next
+    nsensordata columns are sensordata; the last is time.
+    """
+    w, c = wp.tid()
+    if c < nstate:
+        s = source[c]
+        i = index[c]
+        v = wp.float32(0.0)
+        if s == 0:
+            v = qpos[w, i]
+        elif s == 1:
+            v = qvel[w, i]
+        elif s == 2:
+            v = qfrc_actuator[w, i]
+        else:
+            v = sensordata[w, i]
+        state_out[w, c] = wp.float64(v)
+    elif c < nstate + sensordata.shape[1]:
+        sensordata_out[w, c - nstate] = wp.float64(sensordata[w, c - nstate])
+    else:
+        time_out[w] = wp.float64(time[w])
+
+
+@wp.kernel
+def _set_rows(
+    mask: wp.array(dtype=wp.bool), row: wp.array(dtype=wp.float32), out: wp.array2d(dtype=wp.float32)
+):
+    """out[w] = row for the masked worlds."""
+    w, j = wp.tid()
+    if mask[w]:
+        out[w, j] = row[j]
+
+
+# ---------------------------------------------------------------- buffer sizing
+
+
+def rollout_sizes(m: mujoco.MjModel, *, seed: int = 0) -> tuple[int, int]:
+    """(nconmax, njmax) for `m`: the most contacts seen in a short CPU rollout, with headroom.
+
+    The rollout runs up to 2 s of simulated time twice, once passive and once under random
+    in-range controls, and takes the most contacts any step had. nconmax is that with 2x
+    headroom; njmax is the most constraint rows those contacts and every limit, friction
+    and equality of the model can make at once.
+    """
+    d = mujoco.MjData(m)
+    nsteps = max(1, min(_SIZING_MAX_STEPS, math.ceil(_SIZING_SECONDS / m.opt.timestep)))
+    lo, hi = np.full(m.nu, -1.0), np.full(m.nu, 1.0)
+    limited = m.actuator_ctrllimited.astype(bool)
+    lo[limited], hi[limited] = m.actuator_ctrlrange[limited, 0], m.actuator_ctrlrange[limited, 1]
+    rng = np.random.default_rng(seed)
+    ncon = ne = 0
+    for excite in (False, True):
+        mujoco.mj_resetData(m, d)
+        for i in range(nsteps):
+            if excite and i % 10 == 0:
+                d.ctrl[:] = rng.uniform(lo, hi)
+            mujoco.mj_step(m, d)
+            if d.warning[int(mujoco.mjtWarning.mjWARN_BADQACC)].number:
+                break  # the model blew up under random controls: what came before counts
+            ncon = max(ncon, d.ncon)
+            ne = max(ne, int(d.ne))
+    nconmax = int(math.ceil(_HEADROOM * ncon)) + 4
+    # contact rows: pyramidal cones take 2 (condim - 1) rows, elliptic condim, frictionless 1
+    condim = int(m.geom_condim.max()) if m.ngeom else 1
+    if m.npair:
+        condim = max(condim, int(m.pair_dim.max()))
+    elliptic = m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
+    rows = 1 if condim == 1 else (condim if elliptic else 2 * (condim - 1))
+    nfriction = int((m.dof_frictionloss > 0).sum() + (m.tendon_frictionloss > 0).sum())
+    nlimit = int(m.jnt_limited.sum() + m.tendon_limited.sum())
+    njmax = ne + nfriction + nlimit + nconmax * rows
+    return nconmax, max(njmax, 1)
+
+
+# ---------------------------------------------------------------- the backend
+
+
+class WarpSystem(BatchedSystem):
+    """`nworld` worlds on MuJoCo Warp, one CUDA graph per control period.
+
+    Options:
+      nconmax: contacts per world, on average (MuJoCo Warp pools them over the worlds);
+        None sizes it from a short CPU rollout of the model, with headroom.
+      njmax: constraint rows per world; None sizes it from the same rollout.
+      device: a Warp device ("cuda:0", "cpu"); None is Warp's default (the first GPU if
+        there is one).
+      graph: capture each control period in a CUDA graph (GPU only); False launches the
+        kernels one by one, for debugging.
+    """
+
+    name: ClassVar[str] = "warp"
+    OPTIONS: ClassVar[dict[str, Any]] = {"nconmax": None, "njmax": None, "device": None, "graph": True}
+
+    def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
+        super().__init__(spec, nworld, **options)
+        self.device = wp.get_device(self.options["device"])
+        feature = self.unsupported(spec, self.device)
+        if feature is not None:
+            raise unsupported_error("warp", spec, feature)
+        sized = None
+        if self.options["nconmax"] is None or self.options["njmax"] is None:
+            sized = rollout_sizes(self.model)
+        self.nconmax = int(self.options["nconmax"] if self.options["nconmax"] is not None else sized[0])
+        self.njmax = int(self.options["njmax"] if self.options["njmax"] is not None else sized[1])
+        self._cuda = self.device.is_cuda
+        # The host arrays a user sees become pinned memory that the device copies into
+        # directly: read() then costs one DMA per array and no host-side copy or conversion.
+        self._state_wp = self._host_array(self.state.shape, wp.float64)
+        self._sensor_wp = self._host_array(self._sensor_host.shape, wp.float64)
+        self._time_wp = self._host_array(self.time.shape, wp.float64)
+        self._ctrl_wp = self._host_array((self.nworld, self.model.nu), wp.float64)
+        self._flags_wp = self._host_array((self.nworld,), wp.int32)
+        self.state = self._state_wp.numpy()
+        self._sensor_host = self._sensor_wp.numpy()
+        self.sensordata = type(self.sensordata)(
+            {s.name: self._sensor_host[:, s.adr : s.adr + s.dim] for s in spec.sensors}
+        )
+        self.time = self._time_wp.numpy()
+        self._ctrl = self._ctrl_wp.numpy()
+        self._flags = self._flags_wp.numpy()
+        self._reported: set[int] = set()
+
+    @staticmethod
+    def unsupported(spec: RobotSpec, device: Any = None) -> str | None:
+        """The model feature MuJoCo Warp cannot simulate, or None."""
+        try:
+            with wp.ScopedDevice(device):
+                mjw.put_model(spec.mjmodel)
+        except NotImplementedError as e:
+            return str(e).strip().rstrip(".") or type(e).__name__
+        return None
+
+    def _host_array(self, shape: tuple[int, ...], dtype: Any) -> wp.array:
+        """A zeroed host array: pinned (page-locked) when the device is a GPU."""
+        return wp.zeros(shape, dtype=dtype, device="cpu", pinned=self._cuda)
+
+    # --- engine hooks ---
+    def _open(self) -> None:
+        m, n = self.model, self.nworld
+        mjd = mujoco.MjData(m)
+        mujoco.mj_forward(m, mjd)
+        with wp.ScopedDevice(self.device):
+            self._m = mjw.put_model(m)
+            # failures are read per world from d.overflow; MuJoCo Warp's own printf per
+            # overflowing world and step would flood the console
+            self._m.opt.warn_overflow = 0
+            self._d = mjw.put_data(m, mjd, nworld=n, nconmax=self.nconmax, njmax=self.njmax)
+            d = self._d
+            # initial values of the derived fields a reset world reads back (mj_forward's)
+            self._qfrc0 = wp.array(mjd.qfrc_actuator.astype(np.float32), dtype=wp.float32)
+            self._sensor0 = wp.array(mjd.sensordata.astype(np.float32), dtype=wp.float32)
+            self._parked_dev = wp.zeros(n, dtype=wp.int32)
+            self._mask_dev = wp.zeros(n, dtype=wp.bool)
+            nstate = self.state.shape[1]
+            source = np.zeros(nstate, np.int32)
+            index = np.zeros(nstate, np.int32)
+            for c, col in enumerate(self.spec.state):
+                source[c], index[c] = _SOURCES.index(col.source), col.index
+            self._source = wp.array(source, dtype=wp.int32)
+            self._index = wp.array(index, dtype=wp.int32)
+            if self._cuda:
+                self._state_dev = wp.zeros(self.state.shape, dtype=wp.float64)
+                self._sensor_dev = wp.zeros(self._sensor_host.shape, dtype=wp.float64)
+                self._time_dev = wp.zeros(n, dtype=wp.float64)
+                self._ctrl_dev = wp.zeros(self._ctrl.shape, dtype=wp.float64)
+                self._flags_dev = wp.zeros(n, dtype=wp.int32)
+            else:  # Warp's CPU device: the kernels read and write the host arrays themselves
+                self._state_dev, self._sensor_dev, self._time_dev = (
+                    self._state_wp,
+                    self._sensor_wp,
+                    self._time_wp,
+                )
+                self._ctrl_dev, self._flags_dev = self._ctrl_wp, self._flags_wp
+        del d
+        self._graphs: dict[int, Any] = {}
+        self._parked = np.zeros(n, bool)
+        self._held: dict[str, np.ndarray] = {}
+        self._ncols = self.state.shape[1] + self._sensor_host.shape[1] + 1
+
+    def _close(self) -> None:
+        self._graphs.clear()
+        for name in ("_m", "_d", "_qfrc0", "_sensor0", "_parked_dev", "_mask_dev", "_source", "_index"):
+            self.__dict__.pop(name, None)
+
+    def _ctrl_host(self) -> np.ndarray:
+        return self._ctrl
+
+    def _upload_ctrl(self) -> None:
+        with wp.ScopedDevice(self.device):
+            if self._cuda:
+                wp.copy(self._ctrl_dev, self._ctrl_wp)
+            wp.launch(
+                _narrow_ctrl,
+                dim=self._ctrl.shape,
+                inputs=[self._ctrl_dev, self._parked_dev],
+                outputs=[self._d.ctrl],
+            )
+
+    def _download(self) -> Mapping[str, np.ndarray]:
+        """Host float64 copies of the raw fields; read() itself takes the faster path of _refresh."""
+        return {f: getattr(self._d, f).numpy().astype(np.float64) for f in (*_SOURCES, "time")}
+
+    def _refresh(self) -> None:
+        d = self._d
+        with wp.ScopedDevice(self.device):
+            wp.launch(
+                _gather_state,
+                dim=(self.nworld, self._ncols),
+                inputs=[
+                    d.qpos,
+                    d.qvel,
+                    d.qfrc_actuator,
+                    d.sensordata,
+                    d.time,
+                    self._source,
+                    self._index,
+                    self.state.shape[1],
+                ],
+                outputs=[self._state_dev, self._sensor_dev, self._time_dev],
+            )
+            if self._cuda:
+                wp.copy(self._state_wp, self._state_dev)
+                if self._sensor_host.size:
+                    wp.copy(self._sensor_wp, self._sensor_dev)
+                wp.copy(self._time_wp, self._time_dev)
+            wp.synchronize_device(self.device)
+        if self._parked.any():
+            parked = self._parked
+            self.state[parked] = self._held["state"][parked]
+            self._sensor_host[parked] = self._held["sensordata"][parked]
+            self.time[parked] = self._held["time"][parked]
+
+    def _step(self, nstep: int) -> None:
+        with wp.ScopedDevice(self.device):
+            if self._cuda and self.options["graph"]:
+                graph = self._graphs.get(nstep)
+                if graph is None:
+                    graph = self._graphs[nstep] = self._capture(nstep)
+                wp.capture_launch(graph)
+            else:
+                self._period(nstep)
+            if self._cuda:
+                wp.copy(self._flags_wp, self._flags_dev)
+            wp.synchronize_device(self.device)
+        flags = self._flags
+        if flags.any():
+            failed = (flags != 0) & ~self._parked
+            if failed.any():
+                self._freeze(np.flatnonzero(failed), flags)
+
+    def _period(self, nstep: int) -> None:
+        m, d = self._m, self._d
+        for _ in range(nstep):
+            mjw.step(m, d)
+        wp.launch(
+            _check_worlds,
+            dim=self.nworld,
+            inputs=[d.qpos, d.qvel, d.qacc, d.overflow, _BUFFER_OVERFLOWS, float(MAX_COMMAND)],
+            outputs=[self._flags_dev],
+        )
+
+    def _capture(self, nstep: int) -> Any:
+        with wp.ScopedCapture(device=self.device) as capture:
+            self._period(nstep)
+        return capture.graph
+
+    def _freeze(self, worlds: np.ndarray, flags: np.ndarray) -> None:
+        """Hold what the failed worlds read now, then park them on the device."""
+        self.status[worlds] |= flags[worlds].astype(np.uint8)
+        overflowed = worlds[(flags[worlds] & int(Status.OVERFLOW)) != 0]
+        if overflowed.size:
+            self._report_overflow(overflowed)
+        self._refresh()  # the newly failed worlds are not parked yet: they read live, once
+        for key, array in (("state", self.state), ("sensordata", self._sensor_host), ("time", self.time)):
+            held = self._held.setdefault(key, np.zeros_like(array))
+            held[worlds] = array[worlds]
+        self._parked[worlds] = True
+        self._reset_on_device(worlds)
+        with wp.ScopedDevice(self.device):
+            self._parked_dev.assign(self._parked.astype(np.int32))
+        self._upload_ctrl()
+
+    def _report_overflow(self, worlds: np.ndarray) -> None:
+        overflow = self._d.overflow.numpy()[worlds] & _BUFFER_OVERFLOWS
+        for kind, (what, option) in _OVERFLOW_FIX.items():
+            hit = (overflow & int(kind)) != 0
+            if not hit.any() or int(kind) in self._reported:
+                continue
+            self._reported.add(int(kind))
+            now = self.nconmax if option == "nconmax" else self.njmax
+            log.warning(
+                "batchsim: warp: %s overflowed in %d of %d worlds; they are frozen with OVERFLOW until "
+                "reset. Fix: batchsim.make(..., %s=%d) (now %d)",
+                what,
+                int(hit.sum()),
+                self.nworld,
+                option,
+                2 * now,
+                now,
+            )
+
+    def _reset_on_device(self, worlds: np.ndarray | None) -> None:
+        mask = np.ones(self.nworld, bool) if worlds is None else np.isin(np.arange(self.nworld), worlds)
+        with wp.ScopedDevice(self.device):
+            self._mask_dev.assign(mask)
+            mjw.reset_data(self._m, self._d, reset=self._mask_dev)
+            d = self._d
+            # a reset world reads mj_forward's qfrc_actuator and sensordata, as on the cpu backend
+            if self.model.nv:
+                wp.launch(
+                    _set_rows,
+                    dim=(self.nworld, self.model.nv),
+                    inputs=[self._mask_dev, self._qfrc0],
+                    outputs=[d.qfrc_actuator],
+                )
+            if self.model.nsensordata:
+                wp.launch(
+                    _set_rows,
+                    dim=(self.nworld, self.model.nsensordata),
+                    inputs=[self._mask_dev, self._sensor0],
+                    outputs=[d.sensordata],
+                )
+
+    def _reset(self, worlds: np.ndarray | None) -> None:
+        self._reset_on_device(worlds)
+        if worlds is None:
+            self._parked[:] = False
+        else:
+            self._parked[worlds] = False
+        with wp.ScopedDevice(self.device):
+            self._parked_dev.assign(self._parked.astype(np.int32))
+
+    # --- for users who stay on the device ---
+    def device_arrays(self) -> dict[str, wp.array]:
+        """The simulation's live Warp arrays, zero copy: qpos, qvel, qfrc_actuator, sensordata,
+        ctrl `(nworld, ...)` and time `(nworld,)`, float32, on `self.device`.
+
+        They are the buffers MuJoCo Warp steps in place, valid until cleanup(); pass them to
+        other frameworks with DLPack (`torch.from_dlpack(a)`, `jax.dlpack.from_dlpack(a)`).
+        Rows of frozen worlds (see `status`) are parked and meaningless until reset.
+        """
+        d = self._d
+        return {f: getattr(d, f) for f in ("qpos", "qvel", "qfrc_actuator", "sensordata", "ctrl", "time")}
