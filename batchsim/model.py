@@ -186,9 +186,17 @@ class RobotSpec:
         raise KeyError(f"no sensor named {name!r}; sensors: {', '.join(s.name for s in self.sensors)}")
 
 
+def _models_root():
+    """The shipped models: the `batchsim.models` package once installed, else the checkout's models/."""
+    try:
+        return importlib.resources.files("batchsim.models")
+    except ModuleNotFoundError:  # a source checkout on PYTHONPATH, not installed
+        return Path(__file__).resolve().parent.parent / "models"
+
+
 def model_names() -> list[str]:
     """The robots shipped with batchsim, loadable by name."""
-    root = importlib.resources.files("batchsim.models")
+    root = _models_root()
     return sorted(p.name[:-4] for p in root.iterdir() if p.name.endswith(".xml"))
 
 
@@ -199,7 +207,7 @@ def model_path(name: str) -> Path:
         if not path.is_file():
             raise ModelError(f"{name}: no such file")
         return path
-    shipped = importlib.resources.files("batchsim.models") / f"{name}.xml"
+    shipped = _models_root() / f"{name}.xml"
     if not shipped.is_file():
         raise ModelError(
             f"unknown model {name!r}: not a file and not one of the shipped models "
