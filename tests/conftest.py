@@ -12,7 +12,7 @@ import os
 import pytest
 
 # backend -> the module its optional packages provide
-BACKENDS = {"cpu": "mujoco"}
+BACKENDS = {"cpu": "mujoco", "mjx": "jax", "warp": "mujoco_warp"}
 
 
 def _available(backend: str) -> bool:
