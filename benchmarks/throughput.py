@@ -1,0 +1,380 @@
+"""Physics throughput through the contract against the raw libraries, per backend and world count.
+
+For each backend and world count, in one process and interleaved in rounds so that both
+sides see the same machine state, it times:
+
+  contract: sim.command[:] = u; sim.write(); sim.step(NSTEP); sim.read()
+  raw:      the library itself doing the same physics, NSTEP steps per call, synchronized:
+            cpu  mujoco.batch.Batch: ctrl[:] = u; batch.step(nstep=NSTEP)
+            mjx  jax.jit(lax.scan over NSTEP of jax.vmap(mjx.step)), Data donated
+            warp MuJoCo Warp: NSTEP mjw.step captured in one CUDA graph, launched and synchronized
+                 (plain launches on Warp's CPU device), same nconmax/njmax as the contract
+
+and reports physics steps/s (nworld * NSTEP / seconds; compile and graph capture excluded),
+the ratio contract/raw, and which backend `auto` picks. Writes throughput.csv and
+throughput.png (steps/s vs worlds, log-log, one colour per backend, raw dashed) to --out.
+
+    python benchmarks/throughput.py --backends cpu,mjx,warp --worlds 16,256,1024,8192 --model humanoid
+    python benchmarks/throughput.py --plot a.csv b.csv --out benchmarks   # merge runs, redraw
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime
+import os
+import platform
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # a source checkout, uninstalled
+
+import batchsim  # noqa: E402
+from batchsim.backends import WARP_MIN_WORLDS, resolve  # noqa: E402
+
+NSTEP = 10
+FIELDS = [
+    "date",
+    "device",
+    "model",
+    "backend",
+    "nworld",
+    "nstep",
+    "contract_sps",
+    "raw_sps",
+    "ratio",
+    "auto",
+    "compile_s",
+    "note",
+]
+
+
+# ---------------------------------------------------------------- timing
+
+
+def rate(body: Callable[[], None], seconds: float, work: int) -> float:
+    """Steps/s of `body` (which does `work` physics steps per call) over about `seconds`."""
+    calls, t0 = 0, time.perf_counter()
+    while True:
+        body()
+        calls += 1
+        elapsed = time.perf_counter() - t0
+        if elapsed >= seconds and calls >= 3:
+            return calls * work / elapsed
+
+
+def interleaved(
+    contract: Callable[[], None], raw: Callable[[], None], work: int, seconds: float, rounds: int = 3
+) -> tuple[float, float]:
+    """Median steps/s of contract and raw, measured in alternating rounds."""
+    c, r = [], []
+    for _ in range(rounds):
+        r.append(rate(raw, seconds / rounds, work))
+        c.append(rate(contract, seconds / rounds, work))
+    return float(np.median(c)), float(np.median(r))
+
+
+# ---------------------------------------------------------------- raw loops
+
+
+def raw_cpu(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]:
+    from mujoco import batch as mjbatch
+
+    batch = mjbatch.Batch(sim.model, sim.nworld, nthread=sim.nthread)
+    batch.reset()
+    bound = batch.bind("ctrl")
+
+    def body() -> None:
+        bound[:] = ctrl
+        batch.step(nstep=NSTEP)
+
+    body.keep = batch  # type: ignore[attr-defined]
+    return body
+
+
+def raw_mjx(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]:
+    import jax
+    import jax.numpy as jnp
+    import mujoco
+    from mujoco import mjx
+
+    m = sim.model
+    mx = mjx.put_model(m, device=sim.device, impl="jax")
+    mjd = mujoco.MjData(m)
+    mujoco.mj_forward(m, mjd)
+    d0 = mjx.put_data(m, mjd, device=sim.device, impl="jax")
+    d = jax.tree.map(lambda x: jnp.repeat(x[None], sim.nworld, axis=0), d0)
+    d = d.replace(ctrl=jax.device_put(ctrl.astype(np.float32), sim.device))
+    step = jax.vmap(mjx.step, in_axes=(None, 0))
+
+    def scan(d):
+        return jax.lax.scan(lambda d, _: (step(mx, d), None), d, None, length=NSTEP)[0]
+
+    rollout = jax.jit(scan, donate_argnums=0)
+
+    state = {"d": d}
+
+    def body() -> None:
+        state["d"] = rollout(state["d"])
+        jax.block_until_ready(state["d"].qpos)
+
+    body()  # compile
+    return body
+
+
+def raw_warp(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]:
+    import mujoco
+    import mujoco_warp as mjw
+    import warp as wp
+
+    m = sim.model
+    mjd = mujoco.MjData(m)
+    mujoco.mj_forward(m, mjd)
+    with wp.ScopedDevice(sim.device):
+        mw = mjw.put_model(m)
+        mw.opt.warn_overflow = 0
+        d = mjw.put_data(m, mjd, nworld=sim.nworld, nconmax=sim.nconmax, njmax=sim.njmax)
+        d.ctrl.assign(ctrl.astype(np.float32))
+        if sim.device.is_cuda:
+            with wp.ScopedCapture() as capture:
+                for _ in range(NSTEP):
+                    mjw.step(mw, d)
+            graph = capture.graph
+
+            def body() -> None:
+                wp.capture_launch(graph)
+                wp.synchronize_device(sim.device)
+        else:
+
+            def body() -> None:
+                for _ in range(NSTEP):
+                    mjw.step(mw, d)
+                wp.synchronize_device(sim.device)
+
+    body.keep = (mw, d)  # type: ignore[attr-defined]
+    body()
+    return body
+
+
+RAW = {"cpu": raw_cpu, "mjx": raw_mjx, "warp": raw_warp}
+
+
+# ---------------------------------------------------------------- one measurement
+
+
+def measure(model: str, backend: str, nworld: int, seconds: float) -> dict:
+    t0 = time.perf_counter()
+    sim = batchsim.make(model, nworld, backend)
+    sim.configure()
+    sim.activate()
+    rng = np.random.default_rng(0)
+    lo, hi = -0.3, 0.3
+    command = rng.uniform(lo, hi, sim.command.shape)
+    ctrl = np.zeros((nworld, sim.model.nu))
+    ctrl[:, [c.actuator_id for c in sim.spec.commands]] = command
+
+    def contract() -> None:
+        sim.command[:] = command
+        sim.write()
+        sim.step(NSTEP)
+        sim.read()
+
+    for _ in range(3):  # compile, capture, warm caches
+        contract()
+    compile_s = time.perf_counter() - t0
+    raw = RAW[backend](sim, ctrl)
+    for _ in range(2):
+        raw()
+    c, r = interleaved(contract, raw, nworld * NSTEP, seconds)
+    note = ""
+    if sim.status.any():
+        note = f"{int((sim.status != 0).sum())} worlds frozen"
+    if backend == "warp":
+        note = (note + "; " if note else "") + f"nconmax {sim.nconmax} njmax {sim.njmax}"
+    sim.shutdown()
+    del raw
+    return {"contract_sps": c, "raw_sps": r, "ratio": c / r, "compile_s": compile_s, "note": note}
+
+
+def device_name(backends: list[str]) -> str:
+    try:
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+        gpu = out.stdout.strip().splitlines()[0] if out.returncode == 0 and out.stdout.strip() else ""
+    except (OSError, subprocess.SubprocessError):
+        gpu = ""
+    cpu = f"{os.cpu_count()} CPU cores ({platform.processor() or platform.machine()})"
+    return f"{gpu}, {cpu}" if gpu else cpu
+
+
+def versions() -> str:
+    from importlib import metadata
+
+    out = []
+    for pkg in ("mujoco", "mujoco-mjx", "mujoco-warp", "warp-lang", "jax", "jaxlib"):
+        try:
+            out.append(f"{pkg} {metadata.version(pkg)}")
+        except metadata.PackageNotFoundError:
+            pass
+    return ", ".join(out)
+
+
+# ---------------------------------------------------------------- output
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colors = {"cpu": "tab:blue", "mjx": "tab:orange", "warp": "tab:green"}
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for backend in ("cpu", "mjx", "warp"):
+        sel = sorted((r for r in rows if r["backend"] == backend), key=lambda r: int(r["nworld"]))
+        if not sel:
+            continue
+        n = [int(r["nworld"]) for r in sel]
+        ax.plot(
+            n,
+            [float(r["contract_sps"]) for r in sel],
+            "o-",
+            color=colors[backend],
+            label=f"{backend} (batchsim)",
+        )
+        ax.plot(
+            n,
+            [float(r["raw_sps"]) for r in sel],
+            "--",
+            color=colors[backend],
+            alpha=0.7,
+            label=f"{backend} raw library",
+        )
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("worlds")
+    ax.set_ylabel("physics steps / s")
+    models = sorted({r["model"] for r in rows})
+    devices = sorted({r["device"] for r in rows})
+    ax.set_title(
+        f"{', '.join(models)}: write + step({NSTEP}) + read per period\n{'; '.join(devices)}", fontsize=9
+    )
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"wrote {path}")
+
+
+def summary(rows: list[dict]) -> None:
+    print(f"\n{'backend':8s} {'worlds':>7s} {'batchsim steps/s':>17s} {'raw steps/s':>13s} {'ratio':>6s}")
+    for r in sorted(rows, key=lambda r: (r["backend"], int(r["nworld"]))):
+        print(
+            f"{r['backend']:8s} {int(r['nworld']):7d} {float(r['contract_sps']):17,.0f} "
+            f"{float(r['raw_sps']):13,.0f} {float(r['ratio']):6.3f}"
+        )
+    sizes = sorted({int(r["nworld"]) for r in rows})
+    print(f"\n{'worlds':>7s} {'auto picks':>10s} {'auto steps/s':>13s} {'fastest':>8s} {'auto/fastest':>12s}")
+    for n in sizes:
+        at = {r["backend"]: float(r["contract_sps"]) for r in rows if int(r["nworld"]) == n}
+        auto = next(r["auto"] for r in rows if int(r["nworld"]) == n)
+        best = max(at, key=at.get)
+        if auto in at:
+            print(f"{n:7d} {auto:>10s} {at[auto]:13,.0f} {best:>8s} {at[auto] / at[best]:12.3f}")
+        else:
+            print(f"{n:7d} {auto:>10s} {'(not run)':>13s} {best:>8s}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--backends", default="cpu,mjx,warp")
+    p.add_argument("--worlds", default="16,256,1024,8192")
+    p.add_argument("--model", default="humanoid")
+    p.add_argument("--seconds", type=float, default=1.5, help="timed seconds per side and size")
+    p.add_argument(
+        "--budget", type=float, default=None, help="stop starting new sizes after this many seconds"
+    )
+    p.add_argument("--out", default="benchmarks/out")
+    p.add_argument("--plot", nargs="*", default=None, metavar="CSV", help="only merge these CSVs and draw")
+    args = p.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.plot is not None:
+        rows = []
+        for f in args.plot:
+            with open(f) as fh:
+                rows += list(csv.DictReader(fh))
+        for r in rows:  # auto as the current rule picks, for runs made before it was set
+            gpu = "NVIDIA" in r["device"]
+            r["auto"] = "warp" if gpu and int(r["nworld"]) >= WARP_MIN_WORLDS else "cpu"
+        summary(rows)
+        plot(rows, out / "throughput.png")
+        return 0
+
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    sizes = [int(n) for n in args.worlds.split(",")]
+    device = device_name(backends)
+    date = datetime.date.today().isoformat()
+    print(
+        f"batchsim throughput: {args.model}, {NSTEP} steps per period, {date}\n{device}\n{versions()}",
+        flush=True,
+    )
+    spec = batchsim.load(args.model)
+    start = time.perf_counter()
+    rows = []
+    csv_path = out / "throughput.csv"
+    with open(csv_path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, FIELDS)
+        writer.writeheader()
+        for backend in backends:
+            for n in sizes:
+                if args.budget is not None and time.perf_counter() - start > args.budget:
+                    print(f"{backend} {n}: skipped, over the --budget", flush=True)
+                    continue
+                auto = resolve("auto", spec, n)[0].value
+                try:
+                    result = measure(args.model, backend, n, args.seconds)
+                except Exception as e:  # one failed size must not lose the others
+                    print(f"{backend} {n}: FAILED {type(e).__name__}: {e}", flush=True)
+                    continue
+                row = {
+                    "date": date,
+                    "device": device,
+                    "model": args.model,
+                    "backend": backend,
+                    "nworld": n,
+                    "nstep": NSTEP,
+                    "auto": auto,
+                    **result,
+                }
+                rows.append(row)
+                writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+                fh.flush()
+                print(
+                    f"{backend:5s} {n:6d} worlds: batchsim {result['contract_sps']:13,.0f} steps/s, raw "
+                    f"{result['raw_sps']:13,.0f}, ratio {result['ratio']:.3f}, setup {result['compile_s']:.1f} s"
+                    f" {result['note']}",
+                    flush=True,
+                )
+    print(f"wrote {csv_path}")
+    if rows:
+        summary(rows)
+        try:
+            plot(rows, out / "throughput.png")
+        except ImportError:
+            print("matplotlib is not installed: no plot (pip install 'batchsim[bench]')")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
