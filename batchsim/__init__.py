@@ -61,14 +61,23 @@ def make(
       nworld: number of worlds.
       backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware).
       ros2_control: a ros2_control block (file path or XML text) narrowing the interfaces.
-      **options: backend options, e.g. `nthread` for "cpu".
+      **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `device`, `graph`
+        for "warp"; `device` for "mjx". With "auto", those the chosen backend does not take
+        are ignored, and `sim.reason` says so.
 
     Returns:
       The system, in UNCONFIGURED; call configure() and activate() to run it.
     """
     spec = model if isinstance(model, RobotSpec) else load(model, ros2_control=ros2_control)
     chosen, reason = resolve(backend, spec, nworld)
-    sim = backend_class(chosen)(spec, nworld, **options)
+    cls = backend_class(chosen)
+    if Backend.parse(backend) is Backend.AUTO:
+        # options meant for a backend auto did not pick (nconmax for warp) are dropped, and said so
+        ignored = sorted(set(options) - set(cls.OPTIONS))
+        options = {k: v for k, v in options.items() if k in cls.OPTIONS}
+        if ignored:
+            reason += f"; ignored {', '.join(ignored)}, which {chosen.value} does not take"
+    sim = cls(spec, nworld, **options)
     sim.reason = reason
     sim.initialize()
     return sim

@@ -51,6 +51,8 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--rtf", type=float, default=1.0, help="real-time factor; 0 runs as fast as possible")
     p.add_argument("--control-rate", type=float, default=None, help="Hz: commands applied, state read")
     p.add_argument("--threads", type=int, default=None, help="cpu backend: worker threads (default: all cores)")
+    p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world (default: sized from a CPU rollout)")
+    p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world (default: sized likewise)")
     p.add_argument("--ros2-control", default=None, help="URDF/XML file with a <ros2_control> block")
     p.add_argument("--no-ros", action="store_true", help="run without the ROS 2 bridge")
     p.add_argument("--quiet", action="store_true", help="no live status line")
@@ -115,8 +117,9 @@ def build(args: argparse.Namespace) -> BatchedSystem:
     if args.worlds < 1:
         raise UsageError(f"--worlds must be >= 1, got {args.worlds}")
     options: dict[str, Any] = {}
-    if args.threads is not None:
-        options["nthread"] = args.threads
+    for flag, option in (("threads", "nthread"), ("nconmax", "nconmax"), ("njmax", "njmax")):
+        if getattr(args, flag) is not None:
+            options[option] = getattr(args, flag)
     sim = batchsim.make(args.model, args.worlds, args.backend, ros2_control=args.ros2_control, **options)
     sim.configure()
     sim.activate()

@@ -18,7 +18,6 @@ import numpy as np
 
 from batchsim.hardware import BatchedSystem, ReturnType, Status
 
-
 DEFAULT_CONTROL_RATE = 100.0  # Hz
 
 

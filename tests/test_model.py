@@ -179,7 +179,7 @@ def test_bad_mjcf_is_one_clear_line(tmp_path, text, message):
 
 
 def test_unknown_model_name_lists_the_shipped_ones():
-    with pytest.raises(ModelError, match=r"unknown model 'armm'.*arm, car, quadruped"):
+    with pytest.raises(ModelError, match=r"unknown model 'armm'.*arm, car, humanoid, quadruped"):
         batchsim.load("armm")
 
 
@@ -254,3 +254,20 @@ def test_cli_info_lists_interfaces_and_sensors():
     assert "FL_knee/effort" in out.stdout
     assert "imu_orientation" in out.stdout and "framequat" in out.stdout
     assert "backend" in out.stdout
+
+
+def test_auto_ignores_options_of_backends_it_did_not_pick_and_says_so(monkeypatch):
+    monkeypatch.setattr(batchsim.backends, "cuda_gpu", lambda: False)
+    sim = batchsim.make("arm", 2, "auto", nconmax=50)
+    assert sim.name == "cpu"
+    assert "ignored nconmax" in sim.reason
+
+
+def test_cpu_device_arrays_are_the_live_batch_arrays():
+    sim = batchsim.make("arm", 2, "cpu")
+    sim.configure()
+    arrays = sim.device_arrays()
+    assert arrays["qpos"].shape == (2, 6) and arrays["ctrl"].shape == (2, 6)
+    before = arrays["time"].copy()
+    sim.step(3)
+    assert np.allclose(arrays["time"], before + 3 * sim.dt)

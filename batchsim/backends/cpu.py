@@ -88,5 +88,13 @@ class CpuSystem(BatchedSystem):
         self.status[diverged] |= np.uint8(Status.DIVERGED)
         self.status[overflow] |= np.uint8(Status.OVERFLOW)
 
+    def device_arrays(self) -> dict[str, np.ndarray]:
+        """The batch's live arrays, zero copy, as the GPU backends hand out theirs: qpos, qvel,
+        qfrc_actuator, sensordata, ctrl `(nworld, ...)` and time `(nworld,)`, float64 host memory.
+
+        They change in place at every step(); qfrc_actuator and sensordata are read-only.
+        """
+        return {**self._fields, "ctrl": self._ctrl}
+
     def _reset(self, worlds: np.ndarray | None) -> None:
         self._batch.reset(ids=None if worlds is None else worlds.astype(np.int32))
