@@ -318,14 +318,15 @@ class BatchedSystem(SystemInterface):
         if self._lifecycle is not S.ACTIVE:
             return ReturnType.OK
         command = self._command
-        # MuJoCo itself zeroes ctrl beyond mjMAXVAL; reject it here, per world, with a status bit
-        good = (np.abs(command) < MAX_COMMAND).all(axis=1)
         ctrl = self._ctrl_host()
-        if good.all():
+        # MuJoCo itself zeroes ctrl beyond mjMAXVAL; reject it here, per world, with a status
+        # bit. Fast path: two reductions, no temporaries (a NaN makes both comparisons fail).
+        if command.size == 0 or (command.min() > -MAX_COMMAND and command.max() < MAX_COMMAND):
             ctrl[:, self._ctrl_cols] = command
             if self.status.any():
                 self.status &= ~np.uint8(Status.BAD_COMMAND)
         else:
+            good = (np.abs(command) < MAX_COMMAND).all(axis=1)
             rows = np.flatnonzero(good)
             ctrl[np.ix_(rows, self._ctrl_index)] = command[rows]
             self.status[good] &= ~np.uint8(Status.BAD_COMMAND)
