@@ -386,6 +386,31 @@ class BatchedSystem(SystemInterface):
         self.status[sel] = 0
         self._refresh()
 
+    # --- parked worlds: for engines that step every world (GPU backends) ---
+    def _init_parking(self) -> None:
+        """A frozen world on an engine that cannot skip it is parked: reset on the device with
+        its ctrl held at zero, while read() keeps showing what it read when it failed."""
+        self._parked = np.zeros(self.nworld, bool)
+        self._held = {
+            "state": np.zeros_like(self.state),
+            "sensordata": np.zeros_like(self._sensor_host),
+            "time": np.zeros_like(self.time),
+        }
+
+    def _hold_readings(self, worlds: np.ndarray) -> None:
+        """Keep what `worlds` read now (call right after a refresh) and mark them parked."""
+        for key, array in (("state", self.state), ("sensordata", self._sensor_host), ("time", self.time)):
+            self._held[key][worlds] = array[worlds]
+        self._parked[worlds] = True
+
+    def _show_held_readings(self) -> None:
+        """After a refresh: parked worlds show their held readings, not the device's rows."""
+        if self._parked.any():
+            parked = self._parked
+            self.state[parked] = self._held["state"][parked]
+            self._sensor_host[parked] = self._held["sensordata"][parked]
+            self.time[parked] = self._held["time"][parked]
+
     @property
     def frozen(self) -> np.ndarray:
         """(nworld,) bool: the worlds step() leaves alone until they are reset."""

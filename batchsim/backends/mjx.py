@@ -162,8 +162,7 @@ class MjxSystem(BatchedSystem):
         self._d = jax.tree.map(lambda x: jnp.repeat(x[None], self.nworld, axis=0), self._d0)
         self._ctrl = np.zeros((self.nworld, m.nu))
         self._ctrl32 = np.zeros((self.nworld, m.nu), np.float32)
-        self._parked = np.zeros(self.nworld, bool)
-        self._held: dict[str, np.ndarray] = {}
+        self._init_parking()
 
     def _close(self) -> None:
         del self._d, self._d0, self._programs
@@ -187,11 +186,7 @@ class MjxSystem(BatchedSystem):
         np.copyto(self.state, state)
         np.copyto(self._sensor_host, sensordata)
         np.copyto(self.time, time)
-        if self._parked.any():
-            parked = self._parked
-            self.state[parked] = self._held["state"][parked]
-            self._sensor_host[parked] = self._held["sensordata"][parked]
-            self.time[parked] = self._held["time"][parked]
+        self._show_held_readings()
 
     def _step(self, nstep: int) -> None:
         self._d, flags = self._programs.period(self._d, nstep)
@@ -205,10 +200,7 @@ class MjxSystem(BatchedSystem):
         """Hold what the failed worlds read now, then park them on the device."""
         self.status[worlds] |= flags[worlds].astype(np.uint8)
         self._refresh()  # the newly failed worlds are not parked yet: they read live, once
-        for key, array in (("state", self.state), ("sensordata", self._sensor_host), ("time", self.time)):
-            held = self._held.setdefault(key, np.zeros_like(array))
-            held[worlds] = array[worlds]
-        self._parked[worlds] = True
+        self._hold_readings(worlds)
         self._reset_on_device(worlds)
         self._upload_ctrl()
 

@@ -319,8 +319,7 @@ class WarpSystem(BatchedSystem):
                 self._ctrl_dev, self._flags_dev = self._ctrl_wp, self._flags_wp
         del d
         self._graphs: dict[int, Any] = {}
-        self._parked = np.zeros(n, bool)
-        self._held: dict[str, np.ndarray] = {}
+        self._init_parking()
         self._ncols = self.state.shape[1] + self._sensor_host.shape[1] + 1
 
     def _close(self) -> None:
@@ -370,11 +369,7 @@ class WarpSystem(BatchedSystem):
                     wp.copy(self._sensor_wp, self._sensor_dev)
                 wp.copy(self._time_wp, self._time_dev)
             wp.synchronize_device(self.device)
-        if self._parked.any():
-            parked = self._parked
-            self.state[parked] = self._held["state"][parked]
-            self._sensor_host[parked] = self._held["sensordata"][parked]
-            self.time[parked] = self._held["time"][parked]
+        self._show_held_readings()
 
     def _step(self, nstep: int) -> None:
         with wp.ScopedDevice(self.device):
@@ -417,10 +412,7 @@ class WarpSystem(BatchedSystem):
         if overflowed.size:
             self._report_overflow(overflowed)
         self._refresh()  # the newly failed worlds are not parked yet: they read live, once
-        for key, array in (("state", self.state), ("sensordata", self._sensor_host), ("time", self.time)):
-            held = self._held.setdefault(key, np.zeros_like(array))
-            held[worlds] = array[worlds]
-        self._parked[worlds] = True
+        self._hold_readings(worlds)
         self._reset_on_device(worlds)
         with wp.ScopedDevice(self.device):
             self._parked_dev.assign(self._parked.astype(np.int32))
