@@ -403,6 +403,10 @@ class BatchedSystem(SystemInterface):
             self._held[key][worlds] = array[worlds]
         self._parked[worlds] = True
 
+    def _unpark(self, worlds: np.ndarray | None) -> None:
+        """Reset worlds (None: all) are live again."""
+        self._parked[slice(None) if worlds is None else worlds] = False
+
     def _show_held_readings(self) -> None:
         """After a refresh: parked worlds show their held readings, not the device's rows."""
         if self._parked.any():

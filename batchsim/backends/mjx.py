@@ -214,10 +214,7 @@ class MjxSystem(BatchedSystem):
 
     def _reset(self, worlds: np.ndarray | None) -> None:
         self._reset_on_device(worlds)
-        if worlds is None:
-            self._parked[:] = False
-        else:
-            self._parked[worlds] = False
+        self._unpark(worlds)
 
     # --- for users who stay on the device ---
     def device_arrays(self) -> dict[str, jax.Array]:

@@ -461,10 +461,7 @@ class WarpSystem(BatchedSystem):
 
     def _reset(self, worlds: np.ndarray | None) -> None:
         self._reset_on_device(worlds)
-        if worlds is None:
-            self._parked[:] = False
-        else:
-            self._parked[worlds] = False
+        self._unpark(worlds)
         with wp.ScopedDevice(self.device):
             self._parked_dev.assign(self._parked.astype(np.int32))
 
