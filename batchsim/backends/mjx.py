@@ -7,7 +7,15 @@ compiled once per (model, nworld, nstep): a static trip count spares a device-to
 per substep. On JAX's CPU device, where loops run on the host anyway, `nstep` is data
 (`lax.fori_loop`) and one program per (model, nworld) serves every nstep, which keeps the
 test suite's compile time down. Programs are shared by every system of one model and size
-in the process.
+in the process. write() only fills a host buffer, uploaded once by the next step(); the
+readings and status flags come back in one packed download, which read() then copies out
+without touching the device: one upload, one launch and one download per control period,
+as the warp backend's captured graph does.
+
+On a GPU, XLA sums with atomics whose order varies from run to run, so two runs of the same
+commands agree only to float32 rounding; `deterministic=True` compiles with XLA's
+deterministic ops for bitwise-repeatable runs, at a cost in speed (benchmarks/RESULTS.md).
+On the CPU device results are bitwise repeatable either way.
 
 A world whose qpos, qvel or qacc goes non-finite or beyond MuJoCo's mjMAXVAL gets
 DIVERGED and is frozen as on the other backends: it reads as it was when it failed while,
@@ -41,11 +49,12 @@ _CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device
 
 
 class _Programs(NamedTuple):
-    """The jitted programs of one (model, nworld, device)."""
+    """The jitted programs of one (model, nworld, device, determinism)."""
 
-    period: Callable[..., Any]  # (d, nstep: int) -> (d, flags)
+    # (d, nstep: int) -> (d, readings + a status column): one control period
+    period: Callable[..., Any]
     reset: Callable[..., Any]  # (d, d0, mask) -> d
-    read: Callable[..., Any]  # (d) -> (state, sensordata, time)
+    read: Callable[..., Any]  # (qpos, qvel, qfrc_actuator, sensordata, time) -> readings
 
 
 _PROGRAMS: OrderedDict[tuple[Any, ...], _Programs] = OrderedDict()
@@ -58,25 +67,46 @@ def _fingerprint(m: mujoco.MjModel) -> str:
     return hashlib.sha256(buffer.tobytes()).hexdigest()
 
 
-def _programs(mx: mjx.Model, spec: RobotSpec, nworld: int, device: jax.Device) -> _Programs:
-    key = (_fingerprint(spec.mjmodel), tuple(c.name for c in spec.state), nworld, device)
+def _programs(
+    mx: mjx.Model, spec: RobotSpec, nworld: int, device: jax.Device, deterministic: bool
+) -> _Programs:
+    """Compile (once per key) what one system runs.
+
+    A period is one upload of ctrl, one program and one download: the readings (state
+    columns, sensordata, time) come back packed in one float32 array with the status flags
+    as a last column. On a GPU each separate jit call or download costs a few hundred
+    microseconds of host time during which the device idles: at 16 worlds read()'s own
+    program and downloads were ~5% of a period. ctrl is put into the Data before the call
+    rather than passed to the program, which measured ~1.6 ms a period slower on an H200
+    (benchmarks/mjx_period.py, "raw+ctrl").
+    """
+    key = (_fingerprint(spec.mjmodel), tuple(c.name for c in spec.state), nworld, device, deterministic)
     if key in _PROGRAMS:
         _PROGRAMS.move_to_end(key)
         return _PROGRAMS[key]
     step = jax.vmap(mjx.step, in_axes=(None, 0))
+    m = spec.mjmodel
+    offset = dict(zip(_SOURCES, np.cumsum([0, m.nq, m.nv, m.nv]), strict=True))
+    take = np.array([offset[c.source] + c.index for c in spec.state], dtype=np.int32)
+
+    def read(qpos: jax.Array, qvel: jax.Array, qfrc: jax.Array, sensordata: jax.Array, time: jax.Array):
+        # these five arrays, not the whole Data: a jit call costs per argument (~80 leaves in Data)
+        fields = jnp.concatenate([qpos, qvel, qfrc, sensordata], axis=1)
+        return jnp.concatenate([fields[:, take], sensordata, time[:, None]], axis=1)
 
     def check(d: mjx.Data) -> jax.Array:
         bad = jnp.zeros(nworld, bool)
         for x in (d.qpos, d.qvel, d.qacc):
             bad |= (jnp.isnan(x) | (jnp.abs(x) > MAX_COMMAND)).any(axis=1)
-        return jnp.where(bad, jnp.int32(Status.DIVERGED), jnp.int32(0))
+        return jnp.where(bad, jnp.float32(Status.DIVERGED), jnp.float32(0))
 
     def period(d: mjx.Data, nstep: Any) -> tuple[mjx.Data, jax.Array]:
         if isinstance(nstep, int):  # a static trip count: XLA runs the loop without asking the host
             d = jax.lax.scan(lambda d, _: (step(mx, d), None), d, None, length=nstep)[0]
         else:
             d = jax.lax.fori_loop(0, nstep, lambda _, d: step(mx, d), d)
-        return d, check(d)
+        readings = read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata, d.time)
+        return d, jnp.concatenate([readings, check(d)[:, None]], axis=1)
 
     def reset(d: mjx.Data, d0: mjx.Data, mask: jax.Array) -> mjx.Data:
         def pick(x, x0):
@@ -84,34 +114,46 @@ def _programs(mx: mjx.Model, spec: RobotSpec, nworld: int, device: jax.Device) -
 
         return jax.tree.map(pick, d, d0)
 
-    m = spec.mjmodel
-    offset = dict(zip(_SOURCES, np.cumsum([0, m.nq, m.nv, m.nv]), strict=True))
-    take = np.array([offset[c.source] + c.index for c in spec.state], dtype=np.int32)
-
-    def read(d: mjx.Data) -> tuple[jax.Array, jax.Array, jax.Array]:
-        fields = jnp.concatenate([getattr(d, s) for s in _SOURCES], axis=1)
-        return fields[:, take], d.sensordata, d.time
-
+    # XLA:GPU sums with atomics, whose order varies from run to run; its deterministic mode
+    # does not (at a cost in speed). The CPU is deterministic either way.
+    options = {"xla_gpu_deterministic_ops": True} if deterministic and device.platform == "gpu" else None
     if device.platform == "cpu":
         # XLA:CPU runs loops on the host anyway: nstep as data, one program for every nstep
-        jitted = jax.jit(period, donate_argnums=0)
+        jitted = _float32(jax.jit(period, donate_argnums=0))
 
         def run(d: mjx.Data, nstep: int) -> tuple[mjx.Data, jax.Array]:
             return jitted(d, np.int32(nstep))
     else:
         # on an accelerator a data-dependent trip count costs a device-to-host sync per
         # substep; a static one does not, so nstep is compiled in (once per control rate)
-        run = jax.jit(period, static_argnums=1, donate_argnums=0)
+        run = _float32(jax.jit(period, static_argnums=1, donate_argnums=0, compiler_options=options))
 
     programs = _Programs(
         period=run,
-        reset=jax.jit(reset, donate_argnums=0),
-        read=jax.jit(read),
+        reset=jax.jit(reset, donate_argnums=0, compiler_options=options),
+        read=jax.jit(read, compiler_options=options),
     )
     _PROGRAMS[key] = programs
     while len(_PROGRAMS) > _CACHE_SIZE:
         _PROGRAMS.popitem(last=False)
     return programs
+
+
+def _float32(program: Callable[..., Any]) -> Callable[..., Any]:
+    """`program`, traced and run with float32 matrix products.
+
+    JAX's default on NVIDIA GPUs since Ampere multiplies float32 matrices in TF32 (10-bit
+    mantissa). MJX's dynamics then part from MuJoCo's by ~2e-4 rad within 10 steps of a
+    humanoid and 8e-2 within 100 (measured on an H200; the parity test caught it), where
+    float32 proper stays near 1e-6. The precision is part of JAX's compile-cache key, so this
+    costs nothing per call beyond entering the context.
+    """
+
+    def call(*args: Any) -> Any:
+        with jax.default_matmul_precision("highest"):
+            return program(*args)
+
+    return call
 
 
 def _device(option: Any) -> jax.Device:
@@ -130,10 +172,11 @@ class MjxSystem(BatchedSystem):
     Options:
       device: a JAX device, or "cpu", "gpu", "gpu:1", "tpu"; None is JAX's default (the
         first accelerator if there is one).
+      deterministic: bitwise-repeatable results on a GPU (XLA's deterministic ops), slower.
     """
 
     name: ClassVar[str] = "mjx"
-    OPTIONS: ClassVar[dict[str, Any]] = {"device": None}
+    OPTIONS: ClassVar[dict[str, Any]] = {"device": None, "deterministic": False}
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__(spec, nworld, **options)
@@ -158,10 +201,14 @@ class MjxSystem(BatchedSystem):
         mjd = mujoco.MjData(m)
         mujoco.mj_forward(m, mjd)  # a reset world reads mj_forward's values, as on the cpu backend
         self._d0 = mjx.put_data(m, mjd, device=self.device, impl="jax")
-        self._programs = _programs(self._mx, self.spec, self.nworld, self.device)
+        self._programs = _programs(
+            self._mx, self.spec, self.nworld, self.device, bool(self.options["deterministic"])
+        )
         self._d = jax.tree.map(lambda x: jnp.repeat(x[None], self.nworld, axis=0), self._d0)
         self._ctrl = np.zeros((self.nworld, m.nu))
         self._ctrl32 = np.zeros((self.nworld, m.nu), np.float32)
+        self._ctrl_on_device = True  # whether self._d.ctrl holds self._ctrl32
+        self._readings: np.ndarray | None = None  # what the last period downloaded, while current
         self._init_parking()
 
     def _close(self) -> None:
@@ -171,10 +218,16 @@ class MjxSystem(BatchedSystem):
         return self._ctrl
 
     def _upload_ctrl(self) -> None:
+        # host side only: it goes up with the next step(), once however often write() ran
         np.copyto(self._ctrl32, self._ctrl, casting="same_kind")
         if self._parked.any():
             self._ctrl32[self._parked] = 0.0
-        self._d = self._d.replace(ctrl=jax.device_put(self._ctrl32, self.device))
+        self._ctrl_on_device = False
+
+    def _sync_ctrl(self) -> None:
+        if not self._ctrl_on_device:
+            self._d = self._d.replace(ctrl=jax.device_put(self._ctrl32, self.device))
+            self._ctrl_on_device = True
 
     def _download(self) -> Mapping[str, np.ndarray]:
         """Host float64 copies of the raw fields; read() itself takes the faster path of _refresh."""
@@ -182,15 +235,21 @@ class MjxSystem(BatchedSystem):
         return {f: np.asarray(x, dtype=np.float64) for f, x in fields.items()}
 
     def _refresh(self) -> None:
-        state, sensordata, time = jax.device_get(self._programs.read(self._d))
-        np.copyto(self.state, state)
-        np.copyto(self._sensor_host, sensordata)
-        np.copyto(self.time, time)
+        packed = self._readings  # the last period's download, unless a reset has since changed the worlds
+        if packed is None:
+            d = self._d
+            packed = np.asarray(self._programs.read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata, d.time))
+        nstate = self.state.shape[1]
+        np.copyto(self.state, packed[:, :nstate])
+        np.copyto(self._sensor_host, packed[:, nstate:-1])
+        np.copyto(self.time, packed[:, -1])
         self._show_held_readings()
 
     def _step(self, nstep: int) -> None:
-        self._d, flags = self._programs.period(self._d, nstep)
-        flags = np.asarray(flags)
+        self._sync_ctrl()
+        self._d, out = self._programs.period(self._d, nstep)
+        out = np.asarray(out)  # one download: readings, then the status flags
+        self._readings, flags = out[:, :-1], out[:, -1]
         if flags.any():
             failed = (flags != 0) & ~self._parked
             if failed.any():
@@ -211,6 +270,7 @@ class MjxSystem(BatchedSystem):
             mask = np.zeros(self.nworld, bool)
             mask[worlds] = True
         self._d = self._programs.reset(self._d, self._d0, jax.device_put(mask, self.device))
+        self._readings = None
 
     def _reset(self, worlds: np.ndarray | None) -> None:
         self._reset_on_device(worlds)
@@ -226,6 +286,7 @@ class MjxSystem(BatchedSystem):
         them on with DLPack (`torch.from_dlpack(a)`). Rows of frozen worlds (see `status`)
         are parked and meaningless until reset.
         """
+        self._sync_ctrl()  # write() keeps ctrl on the host until the next step
         d = self._d
         return {f: getattr(d, f) for f in ("qpos", "qvel", "qfrc_actuator", "sensordata", "ctrl", "time")}
 
