@@ -62,8 +62,9 @@ def make(
       backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware).
       ros2_control: a ros2_control block (file path or XML text) narrowing the interfaces.
       **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `device`, `graph`
-        for "warp"; `device` for "mjx". With "auto", those the chosen backend does not take
-        are ignored, and `sim.reason` says so.
+        for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
+        runs: always so on cpu, slower on a GPU). With "auto", those the chosen backend does
+        not take are ignored, and `sim.reason` says so.
 
     Returns:
       The system, in UNCONFIGURED; call configure() and activate() to run it.

@@ -53,6 +53,11 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=None, help="cpu backend: worker threads (default: all cores)")
     p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world (default: sized from a CPU rollout)")
     p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world (default: sized likewise)")
+    p.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="mjx/warp on a GPU: bitwise-repeatable runs, slower (cpu always is)",
+    )
     p.add_argument("--ros2-control", default=None, help="URDF/XML file with a <ros2_control> block")
     p.add_argument("--no-ros", action="store_true", help="run without the ROS 2 bridge")
     p.add_argument("--quiet", action="store_true", help="no live status line")
@@ -120,6 +125,8 @@ def build(args: argparse.Namespace) -> BatchedSystem:
     for flag, option in (("threads", "nthread"), ("nconmax", "nconmax"), ("njmax", "njmax")):
         if getattr(args, flag) is not None:
             options[option] = getattr(args, flag)
+    if args.deterministic:
+        options["deterministic"] = True
     sim = batchsim.make(args.model, args.worlds, args.backend, ros2_control=args.ros2_control, **options)
     sim.configure()
     sim.activate()

@@ -225,7 +225,9 @@ def test_cli_errors_are_one_line_and_exit_2(args, message):
 
 
 def test_cli_runs_for_a_duration_and_reports(tmp_path):
-    out = batchsim_cli("--worlds", "4", "--duration", "3", "--rtf", "2", "--no-ros", "--backend", "cpu")
+    out = batchsim_cli(
+        "--worlds", "4", "--duration", "3", "--rtf", "2", "--no-ros", "--backend", "cpu", "--deterministic"
+    )
     assert out.returncode == 0, out.stderr
     assert "4 x arm on cpu" in out.stderr
     assert "rtf" in out.stderr and "steps/s" in out.stderr and "diverged 0/4" in out.stderr

@@ -32,10 +32,12 @@ class CpuSystem(BatchedSystem):
     Options:
       nthread: worker threads, including the caller's; 0 means one per CPU core, capped
         at nworld.
+      deterministic: accepted for a make() call that works on every backend; MuJoCo on
+        the CPU is bitwise repeatable whatever it says.
     """
 
     name: ClassVar[str] = "cpu"
-    OPTIONS: ClassVar[dict[str, Any]] = {"nthread": 0}
+    OPTIONS: ClassVar[dict[str, Any]] = {"nthread": 0, "deterministic": True}
 
     def _open(self) -> None:
         nthread = int(self.options["nthread"]) or min(self.nworld, os.cpu_count() or 1)

@@ -232,10 +232,19 @@ class WarpSystem(BatchedSystem):
         there is one).
       graph: capture each control period in a CUDA graph (GPU only); False launches the
         kernels one by one, for debugging.
+      deterministic: bitwise-repeatable results on a GPU (MuJoCo Warp's sorted contacts,
+        canonical constraint rows and order-invariant atomic sums), slower. Warp's CPU
+        device is repeatable either way.
     """
 
     name: ClassVar[str] = "warp"
-    OPTIONS: ClassVar[dict[str, Any]] = {"nconmax": None, "njmax": None, "device": None, "graph": True}
+    OPTIONS: ClassVar[dict[str, Any]] = {
+        "nconmax": None,
+        "njmax": None,
+        "device": None,
+        "graph": True,
+        "deterministic": False,
+    }
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__(spec, nworld, **options)
@@ -290,6 +299,8 @@ class WarpSystem(BatchedSystem):
             # failures are read per world from d.overflow; MuJoCo Warp's own printf per
             # overflowing world and step would flood the console
             self._m.opt.warn_overflow = 0
+            if self.options["deterministic"]:
+                self._m.opt.deterministic = int(mjw.DeterminismType.ALL)
             self._d = mjw.put_data(m, mjd, nworld=n, nconmax=self.nconmax, njmax=self.njmax)
             d = self._d
             # initial values of the derived fields a reset world reads back (mj_forward's)
