@@ -6,11 +6,14 @@ sides see the same machine state, it times:
   contract: sim.command[:] = u; sim.write(); sim.step(NSTEP); sim.read()
   raw:      the library itself doing the same physics, NSTEP steps per call, synchronized:
             cpu  mujoco.batch.Batch: ctrl[:] = u; batch.step(nstep=NSTEP)
-            mjx  jax.jit(lax.scan over NSTEP of jax.vmap(mjx.step)), Data donated
+            mjx  jax.jit(lax.scan over NSTEP of jax.vmap(mjx.step)), Data donated, float32
+                 matrix products (batchsim's mjx asks for them; JAX's GPU default is TF32)
             warp MuJoCo Warp: NSTEP mjw.step captured in one CUDA graph, launched and synchronized
                  (plain launches on Warp's CPU device), same nconmax/njmax as the contract
 
-and reports physics steps/s (nworld * NSTEP / seconds; compile and graph capture excluded),
+Both sides start from the same state, warm up for the same number of periods and make the
+same number of calls per round, so they simulate the same stretch of time. It reports
+physics steps/s (nworld * NSTEP / seconds; compile and graph capture excluded),
 the ratio contract/raw, and which backend `auto` picks. Writes throughput.csv and
 throughput.png (steps/s vs worlds, log-log, one colour per backend, raw dashed) to --out.
 
@@ -58,25 +61,36 @@ FIELDS = [
 # ---------------------------------------------------------------- timing
 
 
-def rate(body: Callable[[], None], seconds: float, work: int) -> float:
-    """Steps/s of `body` (which does `work` physics steps per call) over about `seconds`."""
-    calls, t0 = 0, time.perf_counter()
-    while True:
+def rate(body: Callable[[], None], calls: int, work: int) -> float:
+    """Steps/s of `calls` calls of `body`, which does `work` physics steps per call."""
+    t0 = time.perf_counter()
+    for _ in range(calls):
         body()
-        calls += 1
-        elapsed = time.perf_counter() - t0
-        if elapsed >= seconds and calls >= 3:
-            return calls * work / elapsed
+    return calls * work / (time.perf_counter() - t0)
 
 
 def interleaved(
     contract: Callable[[], None], raw: Callable[[], None], work: int, seconds: float, rounds: int = 3
 ) -> tuple[float, float]:
-    """Median steps/s of contract and raw, measured in alternating rounds."""
+    """Median steps/s of contract and raw, measured in alternating rounds (who goes first alternates).
+
+    Both sides make the same number of calls each round, so that, having started from the
+    same initial state with the same commands and the same number of warm-up periods, they
+    simulate the same stretch of time: an MJX step costs more or less with the contact state
+    (seen: 13% between two 256-world humanoid fleets at different moments of their fall).
+    """
+    t0 = time.perf_counter()
+    raw()
+    calls = max(3, round(seconds / rounds / (time.perf_counter() - t0)))
+    contract()  # and the contract one period too: both stay in step
     c, r = [], []
-    for _ in range(rounds):
-        r.append(rate(raw, seconds / rounds, work))
-        c.append(rate(contract, seconds / rounds, work))
+    for i in range(rounds):
+        if i % 2:
+            c.append(rate(contract, calls, work))
+            r.append(rate(raw, calls, work))
+        else:
+            r.append(rate(raw, calls, work))
+            c.append(rate(contract, calls, work))
     return float(np.median(c)), float(np.median(r))
 
 
@@ -95,6 +109,7 @@ def raw_cpu(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]
         batch.step(nstep=NSTEP)
 
     body.keep = batch  # type: ignore[attr-defined]
+    body()  # one period, as the other raw loops spend compiling
     return body
 
 
@@ -116,12 +131,16 @@ def raw_mjx(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]
     def scan(d):
         return jax.lax.scan(lambda d, _: (step(mx, d), None), d, None, length=NSTEP)[0]
 
-    rollout = jax.jit(scan, donate_argnums=0)
+    options = None
+    if sim.options["deterministic"] and sim.device.platform == "gpu":
+        options = {"xla_gpu_deterministic_ops": True}  # as the contract compiles
+    rollout = jax.jit(scan, donate_argnums=0, compiler_options=options)
 
     state = {"d": d}
 
     def body() -> None:
-        state["d"] = rollout(state["d"])
+        with jax.default_matmul_precision("highest"):  # float32 products, as batchsim's mjx runs
+            state["d"] = rollout(state["d"])
         jax.block_until_ready(state["d"].qpos)
 
     body()  # compile
@@ -139,6 +158,8 @@ def raw_warp(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None
     with wp.ScopedDevice(sim.device):
         mw = mjw.put_model(m)
         mw.opt.warn_overflow = 0
+        if sim.options["deterministic"]:
+            mw.opt.deterministic = int(mjw.DeterminismType.ALL)  # as the contract sets it
         d = mjw.put_data(m, mjd, nworld=sim.nworld, nconmax=sim.nconmax, njmax=sim.njmax)
         d.ctrl.assign(ctrl.astype(np.float32))
         if sim.device.is_cuda:
@@ -168,9 +189,11 @@ RAW = {"cpu": raw_cpu, "mjx": raw_mjx, "warp": raw_warp}
 # ---------------------------------------------------------------- one measurement
 
 
-def measure(model: str, backend: str, nworld: int, seconds: float) -> dict:
+def measure(
+    model: str, backend: str, nworld: int, seconds: float, rounds: int = 3, deterministic: bool = False
+) -> dict:
     t0 = time.perf_counter()
-    sim = batchsim.make(model, nworld, backend)
+    sim = batchsim.make(model, nworld, backend, deterministic=deterministic)
     sim.configure()
     sim.activate()
     rng = np.random.default_rng(0)
@@ -191,12 +214,14 @@ def measure(model: str, backend: str, nworld: int, seconds: float) -> dict:
     raw = RAW[backend](sim, ctrl)
     for _ in range(2):
         raw()
-    c, r = interleaved(contract, raw, nworld * NSTEP, seconds)
+    c, r = interleaved(contract, raw, nworld * NSTEP, seconds, rounds)
     note = ""
     if sim.status.any():
         note = f"{int((sim.status != 0).sum())} worlds frozen"
     if backend == "warp":
         note = (note + "; " if note else "") + f"nconmax {sim.nconmax} njmax {sim.njmax}"
+    if deterministic:
+        note = (note + "; " if note else "") + "deterministic"
     sim.shutdown()
     del raw
     return {"contract_sps": c, "raw_sps": r, "ratio": c / r, "compile_s": compile_s, "note": note}
@@ -301,6 +326,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--worlds", default="16,256,1024,8192")
     p.add_argument("--model", default="humanoid")
     p.add_argument("--seconds", type=float, default=1.5, help="timed seconds per side and size")
+    p.add_argument("--rounds", type=int, default=3, help="interleaved rounds per size (medians)")
+    p.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="bitwise-repeatable mode, on both sides (the raw library configured the same way)",
+    )
     p.add_argument(
         "--budget", type=float, default=None, help="stop starting new sizes after this many seconds"
     )
@@ -343,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 auto = resolve("auto", spec, n)[0].value
                 try:
-                    result = measure(args.model, backend, n, args.seconds)
+                    result = measure(args.model, backend, n, args.seconds, args.rounds, args.deterministic)
                 except Exception as e:  # one failed size must not lose the others
                     print(f"{backend} {n}: FAILED {type(e).__name__}: {e}", flush=True)
                     continue
