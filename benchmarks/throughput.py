@@ -71,8 +71,9 @@ def rate(body: Callable[[], None], calls: int, work: int) -> float:
 
 def interleaved(
     contract: Callable[[], None], raw: Callable[[], None], work: int, seconds: float, rounds: int = 3
-) -> tuple[float, float]:
-    """Median steps/s of contract and raw, measured in alternating rounds (who goes first alternates).
+) -> tuple[float, float, list[float]]:
+    """Median steps/s of contract and raw, measured in alternating rounds (who goes first
+    alternates), and each round's ratio contract/raw, to show the spread.
 
     Both sides make the same number of calls each round, so that, having started from the
     same initial state with the same commands and the same number of warm-up periods, they
@@ -91,7 +92,7 @@ def interleaved(
         else:
             r.append(rate(raw, calls, work))
             c.append(rate(contract, calls, work))
-    return float(np.median(c)), float(np.median(r))
+    return float(np.median(c)), float(np.median(r)), [a / b for a, b in zip(c, r, strict=True)]
 
 
 # ---------------------------------------------------------------- raw loops
@@ -214,14 +215,14 @@ def measure(
     raw = RAW[backend](sim, ctrl)
     for _ in range(2):
         raw()
-    c, r = interleaved(contract, raw, nworld * NSTEP, seconds, rounds)
-    note = ""
+    c, r, per_round = interleaved(contract, raw, nworld * NSTEP, seconds, rounds)
+    note = f"rounds {min(per_round):.2f}-{max(per_round):.2f}"
     if sim.status.any():
-        note = f"{int((sim.status != 0).sum())} worlds frozen"
+        note += f"; {int((sim.status != 0).sum())} worlds frozen"
     if backend == "warp":
-        note = (note + "; " if note else "") + f"nconmax {sim.nconmax} njmax {sim.njmax}"
+        note += f"; nconmax {sim.nconmax} njmax {sim.njmax}"
     if deterministic:
-        note = (note + "; " if note else "") + "deterministic"
+        note += "; deterministic"
     sim.shutdown()
     del raw
     return {"contract_sps": c, "raw_sps": r, "ratio": c / r, "compile_s": compile_s, "note": note}
