@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # a source checkout, uninstalled
 
-from throughput import NSTEP, device_name, versions  # noqa: E402
+from throughput import NSTEP, device_name, mjx_rollout, versions  # noqa: E402
 
 import batchsim  # noqa: E402
 
@@ -56,8 +56,6 @@ def breakdown(model: str, nworld: int, rounds: int, periods: int) -> None:
 
     import jax
     import jax.numpy as jnp
-    import mujoco
-    from mujoco import mjx
 
     print(f"mjx period breakdown: {model}, {nworld} worlds, {NSTEP} steps per period")
     print(f"{device_name(['mjx'])}\n{versions()}", flush=True)
@@ -70,17 +68,8 @@ def breakdown(model: str, nworld: int, rounds: int, periods: int) -> None:
     ctrl[:, [c.actuator_id for c in sim.spec.commands]] = u
 
     # the raw loop of throughput.py
-    mx = mjx.put_model(m, device=sim.device, impl="jax")
-    mjd = mujoco.MjData(m)
-    mujoco.mj_forward(m, mjd)
-    d0 = mjx.put_data(m, mjd, device=sim.device, impl="jax")
-    own = {"d": jax.tree.map(lambda x: jnp.repeat(x[None], nworld, axis=0), d0)}
-    own["d"] = own["d"].replace(ctrl=jax.device_put(ctrl, sim.device))
-    step = jax.vmap(mjx.step, in_axes=(None, 0))
-    rollout = jax.jit(
-        lambda d: jax.lax.scan(lambda d, _: (step(mx, d), None), d, None, length=NSTEP)[0],
-        donate_argnums=0,
-    )
+    rollout, d = mjx_rollout(sim, ctrl)
+    own = {"d": d}
 
     def raw(precision: str | None, on_own_data: bool = False) -> Callable[[], None]:
         def body() -> None:
@@ -95,18 +84,10 @@ def breakdown(model: str, nworld: int, rounds: int, periods: int) -> None:
 
     # the raw program, growing step by step into the contract's period program
     def with_ctrl(d, c):
-        return scan(d.replace(ctrl=c))
+        return rollout(d.replace(ctrl=c))  # inlined into the jit that calls it
 
-    def scan(d):
-        return jax.lax.scan(lambda d, _: (step(mx, d), None), d, None, length=NSTEP)[0]
-
-    mm = sim.spec.mjmodel
-    offset = dict(zip(("qpos", "qvel", "qfrc_actuator"), np.cumsum([0, mm.nq, mm.nv]), strict=False))
-    take = np.array([offset[c.source] + c.index for c in sim.spec.state if c.source in offset])
-
-    def readings(d):
-        fields = jnp.concatenate([d.qpos, d.qvel, d.qfrc_actuator], axis=1)
-        return jnp.concatenate([fields[:, take], d.sensordata, d.time[:, None]], axis=1)
+    def readings(d):  # the backend's own read program, inlined
+        return sim._programs.read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata, d.time)
 
     grown = {
         "raw+ctrl": jax.jit(lambda d, c: (with_ctrl(d, c), jnp.zeros(())), donate_argnums=0),

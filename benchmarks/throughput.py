@@ -33,6 +33,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -114,7 +115,10 @@ def raw_cpu(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]
     return body
 
 
-def raw_mjx(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]:
+def mjx_rollout(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> tuple[Callable[..., Any], Any]:
+    """The raw MJX loop: a jitted lax.scan over NSTEP of vmap(mjx.step), Data donated, and a
+    fresh Data for `sim`'s model and size with `ctrl` set. Call it under
+    jax.default_matmul_precision("highest") to match batchsim's float32 products."""
     import jax
     import jax.numpy as jnp
     import mujoco
@@ -135,8 +139,13 @@ def raw_mjx(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]
     options = None
     if sim.options["deterministic"] and sim.device.platform == "gpu":
         options = {"xla_gpu_deterministic_ops": True}  # as the contract compiles
-    rollout = jax.jit(scan, donate_argnums=0, compiler_options=options)
+    return jax.jit(scan, donate_argnums=0, compiler_options=options), d
 
+
+def raw_mjx(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]:
+    import jax
+
+    rollout, d = mjx_rollout(sim, ctrl)
     state = {"d": d}
 
     def body() -> None:
