@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from batchsim.model import RobotSpec, initial_command
+from batchsim.model import RobotSpec, StateColumn, initial_command
 
 
 class LifecycleState(enum.IntEnum):
@@ -220,6 +220,11 @@ class BatchedSystem(SystemInterface):
       status: (nworld,) uint8 bitmask of Status, current after step() and write().
       time: (nworld,) float64 simulation time of each world, refreshed by read().
       sensordata: every MJCF sensor by name, (nworld, dim) each, refreshed by read().
+      base_state: (nworld, 13) float64, the floating base (`spec.floating_base`) as MuJoCo's
+        free joint holds it: position (3) and orientation quaternion (w, x, y, z) in the
+        world frame, linear velocity (3) in the world frame, angular velocity (3) in the
+        body frame; refreshed by read(), frozen with the rest of a frozen world's readings.
+        None for a model without a floating base.
     """
 
     #: the registry name of the backend ("cpu", "mjx", "warp")
@@ -243,8 +248,10 @@ class BatchedSystem(SystemInterface):
         self.model = m
         self.dt = float(m.opt.timestep)
 
-        nstate, ncommand = len(spec.state), len(spec.commands)
-        self.state = np.zeros((self.nworld, nstate))
+        ncommand = len(spec.commands)
+        # what read() gathers: the state interfaces, then the floating base's pose and twist
+        self._columns = list(spec.state) + _base_columns(spec)
+        self._bind_readings(np.zeros((self.nworld, len(self._columns))))
         self._command = np.zeros((self.nworld, ncommand))
         self.status = np.zeros(self.nworld, np.uint8)
         self.time = np.zeros(self.nworld)
@@ -257,13 +264,21 @@ class BatchedSystem(SystemInterface):
         # state columns gathered per source field: (state columns, field indices)
         self._gather: list[tuple[str, np.ndarray, np.ndarray]] = []
         for source in ("qpos", "qvel", "qfrc_actuator", "sensordata"):
-            cols = [i for i, c in enumerate(spec.state) if c.source == source]
+            cols = [i for i, c in enumerate(self._columns) if c.source == source]
             if cols:
-                idx = [spec.state[i].index for i in cols]
+                idx = [self._columns[i].index for i in cols]
                 self._gather.append((source, _as_slice(cols), _as_slice(idx)))
         self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
         self._ctrl_cols = _as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster
         self._opened = False
+
+    def _bind_readings(self, readings: np.ndarray) -> None:
+        """Make `readings` (nworld, len(_columns)) the array read() fills; `state` and
+        `base_state` are views of its columns."""
+        nstate = len(self.spec.state)
+        self._readings = readings
+        self.state = readings[:, :nstate]
+        self.base_state = readings[:, nstate:] if self.spec.floating_base is not None else None
 
     # --- interfaces ---
     def export_state_interfaces(self) -> list[str]:
@@ -392,14 +407,14 @@ class BatchedSystem(SystemInterface):
         its ctrl held at zero, while read() keeps showing what it read when it failed."""
         self._parked = np.zeros(self.nworld, bool)
         self._held = {
-            "state": np.zeros_like(self.state),
+            "readings": np.zeros_like(self._readings),
             "sensordata": np.zeros_like(self._sensor_host),
             "time": np.zeros_like(self.time),
         }
 
     def _hold_readings(self, worlds: np.ndarray) -> None:
         """Keep what `worlds` read now (call right after a refresh) and mark them parked."""
-        for key, array in (("state", self.state), ("sensordata", self._sensor_host), ("time", self.time)):
+        for key, array in (("readings", self._readings), ("sensordata", self._sensor_host), ("time", self.time)):
             self._held[key][worlds] = array[worlds]
         self._parked[worlds] = True
 
@@ -411,7 +426,7 @@ class BatchedSystem(SystemInterface):
         """After a refresh: parked worlds show their held readings, not the device's rows."""
         if self._parked.any():
             parked = self._parked
-            self.state[parked] = self._held["state"][parked]
+            self._readings[parked] = self._held["readings"][parked]
             self._sensor_host[parked] = self._held["sensordata"][parked]
             self.time[parked] = self._held["time"][parked]
 
@@ -437,7 +452,7 @@ class BatchedSystem(SystemInterface):
     def _refresh(self) -> None:
         fields = self._download()
         for source, cols, idx in self._gather:
-            self.state[:, cols] = fields[source][:, idx]
+            self._readings[:, cols] = fields[source][:, idx]
         self._sensor_host[:] = fields["sensordata"]
         self.time[:] = fields["time"]
 
@@ -467,6 +482,16 @@ class BatchedSystem(SystemInterface):
     def _reset(self, worlds: np.ndarray | None) -> None:
         """Reset the listed worlds (None: all) to the model's initial state."""
         raise NotImplementedError
+
+
+def _base_columns(spec: RobotSpec) -> list[StateColumn]:
+    """The floating base's 7 qpos and 6 qvel entries as read columns (none without a base)."""
+    base = spec.floating_base
+    if base is None:
+        return []
+    pose = [StateColumn(f"{base.joint}/qpos{k}", "qpos", base.qposadr + k) for k in range(7)]
+    twist = [StateColumn(f"{base.joint}/qvel{k}", "qvel", base.dofadr + k) for k in range(6)]
+    return pose + twist
 
 
 def _as_slice(index: list[int]) -> slice | np.ndarray:

@@ -135,6 +135,16 @@ class RosPluginConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class FloatingBase:
+    """The free joint of the robot's own tree: where its pose and twist live in qpos / qvel."""
+
+    joint: str
+    body: str
+    qposadr: int  # qpos[qposadr : qposadr + 7]: position (3), orientation quaternion (w, x, y, z)
+    dofadr: int  # qvel[dofadr : dofadr + 6]: linear velocity (world frame), angular velocity (body frame)
+
+
+@dataclasses.dataclass(frozen=True)
 class StateColumn:
     """Where one state interface's value comes from: a field and an index into it."""
 
@@ -157,6 +167,7 @@ class RobotSpec:
       commands: one entry per command interface, in `export_command_interfaces()` order.
       sensors: every exposed MJCF sensor, in model order.
       ros: the `mujoco.ros2` extension block's config, if the MJCF has one.
+      floating_base: the free joint of the robot's own tree (see `floating_base`), or None.
       problems: configuration errors found in a ros2_control block; `on_configure` reports them.
     """
 
@@ -169,6 +180,7 @@ class RobotSpec:
     commands: list[CommandInterface]
     sensors: list[Sensor]
     ros: RosPluginConfig | None = None
+    floating_base: FloatingBase | None = None
     problems: list[str] = dataclasses.field(default_factory=list)
 
     @property
@@ -483,7 +495,52 @@ def _discover(
         commands=commands,
         sensors=sensors,
         ros=ros,
+        floating_base=floating_base(m),
         problems=problems,
+    )
+
+
+def floating_base(m: mujoco.MjModel) -> FloatingBase | None:
+    """The free joint of the robot's own tree: the one its actuated joints (or actuated sites,
+    bodies) hang from, so a free prop in the scene (a cube to grasp) is never taken for the
+    base. A model without actuators has the first free joint as its base; a fixed-base robot
+    beside free props has none.
+    """
+    free = [j for j in range(m.njnt) if int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE)]
+    if not free:
+        return None
+    roots: dict[int, int] = {}  # tree root body -> actuators driving something in that tree
+    for a in range(m.nu):
+        trn, target = int(m.actuator_trntype[a]), int(m.actuator_trnid[a, 0])
+        body = -1
+        if trn in (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT)):
+            body = int(m.jnt_bodyid[target])
+        elif trn == int(mujoco.mjtTrn.mjTRN_SITE):
+            body = int(m.site_bodyid[target])
+        elif trn == int(mujoco.mjtTrn.mjTRN_BODY):
+            body = target
+        elif trn == int(mujoco.mjtTrn.mjTRN_TENDON):
+            adr, num = int(m.tendon_adr[target]), int(m.tendon_num[target])
+            for w in range(adr, adr + num):
+                if int(m.wrap_type[w]) == int(mujoco.mjtWrap.mjWRAP_JOINT):
+                    body = int(m.jnt_bodyid[int(m.wrap_objid[w])])
+                    break
+        if body > 0:
+            root = int(m.body_rootid[body])
+            roots[root] = roots.get(root, 0) + 1
+    if m.nu == 0:
+        chosen = free[0]
+    else:
+        driven = [j for j in free if roots.get(int(m.body_rootid[int(m.jnt_bodyid[j])]), 0) > 0]
+        if not driven:
+            return None
+        chosen = max(driven, key=lambda j: roots[int(m.body_rootid[int(m.jnt_bodyid[j])])])
+    body = int(m.jnt_bodyid[chosen])
+    return FloatingBase(
+        joint=m.joint(chosen).name or f"joint{chosen}",
+        body=m.body(body).name or f"body{body}",
+        qposadr=int(m.jnt_qposadr[chosen]),
+        dofadr=int(m.jnt_dofadr[chosen]),
     )
 
 

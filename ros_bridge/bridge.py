@@ -13,7 +13,7 @@ Per world, under its namespace `<ns>` (`world_3` from the template `world_{i}`):
     <ns>/sensors/<sensor>              std_msgs/Float64 or Float64MultiArray (sensor rate)
     <ns>/sensors/<site>/imu            sensor_msgs/Imu        gyro + accelerometer (+ framequat) on one site
     <ns>/sensors/<site>/wrench         geometry_msgs/WrenchStamped   force + torque on one site
-    <ns>/odom                          nav_msgs/Odometry      the floating base (first free joint)
+    <ns>/odom                          nav_msgs/Odometry      the floating base (spec.floating_base)
     <ns>/actuators/<actuator>/command  std_msgs/Float64 (subscribed)
     <ns>/commands                      std_msgs/Float64MultiArray (subscribed), one value per
                                        command interface in `batchsim info` order
@@ -39,7 +39,6 @@ import time as wallclock
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import mujoco
 import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
@@ -505,10 +504,8 @@ class Bridge:
                 self._typed.append(_ImuChannel(self, site, site_topic, kinds))
             if "force" in kinds and "torque" in kinds:
                 self._typed.append(_WrenchChannel(self, site, site_topic, kinds))
-        m = self.sim.model
-        free = [j for j in range(m.njnt) if int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE)]
-        if free:
-            self._typed.append(_OdomChannel(self, free[0]))
+        if spec.floating_base is not None:
+            self._typed.append(_OdomChannel(self, spec.floating_base.body))
 
         # subscriptions: commands, actuators/<a>/command
         self._actuator_topics: list[set[str]] = []
@@ -801,23 +798,16 @@ class _OdomChannel(_Typed):
     velocity in the body frame; Odometry wants both in the child (body) frame.
     """
 
-    def __init__(self, bridge: Bridge, joint: int):
+    def __init__(self, bridge: Bridge, body: str):
         super().__init__(bridge, Odometry, "odom")
-        m = bridge.sim.model
-        self.qpos = int(m.jnt_qposadr[joint])
-        self.qvel = int(m.jnt_dofadr[joint])
-        body = m.body(int(m.jnt_bodyid[joint])).name or "base"
         for ns, msg in zip(bridge.namespaces, self.msgs, strict=True):
             msg.header.frame_id = f"{ns}/odom"
             msg.child_frame_id = f"{ns}/{body}"
 
     def publish(self, sim: BatchedSystem, stamp: Time) -> None:
-        # the contract exposes 1-DOF joints only; the base pose comes from the engine's host arrays
-        fields = sim._download()
-        qpos = np.asarray(fields["qpos"])[:, self.qpos : self.qpos + 7]
-        qvel = np.asarray(fields["qvel"])[:, self.qvel : self.qvel + 6]
-        linear = _rotate_inverse(qpos[:, 3:7], qvel[:, 0:3])
-        pose, lin, ang = qpos.tolist(), linear.tolist(), qvel[:, 3:6].tolist()
+        base = sim.base_state  # pose, world-frame linear and body-frame angular velocity
+        linear = _rotate_inverse(base[:, 3:7], base[:, 7:10])
+        pose, lin, ang = base[:, :7].tolist(), linear.tolist(), base[:, 10:13].tolist()
         for w in self.wanted:
             msg = self.msgs[w]
             msg.header.stamp = stamp

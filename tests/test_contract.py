@@ -405,3 +405,20 @@ def test_a_diverging_world_is_frozen_and_the_others_go_on(backend, tmp_path):
     sim.read()
     assert np.isfinite(sim.state).all()
     sim.shutdown()
+
+
+def test_base_state_follows_the_free_joint_of_the_robot(backend):
+    """base_state is the floating base's qpos (7) and qvel (6), refreshed by read()."""
+    sim = batchsim.make("quadruped", 3, backend)
+    sim.configure()
+    sim.activate()
+    base = sim.spec.floating_base
+    assert base is not None and sim.base_state.shape == (3, 13)
+    sim.step(20)
+    sim.read()
+    qpos, qvel = (np.asarray(sim.device_arrays()[f], dtype=np.float64) for f in ("qpos", "qvel"))
+    np.testing.assert_allclose(sim.base_state[:, :7], qpos[:, base.qposadr : base.qposadr + 7], atol=1e-6)
+    np.testing.assert_allclose(sim.base_state[:, 7:], qvel[:, base.dofadr : base.dofadr + 6], atol=1e-6)
+    assert sim.base_state[:, 2].max() < 1.0  # it fell from its initial height
+    sim.shutdown()
+    assert batchsim.make("arm", 1, backend).base_state is None  # a fixed-base robot has none

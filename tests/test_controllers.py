@@ -78,13 +78,14 @@ def test_trajectory_to_world_5_of_8_is_followed_and_the_others_hold_still():
 def test_car_cmd_vel_for_2_s_moves_about_1_m_and_odometry_agrees():
     sim, manager, loop = running("car", 3)
     dd = manager["diff_drive_controller"]
-    qpos = sim._download()["qpos"]  # the free joint's x, y: the simulated base position
-    start = qpos[:, :2].copy()
+    sim.read()
+    start = sim.base_state[:, :2].copy()  # the floating base's x, y: the simulated base position
     while loop.sim_time < 2.0 - 1e-9:
         dd.set_cmd_vel(0, 0.5, 0.0)
         dd.set_cmd_vel(1, 0.5, 0.0)  # world 2 gets nothing and stays put
         loop.run_period()
-    moved = np.linalg.norm(qpos[:, :2] - start, axis=1)
+    sim.read()
+    moved = np.linalg.norm(sim.base_state[:, :2] - start, axis=1)
     # from standstill through a wheel-velocity loop on torque motors: 0.9 .. 1.0 m
     assert 0.9 < moved[0] < 1.02, moved
     odom = np.linalg.norm(dd.odom_pose[:, :2], axis=1)
@@ -738,3 +739,27 @@ def test_car_over_ros_cmd_vel_and_odometry(tmp_path):
         assert (msg.header.frame_id, msg.child_frame_id) == ("odom", "base_link")
         assert msg.twist.twist.linear.x == pytest.approx(0.5, abs=0.1)
         assert abs(odom0.msg.pose.pose.position.x) < 1e-3  # world 0 got no cmd_vel
+
+
+def test_a_trajectory_batch_queues_like_single_trajectories():
+    """set_trajectories(batch): each trajectory as set_trajectory would queue it; bad ones come back."""
+    from batchsim.controllers import TrajectoryBatch
+
+    sim, manager, loop = running("arm", 4)
+    jtc = manager["joint_trajectory_controller"]
+    nj = len(jtc.joints)
+    goal = np.linspace(0.1, 0.6, nj)
+    batch = TrajectoryBatch(
+        worlds=np.array([1, 3, 2]),
+        start_time=np.zeros(3),
+        joint_mask=np.ones((3, nj), bool),
+        offsets=np.array([0, 1, 2, 4]),
+        times=np.array([0.5, 0.5, 0.5, 0.4]),  # world 2's times go backwards: rejected
+        positions=np.tile(goal, (4, 1)),
+    )
+    rejected = jtc.set_trajectories(batch)
+    assert [k for k, _ in rejected] == [2] and "strictly increasing" in rejected[0][1]
+    while loop.sim_time < 1.0 - 1e-9:
+        loop.run_period()
+    np.testing.assert_allclose(jtc.reference_position[[1, 3]], np.tile(goal, (2, 1)), atol=1e-12)
+    assert not np.allclose(jtc.reference_position[[0, 2]], goal)

@@ -273,3 +273,33 @@ def test_cpu_device_arrays_are_the_live_batch_arrays():
     before = arrays["time"].copy()
     sim.step(3)
     assert np.allclose(arrays["time"], before + 3 * sim.dt)
+
+
+_PROP_FIRST = """
+<mujoco>
+  <worldbody>
+    <body name="cube" pos="1 0 0.1"><freejoint name="cube_free"/><geom type="box" size=".05 .05 .05"/></body>
+    {robot}
+  </worldbody>
+  <actuator>{actuators}</actuator>
+</mujoco>
+"""
+
+
+def test_floating_base_is_the_robots_free_joint_not_a_prop():
+    """A free prop listed before the robot is not the base; a fixed-base robot has none."""
+    floating = _PROP_FIRST.format(
+        robot='<body name="torso" pos="0 0 1"><freejoint name="root"/><geom size=".1"/>'
+        '<body name="leg"><joint name="hip" type="hinge"/><geom size=".05"/></body></body>',
+        actuators='<motor joint="hip"/>',
+    )
+    spec = batchsim.model.load_string(floating)
+    assert spec.floating_base is not None
+    assert (spec.floating_base.joint, spec.floating_base.body) == ("root", "torso")
+    assert spec.floating_base.qposadr == 7 and spec.floating_base.dofadr == 6
+
+    fixed = _PROP_FIRST.format(
+        robot='<body name="link"><joint name="j" type="hinge"/><geom size=".05"/></body>',
+        actuators='<motor joint="j"/>',
+    )
+    assert batchsim.model.load_string(fixed).floating_base is None

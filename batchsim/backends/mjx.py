@@ -42,7 +42,7 @@ from mujoco import mjx
 
 from batchsim.backends import unsupported_error
 from batchsim.hardware import MAX_COMMAND, BatchedSystem, Status
-from batchsim.model import RobotSpec
+from batchsim.model import RobotSpec, StateColumn
 
 _SOURCES = ("qpos", "qvel", "qfrc_actuator", "sensordata")
 _CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device)
@@ -68,7 +68,12 @@ def _fingerprint(m: mujoco.MjModel) -> str:
 
 
 def _programs(
-    mx: mjx.Model, spec: RobotSpec, nworld: int, device: jax.Device, deterministic: bool
+    mx: mjx.Model,
+    spec: RobotSpec,
+    columns: list[StateColumn],
+    nworld: int,
+    device: jax.Device,
+    deterministic: bool,
 ) -> _Programs:
     """Compile (once per key) what one system runs.
 
@@ -80,14 +85,14 @@ def _programs(
     rather than passed to the program, which measured ~1.6 ms a period slower on an H200
     (benchmarks/mjx_period.py, "raw+ctrl").
     """
-    key = (_fingerprint(spec.mjmodel), tuple(c.name for c in spec.state), nworld, device, deterministic)
+    key = (_fingerprint(spec.mjmodel), tuple(c.name for c in columns), nworld, device, deterministic)
     if key in _PROGRAMS:
         _PROGRAMS.move_to_end(key)
         return _PROGRAMS[key]
     step = jax.vmap(mjx.step, in_axes=(None, 0))
     m = spec.mjmodel
     offset = dict(zip(_SOURCES, np.cumsum([0, m.nq, m.nv, m.nv]), strict=True))
-    take = np.array([offset[c.source] + c.index for c in spec.state], dtype=np.int32)
+    take = np.array([offset[c.source] + c.index for c in columns], dtype=np.int32)
 
     def read(qpos: jax.Array, qvel: jax.Array, qfrc: jax.Array, sensordata: jax.Array, time: jax.Array):
         # these five arrays, not the whole Data: a jit call costs per argument (~80 leaves in Data)
@@ -202,13 +207,13 @@ class MjxSystem(BatchedSystem):
         mujoco.mj_forward(m, mjd)  # a reset world reads mj_forward's values, as on the cpu backend
         self._d0 = mjx.put_data(m, mjd, device=self.device, impl="jax")
         self._programs = _programs(
-            self._mx, self.spec, self.nworld, self.device, bool(self.options["deterministic"])
+            self._mx, self.spec, self._columns, self.nworld, self.device, bool(self.options["deterministic"])
         )
         self._d = jax.tree.map(lambda x: jnp.repeat(x[None], self.nworld, axis=0), self._d0)
         self._ctrl = np.zeros((self.nworld, m.nu))
         self._ctrl32 = np.zeros((self.nworld, m.nu), np.float32)
         self._ctrl_on_device = True  # whether self._d.ctrl holds self._ctrl32
-        self._readings: np.ndarray | None = None  # what the last period downloaded, while current
+        self._packed: np.ndarray | None = None  # what the last period downloaded, while current
         self._init_parking()
 
     def _close(self) -> None:
@@ -235,13 +240,13 @@ class MjxSystem(BatchedSystem):
         return {f: np.asarray(x, dtype=np.float64) for f, x in fields.items()}
 
     def _refresh(self) -> None:
-        packed = self._readings  # the last period's download, unless a reset has since changed the worlds
+        packed = self._packed  # the last period's download, unless a reset has since changed the worlds
         if packed is None:
             d = self._d
             packed = np.asarray(self._programs.read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata, d.time))
-        nstate = self.state.shape[1]
-        np.copyto(self.state, packed[:, :nstate])
-        np.copyto(self._sensor_host, packed[:, nstate:-1])
+        nread = self._readings.shape[1]
+        np.copyto(self._readings, packed[:, :nread])
+        np.copyto(self._sensor_host, packed[:, nread:-1])
         np.copyto(self.time, packed[:, -1])
         self._show_held_readings()
 
@@ -249,7 +254,7 @@ class MjxSystem(BatchedSystem):
         self._sync_ctrl()
         self._d, out = self._programs.period(self._d, nstep)
         out = np.asarray(out)  # one download: readings, then the status flags
-        self._readings, flags = out[:, :-1], out[:, -1]
+        self._packed, flags = out[:, :-1], out[:, -1]
         if flags.any():
             failed = (flags != 0) & ~self._parked
             if failed.any():
@@ -270,7 +275,7 @@ class MjxSystem(BatchedSystem):
             mask = np.zeros(self.nworld, bool)
             mask[worlds] = True
         self._d = self._programs.reset(self._d, self._d0, jax.device_put(mask, self.device))
-        self._readings = None
+        self._packed = None
 
     def _reset(self, worlds: np.ndarray | None) -> None:
         self._reset_on_device(worlds)

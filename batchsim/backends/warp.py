@@ -260,12 +260,12 @@ class WarpSystem(BatchedSystem):
         self._cuda = self.device.is_cuda
         # The host arrays a user sees become pinned memory that the device copies into
         # directly: read() then costs one DMA per array and no host-side copy or conversion.
-        self._state_wp = self._host_array(self.state.shape, wp.float64)
+        self._state_wp = self._host_array(self._readings.shape, wp.float64)
         self._sensor_wp = self._host_array(self._sensor_host.shape, wp.float64)
         self._time_wp = self._host_array(self.time.shape, wp.float64)
         self._ctrl_wp = self._host_array((self.nworld, self.model.nu), wp.float64)
         self._flags_wp = self._host_array((self.nworld,), wp.int32)
-        self.state = self._state_wp.numpy()
+        self._bind_readings(self._state_wp.numpy())
         self._sensor_host = self._sensor_wp.numpy()
         self.sensordata = type(self.sensordata)(
             {s.name: self._sensor_host[:, s.adr : s.adr + s.dim] for s in spec.sensors}
@@ -308,15 +308,15 @@ class WarpSystem(BatchedSystem):
             self._sensor0 = wp.array(mjd.sensordata.astype(np.float32), dtype=wp.float32)
             self._parked_dev = wp.zeros(n, dtype=wp.int32)
             self._mask_dev = wp.zeros(n, dtype=wp.bool)
-            nstate = self.state.shape[1]
-            source = np.zeros(nstate, np.int32)
-            index = np.zeros(nstate, np.int32)
-            for c, col in enumerate(self.spec.state):
+            nread = self._readings.shape[1]
+            source = np.zeros(nread, np.int32)
+            index = np.zeros(nread, np.int32)
+            for c, col in enumerate(self._columns):
                 source[c], index[c] = _SOURCES.index(col.source), col.index
             self._source = wp.array(source, dtype=wp.int32)
             self._index = wp.array(index, dtype=wp.int32)
             if self._cuda:
-                self._state_dev = wp.zeros(self.state.shape, dtype=wp.float64)
+                self._state_dev = wp.zeros(self._readings.shape, dtype=wp.float64)
                 self._sensor_dev = wp.zeros(self._sensor_host.shape, dtype=wp.float64)
                 self._time_dev = wp.zeros(n, dtype=wp.float64)
                 self._ctrl_dev = wp.zeros(self._ctrl.shape, dtype=wp.float64)
@@ -331,7 +331,7 @@ class WarpSystem(BatchedSystem):
         del d
         self._graphs: dict[int, Any] = {}
         self._init_parking()
-        self._ncols = self.state.shape[1] + self._sensor_host.shape[1] + 1
+        self._ncols = self._readings.shape[1] + self._sensor_host.shape[1] + 1
 
     def _close(self) -> None:
         self._graphs.clear()
@@ -370,7 +370,7 @@ class WarpSystem(BatchedSystem):
                     d.time,
                     self._source,
                     self._index,
-                    self.state.shape[1],
+                    self._readings.shape[1],
                 ],
                 outputs=[self._state_dev, self._sensor_dev, self._time_dev],
             )

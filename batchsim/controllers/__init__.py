@@ -31,7 +31,7 @@ from batchsim.controllers.forward_command import (
     JointGroupPositionController,
     JointGroupVelocityController,
 )
-from batchsim.controllers.joint_trajectory import JointTrajectoryController
+from batchsim.controllers.joint_trajectory import JointTrajectoryController, TrajectoryBatch
 
 __all__ = [
     "CONTROLLER_TYPES",
@@ -48,6 +48,7 @@ __all__ = [
     "JointTrajectoryController",
     "ManagerConfig",
     "Params",
+    "TrajectoryBatch",
     "build",
     "default_controllers",
     "load_controllers",

@@ -62,6 +62,45 @@ class _Goal:
     accelerations: np.ndarray | None
 
 
+@dataclasses.dataclass
+class TrajectoryBatch:
+    """Trajectories for several worlds at once, flat (CSR) like a sparse matrix: what a bridge
+    hands the controller in one call, however many messages arrived in the period.
+
+    Trajectory k is for world `worlds[k]`; its points are rows `offsets[k]:offsets[k+1]` of
+    the flat point arrays. Every per-joint array is in the controller's joint order
+    (`JointTrajectoryController.joints`): the sender maps the message's joint_names onto it
+    and rejects unknown or repeated names itself, since it has the names.
+
+    Attributes:
+      worlds: (n,) int64, the world of each trajectory; a later trajectory for a world
+        replaces an earlier one of the same batch.
+      start_time: (n,) float64, the header stamp in sim time; 0 starts at the next update.
+      joint_mask: (n, njoint) bool, the joints each trajectory names.
+      offsets: (n + 1,) int64, offsets[0] == 0, non-decreasing.
+      times: (npoint,) float64, each point's time_from_start.
+      positions: (npoint, njoint) float64; entries of joints a trajectory does not name are ignored.
+      velocities: (npoint, njoint) float64, or None when no trajectory of the batch gives any.
+      has_velocities: (n,) bool, which trajectories give velocities (rows of the others are ignored).
+      accelerations: (npoint, njoint) float64, or None likewise.
+      has_accelerations: (n,) bool.
+    """
+
+    worlds: np.ndarray
+    start_time: np.ndarray
+    joint_mask: np.ndarray
+    offsets: np.ndarray
+    times: np.ndarray
+    positions: np.ndarray
+    velocities: np.ndarray | None = None
+    has_velocities: np.ndarray | None = None
+    accelerations: np.ndarray | None = None
+    has_accelerations: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.worlds)
+
+
 class JointTrajectoryController(Controller):
     """joint_trajectory_controller/JointTrajectoryController.
 
@@ -297,6 +336,36 @@ class JointTrajectoryController(Controller):
                 f"{self.name}: the trajectory ends at {start + t[-1]:g} s, before the current time {self.time:g} s"
             )
         self._queue(w, _Goal(start, t, mask, p, v, a))
+
+    def set_trajectories(self, batch: TrajectoryBatch) -> list[tuple[int, str]]:
+        """Queue every trajectory of a batch, as set_trajectory would one by one.
+
+        Returns (index in the batch, reason) for each rejected trajectory; the others are queued.
+        """
+        rejected: list[tuple[int, str]] = []
+        for k in range(len(batch)):
+            lo, hi = int(batch.offsets[k]), int(batch.offsets[k + 1])
+            mask = np.asarray(batch.joint_mask[k], bool)
+            names = [j for j, named in zip(self.joints, mask, strict=True) if named]
+
+            def rows(values: np.ndarray | None, given: np.ndarray | None) -> np.ndarray | None:
+                if values is None or given is None or not given[k]:
+                    return None
+                return values[lo:hi][:, mask]
+
+            try:
+                self.set_trajectory(
+                    int(batch.worlds[k]),
+                    names,
+                    batch.times[lo:hi],
+                    batch.positions[lo:hi][:, mask],
+                    rows(batch.velocities, batch.has_velocities),
+                    rows(batch.accelerations, batch.has_accelerations),
+                    float(batch.start_time[k]),
+                )
+            except ValueError as e:
+                rejected.append((k, str(e)))
+        return rejected
 
     def _queue(self, w: int, goal: _Goal) -> None:
         self._pending[w] = goal  # a newer goal for a world replaces one still waiting to start
