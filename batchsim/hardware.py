@@ -395,7 +395,7 @@ class BatchedSystem(SystemInterface):
         self._reset(rows)
         self._command[sel] = self._initial_command
         ctrl = self._ctrl_host()
-        ctrl[sel] = 0.0
+        ctrl[sel] = self.spec.initial.ctrl
         ctrl[np.ix_(sel, self._ctrl_index)] = self._initial_command
         self._upload_ctrl()
         self.status[sel] = 0

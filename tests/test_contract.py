@@ -422,3 +422,24 @@ def test_base_state_follows_the_free_joint_of_the_robot(backend):
     assert sim.base_state[:, 2].max() < 1.0  # it fell from its initial height
     sim.shutdown()
     assert batchsim.make("arm", 1, backend).base_state is None  # a fixed-base robot has none
+
+
+def test_reset_returns_to_the_initial_state_not_qpos0(backend):
+    """A world starts in, and resets to, spec.initial (here a ros2_control initial_value)."""
+    block = """<ros2_control name="arm" type="system"><joint name="joint2">
+      <command_interface name="position"/>
+      <state_interface name="position"><param name="initial_value">0.5</param></state_interface>
+    </joint></ros2_control>"""
+    sim = batchsim.make("arm", 3, backend, ros2_control=block)
+    sim.configure()
+    sim.activate()
+    sim.read()
+    np.testing.assert_allclose(sim.state[:, 0], 0.5, atol=1e-7)
+    sim.command[:, 0] = -0.5
+    sim.write()
+    sim.step(200)
+    sim.reset(worlds=[2])
+    np.testing.assert_allclose(sim.state[2, 0], 0.5, atol=1e-7)
+    assert (sim.state[:2, 0] < 0.3).all()
+    np.testing.assert_allclose(sim.command[2], 0.5)
+    sim.shutdown()

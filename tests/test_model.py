@@ -131,6 +131,32 @@ def test_ros2_control_block_narrows_the_interfaces(tmp_path):
     assert np.allclose(sim.command[:, 0], 0.3)
 
 
+def test_initial_value_sets_where_the_joint_starts_not_its_kinematic_zero():
+    """initial_value is the initial qpos (as mujoco_ros2_control sets it), never qpos0: the
+    world then moves exactly as plain MuJoCo started at that qpos, under the same commands."""
+    import mujoco
+
+    sim = batchsim.make("arm", 2, "cpu", ros2_control=ROS2_CONTROL)
+    m = sim.model
+    plain = mujoco.MjModel.from_xml_path(str(batchsim.model.model_path("arm")))
+    np.testing.assert_array_equal(m.qpos0, plain.qpos0)  # the kinematic zero is untouched
+    sim.configure()
+    sim.activate()
+    d = mujoco.MjData(plain)
+    d.qpos[plain.joint("joint1").qposadr[0]] = 0.3
+    d.ctrl[plain.actuator("joint1").id] = 0.3  # the initial command holds the initial value
+    sim.command[:, 1] = d.ctrl[plain.actuator("joint2").id] = -0.4
+    for _ in range(3):
+        sim.write()
+        sim.step(100)
+        for _ in range(100):
+            mujoco.mj_step(plain, d)
+    sim.read()
+    np.testing.assert_array_equal(sim.state[0, [0, 2]], d.qpos[[0, 1]])  # bit for bit
+    sim.reset(worlds=[1])  # reset returns to the initial value; world 0 stays where it went
+    assert sim.state[1, 0] == 0.3 and sim.state[1, 2] == 0.0 and sim.state[0, 2] < -0.3
+
+
 def test_ros2_control_block_given_as_text():
     sim = batchsim.make("arm", 1, "cpu", ros2_control=ROS2_CONTROL)
     assert sim.export_command_interfaces() == ["joint1/position", "joint2/position"]

@@ -99,4 +99,17 @@ class CpuSystem(BatchedSystem):
         return {**self._fields, "ctrl": self._ctrl}
 
     def _reset(self, worlds: np.ndarray | None) -> None:
-        self._batch.reset(ids=None if worlds is None else worlds.astype(np.int32))
+        ids = None if worlds is None else worlds.astype(np.int32)
+        initial = self.spec.initial
+        if initial.source == "qpos0":
+            self._batch.reset(ids=ids)
+            return
+        # a keyframe or initial values: the model's defaults, overwritten, then mj_forward
+        self._batch.reset(ids=ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
+        rows = slice(None) if worlds is None else worlds
+        for field in ("qpos", "qvel", "act", "ctrl", "mocap_pos", "mocap_quat"):
+            value = getattr(initial, field)
+            if value.size:
+                self._batch.bind(field)[rows] = value
+        self._fields["time"][rows] = initial.time
+        self._batch.forward(ids=ids)

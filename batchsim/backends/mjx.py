@@ -204,7 +204,7 @@ class MjxSystem(BatchedSystem):
     def _open(self) -> None:
         m = self.model
         mjd = mujoco.MjData(m)
-        mujoco.mj_forward(m, mjd)  # a reset world reads mj_forward's values, as on the cpu backend
+        self.spec.initial.apply(m, mjd)  # with mj_forward: a reset world reads what cpu's reads
         self._d0 = mjx.put_data(m, mjd, device=self.device, impl="jax")
         self._programs = _programs(
             self._mx, self.spec, self._columns, self.nworld, self.device, bool(self.options["deterministic"])

@@ -168,13 +168,18 @@ def _gather_state(
 
 
 @wp.kernel
-def _set_rows(
-    mask: wp.array(dtype=wp.bool), row: wp.array(dtype=wp.float32), out: wp.array2d(dtype=wp.float32)
-):
-    """out[w] = row for the masked worlds."""
+def _set_rows(mask: wp.array(dtype=wp.bool), row: wp.array(dtype=Any), out: wp.array2d(dtype=Any)):
+    """out[w] = row for the masked worlds (float32, vec3 or quat rows)."""
     w, j = wp.tid()
     if mask[w]:
         out[w, j] = row[j]
+
+
+@wp.kernel
+def _set_time(mask: wp.array(dtype=wp.bool), value: wp.float32, out: wp.array(dtype=wp.float32)):
+    w = wp.tid()
+    if mask[w]:
+        out[w] = value
 
 
 # ---------------------------------------------------------------- buffer sizing
@@ -293,7 +298,7 @@ class WarpSystem(BatchedSystem):
     def _open(self) -> None:
         m, n = self.model, self.nworld
         mjd = mujoco.MjData(m)
-        mujoco.mj_forward(m, mjd)
+        self.spec.initial.apply(m, mjd)  # with mj_forward: a reset world reads what cpu's reads
         with wp.ScopedDevice(self.device):
             self._m = mjw.put_model(m)
             # failures are read per world from d.overflow; MuJoCo Warp's own printf per
@@ -303,9 +308,23 @@ class WarpSystem(BatchedSystem):
                 self._m.opt.deterministic = int(mjw.DeterminismType.ALL)
             self._d = mjw.put_data(m, mjd, nworld=n, nconmax=self.nconmax, njmax=self.njmax)
             d = self._d
-            # initial values of the derived fields a reset world reads back (mj_forward's)
-            self._qfrc0 = wp.array(mjd.qfrc_actuator.astype(np.float32), dtype=wp.float32)
-            self._sensor0 = wp.array(mjd.sensordata.astype(np.float32), dtype=wp.float32)
+            # what a reset world is set to beyond reset_data's defaults: the initial state (a
+            # keyframe, initial values) and mj_forward's derived fields of it
+            self._initial_rows = {
+                field: wp.array(np.asarray(getattr(mjd, field), np.float32), dtype=dtype)
+                for field, dtype in (
+                    ("qpos", wp.float32),
+                    ("qvel", wp.float32),
+                    ("act", wp.float32),
+                    ("ctrl", wp.float32),
+                    ("qfrc_actuator", wp.float32),
+                    ("sensordata", wp.float32),
+                    ("mocap_pos", wp.vec3),
+                    ("mocap_quat", wp.quat),
+                )
+                if getattr(mjd, field).size
+            }
+            self._time0 = float(mjd.time)
             self._parked_dev = wp.zeros(n, dtype=wp.int32)
             self._mask_dev = wp.zeros(n, dtype=wp.bool)
             nread = self._readings.shape[1]
@@ -335,7 +354,7 @@ class WarpSystem(BatchedSystem):
 
     def _close(self) -> None:
         self._graphs.clear()
-        for name in ("_m", "_d", "_qfrc0", "_sensor0", "_parked_dev", "_mask_dev", "_source", "_index"):
+        for name in ("_m", "_d", "_initial_rows", "_parked_dev", "_mask_dev", "_source", "_index"):
             self.__dict__.pop(name, None)
 
     def _ctrl_host(self) -> np.ndarray:
@@ -454,21 +473,16 @@ class WarpSystem(BatchedSystem):
             self._mask_dev.assign(mask)
             mjw.reset_data(self._m, self._d, reset=self._mask_dev)
             d = self._d
-            # a reset world reads mj_forward's qfrc_actuator and sensordata, as on the cpu backend
-            if self.model.nv:
+            # the initial state, and mj_forward's qfrc_actuator and sensordata of it, as on cpu
+            for field, row in self._initial_rows.items():
                 wp.launch(
                     _set_rows,
-                    dim=(self.nworld, self.model.nv),
-                    inputs=[self._mask_dev, self._qfrc0],
-                    outputs=[d.qfrc_actuator],
+                    dim=(self.nworld, row.shape[0]),
+                    inputs=[self._mask_dev, row],
+                    outputs=[getattr(d, field)],
                 )
-            if self.model.nsensordata:
-                wp.launch(
-                    _set_rows,
-                    dim=(self.nworld, self.model.nsensordata),
-                    inputs=[self._mask_dev, self._sensor0],
-                    outputs=[d.sensordata],
-                )
+            if self._time0:
+                wp.launch(_set_time, dim=self.nworld, inputs=[self._mask_dev, self._time0], outputs=[d.time])
 
     def _reset(self, worlds: np.ndarray | None) -> None:
         self._reset_on_device(worlds)

@@ -348,20 +348,21 @@ class JointTrajectoryController(Controller):
             mask = np.asarray(batch.joint_mask[k], bool)
             names = [j for j, named in zip(self.joints, mask, strict=True) if named]
 
-            def rows(values: np.ndarray | None, given: np.ndarray | None) -> np.ndarray | None:
-                if values is None or given is None or not given[k]:
-                    return None
-                return values[lo:hi][:, mask]
-
+            given = [
+                None if values is None or has is None or not has[k] else values[lo:hi][:, mask]
+                for values, has in (
+                    (batch.velocities, batch.has_velocities),
+                    (batch.accelerations, batch.has_accelerations),
+                )
+            ]
             try:
                 self.set_trajectory(
                     int(batch.worlds[k]),
                     names,
                     batch.times[lo:hi],
                     batch.positions[lo:hi][:, mask],
-                    rows(batch.velocities, batch.has_velocities),
-                    rows(batch.accelerations, batch.has_accelerations),
-                    float(batch.start_time[k]),
+                    *given,
+                    start_time=float(batch.start_time[k]),
                 )
             except ValueError as e:
                 rejected.append((k, str(e)))
