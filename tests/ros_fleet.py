@@ -4,17 +4,20 @@
         js = fleet.latest(JointState, "/world_2/joint_states")
         fleet.wait(lambda: js.count > 3)
 
-Each fleet runs on its own ROS_DOMAIN_ID with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, so
-tests never see each other's fleets or anything else on the machine. The process is
+Each fleet runs on its own ROS_DOMAIN_ID (`domain_id()` hands out one that no other test
+process on the machine holds) with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, so tests never
+see each other's fleets or anything else on the machine. The process is
 always stopped (SIGINT, then SIGKILL) when the fleet closes.
 """
 
 from __future__ import annotations
 
+import fcntl
 import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -31,10 +34,33 @@ from rclpy.signals import SignalHandlerOptions
 LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 
 
-def domain_id(base: int) -> int:
-    """`base`, shifted per pytest-xdist worker so parallel workers never share a domain."""
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
-    return base + 10 * int(worker.removeprefix("gw") or 0)
+_DOMAIN_LOCKS = Path(tempfile.gettempdir()) / "batchsim-ros-domains"
+_held: dict[int, int] = {}  # domain -> the locked file's descriptor, for as long as it is in use
+
+
+def domain_id(base: int = 1) -> int:
+    """A ROS domain no other test, pytest worker or concurrent test run on this machine is
+    using: the first one from `base` up whose lock file this process can take. It stays
+    taken until `release_domain` (Fleet.close calls it) or this process exits."""
+    _DOMAIN_LOCKS.mkdir(exist_ok=True)
+    for domain in [*range(base, 102), *range(1, base)]:  # 0..101: no clash with ephemeral ports
+        if domain in _held:
+            continue
+        fd = os.open(_DOMAIN_LOCKS / f"{domain}.lock", os.O_CREAT | os.O_RDWR, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        _held[domain] = fd
+        return domain
+    raise RuntimeError("no free ROS domain in 1..101: too many ROS tests running on this machine")
+
+
+def release_domain(domain: int) -> None:
+    fd = _held.pop(domain, None)
+    if fd is not None:
+        os.close(fd)  # closing the descriptor drops the lock
 
 
 class Latest:
@@ -166,4 +192,5 @@ class Fleet:
             self.node.destroy_node()
             rclpy.try_shutdown(context=self.context)
             self._log.close()
+            release_domain(self.domain)
         return self.proc.returncode
