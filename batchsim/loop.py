@@ -27,7 +27,9 @@ class Participant(Protocol):
     def update(self, sim: BatchedSystem, time: float, period: float) -> None: ...
 
     # Optional, looked up with getattr: `after_write(sim, time, period)` runs right after
-    # write(); `idle(sim, time)` runs instead of update() while the loop is paused.
+    # write(); `idle(sim, time)` runs instead of update() while the loop is paused;
+    # `on_reset(sim, worlds)` runs after SimLoop.reset reset worlds (None: all), in the
+    # loop thread, so participants never have to infer a reset from the state.
 
 
 @dataclasses.dataclass
@@ -115,6 +117,19 @@ class SimLoop:
         """While paused, advance one control period."""
         with self._lock:
             self._single_steps += 1
+
+    def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
+        """Reset all or the listed worlds and tell every participant (`on_reset`).
+
+        Call it from the loop thread (a participant's update or idle), as the bridge does
+        for its services; the system is never touched from another thread.
+        """
+        self.sim.reset(worlds)
+        rows = None if worlds is None else np.asarray(worlds, dtype=np.intp).reshape(-1)
+        for p in self.participants:
+            hook = getattr(p, "on_reset", None)
+            if hook is not None:
+                hook(self.sim, rows)
 
     # --- the loop ---
     def run_period(self) -> None:
