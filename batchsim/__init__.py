@@ -10,10 +10,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from batchsim.backends import Backend, BackendUnavailable, backend_class, resolve
+from batchsim.backends.sharded import ShardedSystem
 from batchsim.hardware import (
     BatchedSystem,
     CallbackReturn,
@@ -51,6 +55,7 @@ def make(
     backend: str | Backend = "auto",
     *,
     ros2_control: str | Path | None = None,
+    devices: Sequence[int | str] | str | None = None,
     **options: Any,
 ) -> BatchedSystem:
     """Build `nworld` worlds of `model` on `backend`, initialized (UNCONFIGURED).
@@ -61,6 +66,10 @@ def make(
       nworld: number of worlds.
       backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware).
       ros2_control: a ros2_control block (file path or XML text) narrowing the interfaces.
+      devices: spread the worlds over several devices of a GPU backend (mjx, warp): "all",
+        or a list of device indices (0, 1: the backend's GPUs in order) or names ("cuda:1",
+        "cpu"). The worlds are split into contiguous ranges, one per device, behind the one
+        contract (batchsim/backends/sharded.py). None: one device (the `device` option).
       **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `device`, `graph`
         for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
         runs: always so on cpu, slower on a GPU). With "auto", those the chosen backend does
@@ -78,7 +87,39 @@ def make(
         options = {k: v for k, v in options.items() if k in cls.OPTIONS}
         if ignored:
             reason += f"; ignored {', '.join(ignored)}, which {chosen.value} does not take"
+    if devices is not None:
+        chosen_devices = _devices(cls, devices)
+        if len(chosen_devices) > 1:
+            sim = ShardedSystem(cls, spec, nworld, chosen_devices, **options)
+            sim.reason = f"{reason}; {len(chosen_devices)} devices: {', '.join(map(str, chosen_devices))}"
+            sim.initialize()
+            return sim
+        options = {**options, "device": chosen_devices[0]}
     sim = cls(spec, nworld, **options)
     sim.reason = reason
     sim.initialize()
     return sim
+
+
+def _devices(cls: type[BatchedSystem], devices: Sequence[int | str] | str) -> list[Any]:
+    """The `device` option of each shard: "all" is every device the backend has; an index
+    picks from them; a name is the backend's own."""
+    available = getattr(cls, "available_devices", None)
+    if available is None:
+        raise ValueError(f"the {cls.name} backend runs on the host's cores: devices= is for mjx and warp")
+    have = available()
+    if isinstance(devices, str):
+        if devices.lower() != "all":
+            raise ValueError(f"devices must be 'all' or a list of device indices or names, got {devices!r}")
+        return list(have)
+    chosen: list[Any] = []
+    for d in devices:
+        if isinstance(d, int | np.integer) and not isinstance(d, bool):
+            if not 0 <= d < len(have):
+                raise ValueError(f"device {d} does not exist: the {cls.name} backend has {', '.join(have)}")
+            chosen.append(have[int(d)])
+        else:
+            chosen.append(d)
+    if not chosen:
+        raise ValueError("devices is empty: name at least one device")
+    return chosen

@@ -51,6 +51,11 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--rtf", type=float, default=1.0, help="real-time factor; 0 runs as fast as possible")
     p.add_argument("--control-rate", type=float, default=None, help="Hz: commands applied, state read")
     p.add_argument("--threads", type=int, default=None, help="cpu backend: worker threads (default: all cores)")
+    p.add_argument(
+        "--devices",
+        default=None,
+        help="mjx/warp: spread the worlds over several GPUs: all, or indices 0,1,... (default: one device)",
+    )
     p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world (default: sized from a CPU rollout)")
     p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world (default: sized likewise)")
     p.add_argument(
@@ -127,6 +132,9 @@ def build(args: argparse.Namespace) -> BatchedSystem:
             options[option] = getattr(args, flag)
     if args.deterministic:
         options["deterministic"] = True
+    if args.devices is not None:
+        names = [d.strip() for d in args.devices.split(",") if d.strip()]
+        options["devices"] = "all" if names == ["all"] else [int(d) if d.isdigit() else d for d in names]
     sim = batchsim.make(args.model, args.worlds, args.backend, ros2_control=args.ros2_control, **options)
     sim.configure()
     sim.activate()

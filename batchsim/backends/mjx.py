@@ -192,6 +192,13 @@ class MjxSystem(BatchedSystem):
             raise unsupported_error("mjx", spec, _feature(e)) from None
 
     @staticmethod
+    def available_devices() -> list[str]:
+        """JAX's devices of its default platform, as this backend's `device` option names
+        them ("gpu:0", "gpu:1", ...; "cpu:0", ... on a machine without an accelerator)."""
+        devices = jax.devices()
+        return [f"{d.platform}:{i}" for i, d in enumerate(devices)]
+
+    @staticmethod
     def unsupported(spec: RobotSpec) -> str | None:
         """The model feature MJX cannot simulate, or None."""
         try:

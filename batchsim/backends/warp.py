@@ -281,6 +281,12 @@ class WarpSystem(BatchedSystem):
         self._reported: set[int] = set()
 
     @staticmethod
+    def available_devices() -> list[str]:
+        """Warp's devices for this backend: every CUDA GPU ("cuda:0", ...), else ["cpu"]."""
+        gpus = [d.alias for d in wp.get_cuda_devices()]
+        return gpus or ["cpu"]
+
+    @staticmethod
     def unsupported(spec: RobotSpec, device: Any = None) -> str | None:
         """The model feature MuJoCo Warp cannot simulate, or None."""
         try:
