@@ -16,10 +16,11 @@ import pytest
 import batchsim
 from batchsim.controllers import (
     CONTROLLER_TYPES,
+    Controller,
     ControllerManager,
+    Params,
     default_controllers,
     load_controllers,
-    parse,
 )
 from batchsim.hardware import ConfigurationError
 from batchsim.loop import SimLoop
@@ -427,17 +428,62 @@ def test_a_new_trajectory_replaces_the_old_one_from_its_start_time():
     np.testing.assert_array_equal(jtc.reference_position[0], held)
 
 
-def test_a_reset_world_drops_its_trajectory_and_holds_the_reset_pose():
-    sim, manager, loop = running("arm", 3)
+class ResetSpy(Controller):
+    """A controller that only records the resets it hears of."""
+
+    TYPE = "test/ResetSpy"
+
+    def __init__(self, spec, nworld):
+        super().__init__("spy", Params({}, where="test", controller="spy"), spec, nworld)
+        self.resets: list[list[int]] = []
+
+    def reset(self, sim, worlds):
+        self.resets.append(np.asarray(worlds).tolist())
+
+    def update(self, sim, time, period):
+        pass
+
+
+def test_loop_reset_reaches_every_controller_and_the_reset_world_holds_its_reset_pose():
+    sim = batchsim.make("arm", 3, "cpu", nthread=1)
+    sim.configure()
+    sim.activate()
+    loaded = load_controllers(default_controllers("arm"), sim.spec, 3)
+    spy = ResetSpy(sim.spec, 3)
+    manager = ControllerManager([*loaded, spy], update_rate=loaded.update_rate)
+    loop = SimLoop(sim, control_rate=manager.update_rate, rtf=0, participants=[manager])
     jtc = manager["joint_trajectory_controller"]
     loop.run_period()
     for w in range(3):
         jtc.set_trajectory(w, ARM_JOINTS, [1.0], [np.full(6, 0.3)])
     run_until(loop, 0.5)
-    sim.reset([1])
+    loop.reset([1])
+    # at once, not at the next period: the manager is told, it does not infer it
+    assert spy.resets == [[1]] and not jtc.executing[1] and jtc.executing[[0, 2]].all()
+    np.testing.assert_array_equal(jtc.reference_position[1], jtc.feedback_position[1])
     run_until(loop, 1.5)
     assert np.abs(jtc.reference_position[1]).max() < 1e-12
     np.testing.assert_allclose(jtc.reference_position[[0, 2]], 0.3)
+    loop.reset()
+    assert spy.resets == [[1], [0, 1, 2]] and not jtc.executing.any()
+
+
+def test_a_world_whose_time_goes_backwards_is_not_taken_for_reset():
+    spec = batchsim.load("arm")
+    sim = FakeSim(spec, 2, np.random.default_rng(1))
+    manager = load_controllers(default_controllers("arm"), spec, 2)
+    jtc = manager["joint_trajectory_controller"]
+    manager.update(sim, 0.0, 0.01)
+    start = jtc.reference_position.copy()  # open_loop_control: trajectories leave from the reference
+    for w in range(2):
+        jtc.set_trajectory(w, ARM_JOINTS, [1.0], [np.full(6, 0.3)])  # starts at the next update, 0.01
+    for k in range(1, 31):
+        sim.advance(0.01)
+        manager.update(sim, 0.01 * k, 0.01)
+    sim.time[1] = 0.0  # e.g. the cpu backend silently restarting a world's clock
+    manager.update(sim, 0.31, 0.01)
+    assert jtc.executing.all()
+    np.testing.assert_allclose(jtc.reference_position, start + (0.3 - start) * 0.30, atol=1e-12)
 
 
 # ---------------------------------------------------------------- batched == per world
@@ -638,11 +684,6 @@ def test_forward_command_batched_and_validated():
     assert not np.delete(sim.command, 2, axis=0).any()
 
 
-def test_manager_is_a_plain_participant():
-    assert isinstance(load_controllers(HEAD, batchsim.load("arm"), 1), ControllerManager)
-    assert parse(HEAD).controllers == []
-
-
 # ---------------------------------------------------------------- over real ROS 2
 
 
@@ -654,6 +695,7 @@ def test_trajectory_over_ros_to_world_5_of_8(tmp_path):
     from builtin_interfaces.msg import Duration
     from ros_fleet import Fleet, domain_id
     from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     args = [
@@ -699,6 +741,16 @@ def test_trajectory_over_ros_to_world_5_of_8(tmp_path):
         assert np.abs(np.array(err5.msg.position)).max() < tolerance
         assert np.abs(np.array(js2.msg.position)).max() < 1e-6  # the other worlds hold still
         assert list(js5.msg.name) == ARM_JOINTS
+        # the reset service reaches the controllers: world 5 holds its reset pose, not the goal
+        assert fleet.call(Trigger, "/world_5/reset", Trigger.Request()).success
+        fleet.wait(
+            lambda: (
+                np.abs(np.array(ref5.msg.position)).max() < 1e-9
+                and np.abs(np.array(js5.msg.position)).max() < 0.02
+            ),
+            timeout=20,
+            what="world 5 holding its reset pose",
+        )
 
 
 @pytest.mark.ros

@@ -206,8 +206,9 @@ class ControllerManager:
 
     `update(sim, time, period)` runs every controller, in the YAML's order, between the
     loop's read() and write(); controllers write only the command columns they claim.
-    A world whose simulation time went backwards since the last period was reset: its
-    controllers drop their goals and hold the reset pose.
+    `on_reset(sim, worlds)` (SimLoop.reset's hook) tells every controller that worlds were
+    reset: they drop their goals and hold the reset pose. Nothing is inferred from the
+    state: a world whose time goes backwards is not taken for a reset.
 
     Attributes:
       update_rate: the controller_manager's update_rate (Hz), or None if the YAML has none.
@@ -240,7 +241,7 @@ class ControllerManager:
                 owner[iface] = c.name
         self.claimed = frozenset(owner)
         self.owner = owner
-        self._last_time: np.ndarray | None = None
+        self._activated = False
 
     def __getitem__(self, name: str) -> Controller:
         try:
@@ -260,27 +261,24 @@ class ControllerManager:
         return [c for c in self.controllers.values() if isinstance(c, cls)]
 
     def update(self, sim: Any, time: float, period: float) -> None:
-        world_time = np.asarray(sim.time)
-        if self._last_time is None:
+        if not self._activated:  # the first period: every controller holds where the robot is
             for c in self.controllers.values():
                 c.time = time
                 c.activate(sim, time)
-            self._last_time = world_time.copy()
-        else:
-            reset = world_time < self._last_time
-            if reset.any():
-                worlds = np.flatnonzero(reset)
-                for c in self.controllers.values():
-                    c.reset(sim, worlds)
-            self._last_time[:] = world_time
+            self._activated = True
         for c in self.controllers.values():
             c.time = time
             c.update(sim, time, period)
 
-    def reset(self, sim: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
-        """Tell every controller that the listed worlds (None: all) were reset."""
-        rows = np.arange(sim.nworld) if worlds is None else np.asarray(worlds, dtype=np.intp).reshape(-1)
+    def on_reset(self, sim: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
+        """The listed worlds (None: all) were reset: every controller drops their goals.
+
+        SimLoop.reset calls it; so must anything else that resets worlds under the manager.
+        """
+        rows = (
+            np.arange(sim.nworld)
+            if worlds is None
+            else np.unique(np.asarray(worlds, dtype=np.intp).reshape(-1))
+        )
         for c in self.controllers.values():
             c.reset(sim, rows)
-        if self._last_time is not None:
-            self._last_time[rows] = np.asarray(sim.time)[rows]
