@@ -19,6 +19,7 @@ from batchsim.controllers import (
     Controller,
     ControllerManager,
     Params,
+    TrajectoryBatch,
     default_controllers,
     load_controllers,
 )
@@ -399,7 +400,7 @@ def test_trajectory_rejections_leave_the_world_unchanged():
         jtc.set_trajectory(0, ARM_JOINTS, [1, 2], np.full((2, 6), np.nan))
     with pytest.raises(ValueError, match="out of range"):
         jtc.set_trajectory(2, ARM_JOINTS, [1, 2], p)
-    assert not jtc._pending
+    assert not jtc.pending.any()
     run_until(loop, 0.2)
     assert not jtc.executing.any()
 
@@ -540,15 +541,42 @@ def reference_sample(points, mode, t):
     )
 
 
-def test_batched_update_matches_a_per_world_reference():
+def batch_of(goals) -> TrajectoryBatch:
+    """One TrajectoryBatch of (world, stamp, times, P, V, A, mask) goals, joints in controller order."""
+    counts = [len(g[2]) for g in goals]
+    npoint = sum(counts)
+
+    def table(i):
+        return np.concatenate(
+            [np.zeros((len(g[2]), 6)) if g[i] is None else g[i] for g in goals] or [np.zeros((0, 6))]
+        )
+
+    return TrajectoryBatch(
+        worlds=np.array([g[0] for g in goals]),
+        start_time=np.array([g[1] for g in goals], dtype=float),
+        joint_mask=np.array([g[6] for g in goals], dtype=bool),
+        offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        times=np.concatenate([g[2] for g in goals] or [np.zeros(0)]),
+        positions=table(3).reshape(npoint, 6),
+        velocities=table(4).reshape(npoint, 6),
+        has_velocities=np.array([g[4] is not None for g in goals]),
+        accelerations=table(5).reshape(npoint, 6),
+        has_accelerations=np.array([g[5] is not None for g in goals]),
+    )
+
+
+@pytest.mark.parametrize("via", ["set_trajectory", "set_trajectories"])
+def test_batched_update_matches_a_per_world_reference(via):
+    """Mixed splines, future and past stamps, a partial goal, a replaced trajectory: against textbook splines."""
     rng = np.random.default_rng(3)
     spec = batchsim.load("arm")
-    nworld, period = 6, 0.01
+    nworld, period = 8, 0.01
     sim = FakeSim(spec, nworld, rng)
     yaml_text = arm_yaml(
         "t:\n  type: joint_trajectory_controller/JointTrajectoryController\n",
         "t:\n  ros__parameters:\n    joints: [joint1, joint2, joint3, joint4, joint5, joint6]\n"
-        "    command_interfaces: [position]\n    state_interfaces: [position, velocity]\n",
+        "    command_interfaces: [position]\n    state_interfaces: [position, velocity]\n"
+        "    allow_partial_joints_goal: true\n",
     )
     manager = load_controllers(yaml_text, spec, nworld)
     jtc = manager["t"]
@@ -557,46 +585,73 @@ def test_batched_update_matches_a_per_world_reference():
     vcol = [names.index(f"{j}/velocity") for j in ARM_JOINTS]
     ccol = [spec.command_interfaces.index(f"{j}/position") for j in ARM_JOINTS]
 
-    # world -> (send time, start stamp, times, positions, velocities, accelerations, mode)
-    goals = {}
-    for w, mode in enumerate(["linear", "cubic", "quintic", "cubic", None, "linear"]):
+    # (world, send time, start stamp, times, positions, velocities, accelerations, mode, joint mask)
+    goals = []
+    every = np.ones(6, bool)
+    for w, mode in enumerate(["linear", "cubic", "quintic", "cubic", None, "linear", "quintic", "cubic"]):
         if mode is None:
             continue
         n = int(rng.integers(1, 5))
         times = np.cumsum(rng.uniform(0.05, 0.3, n))
+        send = float(rng.choice([0.0, 0.05, 0.13]))
+        stamp = 0.0 if w != 3 else send + 0.2  # world 3 starts in the future
+        mask = every
+        if w == 6:  # a partial goal: the other joints hold
+            mask = np.array([True, False, True, False, True, False])
+        if w == 7:  # stamped in the past: the points already behind it are dropped
+            send, stamp, times = 0.13, 0.02, np.array([0.05, 0.1, 0.3, 0.5])
+            n = 4
         P = rng.normal(size=(n, 6))
         V = rng.normal(size=(n, 6)) if mode != "linear" else None
         A = rng.normal(size=(n, 6)) if mode == "quintic" else None
-        send = float(rng.choice([0.0, 0.05, 0.13]))
-        stamp = 0.0 if w != 3 else send + 0.2  # world 3 starts in the future
-        goals[w] = (send, stamp, times, P, V, A, mode)
+        goals.append((w, send, stamp, times, P, V, A, mode, mask))
+    # world 1 gets a new trajectory while its first one runs: it takes over from its start
+    goals.append((1, 0.3, 0.0, np.array([0.2, 0.4]), rng.normal(size=(2, 6)), None, None, "linear", every))
 
     ref_points: dict[int, list] = {}
+    ref_mode: dict[int, str] = {}
     hold = sim.state[:, pcol].copy()  # an idle world holds where it was at activation
     t = 0.0
+    started: set[int] = set()
     for _ in range(120):
-        for w, (send, stamp, times, P, V, A, _mode) in goals.items():
-            if abs(t - send) < 1e-9:
-                jtc.set_trajectory(w, ARM_JOINTS, times, P, V, A, start_time=stamp)
+        due = [(i, g) for i, g in enumerate(goals) if abs(t - g[1]) < 1e-9]
+        if via == "set_trajectory":
+            for _, (w, _send, stamp, times, P, V, A, _mode, mask) in due:
+                named = [j for j, m in zip(ARM_JOINTS, mask, strict=True) if m]
+                jtc.set_trajectory(
+                    w,
+                    named,
+                    times,
+                    P[:, mask],
+                    *(x if x is None else x[:, mask] for x in (V, A)),
+                    start_time=stamp,
+                )
+        elif due:
+            batch = batch_of(
+                [(w, stamp, times, P, V, A, mask) for _, (w, _s, stamp, times, P, V, A, _m, mask) in due]
+            )
+            assert jtc.set_trajectories(batch) == []
         # the reference's view: the trajectory starts at the first update at or after its stamp
-        for w, (send, stamp, times, P, V, A, _mode) in goals.items():
-            begin = max(send, stamp)
-            if w not in ref_points and t >= begin - 1e-9:
+        for i, (w, send, stamp, times, P, V, A, mode, mask) in enumerate(goals):
+            if i not in started and t >= max(send, stamp) - 1e-9:
+                started.add(i)
                 t0 = stamp if stamp > 0 else t
-                start = (t, sim.state[w, pcol].copy(), sim.state[w, vcol].copy(), np.zeros(6))
-                ref_points[w] = [start] + [
+                here = sim.state[w, pcol].copy()
+                keep = [k for k in range(len(times)) if t0 + times[k] > t]
+                ref_points[w] = [(t, here, sim.state[w, vcol].copy(), np.zeros(6))] + [
                     (
                         t0 + times[k],
-                        P[k],
-                        np.zeros(6) if V is None else V[k],
-                        np.zeros(6) if A is None else A[k],
+                        np.where(mask, P[k], here),
+                        np.zeros(6) if V is None else np.where(mask, V[k], 0.0),
+                        np.zeros(6) if A is None else np.where(mask, A[k], 0.0),
                     )
-                    for k in range(len(times))
+                    for k in keep
                 ]
+                ref_mode[w] = mode
         manager.update(sim, t, period)
         for w in range(nworld):
             if w in ref_points:
-                p, v = reference_sample(ref_points[w], goals[w][6], t)
+                p, v = reference_sample(ref_points[w], ref_mode[w], t)
             else:
                 p, v = hold[w], np.zeros(6)
             np.testing.assert_allclose(jtc.reference_position[w], p, atol=1e-9, err_msg=f"world {w} t {t}")
@@ -605,6 +660,7 @@ def test_batched_update_matches_a_per_world_reference():
         np.testing.assert_allclose(jtc.error_position, jtc.reference_position - sim.state[:, pcol])
         sim.advance(period)
         t += period
+    assert len(started) == len(goals)
 
 
 def test_batched_diff_drive_matches_a_per_world_reference():
@@ -682,6 +738,152 @@ def test_forward_command_batched_and_validated():
     cols = [spec.command_interfaces.index(f"{j}/effort") for j in fcc.joints]
     np.testing.assert_array_equal(sim.command[2, cols], np.arange(12.0))
     assert not np.delete(sim.command, 2, axis=0).any()
+
+
+# ---------------------------------------------------------------- fleet scale: buffers, the door, batches
+
+LINEAR_JTC = arm_yaml(
+    "t:\n  type: joint_trajectory_controller/JointTrajectoryController\n",
+    "t:\n  ros__parameters:\n    joints: [joint1, joint2, joint3, joint4, joint5, joint6]\n"
+    "    command_interfaces: [position]\n    state_interfaces: [position, velocity]\n"
+    "    allow_partial_joints_goal: true\n    max_trajectory_points: 6000\n",
+)
+
+
+class WorldView:
+    """One world of a FakeSim, as a one-world sim: its state row, its own command row."""
+
+    def __init__(self, sim: FakeSim, world: int):
+        self.sim, self.world = sim, world
+        self.nworld = 1
+        self.command = np.zeros((1, sim.command.shape[1]))
+
+    @property
+    def state(self):
+        return self.sim.state[self.world : self.world + 1]
+
+
+def test_under_churn_every_world_follows_its_own_trajectory_as_if_alone():
+    """Trajectories of 1 to 2000 points, replaced, stamped ahead and behind, reset: the fleet's
+    shared buffer (reused, grown, compacted, shrunk) gives each world what a one-world controller gives."""
+    rng = np.random.default_rng(11)
+    spec = batchsim.load("arm")
+    nworld, period = 10, 0.01
+    sim = FakeSim(spec, nworld, rng)
+    fleet = load_controllers(LINEAR_JTC, spec, nworld)
+    alone = [load_controllers(LINEAR_JTC, spec, 1) for _ in range(nworld)]
+    views = [WorldView(sim, w) for w in range(nworld)]
+    jtc = fleet["t"]
+    rows_seen = []
+    t = 0.0
+    for step in range(200):
+        goals = []
+        for w in np.flatnonzero(rng.random(nworld) < 0.06):
+            n = int(rng.choice([1, 3, 12, 400, 2000], p=[0.2, 0.3, 0.3, 0.15, 0.05]))
+            times = np.cumsum(rng.uniform(0.0005, 0.02, n))
+            mask = rng.random(6) < 0.8 if rng.random() < 0.2 else np.ones(6, bool)
+            stamp = float(rng.choice([0.0, t + 0.05, max(t - 0.03, 1e-3)]))
+            V = rng.normal(size=(n, 6)) if rng.random() < 0.5 else None
+            goals.append((int(w), stamp, times, rng.normal(size=(n, 6)), V, None, mask))
+        if goals:
+            rejected = {k for k, _ in jtc.set_trajectories(batch_of(goals))}
+            for k, (w, *goal) in enumerate(goals):
+                alone_rejected = alone[w]["t"].set_trajectories(batch_of([(0, *goal)]))
+                assert (k in rejected) == bool(alone_rejected)
+        if step in (80, 150):
+            worlds = rng.choice(nworld, 3, replace=False)
+            fleet.on_reset(sim, worlds)
+            for w in worlds:
+                alone[w].on_reset(views[w], None)
+        fleet.update(sim, t, period)
+        for w in range(nworld):
+            alone[w].update(views[w], t, period)
+        singles = [a["t"] for a in alone]
+        np.testing.assert_allclose(
+            jtc.reference_position,
+            np.concatenate([a.reference_position for a in singles]),
+            atol=1e-12,
+            err_msg=t,
+        )
+        np.testing.assert_allclose(
+            jtc.reference_velocity,
+            np.concatenate([a.reference_velocity for a in singles]),
+            atol=1e-9,
+            err_msg=t,
+        )
+        np.testing.assert_array_equal(jtc.executing, np.concatenate([a.executing for a in singles]))
+        rows_seen.append(jtc.buffer_rows)
+        sim.advance(period)
+        t += period
+    assert max(rows_seen) >= 2000 and min(rows_seen[100:]) < max(rows_seen)  # it grew and gave rows back
+
+
+def test_the_trajectory_buffer_follows_each_worlds_own_trajectory():
+    spec = batchsim.load("arm")
+    nworld, period = 16, 0.01
+    sim = FakeSim(spec, nworld, np.random.default_rng(2))
+    manager = load_controllers(LINEAR_JTC, spec, nworld)
+    jtc = manager["t"]
+    manager.update(sim, 0.0, period)
+    short = np.full((2, 6), 0.1)
+    for w in range(nworld):
+        jtc.set_trajectory(w, ARM_JOINTS, [0.5, 1.0], short)
+    small = jtc.buffer_rows
+    assert small < 1000
+    # one world gets 5000 points (1 ms apart: ten per period) of a ramp
+    n = 5000
+    times = np.arange(1, n + 1) * 1e-3
+    jtc.set_trajectory(3, ARM_JOINTS, times, np.outer(times, np.arange(1, 7)))
+    assert jtc.buffer_rows >= n
+    t = 0.0
+    for _ in range(30):
+        t += period
+        sim.advance(period)
+        manager.update(sim, t, period)
+    # linear from the start pose at 0.01 to the ramp's point at 0.011, then on the ramp
+    np.testing.assert_allclose(jtc.reference_position[3], (t - 0.01) * np.arange(1, 7), atol=1e-12)
+    # a short trajectory takes over: the 5000 rows are given back
+    jtc.set_trajectory(3, ARM_JOINTS, [0.5], short[:1])
+    manager.update(sim, t + period, period)
+    assert jtc.buffer_rows == small
+    # the cap: a parameter, with a default, and a reason
+    with pytest.raises(ValueError, match=r"6001 points, more than max_trajectory_points \(6000\)"):
+        jtc.set_trajectory(0, ARM_JOINTS, np.arange(1, 6002) * 1e-3, np.zeros((6001, 6)))
+    default = load_controllers(default_controllers("arm"), spec, 1)["joint_trajectory_controller"]
+    assert default.max_trajectory_points == 10_000
+
+
+def test_a_trajectory_write_would_refuse_is_rejected_at_the_door_with_its_reason():
+    sim, manager, loop = running("arm", 3)
+    jtc = manager["joint_trajectory_controller"]
+    loop.run_period()
+    huge = np.zeros((1, 6))
+    huge[0, 2] = 1e300
+    with pytest.raises(ValueError, match=r"positions must be below 1e\+10 .* got 1e\+300"):
+        jtc.set_trajectory(1, ARM_JOINTS, [1.0], huge)
+    # every value below 1e10, but the cubic from rest swings to -1.5e10 (bounded by 2e11)
+    fast = np.zeros((1, 6))
+    fast[0, 0] = 1e9
+    with pytest.raises(
+        ValueError, match=r"between the start \(from rest\) and point 0 .* may reach 2e\+11 \(a bound\)"
+    ):
+        jtc.set_trajectory(1, ARM_JOINTS, [100.0], np.zeros((1, 6)), fast)
+    good = np.full((1, 6), 0.2)
+    batch = batch_of(
+        [
+            (0, 0.0, np.array([0.5]), good, None, None, np.ones(6, bool)),
+            (1, 0.0, np.array([0.5]), huge, None, None, np.ones(6, bool)),
+            (2, 0.0, np.array([100.0]), np.zeros((1, 6)), fast, None, np.ones(6, bool)),
+        ]
+    )
+    rejected = jtc.set_trajectories(batch)
+    assert [k for k, _ in rejected] == [1, 2] and all(
+        r.startswith("joint_trajectory_controller: ") for _, r in rejected
+    )
+    run_until(loop, 0.6)
+    assert not sim.status.any()  # nothing reached write() to be refused
+    np.testing.assert_allclose(jtc.reference_position[0], 0.2)
+    assert np.abs(jtc.reference_position[[1, 2]]).max() < 1e-9  # the others hold where they were
 
 
 # ---------------------------------------------------------------- over real ROS 2

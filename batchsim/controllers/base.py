@@ -201,6 +201,21 @@ class Controller:
         return int(world)
 
 
+def ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The concatenation of arange(start, start + count) for each pair, (counts.sum(),) intp."""
+    counts = np.asarray(counts, dtype=np.intp)
+    ends = np.cumsum(counts)
+    return np.arange(int(ends[-1]) if len(ends) else 0) + np.repeat(
+        np.asarray(starts) - (ends - counts), counts
+    )
+
+
+def last_per_world(worlds: np.ndarray) -> np.ndarray:
+    """Indices of the last entry for each distinct world, in increasing order: a later input wins."""
+    _, first_from_end = np.unique(worlds[::-1], return_index=True)
+    return np.sort(len(worlds) - 1 - first_from_end)
+
+
 class ControllerManager:
     """ros2_control's controller_manager over every world: a SimLoop participant.
 
