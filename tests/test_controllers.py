@@ -886,6 +886,109 @@ def test_a_trajectory_write_would_refuse_is_rejected_at_the_door_with_its_reason
     assert np.abs(jtc.reference_position[[1, 2]]).max() < 1e-9  # the others hold where they were
 
 
+def test_odometry_from_float32_wheel_angles_far_from_zero_is_exact():
+    """A float32 backend's wheel at 1e4 rad has a resolution of ~1e-3 rad, and the device's own
+    float32 integration of it (qpos += qvel * dt) then loses 2% of every 0.02 rad step: the
+    odometry must follow the wheel's motion, not that angle."""
+    spec = batchsim.load("car")
+    sim = FakeSim(spec, 2, np.random.default_rng(0))
+    manager = load_controllers(default_controllers("car"), spec, 2)
+    dd = manager["diff_drive_controller"]
+    names = spec.state_interfaces
+    pos = [names.index(f"{side}_wheel_joint/position") for side in ("left", "right")]
+    vel = [names.index(f"{side}_wheel_joint/velocity") for side in ("left", "right")]
+    omega, dt, substeps, radius = 10.0, 0.002, 5, 0.06
+    period = dt * substeps
+    device = np.array([1e4, 3e4], dtype=np.float32)  # world 0: a float32 device's qpos
+    exact = np.array([1e4 + 0.123456789, 3e4 + 0.3])  # world 1: float64 readings, as large
+
+    def read() -> None:
+        sim.state[0, pos], sim.state[1, pos] = device, exact
+        sim.state[0, vel], sim.state[1, vel] = np.float32(omega), omega
+
+    read()
+    manager.update(sim, 0.0, period)
+    for k in range(1, 101):
+        for _ in range(substeps):
+            device += np.float32(omega * dt)
+        exact += omega * period
+        read()
+        manager.update(sim, k * period, period)
+        if k >= dd.window:  # the rolling mean holds only whole periods of motion
+            np.testing.assert_allclose(dd.odom_twist[:, 0], radius * omega, rtol=1e-9, err_msg=f"period {k}")
+    assert abs((device[0] - 1e4) / (omega * 1.0) - 1) > 0.01  # the device's angle did lose its 2%
+    np.testing.assert_allclose(dd.odom_pose[:, 0], radius * omega * 1.0, rtol=1e-9)
+    np.testing.assert_allclose(dd.odom_pose[:, 1:], 0.0, atol=1e-9)  # float64 differences of 3e4-rad angles
+
+
+def test_forward_commands_in_a_batch_reject_bad_rows_with_reasons_and_never_raise():
+    spec = batchsim.load("quadruped")
+    sim = FakeSim(spec, 4, np.random.default_rng(0))
+    manager = load_controllers(default_controllers("quadruped"), spec, 4)
+    fcc = manager["effort_controller"]
+    manager.update(sim, 0.0, 0.002)
+    rows = [
+        np.full(12, 1.0),
+        np.full(12, 2.0),
+        [1.0, 2.0],
+        np.full(12, np.nan),
+        np.full(12, 3e10),
+        np.full(12, 4.0),
+    ]
+    rejected = fcc.set_commands_batch([0, 7, 1, 2, 3, 0], rows)
+    assert [k for k, _ in rejected] == [1, 2, 3, 4]
+    reasons = dict(rejected)
+    assert (
+        "world 7 is out of range" in reasons[1] and "has 2 values, the controller has 12 joints" in reasons[2]
+    )
+    assert "finite" in reasons[3] and "below 1e+10" in reasons[4]
+    manager.update(sim, 0.002, 0.002)
+    cols = [spec.command_interfaces.index(f"{j}/effort") for j in fcc.joints]
+    np.testing.assert_array_equal(
+        sim.command[:, cols], np.array([[4.0] * 12] + [[0.0] * 12] * 3)
+    )  # last row wins
+    # a whole batch of the wrong width: every row rejected, nothing raised
+    assert [k for k, _ in fcc.set_commands_batch([1, 2], np.zeros((2, 3)))] == [0, 1]
+    assert fcc.set_commands_batch([], np.zeros((0, 12))) == []
+
+
+def test_cmd_vel_in_a_batch_rejects_bad_rows_with_reasons_and_never_raises():
+    spec = batchsim.load("car")
+    sim = FakeSim(spec, 4, np.random.default_rng(0))
+    manager = load_controllers(default_controllers("car"), spec, 4)
+    dd = manager["diff_drive_controller"]
+    manager.update(sim, 0.5, 0.01)
+    rows = np.array(
+        [
+            [0.2, 0.1, 0.0],  # world 0, stamp 0: now
+            [np.nan, 0.0, 0.0],
+            [0.3, 0.0, np.inf],
+            [0.4, -0.2, 0.45],  # world 3, stamped 0.45
+            [1.0, 0.0, 0.0],  # world 9: out of range
+        ]
+    )
+    rejected = dd.set_cmd_vel_batch([0, 1, 2, 3, 9], rows)
+    assert [k for k, _ in rejected] == [1, 2, 4]
+    assert "finite" in rejected[0][1] and "stamp" in rejected[1][1] and "out of range" in rejected[2][1]
+    # no velocity limit on this axis: a speed write() would refuse is refused here
+    unlimited = load_controllers(
+        DIFFBOT_STYLE.replace("linear.x.has_velocity_limits: true", "linear.x.has_velocity_limits: false"),
+        spec,
+        1,
+    )
+    reason = unlimited["diffbot_base_controller"].set_cmd_vel_batch([0], [[1e300, 0.0]])
+    assert "beyond the 1e+10 write() accepts" in reason[0][1]
+    manager.update(sim, 0.51, 0.01)
+    np.testing.assert_allclose(dd.command_velocity[[0, 3]], [[0.2, 0.1], [0.4, -0.2]])
+    assert not dd.command_velocity[[1, 2]].any()
+    manager.update(
+        sim, 0.96, 0.01
+    )  # cmd_vel_timeout 0.5: world 3's stamp (0.45) timed out, world 0's (0.5) not
+    assert dd.command_velocity[0, 0] != 0 and dd.command_velocity[3, 0] == 0
+    with pytest.raises(ValueError, match="cmd_vel must be finite"):
+        dd.set_cmd_vel(0, math.inf, 0.0)
+
+
 # ---------------------------------------------------------------- over real ROS 2
 
 

@@ -197,8 +197,21 @@ class Controller:
 
     def _world(self, world: int) -> int:
         if isinstance(world, bool) or int(world) != world or not 0 <= world < self.nworld:
-            raise ValueError(f"{self.name}: world {world!r} is out of range: worlds are 0..{self.nworld - 1}")
+            raise ValueError(self._out_of_range(world))
         return int(world)
+
+    def _out_of_range(self, world: Any) -> str:
+        return f"{self.name}: world {world!r} is out of range: worlds are 0..{self.nworld - 1}"
+
+    def _batch_worlds(self, worlds: Any) -> tuple[np.ndarray, dict[int, str]]:
+        """(n,) world indices of a batched input, and {index: reason} for those out of range (set to 0)."""
+        given = np.asarray(worlds).reshape(-1)
+        if given.dtype.kind not in "iuf":
+            raise ValueError(f"{self.name}: worlds must be integers, got {given.dtype}")
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(given) & (given == np.round(given)) & (given >= 0) & (given < self.nworld)
+        rows = np.where(ok, given, 0).astype(np.int64)
+        return rows, {int(k): self._out_of_range(given[k].item()) for k in np.flatnonzero(~ok)}
 
 
 def ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
