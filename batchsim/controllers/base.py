@@ -225,6 +225,8 @@ def ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 def last_per_world(worlds: np.ndarray) -> np.ndarray:
     """Indices of the last entry for each distinct world, in increasing order: a later input wins."""
+    if len(worlds) < 2:
+        return np.arange(len(worlds))
     _, first_from_end = np.unique(worlds[::-1], return_index=True)
     return np.sort(len(worlds) - 1 - first_from_end)
 

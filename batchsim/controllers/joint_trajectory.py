@@ -75,6 +75,9 @@ class Spline(enum.IntEnum):
     QUINTIC = 3  # and accelerations
 
 
+_LINEAR, _CUBIC, _QUINTIC = (int(s) for s in Spline)  # as stored in int8 arrays
+
+
 class Interpolation(enum.Enum):
     """The `interpolation_method` parameter."""
 
@@ -122,15 +125,13 @@ class TrajectoryBatch:
         return len(self.worlds)
 
 
-class _Block(enum.IntEnum):
-    """The blocks of pool rows a world may hold."""
-
-    RUNNING = 0  # the trajectory being followed
-    PENDING = 1  # the one waiting for its start time
-    SPARE = 2  # a small released block, kept for the world's next trajectory
+# the blocks of pool rows a world may hold: rows of _SegmentPool.offset and .size
+RUNNING = 0  # the trajectory being followed
+PENDING = 1  # the one waiting for its start time
+SPARE = 2  # a small released block, kept for the world's next trajectory
 
 
-SPARE_ROWS = 1024  # a released block up to this many rows stays with its world for reuse
+SPARE_ROWS = 1024  # a spare up to this many rows stays with its world until it is reused
 _D1 = np.arange(1.0, 6.0)  # d/ds s^k = k s^(k-1), k = 1..5
 _D2 = np.array([2.0, 6.0, 12.0, 20.0])  # d2/ds2 s^k = k (k-1) s^(k-2), k = 2..5
 _HOLD = np.array([[1.0, 0, 0, 0, 0, 0], [0] * 6, [0] * 6])
@@ -142,10 +143,12 @@ class _SegmentPool:
 
     Row r of a block is point r's segment: `times[r]` its time from the trajectory's start
     and `coefficients[r]` the polynomial of the segment that leaves it. Blocks are carved
-    from the end of the used rows; released ones up to SPARE_ROWS become their world's
-    spare, so a fleet streaming short trajectories reuses its rows instead of allocating.
-    When the end is reached, or fewer than a quarter of the rows are held, the held blocks
-    are copied into a right-sized array.
+    from the end of the used rows. A released block becomes its world's spare, reused by
+    its next trajectory if that needs between half of it and all of it (or it is small), so
+    a fleet streaming trajectories reuses rows instead of allocating; a spare larger than
+    SPARE_ROWS is freed when it does not fit that way, or when the world's trajectory ends.
+    When the end of the array is reached, or fewer than a quarter of its rows are held, the
+    held blocks are copied into a right-sized array.
 
     Attributes:
       times: (capacity,) float64.
@@ -169,30 +172,39 @@ class _SegmentPool:
     def capacity(self) -> int:
         return len(self.times)
 
-    def release(self, kind: _Block, worlds: np.ndarray) -> None:
-        """Give up the `kind` blocks of `worlds` (each listed once); small ones become spares."""
+    def release(self, kind: int, worlds: np.ndarray) -> None:
+        """Give up the `kind` blocks of `worlds` (each listed once): each becomes its world's
+        spare if larger than the one it has (which is then freed), or is freed."""
         worlds = worlds[self.offset[kind, worlds] >= 0]
         if not worlds.size:
             return
         off, size = self.offset[kind, worlds], self.size[kind, worlds]
         self.offset[kind, worlds] = -1
         self.size[kind, worlds] = 0
-        spare = _Block.SPARE
-        keep = (size <= SPARE_ROWS) & (size > self.size[spare, worlds])
+        keep = size > self.size[SPARE, worlds]
         kept = worlds[keep]
-        self.held -= int(size[~keep].sum()) + int(self.size[spare, kept].sum())
-        self.offset[spare, kept] = off[keep]
-        self.size[spare, kept] = size[keep]
+        self.held -= int(size[~keep].sum()) + int(self.size[SPARE, kept].sum())
+        self.offset[SPARE, kept] = off[keep]
+        self.size[SPARE, kept] = size[keep]
 
-    def allocate(self, kind: _Block, worlds: np.ndarray, rows: np.ndarray) -> None:
+    def trim(self, worlds: np.ndarray, rows: np.ndarray | int = 0) -> None:
+        """Free the spares of `worlds` larger than SPARE_ROWS and than twice `rows` (the size of
+        the trajectory each world now has): memory follows the trajectories."""
+        size = self.size[SPARE, worlds]
+        large = worlds[(size > SPARE_ROWS) & (size > 2 * np.asarray(rows))]
+        self.held -= int(self.size[SPARE, large].sum())
+        self.offset[SPARE, large] = -1
+        self.size[SPARE, large] = 0
+
+    def allocate(self, kind: int, worlds: np.ndarray, rows: np.ndarray) -> None:
         """Blocks of `rows` rows for `worlds` (each listed once, with no `kind` block yet)."""
-        spare = _Block.SPARE
-        fits = self.size[spare, worlds] >= rows
+        self.trim(worlds, rows)  # a large spare the new trajectory would not half fill goes
+        fits = self.size[SPARE, worlds] >= rows
         reuse = worlds[fits]
-        self.offset[kind, reuse] = self.offset[spare, reuse]
-        self.size[kind, reuse] = self.size[spare, reuse]
-        self.offset[spare, reuse] = -1
-        self.size[spare, reuse] = 0
+        self.offset[kind, reuse] = self.offset[SPARE, reuse]
+        self.size[kind, reuse] = self.size[SPARE, reuse]
+        self.offset[SPARE, reuse] = -1
+        self.size[SPARE, reuse] = 0
         new, need = worlds[~fits], rows[~fits]
         total = int(need.sum())
         if not total:
@@ -286,6 +298,7 @@ class JointTrajectoryController(Controller):
         self.interpolation = Interpolation(
             params.choice("interpolation_method", [i.value for i in Interpolation], "splines")
         )
+        self._step_points = self.interpolation is Interpolation.NONE  # hold each point, no splines
         self.max_trajectory_points = int(
             params.number("max_trajectory_points", DEFAULT_MAX_POINTS, minimum=1)
         )
@@ -460,7 +473,7 @@ class JointTrajectoryController(Controller):
         n, npoint = len(b.worlds), len(b.times)
         if n == 0:
             return []
-        counts = np.diff(b.offsets)
+        counts = b.counts
         owner = np.repeat(np.arange(n), counts)  # (npoint,) the trajectory of each point
         empty = counts == 0
         named = b.joint_mask[owner]  # (npoint, nj)
@@ -468,14 +481,22 @@ class JointTrajectoryController(Controller):
         def per_trajectory(bad_point: np.ndarray) -> np.ndarray:
             return np.bincount(owner, weights=bad_point, minlength=n) > 0
 
-        def out_of_bounds(values: np.ndarray, given: np.ndarray) -> np.ndarray:
-            return per_trajectory((~(np.abs(values) < MAX_COMMAND) & named).any(axis=1) & given[owner])
-
-        increasing = np.diff(b.times) > 0
-        bad_time = ~(np.isfinite(b.times) & (b.times >= 0))
-        bad_order = np.concatenate([[False], ~increasing & (owner[1:] == owner[:-1])])
-        last_time = b.times[np.maximum(b.offsets[1:] - 1, 0)] if npoint else np.zeros(n)
+        # the checks of single points: one pass over the points, the per-check split only if needed
+        points = self._points(b, owner, named)
+        magnitude = np.stack([np.abs(x).max(axis=1, initial=0.0) for x in points])  # (3, npoint), NaN: NaN
+        disorder = np.zeros(npoint, bool)  # a point not after the one before it
+        disorder[1:] = ~(b.steps > 0) & (owner[1:] == owner[:-1])
+        point_checks = [
+            ~(np.isfinite(b.times) & (b.times >= 0)),
+            disorder,
+            *~(magnitude < MAX_COMMAND),  # positions, velocities, accelerations
+        ]
         none = np.zeros(n, bool)
+        if per_trajectory(np.logical_or.reduce(point_checks)).any():
+            bad_time, bad_order, bad_p, bad_v, bad_a = (per_trajectory(c) for c in point_checks)
+        else:
+            bad_time = bad_order = bad_p = bad_v = bad_a = none
+        last_time = b.times[np.maximum(b.offsets[1:] - 1, 0)] if npoint else np.zeros(n)
         # (failing trajectories, reason for one of them): the first that fails names the reason
         checks = [
             (
@@ -500,26 +521,20 @@ class JointTrajectoryController(Controller):
                 ),
             ),
             (
-                per_trajectory(bad_time),
+                bad_time,
                 lambda k: (
                     "time_from_start must be finite and >= 0, got "
                     f"{b.times[b.offsets[k] : b.offsets[k + 1]].tolist()}"
                 ),
             ),
-            (per_trajectory(bad_order), lambda k: self._order_reason(b, k)),
-            (out_of_bounds(b.positions, ~empty), lambda k: self._value_reason(b, k, "positions")),
-            (
-                none if b.velocities is None else out_of_bounds(b.velocities, b.has_velocities),
-                lambda k: self._value_reason(b, k, "velocities"),
-            ),
+            (bad_order, lambda k: self._order_reason(b, k)),
+            (bad_p, lambda k: self._value_reason(b, k, "positions")),
+            (bad_v, lambda k: self._value_reason(b, k, "velocities")),
             (
                 b.has_accelerations & ~b.has_velocities,
                 lambda k: "points give accelerations without velocities",
             ),
-            (
-                none if b.accelerations is None else out_of_bounds(b.accelerations, b.has_accelerations),
-                lambda k: self._value_reason(b, k, "accelerations"),
-            ),
+            (bad_a, lambda k: self._value_reason(b, k, "accelerations")),
             (
                 ~empty & (b.start_time > 0) & (b.start_time + last_time < self.time),
                 lambda k: (
@@ -535,11 +550,10 @@ class JointTrajectoryController(Controller):
                 reason = next(reason for bad, reason in checks if bad[k])
                 rejected[k] = f"{self.name}: {reason(k)}"
 
-        spline = np.where(
-            b.has_accelerations, Spline.QUINTIC, np.where(b.has_velocities, Spline.CUBIC, Spline.LINEAR)
-        ).astype(np.int8)
-        points = self._points(b, owner, named)
-        reach = self._reach(b, owner, spline, points, failed | empty)
+        spline = np.where(b.has_accelerations, _QUINTIC, np.where(b.has_velocities, _CUBIC, _LINEAR)).astype(
+            np.int8
+        )
+        reach = self._reach(b, owner, spline, points, magnitude, failed | empty)
         too_far = per_trajectory(~(reach < MAX_COMMAND)) & ~failed
         for k in np.flatnonzero(too_far).tolist():
             point = int(np.argmax(~(reach[b.offsets[k] : b.offsets[k + 1]] < MAX_COMMAND)))
@@ -580,7 +594,8 @@ class JointTrajectoryController(Controller):
             return a
 
         offsets = array(batch.offsets, (n + 1,), np.int64, "offsets")
-        if offsets[0] != 0 or (np.diff(offsets) < 0).any():
+        counts = np.diff(offsets)
+        if offsets[0] != 0 or (counts < 0).any():
             raise malformed("offsets must start at 0 and never decrease")
         npoint = int(offsets[-1])
         start = array(batch.start_time, (n,), np.float64, "start_time")
@@ -597,7 +612,10 @@ class JointTrajectoryController(Controller):
                 continue
             tables.append(array(values, (npoint, nj), np.float64, what))
             tables.append(np.ones(n, bool) if has is None else array(has, (n,), bool, f"has_{what}"))
-        return _Unpacked(given, worlds, bad_world, start, mask, offsets, times, positions, *tables)
+        steps = np.diff(times)
+        return _Unpacked(
+            given, worlds, bad_world, start, mask, offsets, counts, times, steps, positions, *tables
+        )
 
     def _missing(self, mask: np.ndarray) -> str:
         return self.joints[int(np.argmin(mask))]
@@ -619,12 +637,13 @@ class JointTrajectoryController(Controller):
 
     def _points(self, b: _Unpacked, owner: np.ndarray, named: np.ndarray) -> tuple[np.ndarray, ...]:
         """(p, v, a), each (npoint, njoint): the points' values, 0 for joints or fields not given."""
-        with np.errstate(all="ignore"):  # a rejected trajectory's values may be anything: not used
-            p = np.where(named, b.positions, 0.0)
-            v = np.zeros_like(p) if b.velocities is None else np.where(named, b.velocities, 0.0)
-            a = np.zeros_like(p) if b.accelerations is None else np.where(named, b.accelerations, 0.0)
-        v[~b.has_velocities[owner]] = 0.0
-        a[~b.has_accelerations[owner]] = 0.0
+        p = np.where(named, b.positions, 0.0)
+        v = np.zeros_like(p) if b.velocities is None else np.where(named, b.velocities, 0.0)
+        a = np.zeros_like(p) if b.accelerations is None else np.where(named, b.accelerations, 0.0)
+        if not b.has_velocities.all():
+            v[~b.has_velocities[owner]] = 0.0
+        if not b.has_accelerations.all():
+            a[~b.has_accelerations[owner]] = 0.0
         return p, v, a
 
     def _reach(
@@ -633,6 +652,7 @@ class JointTrajectoryController(Controller):
         owner: np.ndarray,
         spline: np.ndarray,
         points: tuple[np.ndarray, ...],
+        magnitude: np.ndarray,
         skip: np.ndarray,
     ) -> np.ndarray:
         """(npoint,) a bound on the commands the segment ending at each point gives (the first
@@ -646,20 +666,32 @@ class JointTrajectoryController(Controller):
         if npoint == 0:
             return np.zeros(0)
         with np.errstate(all="ignore"):
-            mp, mv, ma = (np.abs(x).max(axis=1) for x in (p, v, a))
+            mp, mv, ma = magnitude  # (npoint,) each: the largest |value| of each point
             first = np.zeros(npoint, bool)
             first[b.offsets[:-1][b.offsets[:-1] < npoint]] = True
-            T = np.diff(b.times, prepend=0.0)
+            T = np.concatenate([b.times[:1], b.steps])
             T[first] = b.times[first]
             ignore = skip[owner] | (first & ~(T > 0))  # a first point at time 0 is dropped at the start
-            if self.interpolation is Interpolation.NONE:  # each point is commanded as given
+            if self._step_points:  # each point is commanded as given
                 reach = self._command_bound(mp, mv, ma)
                 reach[ignore] = 0.0
                 return reach
             # the end values bound a Hermite segment's position, velocity and acceleration:
-            # |basis| <= 1, its derivatives <= ~6 / T^k; 100 leaves room for the cubic's own a
-            Mp, Mv, Ma = (
-                np.maximum(x, np.where(first, 0.0, np.concatenate([[0.0], x[:-1]]))) for x in (mp, mv, ma)
+            # |basis| <= 1, its derivatives <= ~6 / T^k; 100 leaves room for the cubic's own a.
+            # First the whole batch at once, from its largest values and longest and shortest segments
+            used = T[~ignore]
+            longest, shortest = used.max(initial=1.0), used[used > 0].min(initial=1.0)
+            Mp, Mv, Ma = mp.max(initial=0.0), mv.max(initial=0.0), ma.max(initial=0.0)
+            whole = 100.0 * self._command_bound(
+                Mp + Mv * longest + Ma * longest**2,
+                Mp / shortest + Mv + Ma * longest,
+                Mp / shortest**2 + Mv / shortest + Ma,
+            )
+            if whole < MAX_COMMAND:
+                return np.zeros(npoint)
+            m = magnitude
+            Mp, Mv, Ma = np.maximum(
+                m, np.where(first, 0.0, np.concatenate([np.zeros((3, 1)), m[:, :-1]], axis=1))
             )
             safe = np.where(T > 0, T, 1.0)
             reach = 100.0 * self._command_bound(
@@ -695,7 +727,7 @@ class JointTrajectoryController(Controller):
         if self._pid:  # the measured state adds what the PID makes of it: physical, so small
             kv = np.abs(self.ff_velocity_scale) + np.abs(self.kd)
             kp = np.abs(self.kp)
-            if position.ndim == 1:  # one bound for every joint
+            if np.ndim(position) < 2:  # one bound for every joint
                 kv, kp = kv.max(), kp.max()
             return kv * velocity + kp * position
         reference = {"position": position, "velocity": velocity, "acceleration": acceleration}
@@ -709,11 +741,11 @@ class JointTrajectoryController(Controller):
         p, v, a = points
         npoint, nj = p.shape
         rows = np.empty((npoint, 6, nj))
-        if self.interpolation is Interpolation.NONE or npoint < 2:
+        if self._step_points or npoint < 2:
             held = np.arange(npoint)
         else:
             # every point to the next, across trajectories too (those rows are overwritten below)
-            T = np.diff(b.times)[:, None]
+            T = b.steps[:, None]
             with np.errstate(all="ignore"):
                 c = _coefficients(spline[owner[:-1]], p[:-1], p[1:], v[:-1], v[1:], a[:-1], a[1:], T)
             for k in range(6):
@@ -732,10 +764,10 @@ class JointTrajectoryController(Controller):
         keep = accepted[last_per_world(b.worlds[accepted])]
         worlds, npoint = b.worlds[keep], counts[keep]
         pool = self._pool
-        pool.release(_Block.PENDING, worlds)  # a newer goal replaces one still waiting to start
+        pool.release(PENDING, worlds)  # a newer goal replaces one still waiting to start
         filled = npoint > 0
-        pool.allocate(_Block.PENDING, worlds[filled], npoint[filled] + 1)  # + the start row
-        off = pool.offset[_Block.PENDING, worlds[filled]]
+        pool.allocate(PENDING, worlds[filled], npoint[filled] + 1)  # + the start row
+        off = pool.offset[PENDING, worlds[filled]]
         dest = ranges(off + 1, npoint[filled])
         if len(dest) == len(rows):  # every point is kept (the usual case): no gather
             pool.times[dest], pool.coefficients[dest] = b.times, rows
@@ -762,7 +794,7 @@ class JointTrajectoryController(Controller):
         else:
             here_v = np.zeros((len(due), nj))
         # the first point still ahead: points already in the past at the start are dropped
-        off = pool.offset[_Block.PENDING, due]
+        off = pool.offset[PENDING, due]
         skip = np.zeros(len(due), np.int64)
         late = npoint > 0
         late[late] = t0[late] + pool.times[off[late] + 1] <= time
@@ -773,8 +805,9 @@ class JointTrajectoryController(Controller):
             skip[late] = np.bincount(which, weights=gone, minlength=int(late.sum())).astype(np.int64)
         stop = skip >= npoint
         stopped = due[stop]
-        pool.release(_Block.RUNNING, stopped)
-        pool.release(_Block.PENDING, stopped)
+        pool.release(RUNNING, stopped)
+        pool.release(PENDING, stopped)
+        pool.trim(stopped)
         self._running[stopped] = False
         self._on_trajectory[stopped] = False
         self._hold[stopped] = here[stop]
@@ -783,11 +816,12 @@ class JointTrajectoryController(Controller):
         worlds = due[go]
         if worlds.size:
             hold = np.where(self._on_trajectory[worlds, None], self.reference_position[worlds], here[go])
-            pool.release(_Block.RUNNING, worlds)
-            pool.offset[_Block.RUNNING, worlds] = pool.offset[_Block.PENDING, worlds]
-            pool.size[_Block.RUNNING, worlds] = pool.size[_Block.PENDING, worlds]
-            pool.offset[_Block.PENDING, worlds] = -1
-            pool.size[_Block.PENDING, worlds] = 0
+            pool.release(RUNNING, worlds)
+            pool.offset[RUNNING, worlds] = pool.offset[PENDING, worlds]
+            pool.size[RUNNING, worlds] = pool.size[PENDING, worlds]
+            pool.offset[PENDING, worlds] = -1
+            pool.size[PENDING, worlds] = 0
+            pool.trim(worlds, pool.size[RUNNING, worlds])  # a large block replaced by a small one goes
             self._begin(worlds, t0[go], time, skip[go], here[go], here_v[go], hold)
         self._pending_start[due] = np.inf
         self._pending_npoint[due] = 0
@@ -804,21 +838,21 @@ class JointTrajectoryController(Controller):
     ) -> None:
         """Insert the current point before the first point ahead and set the worlds running."""
         pool = self._pool
-        off = pool.offset[_Block.RUNNING, worlds]
+        off = pool.offset[RUNNING, worlds]
         npoint = self._pending_npoint[worlds]
         mask = self._pending_mask[worlds]
         spline = self._pending_spline[worlds]
         start_row, first = off + skip, off + skip + 1
         rel = time - t0
         row = np.zeros((len(worlds), 6, len(self.joints)))
-        if self.interpolation is Interpolation.NONE:
+        if self._step_points:
             row[:, 0], row[:, 1] = here, here_v
         else:
             # the first point ahead, from its row (a point's row starts with its p, v and a / 2)
             c = pool.coefficients[first]
             p1 = np.where(mask, c[:, 0], hold)
-            v1 = np.where(mask & (spline >= Spline.CUBIC)[:, None], c[:, 1], 0.0)
-            a1 = np.where(mask & (spline == Spline.QUINTIC)[:, None], 2 * c[:, 2], 0.0)
+            v1 = np.where(mask & (spline >= _CUBIC)[:, None], c[:, 1], 0.0)
+            a1 = np.where(mask & (spline == _QUINTIC)[:, None], 2 * c[:, 2], 0.0)
             T = pool.times[first] - rel
             T = np.where(T > 0, T, 1.0)[:, None]  # a zero-length segment is never sampled
             for k, plane in enumerate(
@@ -851,8 +885,9 @@ class JointTrajectoryController(Controller):
 
     def reset(self, sim: Any, worlds: np.ndarray) -> None:
         self._read(sim)
-        self._pool.release(_Block.RUNNING, worlds)
-        self._pool.release(_Block.PENDING, worlds)
+        self._pool.release(RUNNING, worlds)
+        self._pool.release(PENDING, worlds)
+        self._pool.trim(worlds)
         self._pool.shrink()
         self._running[worlds] = False
         self._on_trajectory[worlds] = False
@@ -895,7 +930,7 @@ class JointTrajectoryController(Controller):
         pool = self._pool
         times = pool.times
         rel = time - self._t0[running]
-        base = pool.offset[_Block.RUNNING, running]
+        base = pool.offset[RUNNING, running]
         segment, last = self._segment[running], self._last[running]
         # segment: the last point at or before rel; usually the same as last period or the next
         moving = np.flatnonzero(
@@ -913,7 +948,7 @@ class JointTrajectoryController(Controller):
         done = segment >= last
         # position, velocity and acceleration as one product: (n, 3, 6) derivatives of s^k @ (n, 6, nj)
         basis = np.zeros((len(running), 3, 6))
-        if self.interpolation is Interpolation.NONE:
+        if self._step_points:
             basis[:, 0, 0], basis[:, 1, 1], basis[:, 2, 2] = 1.0, 1.0, 2.0
         else:
             powers = np.ones((len(running), 6))
@@ -930,7 +965,8 @@ class JointTrajectoryController(Controller):
         if finished.size:  # past the last point: hold it and give the rows back
             self._hold[finished] = pos[finished]
             self._running[finished] = False
-            pool.release(_Block.RUNNING, finished)
+            pool.release(RUNNING, finished)
+            pool.trim(finished)
 
     def _command(self, sim: Any, period: float) -> None:
         if self._pid:
@@ -964,7 +1000,9 @@ class _Unpacked:
     start_time: np.ndarray
     joint_mask: np.ndarray
     offsets: np.ndarray
+    counts: np.ndarray  # (n,) points per trajectory
     times: np.ndarray
+    steps: np.ndarray  # (npoint - 1,) times[1:] - times[:-1]
     positions: np.ndarray
     velocities: np.ndarray | None
     has_velocities: np.ndarray
@@ -1009,9 +1047,9 @@ def _coefficients(
         return tuple(out)
     h = p1 - p0
     zero = np.zeros_like(h)
-    if len(kinds) == 0 or kinds[0] == Spline.LINEAR:
+    if len(kinds) == 0 or kinds[0] == _LINEAR:
         return p0, h / T, zero, zero, zero, zero
-    if kinds[0] == Spline.CUBIC:
+    if kinds[0] == _CUBIC:
         return p0, v0, (3 * h - (2 * v0 + v1) * T) / T**2, (-2 * h + (v0 + v1) * T) / T**3, zero, zero
     T2 = T * T
     T3 = T2 * T
