@@ -126,16 +126,15 @@ class TrajectoryBatch:
 
 
 # the blocks of pool rows a world may hold: rows of _SegmentPool.offset and .size
-RUNNING = 0  # the trajectory being followed
-PENDING = 1  # the one waiting for its start time
-SPARE = 2  # a small released block, kept for the world's next trajectory
+_RUNNING = 0  # the trajectory being followed
+_PENDING = 1  # the one waiting for its start time
+_SPARE = 2  # a released block, kept for the world's next trajectory
+SPARE_ROWS = 64  # a spare up to this many rows stays with its world until it is reused
+MIN_POOL_ROWS = 256
 
-
-SPARE_ROWS = 1024  # a spare up to this many rows stays with its world until it is reused
 _D1 = np.arange(1.0, 6.0)  # d/ds s^k = k s^(k-1), k = 1..5
 _D2 = np.array([2.0, 6.0, 12.0, 20.0])  # d2/ds2 s^k = k (k-1) s^(k-2), k = 2..5
-_HOLD = np.array([[1.0, 0, 0, 0, 0, 0], [0] * 6, [0] * 6])
-MIN_POOL_ROWS = 256
+_HOLD = np.array([[1.0, 0, 0, 0, 0, 0], [0] * 6, [0] * 6])  # past the last point: p = c0, at rest
 
 
 class _SegmentPool:
@@ -153,7 +152,7 @@ class _SegmentPool:
     Attributes:
       times: (capacity,) float64.
       coefficients: (capacity, 6, njoint) float64, of s^0 .. s^5.
-      offset: (3, nworld) int64, the first row of each world's RUNNING, PENDING and SPARE
+      offset: (3, nworld) int64, the first row of each world's running, pending and spare
         block, -1 for none.
       size: (3, nworld) int64, the rows each of those blocks holds.
       held: rows in blocks some world holds.
@@ -181,30 +180,39 @@ class _SegmentPool:
         off, size = self.offset[kind, worlds], self.size[kind, worlds]
         self.offset[kind, worlds] = -1
         self.size[kind, worlds] = 0
-        keep = size > self.size[SPARE, worlds]
+        keep = size > self.size[_SPARE, worlds]
         kept = worlds[keep]
-        self.held -= int(size[~keep].sum()) + int(self.size[SPARE, kept].sum())
-        self.offset[SPARE, kept] = off[keep]
-        self.size[SPARE, kept] = size[keep]
+        self.held -= int(size[~keep].sum()) + int(self.size[_SPARE, kept].sum())
+        self.offset[_SPARE, kept] = off[keep]
+        self.size[_SPARE, kept] = size[keep]
 
     def trim(self, worlds: np.ndarray, rows: np.ndarray | int = 0) -> None:
         """Free the spares of `worlds` larger than SPARE_ROWS and than twice `rows` (the size of
         the trajectory each world now has): memory follows the trajectories."""
-        size = self.size[SPARE, worlds]
+        size = self.size[_SPARE, worlds]
         large = worlds[(size > SPARE_ROWS) & (size > 2 * np.asarray(rows))]
-        self.held -= int(self.size[SPARE, large].sum())
-        self.offset[SPARE, large] = -1
-        self.size[SPARE, large] = 0
+        self.held -= int(self.size[_SPARE, large].sum())
+        self.offset[_SPARE, large] = -1
+        self.size[_SPARE, large] = 0
+
+    def promote(self, worlds: np.ndarray) -> None:
+        """The pending blocks of `worlds` become their running ones; the running ones are released."""
+        self.release(_RUNNING, worlds)
+        self.offset[_RUNNING, worlds] = self.offset[_PENDING, worlds]
+        self.size[_RUNNING, worlds] = self.size[_PENDING, worlds]
+        self.offset[_PENDING, worlds] = -1
+        self.size[_PENDING, worlds] = 0
+        self.trim(worlds, self.size[_RUNNING, worlds])  # a large block replaced by a small one goes
 
     def allocate(self, kind: int, worlds: np.ndarray, rows: np.ndarray) -> None:
         """Blocks of `rows` rows for `worlds` (each listed once, with no `kind` block yet)."""
         self.trim(worlds, rows)  # a large spare the new trajectory would not half fill goes
-        fits = self.size[SPARE, worlds] >= rows
+        fits = self.size[_SPARE, worlds] >= rows
         reuse = worlds[fits]
-        self.offset[kind, reuse] = self.offset[SPARE, reuse]
-        self.size[kind, reuse] = self.size[SPARE, reuse]
-        self.offset[SPARE, reuse] = -1
-        self.size[SPARE, reuse] = 0
+        self.offset[kind, reuse] = self.offset[_SPARE, reuse]
+        self.size[kind, reuse] = self.size[_SPARE, reuse]
+        self.offset[_SPARE, reuse] = -1
+        self.size[_SPARE, reuse] = 0
         new, need = worlds[~fits], rows[~fits]
         total = int(need.sum())
         if not total:
@@ -764,10 +772,10 @@ class JointTrajectoryController(Controller):
         keep = accepted[last_per_world(b.worlds[accepted])]
         worlds, npoint = b.worlds[keep], counts[keep]
         pool = self._pool
-        pool.release(PENDING, worlds)  # a newer goal replaces one still waiting to start
+        pool.release(_PENDING, worlds)  # a newer goal replaces one still waiting to start
         filled = npoint > 0
-        pool.allocate(PENDING, worlds[filled], npoint[filled] + 1)  # + the start row
-        off = pool.offset[PENDING, worlds[filled]]
+        pool.allocate(_PENDING, worlds[filled], npoint[filled] + 1)  # + the start row
+        off = pool.offset[_PENDING, worlds[filled]]
         dest = ranges(off + 1, npoint[filled])
         if len(dest) == len(rows):  # every point is kept (the usual case): no gather
             pool.times[dest], pool.coefficients[dest] = b.times, rows
@@ -794,7 +802,7 @@ class JointTrajectoryController(Controller):
         else:
             here_v = np.zeros((len(due), nj))
         # the first point still ahead: points already in the past at the start are dropped
-        off = pool.offset[PENDING, due]
+        off = pool.offset[_PENDING, due]
         skip = np.zeros(len(due), np.int64)
         late = npoint > 0
         late[late] = t0[late] + pool.times[off[late] + 1] <= time
@@ -805,8 +813,8 @@ class JointTrajectoryController(Controller):
             skip[late] = np.bincount(which, weights=gone, minlength=int(late.sum())).astype(np.int64)
         stop = skip >= npoint
         stopped = due[stop]
-        pool.release(RUNNING, stopped)
-        pool.release(PENDING, stopped)
+        pool.release(_RUNNING, stopped)
+        pool.release(_PENDING, stopped)
         pool.trim(stopped)
         self._running[stopped] = False
         self._on_trajectory[stopped] = False
@@ -816,12 +824,7 @@ class JointTrajectoryController(Controller):
         worlds = due[go]
         if worlds.size:
             hold = np.where(self._on_trajectory[worlds, None], self.reference_position[worlds], here[go])
-            pool.release(RUNNING, worlds)
-            pool.offset[RUNNING, worlds] = pool.offset[PENDING, worlds]
-            pool.size[RUNNING, worlds] = pool.size[PENDING, worlds]
-            pool.offset[PENDING, worlds] = -1
-            pool.size[PENDING, worlds] = 0
-            pool.trim(worlds, pool.size[RUNNING, worlds])  # a large block replaced by a small one goes
+            pool.promote(worlds)
             self._begin(worlds, t0[go], time, skip[go], here[go], here_v[go], hold)
         self._pending_start[due] = np.inf
         self._pending_npoint[due] = 0
@@ -838,7 +841,7 @@ class JointTrajectoryController(Controller):
     ) -> None:
         """Insert the current point before the first point ahead and set the worlds running."""
         pool = self._pool
-        off = pool.offset[RUNNING, worlds]
+        off = pool.offset[_RUNNING, worlds]
         npoint = self._pending_npoint[worlds]
         mask = self._pending_mask[worlds]
         spline = self._pending_spline[worlds]
@@ -885,8 +888,8 @@ class JointTrajectoryController(Controller):
 
     def reset(self, sim: Any, worlds: np.ndarray) -> None:
         self._read(sim)
-        self._pool.release(RUNNING, worlds)
-        self._pool.release(PENDING, worlds)
+        self._pool.release(_RUNNING, worlds)
+        self._pool.release(_PENDING, worlds)
         self._pool.trim(worlds)
         self._pool.shrink()
         self._running[worlds] = False
@@ -930,7 +933,7 @@ class JointTrajectoryController(Controller):
         pool = self._pool
         times = pool.times
         rel = time - self._t0[running]
-        base = pool.offset[RUNNING, running]
+        base = pool.offset[_RUNNING, running]
         segment, last = self._segment[running], self._last[running]
         # segment: the last point at or before rel; usually the same as last period or the next
         moving = np.flatnonzero(
@@ -965,7 +968,7 @@ class JointTrajectoryController(Controller):
         if finished.size:  # past the last point: hold it and give the rows back
             self._hold[finished] = pos[finished]
             self._running[finished] = False
-            pool.release(RUNNING, finished)
+            pool.release(_RUNNING, finished)
             pool.trim(finished)
 
     def _command(self, sim: Any, period: float) -> None:
