@@ -174,9 +174,11 @@ class _SegmentPool:
     def release(self, kind: int, worlds: np.ndarray) -> None:
         """Give up the `kind` blocks of `worlds` (each listed once): each becomes its world's
         spare if larger than the one it has (which is then freed), or is freed."""
-        worlds = worlds[self.offset[kind, worlds] >= 0]
-        if not worlds.size:
-            return
+        held = self.offset[kind, worlds] >= 0
+        if not held.all():
+            worlds = worlds[held]
+            if not worlds.size:
+                return
         off, size = self.offset[kind, worlds], self.size[kind, worlds]
         self.offset[kind, worlds] = -1
         self.size[kind, worlds] = 0
@@ -190,6 +192,8 @@ class _SegmentPool:
         """Free the spares of `worlds` larger than SPARE_ROWS and than twice `rows` (the size of
         the trajectory each world now has): memory follows the trajectories."""
         size = self.size[_SPARE, worlds]
+        if not size.size or size.max() <= SPARE_ROWS:  # the usual case: nothing to free
+            return
         large = worlds[(size > SPARE_ROWS) & (size > 2 * np.asarray(rows))]
         self.held -= int(self.size[_SPARE, large].sum())
         self.offset[_SPARE, large] = -1
@@ -213,6 +217,8 @@ class _SegmentPool:
         self.size[kind, reuse] = self.size[_SPARE, reuse]
         self.offset[_SPARE, reuse] = -1
         self.size[_SPARE, reuse] = 0
+        if len(reuse) == len(worlds):  # the usual case, streaming: every spare served
+            return
         new, need = worlds[~fits], rows[~fits]
         total = int(need.sum())
         if not total:
