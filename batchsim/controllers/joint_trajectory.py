@@ -239,7 +239,7 @@ class _SegmentPool:
         kinds, worlds = np.nonzero(self.offset >= 0)
         off, size = self.offset[kinds, worlds], self.size[kinds, worlds]
         total = int(size.sum())
-        capacity = max(MIN_POOL_ROWS, total + extra + (total + extra) // 2)
+        capacity = max(MIN_POOL_ROWS, 2 * (total + extra))  # room for as much again before the next copy
         times = np.zeros(capacity)
         coefficients = np.zeros((capacity, 6, self.njoint))
         source = ranges(off, size)
@@ -1047,7 +1047,7 @@ def _coefficients(
     """
     kinds = spline[:1] if len(spline) and (spline == spline[0]).all() else np.unique(spline)
     if len(kinds) > 1:
-        out = [np.zeros_like(p0) for _ in range(6)]
+        out = [np.zeros(p0.shape) for _ in range(6)]
         for kind in kinds:
             m = spline == kind
             part = _coefficients(spline[m], p0[m], p1[m], v0[m], v1[m], a0[m], a1[m], T[m])
@@ -1055,11 +1055,14 @@ def _coefficients(
                 o[m] = c
         return tuple(out)
     h = p1 - p0
-    zero = np.zeros_like(h)
+    zero = np.broadcast_to(0.0, h.shape)  # a read-only view: no array to fill
     if len(kinds) == 0 or kinds[0] == _LINEAR:
         return p0, h / T, zero, zero, zero, zero
     if kinds[0] == _CUBIC:
-        return p0, v0, (3 * h - (2 * v0 + v1) * T) / T**2, (-2 * h + (v0 + v1) * T) / T**3, zero, zero
+        inverse = 1.0 / T
+        c2 = (3 * h * inverse - (2 * v0 + v1)) * inverse
+        c3 = ((v0 + v1) - 2 * h * inverse) * inverse * inverse
+        return p0, v0, c2, c3, zero, zero
     T2 = T * T
     T3 = T2 * T
     b3 = (20 * h - (8 * v1 + 12 * v0) * T - (3 * a0 - a1) * T2) / (2 * T3)
