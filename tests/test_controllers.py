@@ -663,6 +663,29 @@ def test_batched_update_matches_a_per_world_reference(via):
     assert len(started) == len(goals)
 
 
+def test_interpolation_none_holds_each_point_until_the_next_ones_time():
+    spec = batchsim.load("arm")
+    sim = FakeSim(spec, 2, np.random.default_rng(4))
+    manager = load_controllers(
+        LINEAR_JTC.replace("max_trajectory_points: 6000", "interpolation_method: none"), spec, 2
+    )
+    jtc = manager["t"]
+    manager.update(sim, 0.0, 0.01)
+    P, V = np.array([[0.1] * 6, [0.2] * 6]), np.array([[1.0] * 6, [2.0] * 6])
+    jtc.set_trajectory(0, ARM_JOINTS, [0.1, 0.2], P, V)  # starts at 0.01: points at 0.11 and 0.21
+    seen = {}
+    for k in range(1, 30):
+        manager.update(sim, 0.01 * k, 0.01)
+        seen[k] = (jtc.reference_position[0].copy(), jtc.reference_velocity[0].copy())
+        if k == 1:
+            here = (jtc.feedback_position[0].copy(), jtc.feedback_velocity[0].copy())
+        sim.advance(0.01)
+    for k, (p, v) in seen.items():
+        want = here if k < 11 else (P[0], V[0]) if k < 21 else (P[1], np.zeros(6))
+        np.testing.assert_allclose(p, want[0], atol=1e-12, err_msg=k)
+        np.testing.assert_allclose(v, want[1], atol=1e-12, err_msg=k)
+
+
 def test_batched_diff_drive_matches_a_per_world_reference():
     rng = np.random.default_rng(5)
     spec = batchsim.load("car")
