@@ -198,6 +198,8 @@ def run(argv: Sequence[str]) -> int:
             from ros_bridge.controllers import bind_controllers
 
             bind_controllers(bridge, manager)
+            # the reset services reset worlds under the manager: it must hear of it (nothing infers it)
+            bridge.on_reset.append(lambda worlds: manager.on_reset(sim, worlds))
         else:
             loop.participants.append(manager)
 
