@@ -38,11 +38,14 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from mujoco import batch as mjbatch
 from mujoco import mjx
 
 from batchsim.backends import unsupported_error
 from batchsim.hardware import MAX_COMMAND, BatchedSystem, Status
 from batchsim.model import RobotSpec, StateColumn
+from batchsim.sensors import Camera, Lidar
+from batchsim.sensors.host import HostSensors
 
 _SOURCES = ("qpos", "qvel", "qfrc_actuator", "sensordata")
 _CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device)
@@ -294,6 +297,46 @@ class MjxSystem(BatchedSystem):
         self._sync_ctrl()  # write() keeps ctrl on the host until the next step
         d = self._d
         return {f: getattr(d, f) for f in ("qpos", "qvel", "qfrc_actuator", "sensordata", "ctrl", "time")}
+
+    # --- cameras and lidars: through a host copy of the worlds (MuJoCo's renderer, mujoco.batch rays) ---
+    _host: HostSensors | None = None  # made on the first render or scan
+    _frames: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+
+    def _host_copy(self) -> HostSensors:
+        """The host mirror, its state rows filled from the device: one download of qpos and mocap."""
+        if self._host is None:
+            self._host = HostSensors(self.model, mjbatch.Batch(self.model, self.nworld, nthread=0))
+        batch = self._host.batch
+        fields = ["qpos"] + (["mocap_pos", "mocap_quat"] if self.model.nmocap else [])
+        values = jax.device_get({f: getattr(self._d, f) for f in fields})
+        for field, value in values.items():
+            batch.bind(field)[:] = value
+        return self._host
+
+    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self._frames is None:
+            self._frames = {}
+        if camera.name not in self._frames:
+            self._frames[camera.name] = (
+                np.empty((self.nworld, camera.height, camera.width, 3), np.uint8),
+                np.empty((self.nworld, camera.height, camera.width), np.float32),
+            )
+        rgb, depth = (a[: len(worlds)] for a in self._frames[camera.name])
+        self._host_copy().render(camera, worlds, rgb, depth)
+        return rgb, depth
+
+    def _device_frames(self, camera: Camera) -> tuple[jax.Array, jax.Array]:
+        """Every world's images, rendered on the host and put on this system's device."""
+        rgb, depth = self._render_frames(camera, np.arange(self.nworld))
+        return jax.device_put(rgb, self.device), jax.device_put(depth, self.device)
+
+    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        return self._host_copy().cast(lidar, worlds)
+
+    def _close_sensors(self) -> None:
+        if self._host is not None:
+            self._host.close()
+        self._host = self._frames = None
 
 
 def _feature(e: NotImplementedError) -> str:

@@ -1,0 +1,174 @@
+"""Rendering and ray casting on the CPU, over the worlds of a `mujoco.batch.Batch`.
+
+The cpu backend hands in its own batch; mjx hands in a host mirror whose state rows it
+fills from the device first ("through the host copy"). Per world, the state is loaded into
+one scratch MjData and its kinematics computed (mj_kinematics, mj_camlight: a few
+microseconds), so images and scans show the current state, as on warp.
+
+Rendering is MuJoCo's OpenGL renderer, offscreen: EGL (a GPU's, or Mesa's software
+rasterizer where there is none), or OSMesa. With MUJOCO_GL unset on a machine without a
+display, EGL is tried first, then OSMesa. One render per world and camera reads colour
+and depth together; depth comes back in metres along the optical axis, with +inf where
+nothing was hit (REP 117/118). Ray casting is mujoco.batch's `ray`, threaded over worlds
+in C.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import sys
+
+import mujoco
+import numpy as np
+from mujoco import batch as mjbatch
+
+from batchsim.sensors.camera import Camera
+from batchsim.sensors.lidar import Lidar
+
+
+class RenderingUnavailable(RuntimeError):
+    """No OpenGL for MuJoCo's renderer on this machine: the message says what to install."""
+
+
+_GL_HINT = (
+    "MuJoCo's renderer needs OpenGL: on Debian/Ubuntu `apt-get install libegl1 libgl1-mesa-dri` "
+    "(EGL, software or GPU), or `libosmesa6` with MUJOCO_GL=osmesa"
+)
+
+
+def gl_context_class() -> type:
+    """MuJoCo's GLContext class for offscreen rendering here."""
+    choice = os.environ.get("MUJOCO_GL", "").lower().strip()
+    headless = sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY")
+    if choice in ("", "egl") and (headless or choice == "egl"):
+        try:
+            from mujoco.egl import GLContext
+
+            return GLContext
+        except Exception as e:  # noqa: BLE001  (no libEGL, or PyOpenGL set to another platform)
+            if choice == "egl":
+                raise RenderingUnavailable(f"EGL is not available ({e}); {_GL_HINT}") from None
+        try:
+            from mujoco.osmesa import GLContext
+
+            return GLContext
+        except Exception as e:  # noqa: BLE001
+            raise RenderingUnavailable(f"neither EGL nor OSMesa is available ({e}); {_GL_HINT}") from None
+    return mujoco.GLContext
+
+
+class _Renderer:
+    """One GL context and MuJoCo render context, with an offscreen buffer for the largest camera."""
+
+    def __init__(self, m: mujoco.MjModel, width: int, height: int):
+        m = copy.copy(m)  # the offscreen buffer's size lives in the model: enlarge a copy only
+        m.vis.global_.offwidth = max(int(m.vis.global_.offwidth), width)
+        m.vis.global_.offheight = max(int(m.vis.global_.offheight), height)
+        self.width, self.height = width, height
+        try:
+            self.gl = gl_context_class()(m.vis.global_.offwidth, m.vis.global_.offheight)
+            self.gl.make_current()
+        except RenderingUnavailable:
+            raise
+        except Exception as e:  # noqa: BLE001  (EGL/OSMesa report failures in many types)
+            raise RenderingUnavailable(f"could not create an OpenGL context ({e}); {_GL_HINT}") from None
+        self.context = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.context)
+        self.context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self.scene = mujoco.MjvScene(m, maxgeom=max(1000, 2 * m.ngeom + 100))
+        self.option = mujoco.MjvOption()
+        # what a real camera would not see: sites and rangefinder rays (as mujoco_ros2_control)
+        self.option.sitegroup[:] = 0
+        self.option.flags[mujoco.mjtVisFlag.mjVIS_RANGEFINDER] = 0
+        self.camera = mujoco.MjvCamera()
+        self.camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        extent = float(m.stat.extent)
+        self.near = np.float32(m.vis.map.znear * extent)
+        self.far = np.float32(m.vis.map.zfar * extent)
+
+    def close(self) -> None:
+        if self.gl is not None:
+            self.gl.make_current()
+            self.context.free()
+            self.gl.free()
+            self.gl = None
+
+    def depth_to_metres(self, raw: np.ndarray) -> None:
+        """In place: reversed-Z depth buffer values (0 at the far plane) to metres; far -> +inf."""
+        n, f = np.float64(self.near), np.float64(self.far)
+        # the perspective projection MuJoCo sets up, undone (as mujoco.Renderer does, in float64)
+        c = -(f + n) / (f - n)
+        d = -(2.0 * f * n) / (f - n)
+        c = -0.5 * c - 0.5
+        d = -0.5 * d
+        missed = raw <= 0.0
+        raw[...] = (d / (raw.astype(np.float64) + c)).astype(np.float32)
+        raw[missed] = np.inf
+
+
+class HostSensors:
+    """Cameras and lidars of the worlds of a batch, computed on the CPU.
+
+    Args:
+      m: the model.
+      batch: the worlds; their state rows are what is rendered and scanned.
+    """
+
+    def __init__(self, m: mujoco.MjModel, batch: mjbatch.Batch):
+        self.model = m
+        self.batch = batch
+        self._data = mujoco.MjData(m)
+        self._renderer: _Renderer | None = None
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def _load(self, world: int) -> mujoco.MjData:
+        d = self.batch.get_data(int(world), self._data)
+        mujoco.mj_kinematics(self.model, d)
+        return d
+
+    def render(self, camera: Camera, worlds: np.ndarray, rgb_out: np.ndarray, depth_out: np.ndarray) -> None:
+        """Render `camera` in each of `worlds` into rgb_out (n, H, W, 3) uint8 and depth_out (n, H, W) float32.
+
+        Images are top row first (ROS), depth in metres along the optical axis, +inf where
+        the ray met nothing before the far plane.
+        """
+        r = self._renderer
+        if r is None or r.width < camera.width or r.height < camera.height:
+            if r is not None:
+                r.close()
+            width = max(camera.width, r.width if r else 0)
+            height = max(camera.height, r.height if r else 0)
+            r = self._renderer = _Renderer(self.model, width, height)
+        r.gl.make_current()  # a context is current per thread: the caller's may have changed
+        m = self.model
+        viewport = mujoco.MjrRect(0, 0, camera.width, camera.height)
+        r.camera.fixedcamid = camera.id
+        for k, w in enumerate(worlds):
+            d = self._load(w)
+            mujoco.mj_camlight(m, d)
+            mujoco.mjv_updateScene(m, d, r.option, None, r.camera, mujoco.mjtCatBit.mjCAT_ALL.value, r.scene)
+            mujoco.mjr_render(viewport, r.scene, r.context)
+            mujoco.mjr_readPixels(rgb_out[k], depth_out[k], viewport, r.context)
+        # OpenGL's rows start at the bottom
+        rgb_out[:] = rgb_out[:, ::-1]
+        depth_out[:] = depth_out[:, ::-1]
+        r.depth_to_metres(depth_out)
+
+    def cast(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        """(n, nray) float64 distances along `lidar`'s rays in each of `worlds`; -1 where a ray hit nothing."""
+        n = len(worlds)
+        origin = np.empty((n, 1, 3))
+        rotation = np.empty((n, 3, 3))
+        for k, w in enumerate(worlds):
+            d = self._load(w)
+            origin[k, 0] = d.site_xpos[lidar.site_id]
+            rotation[k] = d.site_xmat[lidar.site_id].reshape(3, 3)
+        vec = np.einsum("nij,rj->nri", rotation, lidar.directions)
+        ids = None if n == self.batch.nsim else np.asarray(worlds, np.int32)
+        dist, _ = self.batch.ray(origin, vec, bodyexclude=lidar.body_id, ids=ids)
+        return dist
