@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from batchsim.hardware import (
     SystemInterface,
 )
 from batchsim.model import ModelError, RobotSpec, load, model_names
+from batchsim.sensors import SensorConfig, SensorConfigError
 
 __all__ = [
     "Backend",
@@ -37,6 +39,8 @@ __all__ = [
     "ModelError",
     "ReturnType",
     "RobotSpec",
+    "SensorConfig",
+    "SensorConfigError",
     "Status",
     "SystemInterface",
     "load",
@@ -51,6 +55,7 @@ def make(
     backend: str | Backend = "auto",
     *,
     ros2_control: str | Path | None = None,
+    sensors: SensorConfig | str | Path | Mapping[str, Any] | None = None,
     **options: Any,
 ) -> BatchedSystem:
     """Build `nworld` worlds of `model` on `backend`, initialized (UNCONFIGURED).
@@ -61,6 +66,9 @@ def make(
       nworld: number of worlds.
       backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware).
       ros2_control: a ros2_control block (file path or XML text) narrowing the interfaces.
+      sensors: cameras, lidars and sensor noise (batchsim.sensors.config): a SensorConfig, a
+        YAML file (mujoco_ros2_control's plugin parameters and/or batchsim's `sensors:`
+        block) or its parsed mapping. None: the model's cameras and lidars, no noise.
       **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `device`, `graph`
         for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
         runs: always so on cpu, slower on a GPU). With "auto", those the chosen backend does
@@ -81,4 +89,6 @@ def make(
     sim = cls(spec, nworld, **options)
     sim.reason = reason
     sim.initialize()
+    if sensors is not None:
+        sim.set_sensor_config(sensors)
     return sim

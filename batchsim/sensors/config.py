@@ -165,6 +165,33 @@ class SensorConfig:
             config.source = ", ".join(names)
         return config
 
+    @classmethod
+    def from_flags(
+        cls,
+        files: list[str] | None = None,
+        *,
+        camera_rate: float | None = None,
+        lidar_rate: float | None = None,
+        camera_resolution: str | None = None,
+        seed: int | None = None,
+    ) -> SensorConfig | None:
+        """The configuration the command line asks for (`--sensors`, `--camera-rate`, ...), or None
+        when it asks for nothing; flags override the files."""
+        if not files and camera_rate is None and lidar_rate is None and camera_resolution is None and seed is None:
+            return None
+        config = cls.load(*(files or []))
+        if camera_rate is not None:
+            config.camera_rate = _rate(camera_rate, "--camera-rate")
+        if lidar_rate is not None:
+            config.lidar_rate = _rate(lidar_rate, "--lidar-rate")
+        if camera_resolution is not None:
+            config.camera_resolution = resolution(camera_resolution, "--camera-resolution")
+        if seed is not None:
+            if seed < 0:
+                raise SensorConfigError(f"--noise-seed: must be >= 0, got {seed}")
+            config.seed = seed
+        return config
+
     # --- parsing ---
     def _read(self, document: Any, where: str) -> None:
         if not isinstance(document, Mapping):

@@ -6,7 +6,8 @@ one scratch MjData and its kinematics computed (mj_kinematics, mj_camlight: a fe
 microseconds), so images and scans show the current state, as on warp.
 
 Rendering is MuJoCo's OpenGL renderer, offscreen: EGL (a GPU's, or Mesa's software
-rasterizer where there is none), or OSMesa. With MUJOCO_GL unset on a machine without a
+rasterizer where there is none), or OSMesa; one sample per pixel and no shadows, as MuJoCo
+Warp renders. With MUJOCO_GL unset on a machine without a
 display, EGL is tried first, then OSMesa. One render per world and camera reads colour
 and depth together; depth comes back in metres along the optical axis, with +inf where
 nothing was hit (REP 117/118). Ray casting is mujoco.batch's `ray`, threaded over worlds
@@ -62,9 +63,12 @@ class _Renderer:
     """One GL context and MuJoCo render context, with an offscreen buffer for the largest camera."""
 
     def __init__(self, m: mujoco.MjModel, width: int, height: int):
-        m = copy.copy(m)  # the offscreen buffer's size lives in the model: enlarge a copy only
+        m = copy.copy(m)  # the offscreen buffer's size and sampling live in the model: change a copy
         m.vis.global_.offwidth = max(int(m.vis.global_.offwidth), width)
         m.vis.global_.offheight = max(int(m.vis.global_.offheight), height)
+        # one sample per pixel, as MuJoCo Warp renders: 4x multisampling cost 3-5x the time on
+        # Mesa's software rasterizer (320x240, this project's 2-core CI machine)
+        m.vis.quality.offsamples = 0
         self.width, self.height = width, height
         try:
             self.gl = gl_context_class()(m.vis.global_.offwidth, m.vis.global_.offheight)
@@ -77,6 +81,9 @@ class _Renderer:
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.context)
         self.context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
         self.scene = mujoco.MjvScene(m, maxgeom=max(1000, 2 * m.ngeom + 100))
+        # no shadows, as MuJoCo Warp renders by default: a shadow map is a 4096^2 render per light,
+        # 100x the cost of a 320x240 image on a software rasterizer
+        self.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
         self.option = mujoco.MjvOption()
         # what a real camera would not see: sites and rangefinder rays (as mujoco_ros2_control)
         self.option.sitegroup[:] = 0
@@ -94,17 +101,14 @@ class _Renderer:
             self.gl.free()
             self.gl = None
 
-    def depth_to_metres(self, raw: np.ndarray) -> None:
-        """In place: reversed-Z depth buffer values (0 at the far plane) to metres; far -> +inf."""
-        n, f = np.float64(self.near), np.float64(self.far)
-        # the perspective projection MuJoCo sets up, undone (as mujoco.Renderer does, in float64)
-        c = -(f + n) / (f - n)
-        d = -(2.0 * f * n) / (f - n)
-        c = -0.5 * c - 0.5
-        d = -0.5 * d
-        missed = raw <= 0.0
-        raw[...] = (d / (raw.astype(np.float64) + c)).astype(np.float32)
-        raw[missed] = np.inf
+    def depth_to_metres(self, raw: np.ndarray, out: np.ndarray) -> None:
+        """Reversed-Z depth buffer values (0 at the far plane) to metres along the optical axis,
+        +inf at the far plane: MuJoCo's perspective projection undone, as mujoco.Renderer does."""
+        n, f = float(self.near), float(self.far)
+        c = np.float32(n / (f - n))  # -(-(f + n) / (f - n)) / 2 - 1/2
+        d = np.float32(f * n / (f - n))
+        np.divide(d, raw + c, out=out)
+        out[raw <= 0.0] = np.inf
 
 
 class HostSensors:
@@ -148,16 +152,17 @@ class HostSensors:
         m = self.model
         viewport = mujoco.MjrRect(0, 0, camera.width, camera.height)
         r.camera.fixedcamid = camera.id
+        # one world's pixels as OpenGL reads them, bottom row first
+        rgb = np.empty((camera.height, camera.width, 3), np.uint8)
+        depth = np.empty((camera.height, camera.width), np.float32)
         for k, w in enumerate(worlds):
             d = self._load(w)
             mujoco.mj_camlight(m, d)
             mujoco.mjv_updateScene(m, d, r.option, None, r.camera, mujoco.mjtCatBit.mjCAT_ALL.value, r.scene)
             mujoco.mjr_render(viewport, r.scene, r.context)
-            mujoco.mjr_readPixels(rgb_out[k], depth_out[k], viewport, r.context)
-        # OpenGL's rows start at the bottom
-        rgb_out[:] = rgb_out[:, ::-1]
-        depth_out[:] = depth_out[:, ::-1]
-        r.depth_to_metres(depth_out)
+            mujoco.mjr_readPixels(rgb, depth, viewport, r.context)
+            rgb_out[k] = rgb[::-1]  # OpenGL's rows start at the bottom
+            r.depth_to_metres(depth[::-1], depth_out[k])
 
     def cast(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
         """(n, nray) float64 distances along `lidar`'s rays in each of `worlds`; -1 where a ray hit nothing."""

@@ -85,56 +85,84 @@ def stream_id(name: str) -> np.uint64:
     return np.uint64(int.from_bytes(hashlib.blake2b(name.encode(), digest_size=8).digest(), "little"))
 
 
+_S30, _S27, _S31, _S32, _S11 = (np.uint64(k) for k in (30, 27, 31, 32, 11))
+_ONE = np.uint64(1)
+_LOW32 = np.uint64(0xFFFFFFFF)
+
+
 def _mix(x: np.ndarray) -> np.ndarray:
     """splitmix64's finalizer, in place on a uint64 array: a bijection that scrambles every bit."""
-    x ^= x >> np.uint64(30)
+    x ^= x >> _S30
     x *= _M1
-    x ^= x >> np.uint64(27)
+    x ^= x >> _S27
     x *= _M2
-    x ^= x >> np.uint64(31)
+    x ^= x >> _S31
     return x
 
 
-def _keys(seed: int, stream: np.uint64, worlds: np.ndarray, ticks: np.ndarray) -> np.ndarray:
-    """(n, 1) uint64 keys of (seed, stream, world, tick) for the n worlds of a call."""
+def _world_keys(seed: int, stream: np.uint64, nworld: int) -> np.ndarray:
+    """(nworld,) uint64: the key of each world of a stream, before the tick is mixed in."""
     with np.errstate(over="ignore"):
-        key = np.full(len(worlds), np.uint64(seed & 0xFFFFFFFFFFFFFFFF) ^ stream, np.uint64)
-        key = _mix(key + _GOLDEN * (worlds.astype(np.uint64) + np.uint64(1)))
-        key = _mix(key + _GOLDEN * (ticks.astype(np.uint64) + np.uint64(1)))
-    return key[:, None]
+        base = np.uint64(seed & 0xFFFFFFFFFFFFFFFF) ^ stream
+        return _mix(_GOLDEN * (np.arange(nworld, dtype=np.uint64) + _ONE) + base)
 
 
-def _bits(keys: np.ndarray, size: int, salt: np.uint64 = _NO_SALT) -> np.ndarray:
-    """(n, size) uint64 random bits, one hash per (key, element)."""
+def _element_offsets(size: int, salt: np.uint64 = _NO_SALT) -> np.ndarray:
     with np.errstate(over="ignore"):
-        x = keys + _GOLDEN * (np.arange(size, dtype=np.uint64) + np.uint64(1) + salt)
-        return _mix(x)
+        return _GOLDEN * (np.arange(size, dtype=np.uint64) + _ONE + salt)
+
+
+def _bits(world_keys: np.ndarray, ticks: np.ndarray, elements: np.ndarray) -> np.ndarray:
+    """(n, size) uint64 random bits: a hash of (world key, tick, element) for each value."""
+    with np.errstate(over="ignore"):
+        keys = _mix(world_keys + _GOLDEN * (ticks.astype(np.uint64) + _ONE))
+        return _mix(keys[:, None] + elements)
 
 
 def _normal(bits: np.ndarray) -> np.ndarray:
     """Standard normals (float32) from 64 random bits each: Box-Muller on two 32-bit halves."""
-    u1 = ((bits >> np.uint64(32)).astype(np.float32) + np.float32(0.5)) * np.float32(_U32)
-    u2 = (bits & np.uint64(0xFFFFFFFF)).astype(np.float32) * np.float32(_U32)
+    u1 = ((bits >> _S32).astype(np.float32) + np.float32(0.5)) * np.float32(_U32)
+    u2 = (bits & _LOW32).astype(np.float32) * np.float32(_U32)
     return np.sqrt(np.float32(-2.0) * np.log(u1)) * np.cos(np.float32(_TWO_PI) * u2)
 
 
 class NoiseStream:
-    """The noise of one sensor (or one group of state columns) across worlds and readings.
+    """The noise of one sensor (or of a set of state columns) across worlds and readings.
 
     Args:
-      noise: the parameters.
+      noise: the parameters, or one Noise per value (`size` of them).
       seed: the run's seed.
       name: the stream's name (the sensor's); two streams of one seed are independent.
       size: values per world and reading (the sensor's dimension, pixels, rays).
     """
 
-    def __init__(self, noise: Noise, seed: int, name: str, size: int):
-        self.noise = noise
+    def __init__(self, noise: Noise | list[Noise], seed: int, name: str, size: int):
+        per_value = noise if isinstance(noise, list) else [noise]
+        self.noise = per_value[0] if len(per_value) == 1 else per_value
         self.seed = int(seed)
         self.name = name
         self.size = int(size)
         self._stream = stream_id(name)
-        self._bias: dict[int, np.ndarray] = {}
+
+        def column(key: str) -> np.float32 | np.ndarray:
+            values = np.array([getattr(n, key) for n in per_value], np.float32)
+            return values[0] if len(per_value) == 1 else values
+
+        self._mean, self._stddev = column("mean"), column("stddev")
+        self._bias_mean, self._bias_stddev = column("bias_mean"), column("bias_stddev")
+        self._dropout = max(n.dropout for n in per_value)
+        self._has_bias = any(n.bias_mean or n.bias_stddev for n in per_value)
+        self._has_stddev = any(n.stddev for n in per_value)
+        self._bias: np.ndarray | None = None  # every world's, once asked for
+        self._keys = np.zeros(0, np.uint64)  # every world's key, grown as worlds are asked for
+        self._elements = _element_offsets(self.size)
+        self._dropout_elements = _element_offsets(self.size, _DROPOUT_SALT)
+
+    def _world_keys(self, worlds: np.ndarray) -> np.ndarray:
+        top = int(worlds.max()) + 1 if len(worlds) else 0
+        if len(self._keys) < top:
+            self._keys = _world_keys(self.seed, self._stream, top)
+        return self._keys[worlds]
 
     def offsets(self, worlds: np.ndarray, ticks: np.ndarray) -> np.ndarray:
         """(n, size) float32: what the noise adds to each value of the n worlds at their ticks.
@@ -143,28 +171,29 @@ class NoiseStream:
           worlds: (n,) world indices.
           ticks: (n,) each world's reading counter.
         """
-        nz = self.noise
-        out = np.full((len(worlds), self.size), nz.mean, np.float32)
-        if nz.stddev:
-            out += np.float32(nz.stddev) * _normal(_bits(_keys(self.seed, self._stream, worlds, ticks), self.size))
-        if nz.bias_mean or nz.bias_stddev:
+        out = np.empty((len(worlds), self.size), np.float32)
+        out[:] = self._mean
+        if self._has_stddev:
+            out += self._stddev * _normal(_bits(self._world_keys(worlds), ticks, self._elements))
+        if self._has_bias:
             out += self.bias(worlds)
         return out
 
     def bias(self, worlds: np.ndarray) -> np.ndarray:
         """(n, size) float32: each world's bias, drawn once per world and fixed for the run."""
-        nz = self.noise
-        ticks = np.full(len(worlds), _BIAS_TICK, np.uint64)
-        keys = _keys(self.seed, self._stream ^ np.uint64(0xB1A5), worlds, ticks)
-        return np.float32(nz.bias_mean) + np.float32(nz.bias_stddev) * _normal(_bits(keys, self.size))
+        top = int(worlds.max()) + 1 if len(worlds) else 0
+        if self._bias is None or len(self._bias) < top:
+            keys = _world_keys(self.seed, self._stream ^ np.uint64(0xB1A5), top)
+            ticks = np.full(top, _BIAS_TICK, np.uint64)
+            self._bias = self._bias_mean + self._bias_stddev * _normal(_bits(keys, ticks, self._elements))
+        return self._bias[worlds]
 
     def dropped(self, worlds: np.ndarray, ticks: np.ndarray) -> np.ndarray | None:
         """(n, size) bool: the values lost at this reading, or None without dropout."""
-        if not self.noise.dropout:
+        if not self._dropout:
             return None
-        keys = _keys(self.seed, self._stream, worlds, ticks)
-        u = (_bits(keys, self.size, _DROPOUT_SALT) >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
-        return u < self.noise.dropout
+        bits = _bits(self._world_keys(worlds), ticks, self._dropout_elements)
+        return (bits >> _S11).astype(np.float64) * (1.0 / 9007199254740992.0) < self._dropout
 
     def apply(self, values: np.ndarray, worlds: np.ndarray, ticks: np.ndarray) -> None:
         """Add the noise to `values` (n, size), or (n, ...) with `size` elements per row, in place."""

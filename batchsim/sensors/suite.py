@@ -37,15 +37,17 @@ DEFAULT_LIDAR_RATE = 10.0  # Hz
 
 @dataclasses.dataclass
 class ReadingNoise:
-    """Noise on what read() returns: state columns and sensordata elements, one stream per pattern.
+    """Noise on what read() returns, one stream over every noisy value.
 
     Attributes:
-      state: (stream, state column indices) for columns not read from sensordata.
-      sensordata: (stream, sensordata indices); state columns read from sensordata follow them.
+      stream: the noise of the noisy values, state columns first, then sensordata elements.
+      state: state column indices (those not read from sensordata).
+      sensordata: sensordata indices; the state columns read from sensordata follow them.
     """
 
-    state: list[tuple[NoiseStream, np.ndarray]]
-    sensordata: list[tuple[NoiseStream, np.ndarray]]
+    stream: NoiseStream
+    state: np.ndarray
+    sensordata: np.ndarray
 
     def apply(
         self,
@@ -61,12 +63,12 @@ class ReadingNoise:
             are sensor readings: they get the same noisy values as sensordata.
           ticks: (nworld,) each world's reading counter.
         """
-        worlds = np.arange(len(state))
-        for stream, cols in self.state:
-            state[:, cols] += stream.offsets(worlds, ticks)
-        if self.sensordata:
-            for stream, idx in self.sensordata:
-                sensordata[:, idx] += stream.offsets(worlds, ticks)
+        offsets = self.stream.offsets(np.arange(len(state)), ticks)
+        k = len(self.state)
+        if k:
+            state[:, self.state] += offsets[:, :k]
+        if len(self.sensordata):
+            sensordata[:, self.sensordata] += offsets[:, k:]
             cols, idx = from_sensordata
             state[:, cols] = sensordata[:, idx]
 
@@ -287,7 +289,7 @@ def _lidars(m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, w
                 range_min=rmin,
                 range_max=rmax,
                 frame_id=s.frame_name or m.site(frame).name,
-                topic=s.topic or "scan",
+                topic=s.topic or "",
                 sensor_adr=np.array([m.sensor_adr[s_id] for s_id in group.sensors], np.intp),
             ),
             where,
@@ -320,7 +322,7 @@ def _lidars(m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, w
                 range_min=rmin,
                 range_max=rmax,
                 frame_id=s.frame_name or el.ref_site,
-                topic=s.topic or "scan",
+                topic=s.topic or "",
             ),
             what,
         )
@@ -354,7 +356,7 @@ def _lidars(m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, w
                 range_min=p.min_range,
                 range_max=p.max_range,
                 frame_id=s.frame_name or p.site,
-                topic=s.topic or ("points" if p.nrow > 1 else "scan"),
+                topic=s.topic or "",
                 rate=p.update_rate or None,
             ),
             what,
@@ -384,49 +386,69 @@ def _lidars(m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, w
                 range_min=d.range_min,
                 range_max=d.range_max,
                 frame_id=d.frame_name or d.site,
-                topic=d.topic or ("points" if d.vertical.samples > 1 else "scan"),
+                topic=d.topic or "",
                 rate=d.rate,
             ),
             what,
         )
-    return lidars
+    return _default_topics(lidars, where)
+
+
+def _default_topics(lidars: dict[str, lid.Lidar], where: str) -> dict[str, lid.Lidar]:
+    """Lidars without a configured topic publish on `scan` (2D) or `points` (3D), as mujoco_ros2_control's,
+    or on `<lidar>/scan`, `<lidar>/points` where several would share one; a clash left is an error."""
+    base = {name: "points" if ld.is_3d else "scan" for name, ld in lidars.items() if not ld.topic}
+    count = {b: list(base.values()).count(b) for b in set(base.values())}
+    out = {
+        name: ld if ld.topic else dataclasses.replace(ld, topic=base[name] if count[base[name]] == 1 else f"{name}/{base[name]}")
+        for name, ld in lidars.items()
+    }
+    seen: dict[str, str] = {}
+    for name, ld in out.items():
+        if ld.topic in seen:
+            raise SensorConfigError(f"{where}: lidars {seen[ld.topic]!r} and {name!r} both publish on {ld.topic!r}")
+        seen[ld.topic] = name
+    return out
 
 
 def _reading_noise(spec: RobotSpec, config: SensorConfig, used: set[str], where: str) -> ReadingNoise | None:
     """Match the noise patterns to state interfaces and MJCF sensors; one that matches nothing at
-    all (nor a camera or lidar, `used`) is an error."""
-    state_streams: list[tuple[NoiseStream, np.ndarray]] = []
-    sensor_streams: list[tuple[NoiseStream, np.ndarray]] = []
+    all (nor a camera or lidar, `used`) is an error. A value matched by several patterns takes
+    the first's noise."""
+    state: dict[int, Noise] = {}
+    elements: dict[int, Noise] = {}
     for pattern, nz in config.noise.items():
         sensors = [s for s in spec.sensors if fnmatch.fnmatchcase(s.name, pattern)]
         columns = [
-            i
-            for i, c in enumerate(spec.state)
-            if c.source != "sensordata" and fnmatch.fnmatchcase(c.name, pattern)
+            i for i, c in enumerate(spec.state) if c.source != "sensordata" and fnmatch.fnmatchcase(c.name, pattern)
         ]
-        # a state interface of a sensor ("wrist_force/force.x") names sensordata elements
-        elements = sorted(
-            {s.adr + k for s in sensors for k in range(s.dim)}
-            | {c.index for c in spec.state if c.source == "sensordata" and fnmatch.fnmatchcase(c.name, pattern)}
-        )
-        if not sensors and not columns and not elements:
+        # a sensor by name, or one of its state interfaces ("wrist_force/force.x"), names sensordata elements
+        matched = {s.adr + k for s in sensors for k in range(s.dim)} | {
+            c.index for c in spec.state if c.source == "sensordata" and fnmatch.fnmatchcase(c.name, pattern)
+        }
+        if not columns and not matched:
             if pattern in used:
                 continue
-            known = _examples(spec)
             raise SensorConfigError(
-                f"{where}: noise pattern {pattern!r} matches no state interface, sensor, camera or lidar ({known})"
+                f"{where}: noise pattern {pattern!r} matches no state interface, sensor, camera or lidar "
+                f"({_examples(spec)})"
             )
-        if not nz.active:
-            continue
         if nz.dropout:
             raise SensorConfigError(f"{where}: noise {pattern!r}: dropout is for depth and lidar ranges only")
-        if columns:
-            state_streams.append((NoiseStream(nz, config.seed, f"state:{pattern}", len(columns)), np.array(columns)))
-        if elements:
-            sensor_streams.append((NoiseStream(nz, config.seed, f"sensor:{pattern}", len(elements)), np.array(elements)))
-    if not state_streams and not sensor_streams:
+        for c in columns:
+            state.setdefault(c, nz)
+        for e in sorted(matched):
+            elements.setdefault(e, nz)
+    state = {c: nz for c, nz in state.items() if nz.active}
+    elements = {e: nz for e, nz in elements.items() if nz.active}
+    if not state and not elements:
         return None
-    return ReadingNoise(state_streams, sensor_streams)
+    per_value = [*state.values(), *elements.values()]
+    return ReadingNoise(
+        NoiseStream(per_value, config.seed, "readings", len(per_value)),
+        np.array(list(state), np.intp),
+        np.array(list(elements), np.intp),
+    )
 
 
 def _examples(spec: RobotSpec) -> str:
