@@ -366,6 +366,40 @@ def loop_row(
     }
 
 
+def samples(backend: str, path: Path, nworld: int = 4) -> None:
+    """A figure of `nworld` worlds: camera image, depth and the lidar scan seen from above."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sim = make(backend, 16, (320, 240))
+    worlds = np.arange(nworld) * 4  # spread over the fleet: each drove its own command
+    rgb, depth = sim.render(CAMERA, worlds)
+    ranges = sim.scan(LIDAR, worlds)
+    ld = sim.sensors.lidar(LIDAR)
+    sim.shutdown()
+    fig, ax = plt.subplots(3, nworld, figsize=(3.2 * nworld, 7.4), gridspec_kw={"height_ratios": [1, 1, 1.3]})
+    for k, w in enumerate(worlds):
+        ax[0, k].imshow(rgb[k])
+        ax[0, k].set_title(f"world {w}")
+        shown = np.where(np.isfinite(depth[k]), depth[k], np.nan)
+        ax[1, k].imshow(shown, cmap="viridis", vmin=0, vmax=8)
+        pts = ld.points(ranges[k : k + 1])[0]
+        ax[2, k].scatter(pts[:, 0], pts[:, 1], s=2)
+        ax[2, k].plot([0], [0], "r^")
+        ax[2, k].set_aspect("equal")
+        ax[2, k].set_xlim(-8, 8)
+        ax[2, k].set_ylim(-8, 8)
+        for a in ax[:2, k]:
+            a.axis("off")
+    ax[1, 0].set_title("depth, 0-8 m", loc="left", fontsize=9)
+    ax[2, 0].set_title(f"{LIDAR}: {ld.nray} rays, robot frame (m)", loc="left", fontsize=9)
+    fig.suptitle(f"batchsim rover, {backend} backend: RGB, depth and lidar of four worlds", fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=72)
+
+
 def size_arg(text: str) -> tuple[int, int]:
     w, h = text.lower().split("x")
     return int(w), int(h)
@@ -387,8 +421,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--camera-rate", type=float, default=30.0)
     p.add_argument("--lidar-rate", type=float, default=10.0)
     p.add_argument("--json", default="benchmarks/out/sensors.json")
+    p.add_argument("--samples", default="", help="write a figure of four worlds' images and scans here (PNG) and stop")
     args = p.parse_args(argv)
     backends = [b for b in args.backends.split(",") if b]
+    if args.samples:
+        samples(backends[0], Path(args.samples))
+        return 0
     worlds = [int(n) for n in args.worlds.split(",") if n]
     sizes = [size_arg(s) for s in args.sizes.split(",") if s]
     header = (
