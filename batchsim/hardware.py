@@ -285,7 +285,6 @@ class BatchedSystem(SystemInterface):
         self._opened = False
         self._sensor_config: SensorConfig | None = None
         self._sensors: SensorSuite | None = None
-        self._truth: tuple[np.ndarray, np.ndarray] | None = None  # noise-free readings, sensordata
 
     def _bind_readings(self, readings: np.ndarray) -> None:
         """Make `readings` (nworld, len(_columns)) the array read() fills; `state` and
@@ -339,9 +338,7 @@ class BatchedSystem(SystemInterface):
         if self._lifecycle not in (S.INACTIVE, S.ACTIVE):
             return ReturnType.OK
         self._refresh()
-        noise = self.sensors.reading_noise
-        if noise is not None:
-            self._add_reading_noise(noise)
+        self.sensors.add_reading_noise(self._readings, self._sensor_host)
         return ReturnType.OK
 
     def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
@@ -420,6 +417,7 @@ class BatchedSystem(SystemInterface):
         self._upload_ctrl()
         self.status[sel] = 0
         self._refresh()
+        self.sensors.add_reading_noise(self._readings, self._sensor_host)
 
     # --- cameras, lidars and sensor noise (batchsim.sensors) ---
     @property
@@ -430,12 +428,8 @@ class BatchedSystem(SystemInterface):
         return self._sensors
 
     def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
-        """Configure cameras, lidars and noise: a SensorConfig, a YAML file (mujoco_ros2_control's
-        plugin parameters and/or batchsim's `sensors:` block) or its parsed mapping.
-
-        Only before configure() (UNCONFIGURED). Raises SensorConfigError naming the file and
-        key for a bad value or a name the model lacks.
-        """
+        """Configure cameras, lidars and noise (batchsim.sensors.config: a SensorConfig, YAML file or
+        mapping), before configure(). Raises SensorConfigError naming the file and key at fault."""
         self._require("set the sensor configuration", frozenset({S.UNKNOWN, S.UNCONFIGURED}))
         if not isinstance(config, SensorConfig):
             config = SensorConfig.load(config)
@@ -445,45 +439,31 @@ class BatchedSystem(SystemInterface):
     @property
     def true_state(self) -> np.ndarray:
         """(nworld, nstate) float64: `state` without sensor noise; `state` itself when there is none."""
-        if self._truth is None:
-            return self.state
-        return self._truth[0][:, : len(self.spec.state)]
+        truth = self._truth()
+        return self.state if truth is None else truth[0][:, : len(self.spec.state)]
 
     @property
     def true_sensordata(self) -> SensorData:
         """Every MJCF sensor by name without noise, (nworld, dim); `sensordata` when there is none."""
-        if self._truth is None:
+        truth = self._truth()
+        if truth is None:
             return self.sensordata
-        return SensorData({s.name: self._truth[1][:, s.adr : s.adr + s.dim] for s in self.spec.sensors})
+        return SensorData({s.name: truth[1][:, s.adr : s.adr + s.dim] for s in self.spec.sensors})
 
-    def _add_reading_noise(self, noise: Any) -> None:
-        """Keep the noise-free readings, then add the configured noise to state and sensordata."""
-        if self._truth is None:
-            self._truth = (np.empty_like(self._readings), np.empty_like(self._sensor_host))
-            cols = [i for i, c in enumerate(self.spec.state) if c.source == "sensordata"]
-            self._from_sensordata = (np.array(cols, np.intp), np.array([self.spec.state[i].index for i in cols], np.intp))
-        np.copyto(self._truth[0], self._readings)
-        np.copyto(self._truth[1], self._sensor_host)
-        ticks = self.sensors.next_ticks("<readings>", np.arange(self.nworld))
-        noise.apply(self.state, self._sensor_host, self._from_sensordata, ticks)
+    def _truth(self) -> tuple[np.ndarray, np.ndarray] | None:
+        noise = self.sensors.reading_noise
+        return None if noise is None else noise.truth
 
     def render(
         self, camera: str, worlds: Sequence[int] | np.ndarray | None = None, *, device: bool = False, copy: bool = True
     ) -> Frames:
-        """Render `camera` in all or the listed worlds, showing the current state.
+        """Render `camera` in all or the listed worlds (indices or a bool mask), at the current state.
 
-        Args:
-          camera: the MJCF camera's name.
-          worlds: world indices or a (nworld,) bool mask; None: every world.
-          device: return the backend's own arrays without a host copy (Warp arrays on warp,
-            JAX arrays on mjx, NumPy on cpu), for every world (`worlds` must be None), and
-            without depth noise.
-          copy: False may return views of buffers the next render of this camera overwrites.
-
-        Returns:
-          Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32): top row first, depth in
-          metres along the optical axis, +inf where nothing was hit, NaN where noise dropped
-          a pixel; n is the number of worlds, in ascending order.
+        Returns Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32) for the n worlds in
+        ascending order: top row first, depth in metres along the optical axis, +inf where
+        nothing was hit, NaN where noise dropped a pixel. `device=True` returns the backend's
+        own arrays for every world without a host copy or noise (Warp arrays on warp, JAX on
+        mjx, NumPy on cpu); `copy=False` may return buffers the next render overwrites.
         """
         self._require("render", frozenset({S.INACTIVE, S.ACTIVE}))
         cam = self.sensors.camera(camera)
@@ -496,35 +476,27 @@ class BatchedSystem(SystemInterface):
         rgb, depth = self._render_frames(cam, sel)
         if copy:
             rgb, depth = rgb.copy(), depth.copy()
-        noise = self.sensors.noise(cam.name)
-        if noise is not None and len(sel):
-            noise.apply(depth, sel, self.sensors.next_ticks(cam.name, sel))
+        self.sensors.add_noise(cam.name, depth, sel)
         return Frames(rgb, depth)
 
     def scan(self, lidar: str, worlds: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
-        """One scan of `lidar` in all or the listed worlds.
+        """One scan of `lidar` in all or the listed worlds: (n, nray) float32 ranges in metres, REP 117
+        (+inf: no hit within range_max, -inf: closer than range_min, NaN: dropped by noise).
 
         Rangefinder lidars read the MJCF rangefinders (as of the last step, like every
         sensor); the others cast their rays now, at the current state.
-
-        Returns:
-          (n, nray) float32 ranges in metres, REP 117: +inf where a ray hit nothing within
-          range_max, -inf closer than range_min, NaN where noise dropped it. Ray (row e,
-          column a) is column e * ncol + a of `sensors.lidar(name)`.
         """
         self._require("scan", frozenset({S.INACTIVE, S.ACTIVE}))
         ld = self.sensors.lidar(lidar)
         rows = self._worlds(worlds)
         sel = np.arange(self.nworld) if rows is None else rows
         if ld.kind is LidarKind.RANGEFINDER:
-            truth = self._sensor_host if self._truth is None else self._truth[1]
-            distance = truth[np.ix_(sel, ld.sensor_adr)]
+            truth = self._truth()
+            distance = (self._sensor_host if truth is None else truth[1])[np.ix_(sel, ld.sensor_adr)]
         else:
             distance = self._cast_rays(ld, sel)
         ranges = ld.ranges(distance)
-        noise = self.sensors.noise(ld.name)
-        if noise is not None and len(sel):
-            noise.apply(ranges, sel, self.sensors.next_ticks(ld.name, sel))
+        self.sensors.add_noise(ld.name, ranges, sel)
         return ranges
 
     # sensor hooks, one set per backend

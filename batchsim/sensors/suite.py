@@ -35,42 +35,41 @@ DEFAULT_CAMERA_RATE = 5.0  # Hz, mujoco_ros2_control's camera_publish_rate defau
 DEFAULT_LIDAR_RATE = 10.0  # Hz
 
 
-@dataclasses.dataclass
 class ReadingNoise:
-    """Noise on what read() returns, one stream over every noisy value.
+    """Noise on what read() returns, one stream over every noisy value, and the truth beside it.
 
-    Attributes:
+    Args:
       stream: the noise of the noisy values, state columns first, then sensordata elements.
       state: state column indices (those not read from sensordata).
       sensordata: sensordata indices; the state columns read from sensordata follow them.
+      from_sensordata: (state columns, sensordata indices) of the state interfaces that are
+        sensor readings: they get the same noisy values as sensordata.
     """
 
-    stream: NoiseStream
-    state: np.ndarray
-    sensordata: np.ndarray
+    def __init__(
+        self, stream: NoiseStream, state: np.ndarray, sensordata: np.ndarray, from_sensordata: tuple[np.ndarray, np.ndarray]
+    ):
+        self.stream = stream
+        self.state = state
+        self.sensordata = sensordata
+        self.from_sensordata = from_sensordata
+        self.truth: tuple[np.ndarray, np.ndarray] | None = None  # the last readings and sensordata, noise-free
 
-    def apply(
-        self,
-        state: np.ndarray,
-        sensordata: np.ndarray,
-        from_sensordata: tuple[np.ndarray, np.ndarray],
-        ticks: np.ndarray,
-    ) -> None:
-        """Add the noise to every world's `state` (nworld, nstate) and `sensordata` (nworld, nsensordata).
-
-        Args:
-          from_sensordata: (state columns, sensordata indices) of the state interfaces that
-            are sensor readings: they get the same noisy values as sensordata.
-          ticks: (nworld,) each world's reading counter.
-        """
-        offsets = self.stream.offsets(np.arange(len(state)), ticks)
+    def apply(self, readings: np.ndarray, sensordata: np.ndarray, ticks: np.ndarray) -> None:
+        """Keep the noise-free `readings` (nworld, ncolumn) and `sensordata` (nworld, nsensordata),
+        then add the noise to them in place; ticks (nworld,) are each world's reading counters."""
+        if self.truth is None:
+            self.truth = (np.empty_like(readings), np.empty_like(sensordata))
+        np.copyto(self.truth[0], readings)
+        np.copyto(self.truth[1], sensordata)
+        offsets = self.stream.offsets(np.arange(len(readings)), ticks)
         k = len(self.state)
         if k:
-            state[:, self.state] += offsets[:, :k]
+            readings[:, self.state] += offsets[:, :k]
         if len(self.sensordata):
             sensordata[:, self.sensordata] += offsets[:, k:]
-            cols, idx = from_sensordata
-            state[:, cols] = sensordata[:, idx]
+            cols, idx = self.from_sensordata
+            readings[:, cols] = sensordata[:, idx]
 
 
 class SensorSuite:
@@ -123,16 +122,23 @@ class SensorSuite:
         except KeyError:
             raise KeyError(f"no lidar named {name!r}; lidars: {', '.join(self.lidars) or 'none'}") from None
 
-    def noise(self, name: str) -> NoiseStream | None:
-        """The noise stream of a camera's depth or a lidar's ranges, or None."""
-        return self._sensor_noise.get(name)
-
     def next_ticks(self, name: str, worlds: np.ndarray) -> np.ndarray:
         """The reading counters of `worlds` for sensor `name`, then advance them."""
         ticks = self._ticks[name]
         out = ticks[worlds].copy()
         ticks[worlds] += np.uint64(1)
         return out
+
+    def add_noise(self, name: str, values: np.ndarray, worlds: np.ndarray) -> None:
+        """Add camera `name`'s depth noise, or lidar `name`'s range noise, to `values` (n, ...) in place."""
+        stream = self._sensor_noise.get(name)
+        if stream is not None and len(worlds):
+            stream.apply(values, worlds, self.next_ticks(name, worlds))
+
+    def add_reading_noise(self, readings: np.ndarray, sensordata: np.ndarray) -> None:
+        """Add the noise on state and sensordata (read() calls it), keeping the truth in `reading_noise.truth`."""
+        if self.reading_noise is not None:
+            self.reading_noise.apply(readings, sensordata, self.next_ticks("<readings>", np.arange(self.nworld)))
 
     # --- demand ---
     def want(self, name: str, worlds: Sequence[int] | np.ndarray | None = None, wanted: bool = True) -> None:
@@ -444,10 +450,12 @@ def _reading_noise(spec: RobotSpec, config: SensorConfig, used: set[str], where:
     if not state and not elements:
         return None
     per_value = [*state.values(), *elements.values()]
+    readings = [i for i, c in enumerate(spec.state) if c.source == "sensordata"]
     return ReadingNoise(
         NoiseStream(per_value, config.seed, "readings", len(per_value)),
         np.array(list(state), np.intp),
         np.array(list(elements), np.intp),
+        (np.array(readings, np.intp), np.array([spec.state[i].index for i in readings], np.intp)),
     )
 
 
