@@ -1,8 +1,10 @@
 """Loading an MJCF: shipped models by name, files, strings; the `mujoco.ros2` extension block.
 
-Two XML blocks that MuJoCo itself does not know are read and removed before compiling:
-`<extension><plugin plugin="mujoco.ros2">` (its config keys are kept in `RobotSpec.ros`)
-and `<ros2_control>` (handed to `batchsim.model.ros2_control`). File references are then
+XML blocks that MuJoCo itself does not know are read and removed before compiling:
+`<extension><plugin plugin="mujoco.ros2">` (its config keys are kept in `RobotSpec.ros`),
+`<ros2_control>` (handed to `batchsim.model.ros2_control`), and mujoco_ros2_control's lidar
+declarations, `<lidar>` and `mujoco.plugin.lidar` (kept in `RobotSpec.sensor_declarations`,
+see `batchsim.sensors.mjcf`). File references are then
 made absolute, since the stripped XML is compiled from a string.
 """
 

@@ -54,6 +54,8 @@ _RANGEFINDER_KEYS = ("frame_name", "min_angle", "max_angle", "angle_increment", 
 _LIDAR3D_KEYS = ("frame_name", "topic")
 _DENSE_KEYS = ("site", "horizontal", "vertical", "range_min", "range_max", "frame_name", "topic", "rate")
 _AXIS_KEYS = ("samples", "min_angle", "max_angle")
+_NUMBER_KEYS = frozenset({"min_angle", "max_angle", "angle_increment", "range_min", "range_max"})
+_SIZE_KEYS = frozenset({"width", "height"})
 _BLOCK_KEYS = ("seed", "camera_rate", "lidar_rate", "camera_resolution", "cameras", "lidars", "noise")
 
 
@@ -311,21 +313,14 @@ def _settings(cls: type, keys: tuple[str, ...], value: Any, where: str) -> Any:
     unknown = sorted(set(value) - set(keys))
     if unknown:
         raise SensorConfigError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(keys)})")
-    fields = {f.name: f.type for f in dataclasses.fields(cls)}
+    fields = {f.name for f in dataclasses.fields(cls)}
     out: dict[str, Any] = {}
     for key, raw in value.items():
         if key not in fields:  # read for compatibility, not used (trigger_service_name)
             continue
-        kind = fields[key]
-        if "float" in kind:
-            try:
-                number = float(raw)  # mujoco_ros2_control gives some as strings ("0.025")
-            except (TypeError, ValueError):
-                raise SensorConfigError(f"{where}.{key}: must be a number, got {raw!r}") from None
-            if not math.isfinite(number):
-                raise SensorConfigError(f"{where}.{key}: must be finite, got {raw!r}")
-            out[key] = number
-        elif "int" in kind:
+        if key in _NUMBER_KEYS:
+            out[key] = _number(raw, f"{where}.{key}")  # mujoco_ros2_control gives some as strings ("0.025")
+        elif key in _SIZE_KEYS:
             if not isinstance(raw, int) or isinstance(raw, bool) or not 1 <= raw <= 8192:
                 raise SensorConfigError(f"{where}.{key}: must be an integer in 1..8192, got {raw!r}")
             out[key] = raw

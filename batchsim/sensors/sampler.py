@@ -21,7 +21,8 @@ if TYPE_CHECKING:
 
 @dataclasses.dataclass(frozen=True)
 class Sample:
-    """One sensor's output for some worlds at one sim time.
+    """One sensor's output for some worlds at one sim time; the arrays may be buffers that the
+    sensor's next sample overwrites (copy them to keep them).
 
     Attributes:
       name: the camera or lidar.
@@ -75,7 +76,7 @@ class SensorSampler:
             self._due[name] = due if due > time else time + every
             worlds = np.flatnonzero(mask)
             if name in suite.cameras:
-                rgb, depth = sim.render(name, worlds)
+                rgb, depth = sim.render(name, worlds, copy=False)
                 sample = Sample(name, time, worlds, rgb=rgb, depth=depth)
             else:
                 sample = Sample(name, time, worlds, ranges=sim.scan(name, worlds))
