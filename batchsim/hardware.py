@@ -243,6 +243,8 @@ class BatchedSystem(SystemInterface):
     name: ClassVar[str] = ""
     #: keyword options the backend's constructor takes, with their defaults
     OPTIONS: ClassVar[dict[str, Any]] = {}
+    #: whether one render or scan covers every world at the cost of any subset (one GPU launch)
+    sensors_batched: ClassVar[bool] = False
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__()

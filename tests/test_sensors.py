@@ -235,8 +235,9 @@ def test_noise_is_off_by_default():
 # ---------------------------------------------------------------- who wants what
 
 
-def test_a_camera_nobody_wants_costs_nothing(monkeypatch):
-    sim = batchsim.make(str(SCENE), 3, "cpu", sensors={"sensors": {"camera_rate": 50, "lidar_rate": 50}})
+@pytest.mark.parametrize("backend", ["cpu", "warp"])  # worlds spread over periods; all in one launch
+def test_a_camera_nobody_wants_costs_nothing(monkeypatch, backend):
+    sim = batchsim.make(str(SCENE), 3, backend, sensors={"sensors": {"camera_rate": 50, "lidar_rate": 50}})
     sim.configure()
     sim.activate()
     calls = []
@@ -252,11 +253,15 @@ def test_a_camera_nobody_wants_costs_nothing(monkeypatch):
     sim.sensors.want("scan", [0, 1])
     for k in range(10, 20):
         sampler.update(sim, k * period, period)
-    # 50 Hz at a 100 Hz loop: every other period, only for the worlds that want it
-    assert calls.count("front") == 5 and calls.count("scan") == 5 and calls.count("pinhole") == 0
+    # 50 Hz at a 100 Hz loop: each world every other period, only the worlds that want it; on
+    # cpu spread over the periods (world 0's scans in even periods, world 1's in odd ones), on
+    # warp both worlds in one launch
+    spread = not sim.sensors_batched
+    assert calls.count("front") == 5 and calls.count("pinhole") == 0
+    assert calls.count("scan") == (10 if spread else 5)
     assert sampler.produced["front"] == 5 and sampler.produced["scan"] == 10
     assert list(sampler.latest["front"].worlds) == [2] and sampler.latest["front"].rgb.shape == (1, 24, 32, 3)
-    assert sampler.latest["scan"].ranges.shape == (2, 5)
+    assert sampler.latest["scan"].ranges.shape == ((1, 5) if spread else (2, 5))
     sim.sensors.unwant("front")
     calls.clear()
     for k in range(20, 30):

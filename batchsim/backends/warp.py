@@ -505,6 +505,7 @@ class WarpSystem(BatchedSystem):
         return {f: getattr(d, f) for f in ("qpos", "qvel", "qfrc_actuator", "sensordata", "ctrl", "time")}
 
     # --- cameras and lidars: MuJoCo Warp's ray-traced rendering and ray casting ---
+    sensors_batched: ClassVar[bool] = True  # every world in one launch, whichever are asked for
     _render_contexts: dict[str, Any] | None = None  # per camera: (render context, rgb, depth, host rgb, host depth)
     _lidar_buffers: dict[str, Any] | None = None  # per lidar: its rays and results, on the device and host
 

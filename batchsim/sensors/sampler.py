@@ -5,6 +5,14 @@ lidar rate) that is due and wanted in some world (`SensorSuite.want`), it render
 those worlds only, keeps the result as the sensor's latest `Sample`, and hands it to the
 listeners (the ROS bridge's publishers, in its second phase). A sensor nobody wants costs
 one mask test per period.
+
+Where a render or scan costs in proportion to the worlds it covers (cpu, mjx), the worlds
+are spread over the sensor's period: with a 10 Hz camera and a 100 Hz loop, world w is
+rendered in the periods k with k % 10 == w % 10, so no period carries the whole fleet's
+images (its worst period, not only its mean, stays in budget). Where one launch covers
+every world at the same cost (warp: `BatchedSystem.sensors_batched`), all wanted worlds are
+produced together. Either way each world's sensor runs at its rate, rounded to a whole
+number of control periods when spread.
 """
 
 from __future__ import annotations
@@ -61,26 +69,36 @@ class SensorSampler:
         self._period = {name: 1.0 / suite.camera_rate for name in suite.cameras}
         self._period.update({name: 1.0 / (ld.rate or suite.lidar_rate) for name, ld in suite.lidars.items()})
         self._due = dict.fromkeys(self._period, 0.0)
+        self._spread = not sim.sensors_batched
+        self._world = np.arange(sim.nworld)
 
     def update(self, sim: BatchedSystem, time: float, period: float) -> None:
         suite = sim.sensors
         for name, every in self._period.items():
-            # due once a sensor period has elapsed; half a control period of slack absorbs rounding
-            if time + 0.5 * period < self._due[name]:
-                continue
             mask = suite.wanted(name)
             if not mask.any():
                 continue
-            # the next reading one sensor period on; after idling or falling behind, from now
-            due = self._due[name] + every
-            self._due[name] = due if due > time else time + every
-            worlds = np.flatnonzero(mask)
-            if name in suite.cameras:
-                rgb, depth = sim.render(name, worlds, copy=False)
-                sample = Sample(name, time, worlds, rgb=rgb, depth=depth)
+            if self._spread:
+                phases = max(1, round(every / period))
+                mask = mask & (self._world % phases == round(time / period) % phases)
+                if not mask.any():
+                    continue
             else:
-                sample = Sample(name, time, worlds, ranges=sim.scan(name, worlds))
-            self.produced[name] += len(worlds)
-            self.latest[name] = sample
-            for listener in self.listeners:
-                listener(sample)
+                # due once a sensor period has elapsed; half a control period of slack absorbs rounding
+                if time + 0.5 * period < self._due[name]:
+                    continue
+                # the next reading one sensor period on; after idling or falling behind, from now
+                due = self._due[name] + every
+                self._due[name] = due if due > time else time + every
+            self._produce(sim, name, np.flatnonzero(mask), time)
+
+    def _produce(self, sim: BatchedSystem, name: str, worlds: np.ndarray, time: float) -> None:
+        if name in sim.sensors.cameras:
+            rgb, depth = sim.render(name, worlds, copy=False)
+            sample = Sample(name, time, worlds, rgb=rgb, depth=depth)
+        else:
+            sample = Sample(name, time, worlds, ranges=sim.scan(name, worlds))
+        self.produced[name] += len(worlds)
+        self.latest[name] = sample
+        for listener in self.listeners:
+            listener(sample)
