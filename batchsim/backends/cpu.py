@@ -118,7 +118,6 @@ class CpuSystem(BatchedSystem):
 
     # --- cameras and lidars: MuJoCo's renderer and the batch's threaded ray casting ---
     _host: HostSensors | None = None  # made on the first render or scan
-    _frames: dict[str, tuple[np.ndarray, np.ndarray]] | None = None  # per camera, every world's images
 
     def _host_sensors(self) -> HostSensors:
         if self._host is None:
@@ -126,16 +125,7 @@ class CpuSystem(BatchedSystem):
         return self._host
 
     def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if self._frames is None:
-            self._frames = {}
-        if camera.name not in self._frames:  # filled from the first row: a call for n worlds uses n rows
-            self._frames[camera.name] = (
-                np.empty((self.nworld, camera.height, camera.width, 3), np.uint8),
-                np.empty((self.nworld, camera.height, camera.width), np.float32),
-            )
-        rgb, depth = (a[: len(worlds)] for a in self._frames[camera.name])
-        self._host_sensors().render(camera, worlds, rgb, depth)
-        return rgb, depth
+        return self._host_sensors().frames(camera, worlds)
 
     def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
         return self._host_sensors().cast(lidar, worlds)
@@ -143,4 +133,4 @@ class CpuSystem(BatchedSystem):
     def _close_sensors(self) -> None:
         if self._host is not None:
             self._host.close()
-        self._host = self._frames = None
+            self._host = None

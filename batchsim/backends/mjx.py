@@ -300,7 +300,6 @@ class MjxSystem(BatchedSystem):
 
     # --- cameras and lidars: through a host copy of the worlds (MuJoCo's renderer, mujoco.batch rays) ---
     _host: HostSensors | None = None  # made on the first render or scan
-    _frames: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
 
     def _host_copy(self) -> HostSensors:
         """The host mirror, its state rows filled from the device: one download of qpos and mocap."""
@@ -314,16 +313,7 @@ class MjxSystem(BatchedSystem):
         return self._host
 
     def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if self._frames is None:
-            self._frames = {}
-        if camera.name not in self._frames:
-            self._frames[camera.name] = (
-                np.empty((self.nworld, camera.height, camera.width, 3), np.uint8),
-                np.empty((self.nworld, camera.height, camera.width), np.float32),
-            )
-        rgb, depth = (a[: len(worlds)] for a in self._frames[camera.name])
-        self._host_copy().render(camera, worlds, rgb, depth)
-        return rgb, depth
+        return self._host_copy().frames(camera, worlds)
 
     def _device_frames(self, camera: Camera) -> tuple[jax.Array, jax.Array]:
         """Every world's images, rendered on the host and put on this system's device."""
@@ -336,8 +326,7 @@ class MjxSystem(BatchedSystem):
     def _close_sensors(self) -> None:
         if self._host is not None:
             self._host.close()
-        self._host = self._frames = None
-
+            self._host = None
 
 def _feature(e: NotImplementedError) -> str:
     return str(e).strip().rstrip(".") or type(e).__name__

@@ -124,6 +124,20 @@ class HostSensors:
         self.batch = batch
         self._data = mujoco.MjData(m)
         self._renderer: _Renderer | None = None
+        self._frames: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # per camera, a row per world
+
+    def frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Render `camera` in `worlds` into this object's buffers: (n, H, W, 3) uint8 and (n, H, W)
+        float32 views, which the next call for this camera overwrites."""
+        if camera.name not in self._frames:  # filled from the first row: a call for n worlds uses n rows
+            nsim = self.batch.nsim
+            self._frames[camera.name] = (
+                np.empty((nsim, camera.height, camera.width, 3), np.uint8),
+                np.empty((nsim, camera.height, camera.width), np.float32),
+            )
+        rgb, depth = (a[: len(worlds)] for a in self._frames[camera.name])
+        self.render(camera, worlds, rgb, depth)
+        return rgb, depth
 
     def close(self) -> None:
         if self._renderer is not None:
