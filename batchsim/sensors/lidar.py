@@ -28,6 +28,8 @@ import re
 import mujoco
 import numpy as np
 
+from batchsim.sensors.config import SensorConfigError
+
 DEFAULT_RANGE_MAX = 1000.0  # mujoco_ros2_control's default
 
 
@@ -187,10 +189,6 @@ def group_geometry(
     return frame, dirs, float(angles[0]), float(angles[-1]), increment
 
 
-def site_body(m: mujoco.MjModel, site: int) -> int:
-    return int(m.site_bodyid[site])
-
-
 def check_range(name: str, range_min: float, range_max: float, where: str) -> None:
     if not (math.isfinite(range_min) and math.isfinite(range_max)) or not 0 <= range_min < range_max:
-        raise ValueError(f"{where}: lidar {name!r}: need 0 <= range_min < range_max, got {range_min:g}, {range_max:g}")
+        raise SensorConfigError(f"{where}: lidar {name!r}: need 0 <= range_min < range_max, got {range_min:g}, {range_max:g}")

@@ -283,7 +283,7 @@ def _lidars(m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, w
                 kind=lid.LidarKind.RANGEFINDER,
                 site=m.site(frame).name,
                 site_id=frame,
-                body_id=lid.site_body(m, group.sites[0]),
+                body_id=int(m.site_bodyid[group.sites[0]]),
                 directions=dirs,
                 ncol=len(group.sensors),
                 nrow=1,
@@ -316,7 +316,7 @@ def _lidars(m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, w
                 kind=lid.LidarKind.RAYCAST,
                 site=el.ref_site,
                 site_id=sid,
-                body_id=lid.site_body(m, sid),  # as the rangefinders it stands for
+                body_id=int(m.site_bodyid[sid]),  # as the rangefinders it stands for
                 directions=lid.fan(angles, [0.0]),
                 ncol=len(angles),
                 nrow=1,
@@ -380,7 +380,7 @@ def _lidars(m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, w
                 kind=lid.LidarKind.RAYCAST,
                 site=d.site,
                 site_id=sid,
-                body_id=lid.site_body(m, sid),
+                body_id=int(m.site_bodyid[sid]),
                 directions=lid.fan(azimuth, elevation),
                 ncol=d.horizontal.samples,
                 nrow=d.vertical.samples,
