@@ -10,7 +10,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +29,7 @@ from batchsim.hardware import (
     SystemInterface,
 )
 from batchsim.model import ModelError, RobotSpec, load, model_names
+from batchsim.sensors import SensorConfig, SensorConfigError
 
 __all__ = [
     "Backend",
@@ -41,6 +42,8 @@ __all__ = [
     "ModelError",
     "ReturnType",
     "RobotSpec",
+    "SensorConfig",
+    "SensorConfigError",
     "Status",
     "SystemInterface",
     "load",
@@ -56,6 +59,7 @@ def make(
     *,
     ros2_control: str | Path | None = None,
     devices: Sequence[int | str] | str | None = None,
+    sensors: SensorConfig | str | Path | Mapping[str, Any] | None = None,
     **options: Any,
 ) -> BatchedSystem:
     """Build `nworld` worlds of `model` on `backend`, initialized (UNCONFIGURED).
@@ -70,6 +74,9 @@ def make(
         or a list of device indices (0, 1: the backend's GPUs in order) or names ("cuda:1",
         "cpu"). The worlds are split into contiguous ranges, one per device, behind the one
         contract (batchsim/backends/sharded.py). None: one device (the `device` option).
+      sensors: cameras, lidars and sensor noise (batchsim.sensors.config): a SensorConfig, a
+        YAML file (mujoco_ros2_control's plugin parameters and/or batchsim's `sensors:`
+        block) or its parsed mapping. None: the model's cameras and lidars, no noise.
       **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `device`, `graph`
         for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
         runs: always so on cpu, slower on a GPU). With "auto", those the chosen backend does
@@ -93,11 +100,15 @@ def make(
             sim = ShardedSystem(cls, spec, nworld, chosen_devices, **options)
             sim.reason = f"{reason}; {len(chosen_devices)} devices: {', '.join(map(str, chosen_devices))}"
             sim.initialize()
+            if sensors is not None:
+                sim.set_sensor_config(sensors)
             return sim
         options = {**options, "device": chosen_devices[0]}
     sim = cls(spec, nworld, **options)
     sim.reason = reason
     sim.initialize()
+    if sensors is not None:
+        sim.set_sensor_config(sensors)
     return sim
 
 

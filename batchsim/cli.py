@@ -23,6 +23,7 @@ from batchsim.controllers import ControllerManager, default_controllers, load_co
 from batchsim.hardware import BatchedSystem, ConfigurationError, LifecycleError
 from batchsim.loop import SimLoop, format_stats
 from batchsim.model import ModelError, model_names
+from batchsim.sensors import SensorConfig, SensorSuite
 
 EXIT_USAGE = 2
 
@@ -75,6 +76,17 @@ def run_parser() -> argparse.ArgumentParser:
     ros.add_argument("--qos-depth", type=int, default=None, help="queue depth (default 10, or the MJCF's)")
     ros.add_argument("--reliability", choices=("reliable", "best_effort"), default=None)
     ros.add_argument("--command-timeout", type=float, default=None, help="seconds without commands before a world goes safe")
+    sens = p.add_argument_group("cameras, lidars and sensor noise")
+    sens.add_argument(
+        "--sensors",
+        action="append",
+        metavar="FILE",
+        help="mujoco_ros2_control plugin YAML and/or batchsim's `sensors:` block (noise, dense lidars); may repeat",
+    )
+    sens.add_argument("--camera-rate", type=float, default=None, help="Hz for camera images (default: the YAML's, else 5)")
+    sens.add_argument("--lidar-rate", type=float, default=None, help="Hz for lidar scans (default: the YAML's, else 10)")
+    sens.add_argument("--camera-resolution", default=None, metavar="WxH", help="every camera's image size (default: the MJCF's)")
+    sens.add_argument("--noise-seed", type=int, default=None, help="sensor noise seed (default: the YAML's, else 0)")
     p.add_argument(
         "--controllers",
         default=None,
@@ -116,11 +128,32 @@ def info(argv: Sequence[str]) -> int:
     out += [
         f"  {s.name:24s} {s.type:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors
     ]
+    out += sensor_lines(SensorSuite.build(spec, args.worlds))
     if spec.problems:
         out.append("\nproblems (configure will fail)")
         out += [f"  {p}" for p in spec.problems]
     print("\n".join(out))
     return 0
+
+
+def sensor_lines(suite: SensorSuite) -> list[str]:
+    """`batchsim info`'s cameras and lidars."""
+    out = []
+    if suite.cameras:
+        out.append(f"\ncameras ({len(suite.cameras)})")
+        out += [
+            f"  {c.name:24s} {c.width}x{c.height}  fx {c.info.fx:.1f} fy {c.info.fy:.1f}  "
+            f"-> {c.image_topic}, {c.depth_topic}, {c.info_topic}"
+            for c in suite.cameras.values()
+        ]
+    if suite.lidars:
+        out.append(f"\nlidars ({len(suite.lidars)})")
+        out += [
+            f"  {ld.name:24s} {ld.kind.value:11s} {ld.nrow}x{ld.ncol} rays from site {ld.site}, azimuth "
+            f"{ld.angle_min:+.3f}..{ld.angle_max:+.3f} rad, range {ld.range_min:g}..{ld.range_max:g} m -> {ld.topic}"
+            for ld in suite.lidars.values()
+        ]
+    return out
 
 
 def build(args: argparse.Namespace) -> BatchedSystem:
@@ -135,7 +168,14 @@ def build(args: argparse.Namespace) -> BatchedSystem:
     if args.devices is not None:
         names = [d.strip() for d in args.devices.split(",") if d.strip()]
         options["devices"] = "all" if names == ["all"] else [int(d) if d.isdigit() else d for d in names]
-    sim = batchsim.make(args.model, args.worlds, args.backend, ros2_control=args.ros2_control, **options)
+    sensors = SensorConfig.from_flags(
+        args.sensors,
+        camera_rate=args.camera_rate,
+        lidar_rate=args.lidar_rate,
+        camera_resolution=args.camera_resolution,
+        seed=args.noise_seed,
+    )
+    sim = batchsim.make(args.model, args.worlds, args.backend, ros2_control=args.ros2_control, sensors=sensors, **options)
     sim.configure()
     sim.activate()
     return sim

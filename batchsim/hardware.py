@@ -13,6 +13,9 @@ enforced here, once; an illegal transition raises `LifecycleError` naming the st
   `write` does nothing unless ACTIVE.
 - `step(nstep)`, `reset(worlds=None)`, `status` `(nworld,)` bitmask of `Status`,
   `sensordata[name]` `(nworld, dim)`, `time` `(nworld,)`.
+- `render(camera, worlds=None)` -> `(rgb (n, H, W, 3) uint8, depth (n, H, W) float32)`,
+  `scan(lidar, worlds=None)` -> `(n, nray) float32`, `sensors` (batchsim.sensors): cameras,
+  lidars and sensor noise; `true_state` / `true_sensordata` without the noise.
 
 A backend subclasses `BatchedSystem` and implements the engine hooks (`_open`, `_close`,
 `_upload_ctrl`, `_download`, `_step`, `_reset`); everything a user sees, checks and
@@ -23,11 +26,13 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar
+from pathlib import Path
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
 from batchsim.model import RobotSpec, StateColumn, initial_command
+from batchsim.sensors import Camera, Lidar, LidarKind, SensorConfig, SensorSuite
 
 
 class LifecycleState(enum.IntEnum):
@@ -210,6 +215,13 @@ class SensorData(Mapping[str, np.ndarray]):
         return len(self._views)
 
 
+class Frames(NamedTuple):
+    """What `render` returns: RGB (n, H, W, 3) uint8 and depth (n, H, W) float32, metres."""
+
+    rgb: Any
+    depth: Any
+
+
 class BatchedSystem(SystemInterface):
     """`nworld` copies of one robot behind ros2_control's SystemInterface.
 
@@ -231,6 +243,8 @@ class BatchedSystem(SystemInterface):
     name: ClassVar[str] = ""
     #: keyword options the backend's constructor takes, with their defaults
     OPTIONS: ClassVar[dict[str, Any]] = {}
+    #: whether one render or scan covers every world at the cost of any subset (one GPU launch)
+    sensors_batched: ClassVar[bool] = False
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__()
@@ -271,6 +285,8 @@ class BatchedSystem(SystemInterface):
         self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
         self._ctrl_cols = _as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster
         self._opened = False
+        self._sensor_config: SensorConfig | None = None
+        self._sensors: SensorSuite | None = None
 
     def _bind_readings(self, readings: np.ndarray) -> None:
         """Make `readings` (nworld, len(_columns)) the array read() fills; `state` and
@@ -293,6 +309,7 @@ class BatchedSystem(SystemInterface):
     def on_configure(self, previous_state: LifecycleState) -> CallbackReturn:
         if self.spec.problems:
             raise ConfigurationError(f"{self.spec.name}: " + "; ".join(self.spec.problems))
+        self.sensors  # noqa: B018  (resolved now, so that a bad lidar or noise name fails configure)
         if not self._opened:
             self._open()
             self._opened = True
@@ -313,6 +330,7 @@ class BatchedSystem(SystemInterface):
 
     def _release(self) -> None:
         if self._opened:
+            self._close_sensors()
             self._close()
             self._opened = False
 
@@ -322,6 +340,7 @@ class BatchedSystem(SystemInterface):
         if self._lifecycle not in (S.INACTIVE, S.ACTIVE):
             return ReturnType.OK
         self._refresh()
+        self.sensors.add_reading_noise(self._readings, self._sensor_host)
         return ReturnType.OK
 
     def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
@@ -400,6 +419,103 @@ class BatchedSystem(SystemInterface):
         self._upload_ctrl()
         self.status[sel] = 0
         self._refresh()
+        self.sensors.add_reading_noise(self._readings, self._sensor_host)
+
+    # --- cameras, lidars and sensor noise (batchsim.sensors) ---
+    @property
+    def sensors(self) -> SensorSuite:
+        """The cameras, lidars and sensor noise of every world, and which worlds want each."""
+        if self._sensors is None:
+            self._sensors = SensorSuite.build(self.spec, self.nworld, self._sensor_config)
+        return self._sensors
+
+    def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
+        """Configure cameras, lidars and noise (batchsim.sensors.config: a SensorConfig, YAML file or
+        mapping), before configure(). Raises SensorConfigError naming the file and key at fault."""
+        self._require("set the sensor configuration", frozenset({S.UNKNOWN, S.UNCONFIGURED}))
+        if not isinstance(config, SensorConfig):
+            config = SensorConfig.load(config)
+        self._sensors = SensorSuite.build(self.spec, self.nworld, config)
+        self._sensor_config = config
+
+    @property
+    def true_state(self) -> np.ndarray:
+        """(nworld, nstate) float64: `state` without sensor noise; `state` itself when there is none."""
+        truth = self._truth()
+        return self.state if truth is None else truth[0][:, : len(self.spec.state)]
+
+    @property
+    def true_sensordata(self) -> SensorData:
+        """Every MJCF sensor by name without noise, (nworld, dim); `sensordata` when there is none."""
+        truth = self._truth()
+        if truth is None:
+            return self.sensordata
+        return SensorData({s.name: truth[1][:, s.adr : s.adr + s.dim] for s in self.spec.sensors})
+
+    def _truth(self) -> tuple[np.ndarray, np.ndarray] | None:
+        noise = self.sensors.reading_noise
+        return None if noise is None else noise.truth
+
+    def render(
+        self, camera: str, worlds: Sequence[int] | np.ndarray | None = None, *, device: bool = False, copy: bool = True
+    ) -> Frames:
+        """Render `camera` in all or the listed worlds (indices or a bool mask), at the current state.
+
+        Returns Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32) for the n worlds in
+        ascending order: top row first, depth in metres along the optical axis, +inf where
+        nothing was hit, NaN where noise dropped a pixel. `device=True` returns the backend's
+        own arrays for every world without a host copy or noise (Warp arrays on warp, JAX on
+        mjx, NumPy on cpu); `copy=False` may return buffers the next render overwrites.
+        """
+        self._require("render", frozenset({S.INACTIVE, S.ACTIVE}))
+        cam = self.sensors.camera(camera)
+        if device:
+            if worlds is not None:
+                raise ValueError("render(device=True) renders every world: leave worlds=None and index on the device")
+            return Frames(*self._device_frames(cam))
+        rows = self._worlds(worlds)
+        sel = np.arange(self.nworld) if rows is None else rows
+        rgb, depth = self._render_frames(cam, sel)
+        if copy:
+            rgb, depth = rgb.copy(), depth.copy()
+        self.sensors.add_noise(cam.name, depth, sel)
+        return Frames(rgb, depth)
+
+    def scan(self, lidar: str, worlds: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
+        """One scan of `lidar` in all or the listed worlds: (n, nray) float32 ranges in metres, REP 117
+        (+inf: no hit within range_max, -inf: closer than range_min, NaN: dropped by noise).
+
+        Rangefinder lidars read the MJCF rangefinders (as of the last step, like every
+        sensor); the others cast their rays now, at the current state.
+        """
+        self._require("scan", frozenset({S.INACTIVE, S.ACTIVE}))
+        ld = self.sensors.lidar(lidar)
+        rows = self._worlds(worlds)
+        sel = np.arange(self.nworld) if rows is None else rows
+        if ld.kind is LidarKind.RANGEFINDER:
+            truth = self._truth()
+            distance = (self._sensor_host if truth is None else truth[1])[np.ix_(sel, ld.sensor_adr)]
+        else:
+            distance = self._cast_rays(ld, sel)
+        ranges = ld.ranges(distance)
+        self.sensors.add_noise(ld.name, ranges, sel)
+        return ranges
+
+    # sensor hooks, one set per backend
+    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds` (may be views)."""
+        raise NotImplementedError(f"the {self.name} backend cannot render cameras")
+
+    def _device_frames(self, camera: Camera) -> tuple[Any, Any]:
+        """The backend's own (nworld, H, W, 3) uint8 and (nworld, H, W) float32 arrays of `camera`."""
+        return self._render_frames(camera, np.arange(self.nworld))
+
+    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        """(n, nray) distances along `lidar`'s rays in `worlds` at the current state; < 0: no hit."""
+        raise NotImplementedError(f"the {self.name} backend cannot cast lidar rays")
+
+    def _close_sensors(self) -> None:
+        """Free renderers and ray-casting buffers (before _close)."""
 
     # --- parked worlds: for engines that step every world (GPU backends) ---
     def _init_parking(self) -> None:

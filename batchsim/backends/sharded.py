@@ -13,18 +13,23 @@ the commands; the loop, controllers and bridge see one system and never the devi
 
 A shard is an ordinary backend system of its device: it checks its worlds' commands,
 freezes its diverged worlds and grows its own buffers; its status rows are the fleet's.
+Cameras and lidars render and cast on each shard; sensor noise is the fleet's, seeded by
+fleet world numbers, so a world's noise does not depend on how many devices there are.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
 from batchsim.hardware import BatchedSystem, CallbackReturn, LifecycleState, ReturnType
 from batchsim.model import RobotSpec
+from batchsim.sensors import Camera, Lidar, SensorConfig
 
 
 def split(nworld: int, nshard: int) -> list[range]:
@@ -95,6 +100,7 @@ class ShardedSystem(BatchedSystem):
             for rows, device in zip(self.world_ranges, self.devices, strict=True)
         ]
         self.options = dict(self.shards[0].options, device=self.devices)
+        self.sensors_batched = self.shards[0].sensors_batched
         self._pool = ThreadPoolExecutor(len(self.shards), thread_name_prefix="batchsim-shard")
         self._stepped: set[int] = set()  # period lengths every shard has compiled or captured
 
@@ -148,6 +154,7 @@ class ShardedSystem(BatchedSystem):
         for shard in self.shards:
             shard.read(time, period)
         self._collect()
+        self.sensors.add_reading_noise(self._readings, self._sensor_host)
         return ReturnType.OK
 
     def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
@@ -189,6 +196,7 @@ class ShardedSystem(BatchedSystem):
             else:
                 shard.read()  # reset refreshes every world's readings, as on one device
         self._collect()
+        self.sensors.add_reading_noise(self._readings, self._sensor_host)
 
     def device_arrays(self) -> dict[str, PerDevice]:
         """The live device arrays of every shard (see the backend's device_arrays), field by
@@ -196,6 +204,39 @@ class ShardedSystem(BatchedSystem):
         `np.asarray(arrays["qpos"])` copies the whole fleet's to the host."""
         parts = [shard.device_arrays() for shard in self.shards]
         return {field: PerDevice([p[field] for p in parts]) for field in parts[0]}
+
+    # --- cameras, lidars, noise: rendered on the shards, noise added by the fleet ---
+    def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
+        super().set_sensor_config(config)
+        quiet = dataclasses.replace(self._sensor_config, noise={})  # the fleet adds the noise
+        for shard in self.shards:
+            shard.set_sensor_config(quiet)
+
+    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        parts = [shard.render(camera.name, local) for shard, local in self._split(worlds)]
+        return np.concatenate([p.rgb for p in parts]), np.concatenate([p.depth for p in parts])
+
+    def _device_frames(self, camera: Camera) -> tuple[PerDevice, PerDevice]:
+        parts = [shard.render(camera.name, device=True) for shard in self.shards]
+        return PerDevice([p.rgb for p in parts]), PerDevice([p.depth for p in parts])
+
+    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        # the shards' ranges, as distances again (< 0: no hit), for the fleet's ld.ranges()
+        parts = []
+        for shard, local in self._split(worlds):
+            ranges = shard.scan(lidar.name, local).astype(np.float64)
+            # +inf (no return) back to a miss, -inf (closer than range_min) to a hit at 0
+            parts.append(np.where(np.isposinf(ranges), -1.0, np.where(np.isneginf(ranges), 0.0, ranges)))
+        return np.concatenate(parts)
+
+    def _split(self, worlds: np.ndarray) -> list[tuple[BatchedSystem, np.ndarray]]:
+        """(shard, its local world indices) for the fleet's `worlds`, ascending, in shard order."""
+        out = []
+        for shard, r in zip(self.shards, self.world_ranges, strict=True):
+            local = worlds[(worlds >= r.start) & (worlds < r.stop)] - r.start
+            if local.size:
+                out.append((shard, local))
+        return out
 
     # --- helpers ---
     def _each(self, call: Any) -> None:

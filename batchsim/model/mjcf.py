@@ -1,8 +1,10 @@
 """Loading an MJCF: shipped models by name, files, strings; the `mujoco.ros2` extension block.
 
-Two XML blocks that MuJoCo itself does not know are read and removed before compiling:
-`<extension><plugin plugin="mujoco.ros2">` (its config keys are kept in `RobotSpec.ros`)
-and `<ros2_control>` (handed to `batchsim.model.ros2_control`). File references are then
+XML blocks that MuJoCo itself does not know are read and removed before compiling:
+`<extension><plugin plugin="mujoco.ros2">` (its config keys are kept in `RobotSpec.ros`),
+`<ros2_control>` (handed to `batchsim.model.ros2_control`), and mujoco_ros2_control's lidar
+declarations, `<lidar>` and `mujoco.plugin.lidar` (kept in `RobotSpec.sensor_declarations`,
+see `batchsim.sensors.mjcf`). File references are then
 made absolute, since the stripped XML is compiled from a string.
 """
 
@@ -17,6 +19,7 @@ import mujoco
 from batchsim.model.interfaces import discover
 from batchsim.model.ros2_control import block_of, xml_error_reason
 from batchsim.model.spec import ROS2_PLUGIN, ROS2_PLUGIN_KEYS, ModelError, RobotSpec, RosPluginConfig
+from batchsim.sensors.mjcf import DeclarationError, lidar_elements_of, take_declarations
 
 
 def _models_root():
@@ -83,8 +86,12 @@ def load_string(
         raise ModelError(f"{where}: not an MJCF file (root element <{root.tag}>, expected <mujoco>)")
 
     ros = _take_ros_plugin(root, where)
+    try:  # lidars MuJoCo cannot compile (batchsim casts their rays itself)
+        declarations = take_declarations(root, where)
+    except DeclarationError as e:
+        raise ModelError(str(e)) from None
     inline_block = _take_element(root, "ros2_control")
-    stripped = ros is not None or inline_block is not None
+    stripped = ros is not None or inline_block is not None or bool(declarations)
     if stripped and path is not None:
         _anchor_relative_files(root, path.parent)
     xml = ET.tostring(root, encoding="unicode") if stripped else text
@@ -100,8 +107,15 @@ def load_string(
     block = inline_block
     if ros2_control is not None:
         block = block_of(ros2_control)
+        try:
+            extra = lidar_elements_of(ros2_control)
+        except DeclarationError as e:
+            raise ModelError(str(e)) from None
+        declarations = declarations.merged(type(declarations)(lidar_elements=extra))
     name = root.get("model") or (path.stem if path else "model")
-    return discover(name, path, mjmodel, xml, ros, block)
+    spec = discover(name, path, mjmodel, xml, ros, block)
+    spec.sensor_declarations = declarations
+    return spec
 
 
 def _one_line(message: str) -> str:

@@ -9,6 +9,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from batchsim.sensors.mjcf import SensorDeclarations
+
 ROS2_PLUGIN = "mujoco.ros2"
 ROS2_PLUGIN_KEYS = ("ros_namespace", "topic_queue_size", "topic_reliability")
 
@@ -155,6 +157,8 @@ class RobotSpec:
       floating_base: the free joint of the robot's own tree (see `floating_base`), or None.
       initial: the state every world starts in and `reset` returns to.
       problems: configuration errors found in a ros2_control block; `on_configure` reports them.
+      sensor_declarations: lidars the MJCF and ros2_control file declare outside MuJoCo's own
+        sensors (`<lidar>` elements, mujoco.plugin.lidar sensors; see batchsim.sensors.mjcf).
     """
 
     name: str
@@ -169,6 +173,7 @@ class RobotSpec:
     floating_base: FloatingBase | None = None
     initial: InitialState | None = None
     problems: list[str] = dataclasses.field(default_factory=list)
+    sensor_declarations: SensorDeclarations = dataclasses.field(default_factory=SensorDeclarations)
 
     @property
     def state_interfaces(self) -> list[str]:
