@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +52,7 @@ def make(
     backend: str | Backend = "auto",
     *,
     ros2_control: str | Path | None = None,
+    keyframe: str | int | None = None,
     **options: Any,
 ) -> BatchedSystem:
     """Build `nworld` worlds of `model` on `backend`, initialized (UNCONFIGURED).
@@ -60,7 +62,11 @@ def make(
         or a RobotSpec from `batchsim.load`.
       nworld: number of worlds.
       backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware).
-      ros2_control: a ros2_control block (file path or XML text) narrowing the interfaces.
+      ros2_control: a robot description whose ros2_control blocks narrow the interfaces: a
+        URDF/xacro/XML file path (xacro arguments may follow: "robot.urdf.xacro use_pid:=true")
+        or XML text.
+      keyframe: the keyframe (name or index) every world starts in and `reset` returns to;
+        None: the block's `initial_keyframe`, else `home` when the model has one, else qpos0.
       **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `device`, `graph`
         for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
         runs: always so on cpu, slower on a GPU). With "auto", those the chosen backend does
@@ -69,7 +75,12 @@ def make(
     Returns:
       The system, in UNCONFIGURED; call configure() and activate() to run it.
     """
-    spec = model if isinstance(model, RobotSpec) else load(model, ros2_control=ros2_control)
+    if isinstance(model, RobotSpec):
+        spec = model
+    else:
+        spec = load(model, ros2_control=ros2_control, keyframe=keyframe)
+    for warning in spec.warnings:  # what the description asks for and batchsim does not act on
+        logging.getLogger("batchsim").warning("batchsim: warning: %s", warning)
     chosen, reason = resolve(backend, spec, nworld)
     cls = backend_class(chosen)
     if Backend.parse(backend) is Backend.AUTO:
