@@ -31,22 +31,27 @@ from batchsim.controllers.forward_command import (
     JointGroupPositionController,
     JointGroupVelocityController,
 )
-from batchsim.controllers.joint_trajectory import JointTrajectoryController, TrajectoryBatch
+from batchsim.controllers.joint_trajectory import JointTrajectoryController
+from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch
 
 __all__ = [
     "CONTROLLER_TYPES",
     "Controller",
     "ControllerManager",
+    "ControllerTopics",
     "DiffDriveController",
     "ForceTorqueSensorBroadcaster",
     "ForwardCommandController",
     "IMUSensorBroadcaster",
+    "Input",
     "JointGroupEffortController",
     "JointGroupPositionController",
     "JointGroupVelocityController",
     "JointStateBroadcaster",
     "JointTrajectoryController",
     "ManagerConfig",
+    "MessageKind",
+    "Output",
     "Params",
     "TrajectoryBatch",
     "build",

@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from batchsim.controllers.topics import ControllerTopics
 from batchsim.hardware import ConfigurationError
 from batchsim.model import RobotSpec
 
@@ -194,6 +195,10 @@ class Controller:
 
     def update(self, sim: Any, time: float, period: float) -> None:
         raise NotImplementedError
+
+    def topics(self) -> ControllerTopics:
+        """The controller's per-world ROS topics, as data (batchsim/controllers/topics.py)."""
+        return ControllerTopics(self.name)
 
     def _world(self, world: int) -> int:
         if isinstance(world, bool) or int(world) != world or not 0 <= world < self.nworld:

@@ -24,6 +24,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from batchsim.controllers.base import Controller, Params
+from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, each_row
 from batchsim.model import RobotSpec
 
 
@@ -272,6 +273,43 @@ class DiffDriveController(Controller):
         self.odom_pose[:, 0] = x + dx
         self.odom_pose[:, 1] = y + dy
         self.odom_pose[:, 2] = new_yaw
+
+    def topics(self) -> ControllerTopics:
+        """`<ns>/<controller>/cmd_vel` (TwistStamped; Twist with use_stamped_vel false) and
+        `<ns>/<controller>/odom` (nav_msgs/Odometry in odom_frame_id, twist in base_frame_id)."""
+        stamped = self.use_stamped_vel
+
+        def cmd_vel(world: int, row: np.ndarray) -> None:
+            self.set_cmd_vel(world, float(row[0]), float(row[5]), float(row[6]) if stamped else None)
+
+        def odometry() -> dict[str, np.ndarray]:
+            zeros = np.zeros(self.nworld)
+            pose, twist = self.odom_pose, self.odom_twist
+            return {
+                "position": np.stack([pose[:, 0], pose[:, 1], zeros], axis=1),
+                "orientation": self.odom_quaternion,
+                "linear": np.stack([twist[:, 0], zeros, zeros], axis=1),
+                "angular": np.stack([zeros, zeros, twist[:, 1]], axis=1),
+            }
+
+        pose_cov, twist_cov = np.zeros(36), np.zeros(36)
+        pose_cov[::7] = self.pose_covariance_diagonal
+        twist_cov[::7] = self.twist_covariance_diagonal
+        kind = MessageKind.TWIST_STAMPED if stamped else MessageKind.TWIST
+        return ControllerTopics(
+            self.name,
+            inputs=(Input(f"{self.name}/cmd_vel", kind, each_row(cmd_vel)),),
+            outputs=(
+                Output(
+                    f"{self.name}/odom",
+                    MessageKind.ODOMETRY,
+                    odometry,
+                    frame_id=self.odom_frame_id,
+                    child_frame_id=self.base_frame_id,
+                    covariance={"pose": tuple(pose_cov), "twist": tuple(twist_cov)},
+                ),
+            ),
+        )
 
     @property
     def odom_quaternion(self) -> np.ndarray:

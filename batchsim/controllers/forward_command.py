@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from batchsim.controllers.base import Controller, Params
+from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, each_row
 from batchsim.model import RobotSpec
 
 
@@ -63,6 +64,16 @@ class ForwardCommandController(Controller):
         self.commands[worlds] = np.nan
         self._has[worlds] = False
         self._any = bool(self._has.any())
+
+    def topics(self) -> ControllerTopics:
+        """`<ns>/<controller>/commands`, one value per joint."""
+        commands = Input(
+            f"{self.name}/commands",
+            MessageKind.FLOAT64_MULTI_ARRAY,
+            each_row(self.set_commands),
+            width=len(self.joints),
+        )
+        return ControllerTopics(self.name, inputs=(commands,))
 
     def update(self, sim: Any, time: float, period: float) -> None:
         if not self._any:

@@ -35,6 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from batchsim.controllers.base import Controller, Params
+from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch
 from batchsim.model import RobotSpec
 
 # the combinations of command interfaces the stock controller accepts
@@ -60,45 +61,6 @@ class _Goal:
     positions: np.ndarray  # (npoint, njoint), NaN for joints it does not name
     velocities: np.ndarray | None
     accelerations: np.ndarray | None
-
-
-@dataclasses.dataclass
-class TrajectoryBatch:
-    """Trajectories for several worlds at once, flat (CSR) like a sparse matrix: what a bridge
-    hands the controller in one call, however many messages arrived in the period.
-
-    Trajectory k is for world `worlds[k]`; its points are rows `offsets[k]:offsets[k+1]` of
-    the flat point arrays. Every per-joint array is in the controller's joint order
-    (`JointTrajectoryController.joints`): the sender maps the message's joint_names onto it
-    and rejects unknown or repeated names itself, since it has the names.
-
-    Attributes:
-      worlds: (n,) int64, the world of each trajectory; a later trajectory for a world
-        replaces an earlier one of the same batch.
-      start_time: (n,) float64, the header stamp in sim time; 0 starts at the next update.
-      joint_mask: (n, njoint) bool, the joints each trajectory names.
-      offsets: (n + 1,) int64, offsets[0] == 0, non-decreasing.
-      times: (npoint,) float64, each point's time_from_start.
-      positions: (npoint, njoint) float64; entries of joints a trajectory does not name are ignored.
-      velocities: (npoint, njoint) float64, or None when no trajectory of the batch gives any.
-      has_velocities: (n,) bool, which trajectories give velocities (rows of the others are ignored).
-      accelerations: (npoint, njoint) float64, or None likewise.
-      has_accelerations: (n,) bool.
-    """
-
-    worlds: np.ndarray
-    start_time: np.ndarray
-    joint_mask: np.ndarray
-    offsets: np.ndarray
-    times: np.ndarray
-    positions: np.ndarray
-    velocities: np.ndarray | None = None
-    has_velocities: np.ndarray | None = None
-    accelerations: np.ndarray | None = None
-    has_accelerations: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return len(self.worlds)
 
 
 class JointTrajectoryController(Controller):
@@ -420,6 +382,42 @@ class JointTrajectoryController(Controller):
         T = np.where(T > 0, T, 1.0)[:, None]  # a zero-length segment is never sampled
         self._C[w, : npt - 1] = _coefficients(mode, P[:-1], P[1:], V[:-1], V[1:], A[:-1], A[1:], T)
         self._i_term[w] = 0.0
+
+    def topics(self) -> ControllerTopics:
+        """`<ns>/<controller>/joint_trajectory` in; `<ns>/<controller>/controller_state/
+        {reference, feedback, error}` out, as JointState (control_msgs is not on PyPI):
+        reference carries the reference acceleration in its effort field."""
+        names = tuple(self.joints)
+        state = f"{self.name}/controller_state"
+
+        def reference() -> dict[str, np.ndarray]:
+            return {
+                "position": self.reference_position,
+                "velocity": self.reference_velocity,
+                "effort": self.reference_acceleration,
+            }
+
+        def feedback() -> dict[str, np.ndarray]:
+            return {"position": self.feedback_position, "velocity": self.feedback_velocity}
+
+        def error() -> dict[str, np.ndarray]:
+            return {"position": self.error_position, "velocity": self.error_velocity}
+
+        return ControllerTopics(
+            self.name,
+            inputs=(
+                Input(
+                    f"{self.name}/joint_trajectory",
+                    MessageKind.JOINT_TRAJECTORY,
+                    self.set_trajectories,
+                    joints=names,
+                ),
+            ),
+            outputs=tuple(
+                Output(f"{state}/{part}", MessageKind.JOINT_STATE, read, names=names)
+                for part, read in (("reference", reference), ("feedback", feedback), ("error", error))
+            ),
+        )
 
     # --- the loop ---
     def activate(self, sim: Any, time: float) -> None:
