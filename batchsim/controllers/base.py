@@ -267,6 +267,9 @@ class ControllerManager:
     def update(self, sim: Any, time: float, period: float) -> None:
         world_time = np.asarray(sim.time)
         if self._last_time is None:
+            switch = getattr(sim, "perform_command_mode_switch", None)
+            if switch is not None and self.claimed:  # the claimed interfaces drive their actuators
+                switch(sorted(self.claimed))
             for c in self.controllers.values():
                 c.time = time
                 c.activate(sim, time)

@@ -54,7 +54,13 @@ from batchsim.controllers.forward_command import (
     JointGroupPositionController,
     JointGroupVelocityController,
 )
+from batchsim.controllers.gripper import (
+    EffortGripperActionController,
+    GripperActionController,
+    ParallelGripperActionController,
+)
 from batchsim.controllers.joint_trajectory import JointTrajectoryController
+from batchsim.controllers.pose_broadcaster import PoseBroadcaster
 from batchsim.hardware import ConfigurationError
 from batchsim.model import RobotSpec
 from batchsim.model.params import ParamsError, load_yaml
@@ -71,6 +77,10 @@ CONTROLLER_TYPES: dict[str, type[Controller]] = {
         DiffDriveController,
         IMUSensorBroadcaster,
         ForceTorqueSensorBroadcaster,
+        PoseBroadcaster,
+        GripperActionController,
+        ParallelGripperActionController,
+        EffortGripperActionController,
     )
 }
 
