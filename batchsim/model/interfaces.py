@@ -269,8 +269,18 @@ def initial_state(
             for j in joints:
                 if j.name in initial_values:
                     start.qpos[j.qposadr] = initial_values[j.name]
+                    _hold(m, start, j)
             start.source += " with ros2_control initial_value"
     return start
+
+
+def _hold(m: mujoco.MjModel, start: InitialState, joint: Joint) -> None:
+    """A keyframe's ctrl for position servos on a joint moved by initial_value holds the new
+    position (ctrl = gear * qpos), not the keyframe's."""
+    for a in range(m.nu):
+        on_joint = int(m.actuator_trntype[a]) == int(mujoco.mjtTrn.mjTRN_JOINT) and int(m.actuator_trnid[a, 0]) == joint.id
+        if on_joint and _actuator_kind(m, a) is InterfaceKind.POSITION:
+            start.ctrl[a] = float(m.actuator_gear[a, 0]) * start.qpos[joint.qposadr]
 
 
 def _keyframe_index(asked: str | int, names: list[str]) -> int | None:
