@@ -259,17 +259,101 @@ pose_broadcaster:
 """
 
 
-@pytest.mark.ros
-def test_mujoco_ros2_control_style_configuration_drives_the_robot_over_ros(tmp_path):
+# --- controller YAML as mujoco_ros2_control writes it, and its controllers ---
+
+LAYOUT2 = """controller_manager:
+  ros__parameters:
+    update_rate: 100
+arm_controller:
+  ros__parameters:
+    type: forward_command_controller/ForwardCommandController
+    interface_name: position
+    joints: [joint1]
+    joints: [joint1]
+joint_state_broadcaster:
+  ros__parameters:
+    type: joint_state_broadcaster/JointStateBroadcaster
+mujocosystem:
+  ros__parameters:
+    pid_gains:
+      position:
+        joint2: {p: 1.0}
+"""
+
+
+DEMO_PIDS = """/**:
+  ros__parameters:
+    pid_gains:
+      position:
+        joint2: {p: 30.0, i: 5.0, d: 3.0, u_clamp_max: 20.0, u_clamp_min: -20.0}
+"""
+
+
+def _demo(tmp_path: Path) -> Path:
+    """The mujoco_ros2_control-style robot in a package folder: (robot.xml, robot.urdf, ...)."""
     pkg = tmp_path / "demo_pkg"
     (pkg / "config").mkdir(parents=True)
-    (pkg / "config" / "pids.yaml").write_text(
-        "/**:\n  ros__parameters:\n    pid_gains:\n      position:\n"
-        "        joint2: {p: 30.0, i: 5.0, d: 3.0, u_clamp_max: 20.0, u_clamp_min: -20.0}\n"
-    )
+    (pkg / "config" / "pids.yaml").write_text(DEMO_PIDS)
     (pkg / "robot.xml").write_text(DEMO_MJCF)
     (pkg / "robot.urdf").write_text(DEMO_URDF)
     (pkg / "controllers.yaml").write_text(DEMO_YAML)
+    return pkg
+
+
+def _demo_spec(tmp_path: Path) -> batchsim.RobotSpec:
+    pkg = _demo(tmp_path)
+    return batchsim.load(pkg / "robot.xml", ros2_control=f"{pkg / 'robot.urdf'} use_pid:=true")
+
+
+def test_controllers_with_their_type_in_their_own_block_run(tmp_path):
+    from batchsim.controllers import ForwardCommandController, JointStateBroadcaster, load_controllers
+
+    spec = _demo_spec(tmp_path)
+    manager = load_controllers(LAYOUT2, spec, 2)
+    assert list(manager.controllers) == ["arm_controller", "joint_state_broadcaster"]
+    assert isinstance(manager["arm_controller"], ForwardCommandController)
+    assert isinstance(manager["joint_state_broadcaster"], JointStateBroadcaster)
+    assert any("mujocosystem: pid_gains: ignored" in w for w in manager.warnings)
+
+
+def test_a_declared_controller_that_cannot_run_stops_the_run(tmp_path):
+    from batchsim.controllers import load_controllers
+
+    spec = _demo_spec(tmp_path)
+    with pytest.raises(batchsim.ConfigurationError, match="controller 'arm_controller': type: unknown type 'nope/Nope'"):
+        load_controllers(LAYOUT2.replace("forward_command_controller/ForwardCommandController", "nope/Nope"), spec, 2)
+    mixed = LAYOUT2.replace("update_rate: 100", "update_rate: 100\n    arm_controller:\n      type: position_controllers/JointGroupPositionController")
+    with pytest.raises(batchsim.ConfigurationError, match="'arm_controller': type: .* in its own block but"):
+        load_controllers(mixed, spec, 2)
+    with pytest.raises(batchsim.ConfigurationError, match="pose_broadcaster.*pose_name: the model has no pose 'tool'"):
+        load_controllers(DEMO_YAML.replace("pose_name: pose", "pose_name: tool"), spec, 2)
+
+
+def test_pose_broadcaster_and_gripper_controller(tmp_path):
+    from batchsim.controllers import load_controllers
+
+    spec = _demo_spec(tmp_path)
+    sim = batchsim.make(spec, 2, "cpu")
+    sim.configure()
+    sim.activate()
+    manager = load_controllers(DEMO_YAML, spec, 2)
+    loop = SimLoop(sim, control_rate=100, rtf=0, duration=1.0, participants=[manager])
+    gripper = manager["gripper_controller"]
+    gripper.set_goal(1, [-0.02, 0.0])
+    with pytest.raises(ValueError, match="gripper_cmd must be"):
+        gripper.set_goal(0, [np.nan, 1.0])
+    loop.run()
+    pose = manager["pose_broadcaster"]
+    assert pose.position[:, 0] == pytest.approx([0.9, 0.9], abs=1e-3)  # the arm reaches along x
+    assert pose.orientation[0] == pytest.approx([0, 0, 0, 1], abs=1e-6)
+    assert gripper.measured[1, 0] == pytest.approx(-0.02, abs=0.003) and gripper.measured[0, 0] == pytest.approx(0, abs=0.003)
+    topics = {t.topic for t in gripper.topics().inputs} | {t.topic for t in pose.topics().outputs}
+    assert topics == {"gripper_controller/gripper_cmd", "pose_broadcaster/pose"}
+
+
+@pytest.mark.ros
+def test_mujoco_ros2_control_style_configuration_drives_the_robot_over_ros(tmp_path):
+    pkg = _demo(tmp_path)
     args = [
         "--worlds", "2", "--model", str(pkg / "robot.xml"),
         "--ros2-control", f"{pkg / 'robot.urdf'} use_pid:=true", "--controllers", str(pkg / "controllers.yaml"),
