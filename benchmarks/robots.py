@@ -7,7 +7,7 @@ A robot is a scene file: in each folder, `scene*.xml` if there are any, else eve
 that MuJoCo compiles to a model with actuators (files included by others are skipped).
 Archives (`*.tar.xz`, as ../shared/robots holds them) are unpacked to a temporary folder
 first. Per robot and backend it prints one line: where worlds start, whether every world
-stays finite and unfrozen for `--seconds` of simulated time with the initial command held,
+stays finite and unfrozen (after `batchsim info` lists it) for `--seconds` of simulated time with the initial command held,
 and the physics steps per second it ran at; a backend that cannot simulate the model says
 why (the message names the backends that can). Exit code 1 if any check failed.
 """
@@ -15,6 +15,8 @@ why (the message names the backends that can). Exit code 1 if any check failed.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import sys
 import tarfile
 import tempfile
@@ -61,10 +63,15 @@ def unpack(paths: list[Path], into: Path) -> list[Path]:
 
 def check(scene: Path, backend: str, seconds: float, nworld: int) -> tuple[bool, str]:
     """Run one robot on one backend; (ok, one line)."""
+    from batchsim.cli import info
+
     try:
         spec = batchsim.load(scene)
     except ModelError as e:
         return False, f"load failed: {e}"
+    with contextlib.redirect_stdout(io.StringIO()) as listing:
+        if info([str(scene), "--backend", "cpu"]) != 0 or "starts in" not in listing.getvalue():
+            return False, "batchsim info failed"
     if spec.mjmodel.nu == 0:
         return True, "no actuators: skipped"
     try:

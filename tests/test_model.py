@@ -420,6 +420,7 @@ def test_a_keyframe_is_chosen_by_name_or_index_and_an_unknown_one_is_named(tmp_p
         batchsim.load(path, keyframe="nope")
     plain = batchsim.model.load_string(ROBOT.replace('name="home"', 'name="other"'))
     assert plain.initial.source == "qpos0"
+    assert any("no keyframe 'home'; its keyframes: 'up', 'other' (choose one with --keyframe" in w for w in plain.warnings)
 
 
 def test_keyframe_flag_and_info_lines(tmp_path):

@@ -255,6 +255,14 @@ def initial_state(
         key = names.index("home")
     if key is None:
         start = InitialState.of_model(m)
+        if names and asked is None:  # keyframes, none of them `home`: say what qpos0 is like
+            d = mujoco.MjData(m)
+            mujoco.mj_forward(m, d)
+            known = ", ".join(repr(n) if n else f"#{k}" for k, n in enumerate(names))
+            warnings.append(
+                f"starts in qpos0 ({d.ncon} contacts there): the model has no keyframe 'home'; its keyframes: "
+                f"{known} (choose one with --keyframe, or make(..., keyframe=))"
+            )
     else:
         label = repr(names[key]) if names[key] else f"#{key}"
         given = bool(key_ctrl_given[key]) if key < len(key_ctrl_given) else False
