@@ -118,6 +118,9 @@ class PidBank:
         # back-calculation's tracking time constant: control_toolbox defaults it to sqrt(d/i) or d/p
         ratio = np.abs(self.d / np.where(self.i > 0, self.i, 1.0))
         self._tt = np.where(tt > 0, tt, np.where(self.i > 0, np.sqrt(ratio), 0.0))
+        self._any_conditional, self._any_back = bool(self._conditional.any()), bool(self._back.any())
+        self._i_clamped = bool(np.isfinite(self.i_max).any() or np.isfinite(self.i_min).any())
+        self._u_clamped = bool(np.isfinite(self.u_max).any() or np.isfinite(self.u_min).any())
         self.i_term = np.zeros((nworld, len(gains)))
         self.last_error = np.full((nworld, len(gains)), np.nan)
 
@@ -142,24 +145,31 @@ class PidBank:
           (len(worlds), npid) the controller outputs u.
         """
         dt = np.asarray(dt, dtype=np.float64).reshape(-1, 1)
-        stepped = dt > 0
         i_term = self.i_term[worlds]
         last = self.last_error[worlds]
         p_term = self.p * error
-        # derivative of the error; none on a loop's first update or without elapsed time
-        safe_dt = np.where(stepped, dt, 1.0)
-        d_term = np.where(np.isnan(last) | ~stepped, 0.0, self.d * (error - last) / safe_dt)
-        integrate = self.i * error * np.where(stepped, dt, 0.0)
-        if self._conditional.any():
+        if (dt > 0).all():  # every world stepped since its last update: the usual period
+            d_term = self.d * np.nan_to_num((error - last) / dt, nan=0.0)  # NaN last: a first update
+            integrate = self.i * error * dt
+            elapsed = dt
+        else:
+            stepped = dt > 0
+            elapsed = np.where(stepped, dt, 0.0)
+            safe_dt = np.where(stepped, dt, 1.0)
+            d_term = np.where(np.isnan(last) | ~stepped, 0.0, self.d * (error - last) / safe_dt)
+            integrate = self.i * error * elapsed
+        if self._any_conditional:
             trial = p_term + i_term + d_term
             saturated = ((trial > self.u_max) & (error > 0)) | ((trial < self.u_min) & (error < 0))
             integrate = np.where(self._conditional & saturated, 0.0, integrate)
-        i_term = np.clip(i_term + integrate, self.i_min, self.i_max)
+        i_term = i_term + integrate
+        if self._i_clamped:
+            i_term = np.clip(i_term, self.i_min, self.i_max)
         u = p_term + i_term + d_term
-        out = np.clip(u, self.u_min, self.u_max)
-        if self._back.any():
+        out = np.clip(u, self.u_min, self.u_max) if self._u_clamped else u
+        if self._any_back:
             tt = np.where(self._tt > 0, self._tt, 1.0)
-            bleed = np.where(self._tt > 0, (out - u) * np.where(stepped, dt, 0.0) / tt, 0.0)
+            bleed = np.where(self._tt > 0, (out - u) * elapsed / tt, 0.0)
             i_term = np.where(self._back, i_term + bleed, i_term)
         self.i_term[worlds] = i_term
         self.last_error[worlds] = error
