@@ -205,7 +205,8 @@ DEMO_MJCF = """<mujoco model="two_dof">
     <motor name="joint2_motor" joint="joint2" ctrlrange="-20 20"/>
     <position name="gripper_left_finger_joint" tendon="split" kp="200" dampratio="1" ctrlrange="-0.03 0.01"/>
   </actuator>
-  <sensor><framepos name="body_pos" objtype="site" objname="ee_link"/><framequat name="body_quat" objtype="site" objname="ee_link"/></sensor>
+  <sensor><framepos name="body_pos" objtype="site" objname="ee_link"/><framequat name="body_quat" objtype="site" objname="ee_link"/>
+    <force name="wrist_force" site="ee_link"/><torque name="wrist_torque" site="ee_link"/></sensor>
 </mujoco>"""
 
 DEMO_URDF = """<?xml version="1.0"?>
@@ -227,6 +228,9 @@ DEMO_URDF = """<?xml version="1.0"?>
       <state_interface name="position.x"/><state_interface name="position.y"/><state_interface name="position.z"/>
       <state_interface name="orientation.x"/><state_interface name="orientation.y"/><state_interface name="orientation.z"/>
       <state_interface name="orientation.w"/></sensor>
+    <sensor name="wrist"><param name="mujoco_type">fts</param>
+      <state_interface name="force.x"/><state_interface name="force.y"/><state_interface name="force.z"/>
+      <state_interface name="torque.x"/><state_interface name="torque.y"/><state_interface name="torque.z"/></sensor>
   </ros2_control>
 </robot>"""
 
@@ -349,6 +353,28 @@ def test_pose_broadcaster_and_gripper_controller(tmp_path):
     assert gripper.measured[1, 0] == pytest.approx(-0.02, abs=0.003) and gripper.measured[0, 0] == pytest.approx(0, abs=0.003)
     topics = {t.topic for t in gripper.topics().inputs} | {t.topic for t in pose.topics().outputs}
     assert topics == {"gripper_controller/gripper_cmd", "pose_broadcaster/pose"}
+
+
+def test_pids_scaled_commands_and_negated_sensors_agree_on_cpu_and_warp(tmp_path):
+    pytest.importorskip("mujoco_warp")
+    spec = _demo_spec(tmp_path)
+    runs = {}
+    for backend in ("cpu", "warp"):
+        sim = batchsim.make(spec, 2, backend)
+        sim.configure()
+        sim.activate()
+        names = sim.export_command_interfaces()
+        sim.command[1, names.index("joint1/position")] = 0.4
+        sim.command[1, names.index("joint2/position")] = -0.3  # through the PID
+        SimLoop(sim, control_rate=100, rtf=0, duration=0.3).run()
+        sim.read()
+        runs[backend] = sim.state.copy()
+        sim.shutdown()
+    names = spec.state_interfaces
+    cols = [names.index(n) for n in ("joint1/position", "joint2/position", "wrist/force.x", "wrist/torque.z")]
+    assert runs["warp"][:, cols] == pytest.approx(runs["cpu"][:, cols], rel=2e-3, abs=2e-3)
+    raw = names.index("wrist/force.x")
+    assert runs["cpu"][1, raw] != 0.0
 
 
 @pytest.mark.ros
