@@ -475,6 +475,11 @@ def test_tendon_and_site_actuators_match_by_their_name(tmp_path):
     assert cmds["cart_drive/velocity"].actuator == "cart_drive"
     assert any("'cart_drive'" in w and "state interfaces (velocity) are not available" in w for w in spec.warnings)
     assert any("'grip'" in w and "control units (ctrlrange 0 255)" in w for w in spec.warnings)
+    # a controller takes the actuator's name as a joint, as the block does
+    from batchsim.controllers import load_controllers
+
+    yaml = "controller_manager:\n  ros__parameters:\n    g:\n      type: position_controllers/JointGroupPositionController\n"
+    assert load_controllers(yaml + "g:\n  ros__parameters:\n    joints: [grip]\n", spec, 1)["g"].joints == ["grip"]
     # a tendon actuator named after a joint is that joint's, as mujoco_ros2_control names them
     named = batchsim.model.load_string(ROBOT.replace('name="grip"', 'name="finger_left"'))
     assert "finger_left/position" in named.command_interfaces

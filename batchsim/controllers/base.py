@@ -152,7 +152,8 @@ class Controller:
 
     # --- interface resolution, at configuration time ---
     def check_joints(self, key: str, joints: Sequence[str]) -> None:
-        known = {j.name for j in self.spec.joints}
+        # a ros2_control joint may be an actuator's name (a tendon-driven gripper): it has commands
+        known = {j.name for j in self.spec.joints} | {c.rsplit("/", 1)[0] for c in self._command_names}
         for j in joints:
             if j not in known:
                 raise self.params.error(
