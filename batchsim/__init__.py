@@ -76,6 +76,8 @@ def make(
       The system, in UNCONFIGURED; call configure() and activate() to run it.
     """
     if isinstance(model, RobotSpec):
+        if ros2_control is not None or keyframe is not None:
+            raise ValueError("a RobotSpec is already loaded: give ros2_control= and keyframe= to batchsim.load")
         spec = model
     else:
         spec = load(model, ros2_control=ros2_control, keyframe=keyframe)
