@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -60,6 +61,7 @@ def make(
     ros2_control: str | Path | None = None,
     devices: Sequence[int | str] | str | None = None,
     sensors: SensorConfig | str | Path | Mapping[str, Any] | None = None,
+    keyframe: str | int | None = None,
     **options: Any,
 ) -> BatchedSystem:
     """Build `nworld` worlds of `model` on `backend`, initialized (UNCONFIGURED).
@@ -69,7 +71,11 @@ def make(
         or a RobotSpec from `batchsim.load`.
       nworld: number of worlds.
       backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware).
-      ros2_control: a ros2_control block (file path or XML text) narrowing the interfaces.
+      ros2_control: a robot description whose ros2_control blocks narrow the interfaces: a
+        URDF/xacro/XML file path (xacro arguments may follow: "robot.urdf.xacro use_pid:=true")
+        or XML text.
+      keyframe: the keyframe (name or index) every world starts in and `reset` returns to;
+        None: the block's `initial_keyframe`, else `home` when the model has one, else qpos0.
       devices: spread the worlds over several devices of a GPU backend (mjx, warp): "all",
         or a list of device indices (0, 1: the backend's GPUs in order) or names ("cuda:1",
         "cpu"). The worlds are split into contiguous ranges, one per device, behind the one
@@ -85,7 +91,14 @@ def make(
     Returns:
       The system, in UNCONFIGURED; call configure() and activate() to run it.
     """
-    spec = model if isinstance(model, RobotSpec) else load(model, ros2_control=ros2_control)
+    if isinstance(model, RobotSpec):
+        if ros2_control is not None or keyframe is not None:
+            raise ValueError("a RobotSpec is already loaded: give ros2_control= and keyframe= to batchsim.load")
+        spec = model
+    else:
+        spec = load(model, ros2_control=ros2_control, keyframe=keyframe)
+    for warning in spec.warnings:  # what the description asks for and batchsim does not act on
+        logging.getLogger("batchsim").warning("batchsim: warning: %s", warning)
     chosen, reason = resolve(backend, spec, nworld)
     cls = backend_class(chosen)
     if Backend.parse(backend) is Backend.AUTO:

@@ -65,6 +65,9 @@ def run_parser() -> argparse.ArgumentParser:
         help="mjx/warp on a GPU: bitwise-repeatable runs, slower (cpu always is)",
     )
     p.add_argument("--ros2-control", default=None, help="URDF/XML file with a <ros2_control> block")
+    p.add_argument(
+        "--keyframe", default=None, help="keyframe (name or index) to start in (default: home, if the model has one)"
+    )
     p.add_argument("--no-ros", action="store_true", help="run without the ROS 2 bridge")
     p.add_argument("--quiet", action="store_true", help="no live status line")
     ros = p.add_argument_group("ROS 2 bridge")
@@ -101,18 +104,23 @@ def info_parser() -> argparse.ArgumentParser:
     p.add_argument("--worlds", type=int, default=16, help="world count the backend choice is for")
     p.add_argument("--backend", default="auto")
     p.add_argument("--ros2-control", default=None)
+    p.add_argument("--keyframe", default=None)
     return p
 
 
 def info(argv: Sequence[str]) -> int:
     args = info_parser().parse_args(argv)
-    spec = batchsim.load(args.model, ros2_control=args.ros2_control)
+    spec = batchsim.load(args.model, ros2_control=args.ros2_control, keyframe=args.keyframe)
     chosen, reason = resolve(args.backend, spec, args.worlds)
     m = spec.mjmodel
+    keys = ", ".join(repr(k) if k else f"#{i}" for i, k in enumerate(spec.keyframes)) or "none"
+    base = spec.floating_base
     out = [
         f"model      {spec.name}  ({spec.path or 'string'})",
         f"timestep   {m.opt.timestep:g} s   nq {m.nq}  nv {m.nv}  nu {m.nu}",
         f"backend    {chosen.value} for {args.worlds} worlds ({reason})",
+        f"starts in  {spec.initial.source}   (keyframes: {keys})",
+        f"base       {f'free joint {base.joint!r} of body {base.body!r}' if base else 'fixed (no floating base)'}",
     ]
     if spec.ros is not None:
         r = spec.ros
@@ -123,12 +131,19 @@ def info(argv: Sequence[str]) -> int:
     out.append(f"\nstate interfaces ({len(spec.state)})")
     out += [f"  {i:3d}  {c.name}" for i, c in enumerate(spec.state)]
     out.append(f"\ncommand interfaces ({len(spec.commands)})")
-    out += [f"  {i:3d}  {c.name:32s} actuator {c.actuator}" for i, c in enumerate(spec.commands)]
+    out += [f"  {i:3d}  {c.name:32s} actuator {c.actuator}{_how(c)}" for i, c in enumerate(spec.commands)]
+    out += [
+        f"       {mc.joint} mimics {mc.source} (x {mc.multiplier:g} + {mc.offset:g}) on actuator {mc.actuator}"
+        for mc in spec.mimics
+    ]
     out.append(f"\nsensors ({len(spec.sensors)})")
     out += [
         f"  {s.name:24s} {s.type:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors
     ]
     out += sensor_lines(SensorSuite.build(spec, args.worlds))
+    if spec.warnings:
+        out.append("\nwarnings (not acted on)")
+        out += [f"  {w}" for w in spec.warnings]
     if spec.problems:
         out.append("\nproblems (configure will fail)")
         out += [f"  {p}" for p in spec.problems]
@@ -156,6 +171,15 @@ def sensor_lines(suite: SensorSuite) -> list[str]:
     return out
 
 
+def _how(c: Any) -> str:
+    """How a command interface reaches ctrl, where it is not a plain copy."""
+    if c.pid is not None:
+        return f"  (PID p={c.pid.p:g} i={c.pid.i:g} d={c.pid.d:g})"
+    if c.scale != 1.0 or c.offset != 0.0:
+        return f"  (ctrl = {c.scale:g} x command + {c.offset:g})"
+    return ""
+
+
 def build(args: argparse.Namespace) -> BatchedSystem:
     if args.worlds < 1:
         raise UsageError(f"--worlds must be >= 1, got {args.worlds}")
@@ -175,7 +199,15 @@ def build(args: argparse.Namespace) -> BatchedSystem:
         camera_resolution=args.camera_resolution,
         seed=args.noise_seed,
     )
-    sim = batchsim.make(args.model, args.worlds, args.backend, ros2_control=args.ros2_control, sensors=sensors, **options)
+    sim = batchsim.make(
+        args.model,
+        args.worlds,
+        args.backend,
+        ros2_control=args.ros2_control,
+        keyframe=args.keyframe,
+        sensors=sensors,
+        **options,
+    )
     sim.configure()
     sim.activate()
     return sim

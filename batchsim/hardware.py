@@ -31,6 +31,7 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
+from batchsim.actuation import Actuation
 from batchsim.model import RobotSpec, StateColumn, initial_command
 from batchsim.sensors import Camera, Lidar, LidarKind, SensorConfig, SensorSuite
 
@@ -263,8 +264,11 @@ class BatchedSystem(SystemInterface):
         self.dt = float(m.opt.timestep)
 
         ncommand = len(spec.commands)
-        # what read() gathers: the state interfaces, then the floating base's pose and twist
-        self._columns = list(spec.state) + _base_columns(spec)
+        # commands -> ctrl beyond a plain copy: PIDs on motors, scaled grippers, mimic joints
+        self._actuation = Actuation(spec, self.nworld)
+        # what read() gathers: the state interfaces, the floating base's pose and twist, and
+        # the joint positions/velocities the PIDs measure
+        self._columns = list(spec.state) + _base_columns(spec) + self._actuation.feedback_columns
         self._bind_readings(np.zeros((self.nworld, len(self._columns))))
         self._command = np.zeros((self.nworld, ncommand))
         self.status = np.zeros(self.nworld, np.uint8)
@@ -282,6 +286,7 @@ class BatchedSystem(SystemInterface):
             if cols:
                 idx = [self._columns[i].index for i in cols]
                 self._gather.append((source, _as_slice(cols), _as_slice(idx)))
+        self._negated = np.array([i for i, c in enumerate(self._columns) if c.sign < 0], dtype=np.intp)
         self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
         self._ctrl_cols = _as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster
         self._opened = False
@@ -292,9 +297,11 @@ class BatchedSystem(SystemInterface):
         """Make `readings` (nworld, len(_columns)) the array read() fills; `state` and
         `base_state` are views of its columns."""
         nstate = len(self.spec.state)
+        nbase = 13 if self.spec.floating_base is not None else 0
         self._readings = readings
         self.state = readings[:, :nstate]
-        self.base_state = readings[:, nstate:] if self.spec.floating_base is not None else None
+        self.base_state = readings[:, nstate : nstate + nbase] if nbase else None
+        self._feedback = readings[:, nstate + nbase :]
 
     # --- interfaces ---
     def export_state_interfaces(self) -> list[str]:
@@ -356,17 +363,34 @@ class BatchedSystem(SystemInterface):
         # MuJoCo itself zeroes ctrl beyond mjMAXVAL; reject it here, per world, with a status
         # bit. Fast path: two reductions, no temporaries (a NaN makes both comparisons fail).
         if command.size == 0 or (command.min() > -MAX_COMMAND and command.max() < MAX_COMMAND):
-            ctrl[:, self._ctrl_cols] = command
+            if self._actuation.trivial:
+                ctrl[:, self._ctrl_cols] = command
+            else:
+                self._actuate(ctrl, None)
             if self.status.any():
                 self.status &= ~np.uint8(Status.BAD_COMMAND)
         else:
             good = (np.abs(command) < MAX_COMMAND).all(axis=1)
             rows = np.flatnonzero(good)
-            ctrl[np.ix_(rows, self._ctrl_index)] = command[rows]
+            if self._actuation.trivial:
+                ctrl[np.ix_(rows, self._ctrl_index)] = command[rows]
+            else:
+                self._actuate(ctrl, rows)
             self.status[good] &= ~np.uint8(Status.BAD_COMMAND)
             self.status[~good] |= np.uint8(Status.BAD_COMMAND)
         self._upload_ctrl()
         return ReturnType.OK
+
+    def _actuate(self, ctrl: np.ndarray, rows: np.ndarray | None) -> None:
+        """write()'s hook for the non-trivial command path (batchsim.actuation): PIDs on motors,
+        scaled grippers, mimic joints, interfaces sharing an actuator; rows None: every world."""
+        self._actuation.apply(ctrl, self._command, self._feedback, self.time, rows)
+
+    def perform_command_mode_switch(self, start: Sequence[str], stop: Sequence[str] = ()) -> None:
+        """Make the `start` command interfaces the ones that drive their actuators, where
+        several share one (position and velocity PIDs on one motor), as ros2_control's
+        `perform_command_mode_switch`; position is active until told otherwise."""
+        self._actuation.switch(start, stop)
 
     @property
     def command(self) -> np.ndarray:
@@ -415,7 +439,10 @@ class BatchedSystem(SystemInterface):
         self._command[sel] = self._initial_command
         ctrl = self._ctrl_host()
         ctrl[sel] = self.spec.initial.ctrl
-        ctrl[np.ix_(sel, self._ctrl_index)] = self._initial_command
+        if self._actuation.trivial:
+            ctrl[np.ix_(sel, self._ctrl_index)] = self._initial_command
+        else:
+            self._actuation.reset(sel, ctrl, self._command)
         self._upload_ctrl()
         self.status[sel] = 0
         self._refresh()
@@ -565,10 +592,16 @@ class BatchedSystem(SystemInterface):
             raise ValueError(f"world {bad} is out of range: worlds are 0..{self.nworld - 1}")
         return rows
 
+    def _apply_signs(self) -> None:
+        """After a gather: columns read negated (mujoco_ros2_control's force/torque sensors)."""
+        if self._negated.size:
+            self._readings[:, self._negated] *= -1.0
+
     def _refresh(self) -> None:
         fields = self._download()
         for source, cols, idx in self._gather:
             self._readings[:, cols] = fields[source][:, idx]
+        self._apply_signs()
         self._sensor_host[:] = fields["sensordata"]
         self.time[:] = fields["time"]
 

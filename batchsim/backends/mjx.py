@@ -258,6 +258,7 @@ class MjxSystem(BatchedSystem):
         np.copyto(self._readings, packed[:, :nread])
         np.copyto(self._sensor_host, packed[:, nread:-1])
         np.copyto(self.time, packed[:, -1])
+        self._apply_signs()
         self._show_held_readings()
 
     def _step(self, nstep: int) -> None:

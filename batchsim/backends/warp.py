@@ -407,6 +407,7 @@ class WarpSystem(BatchedSystem):
                     wp.copy(self._sensor_wp, self._sensor_dev)
                 wp.copy(self._time_wp, self._time_dev)
             wp.synchronize_device(self.device)
+        self._apply_signs()
         self._show_held_readings()
 
     def _step(self, nstep: int) -> None:

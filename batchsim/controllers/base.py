@@ -152,7 +152,8 @@ class Controller:
 
     # --- interface resolution, at configuration time ---
     def check_joints(self, key: str, joints: Sequence[str]) -> None:
-        known = {j.name for j in self.spec.joints}
+        # a ros2_control joint may be an actuator's name (a tendon-driven gripper): it has commands
+        known = {j.name for j in self.spec.joints} | {c.rsplit("/", 1)[0] for c in self._command_names}
         for j in joints:
             if j not in known:
                 raise self.params.error(
@@ -297,6 +298,9 @@ class ControllerManager:
 
     def update(self, sim: Any, time: float, period: float) -> None:
         if not self._activated:  # the first period: every controller holds where the robot is
+            switch = getattr(sim, "perform_command_mode_switch", None)
+            if switch is not None and self.claimed:  # the claimed interfaces drive their actuators
+                switch(sorted(self.claimed))
             for c in self.controllers.values():
                 c.time = time
                 c.activate(sim, time)
