@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from arrays import host
 
 import batchsim
 from batchsim import CallbackReturn, LifecycleError, LifecycleState, ReturnType, Status
@@ -215,15 +216,15 @@ def test_device_arrays_show_what_write_and_read_show(arm):
     arm.command[:] = np.linspace(-0.2, 0.2, NWORLD)[:, None]
     arm.write()
     arrays = arm.device_arrays()
-    ctrl = np.asarray(arrays["ctrl"])  # position servos: ctrl is the command, column for column
+    ctrl = host(arrays["ctrl"])  # position servos: ctrl is the command, column for column
     assert np.allclose(ctrl[:, arm._ctrl_cols], arm.command, atol=1e-6)
     arm.step(10)
     arm.read()
     arrays = arm.device_arrays()  # step() may have replaced them (mjx donates its buffers)
     names = arm.export_state_interfaces()
     pos = arm.state[:, [names.index(f"joint{i}/position") for i in range(1, 7)]]
-    assert np.allclose(np.asarray(arrays["qpos"]), pos, atol=1e-6)
-    assert np.allclose(np.asarray(arrays["time"]), arm.time, atol=1e-6)
+    assert np.allclose(host(arrays["qpos"]), pos, atol=1e-6)
+    assert np.allclose(host(arrays["time"]), arm.time, atol=1e-6)
     arm.reset()
 
 
@@ -416,7 +417,7 @@ def test_base_state_follows_the_free_joint_of_the_robot(backend):
     assert base is not None and sim.base_state.shape == (3, 13)
     sim.step(20)
     sim.read()
-    qpos, qvel = (np.asarray(sim.device_arrays()[f], dtype=np.float64) for f in ("qpos", "qvel"))
+    qpos, qvel = (host(sim.device_arrays()[f]).astype(np.float64) for f in ("qpos", "qvel"))
     np.testing.assert_allclose(sim.base_state[:, :7], qpos[:, base.qposadr : base.qposadr + 7], atol=1e-6)
     np.testing.assert_allclose(sim.base_state[:, 7:], qvel[:, base.dofadr : base.dofadr + 6], atol=1e-6)
     assert sim.base_state[:, 2].max() < 1.0  # it fell from its initial height

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from arrays import host
 
 import batchsim
 from batchsim import ModelError, SensorConfigError
@@ -115,15 +116,15 @@ def test_two_worlds_see_different_images(box):
 
 def test_device_frames(box):
     frames = box.render("front", device=True)
-    rgb, depth = np.asarray(_host(frames.rgb)), np.asarray(_host(frames.depth))
+    rgb, depth = host(frames.rgb), host(frames.depth)
     assert rgb.shape == (2, 24, 32, 3) and depth.shape == (2, 24, 32)
-    np.testing.assert_array_equal(rgb, box.render("front").rgb)
+    # the same frames as the host path; NVIDIA's EGL (mjx renders through it on a GPU) does not
+    # rasterize a scene bit-for-bit alike from call to call (seen on an H200: +-1 levels on half
+    # the pixels, a few edge pixels more), so allow that and no more
+    differ = np.abs(rgb.astype(int) - box.render("front").rgb.astype(int))
+    assert np.mean(differ > 1) < 0.02, f"{np.mean(differ > 1):.1%} of the channels differ by more than 1 level"
     with pytest.raises(ValueError, match="every world"):
         box.render("front", worlds=[0], device=True)
-
-
-def _host(array):
-    return array.numpy() if hasattr(array, "numpy") and not isinstance(array, np.ndarray) else array
 
 
 # ---------------------------------------------------------------- intrinsics as data
