@@ -80,7 +80,7 @@ def test_warp_runs_a_menagerie_arm_and_mjx_names_what_it_cannot_simulate(robots,
     assert main([str(scene), "--backends", "warp", "--seconds", "0.2", "--worlds", "2"]) == 0
     assert "ok   universal_robots_ur5e/scene.xml" in capsys.readouterr().out
     pytest.importorskip("jax")
-    with pytest.raises(batchsim.BackendUnavailable, match=r"mjx backend cannot simulate .*backends that can: cpu, warp"):
+    with pytest.raises(batchsim.backends.UnsupportedModel, match=r"mjx backend cannot simulate .*backends that can: cpu, warp"):
         batchsim.make(robots / "unitree_go2" / "scene.xml", 2, "mjx")
 
 
