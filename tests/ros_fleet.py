@@ -80,6 +80,29 @@ class Latest:
             del self.history[: -self.keep]
 
 
+class Diagnostics:
+    """A /diagnostics subscription keeping each world's last status: every bridge worker
+    publishes its own worlds' DiagnosticArray."""
+
+    def __init__(self) -> None:
+        self.by_world: dict[str, Any] = {}
+        self.count = 0
+
+    def __call__(self, msg: Any) -> None:
+        for status in msg.status:
+            self.by_world[status.hardware_id] = status
+        self.count += 1
+
+    def world(self, namespace: str) -> Any:
+        return self.by_world.get(namespace)
+
+    def value(self, namespace: str, key: str, default: str = "") -> str:
+        status = self.by_world.get(namespace)
+        if status is None:
+            return default
+        return next((v.value for v in status.values if v.key == key), default)
+
+
 class Fleet:
     """A `batchsim` subprocess and a client node on the same, private ROS domain."""
 
@@ -126,6 +149,13 @@ class Fleet:
         sink = Latest()
         sink.keep = keep
         self.node.create_subscription(msg_type, topic, sink, qos)
+        return sink
+
+    def diagnostics(self) -> Diagnostics:
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        sink = Diagnostics()
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", sink, 10)
         return sink
 
     def publish(self, msg_type: type, topic: str, msg: Any, qos: QoSProfile | int = 10) -> None:

@@ -12,7 +12,6 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from ros_fleet import Fleet, domain_id  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
@@ -30,13 +29,15 @@ def sim_time(stamp) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
 
 
-@pytest.fixture(scope="module")
-def fleet(tmp_path_factory):
+@pytest.fixture(scope="module", params=[0, 2], ids=["in-process", "2-workers"])
+def fleet(request, tmp_path_factory):
+    """The arm fleet, its bridge in the physics process and in two worker processes."""
     log = tmp_path_factory.mktemp("arm") / "batchsim.log"
-    with Fleet(domain_id(20), ["--worlds", str(NWORLD), "--model", "arm"], log) as f:
+    args = ["--worlds", str(NWORLD), "--model", "arm", "--bridge-workers", str(request.param)]
+    with Fleet(domain_id(20), args, log) as f:
         f.js = [f.latest(JointState, f"/world_{w}/joint_states") for w in range(NWORLD)]
         f.clock = f.latest(Clock, "/clock", keep=50)
-        f.diag = f.latest(DiagnosticArray, "/diagnostics")
+        f.diag = f.diagnostics()
         f.wait(lambda: all(s.count > 2 for s in f.js), 30, "joint_states from every world")
         yield f
         assert f.close() == 0, f.log()
@@ -113,12 +114,10 @@ def test_reset_service_resets_only_that_world(arms):
 
 def test_bad_commands_are_rejected_and_the_sim_goes_on(arms):
     def world_diag(w):
-        msg = arms.diag.msg
-        return None if msg is None else next(s for s in msg.status if s.hardware_id == f"world_{w}")
+        return arms.diag.world(f"world_{w}")
 
     def bad_count(w) -> int:
-        d = world_diag(w)
-        return 0 if d is None else int(next(v.value for v in d.values if v.key == "bad_commands"))
+        return int(arms.diag.value(f"world_{w}", "bad_commands", "0"))
 
     before = {w: bad_count(w) for w in range(NWORLD)}
     start = sim_time(arms.clock.msg.clock)
@@ -225,7 +224,22 @@ def test_plugin_compatible_topic_names(tmp_path):
         def graph():
             return dict((n, t[0]) for n, t in car.node.get_topic_names_and_types())
 
-        car.wait(lambda: set(expected_pub) | set(expected_sub) <= set(graph()), 30, "the car's topics")
+        # sensor topics and actuator topics are created when someone asks: a subscriber for
+        # the ones batchsim publishes, a publisher for the ones it takes
+        best_effort = rclpy.qos.qos_profile_sensor_data
+        for name, kind in expected_pub.items():
+            car.latest({"std_msgs/msg/Float64": Float64, "sensor_msgs/msg/JointState": JointState,
+                        "nav_msgs/msg/Odometry": Odometry}[kind], name, qos=best_effort)  # fmt: skip
+        for name in expected_sub:
+            if "actuators" in name:
+                car.publish(Float64, name, Float64(data=0.0), qos=best_effort)
+
+        def served() -> bool:  # batchsim's own endpoints on every topic
+            return all(car.node.count_publishers(n) > 0 for n in expected_pub) and all(
+                car.node.count_subscribers(n) > 0 for n in expected_sub
+            )
+
+        car.wait(served, 30, "the car's topics")
         topics = graph()
         for name, kind in {**expected_pub, **expected_sub}.items():
             assert topics[name] == kind
@@ -234,7 +248,6 @@ def test_plugin_compatible_topic_names(tmp_path):
         assert info[0].qos_profile.reliability == rclpy.qos.ReliabilityPolicy.BEST_EFFORT
 
         # the plugin's actuator topic drives the wheel; odometry carries namespaced frames
-        best_effort = rclpy.qos.qos_profile_sensor_data
         vel = car.latest(Float64, "/car/sensors/left_wheel_vel", qos=best_effort)
         odom = car.latest(Odometry, "/car/odom", qos=best_effort)
         topic = "/car/actuators/left_wheel/command"
@@ -311,5 +324,5 @@ def test_command_timeout_holds_position(tmp_path):
         assert js[1].msg.position[0] > 1.4
         time.sleep(0.3)
         assert js[0].msg.position[0] == pytest.approx(stopped, abs=0.02)
-        assert "no command for 0.05 s (--command-timeout); holding position" in f.log()
+        assert "no command for 0.05 s (command timeout); holding position" in f.log()
         assert f.close() == 0
