@@ -39,6 +39,7 @@ from batchsim.model import InterfaceKind
 from ros_bridge.commands import RejectionWriter, SlotReader
 from ros_bridge.memory import Memory, Ring
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, ChannelFill, FleetPlan, describe
+from ros_bridge.registry import Registry
 from ros_bridge.requests import Kind, concatenate, decode_reset, decode_ticket, decode_trajectories
 from ros_bridge.throttle import LogThrottle
 
@@ -141,11 +142,13 @@ class BridgeHost:
         self._traj_counters = {
             i: m[f"{spec.slots}.seq"] for i, spec in enumerate(plan.inputs) if spec.kind is MessageKind.JOINT_TRAJECTORY
         }
-        self._traj_seen = {i: c.copy() for i, c in self._traj_counters.items()}
+        self._traj_seen = {i: c.copy() for i, c in self._traj_counters.items()}  # at the last period start
+        self._traj_taken = {i: c.copy() for i, c in self._traj_counters.items()}  # as far as the ring was read
         self.rejections = RejectionWriter(m, "hrej")
         self._worker_rejections = m["rej.count"]
         self._worker_rejections_seen = self._worker_rejections.copy()
         self._rings = [Ring(m, f"ring{j}") for j in range(plan.nworker)]
+        self._channels = [m[f"ch{c}"] for c in range(len(plan.channels))]
         self.free = np.array([not o for o in plan.owners], dtype=bool)
         self.all_claimed = bool(plan.interfaces) and not self.free.any()
 
@@ -170,6 +173,7 @@ class BridgeHost:
         self._closed = False
         self._procs: list[_Process] = []
         self._worker: Any = None  # the in-process worker
+        self.registry = Registry.for_domain()
         self._notify_r, self._notify_w = os.pipe()
         os.set_blocking(self._notify_r, False)
         os.set_blocking(self._notify_w, False)
@@ -179,6 +183,9 @@ class BridgeHost:
         """Bring the workers up (worker 0 first: it checks the graph for another fleet).
         FleetConflict or WorkerError if they cannot serve."""
         try:
+            conflict = self.registry.claim(self.plan.node_names[0], self.plan.namespaces, self.plan.clock)
+            if conflict is not None:
+                raise FleetConflict(*conflict)
             if self.processes:
                 first = self._spawn(0, check=True)
                 self._procs.append(first)
@@ -241,6 +248,7 @@ class BridgeHost:
             self._worker.close()
             self._worker = None
         self.memory.close()
+        self.registry.release()
         for fd in (self._notify_r, self._notify_w):
             try:
                 os.close(fd)
@@ -304,9 +312,10 @@ class BridgeHost:
     # --- supervision ---
     def _supervise(self) -> None:
         now = wallclock.monotonic()
-        if now < self._next_supervise or not self._procs:
+        if now < self._next_supervise:
             return
         self._next_supervise = now + SUPERVISE
+        self.throttle.flush()  # windows that closed: how many lines each held back
         for j, p in enumerate(self._procs):
             if not p.ready and p.status >= 0:  # a restarted worker: is it up?
                 try:
@@ -371,6 +380,8 @@ class BridgeHost:
         counts = self._worker_rejections.copy()
         rejected |= counts != self._worker_rejections_seen
         self._worker_rejections_seen = counts
+        for i, taken in self._traj_taken.items():  # this period's trajectories, for the next lockstep wait
+            self._traj_seen[i] = taken.copy()
         if self.command_timeout is not None:
             self._check_timeouts(sim, time)
         # a rejection sets BAD_COMMAND until the world's next good command; when controllers
@@ -456,6 +467,7 @@ class BridgeHost:
         sel = slice(None) if worlds is None else worlds
         for i, counter in self._traj_counters.items():
             self._traj_seen[i][sel] = counter[sel]
+            self._traj_taken[i][sel] = counter[sel]
         self._last_command[sel] = np.inf
         self._timed_out[sel] = False
         self.bad[sel] = False
@@ -501,7 +513,7 @@ class BridgeHost:
                 self._done(j, ticket, self.loop.sim_time, ok=True)
         for index, batches in trajectories.items():
             batch = concatenate(batches)
-            self._traj_seen[index] = self._traj_counters[index].copy()  # after the ring: never ahead of it
+            self._traj_taken[index] = self._traj_counters[index].copy()  # read after the ring: never ahead of it
             if resets:  # a trajectory that arrived with a reset does not survive it
                 keep = np.zeros(len(batch), bool) if reset_rows is None else ~np.isin(batch.worlds, reset_rows)
                 if not keep.all():
@@ -547,19 +559,21 @@ class BridgeHost:
         m["meta"][b] = (n, self._period, time, float(force))
         status = self.sim.status
         m["status"][b] = status
-        if self.bad.any():
-            m["status"][b][self.bad] |= _BAD
         flags = m["flags"][b]
         flags[:] = 0
-        flags[self.bad] |= FLAG_BAD
-        flags[self._timed_out] |= FLAG_TIMED_OUT
-        flags[(status & _FROZEN) != 0] |= FLAG_FROZEN
-        demand = m["demand"].any(axis=0)
+        if self.bad.any():
+            m["status"][b][self.bad] |= _BAD
+            flags[self.bad] |= FLAG_BAD
+        if self._timed_out.any():
+            flags[self._timed_out] |= FLAG_TIMED_OUT
+        if status.any():
+            flags[(status & _FROZEN) != 0] |= FLAG_FROZEN
+        demand = m["demand"].any(axis=0).tolist()
         written = m["written"][b]
         k = self._period
         for c, fill in enumerate(self.fills):
             if demand[c] and (force or any(k % e == 0 for e in self._channel_every[c])):
-                fill(m[f"ch{c}"][b])
+                fill(self._channels[c][b])
                 written[c] = n
             else:
                 written[c] = -1

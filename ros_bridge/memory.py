@@ -100,10 +100,13 @@ class Memory:
     def attach(cls, layout: Layout, name: str) -> Memory:
         """The arrays of a segment another process created; this process never unlinks it."""
         segment = shared_memory.SharedMemory(name=name)
-        try:  # Python < 3.13 registers attached segments too; the creator alone owns it
-            resource_tracker.unregister(segment._name, "shared_memory")  # noqa: SLF001 (stdlib's own name)
-        except Exception:
-            pass
+        if not name.startswith(f"{PREFIX}{os.getpid()}_"):
+            # Python < 3.13 registers attached segments too, to unlink them at exit: only the
+            # creator may (one that this process created itself stays registered, once)
+            try:
+                resource_tracker.unregister(segment._name, "shared_memory")  # noqa: SLF001 (the stdlib's own name)
+            except Exception:
+                pass
         if segment.size < layout.nbytes:
             raise ValueError(f"shared memory {name!r} holds {segment.size} bytes, the layout needs {layout.nbytes}")
         return cls(layout, segment, owner=False)

@@ -54,7 +54,8 @@ class BridgeOptions:
         fleet spread over several processes or hosts.
       clock: publish `/clock`; exactly one process of a fleet may.
       startup_check: wall seconds to watch the ROS graph at start for another process that
-        already serves these namespaces or `/clock`.
+        already serves these namespaces or `/clock` (on another host: one on this host is
+        found at once, ros_bridge/registry.py).
     """
 
     namespace: str = DEFAULT_TEMPLATE

@@ -58,6 +58,7 @@ from ros_bridge.messages import (
     MESSAGE_TYPES,
     BulkMessages,
     clock_payload,
+    message_type,
     parse_row,
     parse_trajectory,
     stamp_of,
@@ -82,8 +83,8 @@ class _Output:
         self.spec = spec
         self.bulk = BulkMessages(spec, namespaces)
         self.publishers: list[Any] = [None] * len(namespaces)
-        self.active = np.zeros(len(namespaces), dtype=bool)
-        self.msg_type = MESSAGE_TYPES_BY_NAME.get(spec.msg_type) or _message_class(spec.msg_type)
+        self.rows: list[int] = []  # the worlds (rows) with a subscriber
+        self.msg_type = message_type(spec.msg_type)
         # per field: (channel, columns with -1 clipped, the columns that are -1)
         self.gather = [
             (f.channel, np.maximum(np.array(f.columns, dtype=np.intp), 0), np.array(f.columns) < 0) for f in spec.fields
@@ -97,15 +98,6 @@ class _Output:
                 v[:, nan] = np.nan
             parts.append(v)
         return np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
-
-
-def _message_class(name: str) -> type:
-    from ros_bridge.messages import message_type
-
-    return message_type(name)
-
-
-MESSAGE_TYPES_BY_NAME = {kind.value: cls for kind, cls in MESSAGE_TYPES.items()}
 
 
 class Snapshot:
@@ -142,6 +134,8 @@ class Worker:
         self.namespaces = plan.namespaces[self.lo : self.hi]
         self.memory = memory
         self.notify_fd = notify_fd
+        # log lines go out as they are written, also when stderr is a file or a pipe
+        os.environ.setdefault("RCUTILS_LOGGING_BUFFERED_STREAM", "0")
         self.context = Context()
         rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
         try:
@@ -170,6 +164,9 @@ class Worker:
         self._pending_since = 0.0
         self._pending_lock = threading.Lock()
         self._outputs: list[_Output] = []
+        self._active: list[_Output] = []  # outputs with a subscriber on some world
+        self._beat = memory["beat"]
+        self._svc_done = memory["svc.done"]
         self._subscriptions: list[Any] = []
         self._running = False
         self._thread: threading.Thread | None = None
@@ -201,8 +198,8 @@ class Worker:
                     seen_own = True  # this node; another of the same name is another process's
                     continue
                 services = [s for s, _ in self.node.get_service_names_and_types_by_node(name, ns)]
-                if not services:
-                    unresolved = True  # discovered, its services not yet
+                if not any(s.endswith("/reset") for s in services):
+                    unresolved = True  # the node is known, its worlds' services not yet
                     continue
                 clash = sorted(s for s in services if s in mine)
                 if clash:
@@ -309,12 +306,11 @@ class Worker:
 
     def tick(self) -> None:
         """Publish the newest snapshot if it is new; answer services; housekeeping."""
-        memory = self.memory
-        memory["beat"][self.index] += 1
+        self._beat[self.index] += 1
         snap = self._read_snapshot()
         if snap is not None:
             self._publish(snap)
-        done = int(memory["svc.done"][self.index])
+        done = int(self._svc_done[self.index])
         if done != self._last_done:
             self._last_done = done
             with self._service_cond:
@@ -364,30 +360,35 @@ class Worker:
         if self._clock_pub is not None and ((sec, nanosec) != self._last_clock or snap.forced):
             self._last_clock = (sec, nanosec)
             self._clock_pub.publish(clock_payload(sec, nanosec))
-        frozen = (snap.flags & FLAG_FROZEN) != 0
-        for out in self._outputs:
+        if not self._active:
+            return
+        frozen = (snap.flags & FLAG_FROZEN) != 0 if snap.flags.any() else None
+        for out in self._active:
             spec = out.spec
-            if not out.active.any() or not (snap.forced or snap.period % spec.every == 0):
+            if not (snap.forced or snap.period % spec.every == 0):
                 continue
             if any(c not in snap.channels for c in spec.channels):
                 continue  # not copied this time (nobody wanted it until now)
-            rows = out.active & ~frozen if spec.state else out.active
-            if not rows.any():
-                continue
+            rows = out.rows
+            if frozen is not None and spec.state:
+                rows = [r for r in rows if not frozen[r]]
             out.bulk.fill(out.values(snap.channels), sec, nanosec)
             pubs, payload = out.publishers, out.bulk.payload
-            for r in np.flatnonzero(rows).tolist():
+            for r in rows:
                 pubs[r].publish(payload(r))
-            self.published += int(rows.sum())
+            self.published += len(rows)
 
     def _refresh(self) -> None:
         """Lazy publishing: which rows have subscribers; which channels this worker needs."""
         demand = np.zeros(len(self.plan.channels), dtype=np.uint8)
+        active = []
         for out in self._outputs:
-            out.active = np.array([p is not None and p.get_subscription_count() > 0 for p in out.publishers], dtype=bool)
-            if out.active.any():
+            out.rows = [r for r, p in enumerate(out.publishers) if p is not None and p.get_subscription_count() > 0]
+            if out.rows:
+                active.append(out)
                 for c in out.spec.channels:
                     demand[c] = 1
+        self._active = active
         if len(demand):
             self.memory["demand"][self.index, : len(demand)] = demand
 

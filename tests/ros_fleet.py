@@ -63,6 +63,34 @@ def release_domain(domain: int) -> None:
         os.close(fd)  # closing the descriptor drops the lock
 
 
+def children(pid: int) -> list[int]:
+    """The processes whose parent is `pid` (Linux /proc)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            out.append(int(entry.name))
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def segments(pid: int) -> list[str]:
+    """batchsim's shared-memory segments created by process `pid`."""
+    return sorted(p.name for p in Path("/dev/shm").glob(f"batchsim_{pid}_*"))
+
+
 class Latest:
     """A subscription that keeps the last message and counts them."""
 
@@ -192,6 +220,10 @@ class Fleet:
             return future.result()
         finally:
             self.node.destroy_client(client)
+
+    def wait_started(self, timeout: float = 60.0) -> None:
+        """Until batchsim printed its start line: its workers are up."""
+        self.wait(lambda: " x " in self.log() and "batchsim: " in self.log(), timeout, "the start line")
 
     def wait(self, predicate: Callable[[], Any], timeout: float = 20.0, what: str = "condition") -> None:
         deadline = time.monotonic() + timeout

@@ -12,6 +12,7 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from ros_fleet import Fleet, domain_id  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
@@ -163,6 +164,22 @@ def test_bad_commands_are_rejected_and_the_sim_goes_on(arms):
     arms.wait(lambda: "bad_command" not in world_diag(1).message, 10, "world_1's BAD_COMMAND cleared")
 
 
+def test_each_problem_on_a_topic_is_logged_and_what_was_held_back_is_counted(arms):
+    """The log throttle keys on the topic and the reason: a wrong length, a NaN and an inf
+    within 2 s on one topic each show; the second non-finite one is counted when its window closes."""
+    topic = "/world_2/commands"
+    command(arms, 2, [0.0] * 6)
+    arms.wait_subscribed(topic)
+    start = len(arms.log())
+    for values in ([0.5, 0.5], [math.nan] + [0.0] * 5, [0.0, math.inf, 0, 0, 0, 0]):
+        command(arms, 2, values)
+    arms.wait(lambda: "held back" in arms.log()[start:], 10, "the count of the lines held back")
+    log = arms.log()[start:]
+    assert f"rejected command on {topic}: 2 values, expected 6" in log, log
+    assert f"rejected command on {topic}: value nan for joint1/position is not finite" in log, log
+    assert f"rejected command on {topic}: value inf for joint2/position is not finite (1 line like it held back in 2 s)" in log, log
+
+
 def test_a_flood_of_commands_does_not_stall_the_loop(arms):
     command(arms, 0, [0.1, 0, 0, 0, 0, 0])
     arms.wait_subscribed("/world_0/commands")
@@ -187,14 +204,29 @@ def test_pause_and_single_step(arms):
     frozen = sim_time(arms.clock.msg.clock)
     time.sleep(0.3)
     assert sim_time(arms.clock.msg.clock) == frozen
-    reply = arms.call(Trigger, "/batchsim/step", Trigger.Request())
-    assert reply.success, reply.message
-    arms.wait(lambda: sim_time(arms.clock.msg.clock) > frozen, 5, "one step")
+    for k in (1, 2, 3):  # the reply comes after the step, with the new time, every time
+        reply = arms.call(Trigger, "/batchsim/step", Trigger.Request())
+        assert reply.success, reply.message
+        assert reply.message == f"stepped to sim time {frozen + 0.01 * k:.6f} s"
+        arms.wait(lambda k=k: sim_time(arms.clock.msg.clock) >= frozen + 0.01 * k - 1e-9, 5, "the step's clock")
     time.sleep(0.2)
-    assert sim_time(arms.clock.msg.clock) == pytest.approx(frozen + 0.01, abs=1e-9)
+    assert sim_time(arms.clock.msg.clock) == pytest.approx(frozen + 0.03, abs=1e-9)
     assert arms.call(SetBool, "/batchsim/pause", SetBool.Request(data=False)).success
     settle(arms, 0.1)
     assert not arms.call(Trigger, "/batchsim/step", Trigger.Request()).success  # only while paused
+
+
+def test_a_reset_while_paused_is_published_at_once(arms):
+    target = Float64MultiArray(data=[0.6, 0, 0, 0, 0, 0])
+    arms.publish_until(Float64MultiArray, "/world_3/commands", target, lambda: position(arms, 3) > 0.5, 10)
+    assert arms.call(SetBool, "/batchsim/pause", SetBool.Request(data=True)).success
+    time.sleep(0.2)
+    frozen, count = sim_time(arms.clock.msg.clock), arms.js[3].count
+    assert arms.call(Trigger, "/world_3/reset", Trigger.Request()).success
+    arms.wait(lambda: arms.js[3].count > count, 5, "world_3's reset state while paused")
+    assert abs(position(arms, 3)) < 0.02
+    assert sim_time(arms.js[3].msg.header.stamp) == frozen == sim_time(arms.clock.msg.clock)
+    assert arms.call(SetBool, "/batchsim/pause", SetBool.Request(data=False)).success
 
 
 def test_plugin_compatible_topic_names(tmp_path):
@@ -325,4 +357,46 @@ def test_command_timeout_holds_position(tmp_path):
         time.sleep(0.3)
         assert js[0].msg.position[0] == pytest.approx(stopped, abs=0.02)
         assert "no command for 0.05 s (command timeout); holding position" in f.log()
+        assert f.close() == 0
+
+
+UNSTABLE = """
+<mujoco model="unstable">
+  <option timestep="0.002"/>
+  <worldbody>
+    <body name="link">
+      <joint name="hinge" type="hinge" axis="0 0 1"/>
+      <geom type="capsule" size="0.001 0.001" mass="1e-6"/>
+    </body>
+  </worldbody>
+  <actuator><motor name="motor" joint="hinge"/></actuator>
+</mujoco>
+"""
+
+
+def test_a_frozen_world_stops_its_state_and_says_so(tmp_path):
+    """A diverged world is frozen until reset: its joint_states stop (no fresh stamps) and
+    /diagnostics says it is frozen; the other world goes on."""
+    (tmp_path / "unstable.xml").write_text(UNSTABLE)
+    args = ["--worlds", "2", "--model", str(tmp_path / "unstable.xml"), "--backend", "cpu"]
+    with Fleet(domain_id(24), args, tmp_path / "frozen.log") as f:
+        js = [f.latest(JointState, f"/world_{w}/joint_states") for w in range(2)]
+        diag = f.diagnostics()
+        f.wait(lambda: all(s.count > 0 for s in js), 30, "joint_states")
+        f.publish_until(
+            Float64MultiArray, "/world_1/commands", Float64MultiArray(data=[1e9]),
+            lambda: "diverged" in getattr(diag.world("world_1"), "message", ""), 20, "world_1 diverged",
+        )  # fmt: skip
+        status = diag.world("world_1")
+        assert status.level == DiagnosticStatus.ERROR and "frozen until reset" in status.message
+        assert diag.value("world_1", "frozen") == "true" and diag.value("world_0", "frozen") == "false"
+        time.sleep(0.3)
+        stamp, count = sim_time(js[1].msg.header.stamp), js[1].count
+        alive = js[0].count
+        time.sleep(0.5)
+        assert js[1].count == count and sim_time(js[1].msg.header.stamp) == stamp  # no fresh stamps
+        assert js[0].count > alive + 10
+        assert f.call(Trigger, "/world_1/reset", Trigger.Request()).success
+        f.wait(lambda: js[1].count > count and sim_time(js[1].msg.header.stamp) > stamp, 10, "world_1 back after reset")
+        f.wait(lambda: diag.value("world_1", "frozen") == "false", 10, "world_1 no longer frozen")
         assert f.close() == 0
