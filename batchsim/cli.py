@@ -81,6 +81,12 @@ def run_parser() -> argparse.ArgumentParser:
         "--world-offset", type=int, default=0, help="number of the first world, for a fleet over several processes or hosts"
     )
     ros.add_argument("--no-clock", action="store_true", help="do not publish /clock (another process of the fleet does)")
+    ros.add_argument(
+        "--all-topics",
+        action="store_true",
+        help="create every per-world topic at start (default: sensor, actuator and controller_state topics "
+        "appear when someone subscribes or publishes)",
+    )
     p.add_argument(
         "--controllers",
         default=None,
@@ -204,6 +210,7 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
         workers=args.bridge_workers,
         world_offset=args.world_offset,
         clock=not args.no_clock,
+        all_topics=args.all_topics,
     )
     try:
         return start_bridge(sim, loop, options, manager)

@@ -56,6 +56,9 @@ class BridgeOptions:
       startup_check: wall seconds to watch the ROS graph at start for another process that
         already serves these namespaces or `/clock` (on another host: one on this host is
         found at once, ros_bridge/registry.py).
+      all_topics: create every per-world topic at start, also those otherwise created when
+        someone asks (sensors, actuator commands, controller_state): for tools that list
+        topics before they subscribe, at the price of discovery time in large fleets.
     """
 
     namespace: str = DEFAULT_TEMPLATE
@@ -70,6 +73,7 @@ class BridgeOptions:
     world_offset: int = 0
     clock: bool = True
     startup_check: float = 1.0
+    all_topics: bool = False
 
     def check(self) -> None:
         """OptionError for a value no fleet can run with (rates are checked against the loop later)."""

@@ -125,6 +125,7 @@ class FleetPlan:
       lockstep: workers nudge the loop when a command arrives.
       clock: worker 0 publishes /clock.
       startup_check: seconds worker 0 watches the graph for another fleet at start.
+      all_topics: create the on-request topics at start too.
       layout, memory_name: the shared arrays.
     """
 
@@ -145,6 +146,7 @@ class FleetPlan:
     lockstep: bool
     clock: bool
     startup_check: float
+    all_topics: bool = False
     layout: Layout = dataclasses.field(init=False)
     memory_name: str | None = None
 
@@ -379,6 +381,7 @@ def build_plan(
         lockstep=options.lockstep,
         clock=options.clock,
         startup_check=options.startup_check,
+        all_topics=options.all_topics,
     )
     return plan, fills, inputs
 

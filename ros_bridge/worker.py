@@ -81,7 +81,8 @@ class _Output:
 
     def __init__(self, spec: OutputSpec, namespaces: list[str]):
         self.spec = spec
-        self.bulk = BulkMessages(spec, namespaces)
+        self.namespaces = namespaces
+        self._bulk: BulkMessages | None = None
         self.publishers: list[Any] = [None] * len(namespaces)
         self.rows: list[int] = []  # the worlds (rows) with a subscriber
         self.msg_type = message_type(spec.msg_type)
@@ -89,6 +90,13 @@ class _Output:
         self.gather = [
             (f.channel, np.maximum(np.array(f.columns, dtype=np.intp), 0), np.array(f.columns) < 0) for f in spec.fields
         ]
+
+    @property
+    def bulk(self) -> BulkMessages:
+        """The serialized messages, laid out when first published (most outputs never are)."""
+        if self._bulk is None:
+            self._bulk = BulkMessages(self.spec, self.namespaces)
+        return self._bulk
 
     def values(self, channels: dict[int, np.ndarray]) -> np.ndarray:
         parts = []
@@ -238,7 +246,7 @@ class Worker:
             self._outputs.append(out)
             for row, ns in enumerate(self.namespaces):
                 topic = f"/{ns}/{spec.topic}"
-                if spec.on_request:
+                if spec.on_request and not plan.all_topics:
                     self._on_request[topic] = (out, row)
                 else:
                     out.publishers[row] = node.create_publisher(out.msg_type, topic, qos)
@@ -251,7 +259,10 @@ class Worker:
             topic = f"/{ns}/commands"
             self._subscribe(Float64MultiArray, topic, self._vector_callback(w, topic, interfaces, owners))
             for c, token in enumerate(plan.actuator_topics):
-                self._actuators[f"/{ns}/actuators/{token}/command"] = (w, c)
+                topic = f"/{ns}/actuators/{token}/command"
+                if plan.all_topics:
+                    self._subscribe(Float64, topic, self._single_callback(w, c, topic, interfaces, owners))
+                self._actuators[topic] = (w, -1 if plan.all_topics else c)
         self._actuator_list = ", ".join(plan.actuator_topics) or "none"
 
         for i, spec in enumerate(plan.inputs):

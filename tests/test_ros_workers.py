@@ -293,3 +293,18 @@ def test_processes_with_world_offsets_form_one_fleet_and_overlaps_are_refused(tm
             second_log.close()
         assert second.returncode == 0, (tmp_path / "second.log").read_text()
         assert f.close() == 0
+
+
+def test_a_second_fleet_started_on_the_same_domain_by_mistake_is_refused(tmp_path):
+    with Fleet(domain_id(43), ["--worlds", "2", "--model", "arm"], tmp_path / "first.log") as f:
+        f.wait_started()
+        out = subprocess.run(
+            [sys.executable, "-m", "batchsim.cli", "--controllers", "none", "--worlds", "2"],
+            env={**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(f.domain)},
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert out.returncode == 2, out.stderr
+        lines = out.stderr.strip().splitlines()
+        assert len(lines) == 1 and "already serves /world_0 and 1 more (node /batchsim_0_1" in lines[0], out.stderr
+        assert f.proc.poll() is None
+        assert f.close() == 0
