@@ -427,7 +427,7 @@ class BridgeHost:
             # show the state this period starts from, so commands can be computed from it
             self._gate_since = now
             self.sim.read(sim_time, self.loop.period)
-            self._snapshot(sim_time, force=self._force)
+            self._snapshot(sim_time, force=self._force, every_channel=True)
         ready = self._ready()
         if ready.all():
             self._gate_since = None
@@ -550,8 +550,10 @@ class BridgeHost:
         self._wake(worker)
 
     # --- publishing ---
-    def _snapshot(self, time: float, force: bool) -> None:
-        """Copy what is due into the next snapshot buffer and wake the workers."""
+    def _snapshot(self, time: float, force: bool, every_channel: bool = False) -> None:
+        """Copy what is due into the next snapshot buffer and wake the workers.
+        `every_channel`: every channel, wanted or not (the state lockstep waits in, which a
+        subscriber that comes during the wait gets at once)."""
         m = self.memory
         n = self._n + 1
         b = n % 2
@@ -572,7 +574,7 @@ class BridgeHost:
         written = m["written"][b]
         k = self._period
         for c, fill in enumerate(self.fills):
-            if demand[c] and (force or any(k % e == 0 for e in self._channel_every[c])):
+            if every_channel or (demand[c] and (force or any(k % e == 0 for e in self._channel_every[c]))):
                 fill(self._channels[c][b])
                 written[c] = n
             else:

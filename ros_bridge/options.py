@@ -55,7 +55,8 @@ class BridgeOptions:
       clock: publish `/clock`; exactly one process of a fleet may.
       startup_check: wall seconds to watch the ROS graph at start for another process that
         already serves these namespaces or `/clock` (on another host: one on this host is
-        found at once, ros_bridge/registry.py).
+        found at once, ros_bridge/registry.py; with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+        there is no other host to watch for).
       all_topics: create every per-world topic at start, also those otherwise created when
         someone asks (sensors, actuator commands, controller_state): for tools that list
         topics before they subscribe, at the price of discovery time in large fleets.

@@ -182,6 +182,7 @@ class Worker:
         self._clock_pub: Any = None
         self._diag_pub: Any = None
         self._last_clock = (-1, -1)
+        self._clock_subscribers = 0
         self._last_done = -1
         self.published = 0  # messages published, for benchmarks
 
@@ -191,6 +192,8 @@ class Worker:
         these namespaces, or a /clock publisher when this process would publish one too.
         Returns (kind, message) with kind "namespace" or "clock", or None."""
         plan = self.plan
+        if os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").upper() in ("LOCALHOST", "OFF"):
+            return None  # no other host can join: the host's registry (registry.py) has seen every fleet
         mine = {f"/{ns}/reset" for ns in plan.namespaces}
         own = plan.node_names[self.index]
         deadline = wallclock.monotonic() + plan.startup_check
@@ -371,37 +374,49 @@ class Worker:
         if self._clock_pub is not None and ((sec, nanosec) != self._last_clock or snap.forced):
             self._last_clock = (sec, nanosec)
             self._clock_pub.publish(clock_payload(sec, nanosec))
-        if not self._active:
-            return
-        frozen = (snap.flags & FLAG_FROZEN) != 0 if snap.flags.any() else None
         for out in self._active:
-            spec = out.spec
-            if not (snap.forced or snap.period % spec.every == 0):
-                continue
-            if any(c not in snap.channels for c in spec.channels):
-                continue  # not copied this time (nobody wanted it until now)
-            rows = out.rows
-            if frozen is not None and spec.state:
-                rows = [r for r in rows if not frozen[r]]
-            out.bulk.fill(out.values(snap.channels), sec, nanosec)
-            pubs, payload = out.publishers, out.bulk.payload
-            for r in rows:
-                pubs[r].publish(payload(r))
-            self.published += len(rows)
+            if snap.forced or snap.period % out.spec.every == 0:
+                self._publish_rows(out, snap, out.rows, sec, nanosec)
+
+    def _publish_rows(self, out: _Output, snap: Snapshot, rows: list[int], sec: int, nanosec: int) -> None:
+        spec = out.spec
+        if any(c not in snap.channels for c in spec.channels):
+            return  # not copied this time (nobody wanted it until now)
+        if spec.state and snap.flags.any():
+            frozen = (snap.flags & FLAG_FROZEN) != 0
+            rows = [r for r in rows if not frozen[r]]
+        out.bulk.fill(out.values(snap.channels), sec, nanosec)
+        pubs, payload = out.publishers, out.bulk.payload
+        for r in rows:
+            pubs[r].publish(payload(r))
+        self.published += len(rows)
 
     def _refresh(self) -> None:
-        """Lazy publishing: which rows have subscribers; which channels this worker needs."""
+        """Lazy publishing: which rows have subscribers; which channels this worker needs.
+        A world's first subscriber gets the newest state at once, so a node that waits for
+        the state before it commands (lockstep) is not left waiting for the next period."""
+        snap = self.snapshot
+        sec, nanosec = stamp_of(snap.time)
         demand = np.zeros(len(self.plan.channels), dtype=np.uint8)
         active = []
         for out in self._outputs:
+            before = set(out.rows)
             out.rows = [r for r, p in enumerate(out.publishers) if p is not None and p.get_subscription_count() > 0]
             if out.rows:
                 active.append(out)
                 for c in out.spec.channels:
                     demand[c] = 1
+                new = [r for r in out.rows if r not in before]
+                if new and snap.n >= 0:
+                    self._publish_rows(out, snap, new, sec, nanosec)
         self._active = active
         if len(demand):
             self.memory["demand"][self.index, : len(demand)] = demand
+        if self._clock_pub is not None:
+            count = self._clock_pub.get_subscription_count()
+            if count > self._clock_subscribers and snap.n >= 0:
+                self._clock_pub.publish(clock_payload(sec, nanosec))
+            self._clock_subscribers = count
 
     def _scan_graph(self) -> None:
         """Create on-request publishers and actuator subscriptions someone asks for; reject
@@ -424,7 +439,7 @@ class Worker:
                     self._subscribe(Float64, name, callback)
                     self._actuators[name] = (w, -1)  # subscribed
                 continue
-            match = _ACTUATOR_TOPIC.match(name)
+            match = _ACTUATOR_TOPIC.match(name) if "/actuators/" in name else None
             if match is not None:
                 w = self._world_of.get(match.group(1))
                 if w is not None and node.count_publishers(name) > 0:
