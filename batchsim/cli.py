@@ -23,6 +23,7 @@ from batchsim.controllers import ControllerManager, default_controllers, load_co
 from batchsim.hardware import BatchedSystem, ConfigurationError, LifecycleError
 from batchsim.loop import OptionError, RateError, SimLoop, format_stats, whole_ratio
 from batchsim.model import ModelError, model_names
+from batchsim.sensors import SensorConfig, SensorSuite
 
 EXIT_USAGE = 2
 
@@ -51,6 +52,11 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--rtf", type=float, default=1.0, help="real-time factor; 0 runs as fast as possible")
     p.add_argument("--control-rate", type=float, default=None, help="Hz: commands applied, state read")
     p.add_argument("--threads", type=int, default=None, help="cpu backend: worker threads (default: all cores)")
+    p.add_argument(
+        "--devices",
+        default=None,
+        help="mjx/warp: spread the worlds over several GPUs: all, or indices 0,1,... (default: one device)",
+    )
     p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world (default: sized from a CPU rollout)")
     p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world (default: sized likewise)")
     p.add_argument(
@@ -59,6 +65,9 @@ def run_parser() -> argparse.ArgumentParser:
         help="mjx/warp on a GPU: bitwise-repeatable runs, slower (cpu always is)",
     )
     p.add_argument("--ros2-control", default=None, help="URDF/XML file with a <ros2_control> block")
+    p.add_argument(
+        "--keyframe", default=None, help="keyframe (name or index) to start in (default: home, if the model has one)"
+    )
     p.add_argument("--no-ros", action="store_true", help="run without the ROS 2 bridge")
     p.add_argument("--quiet", action="store_true", help="no live status line")
     ros = p.add_argument_group("ROS 2 bridge")
@@ -87,6 +96,17 @@ def run_parser() -> argparse.ArgumentParser:
         help="create every per-world topic at start (default: sensor, actuator and controller_state topics "
         "appear when someone subscribes or publishes)",
     )
+    sens = p.add_argument_group("cameras, lidars and sensor noise")
+    sens.add_argument(
+        "--sensors",
+        action="append",
+        metavar="FILE",
+        help="mujoco_ros2_control plugin YAML and/or batchsim's `sensors:` block (noise, dense lidars); may repeat",
+    )
+    sens.add_argument("--camera-rate", type=float, default=None, help="Hz for camera images (default: the YAML's, else 5)")
+    sens.add_argument("--lidar-rate", type=float, default=None, help="Hz for lidar scans (default: the YAML's, else 10)")
+    sens.add_argument("--camera-resolution", default=None, metavar="WxH", help="every camera's image size (default: the MJCF's)")
+    sens.add_argument("--noise-seed", type=int, default=None, help="sensor noise seed (default: the YAML's, else 0)")
     p.add_argument(
         "--controllers",
         default=None,
@@ -101,18 +121,23 @@ def info_parser() -> argparse.ArgumentParser:
     p.add_argument("--worlds", type=int, default=16, help="world count the backend choice is for")
     p.add_argument("--backend", default="auto")
     p.add_argument("--ros2-control", default=None)
+    p.add_argument("--keyframe", default=None)
     return p
 
 
 def info(argv: Sequence[str]) -> int:
     args = info_parser().parse_args(argv)
-    spec = batchsim.load(args.model, ros2_control=args.ros2_control)
+    spec = batchsim.load(args.model, ros2_control=args.ros2_control, keyframe=args.keyframe)
     chosen, reason = resolve(args.backend, spec, args.worlds)
     m = spec.mjmodel
+    keys = ", ".join(repr(k) if k else f"#{i}" for i, k in enumerate(spec.keyframes)) or "none"
+    base = spec.floating_base
     out = [
         f"model      {spec.name}  ({spec.path or 'string'})",
         f"timestep   {m.opt.timestep:g} s   nq {m.nq}  nv {m.nv}  nu {m.nu}",
         f"backend    {chosen.value} for {args.worlds} worlds ({reason})",
+        f"starts in  {spec.initial.source}   (keyframes: {keys})",
+        f"base       {f'free joint {base.joint!r} of body {base.body!r}' if base else 'fixed (no floating base)'}",
     ]
     if spec.ros is not None:
         r = spec.ros
@@ -123,16 +148,53 @@ def info(argv: Sequence[str]) -> int:
     out.append(f"\nstate interfaces ({len(spec.state)})")
     out += [f"  {i:3d}  {c.name}" for i, c in enumerate(spec.state)]
     out.append(f"\ncommand interfaces ({len(spec.commands)})")
-    out += [f"  {i:3d}  {c.name:32s} actuator {c.actuator}" for i, c in enumerate(spec.commands)]
+    out += [f"  {i:3d}  {c.name:32s} actuator {c.actuator}{_how(c)}" for i, c in enumerate(spec.commands)]
+    out += [
+        f"       {mc.joint} mimics {mc.source} (x {mc.multiplier:g} + {mc.offset:g}) on actuator {mc.actuator}"
+        for mc in spec.mimics
+    ]
     out.append(f"\nsensors ({len(spec.sensors)})")
     out += [
         f"  {s.name:24s} {s.type:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors
     ]
+    out += sensor_lines(SensorSuite.build(spec, args.worlds))
+    if spec.warnings:
+        out.append("\nwarnings (not acted on)")
+        out += [f"  {w}" for w in spec.warnings]
     if spec.problems:
         out.append("\nproblems (configure will fail)")
         out += [f"  {p}" for p in spec.problems]
     print("\n".join(out))
     return 0
+
+
+def sensor_lines(suite: SensorSuite) -> list[str]:
+    """`batchsim info`'s cameras and lidars."""
+    out = []
+    if suite.cameras:
+        out.append(f"\ncameras ({len(suite.cameras)})")
+        out += [
+            f"  {c.name:24s} {c.width}x{c.height}  fx {c.info.fx:.1f} fy {c.info.fy:.1f}  "
+            f"-> {c.image_topic}, {c.depth_topic}, {c.info_topic}"
+            for c in suite.cameras.values()
+        ]
+    if suite.lidars:
+        out.append(f"\nlidars ({len(suite.lidars)})")
+        out += [
+            f"  {ld.name:24s} {ld.kind.value:11s} {ld.nrow}x{ld.ncol} rays from site {ld.site}, azimuth "
+            f"{ld.angle_min:+.3f}..{ld.angle_max:+.3f} rad, range {ld.range_min:g}..{ld.range_max:g} m -> {ld.topic}"
+            for ld in suite.lidars.values()
+        ]
+    return out
+
+
+def _how(c: Any) -> str:
+    """How a command interface reaches ctrl, where it is not a plain copy."""
+    if c.pid is not None:
+        return f"  (PID p={c.pid.p:g} i={c.pid.i:g} d={c.pid.d:g})"
+    if c.scale != 1.0 or c.offset != 0.0:
+        return f"  (ctrl = {c.scale:g} x command + {c.offset:g})"
+    return ""
 
 
 def build(args: argparse.Namespace) -> BatchedSystem:
@@ -144,7 +206,25 @@ def build(args: argparse.Namespace) -> BatchedSystem:
             options[option] = getattr(args, flag)
     if args.deterministic:
         options["deterministic"] = True
-    sim = batchsim.make(args.model, args.worlds, args.backend, ros2_control=args.ros2_control, **options)
+    if args.devices is not None:
+        names = [d.strip() for d in args.devices.split(",") if d.strip()]
+        options["devices"] = "all" if names == ["all"] else [int(d) if d.isdigit() else d for d in names]
+    sensors = SensorConfig.from_flags(
+        args.sensors,
+        camera_rate=args.camera_rate,
+        lidar_rate=args.lidar_rate,
+        camera_resolution=args.camera_resolution,
+        seed=args.noise_seed,
+    )
+    sim = batchsim.make(
+        args.model,
+        args.worlds,
+        args.backend,
+        ros2_control=args.ros2_control,
+        keyframe=args.keyframe,
+        sensors=sensors,
+        **options,
+    )
     sim.configure()
     sim.activate()
     return sim

@@ -16,6 +16,8 @@ import numpy as np
 from mujoco import batch as mjbatch
 
 from batchsim.hardware import BatchedSystem, Status
+from batchsim.sensors import Camera, Lidar
+from batchsim.sensors.host import HostSensors
 
 _W = mujoco.mjtWarning
 # MuJoCo warnings that mean a world's numbers can no longer be trusted (mjWARN_INERTIA is
@@ -113,3 +115,22 @@ class CpuSystem(BatchedSystem):
                 self._batch.bind(field)[rows] = value
         self._fields["time"][rows] = initial.time
         self._batch.forward(ids=ids)
+
+    # --- cameras and lidars: MuJoCo's renderer and the batch's threaded ray casting ---
+    _host: HostSensors | None = None  # made on the first render or scan
+
+    def _host_sensors(self) -> HostSensors:
+        if self._host is None:
+            self._host = HostSensors(self.model, self._batch)
+        return self._host
+
+    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._host_sensors().frames(camera, worlds)
+
+    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        return self._host_sensors().cast(lidar, worlds)
+
+    def _close_sensors(self) -> None:
+        if self._host is not None:
+            self._host.close()
+            self._host = None

@@ -38,11 +38,14 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from mujoco import batch as mjbatch
 from mujoco import mjx
 
 from batchsim.backends import unsupported_error
 from batchsim.hardware import MAX_COMMAND, BatchedSystem, Status
 from batchsim.model import RobotSpec, StateColumn
+from batchsim.sensors import Camera, Lidar
+from batchsim.sensors.host import HostSensors
 
 _SOURCES = ("qpos", "qvel", "qfrc_actuator", "sensordata")
 _CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device)
@@ -192,6 +195,13 @@ class MjxSystem(BatchedSystem):
             raise unsupported_error("mjx", spec, _feature(e)) from None
 
     @staticmethod
+    def available_devices() -> list[str]:
+        """JAX's devices of its default platform, as this backend's `device` option names
+        them ("gpu:0", "gpu:1", ...; "cpu:0", ... on a machine without an accelerator)."""
+        devices = jax.devices()
+        return [f"{d.platform}:{i}" for i, d in enumerate(devices)]
+
+    @staticmethod
     def unsupported(spec: RobotSpec) -> str | None:
         """The model feature MJX cannot simulate, or None."""
         try:
@@ -248,6 +258,7 @@ class MjxSystem(BatchedSystem):
         np.copyto(self._readings, packed[:, :nread])
         np.copyto(self._sensor_host, packed[:, nread:-1])
         np.copyto(self.time, packed[:, -1])
+        self._apply_signs()
         self._show_held_readings()
 
     def _step(self, nstep: int) -> None:
@@ -295,6 +306,35 @@ class MjxSystem(BatchedSystem):
         d = self._d
         return {f: getattr(d, f) for f in ("qpos", "qvel", "qfrc_actuator", "sensordata", "ctrl", "time")}
 
+    # --- cameras and lidars: through a host copy of the worlds (MuJoCo's renderer, mujoco.batch rays) ---
+    _host: HostSensors | None = None  # made on the first render or scan
+
+    def _host_copy(self) -> HostSensors:
+        """The host mirror, its state rows filled from the device: one download of qpos and mocap."""
+        if self._host is None:
+            self._host = HostSensors(self.model, mjbatch.Batch(self.model, self.nworld, nthread=0))
+        batch = self._host.batch
+        fields = ["qpos"] + (["mocap_pos", "mocap_quat"] if self.model.nmocap else [])
+        values = jax.device_get({f: getattr(self._d, f) for f in fields})
+        for field, value in values.items():
+            batch.bind(field)[:] = value
+        return self._host
+
+    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._host_copy().frames(camera, worlds)
+
+    def _device_frames(self, camera: Camera) -> tuple[jax.Array, jax.Array]:
+        """Every world's images, rendered on the host and put on this system's device."""
+        rgb, depth = self._render_frames(camera, np.arange(self.nworld))
+        return jax.device_put(rgb, self.device), jax.device_put(depth, self.device)
+
+    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        return self._host_copy().cast(lidar, worlds)
+
+    def _close_sensors(self) -> None:
+        if self._host is not None:
+            self._host.close()
+            self._host = None
 
 def _feature(e: NotImplementedError) -> str:
     return str(e).strip().rstrip(".") or type(e).__name__

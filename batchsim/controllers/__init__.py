@@ -31,7 +31,13 @@ from batchsim.controllers.forward_command import (
     JointGroupPositionController,
     JointGroupVelocityController,
 )
+from batchsim.controllers.gripper import (
+    EffortGripperActionController,
+    GripperActionController,
+    ParallelGripperActionController,
+)
 from batchsim.controllers.joint_trajectory import JointTrajectoryController
+from batchsim.controllers.pose_broadcaster import PoseBroadcaster
 from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch
 
 __all__ = [
@@ -40,8 +46,10 @@ __all__ = [
     "ControllerManager",
     "ControllerTopics",
     "DiffDriveController",
+    "EffortGripperActionController",
     "ForceTorqueSensorBroadcaster",
     "ForwardCommandController",
+    "GripperActionController",
     "IMUSensorBroadcaster",
     "Input",
     "JointGroupEffortController",
@@ -52,7 +60,9 @@ __all__ = [
     "ManagerConfig",
     "MessageKind",
     "Output",
+    "ParallelGripperActionController",
     "Params",
+    "PoseBroadcaster",
     "TrajectoryBatch",
     "build",
     "default_controllers",

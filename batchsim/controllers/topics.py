@@ -75,9 +75,10 @@ class TrajectoryBatch:
       times: (npoint,) float64, each point's time_from_start.
       positions: (npoint, njoint) float64; entries of joints a trajectory does not name are ignored.
       velocities: (npoint, njoint) float64, or None when no trajectory of the batch gives any.
-      has_velocities: (n,) bool, which trajectories give velocities (rows of the others are ignored).
+      has_velocities: (n,) bool, which trajectories give velocities (rows of the others are
+        ignored); None: all of them, when `velocities` is given.
       accelerations: (npoint, njoint) float64, or None likewise.
-      has_accelerations: (n,) bool.
+      has_accelerations: (n,) bool, or None likewise.
     """
 
     worlds: np.ndarray
