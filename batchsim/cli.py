@@ -305,7 +305,14 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
         raise UsageError(str(e)) from None
 
 
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 def run(argv: Sequence[str]) -> int:
+    # until the loop runs, SIGTERM ends the start as Ctrl-C does: what was started (bridge
+    # workers, shared memory) is stopped and removed on the way out
+    signal.signal(signal.SIGTERM, _interrupt)
     args = run_parser().parse_args(argv)
     sim = build(args)
     manager, update_rate = setup_controllers(sim, args)
@@ -317,15 +324,14 @@ def run(argv: Sequence[str]) -> int:
     if manager is not None:
         for warning in manager.warnings:
             print(f"batchsim: warning: {warning}", file=sys.stderr)
-    bridge = None if args.no_ros else start_ros(sim, loop, args, manager)
-    if manager is not None and manager not in loop.participants:
-        loop.participants.append(manager)
-
     def on_signal(signum: int, frame: Any) -> None:
         loop.stop()
 
+    bridge = None if args.no_ros else start_ros(sim, loop, args, manager)
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    if manager is not None and manager not in loop.participants:
+        loop.participants.append(manager)
 
     backend = f"{sim.name} ({sim.reason})"
     tty = sys.stderr.isatty()

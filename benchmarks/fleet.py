@@ -94,13 +94,20 @@ def subscriber(domain: int, lo: int, hi: int, template: str) -> None:
 
 
 # --- the parent ---
+def _pythonpath() -> str:
+    """The project first, then whatever the caller's PYTHONPATH holds (on the GPU host, the
+    MuJoCo wheels' directory)."""
+    extra = os.environ.get("PYTHONPATH")
+    return str(ROOT) + (os.pathsep + extra if extra else "")
+
+
 class Subscribers:
     """K subscriber processes sharing the worlds."""
 
     def __init__(self, domain: int, worlds: int, k: int, template: str):
         k = max(1, min(k, worlds))
         edges = [round(i * worlds / k) for i in range(k + 1)]
-        env = {**os.environ, **LOCALHOST, "PYTHONPATH": str(ROOT)}
+        env = {**os.environ, **LOCALHOST, "PYTHONPATH": _pythonpath()}
         self.procs = [
             subprocess.Popen(
                 [sys.executable, __file__, "--subscriber", str(domain), str(a), str(b), template],
@@ -150,7 +157,7 @@ class Batchsim:
     """A `batchsim` process; its stderr lines with their wall times."""
 
     def __init__(self, args: list[str], domain: int | None):
-        env = {**os.environ, **LOCALHOST, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT)}
+        env = {**os.environ, **LOCALHOST, "PYTHONUNBUFFERED": "1", "PYTHONPATH": _pythonpath()}
         if domain is not None:
             env["ROS_DOMAIN_ID"] = str(domain)
         self.proc = subprocess.Popen(

@@ -236,6 +236,8 @@ class BridgeHost:
                 os.write(p.wake, b"q")
             except OSError:
                 pass
+            if not p.ready and p.popen.poll() is None:
+                p.popen.terminate()  # still starting: it reads no pipe yet
             p.close_pipes()
         deadline = wallclock.monotonic() + STOP_TIMEOUT
         for p in self._procs:

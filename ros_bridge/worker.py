@@ -683,10 +683,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     status = os.fdopen(status_fd, "w", buffering=1)
     plan: FleetPlan = pickle.load(sys.stdin.buffer)
-    memory = Memory.attach(plan.layout, plan.memory_name)
+    memory: Memory | None = None
     worker = None
     ready = False
     try:
+        memory = Memory.attach(plan.layout, plan.memory_name)
         os.set_blocking(notify_fd, False)
         worker = Worker(plan, index, memory, notify_fd=notify_fd if plan.lockstep else None)
         conflict = worker.check_conflicts() if check else None
@@ -702,6 +703,8 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit:
         return 0
     except BaseException as e:
+        if os.getppid() != parent:
+            return 0  # the physics process went (and took the shared memory): nothing to say
         if not ready:
             try:
                 status.write(f"error {type(e).__name__}: {e}\n")
@@ -711,7 +714,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if worker is not None:
             worker.close()
-        memory.close()
+        if memory is not None:
+            memory.close()
 
 
 if __name__ == "__main__":

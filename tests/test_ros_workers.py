@@ -308,3 +308,26 @@ def test_a_second_fleet_started_on_the_same_domain_by_mistake_is_refused(tmp_pat
         assert len(lines) == 1 and "already serves /world_0 and 1 more (node /batchsim_0_1" in lines[0], out.stderr
         assert f.proc.poll() is None
         assert f.close() == 0
+
+
+def test_sigterm_while_the_workers_start_stops_them_and_removes_the_segment(tmp_path):
+    domain = domain_id(44)
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain), "PYTHONUNBUFFERED": "1"}
+    cmd = [sys.executable, "-m", "batchsim.cli", "--worlds", "4", "--controllers", "none", "--bridge-workers", "2"]
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        workers: list[int] = []
+        while not workers and time.monotonic() < deadline and proc.poll() is None:
+            workers = [p for p in children(proc.pid) if "ros_bridge.worker" in open(f"/proc/{p}/cmdline").read()]
+            time.sleep(0.01)
+        assert workers and segments(proc.pid), "no worker started"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "leaked" not in err, err
+    assert not [p for p in workers if alive(p)], "orphaned workers"
+    assert segments(proc.pid) == []
