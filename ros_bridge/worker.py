@@ -184,6 +184,10 @@ class Worker:
         self._last_clock = (-1, -1)
         self._clock_subscribers = 0
         self._last_done = -1
+        # per world (row): rejections per (topic, reason), for /diagnostics
+        self._rejected: list[dict[tuple[str, str], int]] = [{} for _ in self.namespaces]
+        self._rejected_lock = threading.Lock()
+        self._host_seen = self.host_rejections.count[self.lo : self.hi].copy()
         self.published = 0  # messages published, for benchmarks
 
     # --- start ---
@@ -458,6 +462,14 @@ class Worker:
         sec, nanosec = stamp_of(snap.time)
         out.header.stamp.sec, out.header.stamp.nanosec = sec, nanosec
         mine, host = self.rejections, self.host_rejections
+        # what the controllers refused in the loop since the last round, on its last topic
+        host_counts = host.count[self.lo : self.hi].copy()
+        for row in np.flatnonzero(host_counts != self._host_seen).tolist():
+            topic = host.reason(self.lo + row).partition(": ")[0]
+            self._count_rejection(row, topic, Problem.INVALID, int(host_counts[row] - self._host_seen[row]))
+        self._host_seen = host_counts
+        with self._rejected_lock:
+            rejected = [sorted(c.items()) for c in self._rejected]
         for row, ns in enumerate(self.namespaces):
             w = self.lo + row
             bits = int(snap.status[row])
@@ -491,7 +503,8 @@ class Worker:
                         KeyValue(key="bad_commands", value=str(count)),
                         KeyValue(key="command_timeout", value=str(bool(flags & FLAG_TIMED_OUT)).lower()),
                         KeyValue(key="last_problem", value=last),
-                    ],
+                    ]
+                    + [KeyValue(key=f"rejected {topic} {reason}", value=str(n)) for (topic, reason), n in rejected[row]],
                 )
             )
         self._diag_pub.publish(out)
@@ -523,7 +536,13 @@ class Worker:
 
     def _reject(self, world: int, topic: str, problem: Problem, reason: str) -> None:
         self.rejections.put(world, self.snapshot.period, f"{topic}: {reason}")
+        self._count_rejection(world - self.lo, topic, problem, 1)
         self.throttle.warn((topic, problem), f"rejected command on {topic}: {reason}")
+
+    def _count_rejection(self, row: int, topic: str, problem: Problem, count: int) -> None:
+        with self._rejected_lock:
+            counts = self._rejected[row]
+            counts[topic, problem.value] = counts.get((topic, problem.value), 0) + count
 
     def _vector_callback(self, w: int, topic: str, interfaces: list[str], owners: list[str]) -> Callable[[Any], None]:
         def callback(msg: Float64MultiArray) -> None:

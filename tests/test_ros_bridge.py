@@ -178,6 +178,9 @@ def test_each_problem_on_a_topic_is_logged_and_what_was_held_back_is_counted(arm
     log = arms.log()[start:]
     assert f"rejected command on {topic}: 2 values, expected 6" in log, log
     assert f"rejected command on {topic}: value nan for joint1/position is not finite" in log, log
+    # /diagnostics counts them per topic and reason
+    arms.wait(lambda: arms.diag.value("world_0", f"rejected {topic} not_finite") == "2", 5, "the count per reason")
+    assert arms.diag.value("world_0", f"rejected {topic} length") == "1"
 
 
 def test_a_flood_of_commands_does_not_stall_the_loop(arms):

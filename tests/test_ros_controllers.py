@@ -100,6 +100,8 @@ def test_rejected_trajectories_are_logged_and_counted_in_diagnostics(arms):
     assert f"rejected command on /world_4/{topic}: " in log and "strictly increasing" in log, log[-2000:]
     assert "unknown joint 'elbow'" in arms.diag.value("world_3", "last_problem")
     assert "strictly increasing" in arms.diag.value("world_4", "last_problem")
+    arms.wait(lambda: arms.diag.value("world_4", f"rejected /world_4/{topic} invalid") == "1", 5, "the count per reason")
+    assert arms.diag.value("world_3", f"rejected /world_3/{topic} malformed") == "1"
     assert np.abs(np.array(arms.js[4].msg.position)).max() < 0.02  # the world stayed as it was
 
 
