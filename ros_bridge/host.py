@@ -269,6 +269,7 @@ class BridgeHost:
             stdin=subprocess.PIPE,
             pass_fds=(wake_r, status_w, self._notify_w),
             env=env,
+            start_new_session=True,  # Ctrl-C goes to the physics process, which stops the workers
         )
         os.close(wake_r)
         os.close(status_w)

@@ -313,11 +313,13 @@ def test_a_second_fleet_started_on_the_same_domain_by_mistake_is_refused(tmp_pat
         assert f.close() == 0
 
 
-def test_sigterm_while_the_workers_start_stops_them_and_removes_the_segment(tmp_path):
+@pytest.mark.parametrize("ctrl_c", [False, True], ids=["sigterm", "ctrl-c"])
+def test_sigterm_or_ctrl_c_while_the_workers_start_stops_them_and_removes_the_segment(ctrl_c):
+    """Ctrl-C: SIGINT to the terminal's whole process group."""
     domain = domain_id(44)
     env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain), "PYTHONUNBUFFERED": "1"}
     cmd = [sys.executable, "-m", "batchsim.cli", "--worlds", "4", "--controllers", "none", "--bridge-workers", "2"]
-    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
         workers: list[int] = []
@@ -325,7 +327,10 @@ def test_sigterm_while_the_workers_start_stops_them_and_removes_the_segment(tmp_
             workers = [p for p in children(proc.pid) if "ros_bridge.worker" in open(f"/proc/{p}/cmdline").read()]
             time.sleep(0.01)
         assert workers and segments(proc.pid), "no worker started"
-        proc.send_signal(signal.SIGTERM)
+        if ctrl_c:
+            os.killpg(proc.pid, signal.SIGINT)
+        else:
+            proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=10)
     finally:
         if proc.poll() is None:
