@@ -309,6 +309,8 @@ def main() -> None:
             opts.subscriber_processes = preset["subscribers"]
         if opts.threads is None:
             opts.threads = preset["threads"]
+        if "--heard-timeout" not in sys.argv:
+            opts.heard_timeout = 60.0  # 3 times the target: a slower discovery still leaves time for the rest
     else:
         sizes = [(int(w), opts.control_rate, opts.publish_rate or opts.control_rate) for w in opts.worlds.split(",")]
     versions = _versions()
@@ -325,8 +327,10 @@ def main() -> None:
     )
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
     last = None
+    began = time.monotonic()
     for worlds, control, publish in sizes:
         r = run_size(opts, worlds, control, publish, opts.domain)
+        print(f"# {worlds} worlds measured in {time.monotonic() - began:.0f} s since the start", file=sys.stderr, flush=True)
         last = r
         print(
             f"| {worlds} | {control:g} | {publish:g} | {r['no_ros']:,.0f} | {r['flat_out']:,.0f} | {r['flat_out'] / r['no_ros']:.3f} | "

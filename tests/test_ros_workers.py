@@ -99,6 +99,8 @@ def test_every_world_has_its_topics_and_services_whichever_worker_serves_it(flee
 
     fleet.wait(complete, 30, "every world's topics and services")
     assert node.count_publishers("/clock") == 1
+    # with workers, the physics process never loads rclpy
+    assert "rclpy" not in open(f"/proc/{fleet.proc.pid}/maps").read()
 
 
 def test_a_command_to_the_last_world_of_the_last_worker_moves_only_that_world(fleet):
