@@ -294,10 +294,12 @@ def test_plugin_compatible_topic_names(tmp_path):
         assert car.close() == 0
 
 
-def test_lockstep_advances_one_period_per_round_of_commands(tmp_path):
+@pytest.mark.parametrize("workers", [0, 2], ids=["in-process", "2-workers"])
+def test_lockstep_advances_one_period_per_round_of_commands(tmp_path, workers):
     """--lockstep: a period runs once every world's command has arrived, and the state it
-    starts from is published before it waits."""
+    starts from is published before it waits; with 2 workers, each world is another's."""
     args = ["--worlds", "2", "--model", "arm", "--rtf", "0", "--lockstep", "--lockstep-timeout", "30"]
+    args += ["--bridge-workers", str(workers)]
     with Fleet(domain_id(22), args, tmp_path / "lockstep.log") as f:
         clock = f.latest(Clock, "/clock")
         js = f.latest(JointState, "/world_1/joint_states", keep=10)
