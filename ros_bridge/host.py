@@ -190,9 +190,9 @@ class BridgeHost:
                 first = self._spawn(0, check=True)
                 self._procs.append(first)
                 self._await_ready([first])
-                rest = [self._spawn(j, check=False) for j in range(1, self.plan.nworker)]
-                self._procs += rest
-                self._await_ready(rest)
+                for j in range(1, self.plan.nworker):
+                    self._procs.append(self._spawn(j, check=False))  # appended at once: close() stops it
+                self._await_ready(self._procs[1:])
             else:
                 from ros_bridge.worker import Worker  # rclpy comes in only here
 
@@ -278,6 +278,12 @@ class BridgeHost:
             popen.stdin.close()
         except BrokenPipeError:
             pass
+        except BaseException:  # interrupted (Ctrl-C) while handing the plan over: no orphan
+            popen.kill()
+            popen.wait()
+            for fd in (wake_w, status_r):
+                os.close(fd)
+            raise
         os.set_blocking(wake_w, False)
         os.set_blocking(status_r, False)
         return _Process(index, popen, wake_w, status_r)

@@ -701,7 +701,10 @@ def main(argv: list[str] | None = None) -> int:
     if os.getppid() != parent:
         return 0
     status = os.fdopen(status_fd, "w", buffering=1)
-    plan: FleetPlan = pickle.load(sys.stdin.buffer)
+    try:
+        plan: FleetPlan = pickle.load(sys.stdin.buffer)
+    except (EOFError, pickle.UnpicklingError):
+        return 0  # the physics process stopped (Ctrl-C) before it handed the whole plan over
     memory: Memory | None = None
     worker = None
     ready = False

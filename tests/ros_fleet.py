@@ -78,6 +78,24 @@ def children(pid: int) -> list[int]:
     return out
 
 
+def cmdline(pid: int) -> list[str]:
+    """A process's arguments; empty once it is gone (it may go while we look)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_text().split("\0")
+    except OSError:
+        return []
+
+
+def bridge_workers(pid: int) -> dict[int, int]:
+    """The bridge worker processes of batchsim process `pid`: worker index -> pid."""
+    out = {}
+    for child in children(pid):
+        argv = cmdline(child)
+        if "ros_bridge.worker" in argv:
+            out[int(argv[argv.index("ros_bridge.worker") + 1])] = child
+    return out
+
+
 def alive(pid: int) -> bool:
     try:
         state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]

@@ -20,7 +20,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 from builtin_interfaces.msg import Duration  # noqa: E402
-from ros_fleet import LOCALHOST, Fleet, alive, children, domain_id, segments  # noqa: E402
+from ros_fleet import LOCALHOST, Fleet, alive, bridge_workers, domain_id, segments  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64, Float64MultiArray  # noqa: E402
@@ -159,11 +159,7 @@ def test_reset_pause_and_step_across_workers(fleet):
 
 
 def test_a_killed_worker_is_restarted_and_its_worlds_come_back(fleet):
-    workers = {}
-    for pid in children(fleet.proc.pid):
-        argv = open(f"/proc/{pid}/cmdline").read().split("\0")
-        if "ros_bridge.worker" in argv:
-            workers[int(argv[argv.index("ros_bridge.worker") + 1])] = pid
+    workers = bridge_workers(fleet.proc.pid)
     assert sorted(workers) == [0, 1, 2]
     topic = "/world_30/actuators/joint6/command"
     fleet.publish_until(Float64, topic, Float64(data=-0.6), lambda: position(fleet, 30, 5) < -0.5, 30)
@@ -184,7 +180,7 @@ def test_a_killed_worker_is_restarted_and_its_worlds_come_back(fleet):
 
 def test_sigterm_stops_every_process_within_2_s_and_leaves_no_segment(fleet):
     pid = fleet.proc.pid
-    workers = [p for p in children(pid) if "ros_bridge.worker" in open(f"/proc/{p}/cmdline").read()]
+    workers = list(bridge_workers(pid).values())
     assert len(workers) == 3 and segments(pid)
     start = time.monotonic()
     fleet.proc.send_signal(signal.SIGTERM)
@@ -326,7 +322,7 @@ def test_sigterm_or_ctrl_c_while_the_workers_start_stops_them_and_removes_the_se
         deadline = time.monotonic() + 60
         workers: list[int] = []
         while not workers and time.monotonic() < deadline and proc.poll() is None:
-            workers = [p for p in children(proc.pid) if "ros_bridge.worker" in open(f"/proc/{p}/cmdline").read()]
+            workers = list(bridge_workers(proc.pid).values())
             time.sleep(0.01)
         assert workers and segments(proc.pid), "no worker started"
         if ctrl_c:
