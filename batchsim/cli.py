@@ -21,7 +21,7 @@ import batchsim
 from batchsim.backends import BackendUnavailable, resolve
 from batchsim.controllers import ControllerManager, default_controllers, load_controllers
 from batchsim.hardware import BatchedSystem, ConfigurationError, LifecycleError
-from batchsim.loop import SimLoop, format_stats
+from batchsim.loop import OptionError, RateError, SimLoop, format_stats, whole_ratio
 from batchsim.model import ModelError, model_names
 from batchsim.sensors import SensorConfig, SensorSuite
 
@@ -79,6 +79,23 @@ def run_parser() -> argparse.ArgumentParser:
     ros.add_argument("--qos-depth", type=int, default=None, help="queue depth (default 10, or the MJCF's)")
     ros.add_argument("--reliability", choices=("reliable", "best_effort"), default=None)
     ros.add_argument("--command-timeout", type=float, default=None, help="seconds without commands before a world goes safe")
+    ros.add_argument(
+        "--bridge-workers",
+        type=int,
+        default=None,
+        help="processes serving ROS (default: 0 up to 64 worlds or on 2 cores, else one per 128 worlds, "
+        "at most half the cores); 0: in the physics process",
+    )
+    ros.add_argument(
+        "--world-offset", type=int, default=0, help="number of the first world, for a fleet over several processes or hosts"
+    )
+    ros.add_argument("--no-clock", action="store_true", help="do not publish /clock (another process of the fleet does)")
+    ros.add_argument(
+        "--all-topics",
+        action="store_true",
+        help="create every per-world topic at start (default: sensor, actuator and controller_state topics "
+        "appear when someone subscribes or publishes)",
+    )
     sens = p.add_argument_group("cameras, lidars and sensor noise")
     sens.add_argument(
         "--sensors",
@@ -232,54 +249,89 @@ def setup_controllers(sim: BatchedSystem, args: argparse.Namespace) -> tuple[Con
     manager = load_controllers(source, sim.spec, sim.nworld)
     rate = manager.update_rate
     if rate is not None and args.control_rate is None:
-        ratio = 1.0 / (rate * sim.dt)
-        if abs(round(ratio) - ratio) > 1e-6 * ratio or round(ratio) < 1:
-            ok = 1.0 / (max(1, round(ratio)) * sim.dt)
+        try:
+            whole_ratio(1.0 / sim.dt, rate)
+        except RateError as e:
             raise ConfigurationError(
                 f"{manager.source}: controller_manager: update_rate: {rate:g} Hz is not a whole number of "
-                f"physics steps of {sim.dt:g} s (the model's timestep): try {ok:g} Hz"
-            )
+                f"physics steps of {sim.dt:g} s (the model's timestep): {e.hint}"
+            ) from None
     return manager, rate
 
 
-def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace):
-    """The ROS 2 bridge for this run, or None if this version has none yet."""
+#: library option names whose flag is not `--<option with dashes>`
+_FLAGS = {"workers": "--bridge-workers"}
+
+
+def _flag(option: str) -> str:
+    return _FLAGS.get(option, "--" + option.replace("_", "-"))
+
+
+def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manager: ControllerManager | None = None):
+    """The ROS 2 bridge for this run, serving `manager`'s controllers too.
+
+    Errors name the flags; another process already serving these worlds or /clock is a
+    UsageError (exit 2) naming that process's node."""
     try:
-        from ros_bridge.bridge import start_bridge
+        from ros_bridge.bridge import BridgeOptions, FleetConflict, Reliability, WorkerError, start_bridge
     except ModuleNotFoundError as e:
-        if e.name and e.name.startswith("ros_bridge"):
-            print("batchsim: the ROS 2 bridge is not available yet; running without ROS", file=sys.stderr)
-            return None
         raise UsageError(
             f"ROS 2 is not installed ({e.name} is missing): pip install 'batchsim[ros]', or pass --no-ros"
         ) from None
-    return start_bridge(sim, loop, args)
+    options = BridgeOptions(
+        namespace=args.namespace,
+        publish_rate=args.publish_rate,
+        sensor_rate=args.sensor_rate,
+        qos_depth=args.qos_depth,
+        reliability=Reliability(args.reliability) if args.reliability else None,
+        command_timeout=args.command_timeout,
+        lockstep=args.lockstep,
+        lockstep_timeout=args.lockstep_timeout,
+        workers=args.bridge_workers,
+        world_offset=args.world_offset,
+        clock=not args.no_clock,
+        all_topics=args.all_topics,
+    )
+    try:
+        return start_bridge(sim, loop, options, manager)
+    except OptionError as e:
+        raise UsageError(e.named(_flag(e.option))) from None
+    except FleetConflict as e:
+        hint = (
+            "--world-offset, --namespace or another ROS_DOMAIN_ID" if e.kind == "namespace" else "--no-clock on all but one"
+        )
+        raise UsageError(f"{e} ({hint})") from None
+    except WorkerError as e:
+        raise UsageError(str(e)) from None
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
 
 
 def run(argv: Sequence[str]) -> int:
+    # until the loop runs, SIGTERM ends the start as Ctrl-C does: what was started (bridge
+    # workers, shared memory) is stopped and removed on the way out
+    signal.signal(signal.SIGTERM, _interrupt)
     args = run_parser().parse_args(argv)
     sim = build(args)
     manager, update_rate = setup_controllers(sim, args)
     control_rate = args.control_rate if args.control_rate is not None else update_rate
-    loop = SimLoop(sim, control_rate=control_rate, rtf=args.rtf, duration=args.duration)
-    bridge = None if args.no_ros else start_ros(sim, loop, args)
+    try:
+        loop = SimLoop(sim, control_rate=control_rate, rtf=args.rtf, duration=args.duration)
+    except OptionError as e:
+        raise UsageError(e.named(_flag(e.option))) from None
     if manager is not None:
         for warning in manager.warnings:
             print(f"batchsim: warning: {warning}", file=sys.stderr)
-        if bridge is not None:
-            from ros_bridge.controllers import bind_controllers
-
-            bind_controllers(bridge, manager)
-            # the reset services reset worlds under the manager: it must hear of it (nothing infers it)
-            bridge.on_reset.append(lambda worlds: manager.on_reset(sim, worlds))
-        else:
-            loop.participants.append(manager)
-
     def on_signal(signum: int, frame: Any) -> None:
         loop.stop()
 
+    bridge = None if args.no_ros else start_ros(sim, loop, args, manager)
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    if manager is not None and manager not in loop.participants:
+        loop.participants.append(manager)
 
     backend = f"{sim.name} ({sim.reason})"
     tty = sys.stderr.isatty()

@@ -262,18 +262,22 @@ def test_cli_runs_for_a_duration_and_reports(tmp_path):
 
 def test_cli_sigterm_and_sigint_exit_cleanly():
     import signal
-    import time
 
     for sig in (signal.SIGTERM, signal.SIGINT):
         proc = subprocess.Popen(
             [sys.executable, "-m", "batchsim.cli", "--worlds", "2", "--no-ros"],
-            stderr=subprocess.PIPE, text=True,
-        )
-        time.sleep(2.0)
+            stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )  # fmt: skip
+        seen = []
+        for line in proc.stderr:  # the loop runs once the first status line is out
+            seen.append(line)
+            if "steps/s" in line:
+                break
+        assert proc.poll() is None, "".join(seen)
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=30)
-        assert proc.returncode == 0, err
-        assert "Traceback" not in err
+        assert proc.returncode == 0, "".join(seen) + err
+        assert "Traceback" not in "".join(seen) + err
 
 
 def test_cli_info_lists_interfaces_and_sensors():
