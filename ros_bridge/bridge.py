@@ -43,6 +43,7 @@ from batchsim.loop import SimLoop
 from ros_bridge.host import BridgeHost, FleetConflict, WorkerError
 from ros_bridge.options import BridgeOptions, Reliability, default_workers
 from ros_bridge.plan import build_plan
+from ros_bridge.sensor_topics import SensorFeed
 
 __all__ = ["BridgeHost", "BridgeOptions", "FleetConflict", "Reliability", "WorkerError", "start_bridge"]
 
@@ -89,6 +90,8 @@ def start_bridge(
     atexit.register(host.close)
     host.start()
     host.attach()
+    if plan.sensors is not None:  # cameras and lidars: rendered and scanned right after the host's update
+        loop.participants.insert(loop.participants.index(host) + 1, SensorFeed(sim, host.memory, plan.sensors))
     if manager is not None and manager not in loop.participants:
         loop.participants.append(manager)
     return host
