@@ -1,7 +1,9 @@
 """A bridge worker's camera and lidar topics (ros_bridge/sensor_topics.py says which, and how
 images and scans reach it).
 
-The worker (ros_bridge/worker.py) calls `refresh()` when it re-reads subscriber counts
+Publishers are created on request: the worker's graph scan calls `requested(topic)` for
+each topic in the graph, and a topic of ours that someone subscribes to gets its publisher
+(`--all-topics`: every one at start). The worker calls `refresh()` when it re-reads subscriber counts
 (lazy publishing): the topics with a subscriber become want bits in shared memory, which
 the physics side turns into rendering and scanning for those worlds only. It calls
 `publish()` on every tick: each world's sample that is new since the last tick (its seq
@@ -38,11 +40,13 @@ def under(namespaces: Sequence[str], name: str) -> list[str]:
 
 
 class _Topic:
-    """One topic of one camera or lidar over this worker's worlds: publishers, the rows with
-    a subscriber, and its framing (laid out when first published)."""
+    """One topic of one camera or lidar over this worker's worlds: publishers (None until
+    someone subscribes), the rows with a subscriber, and its framing (laid out when first
+    published)."""
 
-    def __init__(self, node: Node, msg_type: type, topics: list[str], qos: QoSProfile, framing: Any):
-        self.publishers = [node.create_publisher(msg_type, t, qos) for t in topics]
+    def __init__(self, msg_type: type, topics: list[str], framing: Any):
+        self.msg_type = msg_type
+        self.publishers: list[Any] = [None] * len(topics)
         self.topics = topics
         self.subscribed = np.zeros(len(topics), bool)
         self._make = framing
@@ -55,7 +59,7 @@ class _Topic:
         return self._framing
 
     def refresh(self) -> np.ndarray:
-        self.subscribed = np.array([p.get_subscription_count() > 0 for p in self.publishers], bool)
+        self.subscribed = np.array([p is not None and p.get_subscription_count() > 0 for p in self.publishers], bool)
         return self.subscribed
 
 
@@ -69,13 +73,22 @@ class SensorPublishers:
       plan: the fleet's sensors.
       lo, hi: this worker's worlds.
       namespaces: (hi - lo,) their namespaces.
+      all_topics: create every publisher now, not when a subscriber appears.
 
     Attributes:
       published: messages published so far.
     """
 
     def __init__(
-        self, node: Node, qos: QoSProfile, memory: Any, plan: SensorPlan, lo: int, hi: int, namespaces: Sequence[str]
+        self,
+        node: Node,
+        qos: QoSProfile,
+        memory: Any,
+        plan: SensorPlan,
+        lo: int,
+        hi: int,
+        namespaces: Sequence[str],
+        all_topics: bool = False,
     ):
         self.lo, self.hi = lo, hi
         self.want = memory["sensors.want"]
@@ -96,9 +109,9 @@ class SensorPublishers:
                 (
                     SensorBlock(memory, f"cam{k}", ("rgb", "depth")),
                     np.zeros(n, np.int64),
-                    _Topic(node, Image, image, qos, lambda c=cam, f=frames, t=image[0]: image_framing(c, f, False, t)),
-                    _Topic(node, Image, depth, qos, lambda c=cam, f=frames, t=depth[0]: image_framing(c, f, True, t)),
-                    _Topic(node, CameraInfo, info, qos, lambda c=cam, f=frames, t=info[0]: camera_info_framing(c, f, t)),
+                    _Topic(Image, image, lambda c=cam, f=frames, t=image[0]: image_framing(c, f, False, t)),
+                    _Topic(Image, depth, lambda c=cam, f=frames, t=depth[0]: image_framing(c, f, True, t)),
+                    _Topic(CameraInfo, info, lambda c=cam, f=frames, t=info[0]: camera_info_framing(c, f, t)),
                 )
             )
         self.lidars: list[tuple[SensorBlock, np.ndarray, _Topic, Any]] = []
@@ -107,12 +120,36 @@ class SensorPublishers:
             frames = under(namespaces, ld.frame_id)
             names = ["/" + t for t in under(namespaces, ld.topic)]
             if ld.is_3d:
-                t = _Topic(node, PointCloud2, names, qos, lambda d=ld, f=frames, t=names[0]: point_cloud_framing(d, f, t))
+                t = _Topic(PointCloud2, names, lambda d=ld, f=frames, t=names[0]: point_cloud_framing(d, f, t))
             else:
                 t = _Topic(
-                    node, LaserScan, names, qos, lambda d=ld, r=lt.rate, f=frames, t=names[0]: laser_scan_framing(d, r, f, t)
+                    LaserScan, names, lambda d=ld, r=lt.rate, f=frames, t=names[0]: laser_scan_framing(d, r, f, t)
                 )
             self.lidars.append((SensorBlock(memory, f"lid{k}", ("ranges",)), np.zeros(n, np.int64), t, ld))
+        # topic -> (its _Topic, row): publishers are created once a subscriber shows up in the
+        # graph (a fleet of thousands of worlds would otherwise hold 3 endpoints per camera and world)
+        self.node, self.qos = node, qos
+        self._pending: dict[str, tuple[_Topic, int]] = {}
+        topics = [t for c in self.cameras for t in c[2:]] + [lid[2] for lid in self.lidars]
+        for t in topics:
+            for row, name in enumerate(t.topics):
+                self._pending[name] = (t, row)
+        if all_topics:
+            for name in list(self._pending):
+                self.create(name)
+
+    def create(self, topic: str) -> bool:
+        """Create the publisher of `topic` if it is one of ours still waiting; True if it was."""
+        hit = self._pending.pop(topic, None)
+        if hit is None:
+            return False
+        t, row = hit
+        t.publishers[row] = self.node.create_publisher(t.msg_type, topic, self.qos)
+        return True
+
+    def requested(self, topic: str) -> bool:
+        """The worker's graph scan: `topic` is ours and someone subscribes: its publisher is created."""
+        return topic in self._pending and self.node.count_subscribers(topic) > 0 and self.create(topic)
 
     def refresh(self) -> None:
         """Subscriber counts -> this worker's rows of the want bits."""

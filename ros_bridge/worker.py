@@ -284,7 +284,9 @@ class Worker:
                 self._subscribe(msg_type, topic, callback)
 
         if plan.sensors is not None:
-            self.sensors = SensorPublishers(node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces)
+            self.sensors = SensorPublishers(
+                node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, all_topics=plan.all_topics
+            )
         for row, ns in enumerate(self.namespaces):
             node.create_service(Trigger, f"/{ns}/reset", self._reset_service([self.lo + row], f"/{ns}"))
         if self.index == 0:
@@ -431,6 +433,9 @@ class Worker:
         commands to actuators this model does not have."""
         node = self.node
         for name, _types in node.get_topic_names_and_types():
+            if self.sensors is not None and self.sensors.requested(name):
+                self._due["refresh"] = 0.0
+                continue
             hit = self._on_request.get(name)
             if hit is not None:
                 if node.count_subscribers(name) > 0:
