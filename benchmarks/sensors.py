@@ -425,7 +425,7 @@ def subscriber(domain: int, lo: int, hi: int) -> None:
 
 def ros_row(
     backend: str, nworld: int, size: tuple[int, int], seconds: float, control: float, camera: float, lidar: float,
-    workers: int | None, subscribers: int, domain: int, warmup: float = 3.0,
+    workers: int | None, subscribers: int, domain: int, warmup: float | None = None,
 ) -> dict:  # fmt: skip
     """`batchsim --rtf 0` with the bridge while `subscribers` processes take every world's
     image, depth and scan: the RTF it holds and what reaches the subscribers per wall second."""
@@ -470,7 +470,8 @@ def ros_row(
         b = Batchsim(args, domain)
         try:
             b.wait_started(300.0)
-            time.sleep(warmup)  # discovery, the first subscriber refresh, rendering under way
+            # discovery, publishers created on request, the first subscriber refresh, rendering under way
+            time.sleep(warmup if warmup is not None else max(3.0, nworld / 100))
             t0 = time.time()
             c0 = total(t0)
             time.sleep(seconds)
