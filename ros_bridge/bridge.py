@@ -24,6 +24,9 @@ Per world, under its namespace `<ns>` (`world_3` from the template `world_{i}`):
     <ns>/sensors/<site>/imu            sensor_msgs/Imu: gyro + accelerometer (+ framequat) on one site
     <ns>/sensors/<site>/wrench         geometry_msgs/WrenchStamped: force + torque on one site
     <ns>/actuators/<actuator>/command  std_msgs/Float64 (subscribed)
+    <ns>/<camera>/image_raw, depth/image_raw, camera_info; <ns>/scan, <ns>/points
+                                       cameras and lidars, rendered only where subscribed
+                                       (ros_bridge/sensor_topics.py)
     <ns>/<controller>/controller_state/*
 
 and once per fleet: `/clock` (every control period; worker 0 of the process that has it),
