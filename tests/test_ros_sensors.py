@@ -226,6 +226,40 @@ def test_a_camera_nobody_subscribes_to_is_never_rendered(monkeypatch):
         release_domain(domain)
 
 
+# ---------------------------------------------------------------- shared memory
+
+
+def _rss() -> int:
+    """This process's resident memory, bytes (Linux)."""
+    status = open("/proc/self/status").read()
+    return int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:"))) * 1024
+
+
+@pytest.mark.parametrize("shared", [True, False], ids=["workers", "in-process"])
+def test_camera_blocks_take_memory_only_where_written(shared):
+    """The humanoid's three 320x240 cameras for 2048 worlds lay out 3.3 GB of image blocks;
+    only the rows a sample writes may take memory."""
+    from ros_bridge.memory import Layout, Memory
+    from ros_bridge.sensor_topics import SensorBlock, sensor_plan
+
+    sim = batchsim.make("humanoid", 1, "cpu")
+    plan = sensor_plan(sim)
+    layout = Layout(plan.arrays(2048))
+    assert layout.nbytes > 3e9
+    before = _rss()
+    memory = Memory.create(layout, shared=shared)
+    try:
+        assert _rss() - before < 64e6
+        block = SensorBlock(memory, "cam0", ("rgb", "depth"))
+        rgb = np.full((2, 240, 320, 3), 7, np.uint8)
+        block.write(np.array([3, 2000]), 1.5, {"rgb": (np.array([3, 2000]), rgb)})
+        rows, parts, stamps, data = block.read(0, 2048, np.zeros(2048, np.int64))
+        assert rows.tolist() == [3, 2000] and parts.tolist() == [1, 1] and stamps.tolist() == [1.5, 1.5]
+        assert (data["rgb"] == 7).all() and _rss() - before < 64e6 + 2 * data["rgb"].nbytes + data["depth"].nbytes
+    finally:
+        memory.close()
+
+
 # ---------------------------------------------------------------- bulk framing
 
 
