@@ -24,11 +24,16 @@ The loop section (--loop) runs the physics at --control-rate with the camera at
 SensorSampler (the participant the ROS bridge will use), and reports the real-time factor
 held, frames/s, and the median and worst control period.
 
-ROS publishing of images and scans comes with the bridge's second phase; this script times
-producing them.
+The ROS section (--ros) runs the same loop as the `batchsim` command with the bridge
+(`--rtf 0`, its bridge workers), while subscriber processes take every world's image_raw,
+depth/image_raw and scan (raw, not deserialized): the RTF held (median and worst
+one-second window), and frames/s, depth frames/s and scans/s received, beside the loop
+section's figures without ROS at the same size and rates, and what the fleet produced per
+wall second (worlds x rate x RTF).
 
     python benchmarks/sensors.py --backends cpu --worlds 16,256 --sizes 64x64,320x240
     python benchmarks/sensors.py --backends warp,mjx,cpu --worlds 16,256,1024,4096 --loop 1024
+    python benchmarks/sensors.py --backends cpu --no-camera --no-lidar --loop 16 --ros 16    # with and without ROS
 """
 
 from __future__ import annotations
@@ -36,7 +41,10 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import os
+import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -50,6 +58,8 @@ from throughput import device_name, versions  # noqa: E402
 import batchsim  # noqa: E402
 from batchsim.sensors import SensorSampler  # noqa: E402
 
+ROOT = Path(__file__).resolve().parent.parent
+LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 MODEL = "rover"
 CAMERA = "front_camera"
 LIDAR = "base_scan"
@@ -366,6 +376,141 @@ def loop_row(
     }
 
 
+# ---------------------------------------------------------------- with ROS publishing
+
+TOPICS = ("front_camera/image_raw", "front_camera/depth/image_raw", "scan")
+
+
+def subscriber(domain: int, lo: int, hi: int) -> None:
+    """Count image, depth and scan messages of worlds lo..hi-1 (raw); print
+    `count <wall> <images> <depths> <scans>` every 0.25 s until stdin closes."""
+    os.environ.update(LOCALHOST)
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.experimental import EventsExecutor
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import Image, LaserScan
+
+    context = Context()
+    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    node = Node(f"sensors_benchmark_{lo}", context=context)
+    counts = [0, 0, 0]
+
+    def counter(k: int):
+        def callback(msg: bytes) -> None:
+            counts[k] += 1
+
+        return callback
+
+    for w in range(lo, hi):
+        for k, (topic, kind) in enumerate(zip(TOPICS, (Image, Image, LaserScan), strict=True)):
+            node.create_subscription(kind, f"/world_{w}/{topic}", counter(k), QoSProfile(depth=2), raw=True)
+    executor = EventsExecutor(context=context)
+    executor.add_node(node)
+    stop = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    next_report = time.time()
+    while not stop.is_set():
+        executor.spin_once(timeout_sec=0.05)
+        now = time.time()
+        if now >= next_report:
+            next_report = now + 0.25
+            print(f"count {now:.3f} {counts[0]} {counts[1]} {counts[2]}", flush=True)
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+def ros_row(
+    backend: str, nworld: int, size: tuple[int, int], seconds: float, control: float, camera: float, lidar: float,
+    workers: int | None, subscribers: int, domain: int, warmup: float | None = None,
+) -> dict:  # fmt: skip
+    """`batchsim --rtf 0` with the bridge while `subscribers` processes take every world's
+    image, depth and scan: the RTF it holds and what reaches the subscribers per wall second."""
+    from fleet import Batchsim  # noqa: PLC0415 (its process handling and status parsing)
+
+    args = [
+        "--model", MODEL, "--worlds", str(nworld), "--backend", backend, "--controllers", "none", "--rtf", "0",
+        "--control-rate", f"{control:g}", "--camera-rate", f"{camera:g}", "--lidar-rate", f"{lidar:g}",
+        "--camera-resolution", f"{size[0]}x{size[1]}",
+    ]  # fmt: skip
+    if workers is not None:
+        args += ["--bridge-workers", str(workers)]
+    k = max(1, min(subscribers, nworld))
+    edges = [round(i * nworld / k) for i in range(k + 1)]
+    env = {**os.environ, **LOCALHOST, "PYTHONPATH": str(ROOT)}
+    procs = [
+        subprocess.Popen(
+            [sys.executable, __file__, "--subscriber", str(domain), str(a), str(b)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+        )  # fmt: skip
+        for a, b in zip(edges[:-1], edges[1:], strict=True)
+    ]
+    samples: list[list[tuple[float, tuple[int, ...]]]] = [[] for _ in procs]
+
+    def read(i: int) -> None:
+        for line in procs[i].stdout:
+            parts = line.split()
+            if parts and parts[0] == "count":
+                samples[i].append((float(parts[1]), tuple(int(x) for x in parts[2:5])))
+
+    for i in range(len(procs)):
+        threading.Thread(target=read, args=(i,), daemon=True).start()
+
+    def total(at: float) -> np.ndarray:
+        out = np.zeros(3)
+        for s in samples:
+            before = [c for t, c in s if t <= at]
+            out += before[-1] if before else 0
+        return out
+
+    try:
+        b = Batchsim(args, domain)
+        try:
+            b.wait_started(300.0)
+            # discovery, publishers created on request, the first subscriber refresh, rendering under way
+            time.sleep(warmup if warmup is not None else max(3.0, nworld / 100))
+            t0 = time.time()
+            c0 = total(t0)
+            time.sleep(seconds)
+            t1 = time.time() - 0.3  # the subscribers' last reports lag a little
+            c1 = total(t1)
+            status = b.status(t0, t1 + 0.8)
+        finally:
+            b.stop()
+    finally:
+        for p in procs:
+            try:
+                p.stdin.close()
+            except OSError:
+                pass
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+    rtfs = [r for r, _ in status] or [float("nan")]
+    got = (c1 - c0) / (t1 - t0)
+    rtf = float(np.median(rtfs))
+    # cpu and mjx spread a camera's worlds over whole control periods: its rate rounds to one
+    rate = camera if backend == "warp" else control / max(1, round(control / camera))
+    return {
+        "kind": f"ROS loop {control:g} Hz + camera {camera:g} Hz + lidar {lidar:g} Hz",
+        "backend": backend,
+        "nworld": nworld,
+        "size": f"{size[0]}x{size[1]}",
+        "rtf": rtf,
+        "rtf_worst": float(min(rtfs)),
+        "frames_received": float(got[0]),
+        "depth_received": float(got[1]),
+        "scans_received": float(got[2]),
+        "frames_produced": nworld * rate * rtf,
+        "scans_produced": nworld * 10.0 * rtf,  # the rover lidar's own update_rate
+    }
+
+
 def samples(backend: str, path: Path, nworld: int = 4) -> None:
     """A figure of `nworld` worlds: camera image, depth and the lidar scan seen from above."""
     import matplotlib
@@ -406,6 +551,10 @@ def size_arg(text: str) -> tuple[int, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--subscriber"]:
+        subscriber(*(int(a) for a in argv[1:4]))
+        return 0
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--backends", default="cpu")
     p.add_argument("--worlds", default="16,256")
@@ -420,6 +569,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--control-rate", type=float, default=100.0)
     p.add_argument("--camera-rate", type=float, default=30.0)
     p.add_argument("--lidar-rate", type=float, default=10.0)
+    p.add_argument("--ros", default="", help="world counts for the ROS section (with the bridge; e.g. 16 or 1024)")
+    p.add_argument("--bridge-workers", type=int, default=None, help="ROS section: default batchsim's own choice")
+    p.add_argument("--subscriber-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 2)))
+    p.add_argument("--ros-seconds", type=float, default=8.0, help="ROS section: wall seconds measured")
+    p.add_argument("--domain", type=int, default=72, help="ROS section: the ROS domain")
     p.add_argument("--json", default="benchmarks/out/sensors.json")
     p.add_argument("--samples", default="", help="write a figure of four worlds' images and scans here (PNG) and stop")
     args = p.parse_args(argv)
@@ -466,6 +620,21 @@ def main(argv: list[str] | None = None) -> int:
                 f"{row['kind']}, {backend}, {n} worlds, {row['size']}: rtf {row['rtf']:.2f}, "
                 f"{row['contract_fps']:,.0f} frames/s, {row['scans_per_s']:,.0f} scans/s, period median "
                 f"{row['period_median_ms']:.2f} ms worst {row['period_worst_ms']:.2f} ms (budget {row['budget_ms']:.1f} ms)",
+                flush=True,
+            )
+    for backend in backends:
+        for n in [int(x) for x in args.ros.split(",") if x]:
+            size = size_arg(args.loop_size)
+            row = ros_row(
+                backend, n, size, args.ros_seconds, args.control_rate, args.camera_rate, args.lidar_rate,
+                args.bridge_workers, args.subscriber_processes, args.domain,
+            )  # fmt: skip
+            rows.append(row)
+            print(
+                f"{row['kind']}, {backend}, {n} worlds, {row['size']}, with ROS publishing: rtf {row['rtf']:.2f} "
+                f"(worst {row['rtf_worst']:.2f}), received {row['frames_received']:,.0f} frames/s + "
+                f"{row['depth_received']:,.0f} depth/s + {row['scans_received']:,.0f} scans/s "
+                f"(produced {row['frames_produced']:,.0f} frames/s, {row['scans_produced']:,.0f} scans/s)",
                 flush=True,
             )
     out = Path(args.json)

@@ -24,6 +24,9 @@ Per world, under its namespace `<ns>` (`world_3` from the template `world_{i}`):
     <ns>/sensors/<site>/imu            sensor_msgs/Imu: gyro + accelerometer (+ framequat) on one site
     <ns>/sensors/<site>/wrench         geometry_msgs/WrenchStamped: force + torque on one site
     <ns>/actuators/<actuator>/command  std_msgs/Float64 (subscribed)
+    <ns>/<camera>/image_raw, depth/image_raw, camera_info; <ns>/scan, <ns>/points
+                                       cameras and lidars, rendered only where subscribed
+                                       (ros_bridge/sensor_topics.py)
     <ns>/<controller>/controller_state/*
 
 and once per fleet: `/clock` (every control period; worker 0 of the process that has it),
@@ -43,6 +46,7 @@ from batchsim.loop import SimLoop
 from ros_bridge.host import BridgeHost, FleetConflict, WorkerError
 from ros_bridge.options import BridgeOptions, Reliability, default_workers
 from ros_bridge.plan import build_plan
+from ros_bridge.sensor_topics import SensorFeed
 
 __all__ = ["BridgeHost", "BridgeOptions", "FleetConflict", "Reliability", "WorkerError", "start_bridge"]
 
@@ -89,6 +93,8 @@ def start_bridge(
     atexit.register(host.close)
     host.start()
     host.attach()
+    if plan.sensors is not None:  # cameras and lidars: rendered and scanned right after the host's update
+        loop.participants.insert(loop.participants.index(host) + 1, SensorFeed(sim, host.memory, plan.sensors))
     if manager is not None and manager not in loop.participants:
         loop.participants.append(manager)
     return host

@@ -63,7 +63,7 @@ class Layout:
     def __contains__(self, name: str) -> bool:
         return name in self.offsets
 
-    def views(self, buffer: memoryview | bytearray) -> dict[str, np.ndarray]:
+    def views(self, buffer: memoryview | bytearray | np.ndarray) -> dict[str, np.ndarray]:
         out = {}
         for spec in self.arrays:
             out[spec.name] = np.ndarray(spec.shape, spec.dtype, buffer=buffer, offset=self.offsets[spec.name])
@@ -81,7 +81,8 @@ class Memory:
         self.layout = layout
         self._segment = segment
         self._owner = owner
-        self._local = bytearray(layout.nbytes) if segment is None else None
+        # calloc'd: pages cost nothing until written (camera blocks are mostly never written)
+        self._local = np.zeros(layout.nbytes, np.uint8) if segment is None else None
         buffer = segment.buf if segment is not None else self._local
         self._arrays = layout.views(buffer)
         self.name = segment.name if segment is not None else None
@@ -92,8 +93,9 @@ class Memory:
         if not shared:
             return cls(layout, None, owner=True)
         name = f"{PREFIX}{os.getpid()}_{secrets.token_hex(4)}"
+        # a new segment reads as zeros (ftruncate) and takes pages only as they are written:
+        # not touching them keeps a fleet's unused camera blocks free
         segment = shared_memory.SharedMemory(name=name, create=True, size=layout.nbytes)
-        segment.buf[: layout.nbytes] = bytes(layout.nbytes)
         return cls(layout, segment, owner=True)
 
     @classmethod

@@ -26,6 +26,7 @@ from ros_bridge.commands import rejection_arrays, slot_arrays
 from ros_bridge.memory import Layout, ring_arrays
 from ros_bridge.naming import ros_names, world_namespaces
 from ros_bridge.options import BridgeOptions, Reliability
+from ros_bridge.sensor_topics import SensorPlan, sensor_plan
 
 #: outputs whose topic holds one of these parts are created only when a subscriber appears
 ON_REQUEST_PARTS = ("/controller_state/",)
@@ -126,6 +127,7 @@ class FleetPlan:
       clock: worker 0 publishes /clock.
       startup_check: seconds worker 0 watches the graph for another fleet at start.
       all_topics: create the on-request topics at start too.
+      sensors: cameras and lidars (ros_bridge/sensor_topics.py), or None.
       layout, memory_name: the shared arrays.
     """
 
@@ -147,6 +149,7 @@ class FleetPlan:
     clock: bool
     startup_check: float
     all_topics: bool = False
+    sensors: SensorPlan | None = None
     layout: Layout = dataclasses.field(init=False)
     memory_name: str | None = None
 
@@ -175,6 +178,8 @@ class FleetPlan:
             else:
                 arrays += slot_arrays(spec.slots, n, spec.width, per_column=False)
         arrays += rejection_arrays("rej", n) + rejection_arrays("hrej", n)
+        if self.sensors is not None:
+            arrays += self.sensors.arrays(n)
         for j, (lo, hi) in enumerate(self.ranges):
             arrays += ring_arrays(f"ring{j}", RING_BASE + RING_PER_WORLD * (hi - lo))
         self.layout = Layout(arrays)
@@ -382,6 +387,7 @@ def build_plan(
         clock=options.clock,
         startup_check=options.startup_check,
         all_topics=options.all_topics,
+        sensors=sensor_plan(sim),
     )
     return plan, fills, inputs
 

@@ -66,6 +66,7 @@ from ros_bridge.messages import (
 from ros_bridge.options import Reliability
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, FleetPlan, OutputSpec
 from ros_bridge.requests import Kind, encode_reset, encode_ticket, encode_trajectories
+from ros_bridge.sensor_worker import SensorPublishers
 from ros_bridge.throttle import LogThrottle
 
 SUBSCRIBER_REFRESH = 0.5  # s: subscriber counts re-read (lazy publishing)
@@ -189,6 +190,7 @@ class Worker:
         self._rejected_lock = threading.Lock()
         self._host_seen = self.host_rejections.count[self.lo : self.hi].copy()
         self.published = 0  # messages published, for benchmarks
+        self.sensors: SensorPublishers | None = None  # cameras and lidars (ros_bridge/sensor_worker.py)
 
     # --- start ---
     def check_conflicts(self) -> tuple[str, str] | None:
@@ -285,6 +287,10 @@ class Worker:
                     callback = self._input_callback(spec, slots, counter, w, topic)
                 self._subscribe(msg_type, topic, callback)
 
+        if plan.sensors is not None:
+            self.sensors = SensorPublishers(
+                node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, all_topics=plan.all_topics
+            )
         for row, ns in enumerate(self.namespaces):
             node.create_service(Trigger, f"/{ns}/reset", self._reset_service([self.lo + row], f"/{ns}"))
         if self.index == 0:
@@ -328,6 +334,8 @@ class Worker:
         snap = self._read_snapshot()
         if snap is not None:
             self._publish(snap)
+        if self.sensors is not None:
+            self.sensors.publish()
         done = int(self._svc_done[self.index])
         if done != self._last_done:
             self._last_done = done
@@ -416,6 +424,8 @@ class Worker:
                 if new and snap.n >= 0:
                     self._publish_rows(out, snap, new, sec, nanosec)
         self._active = active
+        if self.sensors is not None:
+            self.sensors.refresh()
         if len(demand):
             self.memory["demand"][self.index, : len(demand)] = demand
         if self._clock_pub is not None:
@@ -429,6 +439,9 @@ class Worker:
         commands to actuators this model does not have."""
         node = self.node
         for name, _types in node.get_topic_names_and_types():
+            if self.sensors is not None and self.sensors.requested(name):
+                self._due["refresh"] = 0.0
+                continue
             hit = self._on_request.get(name)
             if hit is not None:
                 if node.count_subscribers(name) > 0:
