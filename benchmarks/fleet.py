@@ -194,6 +194,16 @@ class Batchsim:
                 raise RuntimeError("batchsim did not start:\n" + "\n".join(line for _, line in self.lines[-20:]))
             time.sleep(0.05)
 
+    def wait_running(self, timeout: float) -> None:
+        """Until the first status line: a GPU backend compiles its kernels on the first step,
+        after the start line, and a window opened before that would time the compiler."""
+        self.wait_started(timeout)
+        deadline = time.time() + timeout
+        while not self.status(0.0, float("inf")):
+            if self.proc.poll() is not None or time.time() > deadline:
+                raise RuntimeError("batchsim printed no status line:\n" + "\n".join(line for _, line in self.lines[-20:]))
+            time.sleep(0.05)
+
     def stop(self) -> str:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
@@ -210,13 +220,15 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
     common += ["--control-rate", f"{control:g}"]
     if opts.threads:
         common += ["--threads", str(opts.threads)]
+    if opts.devices:
+        common += ["--devices", opts.devices]
     ros = common + ["--publish-rate", f"{publish:g}"]
     if opts.bridge_workers is not None:
         ros += ["--bridge-workers", str(opts.bridge_workers)]
     out: dict = {"worlds": worlds, "control": control, "publish": publish}
 
     def window(b: Batchsim) -> list[tuple[float, float]]:
-        b.wait_started(opts.start_timeout)
+        b.wait_running(opts.start_timeout)
         time.sleep(opts.warmup)
         t0 = time.time()
         time.sleep(opts.seconds)
@@ -233,7 +245,7 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
     try:
         b = Batchsim(ros + ["--rtf", "0"], domain)
         try:
-            b.wait_started(opts.start_timeout)
+            b.wait_running(opts.start_timeout)
             time.sleep(opts.warmup)
             t0 = time.time()
             c0 = subs.total(t0)
@@ -294,6 +306,7 @@ def main() -> None:
     p.add_argument("--publish-rate", type=float, default=None, help="joint_states Hz (default: the control rate)")
     p.add_argument("--subscriber-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 2)))
     p.add_argument("--bridge-workers", type=int, default=None, help="default: batchsim's own choice")
+    p.add_argument("--devices", default=None, help="GPU backends: the devices the worlds are split over ('all', '0,1')")
     p.add_argument("--threads", type=int, default=None, help="cpu backend: physics threads")
     p.add_argument("--seconds", type=float, default=8.0, help="measurement window, wall seconds")
     p.add_argument("--warmup", type=float, default=2.0)
