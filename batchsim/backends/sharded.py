@@ -151,8 +151,8 @@ class ShardedSystem(BatchedSystem):
     def read(self, time: float | None = None, period: float | None = None) -> ReturnType:
         if self.lifecycle_state not in (LifecycleState.INACTIVE, LifecycleState.ACTIVE):
             return ReturnType.OK
-        for shard in self.shards:
-            shard.read(time, period)
+        # every device's download at once: each waits on its own device, not on the others
+        self._each(lambda shard: shard.read(time, period))
         self._collect()
         self.sensors.add_reading_noise(self._readings, self._sensor_host)
         return ReturnType.OK
@@ -163,7 +163,8 @@ class ShardedSystem(BatchedSystem):
         command = self._command
         for shard, rows in zip(self.shards, self.world_ranges, strict=True):
             shard.command[:] = command[rows.start : rows.stop]
-            shard.write(time, period)
+        self._each(lambda shard: shard.write(time, period))  # every device's upload at once
+        for shard, rows in zip(self.shards, self.world_ranges, strict=True):
             self.status[rows.start : rows.stop] = shard.status
         return ReturnType.OK
 
