@@ -12,9 +12,11 @@ one line and exit with code 2; Ctrl-C and SIGTERM end the run cleanly with code 
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import batchsim
@@ -180,9 +182,45 @@ def _how(c: Any) -> str:
     return ""
 
 
+_POSITIVE = {  # flag: what its number is, for the message; each must be finite and > 0
+    "duration": "a finite number of simulated seconds",
+    "control_rate": "a finite number",
+    "publish_rate": "a finite number",
+    "sensor_rate": "a finite number",
+    "camera_rate": "a finite number",
+    "lidar_rate": "a finite number",
+    "lockstep_timeout": "a finite number of seconds",
+    "command_timeout": "a finite number of seconds",
+}
+_AT_LEAST_ONE = ("worlds", "threads", "nconmax", "njmax", "qos_depth")
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Every flag value the run will use, checked before anything starts.
+
+    Raises:
+      UsageError: the first bad value, as one line naming the flag and the value.
+    """
+    for name, what in _POSITIVE.items():
+        value = getattr(args, name)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise UsageError(f"--{name.replace('_', '-')} must be {what} > 0, got {value}")
+    if not (math.isfinite(args.rtf) and args.rtf >= 0):
+        raise UsageError(f"--rtf must be a finite number >= 0 (0: as fast as possible), got {args.rtf}")
+    for name in _AT_LEAST_ONE:
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    model = Path(args.model).expanduser()
+    if str(args.model) not in model_names() and model.is_dir():
+        raise UsageError(f"--model {args.model}: is a directory, not an MJCF file")
+    if not args.no_ros:
+        from ros_bridge.naming import world_namespaces  # no rclpy: the names' rules only
+
+        world_namespaces(args.worlds, args.namespace)  # NamingError (a ValueError): one line
+
+
 def build(args: argparse.Namespace) -> BatchedSystem:
-    if args.worlds < 1:
-        raise UsageError(f"--worlds must be >= 1, got {args.worlds}")
     options: dict[str, Any] = {}
     for flag, option in (("threads", "nthread"), ("nconmax", "nconmax"), ("njmax", "njmax")):
         if getattr(args, flag) is not None:
@@ -258,6 +296,7 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace):
 
 def run(argv: Sequence[str]) -> int:
     args = run_parser().parse_args(argv)
+    check_args(args)
     sim = build(args)
     manager, update_rate = setup_controllers(sim, args)
     control_rate = args.control_rate if args.control_rate is not None else update_rate
