@@ -285,7 +285,8 @@ class Progress:
                 elif self._live and not ok:
                     self._write("\n")  # an error line goes below the live line
                     self._live = False
-                self.current = None
+                if ok:  # a stage left by a signal stays named for the interrupt's line
+                    self.current = None
 
     def _tick(self, what: str, start: float, done: threading.Event) -> None:
         if done.wait(self.after):

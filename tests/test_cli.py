@@ -252,7 +252,7 @@ def test_status_line_shows_paused_and_clears_the_rest_of_the_line():
     frames = out.split("\r")
     assert any("| rtf " in f for f in frames), out
     paused = [f for f in frames if "| paused |" in f]
-    assert paused and all(f.endswith("\x1b[K") for f in paused), out
+    assert paused and all(f.rstrip("\n").endswith("\x1b[K") for f in paused), out
     assert out.endswith("\n")
 
 
