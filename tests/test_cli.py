@@ -275,3 +275,22 @@ def test_controllers_are_reachable_after_import_batchsim():
 def test_install_hint_is_a_command_a_user_can_run():
     hint = startup.install_command("warp")
     assert hint == f"pip install -e '{ROOT}[warp]'"
+
+
+# ---------------------------------------------------------------- benchmarks/throughput.py
+
+
+def test_throughput_plot_keeps_the_auto_column_each_row_was_recorded_with(tmp_path):
+    fields = "date,device,model,backend,nworld,nstep,contract_sps,raw_sps,ratio,auto,compile_s,note"
+    rows = [  # recorded under an older rule: cpu up to 1024 worlds on this GPU host
+        "2026-10-01,NVIDIA H200,humanoid,cpu,1024,10,500000,510000,0.98,cpu,1,",
+        "2026-10-01,NVIDIA H200,humanoid,warp,1024,10,900000,910000,0.99,cpu,9,",
+    ]
+    (tmp_path / "old.csv").write_text("\n".join([fields, *rows]) + "\n")
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks/throughput.py"), "--plot", str(tmp_path / "old.csv"), "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    picks = [line.split() for line in out.stdout.splitlines() if line.strip().startswith("1024 ")]
+    assert picks and picks[-1][1] == "cpu", out.stdout  # today's rule (warp from 512) would say warp
