@@ -294,6 +294,7 @@ def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Ba
         on_device=on_device,
         nconmax=args.nconmax,
         njmax=args.njmax,
+        controllers=(args.controllers or "").lower() != "none",
     )
     for warning in (startup.check_host_memory(estimate), startup.check_device_memory(estimate, device_memory)):
         if warning:

@@ -42,8 +42,14 @@ ROS_BRIDGE_BYTES_PER_WORLD = 1_600_000
 
 # cpu (mujoco.batch): state rows plus the contract's host arrays, per world, in float64s of
 # (mjSTATE_FULLPHYSICS + nq + nv + nu + nsensordata): 3.2x for arm (1260 B), 3.0x for
-# quadruped (2440 B), 2.6x for humanoid (2780 B), 2000 vs 22000 worlds; 3.5x covers them.
-HOST_ROW_FACTOR = 3.5
+# quadruped (2440 B), 2.6x for humanoid (2780 B), make() at 2000 vs 22000 worlds; the whole
+# `batchsim --no-ros --controllers none` run takes 1470 B a world for the arm (peak RSS at
+# 30000 vs 300000 worlds: 3.75x); 4x covers them.
+HOST_ROW_FACTOR = 4.0
+# controllers: the arm's default set (joint_state_broadcaster, joint_trajectory_controller,
+# a wrist broadcaster) added 700 B a world over its 6 command interfaces (peak RSS of the
+# run above with and without them): ~120 B per command interface, rounded up.
+CONTROLLER_BYTES_PER_COMMAND = 160
 # mujoco.batch's per-thread MjData: 0.25 MB per thread measured for the humanoid (256
 # worlds, 16 threads vs 1) of its 14.7 MB arena; narena / 32 covers it.
 THREAD_ARENA_FRACTION = 1 / 32
@@ -82,7 +88,7 @@ class DeviceMemory:
 class MemoryEstimate:
     """What `nworld` worlds of one model will take, in bytes.
 
-    host: RAM in all (`fixed` + nworld x (host physics + `ros_per_world`));
+    host: RAM in all (`fixed` + nworld x (host physics + `ros_per_world` + `controllers_per_world`));
     device: GPU memory (nworld x `physics_per_world`; 0 when the backend runs on the host);
     physics_per_world: the backend's per-world physics, on the device or the host.
     """
@@ -94,11 +100,14 @@ class MemoryEstimate:
     physics_per_world: int
     ros_per_world: int
     fixed: int
+    controllers_per_world: int = 0
 
     def breakdown(self) -> str:
         parts = [f"physics {_size(self.nworld * self.physics_per_world)}"]
         if self.device:
             parts[0] += " on the device"
+        if self.controllers_per_world:
+            parts.append(f"controllers {_size(self.nworld * self.controllers_per_world)}")
         if self.ros_per_world:
             parts.append(f"ROS 2 bridge {_size(self.nworld * self.ros_per_world)}")
         return ", ".join(parts)
@@ -126,6 +135,7 @@ def estimate_memory(
     on_device: bool = False,
     nconmax: int | None = None,
     njmax: int | None = None,
+    controllers: bool = False,
 ) -> MemoryEstimate:
     """What `nworld` worlds of `spec` on `backend` ("cpu", "mjx", "warp") will take.
 
@@ -135,6 +145,7 @@ def estimate_memory(
       on_device: mjx/warp run on a GPU: their physics counts against device memory.
       nconmax, njmax: warp's contacts and constraint rows per world (None: 4 and 64 a world
         where the rollout-sized values are not known yet).
+      controllers: ros2_control-style controllers run in every world.
     """
     m = spec.mjmodel
     row = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS) + m.nq + m.nv + m.nu + m.nsensordata
@@ -151,15 +162,17 @@ def estimate_memory(
     else:
         raise ValueError(f"no memory estimate for backend {backend!r}")
     ros_per_world = ROS_BRIDGE_BYTES_PER_WORLD if ros else 0
+    controllers_per_world = CONTROLLER_BYTES_PER_COMMAND * len(spec.commands) if controllers else 0
     if backend != "cpu" and on_device:
-        host = fixed + nworld * (host_arrays + ros_per_world)
+        host = fixed + nworld * (host_arrays + ros_per_world + controllers_per_world)
         device = nworld * physics
     else:
-        host = fixed + nworld * ((physics if backend == "cpu" else host_arrays + physics) + ros_per_world)
+        physics_on_host = physics if backend == "cpu" else host_arrays + physics
+        host = fixed + nworld * (physics_on_host + ros_per_world + controllers_per_world)
         device = 0
         if backend != "cpu":
             physics += host_arrays
-    return MemoryEstimate(nworld, backend, host, device, physics, ros_per_world, fixed)
+    return MemoryEstimate(nworld, backend, host, device, physics, ros_per_world, fixed, controllers_per_world)
 
 
 def available_host_memory() -> int | None:

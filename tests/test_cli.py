@@ -105,6 +105,9 @@ def test_memory_estimate_splits_host_and_device_and_checks_both():
     on_host = startup.estimate_memory(spec, "warp", 1000, ros=False, nconmax=8, njmax=40)  # Warp's CPU device
     assert on_host.device == 0 and on_host.host > gpu.host
 
+    with_controllers = startup.estimate_memory(spec, "cpu", 1000, ros=True, nthread=2, controllers=True)
+    assert with_controllers.host - host.host == 1000 * with_controllers.controllers_per_world > 0
+
     assert startup.check_host_memory(host, available=100 * host.host) is None
     assert "will take about" in startup.check_host_memory(host, available=int(1.1 * host.host))
     with pytest.raises(startup.MemoryCheckError, match="1000 worlds need about .* of RAM"):
