@@ -243,7 +243,11 @@ def check_args(args: argparse.Namespace) -> None:
         from ros_bridge.naming import DEFAULT_TEMPLATE, world_namespaces  # no rclpy: the rules only
 
         if args.namespace != DEFAULT_TEMPLATE:
-            world_namespaces(args.worlds, args.namespace)  # NamingError (a ValueError): one line
+            try:
+                world_namespaces(args.worlds, args.namespace)
+            except ValueError as e:  # NamingError; an OptionError names its flag through named()
+                named = getattr(e, "named", None)
+                raise UsageError(named("--namespace") if named else str(e)) from None
 
 
 def build(args: argparse.Namespace, progress: startup.Progress | None = None) -> BatchedSystem:

@@ -345,8 +345,9 @@ class Progress:
 # --- signals during start-up ---
 
 
-class StartupInterrupted(BaseException):
-    """SIGINT or SIGTERM arrived during start-up (raised in the main thread)."""
+class StartupInterrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived during start-up (raised in the main thread). A
+    KeyboardInterrupt, so that code cleaning up after Ctrl-C (bridge workers) does so."""
 
     def __init__(self, signum: int):
         super().__init__(signum)
