@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from batchsim import controllers  # batchsim.controllers.load_controllers after `import batchsim`
 from batchsim.backends import Backend, BackendUnavailable, backend_class, resolve
 from batchsim.backends.sharded import ShardedSystem
 from batchsim.hardware import (
@@ -47,6 +48,7 @@ __all__ = [
     "SensorConfigError",
     "Status",
     "SystemInterface",
+    "controllers",
     "load",
     "make",
     "model_names",

@@ -5,23 +5,35 @@
     batchsim --worlds 16 --controllers controllers.yaml   ros2_control controllers in every world
     batchsim info arm                        interfaces and sensors of a model
 
-Errors a user can fix (a missing file, malformed XML, an unknown model, a bad flag) print
-one line and exit with code 2; Ctrl-C and SIGTERM end the run cleanly with code 0.
+Errors a user can fix (a missing file, malformed XML, an unknown model, a bad flag, a
+fleet that will not fit in memory) print one line and exit with code 2. Start-up stages
+that take over a second show progress. Ctrl-C or SIGTERM during start-up exits promptly
+with one line and code 130 or 143 (nothing ran); once the run has begun they end it
+cleanly with code 0.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import importlib.metadata
+import math
+import platform
 import signal
 import sys
+import threading
 from collections.abc import Sequence
-from typing import Any
+from pathlib import Path
+from typing import Any, TextIO
+
+import mujoco
 
 import batchsim
-from batchsim.backends import BackendUnavailable, resolve
+from batchsim import startup
+from batchsim.backends import Backend, BackendUnavailable, backend_class, resolve
 from batchsim.controllers import ControllerManager, default_controllers, load_controllers
 from batchsim.hardware import BatchedSystem, ConfigurationError, LifecycleError
-from batchsim.loop import OptionError, RateError, SimLoop, format_stats, whole_ratio
+from batchsim.loop import LoopStats, OptionError, RateError, SimLoop, format_stats, whole_ratio
 from batchsim.model import ModelError, model_names
 from batchsim.sensors import SensorConfig, SensorSuite
 
@@ -70,6 +82,12 @@ def run_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-ros", action="store_true", help="run without the ROS 2 bridge")
     p.add_argument("--quiet", action="store_true", help="no live status line")
+    p.add_argument(
+        "--skip-memory-check",
+        action="store_true",
+        help="start even where the memory estimate says the fleet will not fit",
+    )
+    p.add_argument("--version", action="version", version=version_line())
     ros = p.add_argument_group("ROS 2 bridge")
     ros.add_argument("--namespace", default="world_{i}", help="per-world namespace template (default world_{i})")
     ros.add_argument("--publish-rate", type=float, default=None, help="Hz for topics (default: the control rate)")
@@ -113,6 +131,15 @@ def run_parser() -> argparse.ArgumentParser:
         help="ros2_control controller_manager YAML; none: no controllers (default: the shipped model's own)",
     )
     return p
+
+
+def version_line() -> str:
+    """`batchsim --version`: batchsim's and the engines' versions."""
+    try:
+        version = importlib.metadata.version("batchsim")
+    except importlib.metadata.PackageNotFoundError:
+        version = "unknown (not installed)"
+    return f"batchsim {version} (mujoco {mujoco.__version__}, python {platform.python_version()})"
 
 
 def info_parser() -> argparse.ArgumentParser:
@@ -197,9 +224,52 @@ def _how(c: Any) -> str:
     return ""
 
 
-def build(args: argparse.Namespace) -> BatchedSystem:
-    if args.worlds < 1:
-        raise UsageError(f"--worlds must be >= 1, got {args.worlds}")
+_POSITIVE = {  # flag: what its number is, for the message; each must be finite and > 0
+    "duration": "a finite number of simulated seconds",
+    "control_rate": "a finite number",
+    "publish_rate": "a finite number",
+    "sensor_rate": "a finite number",
+    "camera_rate": "a finite number",
+    "lidar_rate": "a finite number",
+    "lockstep_timeout": "a finite number of seconds",
+    "command_timeout": "a finite number of seconds",
+}
+_AT_LEAST_ONE = ("worlds", "threads", "nconmax", "njmax", "qos_depth")
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Every flag value the run will use, checked before anything starts.
+
+    Raises:
+      UsageError: the first bad value, as one line naming the flag and the value.
+    """
+    for name, what in _POSITIVE.items():
+        value = getattr(args, name)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise UsageError(f"--{name.replace('_', '-')} must be {what} > 0, got {value}")
+    if not (math.isfinite(args.rtf) and args.rtf >= 0):
+        raise UsageError(f"--rtf must be a finite number >= 0 (0: as fast as possible), got {args.rtf}")
+    for name in _AT_LEAST_ONE:
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    model = Path(args.model).expanduser()
+    if str(args.model) not in model_names() and model.is_dir():
+        raise UsageError(f"--model {args.model}: is a directory, not an MJCF file")
+    if not args.no_ros:
+        from ros_bridge.naming import DEFAULT_TEMPLATE, world_namespaces  # no rclpy: the rules only
+
+        if args.namespace != DEFAULT_TEMPLATE:
+            try:
+                world_namespaces(args.worlds, args.namespace)
+            except ValueError as e:  # NamingError; an OptionError names its flag through named()
+                named = getattr(e, "named", None)
+                raise UsageError(named("--namespace") if named else str(e)) from None
+
+
+def build(args: argparse.Namespace, progress: startup.Progress | None = None) -> BatchedSystem:
+    """The configured, active system: the model loaded, the memory checked, the worlds made."""
+    progress = progress if progress is not None else startup.Progress()
     options: dict[str, Any] = {}
     for flag, option in (("threads", "nthread"), ("nconmax", "nconmax"), ("njmax", "njmax")):
         if getattr(args, flag) is not None:
@@ -216,18 +286,52 @@ def build(args: argparse.Namespace) -> BatchedSystem:
         camera_resolution=args.camera_resolution,
         seed=args.noise_seed,
     )
-    sim = batchsim.make(
-        args.model,
-        args.worlds,
-        args.backend,
-        ros2_control=args.ros2_control,
-        keyframe=args.keyframe,
-        sensors=sensors,
-        **options,
-    )
-    sim.configure()
-    sim.activate()
+    with progress.stage(f"loading {args.model}"):
+        spec = batchsim.load(args.model, ros2_control=args.ros2_control, keyframe=args.keyframe)
+    chosen, _ = resolve(args.backend, spec, args.worlds)
+    if not args.skip_memory_check:
+        check_memory(args, spec, chosen)
+    with progress.stage(f"allocating {args.worlds} worlds on {chosen.value}"):
+        sim = batchsim.make(spec, args.worlds, args.backend, sensors=sensors, **options)
+        sim.configure()
+        sim.activate()
     return sim
+
+
+def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Backend) -> None:
+    """Refuse (MemoryCheckError, one line) a fleet the estimate says will not fit; warn near the edge."""
+    cls = backend_class(backend)
+    on_device, device_memory = False, None
+    if backend is not Backend.CPU:
+        on_device = not str(cls.available_devices()[0]).startswith("cpu")
+        if on_device and args.devices is None:  # several devices: each holds a share, not checked
+            device_memory = startup.device_memory(cls)
+    estimate = startup.estimate_memory(
+        spec,
+        backend.value,
+        args.worlds,
+        ros=not args.no_ros,
+        nthread=args.threads,
+        on_device=on_device,
+        nconmax=args.nconmax,
+        njmax=args.njmax,
+        controllers=(args.controllers or "").lower() != "none",
+    )
+    for warning in (startup.check_host_memory(estimate), startup.check_device_memory(estimate, device_memory)):
+        if warning:
+            print(f"batchsim: warning: {warning}", file=sys.stderr, flush=True)
+
+
+def compile_programs(sim: BatchedSystem, loop: SimLoop, progress: startup.Progress) -> None:
+    """mjx compiles, and warp captures, its program on the first control period: run one
+    now, under a progress stage, and reset, so the run starts compiled and at its start."""
+    if sim.name not in (Backend.MJX.value, Backend.WARP.value):
+        return
+    with progress.stage(f"compiling {sim.name}'s program for {sim.nworld} worlds"):
+        sim.read(0.0, loop.period)
+        sim.write(0.0, loop.period)
+        sim.step(loop.substeps)
+        sim.reset()
 
 
 def setup_controllers(sim: BatchedSystem, args: argparse.Namespace) -> tuple[ControllerManager | None, float | None]:
@@ -309,39 +413,97 @@ def _interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
+class StatusLine:
+    """The live status line of a run: redrawn in place on a terminal (the rest of the line
+    cleared), one line per report in a log. A paused loop reports nothing, so while it is
+    paused a watcher thread draws `paused` once a second (once per pause in a log).
+
+    Use as a context manager around `loop.run(status.report)`.
+    """
+
+    def __init__(
+        self, loop: SimLoop, nworld: int, backend: str, *, stream: TextIO | None = None, quiet: bool = False
+    ):
+        self.loop = loop
+        self.nworld = nworld
+        self.backend = backend
+        self.stream = stream if stream is not None else sys.stderr
+        self.quiet = quiet
+        self.tty = self.stream.isatty()
+        self._lock = threading.Lock()
+        self._drawn = False
+        self._stop = threading.Event()
+        self._watcher = threading.Thread(target=self._watch, name="batchsim-status", daemon=True)
+
+    def report(self, stats: LoopStats) -> None:
+        self._draw(format_stats(stats, self.nworld, self.backend))
+
+    def _draw(self, line: str) -> None:
+        if self.quiet:
+            return
+        with self._lock:
+            self.stream.write(f"\r{line}\x1b[K" if self.tty else line + "\n")
+            self.stream.flush()
+            self._drawn = True
+
+    def _watch(self) -> None:
+        shown = False
+        while not self._stop.wait(1.0):
+            if not self.loop.paused:
+                shown = False
+            elif self.tty or not shown:
+                stats = dataclasses.replace(self.loop.stats, sim_time=self.loop.sim_time, paused=True)
+                self._draw(format_stats(stats, self.nworld, self.backend))
+                shown = True
+
+    def __enter__(self) -> StatusLine:
+        if not self.quiet:
+            self._watcher.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        if self._watcher.is_alive():
+            self._watcher.join()
+        with self._lock:
+            if self.tty and self._drawn:
+                self.stream.write("\n")  # the next line starts below the status line
+                self.stream.flush()
+
+
 def run(argv: Sequence[str]) -> int:
     # until the loop runs, SIGTERM ends the start as Ctrl-C does: what was started (bridge
     # workers, shared memory) is stopped and removed on the way out
     signal.signal(signal.SIGTERM, _interrupt)
     args = run_parser().parse_args(argv)
-    sim = build(args)
-    manager, update_rate = setup_controllers(sim, args)
-    control_rate = args.control_rate if args.control_rate is not None else update_rate
-    try:
-        loop = SimLoop(sim, control_rate=control_rate, rtf=args.rtf, duration=args.duration)
-    except OptionError as e:
-        raise UsageError(e.named(_flag(e.option))) from None
-    if manager is not None:
-        for warning in manager.warnings:
-            print(f"batchsim: warning: {warning}", file=sys.stderr)
+    check_args(args)
+    progress = startup.Progress(sys.stderr)
+    with startup.StartupGuard(progress):
+        sim = build(args, progress)
+        manager, update_rate = setup_controllers(sim, args)
+        control_rate = args.control_rate if args.control_rate is not None else update_rate
+        try:
+            loop = SimLoop(sim, control_rate=control_rate, rtf=args.rtf, duration=args.duration)
+        except OptionError as e:
+            raise UsageError(e.named(_flag(e.option))) from None
+        if manager is not None:
+            for warning in manager.warnings:
+                print(f"batchsim: warning: {warning}", file=sys.stderr)
+        compile_programs(sim, loop, progress)
+        bridge = None
+        if not args.no_ros:
+            with progress.stage(f"creating ROS 2 endpoints for {sim.nworld} worlds"):
+                bridge = start_ros(sim, loop, args, manager)
+        if manager is not None and manager not in loop.participants:
+            loop.participants.append(manager)
+
     def on_signal(signum: int, frame: Any) -> None:
         loop.stop()
 
-    bridge = None if args.no_ros else start_ros(sim, loop, args, manager)
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    if manager is not None and manager not in loop.participants:
-        loop.participants.append(manager)
 
     backend = f"{sim.name} ({sim.reason})"
-    tty = sys.stderr.isatty()
-
-    def report(stats) -> None:
-        if args.quiet:
-            return
-        line = format_stats(stats, sim.nworld, backend)
-        print(("\r" + line) if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
-
     print(
         f"batchsim: {sim.nworld} x {sim.spec.name} on {backend}, control {loop.control_rate:g} Hz "
         f"({loop.substeps} x {sim.dt:g} s), rtf {'max' if args.rtf == 0 else f'{args.rtf:g}'}"
@@ -351,13 +513,12 @@ def run(argv: Sequence[str]) -> int:
         flush=True,
     )
     try:
-        stats = loop.run(report)
+        with StatusLine(loop, sim.nworld, backend, quiet=args.quiet) as status:
+            stats = loop.run(status.report)
     finally:
         if bridge is not None:
             bridge.close()
         sim.shutdown()
-    if tty and not args.quiet:
-        print(file=sys.stderr)
     print(
         f"batchsim: stopped at sim time {loop.sim_time:.3f} s; last: {format_stats(stats, sim.nworld, backend)}",
         file=sys.stderr,

@@ -86,6 +86,7 @@ class LoopStats:
     overflow: int = 0
     bad_command: int = 0
     periods: int = 0
+    paused: bool = False  # the status line shows `paused` instead of the rate
 
 
 class SimLoop:
@@ -252,13 +253,11 @@ class SimLoop:
 
 
 def format_stats(stats: LoopStats, nworld: int, backend: str) -> str:
-    """The live status line."""
+    """The live status line: sim time, rtf and steps/s (or `paused`), diverged worlds, backend."""
     sps = stats.steps_per_second
     rate = f"{sps / 1e6:.2f}M" if sps >= 1e6 else f"{sps / 1e3:.1f}k"
-    line = (
-        f"sim {stats.sim_time:8.2f} s | rtf {stats.rtf:5.2f} | {rate} steps/s | "
-        f"diverged {stats.diverged}/{nworld}"
-    )
+    speed = "paused" if stats.paused else f"rtf {stats.rtf:5.2f} | {rate} steps/s"
+    line = f"sim {stats.sim_time:8.2f} s | {speed} | diverged {stats.diverged}/{nworld}"
     if stats.overflow:
         line += f" | overflow {stats.overflow}"
     if stats.bad_command:

@@ -14,11 +14,13 @@ sides see the same machine state, it times:
 Both sides start from the same state, warm up for the same number of periods and make the
 same number of calls per round, so they simulate the same stretch of time. It reports
 physics steps/s (nworld * NSTEP / seconds; compile and graph capture excluded),
-the ratio contract/raw, and which backend `auto` picks. Writes throughput.csv and
+the ratio contract/raw, and which backend `auto` picks (as recorded: `--plot` keeps each
+row's `auto` column, the rule of the day it was run). Writes throughput.csv and
 throughput.png (steps/s vs worlds, log-log, one colour per backend, raw dashed) to --out.
 
     python benchmarks/throughput.py --backends cpu,mjx,warp --worlds 16,256,1024,8192 --model humanoid
     python benchmarks/throughput.py --plot a.csv b.csv --out benchmarks   # merge runs, redraw
+    python benchmarks/throughput.py --around-threshold --model humanoid   # auto's threshold, held out
     python benchmarks/throughput.py --devices all --backends warp --worlds 8192   # several GPUs (devices.py)
 """
 
@@ -44,6 +46,8 @@ import batchsim  # noqa: E402
 from batchsim.backends import WARP_MIN_WORLDS, resolve  # noqa: E402
 
 NSTEP = 10
+# --around-threshold: world counts as multiples of WARP_MIN_WORLDS (128 .. 2048 at 512)
+THRESHOLD_FACTORS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 4.0)
 FIELDS = [
     "date",
     "device",
@@ -323,7 +327,7 @@ def summary(rows: list[dict]) -> None:
     print(f"\n{'worlds':>7s} {'auto picks':>10s} {'auto steps/s':>13s} {'fastest':>8s} {'auto/fastest':>12s}")
     for n in sizes:
         at = {r["backend"]: float(r["contract_sps"]) for r in rows if int(r["nworld"]) == n}
-        auto = next(r["auto"] for r in rows if int(r["nworld"]) == n)
+        auto = next(r["auto"] for r in rows if int(r["nworld"]) == n)  # as recorded
         best = max(at, key=at.get)
         if auto in at:
             print(f"{n:7d} {auto:>10s} {at[auto]:13,.0f} {best:>8s} {at[auto] / at[best]:12.3f}")
@@ -333,8 +337,14 @@ def summary(rows: list[dict]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--backends", default="cpu,mjx,warp")
-    p.add_argument("--worlds", default="16,256,1024,8192")
+    p.add_argument("--backends", default=None, help="default cpu,mjx,warp (cpu,warp with --around-threshold)")
+    p.add_argument("--worlds", default=None, help="default 16,256,1024,8192")
+    p.add_argument(
+        "--around-threshold",
+        action="store_true",
+        help=f"only the sizes around auto's cpu/warp threshold ({WARP_MIN_WORLDS} worlds), to check the "
+        "rule on data it was not fitted on; writes throughput_threshold.csv",
+    )
     p.add_argument("--model", default="humanoid")
     p.add_argument("--seconds", type=float, default=1.5, help="timed seconds per side and size")
     p.add_argument("--rounds", type=int, default=3, help="interleaved rounds per size (medians)")
@@ -361,13 +371,24 @@ def main(argv: list[str] | None = None) -> int:
         for f in args.plot:
             with open(f) as fh:
                 rows += list(csv.DictReader(fh))
-        for r in rows:  # auto as the current rule picks, for runs made before it was set
+        unrecorded = [r for r in rows if not r.get("auto")]
+        for r in unrecorded:  # only runs made before the column existed: today's rule, said so
             gpu = "NVIDIA" in r["device"]
             r["auto"] = "warp" if gpu and int(r["nworld"]) >= WARP_MIN_WORLDS else "cpu"
+        if unrecorded:
+            print(f"{len(unrecorded)} rows had no auto column: filled in with today's rule ({WARP_MIN_WORLDS} worlds)")
         summary(rows)
         plot(rows, out / "throughput.png")
         return 0
 
+    if args.backends is None:
+        args.backends = "cpu,warp" if args.around_threshold else "cpu,mjx,warp"
+    if args.worlds is None:
+        args.worlds = (
+            ",".join(str(int(WARP_MIN_WORLDS * f)) for f in THRESHOLD_FACTORS)
+            if args.around_threshold
+            else "16,256,1024,8192"
+        )
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     sizes = [int(n) for n in args.worlds.split(",")]
     device = device_name(backends)
@@ -379,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
     spec = batchsim.load(args.model)
     start = time.perf_counter()
     rows = []
-    csv_path = out / "throughput.csv"
+    csv_path = out / ("throughput_threshold.csv" if args.around_threshold else "throughput.csv")
     with open(csv_path, "w", newline="") as fh:
         writer = csv.DictWriter(fh, FIELDS)
         writer.writeheader()
@@ -417,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
     if rows:
         summary(rows)
         try:
-            plot(rows, out / "throughput.png")
+            plot(rows, csv_path.with_suffix(".png"))
         except ImportError:
             print("matplotlib is not installed: no plot (pip install 'batchsim[bench]')")
     return 0

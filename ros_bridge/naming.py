@@ -3,7 +3,8 @@
 No rclpy here, so the rules are testable without a ROS graph.
 
 - A world's namespace is the template with `{i}` replaced by the world index
-  (`world_{i}` -> `world_3`), without leading or trailing slashes.
+  (`world_{i}` -> `world_3`, `w_{i:03d}` -> `w_003`: format specs work), without leading
+  or trailing slashes; two worlds never share one.
 - With one world, the default template, and an MJCF whose `mujoco.ros2` extension block
   sets `ros_namespace`, the namespace is that key's value, so topic names are exactly the
   plugin's (`ros_namespace="car/"` -> `/car/sensors/<sensor>`).
@@ -16,6 +17,7 @@ No rclpy here, so the rules are testable without a ROS graph.
 from __future__ import annotations
 
 import re
+import string
 
 from batchsim.loop import OptionError
 
@@ -76,19 +78,29 @@ def world_namespaces(
         ns = plugin_namespace.strip("/")
         _check_namespace(ns, f"the MJCF's mujoco.ros2 ros_namespace {plugin_namespace!r}", option="")
         return [ns]
-    if (nworld > 1 or offset) and "{i}" not in template:
+    try:  # fields by name, so that format specs work: 'w_{i:03d}'
+        fields = {name for _, name, _, _ in string.Formatter().parse(template) if name is not None}
+    except ValueError as e:
+        raise NamingError(f"{template!r}: {e}") from None
+    if (nworld > 1 or offset) and "i" not in fields:
         raise NamingError(
             f"{template!r} has no {{i}}: {nworld} worlds need distinct namespaces (e.g. 'robot_{{i}}')"
             if nworld > 1
             else f"{template!r} has no {{i}}: a world offset needs it (e.g. 'robot_{{i}}')"
         )
     out = []
+    first: dict[str, int] = {}
     for i in range(offset, offset + nworld):
         try:
             ns = template.format(i=i).strip("/")
         except (KeyError, IndexError, ValueError) as e:
             raise NamingError(f"{template!r}: only {{i}} may be substituted ({e})") from None
         _check_namespace(ns, f"{template!r} gives {ns!r}, which")
+        if first.setdefault(ns, i) != i:  # a spec that truncates or pads away the index
+            raise NamingError(
+                f"{template!r} gives {ns!r} to several worlds ({first[ns]} and {i}): "
+                "each world needs its own namespace"
+            )
         out.append(ns)
     return out
 
