@@ -101,7 +101,7 @@ def run_parser() -> argparse.ArgumentParser:
         "--bridge-workers",
         type=int,
         default=None,
-        help="processes serving ROS (default: 0 up to 64 worlds or on 2 cores, else one per 128 worlds, "
+        help="processes serving ROS (default: 1 on 2 cores; else 0 up to 64 worlds, then one per 128 worlds, "
         "at most half the cores); 0: in the physics process",
     )
     ros.add_argument(

@@ -107,11 +107,14 @@ class BridgeOptions:
 
 
 def default_workers(nworld: int, cores: int | None = None) -> int:
-    """Bridge worker processes for `nworld` worlds: none (the physics process publishes) up to
-    INPROCESS_WORLDS worlds or on a machine of 2 cores or fewer; else one per
-    WORLDS_PER_WORKER worlds, at most half the cores (the rest serve the physics and the
-    fleet's own subscribers)."""
+    """Bridge worker processes for `nworld` worlds: one on a machine of 2 cores (publishing
+    on the other core keeps the physics in real time: 16 arms at 1 kHz held RTF 1.00 with
+    one worker against 0.39 publishing in the physics process, benchmarks/RESULTS.md), none
+    on one core or up to INPROCESS_WORLDS worlds; else one per WORLDS_PER_WORKER worlds, at
+    most half the cores (the rest serve the physics and the fleet's own subscribers)."""
     cores = cores or os.cpu_count() or 1
-    if nworld <= INPROCESS_WORLDS or cores <= 2:
+    if cores == 2:
+        return 1
+    if nworld <= INPROCESS_WORLDS or cores < 2:
         return 0
     return max(1, min(cores // 2, -(-nworld // WORLDS_PER_WORKER)))

@@ -230,7 +230,9 @@ def test_one_rate_check_for_control_publish_and_update_rates():
 
 def test_default_workers_grow_with_the_fleet_and_the_cores():
     assert default_workers(16, cores=16) == 0
-    assert default_workers(1024, cores=2) == 0
+    assert default_workers(1024, cores=2) == 1  # publishing beside the physics, not in its way
+    assert default_workers(16, cores=2) == 1
+    assert default_workers(16, cores=1) == 0
     assert default_workers(256, cores=16) == 2
     assert default_workers(1024, cores=16) == 8
     assert default_workers(8192, cores=16) == 8
