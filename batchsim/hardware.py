@@ -361,7 +361,10 @@ class BatchedSystem(SystemInterface):
     def set_command(self, command: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
         """Copy `command` into `self.command` for all or the listed worlds; `(ncommand,)` broadcasts.
 
-        Raises ValueError naming the expected and actual shapes.
+        `command` is `(nworld, ncommand)`, or `(len(worlds), ncommand)` with row i for
+        `worlds[i]`, in the order given (a `(nworld,)` bool mask lists worlds in order).
+        Raises ValueError naming the expected and actual shapes, a world out of range, or a
+        world listed twice.
         """
         command = np.asarray(command, dtype=np.float64)
         rows = self._worlds(worlds)
@@ -436,6 +439,11 @@ class BatchedSystem(SystemInterface):
         return (self.status & np.uint8(FROZEN)) != 0
 
     def _worlds(self, worlds: Sequence[int] | np.ndarray | None) -> np.ndarray | None:
+        """World indices as given, (k,) int64, in the caller's order; None for all.
+
+        Raises ValueError for a world out of range, a world listed twice, or a mask of the
+        wrong shape.
+        """
         if worlds is None:
             return None
         rows = np.asarray(worlds)
@@ -443,10 +451,15 @@ class BatchedSystem(SystemInterface):
             if rows.shape != (self.nworld,):
                 raise ValueError(f"a world mask must have shape ({self.nworld},), got {rows.shape}")
             return np.flatnonzero(rows)
-        rows = np.unique(rows.astype(np.int64).reshape(-1))
-        if rows.size and (rows[0] < 0 or rows[-1] >= self.nworld):
-            bad = rows[0] if rows[0] < 0 else rows[-1]
-            raise ValueError(f"world {bad} is out of range: worlds are 0..{self.nworld - 1}")
+        if rows.size and not np.issubdtype(rows.dtype, np.integer):
+            raise ValueError(f"worlds must be integers or a ({self.nworld},) bool mask, got {rows.dtype}")
+        rows = rows.astype(np.int64).reshape(-1)
+        bad = rows[(rows < 0) | (rows >= self.nworld)]
+        if bad.size:
+            raise ValueError(f"world {bad[0]} is out of range: worlds are 0..{self.nworld - 1}")
+        unique, counts = np.unique(rows, return_counts=True)
+        if unique.size < rows.size:
+            raise ValueError(f"world {unique[counts > 1][0]} is listed more than once")
         return rows
 
     def _refresh(self) -> None:

@@ -285,6 +285,37 @@ def test_reset_touches_only_listed_worlds(arm):
 def test_reset_rejects_unknown_worlds(arm):
     with pytest.raises(ValueError, match="world 4 is out of range"):
         arm.reset(worlds=[4])
+    with pytest.raises(ValueError, match="world -1 is out of range"):
+        arm.reset(worlds=[2, -1])
+
+
+# ---------------------------------------------------------------- world lists
+
+
+def test_set_command_rows_follow_the_order_given(arm):
+    """Row i goes to worlds[i], whatever the order; the other worlds keep theirs."""
+    arm.reset()
+    ncmd = arm.command.shape[1]
+    rows = np.array([np.full(ncmd, 0.1), np.full(ncmd, 0.3)])
+    arm.set_command(rows, worlds=[3, 1])
+    np.testing.assert_array_equal(arm.command[3], rows[0])
+    np.testing.assert_array_equal(arm.command[1], rows[1])
+    np.testing.assert_array_equal(arm.command[[0, 2]], 0.0)
+    arm.set_command(rows, worlds=np.array([True, False, True, False]))  # a mask: in world order
+    np.testing.assert_array_equal(arm.command[[0, 2]], rows)
+    arm.reset()
+
+
+def test_a_world_listed_twice_is_an_error(arm):
+    ncmd = arm.command.shape[1]
+    before = arm.command.copy()
+    with pytest.raises(ValueError, match="world 1 is listed more than once"):
+        arm.set_command(np.zeros((3, ncmd)), worlds=[1, 2, 1])
+    with pytest.raises(ValueError, match="world 3 is listed more than once"):
+        arm.reset(worlds=[3, 3])
+    with pytest.raises(ValueError, match="must be integers"):
+        arm.set_command(np.zeros((1, ncmd)), worlds=[1.5])
+    np.testing.assert_array_equal(arm.command, before)
 
 
 # ---------------------------------------------------------------- determinism
