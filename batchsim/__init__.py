@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from batchsim.backends import Backend, BackendUnavailable, backend_class, resolve
+from batchsim.failures import set_log_dir
 from batchsim.hardware import (
     BatchedSystem,
     CallbackReturn,
@@ -42,6 +43,7 @@ __all__ = [
     "load",
     "make",
     "model_names",
+    "set_log_dir",
 ]
 
 
@@ -61,8 +63,8 @@ def make(
       nworld: number of worlds.
       backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware).
       ros2_control: a ros2_control block (file path or XML text) narrowing the interfaces.
-      **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `device`, `graph`
-        for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
+      **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `max_data_bytes`,
+        `device`, `graph` for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
         runs: always so on cpu, slower on a GPU). With "auto", those the chosen backend does
         not take are ignored, and `sim.reason` says so.
 

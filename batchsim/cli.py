@@ -51,8 +51,8 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--rtf", type=float, default=1.0, help="real-time factor; 0 runs as fast as possible")
     p.add_argument("--control-rate", type=float, default=None, help="Hz: commands applied, state read")
     p.add_argument("--threads", type=int, default=None, help="cpu backend: worker threads (default: all cores)")
-    p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world (default: sized from a CPU rollout)")
-    p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world (default: sized likewise)")
+    p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world to start with (default: sized from a CPU rollout; grows when it overflows)")
+    p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world to start with (default: sized likewise; grows likewise)")
     p.add_argument(
         "--deterministic",
         action="store_true",
@@ -61,6 +61,12 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--ros2-control", default=None, help="URDF/XML file with a <ros2_control> block")
     p.add_argument("--no-ros", action="store_true", help="run without the ROS 2 bridge")
     p.add_argument("--quiet", action="store_true", help="no live status line")
+    p.add_argument(
+        "--log-dir",
+        default=None,
+        help="where MuJoCo's own log (MUJOCO_LOG.TXT) goes (default: $XDG_STATE_HOME/batchsim, "
+        "never the working directory)",
+    )
     ros = p.add_argument_group("ROS 2 bridge")
     ros.add_argument("--namespace", default="world_{i}", help="per-world namespace template (default world_{i})")
     ros.add_argument("--publish-rate", type=float, default=None, help="Hz for topics (default: the control rate)")
@@ -127,6 +133,8 @@ def build(args: argparse.Namespace) -> BatchedSystem:
             options[option] = getattr(args, flag)
     if args.deterministic:
         options["deterministic"] = True
+    if args.log_dir is not None:  # else make() places it, away from the working directory
+        batchsim.set_log_dir(args.log_dir)
     sim = batchsim.make(args.model, args.worlds, args.backend, ros2_control=args.ros2_control, **options)
     sim.configure()
     sim.activate()

@@ -12,21 +12,29 @@ enforced here, once; an illegal transition raises `LifecycleError` naming the st
 - `command` `(nworld, ncommand)` float64, applied by `write(time, period)` into `ctrl`;
   `write` does nothing unless ACTIVE.
 - `step(nstep)`, `reset(worlds=None)`, `status` `(nworld,)` bitmask of `Status`,
-  `sensordata[name]` `(nworld, dim)`, `time` `(nworld,)`.
+  `sensordata[name]` `(nworld, dim)`, `time` `(nworld,)` float64 on every backend.
+
+A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule
+on every backend: until `reset` lists it, it reads exactly what `read()` would have shown
+just before the `step()` call in which it failed (state, base_state, sensordata, time),
+and the failure is logged once, naming the world and the reason (`batchsim.failures`).
 
 A backend subclasses `BatchedSystem` and implements the engine hooks (`_open`, `_close`,
-`_upload_ctrl`, `_download`, `_step`, `_reset`); everything a user sees, checks and
-bookkeeping included, lives here so that every backend behaves the same.
+`_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, and `_park` where the engine
+cannot skip a world); everything a user sees, checks and bookkeeping included, lives here
+so that every backend behaves the same.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
 
+from batchsim.failures import FailureLog, ensure_log_dir
 from batchsim.model import RobotSpec, StateColumn, initial_command
 
 
@@ -67,6 +75,8 @@ class Status(enum.IntFlag):
 
 FROZEN = Status.DIVERGED | Status.OVERFLOW
 MAX_COMMAND = 1e10  # MuJoCo's mjMAXVAL: a ctrl beyond it trips mjWARN_BADCTRL
+#: the engine fields read() gathers state interfaces from (`StateColumn.source`), in this order
+READ_FIELDS = ("qpos", "qvel", "qfrc_actuator", "sensordata")
 
 
 class LifecycleError(RuntimeError):
@@ -210,6 +220,28 @@ class SensorData(Mapping[str, np.ndarray]):
         return len(self._views)
 
 
+@dataclasses.dataclass
+class StepFailures:
+    """The worlds that failed during one `_step(nstep)` call, as a backend reports them.
+
+    Attributes:
+      worlds: (k,) int64, the worlds; none of them was frozen before the call.
+      status: (k,) uint8, their Status bits: DIVERGED and/or OVERFLOW.
+      reasons: k strings, why each failed (MuJoCo's warning text where there is one).
+      readings: (k, ncolumn) float64, their read() columns (`state`, then `base_state`) as
+        they were at the start of the call.
+      sensordata: (k, nsensordata) float64, likewise.
+      time: (k,) float64, likewise.
+    """
+
+    worlds: np.ndarray
+    status: np.ndarray
+    reasons: list[str]
+    readings: np.ndarray
+    sensordata: np.ndarray
+    time: np.ndarray
+
+
 class BatchedSystem(SystemInterface):
     """`nworld` copies of one robot behind ros2_control's SystemInterface.
 
@@ -218,7 +250,8 @@ class BatchedSystem(SystemInterface):
       state: (nworld, nstate) float64, the state interfaces, refreshed by read().
       command: (nworld, ncommand) float64, the command interfaces, applied by write().
       status: (nworld,) uint8 bitmask of Status, current after step() and write().
-      time: (nworld,) float64 simulation time of each world, refreshed by read().
+      time: (nworld,) float64 simulation time of each world, refreshed by read(); float64 on
+        every backend (the GPU engines' own clocks are float32).
       sensordata: every MJCF sensor by name, (nworld, dim) each, refreshed by read().
       base_state: (nworld, 13) float64, the floating base (`spec.floating_base`) as MuJoCo's
         free joint holds it: position (3) and orientation quaternion (w, x, y, z) in the
@@ -263,7 +296,7 @@ class BatchedSystem(SystemInterface):
         )
         # state columns gathered per source field: (state columns, field indices)
         self._gather: list[tuple[str, np.ndarray, np.ndarray]] = []
-        for source in ("qpos", "qvel", "qfrc_actuator", "sensordata"):
+        for source in READ_FIELDS:
             cols = [i for i, c in enumerate(self._columns) if c.source == source]
             if cols:
                 idx = [self._columns[i].index for i in cols]
@@ -271,6 +304,14 @@ class BatchedSystem(SystemInterface):
         self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
         self._ctrl_cols = _as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster
         self._opened = False
+        # what frozen worlds show until reset: their readings from the start of the failing step()
+        self._held_readings = np.zeros_like(self._readings)
+        self._held_sensordata = np.zeros_like(self._sensor_host)
+        self._held_time = np.zeros_like(self.time)
+        # whether the host readings are the engine's current values (read() since the last step())
+        self._readings_current = False
+        self._failure_log = FailureLog(self.name, self.nworld, mujoco_logs=self.name == "cpu")
+        ensure_log_dir()  # MuJoCo's own log out of the working directory, unless placed already
 
     def _bind_readings(self, readings: np.ndarray) -> None:
         """Make `readings` (nworld, len(_columns)) the array read() fills; `state` and
@@ -318,7 +359,8 @@ class BatchedSystem(SystemInterface):
 
     # --- read / write ---
     def read(self, time: float | None = None, period: float | None = None) -> ReturnType:
-        """Refresh `state`, `sensordata` and `time` from the simulation (INACTIVE or ACTIVE)."""
+        """Refresh `state`, `base_state`, `sensordata` and `time` from the simulation (INACTIVE
+        or ACTIVE). Frozen worlds show what they read before the step() in which they failed."""
         if self._lifecycle not in (S.INACTIVE, S.ACTIVE):
             return ReturnType.OK
         self._refresh()
@@ -379,11 +421,31 @@ class BatchedSystem(SystemInterface):
 
     # --- stepping ---
     def step(self, nstep: int = 1) -> None:
-        """Advance every world `nstep` physics steps; frozen (diverged, overflowed) worlds stay put."""
+        """Advance every world `nstep` physics steps; frozen (diverged, overflowed) worlds stay put.
+
+        A world that fails during the call gets DIVERGED or OVERFLOW in `status`, is logged
+        once (rate-limited over worlds) and is frozen: it reads as it did before this call
+        until `reset` lists it.
+        """
         self._require("step", frozenset({S.INACTIVE, S.ACTIVE}))
         if nstep < 1:
             raise ValueError(f"nstep must be >= 1, got {nstep}")
-        self._step(int(nstep))
+        self._failure_log.flush()
+        failures = self._step(int(nstep))
+        self._readings_current = False
+        if failures is not None and failures.worlds.size:
+            self._freeze(failures)
+
+    def _freeze(self, failures: StepFailures) -> None:
+        """Hold what the failed worlds read before the failing step, mark them, park them, say so."""
+        worlds = failures.worlds
+        self._held_readings[worlds] = failures.readings
+        self._held_sensordata[worlds] = failures.sensordata
+        self._held_time[worlds] = failures.time
+        self.status[worlds] |= failures.status.astype(np.uint8)
+        self._park(worlds)
+        what = ["diverged" if s & Status.DIVERGED else "overflowed" for s in failures.status]
+        self._failure_log.report(worlds, what, failures.reasons, failures.time)
 
     def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
         """Reset all worlds, or only the listed ones, to the initial state and command.
@@ -395,43 +457,14 @@ class BatchedSystem(SystemInterface):
             raise LifecycleError("cannot reset: the system is UNCONFIGURED; configure it first")
         rows = self._worlds(worlds)
         sel = np.arange(self.nworld) if rows is None else rows
+        self.status[sel] = 0  # first: the engine's reset sees them unfrozen
         self._reset(rows)
         self._command[sel] = self._initial_command
         ctrl = self._ctrl_host()
         ctrl[sel] = self.spec.initial.ctrl
         ctrl[np.ix_(sel, self._ctrl_index)] = self._initial_command
         self._upload_ctrl()
-        self.status[sel] = 0
         self._refresh()
-
-    # --- parked worlds: for engines that step every world (GPU backends) ---
-    def _init_parking(self) -> None:
-        """A frozen world on an engine that cannot skip it is parked: reset on the device with
-        its ctrl held at zero, while read() keeps showing what it read when it failed."""
-        self._parked = np.zeros(self.nworld, bool)
-        self._held = {
-            "readings": np.zeros_like(self._readings),
-            "sensordata": np.zeros_like(self._sensor_host),
-            "time": np.zeros_like(self.time),
-        }
-
-    def _hold_readings(self, worlds: np.ndarray) -> None:
-        """Keep what `worlds` read now (call right after a refresh) and mark them parked."""
-        for key, array in (("readings", self._readings), ("sensordata", self._sensor_host), ("time", self.time)):
-            self._held[key][worlds] = array[worlds]
-        self._parked[worlds] = True
-
-    def _unpark(self, worlds: np.ndarray | None) -> None:
-        """Reset worlds (None: all) are live again."""
-        self._parked[slice(None) if worlds is None else worlds] = False
-
-    def _show_held_readings(self) -> None:
-        """After a refresh: parked worlds show their held readings, not the device's rows."""
-        if self._parked.any():
-            parked = self._parked
-            self._readings[parked] = self._held["readings"][parked]
-            self._sensor_host[parked] = self._held["sensordata"][parked]
-            self.time[parked] = self._held["time"][parked]
 
     @property
     def frozen(self) -> np.ndarray:
@@ -463,11 +496,28 @@ class BatchedSystem(SystemInterface):
         return rows
 
     def _refresh(self) -> None:
-        fields = self._download()
+        """The engine's current readings into the host arrays, then frozen worlds' held ones."""
+        self._read()
+        self._readings_current = True
+        frozen = self.frozen
+        if frozen.any():
+            self._readings[frozen] = self._held_readings[frozen]
+            self._sensor_host[frozen] = self._held_sensordata[frozen]
+            self.time[frozen] = self._held_time[frozen]
+
+    def _gather_fields(
+        self,
+        fields: Mapping[str, np.ndarray],
+        readings: np.ndarray,
+        sensordata: np.ndarray,
+        time: np.ndarray,
+    ) -> None:
+        """Host engine fields (`READ_FIELDS` `(nworld, ...)` and `time` `(nworld,)`) into
+        readings `(nworld, ncolumn)`, sensordata `(nworld, nsensordata)` and time `(nworld,)`."""
         for source, cols, idx in self._gather:
-            self._readings[:, cols] = fields[source][:, idx]
-        self._sensor_host[:] = fields["sensordata"]
-        self.time[:] = fields["time"]
+            readings[:, cols] = fields[source][:, idx]
+        sensordata[:] = fields["sensordata"]
+        time[:] = fields["time"]
 
     # --- engine hooks, one set per backend ---
     def _open(self) -> None:
@@ -484,17 +534,25 @@ class BatchedSystem(SystemInterface):
     def _upload_ctrl(self) -> None:
         """Make the host ctrl the engine's ctrl (a no-op where they are the same memory)."""
 
-    def _download(self) -> Mapping[str, np.ndarray]:
-        """Host arrays qpos, qvel, qfrc_actuator, sensordata (nworld, ...) and time (nworld,)."""
+    def _read(self) -> None:
+        """Every world's current values into `_readings` `(nworld, ncolumn)` (the columns of
+        `_columns`), `_sensor_host` `(nworld, nsensordata)` and `time` `(nworld,)`, float64.
+        Frozen worlds' rows are overwritten afterwards with what they hold."""
         raise NotImplementedError
 
-    def _step(self, nstep: int) -> None:
-        """Advance the unfrozen worlds nstep steps; set DIVERGED / OVERFLOW bits of worlds that fail."""
+    def _step(self, nstep: int) -> StepFailures | None:
+        """Advance the unfrozen worlds nstep steps; report the worlds that failed in this call
+        (None or an empty StepFailures: none). The base class then freezes them."""
         raise NotImplementedError
 
     def _reset(self, worlds: np.ndarray | None) -> None:
-        """Reset the listed worlds (None: all) to the model's initial state."""
+        """Reset the listed worlds (None: all) to `spec.initial`. Their status is already clear."""
         raise NotImplementedError
+
+    def _park(self, worlds: np.ndarray) -> None:
+        """Worlds just frozen: for an engine that steps every world whatever happens, keep them
+        from costing the others anything (the GPU backends reset them and hold ctrl at zero).
+        An engine that skips frozen worlds (cpu) has nothing to do."""
 
 
 def _base_columns(spec: RobotSpec) -> list[StateColumn]:

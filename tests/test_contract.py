@@ -2,10 +2,16 @@
 
 It checks the ros2_control lifecycle table, interface names for each shipped model,
 shapes and dtypes, that write() does nothing unless ACTIVE, that reset touches only the
-listed worlds, determinism, and bad input (wrong-shaped and NaN commands).
+listed worlds, determinism, float64 time, bad input (wrong-shaped and NaN commands, world
+lists), and the one rule for a world that fails: frozen at the readings from before the
+failing step, logged once by name.
 """
 
 from __future__ import annotations
+
+import dataclasses
+import logging
+import re
 
 import numpy as np
 import pytest
@@ -363,10 +369,10 @@ def test_nan_command_sets_bad_command_and_spares_the_others(arm):
     arm.command[:] = 0.2
     arm.write()
     arm.step(50)
-    arm.read()
-    reference = arm.state.copy()
-    # world 2 gets a NaN: not applied, BAD_COMMAND; the others take their new command
+    # world 2 gets a NaN: not applied, BAD_COMMAND; world 1 gets 0.2 again, as a twin of what
+    # world 2 must do (hold its last good command); worlds 0 and 3 take 0.25
     arm.command[:] = 0.25
+    arm.command[1] = 0.2
     arm.command[2, 3] = np.nan
     assert arm.write() is ReturnType.OK
     assert arm.status[2] & Status.BAD_COMMAND
@@ -375,16 +381,18 @@ def test_nan_command_sets_bad_command_and_spares_the_others(arm):
     arm.read()
     names = arm.export_state_interfaces()
     j1 = names.index("joint1/position")
-    # world 2 kept holding 0.2 (its last good command), the others moved to 0.25
+    # world 2 followed its twin: the same commands from the same state, so the same readings
+    # (float32 round-off on the device backends, which compute each world alike)
+    np.testing.assert_allclose(arm.state[2], arm.state[1], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(arm.sensordata["wrist_force"][2], arm.sensordata["wrist_force"][1], rtol=0, atol=1e-5)
     assert abs(arm.state[2, j1] - 0.2) < 0.02
-    assert np.all(np.abs(arm.state[[0, 1, 3], j1] - 0.25) < 0.02)
+    assert np.all(np.abs(arm.state[[0, 3], j1] - 0.25) < 0.02)
     assert np.isfinite(arm.state).all()
     assert not np.any(arm.status & (Status.DIVERGED | Status.OVERFLOW))
     # a good command clears the bit
     arm.command[:] = 0.0
     arm.write()
     assert not np.any(arm.status & Status.BAD_COMMAND)
-    del reference
     arm.reset()
 
 
@@ -398,43 +406,145 @@ def test_inf_and_huge_commands_are_rejected_too(arm, value):
     assert arm.status[1] == 0
 
 
+# A floating base carrying a tiny link on an unlimited motor: an absurd but finite torque on
+# the link blows the world up in its first step, base included; zero torque keeps it falling.
 UNSTABLE = """
 <mujoco model="unstable">
   <worldbody>
-    <body><joint name="hinge" type="hinge" damping="0"/><geom type="capsule" size=".01" fromto="0 0 0 .1 0 0" mass="1e-3"/></body>
+    <body name="base" pos="0 0 1">
+      <freejoint name="root"/>
+      <geom type="box" size=".1 .1 .1" mass="1"/>
+      <body name="link">
+        <joint name="hinge" type="hinge" axis="0 0 1" damping="0"/>
+        <geom type="capsule" size=".01" fromto="0 0 0 .1 0 0" mass="1e-3"/>
+      </body>
+    </body>
   </worldbody>
   <actuator><motor name="motor" joint="hinge"/></actuator>
-  <sensor><jointvel name="vel" joint="hinge"/></sensor>
+  <sensor>
+    <jointvel name="vel" joint="hinge"/>
+    <framepos name="base_pos" objtype="body" objname="base"/>
+  </sensor>
 </mujoco>
 """
+SUBSTEPS, CALM = 5, 4  # steps per period; periods before world 1 gets its torque
 
 
-def test_a_diverging_world_is_frozen_and_the_others_go_on(backend, tmp_path):
+def _readings(sim) -> dict[str, np.ndarray]:
+    return {
+        "state": sim.state.copy(),
+        "base_state": sim.base_state.copy(),
+        "sensordata": np.concatenate([sim.sensordata[n] for n in sim.sensordata], axis=1),
+        "time": sim.time.copy(),
+    }
+
+
+def _blow_up_world_1(sim, read_every_period: bool) -> dict[str, np.ndarray]:
+    """CALM calm periods, then world 1's torque; returns the readings just before that step."""
+    sim.command[:] = 0.0
+    for _ in range(CALM):
+        sim.write()
+        sim.step(SUBSTEPS)
+        if read_every_period:
+            sim.read()
+    sim.read()
+    before = _readings(sim)
+    sim.command[1] = 1e9
+    sim.write()
+    sim.step(SUBSTEPS)
+    return before
+
+
+@pytest.fixture
+def unstable(tmp_path):
     path = tmp_path / "unstable.xml"
     path.write_text(UNSTABLE)
-    sim = active(str(path), backend, 3)
-    sim.command[:] = 0.0
-    # an absurd but finite torque on an unlimited motor of a tiny link blows world 1 up
-    sim.command[1] = 1e9
-    for _ in range(20):
-        sim.write()
-        sim.step(5)
-    sim.read()
+    return str(path)
+
+
+def test_a_diverging_world_is_frozen_at_its_last_readings_and_the_others_go_on(backend, unstable, caplog):
+    """One rule on every backend: a failed world reads, until reset, exactly what read() showed
+    before the failing step (state, base_state, sensordata, time); the log names it once."""
+    caplog.set_level(logging.WARNING, logger="batchsim")
+    sim = active(unstable, backend, 3, deterministic=True)
+    assert sim.base_state is not None
+    before = _blow_up_world_1(sim, read_every_period=True)
     assert sim.status[1] & Status.DIVERGED
     assert not np.any(sim.status[[0, 2]] & Status.DIVERGED)
-    assert np.isfinite(sim.state[[0, 2]]).all()
-    frozen_time = sim.time[1]
-    sim.step(5)
+    dt = sim.dt
+    for _ in range(3):  # frozen, however often it is stepped and read
+        sim.read()
+        for key, value in _readings(sim).items():
+            np.testing.assert_array_equal(value[1], before[key][1], err_msg=f"{backend}: frozen {key}")
+        assert np.isfinite(sim.state[[0, 2]]).all()
+        sim.step(SUBSTEPS)
     sim.read()
-    assert sim.time[1] == frozen_time  # frozen until reset
-    assert sim.time[0] > frozen_time or sim.time[0] > 0
+    np.testing.assert_array_equal(sim.state[1], before["state"][1])
+    # the others went on, one timestep at a time in float64
+    expected = before["time"][0]
+    for _ in range(4 * SUBSTEPS):
+        expected += dt
+    np.testing.assert_array_equal(sim.time[[0, 2]], expected)
+    assert np.all(sim.base_state[[0, 2], 2] < before["base_state"][[0, 2], 2])  # still falling
+    # one line, naming the world, when it froze and why
+    lines = [r.getMessage() for r in caplog.records if r.name == f"batchsim.{backend}"]
+    assert len(lines) == 1, lines
+    assert re.search(
+        rf"^batchsim: {backend}: world 1 diverged at sim time {before['time'][1]:.4f} s "
+        r"\(Nan, Inf or huge value in Q(POS|VEL|ACC) at DOF \d+\); frozen until reset",
+        lines[0],
+    ), lines[0]
+    # reset brings it back, finite, at its initial state
     sim.reset(worlds=[1])
     assert sim.status[1] == 0
+    assert sim.time[1] == 0.0
+    np.testing.assert_array_equal(sim.base_state[1, :3], [0, 0, 1])
     sim.command[1] = 0.0
     sim.write()
-    sim.step(5)
+    sim.step(SUBSTEPS)
     sim.read()
-    assert np.isfinite(sim.state).all()
+    assert np.isfinite(sim.state).all() and not sim.status.any()
+    sim.shutdown()
+
+
+def test_frozen_readings_do_not_depend_on_reading_between_steps(backend, unstable):
+    """A world that fails in a step() that followed another without read() freezes at the same
+    readings as when the loop reads every period."""
+    frozen = []
+    for read_every_period in (True, False):
+        sim = active(unstable, backend, 3, deterministic=True)
+        before = _blow_up_world_1(sim, read_every_period)
+        sim.read()
+        assert sim.status[1] & Status.DIVERGED
+        frozen.append(_readings(sim))
+        for key in frozen[-1]:
+            np.testing.assert_array_equal(frozen[-1][key][1], before[key][1])
+        sim.shutdown()
+    for key in frozen[0]:
+        np.testing.assert_array_equal(frozen[0][key], frozen[1][key], err_msg=key)
+
+
+# ---------------------------------------------------------------- time
+
+
+def test_time_is_float64_far_from_zero(backend):
+    """Past 32768 s a float32 clock no longer moves by a 1 ms step; sim.time must, as cpu's."""
+    spec = batchsim.load("arm")
+    spec = dataclasses.replace(spec, initial=dataclasses.replace(spec.initial, time=40000.0))
+    sim = batchsim.make(spec, 2, backend)
+    sim.configure()
+    sim.activate()
+    assert sim.time.dtype == np.float64
+    np.testing.assert_array_equal(sim.time, 40000.0)
+    expected = 40000.0
+    for _ in range(3):
+        sim.step(10)
+        for _ in range(10):
+            expected += sim.dt
+    sim.read()
+    np.testing.assert_array_equal(sim.time, expected)  # one float64 addition per step, as mj_step
+    sim.reset(worlds=[1])
+    assert sim.time[0] == expected and sim.time[1] == 40000.0
     sim.shutdown()
 
 
