@@ -584,3 +584,41 @@ def test_reset_returns_to_the_initial_state_not_qpos0(backend):
     assert (sim.state[:2, 0] < 0.3).all()
     np.testing.assert_allclose(sim.command[2], 0.5)
     sim.shutdown()
+
+
+def test_failure_lines_are_rate_limited_and_counted(monkeypatch, caplog):
+    """BURST lines per WINDOW, the rest counted: at once in the same breath, or once the window
+    is over when they came later; none is lost and none said twice."""
+    from batchsim import failures
+
+    now = [100.0]
+    monkeypatch.setattr(failures.wallclock, "monotonic", lambda: now[0])
+    caplog.set_level(logging.WARNING, logger="batchsim.test")
+    log = failures.FailureLog("test", 8192)
+
+    def report(worlds: list[int], at: float) -> list[str]:
+        now[0] = at
+        caplog.clear()
+        log.flush()
+        w = np.array(worlds)
+        log.report(w, ["diverged"] * len(w), ["why"] * len(w), np.full(len(w), 1.5))
+        return [r.getMessage() for r in caplog.records]
+
+    assert report([7, 9], 100.0) == [
+        "batchsim: test: world 7 diverged at sim time 1.5000 s (why); frozen until reset",
+        "batchsim: test: world 9 diverged at sim time 1.5000 s (why); frozen until reset",
+    ]
+    lines = report([1, 2, 3, 4, 5], 100.5)  # one left in the burst: it, and the count
+    assert lines == [
+        "batchsim: test: world 1 diverged at sim time 1.5000 s (why); frozen until reset",
+        "batchsim: test: 4 more of 8192 worlds diverged in the same period (worlds 2, 3, 4, 5); frozen until reset",
+    ]
+    assert report([10, 11], 101.0) == []  # burst spent: held
+    assert report([], 101.5) == []  # window not over
+    now[0] = 102.5
+    caplog.clear()
+    log.flush()
+    assert [r.getMessage() for r in caplog.records] == [
+        "batchsim: test: 2 more of 8192 worlds diverged in the last 2 s (worlds 10, 11); frozen until reset"
+    ]
+    assert report([12], 102.6)[0].startswith("batchsim: test: world 12 diverged")  # a new window
