@@ -74,6 +74,7 @@ class Status(enum.IntFlag):
 
 
 FROZEN = Status.DIVERGED | Status.OVERFLOW
+_FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
 MAX_COMMAND = 1e10  # MuJoCo's mjMAXVAL: a ctrl beyond it trips mjWARN_BADCTRL
 #: the engine fields read() gathers state interfaces from (`StateColumn.source`), in this order
 READ_FIELDS = ("qpos", "qvel", "qfrc_actuator", "sensordata")
@@ -308,6 +309,8 @@ class BatchedSystem(SystemInterface):
         self._held_readings = np.zeros_like(self._readings)
         self._held_sensordata = np.zeros_like(self._sensor_host)
         self._held_time = np.zeros_like(self.time)
+        self._none_frozen = np.zeros(self.nworld, bool)
+        self._none_frozen.setflags(write=False)
         # whether the host readings are the engine's current values (read() since the last step())
         self._readings_current = False
         self._failure_log = FailureLog(self.name, self.nworld, mujoco_logs=self.name == "cpu")
@@ -469,7 +472,9 @@ class BatchedSystem(SystemInterface):
     @property
     def frozen(self) -> np.ndarray:
         """(nworld,) bool: the worlds step() leaves alone until they are reset."""
-        return (self.status & np.uint8(FROZEN)) != 0
+        if not self.status.any():  # the usual case, on every read() and step(): no allocation
+            return self._none_frozen
+        return (self.status & _FROZEN_BITS) != 0
 
     def _worlds(self, worlds: Sequence[int] | np.ndarray | None) -> np.ndarray | None:
         """World indices as given, (k,) int64, in the caller's order; None for all.
@@ -499,6 +504,8 @@ class BatchedSystem(SystemInterface):
         """The engine's current readings into the host arrays, then frozen worlds' held ones."""
         self._read()
         self._readings_current = True
+        if not self.status.any():  # the usual case: nothing held
+            return
         frozen = self.frozen
         if frozen.any():
             self._readings[frozen] = self._held_readings[frozen]
