@@ -10,10 +10,15 @@
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from batchsim.backends import Backend, BackendUnavailable, backend_class, resolve
+from batchsim.backends.sharded import ShardedSystem
 from batchsim.failures import set_log_dir
 from batchsim.hardware import (
     BatchedSystem,
@@ -26,6 +31,7 @@ from batchsim.hardware import (
     SystemInterface,
 )
 from batchsim.model import ModelError, RobotSpec, load, model_names
+from batchsim.sensors import SensorConfig, SensorConfigError
 
 __all__ = [
     "Backend",
@@ -38,6 +44,8 @@ __all__ = [
     "ModelError",
     "ReturnType",
     "RobotSpec",
+    "SensorConfig",
+    "SensorConfigError",
     "Status",
     "SystemInterface",
     "load",
@@ -53,6 +61,9 @@ def make(
     backend: str | Backend = "auto",
     *,
     ros2_control: str | Path | None = None,
+    devices: Sequence[int | str] | str | None = None,
+    sensors: SensorConfig | str | Path | Mapping[str, Any] | None = None,
+    keyframe: str | int | None = None,
     **options: Any,
 ) -> BatchedSystem:
     """Build `nworld` worlds of `model` on `backend`, initialized (UNCONFIGURED).
@@ -62,7 +73,18 @@ def make(
         or a RobotSpec from `batchsim.load`.
       nworld: number of worlds.
       backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware).
-      ros2_control: a ros2_control block (file path or XML text) narrowing the interfaces.
+      ros2_control: a robot description whose ros2_control blocks narrow the interfaces: a
+        URDF/xacro/XML file path (xacro arguments may follow: "robot.urdf.xacro use_pid:=true")
+        or XML text.
+      keyframe: the keyframe (name or index) every world starts in and `reset` returns to;
+        None: the block's `initial_keyframe`, else `home` when the model has one, else qpos0.
+      devices: spread the worlds over several devices of a GPU backend (mjx, warp): "all",
+        or a list of device indices (0, 1: the backend's GPUs in order) or names ("cuda:1",
+        "cpu"). The worlds are split into contiguous ranges, one per device, behind the one
+        contract (batchsim/backends/sharded.py). None: one device (the `device` option).
+      sensors: cameras, lidars and sensor noise (batchsim.sensors.config): a SensorConfig, a
+        YAML file (mujoco_ros2_control's plugin parameters and/or batchsim's `sensors:`
+        block) or its parsed mapping. None: the model's cameras and lidars, no noise.
       **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `max_data_bytes`,
         `device`, `graph` for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
         runs: always so on cpu, slower on a GPU). With "auto", those the chosen backend does
@@ -71,7 +93,14 @@ def make(
     Returns:
       The system, in UNCONFIGURED; call configure() and activate() to run it.
     """
-    spec = model if isinstance(model, RobotSpec) else load(model, ros2_control=ros2_control)
+    if isinstance(model, RobotSpec):
+        if ros2_control is not None or keyframe is not None:
+            raise ValueError("a RobotSpec is already loaded: give ros2_control= and keyframe= to batchsim.load")
+        spec = model
+    else:
+        spec = load(model, ros2_control=ros2_control, keyframe=keyframe)
+    for warning in spec.warnings:  # what the description asks for and batchsim does not act on
+        logging.getLogger("batchsim").warning("batchsim: warning: %s", warning)
     chosen, reason = resolve(backend, spec, nworld)
     cls = backend_class(chosen)
     if Backend.parse(backend) is Backend.AUTO:
@@ -80,7 +109,43 @@ def make(
         options = {k: v for k, v in options.items() if k in cls.OPTIONS}
         if ignored:
             reason += f"; ignored {', '.join(ignored)}, which {chosen.value} does not take"
+    if devices is not None:
+        chosen_devices = _devices(cls, devices)
+        if len(chosen_devices) > 1:
+            sim = ShardedSystem(cls, spec, nworld, chosen_devices, **options)
+            sim.reason = f"{reason}; {len(chosen_devices)} devices: {', '.join(map(str, chosen_devices))}"
+            sim.initialize()
+            if sensors is not None:
+                sim.set_sensor_config(sensors)
+            return sim
+        options = {**options, "device": chosen_devices[0]}
     sim = cls(spec, nworld, **options)
     sim.reason = reason
     sim.initialize()
+    if sensors is not None:
+        sim.set_sensor_config(sensors)
     return sim
+
+
+def _devices(cls: type[BatchedSystem], devices: Sequence[int | str] | str) -> list[Any]:
+    """The `device` option of each shard: "all" is every device the backend has; an index
+    picks from them; a name is the backend's own."""
+    available = getattr(cls, "available_devices", None)
+    if available is None:
+        raise ValueError(f"the {cls.name} backend runs on the host's cores: devices= is for mjx and warp")
+    have = available()
+    if isinstance(devices, str):
+        if devices.lower() != "all":
+            raise ValueError(f"devices must be 'all' or a list of device indices or names, got {devices!r}")
+        return list(have)
+    chosen: list[Any] = []
+    for d in devices:
+        if isinstance(d, int | np.integer) and not isinstance(d, bool):
+            if not 0 <= d < len(have):
+                raise ValueError(f"device {d} does not exist: the {cls.name} backend has {', '.join(have)}")
+            chosen.append(have[int(d)])
+        else:
+            chosen.append(d)
+    if not chosen:
+        raise ValueError("devices is empty: name at least one device")
+    return chosen

@@ -21,8 +21,9 @@ import batchsim
 from batchsim.backends import BackendUnavailable, resolve
 from batchsim.controllers import ControllerManager, default_controllers, load_controllers
 from batchsim.hardware import BatchedSystem, ConfigurationError, LifecycleError
-from batchsim.loop import SimLoop, format_stats
+from batchsim.loop import OptionError, RateError, SimLoop, format_stats, whole_ratio
 from batchsim.model import ModelError, model_names
+from batchsim.sensors import SensorConfig, SensorSuite
 
 EXIT_USAGE = 2
 
@@ -51,6 +52,11 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--rtf", type=float, default=1.0, help="real-time factor; 0 runs as fast as possible")
     p.add_argument("--control-rate", type=float, default=None, help="Hz: commands applied, state read")
     p.add_argument("--threads", type=int, default=None, help="cpu backend: worker threads (default: all cores)")
+    p.add_argument(
+        "--devices",
+        default=None,
+        help="mjx/warp: spread the worlds over several GPUs: all, or indices 0,1,... (default: one device)",
+    )
     p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world to start with (default: sized from a CPU rollout; grows when it overflows)")
     p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world to start with (default: sized likewise; grows likewise)")
     p.add_argument(
@@ -59,6 +65,9 @@ def run_parser() -> argparse.ArgumentParser:
         help="mjx/warp on a GPU: bitwise-repeatable runs, slower (cpu always is)",
     )
     p.add_argument("--ros2-control", default=None, help="URDF/XML file with a <ros2_control> block")
+    p.add_argument(
+        "--keyframe", default=None, help="keyframe (name or index) to start in (default: home, if the model has one)"
+    )
     p.add_argument("--no-ros", action="store_true", help="run without the ROS 2 bridge")
     p.add_argument("--quiet", action="store_true", help="no live status line")
     p.add_argument(
@@ -76,6 +85,34 @@ def run_parser() -> argparse.ArgumentParser:
     ros.add_argument("--qos-depth", type=int, default=None, help="queue depth (default 10, or the MJCF's)")
     ros.add_argument("--reliability", choices=("reliable", "best_effort"), default=None)
     ros.add_argument("--command-timeout", type=float, default=None, help="seconds without commands before a world goes safe")
+    ros.add_argument(
+        "--bridge-workers",
+        type=int,
+        default=None,
+        help="processes serving ROS (default: 0 up to 64 worlds or on 2 cores, else one per 128 worlds, "
+        "at most half the cores); 0: in the physics process",
+    )
+    ros.add_argument(
+        "--world-offset", type=int, default=0, help="number of the first world, for a fleet over several processes or hosts"
+    )
+    ros.add_argument("--no-clock", action="store_true", help="do not publish /clock (another process of the fleet does)")
+    ros.add_argument(
+        "--all-topics",
+        action="store_true",
+        help="create every per-world topic at start (default: sensor, actuator and controller_state topics "
+        "appear when someone subscribes or publishes)",
+    )
+    sens = p.add_argument_group("cameras, lidars and sensor noise")
+    sens.add_argument(
+        "--sensors",
+        action="append",
+        metavar="FILE",
+        help="mujoco_ros2_control plugin YAML and/or batchsim's `sensors:` block (noise, dense lidars); may repeat",
+    )
+    sens.add_argument("--camera-rate", type=float, default=None, help="Hz for camera images (default: the YAML's, else 5)")
+    sens.add_argument("--lidar-rate", type=float, default=None, help="Hz for lidar scans (default: the YAML's, else 10)")
+    sens.add_argument("--camera-resolution", default=None, metavar="WxH", help="every camera's image size (default: the MJCF's)")
+    sens.add_argument("--noise-seed", type=int, default=None, help="sensor noise seed (default: the YAML's, else 0)")
     p.add_argument(
         "--controllers",
         default=None,
@@ -90,18 +127,23 @@ def info_parser() -> argparse.ArgumentParser:
     p.add_argument("--worlds", type=int, default=16, help="world count the backend choice is for")
     p.add_argument("--backend", default="auto")
     p.add_argument("--ros2-control", default=None)
+    p.add_argument("--keyframe", default=None)
     return p
 
 
 def info(argv: Sequence[str]) -> int:
     args = info_parser().parse_args(argv)
-    spec = batchsim.load(args.model, ros2_control=args.ros2_control)
+    spec = batchsim.load(args.model, ros2_control=args.ros2_control, keyframe=args.keyframe)
     chosen, reason = resolve(args.backend, spec, args.worlds)
     m = spec.mjmodel
+    keys = ", ".join(repr(k) if k else f"#{i}" for i, k in enumerate(spec.keyframes)) or "none"
+    base = spec.floating_base
     out = [
         f"model      {spec.name}  ({spec.path or 'string'})",
         f"timestep   {m.opt.timestep:g} s   nq {m.nq}  nv {m.nv}  nu {m.nu}",
         f"backend    {chosen.value} for {args.worlds} worlds ({reason})",
+        f"starts in  {spec.initial.source}   (keyframes: {keys})",
+        f"base       {f'free joint {base.joint!r} of body {base.body!r}' if base else 'fixed (no floating base)'}",
     ]
     if spec.ros is not None:
         r = spec.ros
@@ -112,16 +154,53 @@ def info(argv: Sequence[str]) -> int:
     out.append(f"\nstate interfaces ({len(spec.state)})")
     out += [f"  {i:3d}  {c.name}" for i, c in enumerate(spec.state)]
     out.append(f"\ncommand interfaces ({len(spec.commands)})")
-    out += [f"  {i:3d}  {c.name:32s} actuator {c.actuator}" for i, c in enumerate(spec.commands)]
+    out += [f"  {i:3d}  {c.name:32s} actuator {c.actuator}{_how(c)}" for i, c in enumerate(spec.commands)]
+    out += [
+        f"       {mc.joint} mimics {mc.source} (x {mc.multiplier:g} + {mc.offset:g}) on actuator {mc.actuator}"
+        for mc in spec.mimics
+    ]
     out.append(f"\nsensors ({len(spec.sensors)})")
     out += [
         f"  {s.name:24s} {s.type:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors
     ]
+    out += sensor_lines(SensorSuite.build(spec, args.worlds))
+    if spec.warnings:
+        out.append("\nwarnings (not acted on)")
+        out += [f"  {w}" for w in spec.warnings]
     if spec.problems:
         out.append("\nproblems (configure will fail)")
         out += [f"  {p}" for p in spec.problems]
     print("\n".join(out))
     return 0
+
+
+def sensor_lines(suite: SensorSuite) -> list[str]:
+    """`batchsim info`'s cameras and lidars."""
+    out = []
+    if suite.cameras:
+        out.append(f"\ncameras ({len(suite.cameras)})")
+        out += [
+            f"  {c.name:24s} {c.width}x{c.height}  fx {c.info.fx:.1f} fy {c.info.fy:.1f}  "
+            f"-> {c.image_topic}, {c.depth_topic}, {c.info_topic}"
+            for c in suite.cameras.values()
+        ]
+    if suite.lidars:
+        out.append(f"\nlidars ({len(suite.lidars)})")
+        out += [
+            f"  {ld.name:24s} {ld.kind.value:11s} {ld.nrow}x{ld.ncol} rays from site {ld.site}, azimuth "
+            f"{ld.angle_min:+.3f}..{ld.angle_max:+.3f} rad, range {ld.range_min:g}..{ld.range_max:g} m -> {ld.topic}"
+            for ld in suite.lidars.values()
+        ]
+    return out
+
+
+def _how(c: Any) -> str:
+    """How a command interface reaches ctrl, where it is not a plain copy."""
+    if c.pid is not None:
+        return f"  (PID p={c.pid.p:g} i={c.pid.i:g} d={c.pid.d:g})"
+    if c.scale != 1.0 or c.offset != 0.0:
+        return f"  (ctrl = {c.scale:g} x command + {c.offset:g})"
+    return ""
 
 
 def build(args: argparse.Namespace) -> BatchedSystem:
@@ -135,7 +214,25 @@ def build(args: argparse.Namespace) -> BatchedSystem:
         options["deterministic"] = True
     if args.log_dir is not None:  # else make() places it, away from the working directory
         batchsim.set_log_dir(args.log_dir)
-    sim = batchsim.make(args.model, args.worlds, args.backend, ros2_control=args.ros2_control, **options)
+    if args.devices is not None:
+        names = [d.strip() for d in args.devices.split(",") if d.strip()]
+        options["devices"] = "all" if names == ["all"] else [int(d) if d.isdigit() else d for d in names]
+    sensors = SensorConfig.from_flags(
+        args.sensors,
+        camera_rate=args.camera_rate,
+        lidar_rate=args.lidar_rate,
+        camera_resolution=args.camera_resolution,
+        seed=args.noise_seed,
+    )
+    sim = batchsim.make(
+        args.model,
+        args.worlds,
+        args.backend,
+        ros2_control=args.ros2_control,
+        keyframe=args.keyframe,
+        sensors=sensors,
+        **options,
+    )
     sim.configure()
     sim.activate()
     return sim
@@ -160,52 +257,89 @@ def setup_controllers(sim: BatchedSystem, args: argparse.Namespace) -> tuple[Con
     manager = load_controllers(source, sim.spec, sim.nworld)
     rate = manager.update_rate
     if rate is not None and args.control_rate is None:
-        ratio = 1.0 / (rate * sim.dt)
-        if abs(round(ratio) - ratio) > 1e-6 * ratio or round(ratio) < 1:
-            ok = 1.0 / (max(1, round(ratio)) * sim.dt)
+        try:
+            whole_ratio(1.0 / sim.dt, rate)
+        except RateError as e:
             raise ConfigurationError(
                 f"{manager.source}: controller_manager: update_rate: {rate:g} Hz is not a whole number of "
-                f"physics steps of {sim.dt:g} s (the model's timestep): try {ok:g} Hz"
-            )
+                f"physics steps of {sim.dt:g} s (the model's timestep): {e.hint}"
+            ) from None
     return manager, rate
 
 
-def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace):
-    """The ROS 2 bridge for this run, or None if this version has none yet."""
+#: library option names whose flag is not `--<option with dashes>`
+_FLAGS = {"workers": "--bridge-workers"}
+
+
+def _flag(option: str) -> str:
+    return _FLAGS.get(option, "--" + option.replace("_", "-"))
+
+
+def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manager: ControllerManager | None = None):
+    """The ROS 2 bridge for this run, serving `manager`'s controllers too.
+
+    Errors name the flags; another process already serving these worlds or /clock is a
+    UsageError (exit 2) naming that process's node."""
     try:
-        from ros_bridge.bridge import start_bridge
+        from ros_bridge.bridge import BridgeOptions, FleetConflict, Reliability, WorkerError, start_bridge
     except ModuleNotFoundError as e:
-        if e.name and e.name.startswith("ros_bridge"):
-            print("batchsim: the ROS 2 bridge is not available yet; running without ROS", file=sys.stderr)
-            return None
         raise UsageError(
             f"ROS 2 is not installed ({e.name} is missing): pip install 'batchsim[ros]', or pass --no-ros"
         ) from None
-    return start_bridge(sim, loop, args)
+    options = BridgeOptions(
+        namespace=args.namespace,
+        publish_rate=args.publish_rate,
+        sensor_rate=args.sensor_rate,
+        qos_depth=args.qos_depth,
+        reliability=Reliability(args.reliability) if args.reliability else None,
+        command_timeout=args.command_timeout,
+        lockstep=args.lockstep,
+        lockstep_timeout=args.lockstep_timeout,
+        workers=args.bridge_workers,
+        world_offset=args.world_offset,
+        clock=not args.no_clock,
+        all_topics=args.all_topics,
+    )
+    try:
+        return start_bridge(sim, loop, options, manager)
+    except OptionError as e:
+        raise UsageError(e.named(_flag(e.option))) from None
+    except FleetConflict as e:
+        hint = (
+            "--world-offset, --namespace or another ROS_DOMAIN_ID" if e.kind == "namespace" else "--no-clock on all but one"
+        )
+        raise UsageError(f"{e} ({hint})") from None
+    except WorkerError as e:
+        raise UsageError(str(e)) from None
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
 
 
 def run(argv: Sequence[str]) -> int:
+    # until the loop runs, SIGTERM ends the start as Ctrl-C does: what was started (bridge
+    # workers, shared memory) is stopped and removed on the way out
+    signal.signal(signal.SIGTERM, _interrupt)
     args = run_parser().parse_args(argv)
     sim = build(args)
     manager, update_rate = setup_controllers(sim, args)
     control_rate = args.control_rate if args.control_rate is not None else update_rate
-    loop = SimLoop(sim, control_rate=control_rate, rtf=args.rtf, duration=args.duration)
-    bridge = None if args.no_ros else start_ros(sim, loop, args)
+    try:
+        loop = SimLoop(sim, control_rate=control_rate, rtf=args.rtf, duration=args.duration)
+    except OptionError as e:
+        raise UsageError(e.named(_flag(e.option))) from None
     if manager is not None:
         for warning in manager.warnings:
             print(f"batchsim: warning: {warning}", file=sys.stderr)
-        if bridge is not None:
-            from ros_bridge.controllers import bind_controllers
-
-            bind_controllers(bridge, manager)
-        else:
-            loop.participants.append(manager)
-
     def on_signal(signum: int, frame: Any) -> None:
         loop.stop()
 
+    bridge = None if args.no_ros else start_ros(sim, loop, args, manager)
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    if manager is not None and manager not in loop.participants:
+        loop.participants.append(manager)
 
     backend = f"{sim.name} ({sim.reason})"
     tty = sys.stderr.isatty()

@@ -114,6 +114,7 @@ class FailureLog:
         self.log = logging.getLogger(f"batchsim.{backend}")
         self.prefix = f"batchsim: {backend}:"
         self.nworld = nworld
+        self.offset = 0  # added to the worlds named: a shard's world i is the fleet's offset + i
         self._window_end = -np.inf
         self._budget = BURST
         self._held: dict[str, list[int]] = {}  # what -> worlds held back this window
@@ -122,6 +123,7 @@ class FailureLog:
     def report(self, worlds: np.ndarray, what: Sequence[str], reasons: Sequence[str], times: np.ndarray) -> None:
         """Worlds that failed in one period. `what[i]` is a verb ("diverged", "overflowed"),
         `reasons[i]` says why, `times[i]` is the sim time the world is frozen at."""
+        worlds = np.asarray(worlds) + self.offset
         now = wallclock.monotonic()
         if now >= self._window_end:
             self._say_held()

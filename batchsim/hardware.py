@@ -13,11 +13,15 @@ enforced here, once; an illegal transition raises `LifecycleError` naming the st
   `write` does nothing unless ACTIVE.
 - `step(nstep)`, `reset(worlds=None)`, `status` `(nworld,)` bitmask of `Status`,
   `sensordata[name]` `(nworld, dim)`, `time` `(nworld,)` float64 on every backend.
+- `render(camera, worlds=None)` -> `(rgb (n, H, W, 3) uint8, depth (n, H, W) float32)`,
+  `scan(lidar, worlds=None)` -> `(n, nray) float32`, `sensors` (batchsim.sensors): cameras,
+  lidars and sensor noise; `true_state` / `true_sensordata` without the noise.
 
 A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule
-on every backend: until `reset` lists it, it reads exactly what `read()` would have shown
-just before the `step()` call in which it failed (state, base_state, sensordata, time),
-and the failure is logged once, naming the world and the reason (`batchsim.failures`).
+on every backend: until `reset` lists it, it reads the noise-free values `read()` would have
+shown just before the `step()` call in which it failed (state, base_state, sensordata, time),
+with no fresh sensor noise, and the failure is logged once, naming the world and the reason
+(`batchsim.failures`).
 
 A backend subclasses `BatchedSystem` and implements the engine hooks (`_open`, `_close`,
 `_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, and `_park` where the engine
@@ -30,12 +34,15 @@ from __future__ import annotations
 import dataclasses
 import enum
 from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar
+from pathlib import Path
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
+from batchsim.actuation import Actuation
 from batchsim.failures import FailureLog, ensure_log_dir
 from batchsim.model import RobotSpec, StateColumn, initial_command
+from batchsim.sensors import Camera, Lidar, LidarKind, SensorConfig, SensorSuite
 
 
 class LifecycleState(enum.IntEnum):
@@ -243,6 +250,13 @@ class StepFailures:
     time: np.ndarray
 
 
+class Frames(NamedTuple):
+    """What `render` returns: RGB (n, H, W, 3) uint8 and depth (n, H, W) float32, metres."""
+
+    rgb: Any
+    depth: Any
+
+
 class BatchedSystem(SystemInterface):
     """`nworld` copies of one robot behind ros2_control's SystemInterface.
 
@@ -265,6 +279,8 @@ class BatchedSystem(SystemInterface):
     name: ClassVar[str] = ""
     #: keyword options the backend's constructor takes, with their defaults
     OPTIONS: ClassVar[dict[str, Any]] = {}
+    #: whether one render or scan covers every world at the cost of any subset (one GPU launch)
+    sensors_batched: ClassVar[bool] = False
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__()
@@ -283,8 +299,11 @@ class BatchedSystem(SystemInterface):
         self.dt = float(m.opt.timestep)
 
         ncommand = len(spec.commands)
-        # what read() gathers: the state interfaces, then the floating base's pose and twist
-        self._columns = list(spec.state) + _base_columns(spec)
+        # commands -> ctrl beyond a plain copy: PIDs on motors, scaled grippers, mimic joints
+        self._actuation = Actuation(spec, self.nworld)
+        # what read() gathers: the state interfaces, the floating base's pose and twist, and
+        # the joint positions/velocities the PIDs measure
+        self._columns = list(spec.state) + _base_columns(spec) + self._actuation.feedback_columns
         self._bind_readings(np.zeros((self.nworld, len(self._columns))))
         self._command = np.zeros((self.nworld, ncommand))
         self.status = np.zeros(self.nworld, np.uint8)
@@ -302,6 +321,7 @@ class BatchedSystem(SystemInterface):
             if cols:
                 idx = [self._columns[i].index for i in cols]
                 self._gather.append((source, _as_slice(cols), _as_slice(idx)))
+        self._negated = np.array([i for i, c in enumerate(self._columns) if c.sign < 0], dtype=np.intp)
         self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
         self._ctrl_cols = _as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster
         self._opened = False
@@ -315,14 +335,18 @@ class BatchedSystem(SystemInterface):
         self._readings_current = False
         self._failure_log = FailureLog(self.name, self.nworld, mujoco_logs=self.name == "cpu")
         ensure_log_dir()  # MuJoCo's own log out of the working directory, unless placed already
+        self._sensor_config: SensorConfig | None = None
+        self._sensors: SensorSuite | None = None
 
     def _bind_readings(self, readings: np.ndarray) -> None:
         """Make `readings` (nworld, len(_columns)) the array read() fills; `state` and
         `base_state` are views of its columns."""
         nstate = len(self.spec.state)
+        nbase = 13 if self.spec.floating_base is not None else 0
         self._readings = readings
         self.state = readings[:, :nstate]
-        self.base_state = readings[:, nstate:] if self.spec.floating_base is not None else None
+        self.base_state = readings[:, nstate : nstate + nbase] if nbase else None
+        self._feedback = readings[:, nstate + nbase :]
 
     # --- interfaces ---
     def export_state_interfaces(self) -> list[str]:
@@ -337,6 +361,7 @@ class BatchedSystem(SystemInterface):
     def on_configure(self, previous_state: LifecycleState) -> CallbackReturn:
         if self.spec.problems:
             raise ConfigurationError(f"{self.spec.name}: " + "; ".join(self.spec.problems))
+        self.sensors  # noqa: B018  (resolved now, so that a bad lidar or noise name fails configure)
         if not self._opened:
             self._open()
             self._opened = True
@@ -357,6 +382,7 @@ class BatchedSystem(SystemInterface):
 
     def _release(self) -> None:
         if self._opened:
+            self._close_sensors()
             self._close()
             self._opened = False
 
@@ -367,6 +393,7 @@ class BatchedSystem(SystemInterface):
         if self._lifecycle not in (S.INACTIVE, S.ACTIVE):
             return ReturnType.OK
         self._refresh()
+        self._add_noise()
         return ReturnType.OK
 
     def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
@@ -382,17 +409,34 @@ class BatchedSystem(SystemInterface):
         # MuJoCo itself zeroes ctrl beyond mjMAXVAL; reject it here, per world, with a status
         # bit. Fast path: two reductions, no temporaries (a NaN makes both comparisons fail).
         if command.size == 0 or (command.min() > -MAX_COMMAND and command.max() < MAX_COMMAND):
-            ctrl[:, self._ctrl_cols] = command
+            if self._actuation.trivial:
+                ctrl[:, self._ctrl_cols] = command
+            else:
+                self._actuate(ctrl, None)
             if self.status.any():
                 self.status &= ~np.uint8(Status.BAD_COMMAND)
         else:
             good = (np.abs(command) < MAX_COMMAND).all(axis=1)
             rows = np.flatnonzero(good)
-            ctrl[np.ix_(rows, self._ctrl_index)] = command[rows]
+            if self._actuation.trivial:
+                ctrl[np.ix_(rows, self._ctrl_index)] = command[rows]
+            else:
+                self._actuate(ctrl, rows)
             self.status[good] &= ~np.uint8(Status.BAD_COMMAND)
             self.status[~good] |= np.uint8(Status.BAD_COMMAND)
         self._upload_ctrl()
         return ReturnType.OK
+
+    def _actuate(self, ctrl: np.ndarray, rows: np.ndarray | None) -> None:
+        """write()'s hook for the non-trivial command path (batchsim.actuation): PIDs on motors,
+        scaled grippers, mimic joints, interfaces sharing an actuator; rows None: every world."""
+        self._actuation.apply(ctrl, self._command, self._feedback, self.time, rows)
+
+    def perform_command_mode_switch(self, start: Sequence[str], stop: Sequence[str] = ()) -> None:
+        """Make the `start` command interfaces the ones that drive their actuators, where
+        several share one (position and velocity PIDs on one motor), as ros2_control's
+        `perform_command_mode_switch`; position is active until told otherwise."""
+        self._actuation.switch(start, stop)
 
     @property
     def command(self) -> np.ndarray:
@@ -450,6 +494,12 @@ class BatchedSystem(SystemInterface):
         what = ["diverged" if s & Status.DIVERGED else "overflowed" for s in failures.status]
         self._failure_log.report(worlds, what, failures.reasons, failures.time)
 
+    def number_worlds_as(self, offset: int, fleet_size: int) -> None:
+        """Name world i as `offset + i` of `fleet_size` in failure log lines: for a system that
+        is one shard of a larger fleet (batchsim.backends.sharded)."""
+        self._failure_log.offset = int(offset)
+        self._failure_log.nworld = int(fleet_size)
+
     def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
         """Reset all worlds, or only the listed ones, to the initial state and command.
 
@@ -465,9 +515,109 @@ class BatchedSystem(SystemInterface):
         self._command[sel] = self._initial_command
         ctrl = self._ctrl_host()
         ctrl[sel] = self.spec.initial.ctrl
-        ctrl[np.ix_(sel, self._ctrl_index)] = self._initial_command
+        if self._actuation.trivial:
+            ctrl[np.ix_(sel, self._ctrl_index)] = self._initial_command
+        else:
+            self._actuation.reset(sel, ctrl, self._command)
         self._upload_ctrl()
         self._refresh()
+        self._add_noise()
+
+    # --- cameras, lidars and sensor noise (batchsim.sensors) ---
+    @property
+    def sensors(self) -> SensorSuite:
+        """The cameras, lidars and sensor noise of every world, and which worlds want each."""
+        if self._sensors is None:
+            self._sensors = SensorSuite.build(self.spec, self.nworld, self._sensor_config)
+        return self._sensors
+
+    def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
+        """Configure cameras, lidars and noise (batchsim.sensors.config: a SensorConfig, YAML file or
+        mapping), before configure(). Raises SensorConfigError naming the file and key at fault."""
+        self._require("set the sensor configuration", frozenset({S.UNKNOWN, S.UNCONFIGURED}))
+        if not isinstance(config, SensorConfig):
+            config = SensorConfig.load(config)
+        self._sensors = SensorSuite.build(self.spec, self.nworld, config)
+        self._sensor_config = config
+
+    @property
+    def true_state(self) -> np.ndarray:
+        """(nworld, nstate) float64: `state` without sensor noise; `state` itself when there is none."""
+        truth = self._truth()
+        return self.state if truth is None else truth[0][:, : len(self.spec.state)]
+
+    @property
+    def true_sensordata(self) -> SensorData:
+        """Every MJCF sensor by name without noise, (nworld, dim); `sensordata` when there is none."""
+        truth = self._truth()
+        if truth is None:
+            return self.sensordata
+        return SensorData({s.name: truth[1][:, s.adr : s.adr + s.dim] for s in self.spec.sensors})
+
+    def _truth(self) -> tuple[np.ndarray, np.ndarray] | None:
+        noise = self.sensors.reading_noise
+        return None if noise is None else noise.truth
+
+    def render(
+        self, camera: str, worlds: Sequence[int] | np.ndarray | None = None, *, device: bool = False, copy: bool = True
+    ) -> Frames:
+        """Render `camera` in all or the listed worlds (indices or a bool mask), at the current state.
+
+        Returns Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32) for the n worlds in
+        ascending order: top row first, depth in metres along the optical axis, +inf where
+        nothing was hit, NaN where noise dropped a pixel. `device=True` returns the backend's
+        own arrays for every world without a host copy or noise (Warp arrays on warp, JAX on
+        mjx, NumPy on cpu); `copy=False` may return buffers the next render overwrites.
+        """
+        self._require("render", frozenset({S.INACTIVE, S.ACTIVE}))
+        cam = self.sensors.camera(camera)
+        if device:
+            if worlds is not None:
+                raise ValueError("render(device=True) renders every world: leave worlds=None and index on the device")
+            return Frames(*self._device_frames(cam))
+        rows = self._worlds(worlds)
+        sel = np.arange(self.nworld) if rows is None else rows
+        rgb, depth = self._render_frames(cam, sel)
+        if copy:
+            rgb, depth = rgb.copy(), depth.copy()
+        self.sensors.add_noise(cam.name, depth, sel)
+        return Frames(rgb, depth)
+
+    def scan(self, lidar: str, worlds: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
+        """One scan of `lidar` in all or the listed worlds: (n, nray) float32 ranges in metres, REP 117
+        (+inf: no hit within range_max, -inf: closer than range_min, NaN: dropped by noise).
+
+        Rangefinder lidars read the MJCF rangefinders (as of the last step, like every
+        sensor); the others cast their rays now, at the current state.
+        """
+        self._require("scan", frozenset({S.INACTIVE, S.ACTIVE}))
+        ld = self.sensors.lidar(lidar)
+        rows = self._worlds(worlds)
+        sel = np.arange(self.nworld) if rows is None else rows
+        if ld.kind is LidarKind.RANGEFINDER:
+            truth = self._truth()
+            distance = (self._sensor_host if truth is None else truth[1])[np.ix_(sel, ld.sensor_adr)]
+        else:
+            distance = self._cast_rays(ld, sel)
+        ranges = ld.ranges(distance)
+        self.sensors.add_noise(ld.name, ranges, sel)
+        return ranges
+
+    # sensor hooks, one set per backend
+    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds` (may be views)."""
+        raise NotImplementedError(f"the {self.name} backend cannot render cameras")
+
+    def _device_frames(self, camera: Camera) -> tuple[Any, Any]:
+        """The backend's own (nworld, H, W, 3) uint8 and (nworld, H, W) float32 arrays of `camera`."""
+        return self._render_frames(camera, np.arange(self.nworld))
+
+    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        """(n, nray) distances along `lidar`'s rays in `worlds` at the current state; < 0: no hit."""
+        raise NotImplementedError(f"the {self.name} backend cannot cast lidar rays")
+
+    def _close_sensors(self) -> None:
+        """Free renderers and ray-casting buffers (before _close)."""
 
     @property
     def frozen(self) -> np.ndarray:
@@ -500,10 +650,23 @@ class BatchedSystem(SystemInterface):
             raise ValueError(f"world {unique[counts > 1][0]} is listed more than once")
         return rows
 
+    def _apply_signs(self, readings: np.ndarray | None = None) -> None:
+        """Negate the columns read negated (mujoco_ros2_control's force/torque sensors) in
+        readings gathered from the engine: `readings` (k, ncolumn), or None: `_readings`
+        right after `_read()`. Called once per gather, never on rows already signed."""
+        if self._negated.size:
+            target = self._readings if readings is None else readings
+            target[:, self._negated] *= -1.0
+
     def _refresh(self) -> None:
-        """The engine's current readings into the host arrays, then frozen worlds' held ones."""
+        """The engine's current readings into the host arrays, signed, then frozen worlds' held ones."""
         self._read()
+        self._apply_signs()
         self._readings_current = True
+        self._show_held()
+
+    def _show_held(self) -> None:
+        """Frozen worlds' rows of the host arrays: what they hold (noise-free)."""
         if not self.status.any():  # the usual case: nothing held
             return
         frozen = self.frozen
@@ -511,6 +674,27 @@ class BatchedSystem(SystemInterface):
             self._readings[frozen] = self._held_readings[frozen]
             self._sensor_host[frozen] = self._held_sensordata[frozen]
             self.time[frozen] = self._held_time[frozen]
+
+    def _add_noise(self) -> None:
+        """Sensor noise on the refreshed host readings (read() and reset(), after `_refresh`),
+        the truth kept for `true_state`; a frozen world keeps its noise-free held readings
+        rather than fresh noise on every read."""
+        noise = self.sensors.reading_noise
+        if noise is None:
+            return
+        self.sensors.add_reading_noise(self._readings, self._sensor_host)
+        if self.status.any():
+            frozen = self.frozen
+            if frozen.any():
+                truth_readings, truth_sensordata = noise.truth
+                self._readings[frozen] = truth_readings[frozen]
+                self._sensor_host[frozen] = truth_sensordata[frozen]
+
+    def _noise_free(self) -> tuple[np.ndarray, np.ndarray]:
+        """The last read()'s readings `(nworld, ncolumn)` and sensordata `(nworld, nsensordata)`
+        without sensor noise: the truth buffers, or the host arrays where there is no noise."""
+        truth = self._truth()
+        return (self._readings, self._sensor_host) if truth is None else truth
 
     def _gather_fields(
         self,

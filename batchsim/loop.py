@@ -21,6 +21,49 @@ from batchsim.hardware import BatchedSystem, ReturnType, Status
 DEFAULT_CONTROL_RATE = 100.0  # Hz
 
 
+class OptionError(ValueError):
+    """A bad option value. `option` is its Python name (`control_rate`); str() reads
+    `"<option> <detail>"`, and `named(flag)` the same with the command line's name for it.
+    An empty `option` is a problem of no single option: the message is the detail alone."""
+
+    def __init__(self, option: str, detail: str):
+        super().__init__(f"{option} {detail}" if option else detail)
+        self.option = option
+        self.detail = detail
+
+    def named(self, name: str) -> str:
+        return f"{name} {self.detail}" if self.option else self.detail
+
+
+class RateError(ValueError):
+    """A rate that is not a whole fraction of the rate it is derived from.
+
+    Attributes:
+      ratio: the nearest whole number of base periods (>= 1).
+      nearest: the nearest rate that would be one (base_rate / ratio).
+    """
+
+    def __init__(self, rate: float, base_rate: float, ratio: int):
+        self.ratio = ratio
+        self.nearest = base_rate / ratio
+        super().__init__(f"{rate:g} Hz is not a whole fraction of {base_rate:g} Hz: try {self.nearest:g} Hz")
+
+    @property
+    def hint(self) -> str:
+        return f"try {self.nearest:g} Hz"
+
+
+def whole_ratio(base_rate: float, rate: float) -> int:
+    """base_rate / rate as a whole number >= 1: the one check every rate of the loop goes
+    through (control rate against the physics step, publish and sensor rates against the
+    control rate, a controller YAML's update_rate). RateError when it is not whole."""
+    ratio = base_rate / rate
+    n = max(1, round(ratio))
+    if abs(n - ratio) > 1e-6 * ratio:
+        raise RateError(rate, base_rate, n)
+    return n
+
+
 class Participant(Protocol):
     """Something that runs once per control period, between read() and write()."""
 
@@ -66,22 +109,23 @@ class SimLoop:
         duration: float | None = None,
         participants: Sequence[Participant] = (),
     ):
-        if rtf < 0:
-            raise ValueError(f"--rtf must be >= 0, got {rtf}")
+        if not rtf >= 0:
+            raise OptionError("rtf", f"must be >= 0, got {rtf:g}")
         self.sim = sim
         dt = sim.dt
         if control_rate is None:
             self.substeps = max(1, round(1.0 / (DEFAULT_CONTROL_RATE * dt)))
         else:
-            if control_rate <= 0:
-                raise ValueError(f"--control-rate must be > 0, got {control_rate}")
-            ratio = 1.0 / (control_rate * dt)
-            self.substeps = max(1, round(ratio))
-            if abs(self.substeps - ratio) > 1e-6 * ratio:
-                raise ValueError(
-                    f"--control-rate {control_rate:g} Hz is not a whole number of physics steps "
-                    f"of {dt:g} s (the model's timestep): try {1.0 / (self.substeps * dt):g} Hz"
-                )
+            if not control_rate > 0:
+                raise OptionError("control_rate", f"must be > 0 Hz, got {control_rate:g}")
+            try:
+                self.substeps = whole_ratio(1.0 / dt, control_rate)
+            except RateError as e:
+                raise OptionError(
+                    "control_rate",
+                    f"{control_rate:g} Hz is not a whole number of physics steps of {dt:g} s "
+                    f"(the model's timestep): {e.hint}",
+                ) from None
         self.period = self.substeps * dt
         self.control_rate = 1.0 / self.period
         self.rtf = float(rtf)

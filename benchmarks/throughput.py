@@ -23,6 +23,7 @@ throughput.png (steps/s vs worlds, log-log, one colour per backend, raw dashed) 
 
     python benchmarks/throughput.py --backends cpu,mjx,warp --worlds 16,256,1024,8192 --model humanoid
     python benchmarks/throughput.py --plot a.csv b.csv --out benchmarks   # merge runs, redraw
+    python benchmarks/throughput.py --devices all --backends warp --worlds 8192   # several GPUs (devices.py)
 """
 
 from __future__ import annotations
@@ -383,7 +384,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--out", default="benchmarks/out")
     p.add_argument("--plot", nargs="*", default=None, metavar="CSV", help="only merge these CSVs and draw")
+    p.add_argument("--devices", default=None, help="all, or 0,1,...: one fleet over several devices (devices.py)")
     args = p.parse_args(argv)
+    if args.devices is not None:  # the multi-device scaling run: --worlds is per device
+        import devices
+
+        return devices.main(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.plot is not None:

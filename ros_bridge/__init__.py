@@ -1,1 +1,6 @@
-"""The ROS 2 bridge: the only package that imports rclpy."""
+"""The ROS 2 bridge: bridge workers serving ranges of worlds, fed through shared memory.
+
+rclpy is imported only by worker.py and messages.py (and by the physics process only when
+the bridge runs inside it); plan, memory, commands, requests, host, registry, options,
+naming and throttle are plain Python and NumPy.
+"""

@@ -17,14 +17,20 @@ from __future__ import annotations
 
 import re
 
+from batchsim.loop import OptionError
+
 DEFAULT_TEMPLATE = "world_{i}"
 
 _BAD = re.compile(r"[^A-Za-z0-9_]")
 _NS_TOKEN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
-class NamingError(ValueError):
-    """A namespace template or MJCF namespace that cannot make valid, distinct ROS names."""
+class NamingError(OptionError):
+    """A namespace template or MJCF namespace that cannot make valid, distinct ROS names;
+    its `option` is "namespace"."""
+
+    def __init__(self, detail: str, option: str = "namespace"):
+        super().__init__(option, detail)
 
 
 def ros_name(name: str) -> str:
@@ -50,44 +56,48 @@ def ros_names(names: list[str]) -> list[str]:
 
 
 def world_namespaces(
-    nworld: int, template: str = DEFAULT_TEMPLATE, plugin_namespace: str | None = None
+    nworld: int, template: str = DEFAULT_TEMPLATE, plugin_namespace: str | None = None, offset: int = 0
 ) -> list[str]:
     """One namespace per world, without leading or trailing `/` (`"world_3"`, `"a/b"`).
 
     Args:
       nworld: number of worlds.
-      template: a namespace with `{i}` for the world index.
+      template: a namespace with `{i}` for the world's number.
       plugin_namespace: the MJCF's `mujoco.ros2` `ros_namespace`; used, when set, for a
-        single world whose template is the default.
+        single world whose template is the default (and offset 0).
+      offset: the number of the first world: world k gets `{i}` = offset + k, so several
+        processes can serve one fleet of distinct namespaces.
 
     Raises:
       NamingError: a template without `{i}` for several worlds, or one that does not make
         valid ROS namespaces, naming the template and the offending result.
     """
-    if nworld == 1 and plugin_namespace and template == DEFAULT_TEMPLATE:
+    if nworld == 1 and plugin_namespace and template == DEFAULT_TEMPLATE and offset == 0:
         ns = plugin_namespace.strip("/")
-        _check_namespace(ns, f"the MJCF's mujoco.ros2 ros_namespace {plugin_namespace!r}")
+        _check_namespace(ns, f"the MJCF's mujoco.ros2 ros_namespace {plugin_namespace!r}", option="")
         return [ns]
-    if nworld > 1 and "{i}" not in template:
+    if (nworld > 1 or offset) and "{i}" not in template:
         raise NamingError(
-            f"--namespace {template!r} has no {{i}}: {nworld} worlds need distinct namespaces "
-            "(e.g. 'robot_{i}')"
+            f"{template!r} has no {{i}}: {nworld} worlds need distinct namespaces (e.g. 'robot_{{i}}')"
+            if nworld > 1
+            else f"{template!r} has no {{i}}: a world offset needs it (e.g. 'robot_{{i}}')"
         )
     out = []
-    for i in range(nworld):
+    for i in range(offset, offset + nworld):
         try:
             ns = template.format(i=i).strip("/")
         except (KeyError, IndexError, ValueError) as e:
-            raise NamingError(f"--namespace {template!r}: only {{i}} may be substituted ({e})") from None
-        _check_namespace(ns, f"--namespace {template!r} gives {ns!r}, which")
+            raise NamingError(f"{template!r}: only {{i}} may be substituted ({e})") from None
+        _check_namespace(ns, f"{template!r} gives {ns!r}, which")
         out.append(ns)
     return out
 
 
-def _check_namespace(ns: str, what: str) -> None:
+def _check_namespace(ns: str, what: str, option: str = "namespace") -> None:
     tokens = ns.split("/")
     if not ns or not all(_NS_TOKEN.match(t) for t in tokens):
         raise NamingError(
             f"{what} is not a valid ROS namespace: use letters, digits and '_' between '/', "
-            "not starting with a digit"
+            "not starting with a digit",
+            option,
         )

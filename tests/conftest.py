@@ -1,18 +1,29 @@
 """Shared fixtures: the contract suite runs once per backend in BACKENDS.
 
+`mjx-2dev` and `warp-2dev` are the multi-device path: every `batchsim.make(..., "mjx")`
+(or "warp") of the module spreads its worlds over two CPU devices (JAX's, made two by
+XLA_FLAGS below; Warp's one CPU device, twice), so the suite runs unchanged on it.
+
 A backend whose optional packages are missing is skipped, unless
 BATCHSIM_FORCE_BACKENDS=1 (CI sets it, so a broken install fails instead of skipping).
 """
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import os
 
-import pytest
+# before JAX is imported anywhere: two CPU devices, for the multi-device tests
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+
+import pytest  # noqa: E402
+
+import batchsim  # noqa: E402
 
 # backend -> the module its optional packages provide
-BACKENDS = {"cpu": "mujoco", "mjx": "jax", "warp": "mujoco_warp"}
+BACKENDS = {"cpu": "mujoco", "mjx": "jax", "warp": "mujoco_warp", "mjx-2dev": "jax", "warp-2dev": "mujoco_warp"}
+TWO_DEVICES = {"mjx": ["cpu:0", "cpu:1"], "warp": ["cpu", "cpu"]}
 
 
 def _available(backend: str) -> bool:
@@ -21,7 +32,31 @@ def _available(backend: str) -> bool:
 
 @pytest.fixture(params=list(BACKENDS), scope="module")
 def backend(request) -> str:
-    name = request.param
+    """Every backend, and the multi-device path of mjx and warp: for the contract suite."""
+    yield from _backend(request.param)
+
+
+@pytest.fixture(params=[b for b in BACKENDS if "-" not in b], scope="module")
+def one_device_backend(request) -> str:
+    """Every backend on one device: for tests where the device count changes nothing."""
+    yield from _backend(request.param)
+
+
+def _backend(name: str):
     if not _available(name) and os.environ.get("BATCHSIM_FORCE_BACKENDS") != "1":
         pytest.skip(f"backend {name} needs {BACKENDS[name]}, which is not installed")
-    return name
+    base, _, sharded = name.partition("-")
+    if not sharded:
+        yield name
+        return
+    make = batchsim.make
+
+    @functools.wraps(make)
+    def make_on_two_devices(model, nworld=1, backend="auto", **options):
+        if backend == base and "devices" not in options and nworld >= 2:
+            options["devices"] = TWO_DEVICES[base]
+        return make(model, nworld, backend, **options)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(batchsim, "make", make_on_two_devices)
+        yield base

@@ -63,6 +63,52 @@ def release_domain(domain: int) -> None:
         os.close(fd)  # closing the descriptor drops the lock
 
 
+def children(pid: int) -> list[int]:
+    """The processes whose parent is `pid` (Linux /proc)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            out.append(int(entry.name))
+    return out
+
+
+def cmdline(pid: int) -> list[str]:
+    """A process's arguments; empty once it is gone (it may go while we look)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_text().split("\0")
+    except OSError:
+        return []
+
+
+def bridge_workers(pid: int) -> dict[int, int]:
+    """The bridge worker processes of batchsim process `pid`: worker index -> pid."""
+    out = {}
+    for child in children(pid):
+        argv = cmdline(child)
+        if "ros_bridge.worker" in argv:
+            out[int(argv[argv.index("ros_bridge.worker") + 1])] = child
+    return out
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def segments(pid: int) -> list[str]:
+    """batchsim's shared-memory segments created by process `pid`."""
+    return sorted(p.name for p in Path("/dev/shm").glob(f"batchsim_{pid}_*"))
+
+
 class Latest:
     """A subscription that keeps the last message and counts them."""
 
@@ -78,6 +124,29 @@ class Latest:
         if self.keep:
             self.history.append(msg)
             del self.history[: -self.keep]
+
+
+class Diagnostics:
+    """A /diagnostics subscription keeping each world's last status: every bridge worker
+    publishes its own worlds' DiagnosticArray."""
+
+    def __init__(self) -> None:
+        self.by_world: dict[str, Any] = {}
+        self.count = 0
+
+    def __call__(self, msg: Any) -> None:
+        for status in msg.status:
+            self.by_world[status.hardware_id] = status
+        self.count += 1
+
+    def world(self, namespace: str) -> Any:
+        return self.by_world.get(namespace)
+
+    def value(self, namespace: str, key: str, default: str = "") -> str:
+        status = self.by_world.get(namespace)
+        if status is None:
+            return default
+        return next((v.value for v in status.values if v.key == key), default)
 
 
 class Fleet:
@@ -128,6 +197,13 @@ class Fleet:
         self.node.create_subscription(msg_type, topic, sink, qos)
         return sink
 
+    def diagnostics(self) -> Diagnostics:
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        sink = Diagnostics()
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", sink, 10)
+        return sink
+
     def publish(self, msg_type: type, topic: str, msg: Any, qos: QoSProfile | int = 10) -> None:
         pub = self._publishers.get(topic)
         if pub is None:
@@ -162,6 +238,10 @@ class Fleet:
             return future.result()
         finally:
             self.node.destroy_client(client)
+
+    def wait_started(self, timeout: float = 60.0) -> None:
+        """Until batchsim printed its start line: its workers are up."""
+        self.wait(lambda: " x " in self.log() and "batchsim: " in self.log(), timeout, "the start line")
 
     def wait(self, predicate: Callable[[], Any], timeout: float = 20.0, what: str = "condition") -> None:
         deadline = time.monotonic() + timeout

@@ -15,6 +15,7 @@ import re
 
 import numpy as np
 import pytest
+from arrays import host
 
 import batchsim
 from batchsim import CallbackReturn, LifecycleError, LifecycleState, ReturnType, Status
@@ -221,15 +222,15 @@ def test_device_arrays_show_what_write_and_read_show(arm):
     arm.command[:] = np.linspace(-0.2, 0.2, NWORLD)[:, None]
     arm.write()
     arrays = arm.device_arrays()
-    ctrl = np.asarray(arrays["ctrl"])  # position servos: ctrl is the command, column for column
+    ctrl = host(arrays["ctrl"])  # position servos: ctrl is the command, column for column
     assert np.allclose(ctrl[:, arm._ctrl_cols], arm.command, atol=1e-6)
     arm.step(10)
     arm.read()
     arrays = arm.device_arrays()  # step() may have replaced them (mjx donates its buffers)
     names = arm.export_state_interfaces()
     pos = arm.state[:, [names.index(f"joint{i}/position") for i in range(1, 7)]]
-    assert np.allclose(np.asarray(arrays["qpos"]), pos, atol=1e-6)
-    assert np.allclose(np.asarray(arrays["time"]), arm.time, atol=1e-6)
+    assert np.allclose(host(arrays["qpos"]), pos, atol=1e-6)
+    assert np.allclose(host(arrays["time"]), arm.time, atol=1e-6)
     arm.reset()
 
 
@@ -524,6 +525,51 @@ def test_frozen_readings_do_not_depend_on_reading_between_steps(backend, unstabl
         np.testing.assert_array_equal(frozen[0][key], frozen[1][key], err_msg=key)
 
 
+# UNSTABLE with a force/torque sensor at the hinge (read negated, as mujoco_ros2_control does)
+UNSTABLE_FTS = UNSTABLE.replace(
+    '<geom type="capsule" size=".01"', '<site name="ft"/><geom type="capsule" size=".01"'
+).replace(
+    "</sensor>",
+    '<force name="ft_force" site="ft"/><torque name="ft_torque" site="ft"/></sensor>'
+    '<ros2_control name="u" type="system"><hardware><plugin>mujoco_ros2_control/MujocoSystemInterface</plugin>'
+    '</hardware><joint name="hinge"><command_interface name="effort"/><state_interface name="position"/>'
+    '<state_interface name="velocity"/></joint>'
+    '<sensor name="ft"><param name="mujoco_type">fts</param></sensor></ros2_control>',
+)
+NOISY = {"sensors": {"seed": 3, "noise": {"hinge/*": {"stddev": 0.01}, "ft/*": {"stddev": 0.01}}}}
+
+
+def test_frozen_readings_are_signed_and_noise_free(backend, tmp_path):
+    """A failed world holds its noise-free readings with the force/torque columns negated as
+    read() gives them, whether the loop read just before the failing step or not (an engine
+    gather then), and gets no fresh noise while frozen."""
+    path = tmp_path / "unstable_fts.xml"
+    path.write_text(UNSTABLE_FTS)
+    for read_before in (True, False):
+        sim = active(str(path), backend, 3, deterministic=True, sensors=NOISY)
+        torque_z = sim.export_state_interfaces().index("ft/torque.z")
+        sim.command[:] = 1e-3  # a small torque: the sensor reads something, of one sign
+        for _ in range(CALM):
+            sim.write()
+            sim.step(SUBSTEPS)
+        if read_before:
+            sim.read()
+            truth = sim.true_state.copy()
+            assert abs(truth[1, torque_z]) > 1e-5
+            assert not np.array_equal(sim.state, truth)  # the noise is on
+        sim.command[1] = 1e9
+        sim.write()
+        sim.step(SUBSTEPS)
+        assert sim.status[1] & Status.DIVERGED
+        for _ in range(3):  # the same, noise-free readings on every read, signed as before
+            sim.read()
+            np.testing.assert_array_equal(sim.state[1], truth[1], err_msg=f"{backend} read before: {read_before}")
+            np.testing.assert_array_equal(sim.true_state[1], truth[1])
+            assert not np.array_equal(sim.state[[0, 2]], sim.true_state[[0, 2]])  # the others stay noisy
+            sim.step(SUBSTEPS)
+        sim.shutdown()
+
+
 # ---------------------------------------------------------------- time
 
 
@@ -557,7 +603,7 @@ def test_base_state_follows_the_free_joint_of_the_robot(backend):
     assert base is not None and sim.base_state.shape == (3, 13)
     sim.step(20)
     sim.read()
-    qpos, qvel = (np.asarray(sim.device_arrays()[f], dtype=np.float64) for f in ("qpos", "qvel"))
+    qpos, qvel = (host(sim.device_arrays()[f]).astype(np.float64) for f in ("qpos", "qvel"))
     np.testing.assert_allclose(sim.base_state[:, :7], qpos[:, base.qposadr : base.qposadr + 7], atol=1e-6)
     np.testing.assert_allclose(sim.base_state[:, 7:], qvel[:, base.dofadr : base.dofadr + 6], atol=1e-6)
     assert sim.base_state[:, 2].max() < 1.0  # it fell from its initial height

@@ -16,10 +16,12 @@ import pytest
 import batchsim
 from batchsim.controllers import (
     CONTROLLER_TYPES,
+    Controller,
     ControllerManager,
+    Params,
+    TrajectoryBatch,
     default_controllers,
     load_controllers,
-    parse,
 )
 from batchsim.hardware import ConfigurationError
 from batchsim.loop import SimLoop
@@ -398,7 +400,7 @@ def test_trajectory_rejections_leave_the_world_unchanged():
         jtc.set_trajectory(0, ARM_JOINTS, [1, 2], np.full((2, 6), np.nan))
     with pytest.raises(ValueError, match="out of range"):
         jtc.set_trajectory(2, ARM_JOINTS, [1, 2], p)
-    assert not jtc._pending
+    assert not jtc.pending.any()
     run_until(loop, 0.2)
     assert not jtc.executing.any()
 
@@ -427,17 +429,62 @@ def test_a_new_trajectory_replaces_the_old_one_from_its_start_time():
     np.testing.assert_array_equal(jtc.reference_position[0], held)
 
 
-def test_a_reset_world_drops_its_trajectory_and_holds_the_reset_pose():
-    sim, manager, loop = running("arm", 3)
+class ResetSpy(Controller):
+    """A controller that only records the resets it hears of."""
+
+    TYPE = "test/ResetSpy"
+
+    def __init__(self, spec, nworld):
+        super().__init__("spy", Params({}, where="test", controller="spy"), spec, nworld)
+        self.resets: list[list[int]] = []
+
+    def reset(self, sim, worlds):
+        self.resets.append(np.asarray(worlds).tolist())
+
+    def update(self, sim, time, period):
+        pass
+
+
+def test_loop_reset_reaches_every_controller_and_the_reset_world_holds_its_reset_pose():
+    sim = batchsim.make("arm", 3, "cpu", nthread=1)
+    sim.configure()
+    sim.activate()
+    loaded = load_controllers(default_controllers("arm"), sim.spec, 3)
+    spy = ResetSpy(sim.spec, 3)
+    manager = ControllerManager([*loaded, spy], update_rate=loaded.update_rate)
+    loop = SimLoop(sim, control_rate=manager.update_rate, rtf=0, participants=[manager])
     jtc = manager["joint_trajectory_controller"]
     loop.run_period()
     for w in range(3):
         jtc.set_trajectory(w, ARM_JOINTS, [1.0], [np.full(6, 0.3)])
     run_until(loop, 0.5)
-    sim.reset([1])
+    loop.reset([1])
+    # at once, not at the next period: the manager is told, it does not infer it
+    assert spy.resets == [[1]] and not jtc.executing[1] and jtc.executing[[0, 2]].all()
+    np.testing.assert_array_equal(jtc.reference_position[1], jtc.feedback_position[1])
     run_until(loop, 1.5)
     assert np.abs(jtc.reference_position[1]).max() < 1e-12
     np.testing.assert_allclose(jtc.reference_position[[0, 2]], 0.3)
+    loop.reset()
+    assert spy.resets == [[1], [0, 1, 2]] and not jtc.executing.any()
+
+
+def test_a_world_whose_time_goes_backwards_is_not_taken_for_reset():
+    spec = batchsim.load("arm")
+    sim = FakeSim(spec, 2, np.random.default_rng(1))
+    manager = load_controllers(default_controllers("arm"), spec, 2)
+    jtc = manager["joint_trajectory_controller"]
+    manager.update(sim, 0.0, 0.01)
+    start = jtc.reference_position.copy()  # open_loop_control: trajectories leave from the reference
+    for w in range(2):
+        jtc.set_trajectory(w, ARM_JOINTS, [1.0], [np.full(6, 0.3)])  # starts at the next update, 0.01
+    for k in range(1, 31):
+        sim.advance(0.01)
+        manager.update(sim, 0.01 * k, 0.01)
+    sim.time[1] = 0.0  # e.g. the cpu backend silently restarting a world's clock
+    manager.update(sim, 0.31, 0.01)
+    assert jtc.executing.all()
+    np.testing.assert_allclose(jtc.reference_position, start + (0.3 - start) * 0.30, atol=1e-12)
 
 
 # ---------------------------------------------------------------- batched == per world
@@ -494,15 +541,42 @@ def reference_sample(points, mode, t):
     )
 
 
-def test_batched_update_matches_a_per_world_reference():
+def batch_of(goals) -> TrajectoryBatch:
+    """One TrajectoryBatch of (world, stamp, times, P, V, A, mask) goals, joints in controller order."""
+    counts = [len(g[2]) for g in goals]
+    npoint = sum(counts)
+
+    def table(i):
+        return np.concatenate(
+            [np.zeros((len(g[2]), 6)) if g[i] is None else g[i] for g in goals] or [np.zeros((0, 6))]
+        )
+
+    return TrajectoryBatch(
+        worlds=np.array([g[0] for g in goals]),
+        start_time=np.array([g[1] for g in goals], dtype=float),
+        joint_mask=np.array([g[6] for g in goals], dtype=bool),
+        offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        times=np.concatenate([g[2] for g in goals] or [np.zeros(0)]),
+        positions=table(3).reshape(npoint, 6),
+        velocities=table(4).reshape(npoint, 6),
+        has_velocities=np.array([g[4] is not None for g in goals]),
+        accelerations=table(5).reshape(npoint, 6),
+        has_accelerations=np.array([g[5] is not None for g in goals]),
+    )
+
+
+@pytest.mark.parametrize("via", ["set_trajectory", "set_trajectories"])
+def test_batched_update_matches_a_per_world_reference(via):
+    """Mixed splines, future and past stamps, a partial goal, a replaced trajectory: against textbook splines."""
     rng = np.random.default_rng(3)
     spec = batchsim.load("arm")
-    nworld, period = 6, 0.01
+    nworld, period = 8, 0.01
     sim = FakeSim(spec, nworld, rng)
     yaml_text = arm_yaml(
         "t:\n  type: joint_trajectory_controller/JointTrajectoryController\n",
         "t:\n  ros__parameters:\n    joints: [joint1, joint2, joint3, joint4, joint5, joint6]\n"
-        "    command_interfaces: [position]\n    state_interfaces: [position, velocity]\n",
+        "    command_interfaces: [position]\n    state_interfaces: [position, velocity]\n"
+        "    allow_partial_joints_goal: true\n",
     )
     manager = load_controllers(yaml_text, spec, nworld)
     jtc = manager["t"]
@@ -511,46 +585,73 @@ def test_batched_update_matches_a_per_world_reference():
     vcol = [names.index(f"{j}/velocity") for j in ARM_JOINTS]
     ccol = [spec.command_interfaces.index(f"{j}/position") for j in ARM_JOINTS]
 
-    # world -> (send time, start stamp, times, positions, velocities, accelerations, mode)
-    goals = {}
-    for w, mode in enumerate(["linear", "cubic", "quintic", "cubic", None, "linear"]):
+    # (world, send time, start stamp, times, positions, velocities, accelerations, mode, joint mask)
+    goals = []
+    every = np.ones(6, bool)
+    for w, mode in enumerate(["linear", "cubic", "quintic", "cubic", None, "linear", "quintic", "cubic"]):
         if mode is None:
             continue
         n = int(rng.integers(1, 5))
         times = np.cumsum(rng.uniform(0.05, 0.3, n))
+        send = float(rng.choice([0.0, 0.05, 0.13]))
+        stamp = 0.0 if w != 3 else send + 0.2  # world 3 starts in the future
+        mask = every
+        if w == 6:  # a partial goal: the other joints hold
+            mask = np.array([True, False, True, False, True, False])
+        if w == 7:  # stamped in the past: the points already behind it are dropped
+            send, stamp, times = 0.13, 0.02, np.array([0.05, 0.1, 0.3, 0.5])
+            n = 4
         P = rng.normal(size=(n, 6))
         V = rng.normal(size=(n, 6)) if mode != "linear" else None
         A = rng.normal(size=(n, 6)) if mode == "quintic" else None
-        send = float(rng.choice([0.0, 0.05, 0.13]))
-        stamp = 0.0 if w != 3 else send + 0.2  # world 3 starts in the future
-        goals[w] = (send, stamp, times, P, V, A, mode)
+        goals.append((w, send, stamp, times, P, V, A, mode, mask))
+    # world 1 gets a new trajectory while its first one runs: it takes over from its start
+    goals.append((1, 0.3, 0.0, np.array([0.2, 0.4]), rng.normal(size=(2, 6)), None, None, "linear", every))
 
     ref_points: dict[int, list] = {}
+    ref_mode: dict[int, str] = {}
     hold = sim.state[:, pcol].copy()  # an idle world holds where it was at activation
     t = 0.0
+    started: set[int] = set()
     for _ in range(120):
-        for w, (send, stamp, times, P, V, A, _mode) in goals.items():
-            if abs(t - send) < 1e-9:
-                jtc.set_trajectory(w, ARM_JOINTS, times, P, V, A, start_time=stamp)
+        due = [(i, g) for i, g in enumerate(goals) if abs(t - g[1]) < 1e-9]
+        if via == "set_trajectory":
+            for _, (w, _send, stamp, times, P, V, A, _mode, mask) in due:
+                named = [j for j, m in zip(ARM_JOINTS, mask, strict=True) if m]
+                jtc.set_trajectory(
+                    w,
+                    named,
+                    times,
+                    P[:, mask],
+                    *(x if x is None else x[:, mask] for x in (V, A)),
+                    start_time=stamp,
+                )
+        elif due:
+            batch = batch_of(
+                [(w, stamp, times, P, V, A, mask) for _, (w, _s, stamp, times, P, V, A, _m, mask) in due]
+            )
+            assert jtc.set_trajectories(batch) == []
         # the reference's view: the trajectory starts at the first update at or after its stamp
-        for w, (send, stamp, times, P, V, A, _mode) in goals.items():
-            begin = max(send, stamp)
-            if w not in ref_points and t >= begin - 1e-9:
+        for i, (w, send, stamp, times, P, V, A, mode, mask) in enumerate(goals):
+            if i not in started and t >= max(send, stamp) - 1e-9:
+                started.add(i)
                 t0 = stamp if stamp > 0 else t
-                start = (t, sim.state[w, pcol].copy(), sim.state[w, vcol].copy(), np.zeros(6))
-                ref_points[w] = [start] + [
+                here = sim.state[w, pcol].copy()
+                keep = [k for k in range(len(times)) if t0 + times[k] > t]
+                ref_points[w] = [(t, here, sim.state[w, vcol].copy(), np.zeros(6))] + [
                     (
                         t0 + times[k],
-                        P[k],
-                        np.zeros(6) if V is None else V[k],
-                        np.zeros(6) if A is None else A[k],
+                        np.where(mask, P[k], here),
+                        np.zeros(6) if V is None else np.where(mask, V[k], 0.0),
+                        np.zeros(6) if A is None else np.where(mask, A[k], 0.0),
                     )
-                    for k in range(len(times))
+                    for k in keep
                 ]
+                ref_mode[w] = mode
         manager.update(sim, t, period)
         for w in range(nworld):
             if w in ref_points:
-                p, v = reference_sample(ref_points[w], goals[w][6], t)
+                p, v = reference_sample(ref_points[w], ref_mode[w], t)
             else:
                 p, v = hold[w], np.zeros(6)
             np.testing.assert_allclose(jtc.reference_position[w], p, atol=1e-9, err_msg=f"world {w} t {t}")
@@ -559,6 +660,30 @@ def test_batched_update_matches_a_per_world_reference():
         np.testing.assert_allclose(jtc.error_position, jtc.reference_position - sim.state[:, pcol])
         sim.advance(period)
         t += period
+    assert len(started) == len(goals)
+
+
+def test_interpolation_none_holds_each_point_until_the_next_ones_time():
+    spec = batchsim.load("arm")
+    sim = FakeSim(spec, 2, np.random.default_rng(4))
+    manager = load_controllers(
+        LINEAR_JTC.replace("max_trajectory_points: 6000", "interpolation_method: none"), spec, 2
+    )
+    jtc = manager["t"]
+    manager.update(sim, 0.0, 0.01)
+    P, V = np.array([[0.1] * 6, [0.2] * 6]), np.array([[1.0] * 6, [2.0] * 6])
+    jtc.set_trajectory(0, ARM_JOINTS, [0.1, 0.2], P, V)  # starts at 0.01: points at 0.11 and 0.21
+    seen = {}
+    for k in range(1, 30):
+        manager.update(sim, 0.01 * k, 0.01)
+        seen[k] = (jtc.reference_position[0].copy(), jtc.reference_velocity[0].copy())
+        if k == 1:
+            here = (jtc.feedback_position[0].copy(), jtc.feedback_velocity[0].copy())
+        sim.advance(0.01)
+    for k, (p, v) in seen.items():
+        want = here if k < 11 else (P[0], V[0]) if k < 21 else (P[1], np.zeros(6))
+        np.testing.assert_allclose(p, want[0], atol=1e-12, err_msg=k)
+        np.testing.assert_allclose(v, want[1], atol=1e-12, err_msg=k)
 
 
 def test_batched_diff_drive_matches_a_per_world_reference():
@@ -638,107 +763,253 @@ def test_forward_command_batched_and_validated():
     assert not np.delete(sim.command, 2, axis=0).any()
 
 
-def test_manager_is_a_plain_participant():
-    assert isinstance(load_controllers(HEAD, batchsim.load("arm"), 1), ControllerManager)
-    assert parse(HEAD).controllers == []
+# ---------------------------------------------------------------- fleet scale: buffers, the door, batches
+
+LINEAR_JTC = arm_yaml(
+    "t:\n  type: joint_trajectory_controller/JointTrajectoryController\n",
+    "t:\n  ros__parameters:\n    joints: [joint1, joint2, joint3, joint4, joint5, joint6]\n"
+    "    command_interfaces: [position]\n    state_interfaces: [position, velocity]\n"
+    "    allow_partial_joints_goal: true\n    max_trajectory_points: 6000\n",
+)
 
 
-# ---------------------------------------------------------------- over real ROS 2
+class WorldView:
+    """One world of a FakeSim, as a one-world sim: its state row, its own command row."""
+
+    def __init__(self, sim: FakeSim, world: int):
+        self.sim, self.world = sim, world
+        self.nworld = 1
+        self.command = np.zeros((1, sim.command.shape[1]))
+
+    @property
+    def state(self):
+        return self.sim.state[self.world : self.world + 1]
 
 
-@pytest.mark.ros
-def test_trajectory_over_ros_to_world_5_of_8(tmp_path):
-    """`batchsim --worlds 8` with the arm's default controllers; a JointTrajectory from here."""
-    pytest.importorskip("rclpy")
-    pytest.importorskip("ros_bridge.bridge")
-    from builtin_interfaces.msg import Duration
-    from ros_fleet import Fleet, domain_id
-    from sensor_msgs.msg import JointState
-    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
-
-    args = [
-        "--worlds",
-        "8",
-        "--model",
-        "arm",
-        "--backend",
-        "cpu",
-        "--controllers",
-        str(default_controllers("arm")),
-    ]
-    with Fleet(domain_id(30), args, tmp_path / "arms.log") as fleet:
-        js5 = fleet.latest(JointState, "/world_5/joint_states")
-        js2 = fleet.latest(JointState, "/world_2/joint_states")
-        ref5 = fleet.latest(JointState, "/world_5/joint_trajectory_controller/controller_state/reference")
-        err5 = fleet.latest(JointState, "/world_5/joint_trajectory_controller/controller_state/error")
-        fleet.wait(lambda: js5.count > 0 and js2.count > 0 and ref5.count > 0, what="joint_states")
-        goal = [0.5, -0.4, 0.6, 0.3, -0.5, 0.8]
-        msg = JointTrajectory()
-        msg.joint_names = ARM_JOINTS
-        msg.points = [
-            JointTrajectoryPoint(
-                positions=[g / 2 for g in goal], time_from_start=Duration(sec=0, nanosec=500_000_000)
-            ),
-            JointTrajectoryPoint(positions=goal, time_from_start=Duration(sec=1)),
-        ]
-        topic = "/world_5/joint_trajectory_controller/joint_trajectory"
-        fleet.publish(
-            JointTrajectory, topic, JointTrajectory()
-        )  # create the publisher, then wait for the match
-        fleet.wait_subscribed(topic)
-        fleet.publish(JointTrajectory, topic, msg)
-        tolerance = 0.04  # rad: the arm's position servos sag under gravity by up to ~0.03
-        fleet.wait(
-            lambda: (
-                np.abs(np.array(js5.msg.position) - goal).max() < tolerance
-                and list(ref5.msg.position) == goal
-            ),
-            timeout=20,
-            what="world 5 at the trajectory's last point",
+def test_under_churn_every_world_follows_its_own_trajectory_as_if_alone():
+    """Trajectories of 1 to 2000 points, replaced, stamped ahead and behind, reset: the fleet's
+    shared buffer (reused, grown, compacted, shrunk) gives each world what a one-world controller gives."""
+    rng = np.random.default_rng(11)
+    spec = batchsim.load("arm")
+    nworld, period = 10, 0.01
+    sim = FakeSim(spec, nworld, rng)
+    fleet = load_controllers(LINEAR_JTC, spec, nworld)
+    alone = [load_controllers(LINEAR_JTC, spec, 1) for _ in range(nworld)]
+    views = [WorldView(sim, w) for w in range(nworld)]
+    jtc = fleet["t"]
+    rows_seen = []
+    t = 0.0
+    for step in range(200):
+        goals = []
+        for w in np.flatnonzero(rng.random(nworld) < 0.06):
+            n = int(rng.choice([1, 3, 12, 400, 2000], p=[0.2, 0.3, 0.3, 0.15, 0.05]))
+            times = np.cumsum(rng.uniform(0.0005, 0.02, n))
+            mask = rng.random(6) < 0.8 if rng.random() < 0.2 else np.ones(6, bool)
+            stamp = float(rng.choice([0.0, t + 0.05, max(t - 0.03, 1e-3)]))
+            V = rng.normal(size=(n, 6)) if rng.random() < 0.5 else None
+            goals.append((int(w), stamp, times, rng.normal(size=(n, 6)), V, None, mask))
+        if goals:
+            rejected = {k for k, _ in jtc.set_trajectories(batch_of(goals))}
+            for k, (w, *goal) in enumerate(goals):
+                alone_rejected = alone[w]["t"].set_trajectories(batch_of([(0, *goal)]))
+                assert (k in rejected) == bool(alone_rejected)
+        if step in (80, 150):
+            worlds = rng.choice(nworld, 3, replace=False)
+            fleet.on_reset(sim, worlds)
+            for w in worlds:
+                alone[w].on_reset(views[w], None)
+        fleet.update(sim, t, period)
+        for w in range(nworld):
+            alone[w].update(views[w], t, period)
+        singles = [a["t"] for a in alone]
+        np.testing.assert_allclose(
+            jtc.reference_position,
+            np.concatenate([a.reference_position for a in singles]),
+            atol=1e-12,
+            err_msg=t,
         )
-        assert np.abs(np.array(err5.msg.position)).max() < tolerance
-        assert np.abs(np.array(js2.msg.position)).max() < 1e-6  # the other worlds hold still
-        assert list(js5.msg.name) == ARM_JOINTS
+        np.testing.assert_allclose(
+            jtc.reference_velocity,
+            np.concatenate([a.reference_velocity for a in singles]),
+            atol=1e-9,
+            err_msg=t,
+        )
+        np.testing.assert_array_equal(jtc.executing, np.concatenate([a.executing for a in singles]))
+        rows_seen.append(jtc.buffer_rows)
+        sim.advance(period)
+        t += period
+    assert max(rows_seen) >= 2000 and min(rows_seen[100:]) < max(rows_seen)  # it grew and gave rows back
 
 
-@pytest.mark.ros
-def test_car_over_ros_cmd_vel_and_odometry(tmp_path):
-    """`batchsim --model car` with its default controllers: TwistStamped in, Odometry out."""
-    pytest.importorskip("rclpy")
-    pytest.importorskip("ros_bridge.bridge")
-    from geometry_msgs.msg import TwistStamped
-    from nav_msgs.msg import Odometry
-    from ros_fleet import Fleet, domain_id
+def test_the_trajectory_buffer_follows_each_worlds_own_trajectory():
+    spec = batchsim.load("arm")
+    nworld, period = 16, 0.01
+    sim = FakeSim(spec, nworld, np.random.default_rng(2))
+    manager = load_controllers(LINEAR_JTC, spec, nworld)
+    jtc = manager["t"]
+    manager.update(sim, 0.0, period)
+    short = np.full((2, 6), 0.1)
+    for w in range(nworld):
+        jtc.set_trajectory(w, ARM_JOINTS, [0.5, 1.0], short)
+    small = jtc.buffer_rows
+    assert small < 1000
+    # one world gets 5000 points (1 ms apart: ten per period) of a ramp
+    n = 5000
+    times = np.arange(1, n + 1) * 1e-3
+    jtc.set_trajectory(3, ARM_JOINTS, times, np.outer(times, np.arange(1, 7)))
+    assert jtc.buffer_rows >= n
+    t = 0.0
+    for _ in range(30):
+        t += period
+        sim.advance(period)
+        manager.update(sim, t, period)
+    # linear from the start pose at 0.01 to the ramp's point at 0.011, then on the ramp
+    np.testing.assert_allclose(jtc.reference_position[3], (t - 0.01) * np.arange(1, 7), atol=1e-12)
+    # a short trajectory takes over: the 5000 rows are given back
+    jtc.set_trajectory(3, ARM_JOINTS, [0.5], short[:1])
+    manager.update(sim, t + period, period)
+    assert jtc.buffer_rows == small
+    # the cap: a parameter, with a default, and a reason
+    with pytest.raises(ValueError, match=r"6001 points, more than max_trajectory_points \(6000\)"):
+        jtc.set_trajectory(0, ARM_JOINTS, np.arange(1, 6002) * 1e-3, np.zeros((6001, 6)))
+    default = load_controllers(default_controllers("arm"), spec, 1)["joint_trajectory_controller"]
+    assert default.max_trajectory_points == 10_000
 
-    args = [
-        "--worlds",
-        "2",
-        "--model",
-        "car",
-        "--backend",
-        "cpu",
-        "--controllers",
-        str(default_controllers("car")),
+
+def test_a_trajectory_write_would_refuse_is_rejected_at_the_door_with_its_reason():
+    sim, manager, loop = running("arm", 3)
+    jtc = manager["joint_trajectory_controller"]
+    loop.run_period()
+    huge = np.zeros((1, 6))
+    huge[0, 2] = 1e300
+    with pytest.raises(ValueError, match=r"positions must be below 1e\+10 .* got 1e\+300"):
+        jtc.set_trajectory(1, ARM_JOINTS, [1.0], huge)
+    # every value below 1e10, but the cubic from rest swings to -1.5e10 (bounded by 2e11)
+    fast = np.zeros((1, 6))
+    fast[0, 0] = 1e9
+    with pytest.raises(
+        ValueError, match=r"between the start \(from rest\) and point 0 .* may reach 2e\+11 \(a bound\)"
+    ):
+        jtc.set_trajectory(1, ARM_JOINTS, [100.0], np.zeros((1, 6)), fast)
+    good = np.full((1, 6), 0.2)
+    batch = batch_of(
+        [
+            (0, 0.0, np.array([0.5]), good, None, None, np.ones(6, bool)),
+            (1, 0.0, np.array([0.5]), huge, None, None, np.ones(6, bool)),
+            (2, 0.0, np.array([100.0]), np.zeros((1, 6)), fast, None, np.ones(6, bool)),
+        ]
+    )
+    rejected = jtc.set_trajectories(batch)
+    assert [k for k, _ in rejected] == [1, 2] and all(
+        r.startswith("joint_trajectory_controller: ") for _, r in rejected
+    )
+    run_until(loop, 0.6)
+    assert not sim.status.any()  # nothing reached write() to be refused
+    np.testing.assert_allclose(jtc.reference_position[0], 0.2)
+    assert np.abs(jtc.reference_position[[1, 2]]).max() < 1e-9  # the others hold where they were
+
+
+def test_odometry_from_float32_wheel_angles_far_from_zero_is_exact():
+    """A float32 backend's wheel at 1e4 rad has a resolution of ~1e-3 rad, and the device's own
+    float32 integration of it (qpos += qvel * dt) then loses 2% of every 0.02 rad step: the
+    odometry must follow the wheel's motion, not that angle."""
+    spec = batchsim.load("car")
+    sim = FakeSim(spec, 2, np.random.default_rng(0))
+    manager = load_controllers(default_controllers("car"), spec, 2)
+    dd = manager["diff_drive_controller"]
+    names = spec.state_interfaces
+    pos = [names.index(f"{side}_wheel_joint/position") for side in ("left", "right")]
+    vel = [names.index(f"{side}_wheel_joint/velocity") for side in ("left", "right")]
+    omega, dt, substeps, radius = 10.0, 0.002, 5, 0.06
+    period = dt * substeps
+    device = np.array([1e4, 3e4], dtype=np.float32)  # world 0: a float32 device's qpos
+    exact = np.array([1e4 + 0.123456789, 3e4 + 0.3])  # world 1: float64 readings, as large
+
+    def read() -> None:
+        sim.state[0, pos], sim.state[1, pos] = device, exact
+        sim.state[0, vel], sim.state[1, vel] = np.float32(omega), omega
+
+    read()
+    manager.update(sim, 0.0, period)
+    for k in range(1, 101):
+        for _ in range(substeps):
+            device += np.float32(omega * dt)
+        exact += omega * period
+        read()
+        manager.update(sim, k * period, period)
+        if k >= dd.window:  # the rolling mean holds only whole periods of motion
+            np.testing.assert_allclose(dd.odom_twist[:, 0], radius * omega, rtol=1e-9, err_msg=f"period {k}")
+    assert abs((device[0] - 1e4) / (omega * 1.0) - 1) > 0.01  # the device's angle did lose its 2%
+    np.testing.assert_allclose(dd.odom_pose[:, 0], radius * omega * 1.0, rtol=1e-9)
+    np.testing.assert_allclose(dd.odom_pose[:, 1:], 0.0, atol=1e-9)  # float64 differences of 3e4-rad angles
+
+
+def test_forward_commands_in_a_batch_reject_bad_rows_with_reasons_and_never_raise():
+    spec = batchsim.load("quadruped")
+    sim = FakeSim(spec, 4, np.random.default_rng(0))
+    manager = load_controllers(default_controllers("quadruped"), spec, 4)
+    fcc = manager["effort_controller"]
+    manager.update(sim, 0.0, 0.002)
+    rows = [
+        np.full(12, 1.0),
+        np.full(12, 2.0),
+        [1.0, 2.0],
+        np.full(12, np.nan),
+        np.full(12, 3e10),
+        np.full(12, 4.0),
     ]
-    with Fleet(domain_id(31), args, tmp_path / "cars.log") as fleet:
-        odom1 = fleet.latest(Odometry, "/world_1/diff_drive_controller/odom")
-        odom0 = fleet.latest(Odometry, "/world_0/diff_drive_controller/odom")
-        fleet.wait(lambda: odom1.count > 0 and odom0.count > 0, what="odometry")
-        topic = "/world_1/diff_drive_controller/cmd_vel"
-        cmd = TwistStamped()  # stamp zero: now, as the stock controller takes it
-        cmd.twist.linear.x = 0.5
-        fleet.publish(TwistStamped, topic, cmd)
-        fleet.wait_subscribed(topic)
+    rejected = fcc.set_commands_batch([0, 7, 1, 2, 3, 0], rows)
+    assert [k for k, _ in rejected] == [1, 2, 3, 4]
+    reasons = dict(rejected)
+    assert (
+        "world 7 is out of range" in reasons[1] and "has 2 values, the controller has 12 joints" in reasons[2]
+    )
+    assert "finite" in reasons[3] and "below 1e+10" in reasons[4]
+    manager.update(sim, 0.002, 0.002)
+    cols = [spec.command_interfaces.index(f"{j}/effort") for j in fcc.joints]
+    np.testing.assert_array_equal(
+        sim.command[:, cols], np.array([[4.0] * 12] + [[0.0] * 12] * 3)
+    )  # last row wins
+    # a whole batch of the wrong width: every row rejected, nothing raised
+    assert [k for k, _ in fcc.set_commands_batch([1, 2], np.zeros((2, 3)))] == [0, 1]
+    assert fcc.set_commands_batch([], np.zeros((0, 12))) == []
 
-        def driving() -> bool:
-            fleet.publish(TwistStamped, topic, cmd)
-            return odom1.msg.pose.pose.position.x > 0.3
 
-        fleet.wait(driving, timeout=20, what="world 1 driving")
-        msg = odom1.msg
-        assert (msg.header.frame_id, msg.child_frame_id) == ("odom", "base_link")
-        assert msg.twist.twist.linear.x == pytest.approx(0.5, abs=0.1)
-        assert abs(odom0.msg.pose.pose.position.x) < 1e-3  # world 0 got no cmd_vel
+def test_cmd_vel_in_a_batch_rejects_bad_rows_with_reasons_and_never_raises():
+    spec = batchsim.load("car")
+    sim = FakeSim(spec, 4, np.random.default_rng(0))
+    manager = load_controllers(default_controllers("car"), spec, 4)
+    dd = manager["diff_drive_controller"]
+    manager.update(sim, 0.5, 0.01)
+    rows = np.array(
+        [
+            [0.2, 0.1, 0.0],  # world 0, stamp 0: now
+            [np.nan, 0.0, 0.0],
+            [0.3, 0.0, np.inf],
+            [0.4, -0.2, 0.45],  # world 3, stamped 0.45
+            [1.0, 0.0, 0.0],  # world 9: out of range
+        ]
+    )
+    rejected = dd.set_cmd_vel_batch([0, 1, 2, 3, 9], rows)
+    assert [k for k, _ in rejected] == [1, 2, 4]
+    assert "finite" in rejected[0][1] and "stamp" in rejected[1][1] and "out of range" in rejected[2][1]
+    # no velocity limit on this axis: a speed write() would refuse is refused here
+    unlimited = load_controllers(
+        DIFFBOT_STYLE.replace("linear.x.has_velocity_limits: true", "linear.x.has_velocity_limits: false"),
+        spec,
+        1,
+    )
+    reason = unlimited["diffbot_base_controller"].set_cmd_vel_batch([0], [[1e300, 0.0]])
+    assert "beyond the 1e+10 write() accepts" in reason[0][1]
+    manager.update(sim, 0.51, 0.01)
+    np.testing.assert_allclose(dd.command_velocity[[0, 3]], [[0.2, 0.1], [0.4, -0.2]])
+    assert not dd.command_velocity[[1, 2]].any()
+    manager.update(
+        sim, 0.96, 0.01
+    )  # cmd_vel_timeout 0.5: world 3's stamp (0.45) timed out, world 0's (0.5) not
+    assert dd.command_velocity[0, 0] != 0 and dd.command_velocity[3, 0] == 0
+    with pytest.raises(ValueError, match="cmd_vel must be finite"):
+        dd.set_cmd_vel(0, math.inf, 0.0)
 
 
 def test_a_trajectory_batch_queues_like_single_trajectories():

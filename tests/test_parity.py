@@ -126,7 +126,8 @@ def trajectory(backend: str, model: str) -> tuple[list[str], np.ndarray]:
 
 
 @pytest.mark.parametrize("model", list(CASES))
-def test_trajectory_matches_cpu(backend, model):
+def test_trajectory_matches_cpu(one_device_backend, model):
+    backend = one_device_backend
     if backend == "cpu":
         pytest.skip("cpu is the reference")
     case = CASES[model]

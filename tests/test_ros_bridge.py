@@ -12,7 +12,7 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy")
 
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from ros_fleet import Fleet, domain_id  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
@@ -30,13 +30,15 @@ def sim_time(stamp) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
 
 
-@pytest.fixture(scope="module")
-def fleet(tmp_path_factory):
+@pytest.fixture(scope="module", params=[0, 2], ids=["in-process", "2-workers"])
+def fleet(request, tmp_path_factory):
+    """The arm fleet, its bridge in the physics process and in two worker processes."""
     log = tmp_path_factory.mktemp("arm") / "batchsim.log"
-    with Fleet(domain_id(20), ["--worlds", str(NWORLD), "--model", "arm"], log) as f:
+    args = ["--worlds", str(NWORLD), "--model", "arm", "--bridge-workers", str(request.param)]
+    with Fleet(domain_id(20), args, log) as f:
         f.js = [f.latest(JointState, f"/world_{w}/joint_states") for w in range(NWORLD)]
         f.clock = f.latest(Clock, "/clock", keep=50)
-        f.diag = f.latest(DiagnosticArray, "/diagnostics")
+        f.diag = f.diagnostics()
         f.wait(lambda: all(s.count > 2 for s in f.js), 30, "joint_states from every world")
         yield f
         assert f.close() == 0, f.log()
@@ -113,12 +115,10 @@ def test_reset_service_resets_only_that_world(arms):
 
 def test_bad_commands_are_rejected_and_the_sim_goes_on(arms):
     def world_diag(w):
-        msg = arms.diag.msg
-        return None if msg is None else next(s for s in msg.status if s.hardware_id == f"world_{w}")
+        return arms.diag.world(f"world_{w}")
 
     def bad_count(w) -> int:
-        d = world_diag(w)
-        return 0 if d is None else int(next(v.value for v in d.values if v.key == "bad_commands"))
+        return int(arms.diag.value(f"world_{w}", "bad_commands", "0"))
 
     before = {w: bad_count(w) for w in range(NWORLD)}
     start = sim_time(arms.clock.msg.clock)
@@ -164,6 +164,25 @@ def test_bad_commands_are_rejected_and_the_sim_goes_on(arms):
     arms.wait(lambda: "bad_command" not in world_diag(1).message, 10, "world_1's BAD_COMMAND cleared")
 
 
+def test_each_problem_on_a_topic_is_logged_and_what_was_held_back_is_counted(arms):
+    """The log throttle keys on the topic and the reason: a wrong length, a NaN and an inf
+    within 2 s on one topic each show; the second non-finite one is counted when its window closes."""
+    topic = "/world_0/commands"  # a topic no other test sends bad commands to
+    command(arms, 0, [0.0] * 6)
+    arms.wait_subscribed(topic)
+    start = len(arms.log())
+    for values in ([0.5, 0.5], [math.nan] + [0.0] * 5, [0.0, math.inf, 0, 0, 0, 0]):
+        command(arms, 0, values)
+    held = f"rejected command on {topic}: value inf for joint2/position is not finite (1 line like it held back in 2 s)"
+    arms.wait(lambda: held in arms.log()[start:], 10, "the count of the lines held back")
+    log = arms.log()[start:]
+    assert f"rejected command on {topic}: 2 values, expected 6" in log, log
+    assert f"rejected command on {topic}: value nan for joint1/position is not finite" in log, log
+    # /diagnostics counts them per topic and reason
+    arms.wait(lambda: arms.diag.value("world_0", f"rejected {topic} not_finite") == "2", 5, "the count per reason")
+    assert arms.diag.value("world_0", f"rejected {topic} length") == "1"
+
+
 def test_a_flood_of_commands_does_not_stall_the_loop(arms):
     command(arms, 0, [0.1, 0, 0, 0, 0, 0])
     arms.wait_subscribed("/world_0/commands")
@@ -188,14 +207,29 @@ def test_pause_and_single_step(arms):
     frozen = sim_time(arms.clock.msg.clock)
     time.sleep(0.3)
     assert sim_time(arms.clock.msg.clock) == frozen
-    reply = arms.call(Trigger, "/batchsim/step", Trigger.Request())
-    assert reply.success, reply.message
-    arms.wait(lambda: sim_time(arms.clock.msg.clock) > frozen, 5, "one step")
+    for k in (1, 2, 3):  # the reply comes after the step, with the new time, every time
+        reply = arms.call(Trigger, "/batchsim/step", Trigger.Request())
+        assert reply.success, reply.message
+        assert reply.message == f"stepped to sim time {frozen + 0.01 * k:.6f} s"
+        arms.wait(lambda k=k: sim_time(arms.clock.msg.clock) >= frozen + 0.01 * k - 1e-9, 5, "the step's clock")
     time.sleep(0.2)
-    assert sim_time(arms.clock.msg.clock) == pytest.approx(frozen + 0.01, abs=1e-9)
+    assert sim_time(arms.clock.msg.clock) == pytest.approx(frozen + 0.03, abs=1e-9)
     assert arms.call(SetBool, "/batchsim/pause", SetBool.Request(data=False)).success
     settle(arms, 0.1)
     assert not arms.call(Trigger, "/batchsim/step", Trigger.Request()).success  # only while paused
+
+
+def test_a_reset_while_paused_is_published_at_once(arms):
+    target = Float64MultiArray(data=[0.6, 0, 0, 0, 0, 0])
+    arms.publish_until(Float64MultiArray, "/world_3/commands", target, lambda: position(arms, 3) > 0.5, 10)
+    assert arms.call(SetBool, "/batchsim/pause", SetBool.Request(data=True)).success
+    time.sleep(0.2)
+    frozen, count = sim_time(arms.clock.msg.clock), arms.js[3].count
+    assert arms.call(Trigger, "/world_3/reset", Trigger.Request()).success
+    arms.wait(lambda: arms.js[3].count > count, 5, "world_3's reset state while paused")
+    assert abs(position(arms, 3)) < 0.02
+    assert sim_time(arms.js[3].msg.header.stamp) == frozen == sim_time(arms.clock.msg.clock)
+    assert arms.call(SetBool, "/batchsim/pause", SetBool.Request(data=False)).success
 
 
 def test_plugin_compatible_topic_names(tmp_path):
@@ -225,7 +259,22 @@ def test_plugin_compatible_topic_names(tmp_path):
         def graph():
             return dict((n, t[0]) for n, t in car.node.get_topic_names_and_types())
 
-        car.wait(lambda: set(expected_pub) | set(expected_sub) <= set(graph()), 30, "the car's topics")
+        # sensor topics and actuator topics are created when someone asks: a subscriber for
+        # the ones batchsim publishes, a publisher for the ones it takes
+        best_effort = rclpy.qos.qos_profile_sensor_data
+        for name, kind in expected_pub.items():
+            car.latest({"std_msgs/msg/Float64": Float64, "sensor_msgs/msg/JointState": JointState,
+                        "nav_msgs/msg/Odometry": Odometry}[kind], name, qos=best_effort)  # fmt: skip
+        for name in expected_sub:
+            if "actuators" in name:
+                car.publish(Float64, name, Float64(data=0.0), qos=best_effort)
+
+        def served() -> bool:  # batchsim's own endpoints on every topic
+            return all(car.node.count_publishers(n) > 0 for n in expected_pub) and all(
+                car.node.count_subscribers(n) > 0 for n in expected_sub
+            )
+
+        car.wait(served, 30, "the car's topics")
         topics = graph()
         for name, kind in {**expected_pub, **expected_sub}.items():
             assert topics[name] == kind
@@ -234,7 +283,6 @@ def test_plugin_compatible_topic_names(tmp_path):
         assert info[0].qos_profile.reliability == rclpy.qos.ReliabilityPolicy.BEST_EFFORT
 
         # the plugin's actuator topic drives the wheel; odometry carries namespaced frames
-        best_effort = rclpy.qos.qos_profile_sensor_data
         vel = car.latest(Float64, "/car/sensors/left_wheel_vel", qos=best_effort)
         odom = car.latest(Odometry, "/car/odom", qos=best_effort)
         topic = "/car/actuators/left_wheel/command"
@@ -246,10 +294,12 @@ def test_plugin_compatible_topic_names(tmp_path):
         assert car.close() == 0
 
 
-def test_lockstep_advances_one_period_per_round_of_commands(tmp_path):
+@pytest.mark.parametrize("workers", [0, 2], ids=["in-process", "2-workers"])
+def test_lockstep_advances_one_period_per_round_of_commands(tmp_path, workers):
     """--lockstep: a period runs once every world's command has arrived, and the state it
-    starts from is published before it waits."""
+    starts from is published before it waits; with 2 workers, each world is another's."""
     args = ["--worlds", "2", "--model", "arm", "--rtf", "0", "--lockstep", "--lockstep-timeout", "30"]
+    args += ["--bridge-workers", str(workers)]
     with Fleet(domain_id(22), args, tmp_path / "lockstep.log") as f:
         clock = f.latest(Clock, "/clock")
         js = f.latest(JointState, "/world_1/joint_states", keep=10)
@@ -311,5 +361,47 @@ def test_command_timeout_holds_position(tmp_path):
         assert js[1].msg.position[0] > 1.4
         time.sleep(0.3)
         assert js[0].msg.position[0] == pytest.approx(stopped, abs=0.02)
-        assert "no command for 0.05 s (--command-timeout); holding position" in f.log()
+        assert "no command for 0.05 s (command timeout); holding position" in f.log()
+        assert f.close() == 0
+
+
+UNSTABLE = """
+<mujoco model="unstable">
+  <option timestep="0.002"/>
+  <worldbody>
+    <body name="link">
+      <joint name="hinge" type="hinge" axis="0 0 1"/>
+      <geom type="capsule" size="0.001 0.001" mass="1e-6"/>
+    </body>
+  </worldbody>
+  <actuator><motor name="motor" joint="hinge"/></actuator>
+</mujoco>
+"""
+
+
+def test_a_frozen_world_stops_its_state_and_says_so(tmp_path):
+    """A diverged world is frozen until reset: its joint_states stop (no fresh stamps) and
+    /diagnostics says it is frozen; the other world goes on."""
+    (tmp_path / "unstable.xml").write_text(UNSTABLE)
+    args = ["--worlds", "2", "--model", str(tmp_path / "unstable.xml"), "--backend", "cpu"]
+    with Fleet(domain_id(24), args, tmp_path / "frozen.log") as f:
+        js = [f.latest(JointState, f"/world_{w}/joint_states") for w in range(2)]
+        diag = f.diagnostics()
+        f.wait(lambda: all(s.count > 0 for s in js), 30, "joint_states")
+        f.publish_until(
+            Float64MultiArray, "/world_1/commands", Float64MultiArray(data=[1e9]),
+            lambda: "diverged" in getattr(diag.world("world_1"), "message", ""), 20, "world_1 diverged",
+        )  # fmt: skip
+        status = diag.world("world_1")
+        assert status.level == DiagnosticStatus.ERROR and "frozen until reset" in status.message
+        assert diag.value("world_1", "frozen") == "true" and diag.value("world_0", "frozen") == "false"
+        time.sleep(0.3)
+        stamp, count = sim_time(js[1].msg.header.stamp), js[1].count
+        alive = js[0].count
+        time.sleep(0.5)
+        assert js[1].count == count and sim_time(js[1].msg.header.stamp) == stamp  # no fresh stamps
+        assert js[0].count > alive + 10
+        assert f.call(Trigger, "/world_1/reset", Trigger.Request()).success
+        f.wait(lambda: js[1].count > count and sim_time(js[1].msg.header.stamp) > stamp, 10, "world_1 back after reset")
+        f.wait(lambda: diag.value("world_1", "frozen") == "false", 10, "world_1 no longer frozen")
         assert f.close() == 0

@@ -22,6 +22,8 @@ from mujoco import batch as mjbatch
 
 from batchsim.failures import warning_text
 from batchsim.hardware import BatchedSystem, Status, StepFailures
+from batchsim.sensors import Camera, Lidar
+from batchsim.sensors.host import HostSensors
 
 _W = mujoco.mjtWarning
 # MuJoCo warnings that mean a world's numbers can no longer be trusted (mjWARN_INERTIA is
@@ -69,8 +71,8 @@ class CpuSystem(BatchedSystem):
 
     def _step(self, nstep: int) -> StepFailures | None:
         frozen = self.frozen
-        if self._readings_current:  # read() ran since the last step: the host rows are the start
-            start = (self._readings, self._sensor_host, self.time)
+        if self._readings_current:  # read() ran since the last step: its rows, noise-free, are the start
+            start = (*self._noise_free(), self.time)
         else:
             start = self._start
             self._gather_fields(self._fields, *start)
@@ -119,7 +121,10 @@ class CpuSystem(BatchedSystem):
             status[k] = Status.OVERFLOW if overflow else Status.DIVERGED
             reasons.append(warning_text(warning, int(self._warnings[w, warning, 0])))
         readings, sensordata, time = start
-        return StepFailures(worlds, status, reasons, readings[worlds], sensordata[worlds], time[worlds])
+        held = readings[worlds]
+        if readings is self._start[0]:
+            self._apply_signs(held)  # an engine gather, unsigned like _read()'s; read()'s rows are signed
+        return StepFailures(worlds, status, reasons, held, sensordata[worlds], time[worlds])
 
     def device_arrays(self) -> dict[str, np.ndarray]:
         """The batch's live arrays, zero copy, as the GPU backends hand out theirs: qpos, qvel,
@@ -145,3 +150,21 @@ class CpuSystem(BatchedSystem):
         self._fields["time"][rows] = initial.time
         self._batch.forward(ids=ids)
 
+    # --- cameras and lidars: MuJoCo's renderer and the batch's threaded ray casting ---
+    _host: HostSensors | None = None  # made on the first render or scan
+
+    def _host_sensors(self) -> HostSensors:
+        if self._host is None:
+            self._host = HostSensors(self.model, self._batch)
+        return self._host
+
+    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._host_sensors().frames(camera, worlds)
+
+    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        return self._host_sensors().cast(lidar, worlds)
+
+    def _close_sensors(self) -> None:
+        if self._host is not None:
+            self._host.close()
+            self._host = None

@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from mujoco import batch as mjbatch
 from mujoco import mjx
 
 from batchsim.backends.device import (
@@ -56,6 +57,8 @@ from batchsim.backends.device import (
 )
 from batchsim.hardware import MAX_COMMAND, READ_FIELDS, Status, StepFailures
 from batchsim.model import RobotSpec, StateColumn
+from batchsim.sensors import Camera, Lidar
+from batchsim.sensors.host import HostSensors
 
 _CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device)
 
@@ -208,6 +211,13 @@ class MjxSystem(DeviceSystem):
     def _put_model(m: mujoco.MjModel, device: jax.Device) -> mjx.Model:
         return mjx.put_model(m, device=device, impl="jax")
 
+    @staticmethod
+    def available_devices() -> list[str]:
+        """JAX's devices of its default platform, as this backend's `device` option names
+        them ("gpu:0", "gpu:1", ...; "cpu:0", ... on a machine without an accelerator)."""
+        devices = jax.devices()
+        return [f"{d.platform}:{i}" for i, d in enumerate(devices)]
+
     # --- engine hooks ---
     def _open(self) -> None:
         m = self.model
@@ -272,11 +282,13 @@ class MjxSystem(DeviceSystem):
             if worlds.size:
                 # the program returned these worlds' readings from before the period
                 nread = self._readings.shape[1]
+                readings = self._packed[worlds, :nread].astype(np.float64)
+                self._apply_signs(readings)  # an engine gather, unsigned like _read()'s
                 failures = StepFailures(
                     worlds=worlds,
                     status=code_status(codes[worlds]),
                     reasons=self._failure_reasons(codes[worlds]),
-                    readings=self._packed[worlds, :nread].astype(np.float64),
+                    readings=readings,
                     sensordata=self._packed[worlds, nread:].astype(np.float64),
                     time=self._clock[worlds].copy(),
                 )
@@ -325,3 +337,33 @@ class MjxSystem(DeviceSystem):
         self._sync_inputs()  # write() keeps ctrl on the host until the next step
         d = self._d
         return {f: getattr(d, f) for f in DEVICE_ARRAYS}
+
+    # --- cameras and lidars: through a host copy of the worlds (MuJoCo's renderer, mujoco.batch rays) ---
+    _host: HostSensors | None = None  # made on the first render or scan
+
+    def _host_copy(self) -> HostSensors:
+        """The host mirror, its state rows filled from the device: one download of qpos and mocap."""
+        if self._host is None:
+            self._host = HostSensors(self.model, mjbatch.Batch(self.model, self.nworld, nthread=0))
+        batch = self._host.batch
+        fields = ["qpos"] + (["mocap_pos", "mocap_quat"] if self.model.nmocap else [])
+        values = jax.device_get({f: getattr(self._d, f) for f in fields})
+        for field, value in values.items():
+            batch.bind(field)[:] = value
+        return self._host
+
+    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._host_copy().frames(camera, worlds)
+
+    def _device_frames(self, camera: Camera) -> tuple[jax.Array, jax.Array]:
+        """Every world's images, rendered on the host and put on this system's device."""
+        rgb, depth = self._render_frames(camera, np.arange(self.nworld))
+        return jax.device_put(rgb, self.device), jax.device_put(depth, self.device)
+
+    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        return self._host_copy().cast(lidar, worlds)
+
+    def _close_sensors(self) -> None:
+        if self._host is not None:
+            self._host.close()
+            self._host = None

@@ -46,6 +46,7 @@ if wp.config.log_level <= wp.LOG_INFO:
     wp.config.log_level = wp.LOG_WARNING  # no "Module ... load on device" line per kernel
 
 import mujoco_warp as mjw  # noqa: E402  (after the config above)
+from mujoco_warp._src import types as _warp_types  # noqa: E402  (vec6, the geom-group mask rays() takes)
 
 from batchsim.backends.device import (  # noqa: E402
     DEVICE_ARRAYS,
@@ -57,6 +58,7 @@ from batchsim.backends.device import (  # noqa: E402
 )
 from batchsim.hardware import MAX_COMMAND, READ_FIELDS, Status, StepFailures  # noqa: E402
 from batchsim.model import RobotSpec  # noqa: E402
+from batchsim.sensors import Camera, Lidar  # noqa: E402
 
 log = logging.getLogger("batchsim.warp")
 
@@ -367,6 +369,12 @@ class WarpSystem(DeviceSystem):
         with wp.ScopedDevice(device):
             return mjw.put_model(m)
 
+    @staticmethod
+    def available_devices() -> list[str]:
+        """Warp's devices for this backend: every CUDA GPU ("cuda:0", ...), else ["cpu"]."""
+        gpus = [d.alias for d in wp.get_cuda_devices()]
+        return gpus or ["cpu"]
+
     def _host_array(self, shape: tuple[int, ...], dtype: Any) -> wp.array:
         """A zeroed host array: pinned (page-locked) when the device is a GPU."""
         return wp.zeros(shape, dtype=dtype, device="cpu", pinned=self._cuda)
@@ -589,6 +597,7 @@ class WarpSystem(DeviceSystem):
             self._restore_start(self._mask_dev)  # they are parked right after: no harm done
             self._gather_on_device(*self._failed_readings)
             state, sensordata, time = (a.numpy()[worlds] for a in self._failed_readings)
+        self._apply_signs(state)  # an engine gather, unsigned like _read()'s
         return StepFailures(
             worlds=worlds,
             status=code_status(codes[worlds]),
@@ -724,6 +733,146 @@ class WarpSystem(DeviceSystem):
         d = self._d
         return {f: getattr(d, f) for f in DEVICE_ARRAYS}
 
+    # --- cameras and lidars: MuJoCo Warp's ray-traced rendering and ray casting ---
+    sensors_batched: ClassVar[bool] = True  # every world in one launch, whichever are asked for
+    _render_contexts: dict[str, Any] | None = None  # per camera: (render context, rgb, depth, host rgb, host depth)
+    _lidar_buffers: dict[str, Any] | None = None  # per lidar: its rays and results, on the device and host
+
+    def _sensor_kinematics(self, cameras: bool) -> None:
+        """Positions of bodies, geoms and sites (and cameras, lights) from the current qpos.
+
+        After a step they describe the state before its last substep, and after a reset they
+        are stale; images and scans show the current state, as on cpu.
+        """
+        m, d = self._m, self._d
+        mjw.kinematics(m, d)
+        if cameras:
+            modes = (int(mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM), int(mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODYCOM))
+            if np.isin(self.model.cam_mode, modes).any() or np.isin(self.model.light_mode, modes).any():
+                mjw.com_pos(m, d)
+            mjw.camlight(m, d)
+
+    def _device_frames(self, camera: Camera) -> tuple[wp.array, wp.array]:
+        """Every world's images of `camera` on the device: (nworld, H, W, 3) uint8 and (nworld, H, W)
+        float32 Warp arrays, overwritten by the next render of this camera."""
+        if self._render_contexts is None:
+            self._render_contexts = {}
+        entry = self._render_contexts.get(camera.name)
+        with wp.ScopedDevice(self.device):
+            if entry is None:
+                rc = mjw.create_render_context(
+                    self.model,
+                    nworld=self.nworld,
+                    cam_res=[(camera.width, camera.height)],
+                    render_rgb=True,
+                    render_depth=True,
+                    cam_active=[camera.id],
+                )
+                shape = (self.nworld, camera.height, camera.width)
+                entry = self._render_contexts[camera.name] = (
+                    rc,
+                    wp.zeros((*shape, 3), dtype=wp.uint8),
+                    wp.zeros(shape, dtype=wp.float32),
+                    self._host_array((*shape, 3), wp.uint8),
+                    self._host_array(shape, wp.float32),
+                )
+            rc, rgb, depth = entry[:3]
+            self._sensor_kinematics(cameras=True)
+            mjw.refit_bvh(self._m, self._d, rc)
+            mjw.render(self._m, self._d, rc)
+            wp.launch(_unpack_frames, dim=depth.shape, inputs=[rc.rgb_data, rc.depth_data], outputs=[rgb, depth])
+        return rgb, depth
+
+    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rgb, depth = self._device_frames(camera)
+        host_rgb, host_depth = self._render_contexts[camera.name][3:]
+        with wp.ScopedDevice(self.device):
+            if self._cuda:
+                wp.copy(host_rgb, rgb)
+                wp.copy(host_depth, depth)
+            else:
+                host_rgb, host_depth = rgb, depth
+            wp.synchronize_device(self.device)
+        rgb_np, depth_np = host_rgb.numpy(), host_depth.numpy()
+        if len(worlds) == self.nworld:  # every world: the buffers themselves (render() copies unless told not to)
+            return rgb_np, depth_np
+        return rgb_np[worlds], depth_np[worlds]
+
+    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        if self._lidar_buffers is None:
+            self._lidar_buffers = {}
+        buffers = self._lidar_buffers.get(lidar.name)
+        shape = (self.nworld, lidar.nray)
+        with wp.ScopedDevice(self.device):
+            if buffers is None:
+                buffers = self._lidar_buffers[lidar.name] = {
+                    "directions": wp.array(lidar.directions.astype(np.float32), dtype=wp.vec3),
+                    "exclude": wp.full(lidar.nray, lidar.body_id, dtype=wp.int32),
+                    "pnt": wp.zeros(shape, dtype=wp.vec3),
+                    "vec": wp.zeros(shape, dtype=wp.vec3),
+                    "dist": wp.zeros(shape, dtype=wp.float32),
+                    "geomid": wp.zeros(shape, dtype=wp.int32),
+                    "normal": wp.zeros(shape, dtype=wp.vec3),
+                    "host": self._host_array(shape, wp.float32),
+                }
+            b = buffers
+            self._sensor_kinematics(cameras=False)
+            wp.launch(
+                _lidar_rays,
+                dim=shape,
+                inputs=[self._d.site_xpos, self._d.site_xmat, lidar.site_id, b["directions"]],
+                outputs=[b["pnt"], b["vec"]],
+            )
+            everything = _warp_types.vec6(-1.0, -1.0, -1.0, -1.0, -1.0, -1.0)  # every geom group
+            mjw.rays(self._m, self._d, b["pnt"], b["vec"], everything, True, b["exclude"], b["dist"], b["geomid"], b["normal"])
+            host = b["host"]
+            if self._cuda:
+                wp.copy(host, b["dist"])
+            else:
+                host = b["dist"]
+            wp.synchronize_device(self.device)
+        dist = host.numpy()
+        return dist if len(worlds) == self.nworld else dist[worlds]
+
+    def _close_sensors(self) -> None:
+        self._render_contexts = self._lidar_buffers = None
+
+
+@wp.kernel
+def _unpack_frames(
+    rgb_packed: wp.array2d(dtype=wp.uint32),
+    depth_in: wp.array2d(dtype=wp.float32),
+    rgb_out: wp.array4d(dtype=wp.uint8),
+    depth_out: wp.array3d(dtype=wp.float32),
+):
+    """MuJoCo Warp's packed 0xAARRGGBB pixels and depth (0: no hit) as (H, W, 3) uint8 and metres, +inf."""
+    w, y, x = wp.tid()
+    p = y * depth_out.shape[2] + x
+    c = rgb_packed[w, p]
+    rgb_out[w, y, x, 0] = wp.uint8((c >> wp.uint32(16)) & wp.uint32(0xFF))
+    rgb_out[w, y, x, 1] = wp.uint8((c >> wp.uint32(8)) & wp.uint32(0xFF))
+    rgb_out[w, y, x, 2] = wp.uint8(c & wp.uint32(0xFF))
+    z = depth_in[w, p]
+    if z > wp.float32(0.0):
+        depth_out[w, y, x] = z
+    else:
+        depth_out[w, y, x] = wp.inf
+
+
+@wp.kernel
+def _lidar_rays(
+    site_xpos: wp.array2d(dtype=wp.vec3),
+    site_xmat: wp.array2d(dtype=wp.mat33),
+    site: int,
+    directions: wp.array(dtype=wp.vec3),
+    pnt_out: wp.array2d(dtype=wp.vec3),
+    vec_out: wp.array2d(dtype=wp.vec3),
+):
+    """World-frame origins and directions of a lidar's rays in every world."""
+    w, r = wp.tid()
+    pnt_out[w, r] = site_xpos[w, site]
+    vec_out[w, r] = site_xmat[w, site] @ directions[r]
+
 
 def _grown(now: int, need: int) -> int:
     """The new size for a buffer of `now` that needed `need`: at least twice, more where the
@@ -756,5 +905,3 @@ def _data_size(d: Any, con_ratio: float, j_ratio: float) -> tuple[float, int]:
 
     visit(d)
     return total, largest
-
-

@@ -31,23 +31,38 @@ from batchsim.controllers.forward_command import (
     JointGroupPositionController,
     JointGroupVelocityController,
 )
-from batchsim.controllers.joint_trajectory import JointTrajectoryController, TrajectoryBatch
+from batchsim.controllers.gripper import (
+    EffortGripperActionController,
+    GripperActionController,
+    ParallelGripperActionController,
+)
+from batchsim.controllers.joint_trajectory import JointTrajectoryController
+from batchsim.controllers.pose_broadcaster import PoseBroadcaster
+from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch
 
 __all__ = [
     "CONTROLLER_TYPES",
     "Controller",
     "ControllerManager",
+    "ControllerTopics",
     "DiffDriveController",
+    "EffortGripperActionController",
     "ForceTorqueSensorBroadcaster",
     "ForwardCommandController",
+    "GripperActionController",
     "IMUSensorBroadcaster",
+    "Input",
     "JointGroupEffortController",
     "JointGroupPositionController",
     "JointGroupVelocityController",
     "JointStateBroadcaster",
     "JointTrajectoryController",
     "ManagerConfig",
+    "MessageKind",
+    "Output",
+    "ParallelGripperActionController",
     "Params",
+    "PoseBroadcaster",
     "TrajectoryBatch",
     "build",
     "default_controllers",

@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from batchsim.controllers.topics import ControllerTopics
 from batchsim.hardware import ConfigurationError
 from batchsim.model import RobotSpec
 
@@ -151,7 +152,8 @@ class Controller:
 
     # --- interface resolution, at configuration time ---
     def check_joints(self, key: str, joints: Sequence[str]) -> None:
-        known = {j.name for j in self.spec.joints}
+        # a ros2_control joint may be an actuator's name (a tendon-driven gripper): it has commands
+        known = {j.name for j in self.spec.joints} | {c.rsplit("/", 1)[0] for c in self._command_names}
         for j in joints:
             if j not in known:
                 raise self.params.error(
@@ -195,10 +197,44 @@ class Controller:
     def update(self, sim: Any, time: float, period: float) -> None:
         raise NotImplementedError
 
+    def topics(self) -> ControllerTopics:
+        """The controller's per-world ROS topics, as data (batchsim/controllers/topics.py)."""
+        return ControllerTopics(self.name)
+
     def _world(self, world: int) -> int:
         if isinstance(world, bool) or int(world) != world or not 0 <= world < self.nworld:
-            raise ValueError(f"{self.name}: world {world!r} is out of range: worlds are 0..{self.nworld - 1}")
+            raise ValueError(self._out_of_range(world))
         return int(world)
+
+    def _out_of_range(self, world: Any) -> str:
+        return f"{self.name}: world {world!r} is out of range: worlds are 0..{self.nworld - 1}"
+
+    def _batch_worlds(self, worlds: Any) -> tuple[np.ndarray, dict[int, str]]:
+        """(n,) world indices of a batched input, and {index: reason} for those out of range (set to 0)."""
+        given = np.asarray(worlds).reshape(-1)
+        if given.dtype.kind not in "iuf":
+            raise ValueError(f"{self.name}: worlds must be integers, got {given.dtype}")
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(given) & (given == np.round(given)) & (given >= 0) & (given < self.nworld)
+        rows = np.where(ok, given, 0).astype(np.int64)
+        return rows, {int(k): self._out_of_range(given[k].item()) for k in np.flatnonzero(~ok)}
+
+
+def ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The concatenation of arange(start, start + count) for each pair, (counts.sum(),) intp."""
+    counts = np.asarray(counts, dtype=np.intp)
+    ends = np.cumsum(counts)
+    return np.arange(int(ends[-1]) if len(ends) else 0) + np.repeat(
+        np.asarray(starts) - (ends - counts), counts
+    )
+
+
+def last_per_world(worlds: np.ndarray) -> np.ndarray:
+    """Indices of the last entry for each distinct world, in increasing order: a later input wins."""
+    if len(worlds) < 2:
+        return np.arange(len(worlds))
+    _, first_from_end = np.unique(worlds[::-1], return_index=True)
+    return np.sort(len(worlds) - 1 - first_from_end)
 
 
 class ControllerManager:
@@ -206,8 +242,9 @@ class ControllerManager:
 
     `update(sim, time, period)` runs every controller, in the YAML's order, between the
     loop's read() and write(); controllers write only the command columns they claim.
-    A world whose simulation time went backwards since the last period was reset: its
-    controllers drop their goals and hold the reset pose.
+    `on_reset(sim, worlds)` (SimLoop.reset's hook) tells every controller that worlds were
+    reset: they drop their goals and hold the reset pose. Nothing is inferred from the
+    state: a world whose time goes backwards is not taken for a reset.
 
     Attributes:
       update_rate: the controller_manager's update_rate (Hz), or None if the YAML has none.
@@ -240,7 +277,7 @@ class ControllerManager:
                 owner[iface] = c.name
         self.claimed = frozenset(owner)
         self.owner = owner
-        self._last_time: np.ndarray | None = None
+        self._activated = False
 
     def __getitem__(self, name: str) -> Controller:
         try:
@@ -260,27 +297,27 @@ class ControllerManager:
         return [c for c in self.controllers.values() if isinstance(c, cls)]
 
     def update(self, sim: Any, time: float, period: float) -> None:
-        world_time = np.asarray(sim.time)
-        if self._last_time is None:
+        if not self._activated:  # the first period: every controller holds where the robot is
+            switch = getattr(sim, "perform_command_mode_switch", None)
+            if switch is not None and self.claimed:  # the claimed interfaces drive their actuators
+                switch(sorted(self.claimed))
             for c in self.controllers.values():
                 c.time = time
                 c.activate(sim, time)
-            self._last_time = world_time.copy()
-        else:
-            reset = world_time < self._last_time
-            if reset.any():
-                worlds = np.flatnonzero(reset)
-                for c in self.controllers.values():
-                    c.reset(sim, worlds)
-            self._last_time[:] = world_time
+            self._activated = True
         for c in self.controllers.values():
             c.time = time
             c.update(sim, time, period)
 
-    def reset(self, sim: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
-        """Tell every controller that the listed worlds (None: all) were reset."""
-        rows = np.arange(sim.nworld) if worlds is None else np.asarray(worlds, dtype=np.intp).reshape(-1)
+    def on_reset(self, sim: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
+        """The listed worlds (None: all) were reset: every controller drops their goals.
+
+        SimLoop.reset calls it; so must anything else that resets worlds under the manager.
+        """
+        rows = (
+            np.arange(sim.nworld)
+            if worlds is None
+            else np.unique(np.asarray(worlds, dtype=np.intp).reshape(-1))
+        )
         for c in self.controllers.values():
             c.reset(sim, rows)
-        if self._last_time is not None:
-            self._last_time[rows] = np.asarray(sim.time)[rows]

@@ -12,6 +12,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from batchsim.controllers.base import Controller, Params
+from batchsim.controllers.topics import ControllerTopics, MessageKind, Output
 from batchsim.model import RobotSpec
 
 JOINT_INTERFACES = ("position", "velocity", "effort")
@@ -69,6 +70,16 @@ class JointStateBroadcaster(Controller):
         state = sim.state
         for kind, rows, cols in self._gather:
             getattr(self, kind)[:, rows] = state[:, cols]
+
+    def topics(self) -> ControllerTopics:
+        """`<ns>/joint_states` (with use_local_topics `<ns>/<controller>/joint_states`)."""
+        topic = f"{self.name}/joint_states" if self.use_local_topics else "joint_states"
+        fields = {"position": self.position, "velocity": self.velocity, "effort": self.effort}
+        return ControllerTopics(
+            self.name,
+            outputs=(Output(topic, MessageKind.JOINT_STATE, lambda: fields, names=tuple(self.names)),),
+            replaces_joint_states=not self.use_local_topics,
+        )
 
 
 def _sensor_columns(ctrl: Controller, key: str, sensor_name: str, fields: Sequence[str]) -> list[int | None]:
@@ -162,6 +173,22 @@ class IMUSensorBroadcaster(Controller):
         for part, cols in self._parts:
             getattr(self, part)[:] = state[:, cols]
 
+    def topics(self) -> ControllerTopics:
+        """`<ns>/<controller>/imu`; a part the sensor lacks has covariance[0] = -1 (REP 145)."""
+        fields = {
+            "orientation": self.orientation,
+            "angular_velocity": self.angular_velocity,
+            "linear_acceleration": self.linear_acceleration,
+        }
+        covariance = {}
+        for part, cov in self.covariance.items():
+            cov = list(cov)
+            if not getattr(self, f"has_{part}"):
+                cov[0] = -1.0
+            covariance[part] = tuple(cov)
+        imu = Output(f"{self.name}/imu", MessageKind.IMU, lambda: fields, frame_id=self.frame_id, covariance=covariance)
+        return ControllerTopics(self.name, outputs=(imu,))
+
 
 class ForceTorqueSensorBroadcaster(Controller):
     """force_torque_sensor_broadcaster/ForceTorqueSensorBroadcaster: geometry_msgs/WrenchStamped.
@@ -213,3 +240,9 @@ class ForceTorqueSensorBroadcaster(Controller):
 
     def update(self, sim: Any, time: float, period: float) -> None:
         self.wrench[:, self._rows] = sim.state[:, self._cols]
+
+    def topics(self) -> ControllerTopics:
+        """`<ns>/<controller>/wrench`."""
+        fields = {"force": self.force, "torque": self.torque}
+        wrench = Output(f"{self.name}/wrench", MessageKind.WRENCH_STAMPED, lambda: fields, frame_id=self.frame_id)
+        return ControllerTopics(self.name, outputs=(wrench,))

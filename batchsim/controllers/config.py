@@ -14,10 +14,23 @@
         command_interfaces: [position]
         state_interfaces: [position, velocity]
 
+Both layouts ros2_control accepts load: the `type` in the controller_manager's block (above)
+or in each controller's own `ros__parameters` (as mujoco_ros2_control's demos write it):
+
+    controller_manager:
+      ros__parameters:
+        update_rate: 100
+    position_controller:
+      ros__parameters:
+        type: forward_command_controller/ForwardCommandController
+        joints: [joint1, joint2]
+
 Node keys may carry a namespace or wildcard (`/controller_manager`, `/**/arm_controller`).
 Nested parameters (`linear: {x: {max_velocity: 1.0}}`) and dotted ones
-(`linear.x.max_velocity: 1.0`) mean the same. Every mistake the model can reveal is a
-ConfigurationError of one line naming the file, the controller and the key.
+(`linear.x.max_velocity: 1.0`) mean the same; a key written twice in one mapping is merged,
+as ROS merges it. Every mistake the model can reveal is a ConfigurationError of one line
+naming the file, the controller and the key; a declared controller never goes missing: an
+unknown type is an error, and a file that declares no controller at all says so in a warning.
 """
 
 from __future__ import annotations
@@ -27,8 +40,6 @@ import importlib.resources
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
-
-import yaml
 
 from batchsim.controllers.base import Controller, ControllerManager, Params
 from batchsim.controllers.broadcasters import (
@@ -43,9 +54,16 @@ from batchsim.controllers.forward_command import (
     JointGroupPositionController,
     JointGroupVelocityController,
 )
+from batchsim.controllers.gripper import (
+    EffortGripperActionController,
+    GripperActionController,
+    ParallelGripperActionController,
+)
 from batchsim.controllers.joint_trajectory import JointTrajectoryController
+from batchsim.controllers.pose_broadcaster import PoseBroadcaster
 from batchsim.hardware import ConfigurationError
 from batchsim.model import RobotSpec
+from batchsim.model.params import ParamsError, load_yaml
 
 CONTROLLER_TYPES: dict[str, type[Controller]] = {
     c.TYPE: c
@@ -59,6 +77,10 @@ CONTROLLER_TYPES: dict[str, type[Controller]] = {
         DiffDriveController,
         IMUSensorBroadcaster,
         ForceTorqueSensorBroadcaster,
+        PoseBroadcaster,
+        GripperActionController,
+        ParallelGripperActionController,
+        EffortGripperActionController,
     )
 }
 
@@ -123,12 +145,9 @@ def parse(source: str | Path | Mapping[str, Any], *, name: str | None = None) ->
         else:
             where = name or "controllers"
         try:
-            doc = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            mark = getattr(e, "problem_mark", None)
-            at = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
-            problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-            raise ConfigurationError(f"{where}{at}: malformed YAML: {problem}") from None
+            doc = load_yaml(text, where)
+        except ParamsError as e:
+            raise ConfigurationError(str(e)) from None
     if not isinstance(doc, Mapping):
         raise ConfigurationError(
             f"{where}: expected a mapping with a controller_manager: ros__parameters: block"
@@ -158,9 +177,14 @@ def parse(source: str | Path | Mapping[str, Any], *, name: str | None = None) ->
 
     controllers: list[ControllerConfig] = []
     warnings: list[str] = []
+    declared: dict[str, Mapping[str, Any]] = {}  # name -> its controller_manager entry
     for cname, entry in manager.items():
-        if not isinstance(entry, Mapping):
-            continue  # update_rate and the manager's own parameters
+        if isinstance(entry, Mapping):  # update_rate and the manager's own parameters are not
+            declared[str(cname)] = entry
+    for node, params in nodes.items():  # the other layout: `type` in the controller's own block
+        if node not in declared and "type" in params:
+            declared[node] = {"type": params["type"]}
+    for cname, entry in declared.items():
         if "type" not in entry:
             raise ConfigurationError(f"{where}: controller {cname!r}: type: missing")
         ctype = entry["type"]
@@ -169,13 +193,29 @@ def parse(source: str | Path | Mapping[str, Any], *, name: str | None = None) ->
                 f"{where}: controller {cname!r}: type: unknown type {ctype!r} "
                 f"(supported: {', '.join(CONTROLLER_TYPES)})"
             )
-        params = _flatten(nodes.pop(cname, {}))
+        own = nodes.pop(cname, {})
+        if "type" in own and own["type"] != ctype:
+            raise ConfigurationError(
+                f"{where}: controller {cname!r}: type: {own['type']!r} in its own block but {ctype!r} "
+                "in controller_manager's"
+            )
+        params = _flatten({k: v for k, v in own.items() if k != "type"})
         for k, v in entry.items():
             if k not in _MANAGER_ENTRY_KEYS:
                 params.setdefault(k, v)
         controllers.append(ControllerConfig(str(cname), ctype, params))
-    for node in nodes:
-        warnings.append(f"{where}: {node}: ignored: no controller of that name in controller_manager")
+    for node, params in nodes.items():
+        if "pid_gains" in params or any(str(k).startswith("pid_gains.") for k in params):
+            warnings.append(
+                f"{where}: {node}: pid_gains: ignored: batchsim reads PID gains from the ros2_control "
+                "block's pids_config_file"
+            )
+        else:
+            warnings.append(f"{where}: {node}: ignored: no controller of that name and no type")
+    if not controllers:
+        warnings.append(
+            f"{where}: declares no controller (give each a type: in controller_manager's block or its own)"
+        )
     return ManagerConfig(where, update_rate, controllers, warnings)
 
 

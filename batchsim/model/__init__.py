@@ -5,22 +5,27 @@
 
     spec.py          the data: RobotSpec and what it holds (interfaces, sensors, initial state)
     mjcf.py          loading: shipped models, files, strings, the mujoco.ros2 extension block
-    ros2_control.py  the <ros2_control> block: narrowing, initial values
-    interfaces.py    discovery: joints, actuators and sensors as ros2_control interfaces
+    description.py   robot descriptions (URDF, xacro, XML): their <ros2_control> blocks as data
+    ros2_control.py  what the blocks make of a model: narrowing, actuators by name, PIDs, sensors
+    params.py        ROS 2 parameter files (pids_config_file, controllers YAML)
+    interfaces.py    discovery: joints, actuators and sensors as ros2_control interfaces; keyframes
 """
 
 from __future__ import annotations
 
+from batchsim.model.description import Description, read_description
 from batchsim.model.interfaces import floating_base, initial_command
 from batchsim.model.mjcf import load, load_string, model_names, model_path
 from batchsim.model.spec import (
     ROS2_PLUGIN,
     ROS2_PLUGIN_KEYS,
     CommandInterface,
+    CommandMode,
     FloatingBase,
     InitialState,
     InterfaceKind,
     Joint,
+    MimicCommand,
     ModelError,
     RobotSpec,
     RosPluginConfig,
@@ -32,10 +37,13 @@ __all__ = [
     "ROS2_PLUGIN",
     "ROS2_PLUGIN_KEYS",
     "CommandInterface",
+    "CommandMode",
+    "Description",
     "FloatingBase",
     "InitialState",
     "InterfaceKind",
     "Joint",
+    "MimicCommand",
     "ModelError",
     "RobotSpec",
     "RosPluginConfig",
@@ -47,4 +55,5 @@ __all__ = [
     "load_string",
     "model_names",
     "model_path",
+    "read_description",
 ]

@@ -13,19 +13,23 @@
 
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
-from batchsim.model.ros2_control import narrow
+from batchsim.model.description import Description
+from batchsim.model.ros2_control import Actuator, narrow
 from batchsim.model.spec import (
     CommandInterface,
+    CommandMode,
     FloatingBase,
     InitialState,
     InterfaceKind,
     Joint,
+    MimicCommand,
+    ModelError,
     RobotSpec,
     RosPluginConfig,
     Sensor,
@@ -73,16 +77,41 @@ _SENSOR_FIELDS: dict[str, tuple[str, tuple[str, ...]]] = {
 
 
 def _actuator_kind(m: mujoco.MjModel, i: int) -> InterfaceKind:
-    """The command interface an actuator serves, from its gain and bias, as MJCF defines them."""
+    """The command interface an actuator serves, from its gain and bias, as mujoco_ros2_control
+    classifies it: no bias is a motor (effort), an affine bias on the length a position servo,
+    on the velocity alone a velocity servo (intvelocity integrates velocity into a position
+    target); anything else takes effort-like ctrl too."""
     bias = m.actuator_biasprm[i]
     affine = int(m.actuator_biastype[i]) == int(mujoco.mjtBias.mjBIAS_AFFINE)
     integrator = int(m.actuator_dyntype[i]) == int(mujoco.mjtDyn.mjDYN_INTEGRATOR)
     if affine and bias[1] != 0:
-        # intvelocity integrates its velocity command into a position target
         return InterfaceKind.VELOCITY if integrator else InterfaceKind.POSITION
     if affine and bias[2] != 0:
         return InterfaceKind.VELOCITY
     return InterfaceKind.EFFORT
+
+
+def _actuators(m: mujoco.MjModel, one_dof: tuple[int, int]) -> list[Actuator]:
+    """Every actuator with the joint it drives: its joint's, or for a tendon or site actuator
+    the joint it is named after (mujoco_ros2_control's convention), else None."""
+    joint_trn = (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT))
+    out = []
+    for a in range(m.nu):
+        name = m.actuator(a).name or f"actuator{a}"
+        kind = _actuator_kind(m, a)
+        joint = None
+        if int(m.actuator_trntype[a]) in joint_trn:
+            j = int(m.actuator_trnid[a, 0])
+            if int(m.jnt_type[j]) in one_dof and m.joint(j).name:
+                joint = m.joint(j).name
+        else:
+            j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
+            if j >= 0 and int(m.jnt_type[j]) in one_dof:
+                joint = name
+        gain, bias = float(m.actuator_gainprm[a, 0]), float(m.actuator_biasprm[a, 1])
+        control_units = kind is InterfaceKind.POSITION and not np.isclose(gain, -bias, rtol=1e-6, atol=0)
+        out.append(Actuator(name, a, kind, joint, bool(control_units)))
+    return out
 
 
 def _sensor_fields(type_name: str, dim: int) -> tuple[str, ...]:
@@ -100,31 +129,29 @@ def discover(
     m: mujoco.MjModel,
     xml: str,
     ros: RosPluginConfig | None,
-    block: ET.Element | None,
+    description: Description | None,
+    *,
+    keyframe: str | int | None = None,
+    key_ctrl_given: Sequence[bool] = (),
 ) -> RobotSpec:
+    """The RobotSpec of a compiled model: its interfaces, narrowed by the description's
+    ros2_control blocks if it has any, and the state its worlds start in."""
     one_dof = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
     joints = [
         Joint(m.joint(j).name, j, int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j]))
         for j in range(m.njnt)
         if int(m.jnt_type[j]) in one_dof and m.joint(j).name
     ]
+    actuators = _actuators(m, one_dof)
 
     commands: list[CommandInterface] = []
     taken: set[str] = set()
-    joint_trn = (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT))
-    for a in range(m.nu):
-        act = m.actuator(a).name or f"actuator{a}"
-        kind = _actuator_kind(m, a)
-        joint = None
-        if int(m.actuator_trntype[a]) in joint_trn:
-            j = int(m.actuator_trnid[a, 0])
-            if int(m.jnt_type[j]) in one_dof and m.joint(j).name:
-                joint = m.joint(j).name
-        iname = f"{joint or act}/{kind.value}"
+    for a in actuators:
+        iname = f"{a.joint or a.name}/{a.kind.value}"
         if iname in taken:  # a second actuator of one kind on one joint keeps its own name
-            iname = f"{act}/{kind.value}"
+            iname = f"{a.name}/{a.kind.value}"
         taken.add(iname)
-        commands.append(CommandInterface(iname, kind, act, a, joint))
+        commands.append(CommandInterface(iname, a.kind, a.name, a.id, a.joint))
 
     sensors = []
     for s in range(m.nsensor):
@@ -144,30 +171,41 @@ def discover(
 
     joint_states = {j.name: [k.value for k in InterfaceKind] for j in joints}
     problems: list[str] = []
-    initial: dict[str, float] = {}
-    if block is not None:
-        joints, joint_states, commands, sensors = narrow(
-            block, joints, commands, sensors, problems, initial
-        )
-    start = InitialState.of_model(m)
-    if initial:  # a ros2_control initial_value is where the joint starts and resets to; qpos0 stays
-        for j in joints:
-            if j.name in initial:
-                start.qpos[j.qposadr] = initial[j.name]
-        start.source = "qpos0 with ros2_control initial_value"
+    warnings: list[str] = []
+    initial_values: dict[str, float] = {}
+    sensor_columns: list[StateColumn] = []
+    mimics: list[MimicCommand] = []
+    block_keyframe = odom_joint = None
+    if description is not None:
+        n = narrow(description, m, joints, actuators, sensors)
+        joints, joint_states, commands, sensors = n.joints, n.joint_states, n.commands, n.sensors
+        sensor_columns, initial_values, mimics = n.sensor_columns, n.initial_values, n.mimics
+        problems, warnings, block_keyframe, odom_joint = n.problems, n.warnings, n.keyframe, n.odom_joint
+    start = initial_state(m, keyframe, block_keyframe, key_ctrl_given, initial_values, joints, problems, warnings)
 
     state: list[StateColumn] = []
     for j in joints:
-        for kind in joint_states[j.name]:
+        for iname in joint_states[j.name]:
             source, index = {
-                "position": ("qpos", j.qposadr),
-                "velocity": ("qvel", j.dofadr),
-                "effort": ("qfrc_actuator", j.dofadr),
-            }[kind]
-            state.append(StateColumn(f"{j.name}/{kind}", source, index))
+                InterfaceKind.POSITION: ("qpos", j.qposadr),
+                InterfaceKind.VELOCITY: ("qvel", j.dofadr),
+                InterfaceKind.EFFORT: ("qfrc_actuator", j.dofadr),
+            }[InterfaceKind.of_name(iname)]
+            state.append(StateColumn(f"{j.name}/{iname}", source, index))
     for s in sensors:
         for k, field in enumerate(s.fields):
             state.append(StateColumn(f"{s.name}/{field}", "sensordata", s.adr + k))
+    state += sensor_columns
+
+    base = floating_base(m)
+    if odom_joint is not None:
+        jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, odom_joint)
+        if jid < 0 or int(m.jnt_type[jid]) != int(mujoco.mjtJoint.mjJNT_FREE):
+            problems.append(f"ros2_control odom_free_joint_name {odom_joint!r}: the model has no free joint of that name")
+        else:
+            body = int(m.jnt_bodyid[jid])
+            base = FloatingBase(odom_joint, m.body(body).name or f"body{body}",
+                                int(m.jnt_qposadr[jid]), int(m.jnt_dofadr[jid]))
 
     return RobotSpec(
         name=name,
@@ -179,10 +217,85 @@ def discover(
         commands=commands,
         sensors=sensors,
         ros=ros,
-        floating_base=floating_base(m),
+        floating_base=base,
         initial=start,
+        keyframes=[m.key(k).name for k in range(m.nkey)],
+        mimics=mimics,
         problems=problems,
+        warnings=warnings,
     )
+
+
+def initial_state(
+    m: mujoco.MjModel,
+    keyframe: str | int | None,
+    block_keyframe: str | None,
+    key_ctrl_given: Sequence[bool],
+    initial_values: dict[str, float],
+    joints: list[Joint],
+    problems: list[str],
+    warnings: list[str],
+) -> InitialState:
+    """Where worlds start: the keyframe asked for (`keyframe`, else the block's
+    initial_keyframe), else `home` if the model has one, else qpos0; a ros2_control
+    initial_value then sets its joint's qpos unless a keyframe was asked for by name
+    (mujoco_ros2_control's rule: a named keyframe overrides initial values)."""
+    names = [m.key(k).name for k in range(m.nkey)]
+    asked = keyframe if keyframe is not None else block_keyframe
+    key: int | None = None
+    if asked is not None:
+        key = _keyframe_index(asked, names)
+        if key is None:
+            known = ", ".join(repr(n) if n else f"#{k}" for k, n in enumerate(names)) or "none"
+            message = f"no keyframe {asked!r} (keyframes: {known})"
+            if keyframe is not None:
+                raise ModelError(message)
+            problems.append(f"ros2_control initial_keyframe: {message}")
+    elif "home" in names:
+        key = names.index("home")
+    if key is None:
+        start = InitialState.of_model(m)
+        if names and asked is None:  # keyframes, none of them `home`: say what qpos0 is like
+            d = mujoco.MjData(m)
+            mujoco.mj_forward(m, d)
+            known = ", ".join(repr(n) if n else f"#{k}" for k, n in enumerate(names))
+            warnings.append(
+                f"starts in qpos0 ({d.ncon} contacts there): the model has no keyframe 'home'; its keyframes: "
+                f"{known} (choose one with --keyframe, or make(..., keyframe=))"
+            )
+    else:
+        label = repr(names[key]) if names[key] else f"#{key}"
+        given = bool(key_ctrl_given[key]) if key < len(key_ctrl_given) else False
+        start = InitialState.of_keyframe(m, key, label, given)
+    if initial_values:
+        if asked is not None and key is not None:
+            warnings.append(
+                f"ros2_control initial_value of {', '.join(sorted(initial_values))}: ignored: keyframe "
+                f"{start.keyframe} sets the initial state"
+            )
+        else:
+            for j in joints:
+                if j.name in initial_values:
+                    start.qpos[j.qposadr] = initial_values[j.name]
+                    _hold(m, start, j)
+            start.source += " with ros2_control initial_value"
+    return start
+
+
+def _hold(m: mujoco.MjModel, start: InitialState, joint: Joint) -> None:
+    """A keyframe's ctrl for position servos on a joint moved by initial_value holds the new
+    position (ctrl = gear * qpos), not the keyframe's."""
+    for a in range(m.nu):
+        on_joint = int(m.actuator_trntype[a]) == int(mujoco.mjtTrn.mjTRN_JOINT) and int(m.actuator_trnid[a, 0]) == joint.id
+        if on_joint and _actuator_kind(m, a) is InterfaceKind.POSITION:
+            start.ctrl[a] = float(m.actuator_gear[a, 0]) * start.qpos[joint.qposadr]
+
+
+def _keyframe_index(asked: str | int, names: list[str]) -> int | None:
+    if isinstance(asked, int) or (isinstance(asked, str) and asked.strip().isdigit() and asked not in names):
+        k = int(asked)
+        return k if 0 <= k < len(names) else None
+    return names.index(asked) if asked in names else None
 
 
 def floating_base(m: mujoco.MjModel) -> FloatingBase | None:
@@ -230,10 +343,25 @@ def floating_base(m: mujoco.MjModel) -> FloatingBase | None:
 
 
 def initial_command(spec: RobotSpec) -> np.ndarray:
-    """The command each interface starts with: hold the initial pose, zero velocity and effort."""
+    """The command each interface starts with, holding the initial state: the keyframe's ctrl
+    where it gives one (direct interfaces); else a position interface holds its actuator's
+    initial length (its joint's position, or a tendon's length), a PID position interface its
+    joint's initial position; velocity and effort start at 0."""
     m = spec.mjmodel
+    d = mujoco.MjData(m)
+    spec.initial.apply(m, d)
     out = np.zeros(len(spec.commands))
     for c, cmd in enumerate(spec.commands):
-        if cmd.kind is InterfaceKind.POSITION and cmd.joint is not None:
-            out[c] = spec.initial.qpos[m.joint(cmd.joint).qposadr[0]]
+        if cmd.mode is CommandMode.POSITION_PID:
+            out[c] = spec.initial.qpos[cmd.qposadr]
+        elif cmd.mode is not CommandMode.DIRECT:
+            continue
+        elif spec.initial.ctrl_given:
+            out[c] = (spec.initial.ctrl[cmd.actuator_id] - cmd.offset) / cmd.scale
+        elif cmd.kind is InterfaceKind.POSITION:
+            # the ctrl at which a position servo pushes neither way: gain * ctrl + bias1 * length = 0
+            a = cmd.actuator_id
+            gain, bias = float(m.actuator_gainprm[a, 0]), float(m.actuator_biasprm[a, 1])
+            ctrl = -bias * float(d.actuator_length[a]) / gain if gain else 0.0
+            out[c] = (ctrl - cmd.offset) / cmd.scale
     return out

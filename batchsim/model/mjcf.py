@@ -1,9 +1,12 @@
 """Loading an MJCF: shipped models by name, files, strings; the `mujoco.ros2` extension block.
 
-Two XML blocks that MuJoCo itself does not know are read and removed before compiling:
-`<extension><plugin plugin="mujoco.ros2">` (its config keys are kept in `RobotSpec.ros`)
-and `<ros2_control>` (handed to `batchsim.model.ros2_control`). File references are then
-made absolute, since the stripped XML is compiled from a string.
+XML blocks that MuJoCo itself does not know are read and removed before compiling:
+`<extension><plugin plugin="mujoco.ros2">` (its config keys are kept in `RobotSpec.ros`),
+every `<ros2_control>` (handed to `batchsim.model.ros2_control`), in the file itself or in
+a file it includes, and mujoco_ros2_control's lidar declarations, `<lidar>` and
+`mujoco.plugin.lidar` (kept in `RobotSpec.sensor_declarations`, see `batchsim.sensors.mjcf`).
+MuJoCo then compiles the file with the stripped text standing in for it, so meshes,
+textures and includes resolve from the file's own folder whatever the working directory.
 """
 
 from __future__ import annotations
@@ -14,9 +17,10 @@ from pathlib import Path
 
 import mujoco
 
+from batchsim.model.description import from_elements, parse_xml, read_description
 from batchsim.model.interfaces import discover
-from batchsim.model.ros2_control import block_of, xml_error_reason
 from batchsim.model.spec import ROS2_PLUGIN, ROS2_PLUGIN_KEYS, ModelError, RobotSpec, RosPluginConfig
+from batchsim.sensors.mjcf import DeclarationError, lidar_elements_of, take_declarations
 
 
 def _models_root():
@@ -49,59 +53,100 @@ def model_path(name: str) -> Path:
     return Path(str(shipped))
 
 
-def load(model: str | Path, *, ros2_control: str | Path | None = None) -> RobotSpec:
+def load(
+    model: str | Path,
+    *,
+    ros2_control: str | Path | None = None,
+    keyframe: str | int | None = None,
+) -> RobotSpec:
     """Load a shipped model by name or an MJCF file by path into a RobotSpec.
 
     Args:
       model: a name from `models/` ("arm", "car", "quadruped") or a path to an MJCF file.
-      ros2_control: a ros2_control block narrowing the exposed interfaces: a path to a
-        URDF/XML file that contains one, or the XML text itself. An inline
-        `<ros2_control>` in the MJCF is used when this is None.
+      ros2_control: the robot description whose `<ros2_control>` blocks narrow the exposed
+        interfaces: a URDF/xacro/XML file (a xacro file may be followed by `key:=value`
+        arguments: "robot.urdf.xacro use_pid:=true"), or the XML text itself. The MJCF's own
+        inline `<ros2_control>` blocks are used when this is None.
+      keyframe: the keyframe worlds start in and reset to, by name or index. None: the
+        ros2_control block's `initial_keyframe`, else `home` if the model has one, else qpos0.
 
     Raises:
-      ModelError: a missing file, malformed XML, or a model MuJoCo rejects; one line.
+      ModelError: a missing file, malformed XML, a model MuJoCo rejects, an unknown
+        keyframe; one line.
     """
     path = model_path(str(model))
     try:
         text = path.read_text()
     except OSError as e:
         raise ModelError(f"{path}: {e.strerror}") from None
-    return load_string(text, path=path, ros2_control=ros2_control)
+    return load_string(text, path=path, ros2_control=ros2_control, keyframe=keyframe)
 
 
 def load_string(
-    text: str, *, path: Path | None = None, ros2_control: str | Path | None = None
+    text: str,
+    *,
+    path: Path | None = None,
+    ros2_control: str | Path | None = None,
+    keyframe: str | int | None = None,
 ) -> RobotSpec:
-    """Load an MJCF given as text; `path`, if given, names it and anchors relative assets."""
+    """Load an MJCF given as text; `path`, if given, names it and anchors relative files
+    (meshes, includes) as if MuJoCo had loaded the file itself."""
     where = str(path) if path else "<string>"
-    try:
-        root = ET.fromstring(text)
-    except ET.ParseError as e:
-        line, col = e.position
-        raise ModelError(f"{where}:{line}:{col}: malformed XML: {xml_error_reason(e)}") from None
+    root = parse_xml(text, where)
     if root.tag != "mujoco":
         raise ModelError(f"{where}: not an MJCF file (root element <{root.tag}>, expected <mujoco>)")
 
     ros = _take_ros_plugin(root, where)
-    inline_block = _take_element(root, "ros2_control")
-    stripped = ros is not None or inline_block is not None
-    if stripped and path is not None:
-        _anchor_relative_files(root, path.parent)
+    try:  # lidars MuJoCo cannot compile (batchsim casts their rays itself)
+        declarations = take_declarations(root, where)
+    except DeclarationError as e:
+        raise ModelError(str(e)) from None
+    blocks = _take_all(root, "ros2_control")
+    # included files carrying the blocks too are handed to MuJoCo stripped, under their own names
+    overrides: dict[str, bytes] = {}
+    if path is not None:
+        for file, included in _includes(root, path.parent, where):
+            inc_ros = _take_ros_plugin(included, file)
+            inc_blocks = _take_all(included, "ros2_control")
+            if inc_ros is not None or inc_blocks:
+                overrides[file] = ET.tostring(included, encoding="unicode").encode()
+                ros = ros or inc_ros
+                blocks += inc_blocks
+    stripped = ros is not None or bool(blocks) or bool(overrides) or bool(declarations)
     xml = ET.tostring(root, encoding="unicode") if stripped else text
 
     try:
-        if stripped or path is None:
-            mjmodel = mujoco.MjModel.from_xml_string(xml)
+        if path is None:
+            mjspec = mujoco.MjSpec.from_string(xml)
+        elif stripped:
+            # the stripped text stands in for the file itself, so that MuJoCo resolves meshdir,
+            # includes and assets from the file's folder exactly as from_xml_path does
+            main = {path.name: xml.encode()}
+            mjspec = mujoco.MjSpec.from_file(str(path), include={**overrides, **main})
         else:
-            mjmodel = mujoco.MjModel.from_xml_path(str(path))
+            mjspec = mujoco.MjSpec.from_file(str(path))
+        mjmodel = mjspec.compile()
     except ValueError as e:
         raise ModelError(f"{where}: {_one_line(str(e))}") from None
 
-    block = inline_block
+    description = None
     if ros2_control is not None:
-        block = block_of(ros2_control)
+        description = read_description(ros2_control)
+        try:
+            extra = lidar_elements_of(ros2_control)
+        except DeclarationError as e:
+            raise ModelError(str(e)) from None
+        declarations = declarations.merged(type(declarations)(lidar_elements=extra))
+    elif blocks:
+        description = from_elements(blocks, where, path.parent if path else None)
     name = root.get("model") or (path.stem if path else "model")
-    return discover(name, path, mjmodel, xml, ros, block)
+    key_ctrl = [len(k.ctrl) > 0 for k in mjspec.keys]
+    try:
+        spec = discover(name, path, mjmodel, xml, ros, description, keyframe=keyframe, key_ctrl_given=key_ctrl)
+    except ModelError as e:
+        raise ModelError(f"{where}: {e}") from None
+    spec.sensor_declarations = declarations
+    return spec
 
 
 def _one_line(message: str) -> str:
@@ -113,14 +158,32 @@ def _one_line(message: str) -> str:
     return head + (f" ({'; '.join(rest)})" if rest else "")
 
 
-def _take_element(root: ET.Element, tag: str) -> ET.Element | None:
-    """Remove and return the first `tag` element anywhere under root."""
-    for parent in root.iter():
+def _take_all(root: ET.Element, tag: str) -> list[ET.Element]:
+    """Remove and return every `tag` element anywhere under root, in document order."""
+    found = []
+    for parent in list(root.iter()):
         for child in list(parent):
             if child.tag == tag:
                 parent.remove(child)
-                return child
-    return None
+                found.append(child)
+    return found
+
+
+def _includes(root: ET.Element, base: Path, where: str) -> list[tuple[str, ET.Element]]:
+    """The files `<include>`d (recursively), as (the include's file attribute, parsed root)."""
+    out = []
+    for include in root.iter("include"):
+        file = include.get("file")
+        if not file:
+            continue
+        try:
+            text = (base / file).read_text()
+        except OSError:
+            continue  # MuJoCo names the missing file when it compiles
+        included = parse_xml(text, str(base / file))
+        out.append((file, included))
+        out += _includes(included, base, where)
+    return out
 
 
 def _take_ros_plugin(root: ET.Element, where: str) -> RosPluginConfig | None:
@@ -164,22 +227,3 @@ def _take_ros_plugin(root: ET.Element, where: str) -> RosPluginConfig | None:
         if not list(extension):
             root.remove(extension)
     return config
-
-
-def _anchor_relative_files(root: ET.Element, base: Path) -> None:
-    """Make file references absolute, since the stripped XML is compiled from a string."""
-    base = base.resolve()
-    compiler = root.find("compiler")
-    if compiler is None:
-        compiler = ET.Element("compiler")
-        root.insert(0, compiler)
-    for key in ("meshdir", "texturedir", "assetdir"):
-        value = compiler.get(key)
-        if value is not None and not Path(value).is_absolute():
-            compiler.set(key, str(base / value))
-    if compiler.get("meshdir") is None and compiler.get("texturedir") is None:
-        compiler.set("assetdir", compiler.get("assetdir", str(base)))
-    for include in root.iter("include"):
-        file = include.get("file")
-        if file and not Path(file).is_absolute():
-            include.set("file", str(base / file))

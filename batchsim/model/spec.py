@@ -9,6 +9,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from batchsim.pid import PidGains
+from batchsim.sensors.mjcf import SensorDeclarations
+
 ROS2_PLUGIN = "mujoco.ros2"
 ROS2_PLUGIN_KEYS = ("ros_namespace", "topic_queue_size", "topic_reliability")
 
@@ -23,6 +26,24 @@ class InterfaceKind(enum.Enum):
     POSITION = "position"
     VELOCITY = "velocity"
     EFFORT = "effort"
+
+    @classmethod
+    def of_name(cls, name: str) -> InterfaceKind | None:
+        """An interface name's kind: `torque` and `force` are names of the effort interface."""
+        name = EFFORT_ALIASES.get(name, name)
+        return next((k for k in cls if k.value == name), None)
+
+
+# names ros2_control (and mujoco_ros2_control) give the effort interface
+EFFORT_ALIASES = {"torque": "effort", "force": "effort"}
+
+
+class CommandMode(enum.Enum):
+    """How a command interface's value becomes its actuator's `ctrl`."""
+
+    DIRECT = "direct"  # ctrl = scale * command + offset (scale 1, offset 0 unless a gripper is scaled)
+    POSITION_PID = "position_pid"  # ctrl = PID(command - qpos of the joint)
+    VELOCITY_PID = "velocity_pid"  # ctrl = PID(command - qvel of the joint)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,11 +60,30 @@ class Joint:
 class CommandInterface:
     """One command interface and the actuator (`ctrl` column) that serves it."""
 
-    name: str  # "<joint>/<kind>" or "<actuator>/<kind>"
+    name: str  # "<joint>/<kind>" or "<actuator>/<kind>" (kind as the block names it: effort, torque)
     kind: InterfaceKind
     actuator: str
     actuator_id: int
     joint: str | None
+    mode: CommandMode = CommandMode.DIRECT
+    scale: float = 1.0  # DIRECT: ctrl = scale * command + offset
+    offset: float = 0.0
+    pid: PidGains | None = None  # the PID modes: the gains
+    qposadr: int = -1  # the PID modes: where the joint's position / velocity are measured
+    dofadr: int = -1
+
+
+@dataclasses.dataclass(frozen=True)
+class MimicCommand:
+    """A mimic joint's actuator, driven from the mimicked joint's command interface:
+    ctrl[actuator_id] = multiplier * command[source] + offset."""
+
+    joint: str
+    source: str  # the mimicked joint's command interface
+    actuator: str
+    actuator_id: int
+    multiplier: float
+    offset: float
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,6 +125,7 @@ class StateColumn:
     name: str
     source: str  # "qpos", "qvel", "qfrc_actuator" or "sensordata"
     index: int
+    sign: float = 1.0  # -1: read negated (mujoco_ros2_control's force/torque sensors)
 
 
 @dataclasses.dataclass
@@ -92,8 +133,9 @@ class InitialState:
     """The state every world starts in and `reset()` returns to: MuJoCo's state components
     (mjSTATE_INTEGRATION) as an MjData holds them, each in model order.
 
-    By default the model's own (`qpos0`, zero velocities); a ros2_control `initial_value`
-    overrides a joint's qpos, and `qpos0` itself is never changed: it is the joints'
+    A keyframe (`home` by default, when the model has one), else the model's own (`qpos0`,
+    zero velocities); a ros2_control `initial_value` overrides a joint's qpos (unless the
+    keyframe was asked for by name), and `qpos0` itself is never changed: it is the joints'
     kinematic zero, not where they start.
     """
 
@@ -105,12 +147,24 @@ class InitialState:
     mocap_pos: np.ndarray  # (nmocap, 3)
     mocap_quat: np.ndarray  # (nmocap, 4)
     source: str = "qpos0"  # what it was taken from, for `batchsim info` and messages
+    keyframe: str | None = None  # the keyframe's name (or "#<index>" for an unnamed one)
+    ctrl_given: bool = False  # the keyframe gives ctrl: the initial command holds it
 
     @classmethod
     def of_model(cls, m: mujoco.MjModel) -> InitialState:
         """The model's defaults, as mj_resetData leaves an MjData."""
         d = mujoco.MjData(m)
         return cls.of_data(d, "qpos0")
+
+    @classmethod
+    def of_keyframe(cls, m: mujoco.MjModel, key: int, label: str, ctrl_given: bool) -> InitialState:
+        """Keyframe `key`, as mj_resetDataKeyframe leaves an MjData."""
+        d = mujoco.MjData(m)
+        mujoco.mj_resetDataKeyframe(m, d, key)
+        state = cls.of_data(d, f"keyframe {label}")
+        state.keyframe = label
+        state.ctrl_given = ctrl_given
+        return state
 
     @classmethod
     def of_data(cls, d: mujoco.MjData, source: str) -> InitialState:
@@ -154,7 +208,12 @@ class RobotSpec:
       ros: the `mujoco.ros2` extension block's config, if the MJCF has one.
       floating_base: the free joint of the robot's own tree (see `floating_base`), or None.
       initial: the state every world starts in and `reset` returns to.
+      keyframes: the model's keyframe names, in model order ("" for an unnamed one).
+      mimics: mimic joints driven from the joint they mimic.
       problems: configuration errors found in a ros2_control block; `on_configure` reports them.
+      sensor_declarations: lidars the MJCF and ros2_control file declare outside MuJoCo's own
+        sensors (`<lidar>` elements, mujoco.plugin.lidar sensors; see batchsim.sensors.mjcf).
+      warnings: what batchsim does not act on (an unknown param, a transmission): one line each.
     """
 
     name: str
@@ -168,7 +227,11 @@ class RobotSpec:
     ros: RosPluginConfig | None = None
     floating_base: FloatingBase | None = None
     initial: InitialState | None = None
+    keyframes: list[str] = dataclasses.field(default_factory=list)
+    mimics: list[MimicCommand] = dataclasses.field(default_factory=list)
     problems: list[str] = dataclasses.field(default_factory=list)
+    sensor_declarations: SensorDeclarations = dataclasses.field(default_factory=SensorDeclarations)
+    warnings: list[str] = dataclasses.field(default_factory=list)
 
     @property
     def state_interfaces(self) -> list[str]:

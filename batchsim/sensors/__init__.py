@@ -1,0 +1,39 @@
+"""Cameras, lidars and sensor noise for every world, backend-free.
+
+    camera.py   Camera, CameraInfo: an MJCF camera and its intrinsics (sensor_msgs/CameraInfo as data)
+    lidar.py    Lidar: rangefinder groups and ray fans/grids, REP 117 ranges, point clouds
+    noise.py    Noise, NoiseStream: Gaussian noise, per-world bias, dropout, seeded per world
+    mjcf.py     `<lidar>` elements and mujoco.plugin.lidar sensors, read out of the XML
+    config.py   SensorConfig: mujoco_ros2_control's plugin YAML and batchsim's `sensors:` block
+    suite.py    SensorSuite: all of it resolved against a model, and which worlds want what
+    sampler.py  SensorSampler: the loop participant producing what is wanted, at its rate
+    host.py     HostSensors: MuJoCo's renderer and mujoco.batch ray casting (cpu, mjx)
+
+The system's side is `BatchedSystem.render`, `.scan` and `.sensors` (batchsim.hardware).
+"""
+
+from __future__ import annotations
+
+from batchsim.sensors.camera import Camera, CameraInfo, CameraMode
+from batchsim.sensors.config import SensorConfig, SensorConfigError
+from batchsim.sensors.lidar import Lidar, LidarKind
+from batchsim.sensors.mjcf import DeclarationError, SensorDeclarations
+from batchsim.sensors.noise import Noise
+from batchsim.sensors.sampler import Sample, SensorSampler
+from batchsim.sensors.suite import SensorSuite
+
+__all__ = [
+    "Camera",
+    "CameraInfo",
+    "CameraMode",
+    "DeclarationError",
+    "Lidar",
+    "LidarKind",
+    "Noise",
+    "Sample",
+    "SensorConfig",
+    "SensorConfigError",
+    "SensorDeclarations",
+    "SensorSampler",
+    "SensorSuite",
+]

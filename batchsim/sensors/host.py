@@ -1,0 +1,193 @@
+"""Rendering and ray casting on the CPU, over the worlds of a `mujoco.batch.Batch`.
+
+The cpu backend hands in its own batch; mjx hands in a host mirror whose state rows it
+fills from the device first ("through the host copy"). Per world, the state is loaded into
+one scratch MjData and its kinematics computed (mj_kinematics, mj_camlight: a few
+microseconds), so images and scans show the current state, as on warp.
+
+Rendering is MuJoCo's OpenGL renderer, offscreen: EGL (a GPU's, or Mesa's software
+rasterizer where there is none), or OSMesa; one sample per pixel and no shadows, as MuJoCo
+Warp renders. With MUJOCO_GL unset on a machine without a
+display, EGL is tried first, then OSMesa. One render per world and camera reads colour
+and depth together; depth comes back in metres along the optical axis, with +inf where
+nothing was hit (REP 117/118). Ray casting is mujoco.batch's `ray`, threaded over worlds
+in C.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import sys
+
+import mujoco
+import numpy as np
+from mujoco import batch as mjbatch
+
+from batchsim.sensors.camera import Camera
+from batchsim.sensors.lidar import Lidar
+
+
+class RenderingUnavailable(RuntimeError):
+    """No OpenGL for MuJoCo's renderer on this machine: the message says what to install."""
+
+
+_GL_HINT = (
+    "MuJoCo's renderer needs OpenGL: on Debian/Ubuntu `apt-get install libegl1 libgl1-mesa-dri` "
+    "(EGL, software or GPU), or `libosmesa6` with MUJOCO_GL=osmesa"
+)
+
+
+def gl_context_class() -> type:
+    """MuJoCo's GLContext class for offscreen rendering here."""
+    choice = os.environ.get("MUJOCO_GL", "").lower().strip()
+    headless = sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY")
+    if choice in ("", "egl") and (headless or choice == "egl"):
+        try:
+            from mujoco.egl import GLContext
+
+            return GLContext
+        except Exception as e:  # noqa: BLE001  (no libEGL, or PyOpenGL set to another platform)
+            if choice == "egl":
+                raise RenderingUnavailable(f"EGL is not available ({e}); {_GL_HINT}") from None
+        try:
+            from mujoco.osmesa import GLContext
+
+            return GLContext
+        except Exception as e:  # noqa: BLE001
+            raise RenderingUnavailable(f"neither EGL nor OSMesa is available ({e}); {_GL_HINT}") from None
+    return mujoco.GLContext
+
+
+class _Renderer:
+    """One GL context and MuJoCo render context, with an offscreen buffer for the largest camera."""
+
+    def __init__(self, m: mujoco.MjModel, width: int, height: int):
+        m = copy.copy(m)  # the offscreen buffer's size and sampling live in the model: change a copy
+        m.vis.global_.offwidth = max(int(m.vis.global_.offwidth), width)
+        m.vis.global_.offheight = max(int(m.vis.global_.offheight), height)
+        # one sample per pixel, as MuJoCo Warp renders: 4x multisampling cost 3-5x the time on
+        # Mesa's software rasterizer (320x240, this project's 2-core CI machine)
+        m.vis.quality.offsamples = 0
+        self.width, self.height = width, height
+        try:
+            self.gl = gl_context_class()(m.vis.global_.offwidth, m.vis.global_.offheight)
+            self.gl.make_current()
+        except RenderingUnavailable:
+            raise
+        except Exception as e:  # noqa: BLE001  (EGL/OSMesa report failures in many types)
+            raise RenderingUnavailable(f"could not create an OpenGL context ({e}); {_GL_HINT}") from None
+        self.context = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_100.value)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.context)
+        self.context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self.scene = mujoco.MjvScene(m, maxgeom=max(1000, 2 * m.ngeom + 100))
+        # no shadows, as MuJoCo Warp renders by default: a shadow map is a 4096^2 render per light,
+        # 100x the cost of a 320x240 image on a software rasterizer
+        self.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        self.option = mujoco.MjvOption()
+        # what a real camera would not see: sites and rangefinder rays (as mujoco_ros2_control)
+        self.option.sitegroup[:] = 0
+        self.option.flags[mujoco.mjtVisFlag.mjVIS_RANGEFINDER] = 0
+        self.camera = mujoco.MjvCamera()
+        self.camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        extent = float(m.stat.extent)
+        self.near = np.float32(m.vis.map.znear * extent)
+        self.far = np.float32(m.vis.map.zfar * extent)
+
+    def close(self) -> None:
+        if self.gl is not None:
+            self.gl.make_current()
+            self.context.free()
+            self.gl.free()
+            self.gl = None
+
+    def depth_to_metres(self, raw: np.ndarray, out: np.ndarray) -> None:
+        """Reversed-Z depth buffer values (0 at the far plane) to metres along the optical axis,
+        +inf at the far plane: MuJoCo's perspective projection undone, as mujoco.Renderer does."""
+        n, f = float(self.near), float(self.far)
+        c = np.float32(n / (f - n))  # -(-(f + n) / (f - n)) / 2 - 1/2
+        d = np.float32(f * n / (f - n))
+        np.divide(d, raw + c, out=out)
+        out[raw <= 0.0] = np.inf
+
+
+class HostSensors:
+    """Cameras and lidars of the worlds of a batch, computed on the CPU.
+
+    Args:
+      m: the model.
+      batch: the worlds; their state rows are what is rendered and scanned.
+    """
+
+    def __init__(self, m: mujoco.MjModel, batch: mjbatch.Batch):
+        self.model = m
+        self.batch = batch
+        self._data = mujoco.MjData(m)
+        self._renderer: _Renderer | None = None
+        self._frames: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # per camera, a row per world
+
+    def frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Render `camera` in `worlds` into this object's buffers: (n, H, W, 3) uint8 and (n, H, W)
+        float32 views, which the next call for this camera overwrites."""
+        if camera.name not in self._frames:  # filled from the first row: a call for n worlds uses n rows
+            nsim = self.batch.nsim
+            self._frames[camera.name] = (
+                np.empty((nsim, camera.height, camera.width, 3), np.uint8),
+                np.empty((nsim, camera.height, camera.width), np.float32),
+            )
+        rgb, depth = (a[: len(worlds)] for a in self._frames[camera.name])
+        self.render(camera, worlds, rgb, depth)
+        return rgb, depth
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def _load(self, world: int) -> mujoco.MjData:
+        d = self.batch.get_data(int(world), self._data)
+        mujoco.mj_kinematics(self.model, d)
+        return d
+
+    def render(self, camera: Camera, worlds: np.ndarray, rgb_out: np.ndarray, depth_out: np.ndarray) -> None:
+        """Render `camera` in each of `worlds` into rgb_out (n, H, W, 3) uint8 and depth_out (n, H, W) float32.
+
+        Images are top row first (ROS), depth in metres along the optical axis, +inf where
+        the ray met nothing before the far plane.
+        """
+        r = self._renderer
+        if r is None or r.width < camera.width or r.height < camera.height:
+            if r is not None:
+                r.close()
+            width = max(camera.width, r.width if r else 0)
+            height = max(camera.height, r.height if r else 0)
+            r = self._renderer = _Renderer(self.model, width, height)
+        r.gl.make_current()  # a context is current per thread: the caller's may have changed
+        m = self.model
+        viewport = mujoco.MjrRect(0, 0, camera.width, camera.height)
+        r.camera.fixedcamid = camera.id
+        # one world's pixels as OpenGL reads them, bottom row first
+        rgb = np.empty((camera.height, camera.width, 3), np.uint8)
+        depth = np.empty((camera.height, camera.width), np.float32)
+        for k, w in enumerate(worlds):
+            d = self._load(w)
+            mujoco.mj_camlight(m, d)
+            mujoco.mjv_updateScene(m, d, r.option, None, r.camera, mujoco.mjtCatBit.mjCAT_ALL.value, r.scene)
+            mujoco.mjr_render(viewport, r.scene, r.context)
+            mujoco.mjr_readPixels(rgb, depth, viewport, r.context)
+            rgb_out[k] = rgb[::-1]  # OpenGL's rows start at the bottom
+            r.depth_to_metres(depth[::-1], depth_out[k])
+
+    def cast(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+        """(n, nray) float64 distances along `lidar`'s rays in each of `worlds`; -1 where a ray hit nothing."""
+        n = len(worlds)
+        origin = np.empty((n, 1, 3))
+        rotation = np.empty((n, 3, 3))
+        for k, w in enumerate(worlds):
+            d = self._load(w)
+            origin[k, 0] = d.site_xpos[lidar.site_id]
+            rotation[k] = d.site_xmat[lidar.site_id].reshape(3, 3)
+        vec = np.einsum("nij,rj->nri", rotation, lidar.directions)
+        ids = None if n == self.batch.nsim else np.asarray(worlds, np.int32)
+        dist, _ = self.batch.ray(origin, vec, bodyexclude=lidar.body_id, ids=ids)
+        return dist

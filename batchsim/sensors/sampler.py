@@ -1,0 +1,104 @@
+"""The loop participant that renders cameras and scans lidars at their rates, only where wanted.
+
+Every control period, for each camera (at the camera rate) and lidar (at its own or the
+lidar rate) that is due and wanted in some world (`SensorSuite.want`), it renders or scans
+those worlds only, keeps the result as the sensor's latest `Sample`, and hands it to the
+listeners (the ROS bridge's publishers, in its second phase). A sensor nobody wants costs
+one mask test per period.
+
+Where a render or scan costs in proportion to the worlds it covers (cpu, mjx), the worlds
+are spread over the sensor's period: with a 10 Hz camera and a 100 Hz loop, world w is
+rendered in the periods k with k % 10 == w % 10, so no period carries the whole fleet's
+images (its worst period, not only its mean, stays in budget). Where one launch covers
+every world at the same cost (warp: `BatchedSystem.sensors_batched`), all wanted worlds are
+produced together. Either way each world's sensor runs at its rate, rounded to a whole
+number of control periods when spread.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from batchsim.hardware import BatchedSystem
+
+
+@dataclasses.dataclass(frozen=True)
+class Sample:
+    """One sensor's output for some worlds at one sim time; the arrays may be buffers that the
+    sensor's next sample overwrites (copy them to keep them).
+
+    Attributes:
+      name: the camera or lidar.
+      time: sim time of the reading (seconds), for the message stamps.
+      worlds: (n,) the worlds it was produced for, ascending.
+      rgb: (n, H, W, 3) uint8 (cameras), else None.
+      depth: (n, H, W) float32 metres (cameras), else None.
+      ranges: (n, nray) float32 metres, REP 117 (lidars), else None.
+    """
+
+    name: str
+    time: float
+    worlds: np.ndarray
+    rgb: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    ranges: np.ndarray | None = None
+
+
+class SensorSampler:
+    """Produces cameras and lidars inside the loop (a `batchsim.loop` participant).
+
+    Args:
+      sim: the system, whose `sensors` say what exists and who wants it.
+      listeners: called with each new Sample, in the loop thread.
+
+    Attributes:
+      latest: the last Sample of each sensor.
+      produced: how many world-frames (or world-scans) each sensor has produced.
+    """
+
+    def __init__(self, sim: BatchedSystem, listeners: list[Callable[[Sample], None]] | None = None):
+        suite = sim.sensors
+        self.listeners = list(listeners or [])
+        self.latest: dict[str, Sample] = {}
+        self.produced = {name: 0 for name in (*suite.cameras, *suite.lidars)}
+        self._period = {name: 1.0 / suite.camera_rate for name in suite.cameras}
+        self._period.update({name: 1.0 / (ld.rate or suite.lidar_rate) for name, ld in suite.lidars.items()})
+        self._due = dict.fromkeys(self._period, 0.0)
+        self._spread = not sim.sensors_batched
+        self._world = np.arange(sim.nworld)
+
+    def update(self, sim: BatchedSystem, time: float, period: float) -> None:
+        suite = sim.sensors
+        for name, every in self._period.items():
+            mask = suite.wanted(name)
+            if not mask.any():
+                continue
+            if self._spread:
+                phases = max(1, round(every / period))
+                mask = mask & (self._world % phases == round(time / period) % phases)
+                if not mask.any():
+                    continue
+            else:
+                # due once a sensor period has elapsed; half a control period of slack absorbs rounding
+                if time + 0.5 * period < self._due[name]:
+                    continue
+                # the next reading one sensor period on; after idling or falling behind, from now
+                due = self._due[name] + every
+                self._due[name] = due if due > time else time + every
+            self._produce(sim, name, np.flatnonzero(mask), time)
+
+    def _produce(self, sim: BatchedSystem, name: str, worlds: np.ndarray, time: float) -> None:
+        if name in sim.sensors.cameras:
+            rgb, depth = sim.render(name, worlds, copy=False)
+            sample = Sample(name, time, worlds, rgb=rgb, depth=depth)
+        else:
+            sample = Sample(name, time, worlds, ranges=sim.scan(name, worlds))
+        self.produced[name] += len(worlds)
+        self.latest[name] = sample
+        for listener in self.listeners:
+            listener(sample)

@@ -1,0 +1,369 @@
+"""A fleet over ROS 2 at scale: what the bridge costs the physics, and what reaches subscribers.
+
+    .venv/bin/python benchmarks/fleet.py --preset gpu     # the GPU host's target set (warp, arm)
+    .venv/bin/python benchmarks/fleet.py --preset 2core   # this project's 2-core CI machine
+    .venv/bin/python benchmarks/fleet.py --backend cpu --worlds 16,64 --control-rate 100
+
+Per size, each in fresh processes on a private ROS domain (discovery limited to this host):
+
+  no ROS      `batchsim --no-ros --rtf 0`: physics steps/s, flat out
+  flat out    `batchsim --rtf 0` with the bridge, while K subscriber processes take every
+              world's joint_states: steps/s, its ratio to no ROS, and joint_states received
+              against published (the loop never waits for the workers: a worker that
+              falls behind publishes the newest state and skips the rest)
+  real time   `batchsim --rtf 1`, the same subscribers: the RTF held (median and worst
+              one-second window), joint_states received/s against worlds x publish rate x RTF
+  heard after seconds from batchsim's start line (its workers up) until every world's
+              joint_states reached a subscriber, in the real-time run
+
+Subscribers count raw (serialized) messages in processes of their own, each taking a
+contiguous share of the worlds, so their deserialization does not weigh on the fleet.
+The last line is `ratio <flat out with ROS / without, at the largest size>`. Nothing is
+asserted: speed is measured here, never in tests.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import re
+import signal
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+
+# per preset: backend, model, (worlds, control Hz, joint_states Hz) per size, subscriber
+# processes, physics threads (2 cores: one for the physics, one for the bridge and subscriber)
+PRESETS = {
+    "gpu": dict(backend="warp", model="arm", sizes=[(1024, 100.0, 100.0), (4096, 100.0, 25.0)], subscribers=8, threads=None),
+    "2core": dict(backend="cpu", model="arm", sizes=[(16, 1000.0, 1000.0), (64, 100.0, 100.0)], subscribers=1, threads=1),
+}
+
+
+# --- a subscriber process ---
+def subscriber(domain: int, lo: int, hi: int, template: str) -> None:
+    """Count joint_states of worlds lo..hi-1; print `heard <wall>` once all were heard and
+    `count <wall> <total>` every 0.25 s, until stdin closes."""
+    os.environ.update(LOCALHOST)
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.experimental import EventsExecutor
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import JointState
+
+    context = Context()
+    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    node = Node(f"fleet_benchmark_{lo}", context=context)
+    counts = [0] * (hi - lo)
+
+    def counter(k: int):
+        def callback(msg: bytes) -> None:
+            counts[k] += 1
+
+        return callback
+
+    for w in range(lo, hi):
+        topic = "/" + template.format(i=w).strip("/") + "/joint_states"
+        node.create_subscription(JointState, topic, counter(w - lo), 10, raw=True)
+    executor = EventsExecutor(context=context)
+    executor.add_node(node)
+    stop = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    heard = False
+    next_report = time.time()
+    while not stop.is_set():
+        executor.spin_once(timeout_sec=0.05)
+        now = time.time()
+        if not heard and all(counts):
+            heard = True
+            print(f"heard {now:.3f}", flush=True)
+        if now >= next_report:
+            next_report = now + 0.25
+            print(f"count {now:.3f} {sum(counts)}", flush=True)
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+# --- the parent ---
+def _pythonpath() -> str:
+    """The project first, then whatever the caller's PYTHONPATH holds (on the GPU host, the
+    MuJoCo wheels' directory)."""
+    extra = os.environ.get("PYTHONPATH")
+    return str(ROOT) + (os.pathsep + extra if extra else "")
+
+
+class Subscribers:
+    """K subscriber processes sharing the worlds."""
+
+    def __init__(self, domain: int, worlds: int, k: int, template: str):
+        k = max(1, min(k, worlds))
+        edges = [round(i * worlds / k) for i in range(k + 1)]
+        env = {**os.environ, **LOCALHOST, "PYTHONPATH": _pythonpath()}
+        self.procs = [
+            subprocess.Popen(
+                [sys.executable, __file__, "--subscriber", str(domain), str(a), str(b), template],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+            )  # fmt: skip
+            for a, b in zip(edges[:-1], edges[1:], strict=True)
+        ]
+        self.heard: list[float | None] = [None] * len(self.procs)
+        self.samples: list[list[tuple[float, int]]] = [[] for _ in self.procs]
+        self._threads = [threading.Thread(target=self._read, args=(i,), daemon=True) for i in range(len(self.procs))]
+        for t in self._threads:
+            t.start()
+
+    def _read(self, i: int) -> None:
+        for line in self.procs[i].stdout:
+            parts = line.split()
+            if parts and parts[0] == "heard":
+                self.heard[i] = float(parts[1])
+            elif parts and parts[0] == "count":
+                self.samples[i].append((float(parts[1]), int(parts[2])))
+
+    def all_heard(self) -> float | None:
+        return None if any(h is None for h in self.heard) else max(self.heard)
+
+    def total(self, at: float) -> float:
+        """Messages received by all subscribers up to wall time `at` (interpolated)."""
+        out = 0.0
+        for s in self.samples:
+            before = [c for t, c in s if t <= at]
+            out += before[-1] if before else 0
+        return out
+
+    def close(self) -> None:
+        for p in self.procs:
+            try:
+                p.stdin.close()
+            except OSError:
+                pass
+        for p in self.procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+class Batchsim:
+    """A `batchsim` process; its stderr lines with their wall times."""
+
+    def __init__(self, args: list[str], domain: int | None):
+        env = {**os.environ, **LOCALHOST, "PYTHONUNBUFFERED": "1", "PYTHONPATH": _pythonpath()}
+        if domain is not None:
+            env["ROS_DOMAIN_ID"] = str(domain)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "batchsim.cli", *args], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
+        )
+        self.lines: list[tuple[float, str]] = []
+        self.started: float | None = None
+        self.substeps = 1  # physics steps per control period, from the start line
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stderr:
+            now = time.time()
+            self.lines.append((now, line.rstrip()))
+            if self.started is None and line.startswith("batchsim: ") and " x " in line:
+                m = re.search(r"\((\d+) x [0-9.e+-]+ s\)", line)
+                self.substeps = int(m.group(1)) if m else 1
+                self.started = now
+
+    def status(self, since: float, until: float) -> list[tuple[float, float]]:
+        """(rtf, steps/s) of the status lines printed between two wall times."""
+        out = []
+        for t, line in self.lines:
+            m = re.search(r"\| rtf\s+([0-9.]+) \| ([0-9.]+)([kM]) steps/s", line)
+            if m and since <= t <= until:
+                out.append((float(m.group(1)), float(m.group(2)) * (1e6 if m.group(3) == "M" else 1e3)))
+        return out
+
+    def wait_started(self, timeout: float) -> None:
+        deadline = time.time() + timeout
+        while self.started is None:
+            if self.proc.poll() is not None or time.time() > deadline:
+                raise RuntimeError("batchsim did not start:\n" + "\n".join(line for _, line in self.lines[-20:]))
+            time.sleep(0.05)
+
+    def wait_running(self, timeout: float) -> None:
+        """Until the first status line: a GPU backend compiles its kernels on the first step,
+        after the start line, and a window opened before that would time the compiler."""
+        self.wait_started(timeout)
+        deadline = time.time() + timeout
+        while not self.status(0.0, float("inf")):
+            if self.proc.poll() is not None or time.time() > deadline:
+                raise RuntimeError("batchsim printed no status line:\n" + "\n".join(line for _, line in self.lines[-20:]))
+            time.sleep(0.05)
+
+    def stop(self) -> str:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+        self._thread.join(timeout=5)
+        return "\n".join(line for _, line in self.lines[-5:])
+
+
+def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: float, domain: int) -> dict:
+    common = ["--worlds", str(worlds), "--model", opts.model, "--backend", opts.backend, "--controllers", "none"]
+    common += ["--control-rate", f"{control:g}"]
+    if opts.threads:
+        common += ["--threads", str(opts.threads)]
+    if opts.devices:
+        common += ["--devices", opts.devices]
+    ros = common + ["--publish-rate", f"{publish:g}"]
+    if opts.bridge_workers is not None:
+        ros += ["--bridge-workers", str(opts.bridge_workers)]
+    out: dict = {"worlds": worlds, "control": control, "publish": publish}
+
+    def window(b: Batchsim) -> list[tuple[float, float]]:
+        b.wait_running(opts.start_timeout)
+        time.sleep(opts.warmup)
+        t0 = time.time()
+        time.sleep(opts.seconds)
+        return b.status(t0, time.time() + 0.5)
+
+    b = Batchsim(common + ["--no-ros", "--rtf", "0"], None)
+    try:
+        rows = window(b)
+    finally:
+        b.stop()
+    out["no_ros"] = statistics.median(s for _, s in rows) if rows else float("nan")
+
+    subs = Subscribers(domain, worlds, opts.subscriber_processes, "world_{i}")
+    try:
+        b = Batchsim(ros + ["--rtf", "0"], domain)
+        try:
+            b.wait_running(opts.start_timeout)
+            time.sleep(opts.warmup)
+            t0 = time.time()
+            c0 = subs.total(t0)
+            time.sleep(opts.seconds)
+            t1 = time.time() - 0.3
+            c1 = subs.total(t1)
+            rows = b.status(t0, t1 + 0.8)
+        finally:
+            b.stop()
+        out["flat_out"] = statistics.median(s for _, s in rows) if rows else float("nan")
+        out["flat_out_received"] = (c1 - c0) / (t1 - t0)
+        # joint_states the fleet published flat out: one per world and publish period
+        out["flat_out_expected"] = out["flat_out"] / b.substeps * publish / control
+    finally:
+        subs.close()
+
+    subs = Subscribers(domain, worlds, opts.subscriber_processes, "world_{i}")
+    try:
+        time.sleep(1.0)  # the subscribers' own start
+        b = Batchsim(ros + ["--rtf", "1"], domain)
+        try:
+            b.wait_started(opts.start_timeout)
+            deadline = time.time() + opts.heard_timeout
+            while subs.all_heard() is None and time.time() < deadline and b.proc.poll() is None:
+                time.sleep(0.05)
+            heard = subs.all_heard()
+            out["heard"] = (heard - b.started) if heard is not None else float("nan")
+            time.sleep(opts.warmup)
+            t0 = time.time()
+            c0 = subs.total(t0)
+            time.sleep(opts.seconds)
+            t1 = time.time() - 0.3  # the subscribers' last reports lag a little
+            c1 = subs.total(t1)
+            rows = b.status(t0, t1 + 0.8)
+        finally:
+            b.stop()
+    finally:
+        subs.close()
+    rtfs = [r for r, _ in rows]
+    out["rtf"] = statistics.median(rtfs) if rtfs else float("nan")
+    out["rtf_min"] = min(rtfs) if rtfs else float("nan")
+    out["received"] = (c1 - c0) / (t1 - t0)
+    out["expected"] = worlds * publish * out["rtf"]
+    return out
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--subscriber":
+        domain, lo, hi = (int(a) for a in sys.argv[2:5])
+        subscriber(domain, lo, hi, sys.argv[5])
+        return
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", choices=sorted(PRESETS), default=None, help="a target set (overrides the size flags)")
+    p.add_argument("--backend", default="cpu")
+    p.add_argument("--model", default="arm")
+    p.add_argument("--worlds", default="16,64", help="comma-separated world counts")
+    p.add_argument("--control-rate", type=float, default=100.0)
+    p.add_argument("--publish-rate", type=float, default=None, help="joint_states Hz (default: the control rate)")
+    p.add_argument("--subscriber-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 2)))
+    p.add_argument("--bridge-workers", type=int, default=None, help="default: batchsim's own choice")
+    p.add_argument("--devices", default=None, help="GPU backends: the devices the worlds are split over ('all', '0,1')")
+    p.add_argument("--threads", type=int, default=None, help="cpu backend: physics threads")
+    p.add_argument("--seconds", type=float, default=8.0, help="measurement window, wall seconds")
+    p.add_argument("--warmup", type=float, default=2.0)
+    p.add_argument("--start-timeout", type=float, default=300.0, help="seconds batchsim may take to start (GPU compiles)")
+    p.add_argument("--heard-timeout", type=float, default=120.0)
+    p.add_argument("--domain", type=int, default=71)
+    opts = p.parse_args()
+    if opts.preset:
+        preset = PRESETS[opts.preset]
+        opts.backend, opts.model = preset["backend"], preset["model"]
+        sizes = preset["sizes"]
+        if "--subscriber-processes" not in sys.argv:
+            opts.subscriber_processes = preset["subscribers"]
+        if opts.threads is None:
+            opts.threads = preset["threads"]
+        if "--heard-timeout" not in sys.argv:
+            opts.heard_timeout = 60.0  # 3 times the target: a slower discovery still leaves time for the rest
+    else:
+        sizes = [(int(w), opts.control_rate, opts.publish_rate or opts.control_rate) for w in opts.worlds.split(",")]
+    versions = _versions()
+    print(
+        f"# {platform.node() or 'host'}, {os.cpu_count()} cores, Python {platform.python_version()}, {versions}, "
+        f"{opts.backend} {opts.model}, physics threads {opts.threads or 'default'}, "
+        f"{opts.subscriber_processes} subscriber processes, bridge workers {opts.bridge_workers if opts.bridge_workers is not None else 'default'}, "
+        f"load {os.getloadavg()[0]:.1f}, {time.strftime('%Y-%m-%d')}"
+    )  # fmt: skip
+    print(
+        "| worlds | control Hz | joint_states Hz | steps/s no ROS | steps/s flat out with ROS | ratio "
+        "| joint_states/s flat out, received / published | RTF held (median / worst) "
+        "| joint_states received/s | expected/s | all worlds heard after s |"
+    )
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
+    last = None
+    began = time.monotonic()
+    for worlds, control, publish in sizes:
+        r = run_size(opts, worlds, control, publish, opts.domain)
+        print(f"# {worlds} worlds measured in {time.monotonic() - began:.0f} s since the start", file=sys.stderr, flush=True)
+        last = r
+        print(
+            f"| {worlds} | {control:g} | {publish:g} | {r['no_ros']:,.0f} | {r['flat_out']:,.0f} | {r['flat_out'] / r['no_ros']:.3f} | "
+            f"{r['flat_out_received']:,.0f} / {r['flat_out_expected']:,.0f} | {r['rtf']:.2f} / {r['rtf_min']:.2f} | {r['received']:,.0f} | {r['expected']:,.0f} | {r['heard']:.1f} |",
+            flush=True,
+        )
+    if last is not None:
+        print(f"ratio {last['flat_out'] / last['no_ros']:.3f}")
+
+
+def _versions() -> str:
+    parts = []
+    for name in ("mujoco", "rclpy", "numpy", "warp", "mujoco_warp"):
+        try:
+            module = __import__(name)
+            parts.append(f"{name} {getattr(module, '__version__', '?')}")
+        except Exception:
+            continue
+    return ", ".join(parts)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,158 @@
+"""Commands between the ROS side and the loop, through shared memory. No rclpy here.
+
+A bridge worker (ROS callbacks) checks each message (`check_vector`, `check_single`) and
+writes what passes into per-world slots with `CommandWriter`: the values, then a counter
+per slot that only the worker increments. The loop takes them with `CommandReader` once per
+control period: a slot whose counter moved since the last period holds a new command. So a
+flood of messages costs the loop one comparison per period, a slow or dead worker never
+stalls it, and a restarted worker that continues the counters never replays old commands.
+
+Rejections are counted per world with the reason (`RejectionWriter`), for BAD_COMMAND and
+/diagnostics.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from batchsim.hardware import MAX_COMMAND
+from ros_bridge.memory import Memory
+
+TEXT = 240  # bytes of the last rejection's reason kept per world
+
+
+class Problem(enum.Enum):
+    """Why a command was rejected: with the topic, the key of the log throttle."""
+
+    LENGTH = "length"
+    NOT_FINITE = "not_finite"
+    RANGE = "range"
+    CLAIMED = "claimed"
+    UNKNOWN_ACTUATOR = "unknown_actuator"
+    MALFORMED = "malformed"  # a controller input that does not parse
+    INVALID = "invalid"  # a controller input its controller refused
+    BACKLOG = "backlog"  # the loop is too far behind to take more
+
+
+def check_vector(row: np.ndarray, interfaces: Sequence[str], owners: Sequence[str]) -> tuple[Problem, str] | None:
+    """A whole command row for one world (`<ns>/commands`): None if it may be applied.
+
+    Args:
+      row: the message's values.
+      interfaces: command interface names, in column order.
+      owners: per column, the controller that claimed it, or "".
+    """
+    n = len(interfaces)
+    if row.shape != (n,):
+        return Problem.LENGTH, f"{row.size} values, expected {n} (one per command interface: {', '.join(interfaces)})"
+    finite = np.isfinite(row)
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite)[0])
+        return Problem.NOT_FINITE, f"value {row[bad]} for {interfaces[bad]} is not finite"
+    big = np.abs(row) >= MAX_COMMAND
+    if big.any():
+        bad = int(np.flatnonzero(big)[0])
+        return Problem.RANGE, f"value {row[bad]:g} for {interfaces[bad]} is beyond {MAX_COMMAND:g}"
+    claimed = sorted({o for o in owners if o})
+    if claimed:
+        return Problem.CLAIMED, "interfaces are claimed by controller " + ", ".join(repr(o) for o in claimed)
+    return None
+
+
+def check_single(value: float, column: int, interfaces: Sequence[str], owners: Sequence[str]) -> tuple[Problem, str] | None:
+    """One interface's command (`<ns>/actuators/<a>/command`): None if it may be applied."""
+    if not math.isfinite(value):
+        return Problem.NOT_FINITE, f"value {value} is not finite"
+    if abs(value) >= MAX_COMMAND:
+        return Problem.RANGE, f"value {value:g} is beyond {MAX_COMMAND:g}"
+    if owners[column]:
+        return Problem.CLAIMED, f"{interfaces[column]} is claimed by controller {owners[column]!r}"
+    return None
+
+
+def slot_arrays(name: str, nworld: int, width: int, per_column: bool) -> list[tuple[str, tuple[int, ...], str]]:
+    """Layout entries of one block of command slots: values and counters (one per world and
+    column, or one per world)."""
+    counters = (nworld, width) if per_column else (nworld,)
+    return [(f"{name}.value", (nworld, width), "f8"), (f"{name}.seq", counters, "i8")]
+
+
+class SlotWriter:
+    """The worker's side of a block of slots: write values, then move their counters."""
+
+    def __init__(self, memory: Memory, name: str):
+        self.value = memory[f"{name}.value"]
+        self.seq = memory[f"{name}.seq"]
+
+    def put_row(self, world: int, row: np.ndarray) -> None:
+        self.value[world] = row
+        self.seq[world] += 1
+
+    def put(self, world: int, column: int, value: float) -> None:
+        self.value[world, column] = value
+        self.seq[world, column] += 1
+
+
+class SlotReader:
+    """The loop's side: what arrived since the last `take`.
+
+    Args:
+      memory: the shared arrays.
+      name: the block's name.
+    """
+
+    def __init__(self, memory: Memory, name: str):
+        self.value = memory[f"{name}.value"]
+        self.seq = memory[f"{name}.seq"]
+        self.seen = self.seq.copy()
+
+    def fresh(self) -> np.ndarray:
+        """Slots with something not taken yet: the shape of the counters, bool."""
+        return self.seq != self.seen
+
+    def take(self) -> tuple[np.ndarray, np.ndarray]:
+        """(new, values): `new` marks the slots written since the last take (counter shape,
+        bool); `values` is the value block, read after the counters, so every marked slot
+        holds at least the command its counter announced."""
+        now = self.seq.copy()
+        new = now != self.seen
+        self.seen = now
+        return new, self.value
+
+    def drop(self, worlds: np.ndarray | None) -> None:
+        """Forget what arrived for all or the listed worlds (they were reset)."""
+        if worlds is None:
+            self.seen = self.seq.copy()
+        else:
+            self.seen[worlds] = self.seq[worlds]
+
+
+def rejection_arrays(name: str, nworld: int) -> list[tuple[str, tuple[int, ...], str]]:
+    """Layout entries of one writer's rejections: count, period of the last, its reason."""
+    return [(f"{name}.count", (nworld,), "i8"), (f"{name}.period", (nworld,), "i8"), (f"{name}.text", (nworld, TEXT), "u1")]
+
+
+class RejectionWriter:
+    """Per-world rejection counters and the last reason, written by one side only."""
+
+    def __init__(self, memory: Memory, name: str):
+        self.count = memory[f"{name}.count"]
+        self.period = memory[f"{name}.period"]
+        self.text = memory[f"{name}.text"]
+
+    def put(self, world: int, period: int, reason: str) -> None:
+        data = reason.encode("utf-8", "replace")[: TEXT - 1]
+        row = self.text[world]
+        row[: len(data)] = np.frombuffer(data, np.uint8)
+        row[len(data) :] = 0
+        self.period[world] = period
+        self.count[world] += 1
+
+    def reason(self, world: int) -> str:
+        row = self.text[world]
+        end = np.flatnonzero(row == 0)
+        return bytes(row[: end[0] if end.size else TEXT]).decode("utf-8", "replace")

@@ -1,0 +1,685 @@
+"""The physics side of the bridge: a loop participant that owns the shared memory and the
+bridge workers. No rclpy here (with workers in processes, the physics process never
+imports it).
+
+Per control period, in the loop thread:
+
+    update      the workers' requests (resets, pause, step; trajectory batches), new
+                commands from their slots, command timeouts, BAD_COMMAND bookkeeping
+    (the controllers run, then write())
+    after_write BAD_COMMAND re-marked; a snapshot (time, status, the channels some worker
+                publishes) copied into shared memory, and the workers woken
+    gate        with lockstep: publish the state the period starts from, wait until every
+                world's command (or controller input) arrived
+    idle        while paused: requests, resets published at once, steps answered
+
+A worker that dies is noticed within SUPERVISE seconds: its worlds hold their last
+commands (or go safe under a command timeout), the log names them, and it is restarted
+on the same shared memory (its counters continue, so nothing is replayed).
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import select
+import subprocess
+import sys
+import time as wallclock
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from batchsim.controllers.topics import Input, MessageKind
+from batchsim.hardware import BatchedSystem, Status
+from batchsim.loop import SimLoop
+from batchsim.model import InterfaceKind
+from ros_bridge.commands import RejectionWriter, SlotReader
+from ros_bridge.memory import Memory, Ring
+from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, ChannelFill, FleetPlan, describe
+from ros_bridge.registry import Registry
+from ros_bridge.requests import Kind, concatenate, decode_reset, decode_ticket, decode_trajectories
+from ros_bridge.throttle import LogThrottle
+
+SUPERVISE = 0.25  # s of wall time between two looks at the workers
+START_TIMEOUT = 120.0  # s a worker may take to come up (imports, endpoints, the start-up check)
+STOP_TIMEOUT = 1.5  # s workers get to leave the ROS graph before they are killed
+IDLE_TICK = 0.02  # s between two in-process worker ticks while paused
+_BAD = np.uint8(Status.BAD_COMMAND)
+_FROZEN = np.uint8(Status.DIVERGED | Status.OVERFLOW)
+
+
+class FleetConflict(ValueError):
+    """Another process on the ROS domain already serves these worlds, or /clock.
+
+    Attributes:
+      kind: "namespace" or "clock".
+    """
+
+    def __init__(self, kind: str, message: str):
+        super().__init__(message)
+        self.kind = kind
+
+
+class WorkerError(RuntimeError):
+    """A bridge worker failed to start."""
+
+
+class _Process:
+    """One worker process and its pipes."""
+
+    def __init__(self, index: int, popen: subprocess.Popen, wake: int, status: int):
+        self.index = index
+        self.popen = popen
+        self.wake = wake  # write end: a byte per period
+        self.status = status  # read end: "ready", "conflict ...", "error ..."
+        self.ready = False
+        self.restarts = 0
+        self.died_at = 0.0
+
+    def close_pipes(self) -> None:
+        for fd in (self.wake, self.status):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self.wake = self.status = -1
+
+
+class BridgeHost:
+    """The bridge's loop participant: shared memory, workers, and the loop's hooks.
+
+    Args:
+      sim: the system, configured.
+      loop: the loop that runs it.
+      plan: what the workers serve (ros_bridge/plan.py).
+      fills: per channel, `fill(out (nworld, width))` from the system or a controller.
+      inputs: per plan input, the controller's Input (its `apply`).
+      processes: run the workers as processes (False: one worker inside this process).
+      command_timeout, lockstep_timeout: see BridgeOptions.
+      readers: controllers that only read the state (broadcasters): after a reset while
+        paused they are updated once, so what is published at once shows the reset state.
+    """
+
+    def __init__(
+        self,
+        sim: BatchedSystem,
+        loop: SimLoop,
+        plan: FleetPlan,
+        fills: Sequence[ChannelFill],
+        inputs: Sequence[Input],
+        *,
+        processes: bool,
+        command_timeout: float | None = None,
+        lockstep_timeout: float = 1.0,
+        readers: Sequence[Any] = (),
+    ):
+        self.sim = sim
+        self.loop = loop
+        self.plan = plan
+        self.nworld = n = plan.nworld
+        self.fills = list(fills)
+        self.inputs = list(inputs)
+        self.processes = processes
+        self.command_timeout = command_timeout
+        self.lockstep = plan.lockstep
+        self.lockstep_timeout = lockstep_timeout
+        self.namespaces = plan.namespaces
+        self.readers = list(readers)
+        self.throttle = LogThrottle(_stderr)
+        self.memory = Memory.create(plan.layout, shared=processes)
+        plan.memory_name = self.memory.name
+        m = self.memory
+        m["latest"][0] = -1
+        m["written"][:] = -1
+        self.commands = SlotReader(m, "cmd")
+        self._input_readers = [
+            SlotReader(m, spec.slots) if spec.kind is not MessageKind.JOINT_TRAJECTORY else None for spec in plan.inputs
+        ]
+        # trajectory inputs: arrival counters the workers move when a batch is in the ring
+        self._traj_counters = {
+            i: m[f"{spec.slots}.seq"] for i, spec in enumerate(plan.inputs) if spec.kind is MessageKind.JOINT_TRAJECTORY
+        }
+        self._traj_seen = {i: c.copy() for i, c in self._traj_counters.items()}  # at the last period start
+        self._traj_taken = {i: c.copy() for i, c in self._traj_counters.items()}  # as far as the ring was read
+        self.rejections = RejectionWriter(m, "hrej")
+        self._worker_rejections = m["rej.count"]
+        self._worker_rejections_seen = self._worker_rejections.copy()
+        self._rings = [Ring(m, f"ring{j}") for j in range(plan.nworker)]
+        self._channels = [m[f"ch{c}"] for c in range(len(plan.channels))]
+        self.free = np.array([not o for o in plan.owners], dtype=bool)
+        self.all_claimed = bool(plan.interfaces) and not self.free.any()
+
+        # per channel: the decimations of the outputs that read it
+        self._channel_every: list[set[int]] = [set() for _ in plan.channels]
+        for out in plan.outputs:
+            for c in out.channels:
+                self._channel_every[c].add(out.every)
+
+        self.bad = np.zeros(n, dtype=bool)
+        self._last_command = np.full(n, np.inf)  # sim time of the last command; inf: never
+        self._timed_out = np.zeros(n, dtype=bool)
+        self._safe = _safe_plan(sim)
+        self._period = 0  # control periods run, for the outputs' decimation
+        self._n = -1  # snapshots written
+        self._published_time: float | None = None
+        self._force = False
+        self._gate_since: float | None = None
+        self._steps: list[tuple[int, int, float]] = []  # (worker, ticket, sim time when asked)
+        self._next_supervise = 0.0
+        self._next_idle_tick = 0.0
+        self._closed = False
+        self._procs: list[_Process] = []
+        self._worker: Any = None  # the in-process worker
+        self.registry = Registry.for_domain()
+        self._notify_r, self._notify_w = os.pipe()
+        os.set_blocking(self._notify_r, False)
+        os.set_blocking(self._notify_w, False)
+
+    # --- start and stop ---
+    def start(self) -> None:
+        """Bring the workers up (worker 0 first: it checks the graph for another fleet).
+        FleetConflict or WorkerError if they cannot serve."""
+        try:
+            conflict = self.registry.claim(self.plan.node_names[0], self.plan.namespaces, self.plan.clock)
+            if conflict is not None:
+                raise FleetConflict(*conflict)
+            if self.processes:
+                first = self._spawn(0, check=True)
+                self._procs.append(first)
+                self._await_ready([first])
+                for j in range(1, self.plan.nworker):
+                    self._procs.append(self._spawn(j, check=False))  # appended at once: close() stops it
+                self._await_ready(self._procs[1:])
+            else:
+                from ros_bridge.worker import Worker  # rclpy comes in only here
+
+                self._worker = Worker(self.plan, 0, self.memory, notify_fd=self._notify_w if self.lockstep else None)
+                conflict = self._worker.check_conflicts()
+                if conflict is not None:
+                    raise FleetConflict(*conflict)
+                self._worker.build()
+                self._worker.start()
+        except BaseException:
+            self.close()
+            raise
+
+    def attach(self) -> None:
+        """Join the loop: first participant (controllers after it see this period's
+        commands), and its gate with lockstep."""
+        self.loop.participants.insert(0, self)
+        if self.lockstep:
+            self.loop.gate = self.gate
+
+    def describe(self) -> str:
+        text = describe(self.plan)
+        workers = f"{self.plan.nworker} bridge worker{'s' if self.plan.nworker > 1 else ''}" if self.processes else ""
+        return text[:-1] + f", {workers})" if workers else text
+
+    @property
+    def worker_pids(self) -> list[int]:
+        """The worker processes' ids (empty when the bridge runs in this process)."""
+        return [p.popen.pid for p in self._procs if p.popen.poll() is None]
+
+    def close(self) -> None:
+        """Stop every worker (they leave the ROS graph; killed after STOP_TIMEOUT) and
+        unlink the shared memory. Safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        if self.loop.gate == self.gate:
+            self.loop.gate = None
+        for p in self._procs:
+            try:
+                os.write(p.wake, b"q")
+            except OSError:
+                pass
+            if not p.ready and p.popen.poll() is None:
+                p.popen.terminate()  # still starting: it reads no pipe yet
+            p.close_pipes()
+        deadline = wallclock.monotonic() + STOP_TIMEOUT
+        for p in self._procs:
+            try:
+                p.popen.wait(max(0.0, deadline - wallclock.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.popen.kill()
+                p.popen.wait()
+        if self._worker is not None:
+            self._worker.close()
+            self._worker = None
+        self.memory.close()
+        self.registry.release()
+        for fd in (self._notify_r, self._notify_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def _spawn(self, index: int, check: bool) -> _Process:
+        wake_r, wake_w = os.pipe()
+        status_r, status_w = os.pipe()
+        root = str(Path(__file__).resolve().parent.parent)
+        env = dict(os.environ)
+        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        argv = [sys.executable, "-m", "ros_bridge.worker", str(index), str(wake_r), str(status_w), str(self._notify_w)]
+        popen = subprocess.Popen(
+            argv + (["--check"] if check else []),
+            stdin=subprocess.PIPE,
+            pass_fds=(wake_r, status_w, self._notify_w),
+            env=env,
+            start_new_session=True,  # Ctrl-C goes to the physics process, which stops the workers
+        )
+        os.close(wake_r)
+        os.close(status_w)
+        try:
+            popen.stdin.write(pickle.dumps(self.plan))
+            popen.stdin.close()
+        except BrokenPipeError:
+            pass
+        except BaseException:  # interrupted (Ctrl-C) while handing the plan over: no orphan
+            popen.kill()
+            popen.wait()
+            for fd in (wake_w, status_r):
+                os.close(fd)
+            raise
+        os.set_blocking(wake_w, False)
+        os.set_blocking(status_r, False)
+        return _Process(index, popen, wake_w, status_r)
+
+    def _await_ready(self, procs: list[_Process]) -> None:
+        deadline = wallclock.monotonic() + START_TIMEOUT
+        waiting = {p.status: p for p in procs}
+        lines: dict[int, bytes] = {fd: b"" for fd in waiting}
+        while waiting:
+            left = deadline - wallclock.monotonic()
+            if left <= 0:
+                raise WorkerError(f"bridge worker {next(iter(waiting.values())).index} did not start in {START_TIMEOUT:g} s")
+            ready, _, _ = select.select(list(waiting), [], [], min(left, 0.2))
+            for fd in ready:
+                chunk = os.read(fd, 4096)
+                lines[fd] += chunk
+                if b"\n" in lines[fd] or not chunk:
+                    p = waiting.pop(fd)
+                    self._started(p, lines[fd].decode(errors="replace").strip())
+            for fd, p in list(waiting.items()):
+                if p.popen.poll() is not None and fd not in ready:
+                    waiting.pop(fd)
+                    self._started(p, lines[fd].decode(errors="replace").strip())
+
+    def _started(self, p: _Process, line: str) -> None:
+        if line == "ready":
+            p.ready = True
+            return
+        if line.startswith("conflict "):
+            kind, _, message = line[len("conflict ") :].partition(" ")
+            raise FleetConflict(kind, message)
+        detail = line[len("error ") :] if line.startswith("error ") else f"exit code {p.popen.poll()}"
+        raise WorkerError(f"bridge worker {p.index} failed to start: {detail}")
+
+    # --- supervision ---
+    def _supervise(self) -> None:
+        now = wallclock.monotonic()
+        if now < self._next_supervise:
+            return
+        self._next_supervise = now + SUPERVISE
+        self.throttle.flush()  # windows that closed: how many lines each held back
+        for j, p in enumerate(self._procs):
+            if not p.ready and p.status >= 0:  # a restarted worker: is it up?
+                try:
+                    line = os.read(p.status, 4096)
+                except BlockingIOError:
+                    line = None
+                if line is not None and line.startswith(b"ready"):
+                    p.ready = True
+                    lo, hi = self.plan.ranges[j]
+                    self.throttle.warn(("worker", j, "back"), f"bridge worker {j} is back: {self._worlds(lo, hi)} are served again")
+            code = p.popen.poll()
+            if code is None:
+                continue
+            lo, hi = self.plan.ranges[j]
+            if p.died_at == 0.0:
+                hold = "go safe after the command timeout" if self.command_timeout else "hold their last commands"
+                self.throttle.warn(
+                    ("worker", j, "died"),
+                    f"bridge worker {j} (pid {p.popen.pid}) died with exit code {code}: {self._worlds(lo, hi)} "
+                    f"{hold}; restarting it",
+                )
+                p.died_at = now
+            if now - p.died_at < min(30.0, 0.5 * 2 ** min(p.restarts, 6)) and p.restarts:
+                continue  # it died again soon after a restart: back off
+            replacement = self._spawn(j, check=False)
+            replacement.restarts = p.restarts + 1
+            p.close_pipes()
+            self._procs[j] = replacement
+
+    def _worlds(self, lo: int, hi: int) -> str:
+        ns = self.namespaces
+        return f"/{ns[lo]}" if hi - lo == 1 else f"/{ns[lo]} .. /{ns[hi - 1]}"
+
+    # --- the loop thread ---
+    def update(self, sim: BatchedSystem, time: float, period: float) -> None:
+        """Requests, commands, timeouts, BAD_COMMAND; the controllers run after this."""
+        self._supervise()
+        good = np.zeros(self.nworld, dtype=bool)
+        rejected = np.zeros(self.nworld, dtype=bool)
+        self._serve_requests(sim, good, rejected)
+        if self._steps and not self.loop.paused:  # unpaused while a step was asked: it ran
+            for j, ticket, _ in self._steps:
+                self._done(j, ticket, time, ok=True)
+            self._steps = []
+
+        new, values = self.commands.take()
+        if new.any():
+            np.copyto(sim.command, values, where=new)
+            got = new.any(axis=1)
+            self._last_command[got] = time
+            self._timed_out[got] = False
+            good |= got
+        for i, reader in enumerate(self._input_readers):
+            if reader is None:
+                continue
+            new, values = reader.take()
+            worlds = np.flatnonzero(new)
+            if worlds.size:
+                refused = self.inputs[i].apply(worlds.astype(np.int64), values[worlds].copy())
+                good[worlds] = True
+                self._refused(i, worlds, refused, good, rejected)
+        counts = self._worker_rejections.copy()
+        rejected |= counts != self._worker_rejections_seen
+        self._worker_rejections_seen = counts
+        for i, taken in self._traj_taken.items():  # this period's trajectories, for the next lockstep wait
+            self._traj_seen[i] = taken.copy()
+        if self.command_timeout is not None:
+            self._check_timeouts(sim, time)
+        # a rejection sets BAD_COMMAND until the world's next good command; when controllers
+        # hold every interface, every period applies theirs
+        self.bad = rejected | (np.zeros_like(self.bad) if self.all_claimed else self.bad & ~good)
+
+    def after_write(self, sim: BatchedSystem, time: float, period: float) -> None:
+        """write() clears BAD_COMMAND for the rows it applied: keep the bridge's; publish."""
+        if self.bad.any():
+            sim.status[self.bad] |= _BAD
+        if self._published_time != time or self._force:
+            self._snapshot(time, force=self._force)
+        self._period += 1
+
+    def idle(self, sim: BatchedSystem, time: float) -> None:
+        """While paused: requests; a reset or a finished step is published at once."""
+        self._gate_since = None
+        self._supervise()
+        if self._serve_requests(sim, None, None) and self._force:
+            for c in self.readers:  # the controllers' copies of the state, for what is published now
+                c.update(sim, time, 0.0)
+        if self._steps and time > self._steps[0][2]:  # the step ran: answer with the new time
+            if self._published_time != time:
+                self._snapshot(time, force=True)
+            for j, ticket, _ in self._steps:
+                self._done(j, ticket, time, ok=True)
+            self._steps = []
+        if self._force or self._published_time != time:
+            self._snapshot(time, force=True)
+        elif self._worker is not None and wallclock.monotonic() >= self._next_idle_tick:
+            self._next_idle_tick = wallclock.monotonic() + IDLE_TICK
+            self._worker.tick()
+
+    def gate(self, sim_time: float) -> bool:
+        """Lockstep: True when every world's command for this period has arrived (or the
+        wait timed out); False to be asked again, so stop() and pause() stay responsive."""
+        if self._closed:
+            return True
+        self._supervise()
+        self._serve_requests(self.sim, None, None)
+        now = wallclock.monotonic()
+        if self._gate_since is None:
+            # show the state this period starts from, so commands can be computed from it
+            self._gate_since = now
+            self.sim.read(sim_time, self.loop.period)
+            self._snapshot(sim_time, force=self._force, every_channel=True)
+        ready = self._ready()
+        if ready.all():
+            self._gate_since = None
+            return True
+        left = self._gate_since + self.lockstep_timeout - now
+        if left > 0:
+            select.select([self._notify_r], [], [], min(left, 0.05))
+            try:
+                os.read(self._notify_r, 65536)
+            except BlockingIOError:
+                pass
+            if self._worker is not None:
+                self._worker.tick()  # in-process: services and housekeeping while we wait
+            ready = self._ready()
+            if ready.all():
+                self._gate_since = None
+                return True
+            if wallclock.monotonic() - self._gate_since < self.lockstep_timeout:
+                return False
+        self._gate_since = None
+        silent = np.flatnonzero(~ready)
+        names = ", ".join(self.namespaces[w] for w in silent[:8]) + (" ..." if silent.size > 8 else "")
+        self.throttle.warn(
+            "lockstep",
+            f"lockstep: no command within {self.lockstep_timeout:g} s from {names} at sim time {sim_time:.3f} s; "
+            "going on with their last command",
+        )
+        return True
+
+    def on_reset(self, sim: BatchedSystem, worlds: np.ndarray | None) -> None:
+        """Worlds were reset (SimLoop.reset): forget their pending commands and timeouts;
+        publish at once."""
+        self.commands.drop(worlds)
+        for reader in self._input_readers:
+            if reader is not None:
+                reader.drop(worlds)
+        sel = slice(None) if worlds is None else worlds
+        for i, counter in self._traj_counters.items():
+            self._traj_seen[i][sel] = counter[sel]
+            self._traj_taken[i][sel] = counter[sel]
+        self._last_command[sel] = np.inf
+        self._timed_out[sel] = False
+        self.bad[sel] = False
+        self._force = True
+
+    # --- requests through the rings ---
+    def _serve_requests(self, sim: BatchedSystem, good: np.ndarray | None, rejected: np.ndarray | None) -> bool:
+        """Carry out what the workers' rings hold; True if there was anything."""
+        anything = False
+        resets: list[tuple[int, int]] = []
+        reset_all = False
+        reset_worlds: list[np.ndarray] = []
+        trajectories: dict[int, list] = {}
+        for j, ring in enumerate(self._rings):
+            for kind, payload in ring.take():
+                anything = True
+                if kind == Kind.TRAJECTORY:
+                    index, batch = decode_trajectories(payload)
+                    trajectories.setdefault(index, []).append(batch)
+                elif kind == Kind.RESET:
+                    ticket, worlds = decode_reset(payload)
+                    resets.append((j, ticket))
+                    if worlds is None:
+                        reset_all = True
+                    else:
+                        reset_worlds.append(worlds)
+                elif kind == Kind.PAUSE:
+                    ticket, value = decode_ticket(payload)
+                    self.loop.pause(bool(value))
+                    self._done(j, ticket, self.loop.sim_time, ok=True)
+                elif kind == Kind.STEP:
+                    ticket, _ = decode_ticket(payload)
+                    if self.loop.paused:
+                        self.loop.single_step()
+                        self._steps.append((j, ticket, self.loop.sim_time))
+                    else:
+                        self._done(j, ticket, self.loop.sim_time, ok=False)
+        reset_rows: np.ndarray | None = None
+        if resets:
+            reset_rows = None if reset_all else np.unique(np.concatenate(reset_worlds))
+            self.loop.reset(reset_rows)  # every participant hears of it (on_reset), this one too
+            for j, ticket in resets:
+                self._done(j, ticket, self.loop.sim_time, ok=True)
+        for index, batches in trajectories.items():
+            batch = concatenate(batches)
+            self._traj_taken[index] = self._traj_counters[index].copy()  # read after the ring: never ahead of it
+            if resets:  # a trajectory that arrived with a reset does not survive it
+                keep = np.zeros(len(batch), bool) if reset_rows is None else ~np.isin(batch.worlds, reset_rows)
+                if not keep.all():
+                    batch = _select(batch, keep)
+            if not len(batch):
+                continue
+            refused = self.inputs[index].apply(batch)
+            if good is not None:
+                good[batch.worlds] = True
+            self._refused(index, batch.worlds, refused, good, rejected)
+        return anything
+
+    def _refused(
+        self, index: int, worlds: np.ndarray, refused: list[tuple[int, str]], good: np.ndarray | None, rejected: np.ndarray | None
+    ) -> None:
+        """Rejections a controller's apply returned: counted, logged, BAD_COMMAND."""
+        topic = self.plan.inputs[index].topic
+        for k, reason in refused:
+            w = int(worlds[k])
+            where = f"/{self.namespaces[w]}/{topic}"
+            self.rejections.put(w, self._period, f"{where}: {reason}")
+            self.throttle.warn((where, "refused"), f"rejected command on {where}: {reason}")
+            if good is not None and rejected is not None:
+                good[w] = False
+                rejected[w] = True
+            else:
+                self.bad[w] = True
+
+    def _done(self, worker: int, ticket: int, time: float, ok: bool) -> None:
+        m = self.memory
+        m["svc.ok"][worker] = int(ok)
+        m["svc.time"][worker] = time
+        m["svc.done"][worker] = max(int(m["svc.done"][worker]), ticket)
+        self._wake(worker)
+
+    # --- publishing ---
+    def _snapshot(self, time: float, force: bool, every_channel: bool = False) -> None:
+        """Copy what is due into the next snapshot buffer and wake the workers.
+        `every_channel`: every channel, wanted or not (the state lockstep waits in, which a
+        subscriber that comes during the wait gets at once)."""
+        m = self.memory
+        n = self._n + 1
+        b = n % 2
+        m["seq"][b] = 2 * n + 1
+        m["meta"][b] = (n, self._period, time, float(force))
+        status = self.sim.status
+        m["status"][b] = status
+        flags = m["flags"][b]
+        flags[:] = 0
+        if self.bad.any():
+            m["status"][b][self.bad] |= _BAD
+            flags[self.bad] |= FLAG_BAD
+        if self._timed_out.any():
+            flags[self._timed_out] |= FLAG_TIMED_OUT
+        if status.any():
+            flags[(status & _FROZEN) != 0] |= FLAG_FROZEN
+        demand = m["demand"].any(axis=0).tolist()
+        written = m["written"][b]
+        k = self._period
+        for c, fill in enumerate(self.fills):
+            if every_channel or (demand[c] and (force or any(k % e == 0 for e in self._channel_every[c]))):
+                fill(self._channels[c][b])
+                written[c] = n
+            else:
+                written[c] = -1
+        m["seq"][b] = 2 * n + 2
+        m["latest"][0] = n
+        self._n = n
+        self._published_time = time
+        self._force = False
+        if self._worker is not None:
+            self._worker.tick()
+        else:
+            for j in range(len(self._procs)):
+                self._wake(j)
+
+    def _wake(self, worker: int) -> None:
+        if self._worker is not None or worker >= len(self._procs):
+            return
+        try:
+            os.write(self._procs[worker].wake, b"w")
+        except (BlockingIOError, OSError):
+            pass  # its pipe is full (it is behind) or it is gone (supervision restarts it)
+
+    # --- lockstep and timeouts ---
+    def _ready(self) -> np.ndarray:
+        """(nworld,) bool: the worlds whose command for this period arrived: a command on
+        every free interface, and an input on every controller topic that takes one."""
+        ready = np.ones(self.nworld, dtype=bool)
+        if self.free.any():
+            ready &= self.commands.fresh()[:, self.free].all(axis=1)
+        for i, counter in self._traj_counters.items():
+            ready &= counter != self._traj_seen[i]
+        for reader in self._input_readers:
+            if reader is not None:
+                ready &= reader.fresh()
+        return ready
+
+    def _check_timeouts(self, sim: BatchedSystem, time: float) -> None:
+        stale = (time - self._last_command > self.command_timeout + 1e-9) & ~self._timed_out
+        if not stale.any():
+            return
+        rows = np.flatnonzero(stale)
+        self._timed_out[rows] = True
+        hold_cols, hold_src, zero_cols = self._safe
+        command = sim.command
+        for c, s in zip(hold_cols, hold_src, strict=True):
+            if self.free[c]:
+                command[rows, c] = sim.state[rows, s]
+        for c in zero_cols:
+            if self.free[c]:
+                command[rows, c] = 0.0
+        names = ", ".join(self.namespaces[w] for w in rows[:8]) + (" ..." if len(rows) > 8 else "")
+        self.throttle.warn(
+            "timeout",
+            f"{names}: no command for {self.command_timeout:g} s (command timeout); "
+            "holding position, zero velocity and effort",
+        )
+
+
+def _safe_plan(sim: BatchedSystem) -> tuple[list[int], list[int], list[int]]:
+    """Where each command goes on a command timeout: position interfaces to the measured
+    joint position (state column), velocity and effort to zero."""
+    spec = sim.spec
+    column = {name: i for i, name in enumerate(spec.state_interfaces)}
+    hold_cols, hold_src, zero_cols = [], [], []
+    for c, cmd in enumerate(spec.commands):
+        if cmd.kind is InterfaceKind.POSITION:
+            src = column.get(f"{cmd.joint}/position") if cmd.joint else None
+            if src is not None:  # a position actuator without a measured joint holds its command
+                hold_cols.append(c)
+                hold_src.append(src)
+        else:
+            zero_cols.append(c)
+    return hold_cols, hold_src, zero_cols
+
+
+def _select(batch: Any, keep: np.ndarray) -> Any:
+    """The trajectories of a batch where `keep` is true."""
+    from batchsim.controllers.topics import TrajectoryBatch
+
+    idx = np.flatnonzero(keep)
+    counts = np.diff(batch.offsets)[idx]
+    point_rows = np.concatenate([np.arange(batch.offsets[k], batch.offsets[k + 1]) for k in idx]) if idx.size else np.zeros(0, np.intp)
+    return TrajectoryBatch(
+        worlds=batch.worlds[idx],
+        start_time=batch.start_time[idx],
+        joint_mask=batch.joint_mask[idx],
+        offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        times=batch.times[point_rows],
+        positions=batch.positions[point_rows],
+        velocities=None if batch.velocities is None else batch.velocities[point_rows],
+        has_velocities=None if batch.has_velocities is None else batch.has_velocities[idx],
+        accelerations=None if batch.accelerations is None else batch.accelerations[point_rows],
+        has_accelerations=None if batch.has_accelerations is None else batch.has_accelerations[idx],
+    )
+
+
+def _stderr(line: str) -> None:
+    print(f"batchsim: warning: {line}", file=sys.stderr, flush=True)

@@ -1,0 +1,117 @@
+"""The bridge's options, typed: what `batchsim`'s ROS flags become, and what Python callers pass.
+
+No rclpy here. Errors (batchsim.loop.OptionError) name the option as Python spells it
+(`publish_rate`); the command line maps them onto its flags (`--publish-rate`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import os
+
+from batchsim.loop import OptionError, RateError, whole_ratio
+from ros_bridge.naming import DEFAULT_TEMPLATE
+
+#: worlds up to which the bridge runs inside the physics process by default
+INPROCESS_WORLDS = 64
+#: worlds per worker the default aims at, on a host with cores to spare
+WORLDS_PER_WORKER = 128
+
+
+class Reliability(enum.Enum):
+    """QoS reliability of every topic."""
+
+    RELIABLE = "reliable"
+    BEST_EFFORT = "best_effort"
+
+    @classmethod
+    def _missing_(cls, value: object) -> Reliability | None:
+        if isinstance(value, str):
+            for member in cls:
+                if member.value == value.lower():
+                    return member
+        return None
+
+
+@dataclasses.dataclass(frozen=True)
+class BridgeOptions:
+    """How the fleet is bridged to ROS 2.
+
+    Attributes:
+      namespace: per-world namespace template with `{i}` (the world's number, offset included).
+      publish_rate: Hz for joint_states, typed messages and controllers' outputs; None: every
+        control period. Must divide the control rate.
+      sensor_rate: Hz for `sensors/<sensor>` topics; None: the publish rate.
+      qos_depth, reliability: QoS of every topic; None: the MJCF's mujoco.ros2 keys, else 10, reliable.
+      command_timeout: sim seconds without a command after which a commanded world goes safe; None: never.
+      lockstep: each control period waits until every world's command (or controller input) arrived.
+      lockstep_timeout: wall seconds a lockstep period waits before it goes on.
+      workers: bridge worker processes; 0 runs the bridge in the physics process; None: chosen
+        from the world count and the cores (`default_workers`).
+      world_offset: the number of this process's first world (`world_{offset}` ...), for a
+        fleet spread over several processes or hosts.
+      clock: publish `/clock`; exactly one process of a fleet may.
+      startup_check: wall seconds to watch the ROS graph at start for another process that
+        already serves these namespaces or `/clock` (on another host: one on this host is
+        found at once, ros_bridge/registry.py; with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+        there is no other host to watch for).
+      all_topics: create every per-world topic at start, also those otherwise created when
+        someone asks (sensors, actuator commands, controller_state): for tools that list
+        topics before they subscribe, at the price of discovery time in large fleets.
+    """
+
+    namespace: str = DEFAULT_TEMPLATE
+    publish_rate: float | None = None
+    sensor_rate: float | None = None
+    qos_depth: int | None = None
+    reliability: Reliability | None = None
+    command_timeout: float | None = None
+    lockstep: bool = False
+    lockstep_timeout: float = 1.0
+    workers: int | None = None
+    world_offset: int = 0
+    clock: bool = True
+    startup_check: float = 1.0
+    all_topics: bool = False
+
+    def check(self) -> None:
+        """OptionError for a value no fleet can run with (rates are checked against the loop later)."""
+        for option in ("publish_rate", "sensor_rate"):
+            value = getattr(self, option)
+            if value is not None and not (value > 0 and math.isfinite(value)):
+                raise OptionError(option, f"must be > 0 Hz, got {value:g}")
+        if self.qos_depth is not None and self.qos_depth < 1:
+            raise OptionError("qos_depth", f"must be >= 1, got {self.qos_depth}")
+        if self.command_timeout is not None and not self.command_timeout > 0:
+            raise OptionError("command_timeout", f"must be > 0 seconds, got {self.command_timeout:g}")
+        if not self.lockstep_timeout > 0:
+            raise OptionError("lockstep_timeout", f"must be > 0 seconds, got {self.lockstep_timeout:g}")
+        if self.workers is not None and self.workers < 0:
+            raise OptionError("workers", f"must be >= 0 (0: in the physics process), got {self.workers}")
+        if self.world_offset < 0:
+            raise OptionError("world_offset", f"must be >= 0, got {self.world_offset}")
+
+    def decimation(self, option: str, control_rate: float) -> int:
+        """Control periods between two messages of `publish_rate` or `sensor_rate`."""
+        rate = getattr(self, option)
+        if option == "sensor_rate" and rate is None:
+            rate = self.publish_rate
+        if rate is None:
+            return 1
+        try:
+            return whole_ratio(control_rate, rate)
+        except RateError as e:
+            raise OptionError(option, f"{rate:g} Hz must divide the control rate {control_rate:g} Hz ({e.hint})") from None
+
+
+def default_workers(nworld: int, cores: int | None = None) -> int:
+    """Bridge worker processes for `nworld` worlds: none (the physics process publishes) up to
+    INPROCESS_WORLDS worlds or on a machine of 2 cores or fewer; else one per
+    WORLDS_PER_WORKER worlds, at most half the cores (the rest serve the physics and the
+    fleet's own subscribers)."""
+    cores = cores or os.cpu_count() or 1
+    if nworld <= INPROCESS_WORLDS or cores <= 2:
+        return 0
+    return max(1, min(cores // 2, -(-nworld // WORLDS_PER_WORKER)))

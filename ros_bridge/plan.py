@@ -1,0 +1,453 @@
+"""What the bridge serves, as data: the plan every worker gets once, at start. No rclpy here.
+
+The physics process builds a `FleetPlan` from the system, the options and the controllers'
+declared topics (batchsim/controllers/topics.py): per-world outputs (topic, message type,
+which columns of which channel fill which field), inputs (topic, kind, slot block), the
+names, QoS and rates, and the shared-memory layout. Channels are (nworld, width) float64
+arrays the physics process copies into shared memory at publish periods, when some
+worker has a subscriber for an output that reads them.
+
+Adding a message kind to the bridge (a sensor's Image, LaserScan, ...): give it a row in
+ros_bridge/messages.py's FIELD_PATHS (which message fields each named field fills) and
+add an output here whose channel the physics process fills.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from batchsim.controllers import ControllerManager
+from batchsim.controllers.topics import OUTPUT_FIELDS, Input, MessageKind, Output
+from batchsim.hardware import BatchedSystem
+from ros_bridge.commands import rejection_arrays, slot_arrays
+from ros_bridge.memory import Layout, ring_arrays
+from ros_bridge.naming import ros_names, world_namespaces
+from ros_bridge.options import BridgeOptions, Reliability
+from ros_bridge.sensor_topics import SensorPlan, sensor_plan
+
+#: outputs whose topic holds one of these parts are created only when a subscriber appears
+ON_REQUEST_PARTS = ("/controller_state/",)
+RING_BASE = 1 << 18  # bytes of each worker's ring, plus RING_PER_WORLD per world it serves
+RING_PER_WORLD = 8 << 10
+
+
+@dataclasses.dataclass(frozen=True)
+class Field:
+    """A named field of an output's message, filled from columns of a channel (-1: NaN)."""
+
+    name: str
+    channel: int
+    columns: tuple[int, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputSpec:
+    """A message every world publishes on `<ns>/<topic>`.
+
+    Attributes:
+      topic: under the world's namespace.
+      msg_type: "sensor_msgs/msg/JointState", ...
+      fields: what fills the message (ros_bridge/messages.py maps names onto message fields).
+      names: JointState.name.
+      frame_id, child_frame_id: "{ns}" is replaced by the world's namespace.
+      covariance: (part, values) constants.
+      every: control periods between two messages.
+      on_request: the publisher is created only once a subscriber appears in the graph.
+      state: the world's state: not published while the world is frozen (diverged), so a
+        frozen world's stamps stop rather than look alive.
+    """
+
+    topic: str
+    msg_type: str
+    fields: tuple[Field, ...]
+    names: tuple[str, ...] = ()
+    frame_id: str = ""
+    child_frame_id: str = ""
+    covariance: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    every: int = 1
+    on_request: bool = False
+    state: bool = True
+
+    @property
+    def channels(self) -> frozenset[int]:
+        return frozenset(f.channel for f in self.fields)
+
+
+@dataclasses.dataclass(frozen=True)
+class InputSpec:
+    """Messages every world takes on `<ns>/<topic>`, for a controller.
+
+    Attributes:
+      topic: under the world's namespace.
+      kind: the message kind.
+      slots: the name of its slot block in shared memory (fixed-size kinds) and of its
+        arrival counters (every kind).
+      width: values per message of a fixed-size kind.
+      joints: JOINT_TRAJECTORY: the controller's joints.
+      max_points: JOINT_TRAJECTORY: more points are rejected (0: no limit).
+      controller: the controller's name, for messages.
+    """
+
+    topic: str
+    kind: MessageKind
+    slots: str
+    width: int = 0
+    joints: tuple[str, ...] = ()
+    max_points: int = 0
+    controller: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class ChannelSpec:
+    name: str
+    width: int
+
+
+@dataclasses.dataclass
+class FleetPlan:
+    """Everything a worker needs, picklable. World indices are local (0 .. nworld-1); the
+    world's number in names is `world_offset + index`.
+
+    Attributes:
+      nworld: worlds of this process.
+      world_offset: the number of its first world.
+      namespaces: (nworld,) without leading `/`.
+      ranges: per worker, its worlds [lo, hi).
+      node_names: per worker, its node's name.
+      qos_depth, reliability: every topic's QoS.
+      control_rate: Hz.
+      interfaces: command interface names, in column order.
+      actuator_topics: per column, the `actuators/<name>/command` token.
+      owners: per column, the controller that claimed it, or "".
+      channels, outputs, inputs: see above.
+      lockstep: workers nudge the loop when a command arrives.
+      clock: worker 0 publishes /clock.
+      startup_check: seconds worker 0 watches the graph for another fleet at start.
+      all_topics: create the on-request topics at start too.
+      sensors: cameras and lidars (ros_bridge/sensor_topics.py), or None.
+      layout, memory_name: the shared arrays.
+    """
+
+    nworld: int
+    world_offset: int
+    namespaces: list[str]
+    ranges: list[tuple[int, int]]
+    node_names: list[str]
+    qos_depth: int
+    reliability: Reliability
+    control_rate: float
+    interfaces: list[str]
+    actuator_topics: list[str]
+    owners: list[str]
+    channels: list[ChannelSpec]
+    outputs: list[OutputSpec]
+    inputs: list[InputSpec]
+    lockstep: bool
+    clock: bool
+    startup_check: float
+    all_topics: bool = False
+    sensors: SensorPlan | None = None
+    layout: Layout = dataclasses.field(init=False)
+    memory_name: str | None = None
+
+    def __post_init__(self) -> None:
+        n, ncmd, nw = self.nworld, len(self.interfaces), len(self.ranges)
+        arrays: list[tuple[str, tuple[int, ...], str]] = [
+            ("latest", (1,), "i8"),  # the newest complete snapshot
+            ("seq", (2,), "i8"),  # per buffer: 2n+1 while snapshot n is written, 2n+2 when done
+            ("meta", (2, 4), "f8"),  # per buffer: snapshot n, period index, sim time, forced
+            ("status", (2, n), "u1"),  # Status bits, the bridge's BAD_COMMAND included
+            ("flags", (2, n), "u1"),  # FLAG_* bits
+            ("written", (2, max(1, len(self.channels))), "i8"),  # snapshot that wrote each channel
+            ("demand", (nw, max(1, len(self.channels))), "u1"),  # per worker: channels it publishes
+            ("svc.issued", (nw,), "i8"),  # per worker: its last service ticket
+            ("svc.done", (nw,), "i8"),  # per worker: the last ticket the loop carried out
+            ("svc.time", (nw,), "f8"),  # the sim time when it did
+            ("svc.ok", (nw,), "i8"),  # 1 when it succeeded
+            ("beat", (nw,), "i8"),  # per worker: ticks served
+        ]
+        for c, ch in enumerate(self.channels):
+            arrays.append((f"ch{c}", (2, n, ch.width), "f8"))
+        arrays += slot_arrays("cmd", n, ncmd, per_column=True)
+        for spec in self.inputs:
+            if spec.kind is MessageKind.JOINT_TRAJECTORY:
+                arrays.append((f"{spec.slots}.seq", (n,), "i8"))
+            else:
+                arrays += slot_arrays(spec.slots, n, spec.width, per_column=False)
+        arrays += rejection_arrays("rej", n) + rejection_arrays("hrej", n)
+        if self.sensors is not None:
+            arrays += self.sensors.arrays(n)
+        for j, (lo, hi) in enumerate(self.ranges):
+            arrays += ring_arrays(f"ring{j}", RING_BASE + RING_PER_WORLD * (hi - lo))
+        self.layout = Layout(arrays)
+
+    @property
+    def nworker(self) -> int:
+        return len(self.ranges)
+
+    def world_name(self, index: int) -> str:
+        return self.namespaces[index]
+
+
+FLAG_BAD = 1  # the bridge rejected this world's last command
+FLAG_TIMED_OUT = 2  # --command-timeout: the world went safe
+FLAG_FROZEN = 4  # diverged or overflowed: frozen until reset
+
+ChannelFill = Callable[[np.ndarray], None]
+
+
+def split(nworld: int, parts: int) -> list[tuple[int, int]]:
+    """`parts` contiguous ranges of worlds, as even as can be."""
+    parts = max(1, min(parts, nworld))
+    edges = np.linspace(0, nworld, parts + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def build_plan(
+    sim: BatchedSystem,
+    control_rate: float,
+    options: BridgeOptions,
+    manager: ControllerManager | None,
+    nworker: int,
+    extra_outputs: Sequence[Output] = (),
+) -> tuple[FleetPlan, list[ChannelFill], list[Input]]:
+    """The plan for `sim`, with, for the physics side, each channel's fill function
+    (`fill(out (nworld, width))`, called in the loop thread) and each input's `apply`.
+
+    `extra_outputs` are more per-world messages (a sensor's), served like a controller's."""
+    options.check()
+    spec = sim.spec
+    nworld = sim.nworld
+    plugin = spec.ros
+    namespaces = world_namespaces(
+        nworld, options.namespace, plugin.ros_namespace if plugin else None, offset=options.world_offset
+    )
+    depth = options.qos_depth if options.qos_depth is not None else (plugin.topic_queue_size if plugin else 10)
+    reliability = options.reliability or Reliability(plugin.topic_reliability if plugin else "reliable")
+    publish_every = options.decimation("publish_rate", control_rate)
+    sensor_every = options.decimation("sensor_rate", control_rate)
+
+    channels: list[ChannelSpec] = []
+    fills: list[ChannelFill] = []
+    outputs: list[OutputSpec] = []
+
+    def channel(name: str, width: int, fill: ChannelFill) -> int:
+        channels.append(ChannelSpec(name, width))
+        fills.append(fill)
+        return len(channels) - 1
+
+    topics = [c.topics() for c in manager] if manager is not None else []
+    owners = [""] * len(spec.commands)
+    if manager is not None:
+        for c, name in enumerate(spec.command_interfaces):
+            owners[c] = manager.owner.get(name, "")
+
+    # <ns>/joint_states, unless a joint state broadcaster publishes it
+    joints = [j.name for j in spec.joints]
+    if joints and not any(t.replaces_joint_states for t in topics):
+        column = {name: i for i, name in enumerate(spec.state_interfaces)}
+        gather = np.array(
+            [column.get(f"{j}/{kind}", -1) for kind in ("position", "velocity", "effort") for j in joints], dtype=np.intp
+        )
+        missing = gather < 0
+        src = np.maximum(gather, 0)
+
+        def fill_joint_states(out: np.ndarray) -> None:
+            np.take(sim.state, src, axis=1, out=out)
+            if missing.any():
+                out[:, missing] = np.nan
+
+        ch = channel("joint_states", len(gather), fill_joint_states)
+        nj = len(joints)
+        fields = tuple(
+            Field(kind, ch, tuple(range(k * nj, (k + 1) * nj)))
+            for k, kind in enumerate(("position", "velocity", "effort"))
+            if not missing[k * nj : (k + 1) * nj].all()
+        )
+        outputs.append(OutputSpec("joint_states", "sensor_msgs/msg/JointState", fields, names=tuple(joints), every=publish_every))
+
+    # sensors/<sensor>, and typed sensors per site: created on request
+    if spec.sensors:
+        offsets = np.cumsum([0] + [s.dim for s in spec.sensors])
+        sensors = list(spec.sensors)
+
+        def fill_sensors(out: np.ndarray) -> None:
+            data = sim.sensordata
+            for s, lo, hi in zip(sensors, offsets[:-1], offsets[1:], strict=True):
+                out[:, lo:hi] = data[s.name]
+
+        ch = channel("sensordata", int(offsets[-1]), fill_sensors)
+        at = {s.name: int(lo) for s, lo in zip(sensors, offsets[:-1], strict=True)}
+        for s, token in zip(sensors, ros_names([s.name for s in sensors]), strict=True):
+            cols = tuple(range(at[s.name], at[s.name] + s.dim))
+            kind = "std_msgs/msg/Float64" if s.dim == 1 else "std_msgs/msg/Float64MultiArray"
+            outputs.append(
+                OutputSpec(f"sensors/{token}", kind, (Field("data", ch, cols),), every=sensor_every, on_request=True)
+            )
+        by_site: dict[str, dict[str, str]] = {}
+        for s in sensors:
+            if s.objname and s.type in ("framequat", "gyro", "accelerometer", "force", "torque"):
+                by_site.setdefault(s.objname, {}).setdefault(s.type, s.name)
+        for site, kinds in by_site.items():
+            token = ros_names([site])[0]
+
+            def cols(name: str, order: Sequence[int]) -> tuple[int, ...]:
+                return tuple(at[name] + k for k in order)
+
+            frame = f"{{ns}}/{site}"
+            if "gyro" in kinds and "accelerometer" in kinds:
+                fields = [
+                    Field("angular_velocity", ch, cols(kinds["gyro"], (0, 1, 2))),
+                    Field("linear_acceleration", ch, cols(kinds["accelerometer"], (0, 1, 2))),
+                ]
+                covariance: tuple[tuple[str, tuple[float, ...]], ...] = ()
+                if "framequat" in kinds:  # MuJoCo (w, x, y, z) -> ROS (x, y, z, w)
+                    fields.insert(0, Field("orientation", ch, cols(kinds["framequat"], (1, 2, 3, 0))))
+                else:  # REP 145: no orientation estimate
+                    covariance = (("orientation", (-1.0,) + (0.0,) * 8),)
+                outputs.append(
+                    OutputSpec(
+                        f"sensors/{token}/imu", "sensor_msgs/msg/Imu", tuple(fields), frame_id=frame,
+                        covariance=covariance, every=publish_every, on_request=True,
+                    )
+                )  # fmt: skip
+            if "force" in kinds and "torque" in kinds:
+                fields = [
+                    Field("force", ch, cols(kinds["force"], (0, 1, 2))),
+                    Field("torque", ch, cols(kinds["torque"], (0, 1, 2))),
+                ]
+                outputs.append(
+                    OutputSpec(
+                        f"sensors/{token}/wrench", "geometry_msgs/msg/WrenchStamped", tuple(fields),
+                        frame_id=frame, every=publish_every, on_request=True,
+                    )
+                )  # fmt: skip
+
+    # <ns>/odom: the floating base, its twist in the body frame
+    if spec.floating_base is not None:
+
+        def fill_base(out: np.ndarray) -> None:
+            base = sim.base_state  # pose, world-frame linear and body-frame angular velocity
+            out[:, 0:7] = base[:, 0:7]
+            out[:, 7:10] = rotate_inverse(base[:, 3:7], base[:, 7:10])
+            out[:, 10:13] = base[:, 10:13]
+
+        ch = channel("base", 13, fill_base)
+        fields = (
+            Field("position", ch, (0, 1, 2)),
+            Field("orientation", ch, (4, 5, 6, 3)),
+            Field("linear", ch, (7, 8, 9)),
+            Field("angular", ch, (10, 11, 12)),
+        )
+        outputs.append(
+            OutputSpec(
+                "odom", "nav_msgs/msg/Odometry", fields, frame_id="{ns}/odom",
+                child_frame_id=f"{{ns}}/{spec.floating_base.body}", every=publish_every,
+            )
+        )  # fmt: skip
+
+    # the controllers' outputs and inputs
+    inputs: list[Input] = []
+    input_specs: list[InputSpec] = []
+    for out in extra_outputs:
+        outputs.append(_controller_output(out, nworld, publish_every, channel))
+    for t in topics:
+        for out in t.outputs:
+            outputs.append(_controller_output(out, nworld, publish_every, channel))
+        for inp in t.inputs:
+            slots = f"in{len(inputs)}"
+            width = 0 if inp.kind is MessageKind.JOINT_TRAJECTORY else inp.row_width()
+            inputs.append(inp)
+            input_specs.append(
+                InputSpec(inp.topic, inp.kind, slots, width, tuple(inp.joints), inp.max_points, t.controller)
+            )
+
+    nworker = max(1, nworker)
+    ranges = split(nworld, nworker)
+    offset = options.world_offset
+    plan = FleetPlan(
+        nworld=nworld,
+        world_offset=offset,
+        namespaces=namespaces,
+        ranges=ranges,
+        node_names=[f"batchsim_{offset + lo}_{offset + hi - 1}" for lo, hi in ranges],
+        qos_depth=depth,
+        reliability=reliability,
+        control_rate=control_rate,
+        interfaces=list(spec.command_interfaces),
+        actuator_topics=ros_names([c.actuator for c in spec.commands]),
+        owners=owners,
+        channels=channels,
+        outputs=outputs,
+        inputs=input_specs,
+        lockstep=options.lockstep,
+        clock=options.clock,
+        startup_check=options.startup_check,
+        all_topics=options.all_topics,
+        sensors=sensor_plan(sim),
+    )
+    return plan, fills, inputs
+
+
+def _controller_output(out: Output, nworld: int, every: int, channel: Callable[[str, int, ChannelFill], int]) -> OutputSpec:
+    """A controller's Output as a channel (its fields side by side) and an OutputSpec."""
+    widths = OUTPUT_FIELDS[out.kind]
+    sample = out.read()
+    layout: list[tuple[str, int, int]] = []  # (field, first column, width)
+    at = 0
+    for name, width in widths.items():
+        if width is None:
+            width = len(out.names)
+        if name not in sample and out.kind is not MessageKind.JOINT_STATE:
+            continue
+        layout.append((name, at, width))
+        at += width
+
+    def fill(dst: np.ndarray) -> None:
+        values = out.read()
+        for name, lo, width in layout:
+            v = values.get(name)
+            if v is None:
+                dst[:, lo : lo + width] = np.nan  # a JointState field read() left out this time
+            else:
+                dst[:, lo : lo + width] = v
+
+    ch = channel(f"{out.topic}", at, fill)
+    fields = tuple(Field(name, ch, tuple(range(lo, lo + w))) for name, lo, w in layout)
+    return OutputSpec(
+        out.topic,
+        out.kind.value,
+        fields,
+        names=tuple(out.names),
+        frame_id=out.frame_id,
+        child_frame_id=out.child_frame_id,
+        covariance=tuple((k, tuple(float(x) for x in v)) for k, v in out.covariance.items()),
+        every=every,
+        on_request=any(part in f"/{out.topic}/" for part in ON_REQUEST_PARTS),
+        state=True,
+    )
+
+
+def rotate_inverse(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
+    """Rotate (n, 3) world vectors into the frames of (n, 4) unit quaternions (w, x, y, z)."""
+    w = quat[:, :1]
+    u = -quat[:, 1:4]  # the conjugate rotates world -> body
+    t = 2.0 * np.cross(u, vec)
+    return vec + w * t + np.cross(u, t)
+
+
+def describe(plan: FleetPlan, publish_every: int | None = None) -> str:
+    """`/world_0 .. /world_15 (publish 100 Hz, QoS reliable depth 10, 2 bridge workers)`."""
+    ns = plan.namespaces
+    where = f"/{ns[0]}" if len(ns) == 1 else f"/{ns[0]} .. /{ns[-1]}"
+    every = publish_every or next((o.every for o in plan.outputs if o.topic == "joint_states"), 1)
+    parts = [f"publish {plan.control_rate / every:g} Hz", f"QoS {plan.reliability.value} depth {plan.qos_depth}"]
+    if plan.lockstep:
+        parts.append("lockstep")
+    if not plan.clock:
+        parts.append("no /clock")
+    return f"{where} ({', '.join(parts)})"
+

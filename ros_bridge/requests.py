@@ -1,0 +1,165 @@
+"""What a worker hands the loop through its ring: trajectory batches and service requests,
+as flat records. No rclpy here.
+
+A trajectory record is a whole TrajectoryBatch (every trajectory a worker received since
+its last record), so the loop reads NumPy views of it, one record per worker and flush,
+never one Python object per world. A service request carries a ticket; the loop writes
+the last ticket it carried out back to shared memory, and the worker answers then.
+"""
+
+from __future__ import annotations
+
+import enum
+import struct
+
+import numpy as np
+
+from batchsim.controllers.topics import TrajectoryBatch
+
+
+class Kind(enum.IntEnum):
+    """Record kinds in a worker's ring (0 is the ring's padding)."""
+
+    TRAJECTORY = 1
+    RESET = 2
+    PAUSE = 3
+    STEP = 4
+
+
+_TRAJ = struct.Struct("<iiiiii")  # input index, trajectories, points, joints, has velocities, has accelerations
+_TICKET = struct.Struct("<qq")  # ticket, argument
+
+
+def _pad8(n: int) -> int:
+    return -(-n // 8) * 8
+
+
+def encode_trajectories(input_index: int, batch: TrajectoryBatch) -> bytes:
+    """One record holding a whole batch."""
+    n, nj = batch.joint_mask.shape
+    npoint = int(batch.offsets[-1])
+    has_v = batch.velocities is not None
+    has_a = batch.accelerations is not None
+    parts = [
+        _TRAJ.pack(input_index, n, npoint, nj, int(has_v), int(has_a)),
+        np.asarray(batch.worlds, np.int64).tobytes(),
+        np.asarray(batch.start_time, np.float64).tobytes(),
+        np.asarray(batch.offsets, np.int64).tobytes(),
+        np.asarray(batch.times, np.float64).tobytes(),
+        np.ascontiguousarray(batch.positions, np.float64).tobytes(),
+    ]
+    flags = np.zeros((3, n), np.uint8)
+    flags[1] = batch.has_velocities if batch.has_velocities is not None else False
+    flags[2] = batch.has_accelerations if batch.has_accelerations is not None else False
+    mask = np.asarray(batch.joint_mask, np.uint8).tobytes()
+    parts.append(mask + bytes(_pad8(len(mask)) - len(mask)))
+    flag_bytes = flags[1:].tobytes()
+    parts.append(flag_bytes + bytes(_pad8(len(flag_bytes)) - len(flag_bytes)))
+    if has_v:
+        parts.append(np.ascontiguousarray(batch.velocities, np.float64).tobytes())
+    if has_a:
+        parts.append(np.ascontiguousarray(batch.accelerations, np.float64).tobytes())
+    head = parts[0]
+    return head + bytes(_pad8(len(head)) - len(head)) + b"".join(parts[1:])
+
+
+def decode_trajectories(payload: np.ndarray) -> tuple[int, TrajectoryBatch]:
+    """(input index, the batch) of a TRAJECTORY record's payload (views of it)."""
+    index, n, npoint, nj, has_v, has_a = _TRAJ.unpack_from(payload, 0)
+    at = _pad8(_TRAJ.size)
+
+    def take(count: int, dtype: str, pad: bool = False) -> np.ndarray:
+        nonlocal at
+        size = count * np.dtype(dtype).itemsize
+        out = payload[at : at + size].view(dtype)
+        at += _pad8(size) if pad else size
+        return out
+
+    worlds = take(n, "i8")
+    start = take(n, "f8")
+    offsets = take(n + 1, "i8")
+    times = take(npoint, "f8")
+    positions = take(npoint * nj, "f8").reshape(npoint, nj)
+    mask = take(n * nj, "u1", pad=True).reshape(n, nj).astype(bool)
+    flags = take(2 * n, "u1", pad=True).reshape(2, n).astype(bool)
+    velocities = take(npoint * nj, "f8").reshape(npoint, nj) if has_v else None
+    accelerations = take(npoint * nj, "f8").reshape(npoint, nj) if has_a else None
+    batch = TrajectoryBatch(
+        worlds=worlds,
+        start_time=start,
+        joint_mask=mask,
+        offsets=offsets,
+        times=times,
+        positions=positions,
+        velocities=velocities,
+        has_velocities=flags[0],
+        accelerations=accelerations,
+        has_accelerations=flags[1],
+    )
+    return index, batch
+
+
+def concatenate(batches: list[TrajectoryBatch]) -> TrajectoryBatch:
+    """One batch of several, in order (a later trajectory for a world replaces an earlier one)."""
+    if len(batches) == 1:
+        return batches[0]
+    offsets = [np.zeros(1, np.int64)]
+    base = 0
+    for b in batches:
+        offsets.append(np.asarray(b.offsets[1:], np.int64) + base)
+        base += int(b.offsets[-1])
+    npoint, nj = base, batches[0].joint_mask.shape[1]
+
+    def points(attr: str) -> np.ndarray | None:
+        if all(getattr(b, attr) is None for b in batches):
+            return None
+        out = np.full((npoint, nj), np.nan)
+        at = 0
+        for b in batches:
+            size = int(b.offsets[-1])
+            if getattr(b, attr) is not None:
+                out[at : at + size] = getattr(b, attr)
+            at += size
+        return out
+
+    def flags(attr: str) -> np.ndarray:
+        return np.concatenate(
+            [getattr(b, attr) if getattr(b, attr) is not None else np.zeros(len(b), bool) for b in batches]
+        )
+
+    return TrajectoryBatch(
+        worlds=np.concatenate([b.worlds for b in batches]),
+        start_time=np.concatenate([b.start_time for b in batches]),
+        joint_mask=np.concatenate([b.joint_mask for b in batches]),
+        offsets=np.concatenate(offsets),
+        times=np.concatenate([b.times for b in batches]),
+        positions=np.concatenate([b.positions for b in batches]),
+        velocities=points("velocities"),
+        has_velocities=flags("has_velocities"),
+        accelerations=points("accelerations"),
+        has_accelerations=flags("has_accelerations"),
+    )
+
+
+def encode_reset(ticket: int, worlds: list[int] | None) -> bytes:
+    """Reset the listed worlds (local indices), or every world (None)."""
+    if worlds is None:
+        return _TICKET.pack(ticket, -1)
+    return _TICKET.pack(ticket, len(worlds)) + np.asarray(worlds, np.int64).tobytes()
+
+
+def encode_ticket(ticket: int, argument: int = 0) -> bytes:
+    """A PAUSE (argument 1: pause, 0: run) or STEP request."""
+    return _TICKET.pack(ticket, argument)
+
+
+def decode_ticket(payload: np.ndarray) -> tuple[int, int]:
+    return _TICKET.unpack_from(payload, 0)
+
+
+def decode_reset(payload: np.ndarray) -> tuple[int, np.ndarray | None]:
+    """(ticket, the worlds to reset or None for all)."""
+    ticket, n = _TICKET.unpack_from(payload, 0)
+    if n < 0:
+        return ticket, None
+    return ticket, payload[_TICKET.size : _TICKET.size + 8 * n].view(np.int64).copy()

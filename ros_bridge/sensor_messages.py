@@ -1,0 +1,136 @@
+"""Image, CameraInfo, LaserScan and PointCloud2 as CDR bytes, built in bulk (worker side).
+
+A sensor message's serialized layout is fixed per world once its frame and sizes are set:
+only the stamp (bytes 4..12, right after the encapsulation header: every message here
+starts with a std_msgs/Header) and the payload (Image.data, LaserScan.ranges,
+PointCloud2.data) change. So each world's message is serialized once, with a marker
+payload, and split into a prefix and a suffix around it; a publish is then
+
+    framing.payload(row, sec, nanosec, memoryview(rgb[row]))   # prefix + payload + suffix: one copy
+
+handed to `Publisher.publish(bytes)` (no message object, no per-field conversion).
+benchmarks/sensor_messages.py measures this against filling message objects.
+"""
+
+from __future__ import annotations
+
+import array
+import struct
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2, PointField
+
+from batchsim.sensors import Camera, Lidar
+
+_STAMP = struct.Struct("<iI")
+_MARK_SEC, _MARK_NANOSEC = 0x5A3C5A3C, 0x2A5C2A5C
+STAMP_AT = 4  # bytes: the header's stamp, after the 4-byte CDR encapsulation header
+
+
+class Framing:
+    """Per row (world), the serialized bytes before and after a message's payload.
+
+    Args:
+      messages: one message per row, its header's frame set, its payload field set by
+        `fill(msg, marker)` to `nbytes` marker bytes (nothing when nbytes is 0).
+      fill: sets the payload field of a message from bytes.
+      nbytes: the payload's size in bytes.
+      topic: for errors.
+    """
+
+    def __init__(self, messages: Sequence[Any], fill: Callable[[Any, bytes], None] | None, nbytes: int, topic: str):
+        marker = ((np.arange(nbytes, dtype=np.uint32) * 7 + 13) % 251 + 3).astype(np.uint8).tobytes()
+        stamp = _STAMP.pack(_MARK_SEC, _MARK_NANOSEC)
+        self.nbytes = nbytes
+        self.prefixes: list[bytearray] = []
+        self.suffixes: list[bytes] = []
+        for msg in messages:
+            msg.header.stamp.sec, msg.header.stamp.nanosec = _MARK_SEC, _MARK_NANOSEC
+            if fill is not None:
+                fill(msg, marker)
+            data = bytes(serialize_message(msg))
+            if data[STAMP_AT : STAMP_AT + 8] != stamp:
+                raise RuntimeError(f"{topic}: the header's stamp is not where CDR puts it")
+            at = data.find(marker, STAMP_AT + 8) if nbytes else len(data)
+            if at < 0 or (nbytes and data.find(marker, at + 1) >= 0):
+                raise RuntimeError(f"{topic}: cannot lay out the serialized message (payload marker not found once)")
+            self.prefixes.append(bytearray(data[:at]))
+            self.suffixes.append(data[at + nbytes :])
+
+    def payload(self, row: int, sec: int, nanosec: int, data: Any = b"") -> bytes:
+        """Row `row`'s message stamped (sec, nanosec), its payload `data` (any buffer of nbytes)."""
+        prefix = self.prefixes[row]
+        _STAMP.pack_into(prefix, STAMP_AT, sec, nanosec)
+        return b"".join((prefix, data, self.suffixes[row])) if self.nbytes else bytes(prefix)
+
+
+def _set_data(msg: Any, marker: bytes) -> None:
+    msg.data = marker
+
+
+def _set_ranges(msg: Any, marker: bytes) -> None:
+    msg.ranges = array.array("f", marker)
+
+
+def image_framing(camera: Camera, frames: Sequence[str], depth: bool, topic: str) -> Framing:
+    """Image rgb8 (or 32FC1 depth in metres) of `camera`, one row per frame id."""
+    h, w = camera.height, camera.width
+    step = w * (4 if depth else 3)
+    messages = []
+    for frame in frames:
+        msg = Image(height=h, width=w, encoding="32FC1" if depth else "rgb8", is_bigendian=0, step=step)
+        msg.header.frame_id = frame
+        messages.append(msg)
+    return Framing(messages, _set_data, h * step, topic)
+
+
+def camera_info_framing(camera: Camera, frames: Sequence[str], topic: str) -> Framing:
+    """CameraInfo of `camera` (constant but for the stamp), one row per frame id."""
+    info = camera.info
+    messages = []
+    for frame in frames:
+        msg = CameraInfo(height=info.height, width=info.width, distortion_model=info.distortion_model)
+        msg.d = [float(v) for v in info.d]
+        msg.k = [float(v) for v in info.k]
+        msg.r = [float(v) for v in info.r]
+        msg.p = [float(v) for v in info.p]
+        msg.header.frame_id = frame
+        messages.append(msg)
+    return Framing(messages, None, 0, topic)
+
+
+def laser_scan_framing(lidar: Lidar, rate: float, frames: Sequence[str], topic: str) -> Framing:
+    """LaserScan of a 2D lidar; its payload is the (nray,) float32 ranges, REP 117."""
+    messages = []
+    for frame in frames:
+        msg = LaserScan(
+            angle_min=float(lidar.angle_min),
+            angle_max=float(lidar.angle_max),
+            angle_increment=float(lidar.angle_increment),
+            time_increment=0.0,  # every ray of a scan is cast at once
+            scan_time=1.0 / rate,
+            range_min=float(lidar.range_min),
+            range_max=float(lidar.range_max),
+        )
+        msg.header.frame_id = frame
+        messages.append(msg)
+    return Framing(messages, _set_ranges, 4 * lidar.nray, topic)
+
+
+def point_cloud_framing(lidar: Lidar, frames: Sequence[str], topic: str) -> Framing:
+    """PointCloud2 of a 3D lidar: x, y, z float32, organized (height rows, width columns),
+    not dense (NaN where a ray had no return)."""
+    fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
+    messages = []
+    for frame in frames:
+        msg = PointCloud2(
+            height=lidar.nrow, width=lidar.ncol, fields=fields, is_bigendian=False, point_step=12,
+            row_step=12 * lidar.ncol, is_dense=False,
+        )  # fmt: skip
+        msg.header.frame_id = frame
+        messages.append(msg)
+    return Framing(messages, _set_data, 12 * lidar.nray, topic)
+

@@ -1,0 +1,261 @@
+"""The bridge's parts without a ROS graph: names, command rules and slots, the log throttle,
+shared memory and its rings, request records, options and the plan."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import batchsim
+from batchsim.controllers import default_controllers, load_controllers
+from batchsim.controllers.topics import TrajectoryBatch
+from batchsim.loop import OptionError, RateError, SimLoop, whole_ratio
+from ros_bridge.commands import (
+    Problem,
+    RejectionWriter,
+    SlotReader,
+    SlotWriter,
+    check_single,
+    check_vector,
+    slot_arrays,
+)
+from ros_bridge.memory import Layout, Memory, Ring, ring_arrays
+from ros_bridge.naming import NamingError, ros_name, ros_names, world_namespaces
+from ros_bridge.options import BridgeOptions, default_workers
+from ros_bridge.plan import build_plan, split
+from ros_bridge.requests import (
+    Kind,
+    concatenate,
+    decode_reset,
+    decode_trajectories,
+    encode_reset,
+    encode_trajectories,
+)
+from ros_bridge.throttle import LogThrottle
+
+IFACES = [f"joint{i}/position" for i in range(1, 4)]
+
+
+# --- naming ---
+def test_ros_names_are_tokens_and_distinct():
+    assert ros_name("wrist.force") == "wrist_force"
+    assert ros_name("3d cam") == "_3d_cam"
+    assert ros_names(["a.b", "a-b", "a_b"]) == ["a_b", "a_b_2", "a_b_3"]
+
+
+def test_world_namespaces_with_offset_and_the_plugin_namespace():
+    assert world_namespaces(3) == ["world_0", "world_1", "world_2"]
+    assert world_namespaces(2, "robot_{i}/", offset=4096) == ["robot_4096", "robot_4097"]
+    assert world_namespaces(1, plugin_namespace="car/") == ["car"]
+    assert world_namespaces(1, plugin_namespace="car/", offset=3) == ["world_3"]  # a fleet's member, not the plugin's
+
+
+@pytest.mark.parametrize(
+    "nworld, template, message",
+    [
+        (2, "robot", "namespace 'robot' has no {i}: 2 worlds need distinct namespaces"),
+        (2, "r_{i}_{j}", "namespace 'r_{i}_{j}': only {i} may be substituted"),
+        (2, "{i}", "namespace '{i}' gives '0', which is not a valid ROS namespace"),
+    ],
+)
+def test_bad_namespace_templates_name_the_option_not_a_flag(nworld, template, message):
+    with pytest.raises(NamingError) as e:
+        world_namespaces(nworld, template)
+    assert str(e.value).startswith(message)
+    assert e.value.option == "namespace" and "--" not in str(e.value)
+    assert e.value.named("--namespace").startswith("--" + message)
+
+
+# --- commands ---
+def test_check_vector_names_the_problem():
+    owners = [""] * 3
+    assert check_vector(np.array([0.1, 0.2, 0.3]), IFACES, owners) is None
+    assert check_vector(np.array([0.1, 0.2]), IFACES, owners)[0] is Problem.LENGTH
+    problem, text = check_vector(np.array([0.1, math.nan, 0.3]), IFACES, owners)
+    assert problem is Problem.NOT_FINITE and "joint2/position" in text
+    problem, text = check_vector(np.array([0.1, 0.2, -2e10]), IFACES, owners)
+    assert problem is Problem.RANGE and "joint3/position" in text
+    problem, text = check_vector(np.array([0.1, 0.2, 0.3]), IFACES, ["", "jtc", ""])
+    assert problem is Problem.CLAIMED and "'jtc'" in text
+
+
+def test_check_single_names_the_problem():
+    owners = ["", "jtc", ""]
+    assert check_single(0.5, 0, IFACES, owners) is None
+    assert check_single(math.inf, 0, IFACES, owners)[0] is Problem.NOT_FINITE
+    assert check_single(1e11, 2, IFACES, owners)[0] is Problem.RANGE
+    assert check_single(0.5, 1, IFACES, owners) == (Problem.CLAIMED, "joint2/position is claimed by controller 'jtc'")
+
+
+def test_slots_deliver_each_command_once_and_a_new_writer_replays_nothing():
+    layout = Layout(slot_arrays("cmd", 4, 3, per_column=True))
+    memory = Memory.create(layout, shared=False)
+    writer, reader = SlotWriter(memory, "cmd"), SlotReader(memory, "cmd")
+    writer.put_row(2, np.array([1.0, 2.0, 3.0]))
+    writer.put(3, 1, -0.5)
+    assert reader.fresh()[2].all() and reader.fresh()[3, 1]
+    new, values = reader.take()
+    assert new.sum() == 4 and new[2].all() and new[3, 1]
+    np.testing.assert_array_equal(values[2], [1, 2, 3])
+    assert not reader.take()[0].any()  # taken once
+    # a restarted worker writes through the same counters: only its own commands are new
+    again = SlotWriter(memory, "cmd")
+    again.put(0, 0, 9.0)
+    new, _ = reader.take()
+    assert new.sum() == 1 and new[0, 0]
+    # what arrived for reset worlds is dropped
+    again.put_row(1, np.zeros(3))
+    reader.drop(np.array([1]))
+    assert not reader.take()[0].any()
+
+
+def test_rejections_keep_a_count_and_the_last_reason_per_world():
+    memory = Memory.create(Layout([("rej.count", (2,), "i8"), ("rej.period", (2,), "i8"), ("rej.text", (2, 240), "u1")]), shared=False)
+    rejections = RejectionWriter(memory, "rej")
+    rejections.put(1, 7, "/world_1/commands: 2 values, expected 6")
+    rejections.put(1, 9, "/world_1/commands: value nan is not finite")
+    assert int(rejections.count[1]) == 2 and int(rejections.period[1]) == 9
+    assert rejections.reason(1) == "/world_1/commands: value nan is not finite"
+    assert rejections.reason(0) == "" and int(rejections.count[0]) == 0
+    rejections.put(0, 1, "x" * 1000)  # clipped, never spilling into the next world's field
+    assert len(rejections.reason(0)) == 239 and rejections.reason(1).startswith("/world_1")
+
+
+# --- the log throttle ---
+def test_throttle_keys_on_topic_and_reason_and_reports_what_it_held_back():
+    now = [0.0]
+    lines: list[str] = []
+    throttle = LogThrottle(lines.append, interval=2.0, clock=lambda: now[0])
+    topic = "/world_1/commands"
+    assert throttle.warn((topic, Problem.NOT_FINITE), "nan")
+    assert throttle.warn((topic, Problem.NOT_FINITE.value + "x"), "inf")  # another reason: its own line
+    assert throttle.warn((topic, Problem.LENGTH), "length")
+    for _ in range(3):
+        now[0] += 0.1
+        assert not throttle.warn((topic, Problem.NOT_FINITE), "nan again")
+    assert lines == ["nan", "inf", "length"]
+    now[0] = 1.9
+    throttle.flush()
+    assert len(lines) == 3  # the window is still open
+    now[0] = 2.05
+    throttle.flush()
+    assert lines[3] == "nan again (3 lines like it held back in 2 s)"
+    throttle.flush()
+    assert len(lines) == 4  # reported once; the quiet windows closed silently
+    assert throttle.warn((topic, Problem.NOT_FINITE), "nan after the window")
+
+
+# --- shared memory and rings ---
+def test_shared_memory_is_seen_by_an_attached_view_and_unlinked_by_its_creator():
+    layout = Layout([("a", (4, 3), "f8"), ("b", (5,), "u1")])
+    created = Memory.create(layout)
+    attached = Memory.attach(layout, created.name)
+    created["a"][2] = [1.0, 2.0, 3.0]
+    attached["b"][4] = 7
+    np.testing.assert_array_equal(attached["a"][2], [1, 2, 3])
+    assert created["b"][4] == 7
+    assert created.name.startswith("batchsim_")
+    attached.close()
+    created.close()
+    with pytest.raises(FileNotFoundError):
+        Memory.attach(layout, created.name)
+
+
+def test_ring_wraps_refuses_when_full_and_continues_across_writers():
+    layout = Layout(ring_arrays("r", 256))
+    memory = Memory.create(layout, shared=False)
+    producer, consumer = Ring(memory, "r"), Ring(memory, "r")
+    got = []
+    for k in range(40):  # many times around the ring
+        assert producer.put(1, np.full(5 + k % 7, k, np.uint8))
+        if k % 3 == 2:
+            got += [(kind, int(p[0])) for kind, p in consumer.take()]
+    got += [(kind, int(p[0])) for kind, p in consumer.take()]
+    assert got == [(1, k) for k in range(40)]
+    while producer.put(2, b"12345678"):
+        pass
+    assert not producer.put(2, b"x")  # full: refused, nothing written
+    assert len(list(consumer.take())) > 0 and producer.put(2, b"x")
+    assert not producer.put(1, bytes(200))  # more than half the ring: never fits
+    assert [p[:1].tobytes() for _, p in Ring(memory, "r").take()] == [b"x"]
+
+
+def test_trajectory_batches_survive_the_ring_and_concatenate():
+    nj = 3
+    batch = TrajectoryBatch(
+        worlds=np.array([4, 1]),
+        start_time=np.array([0.0, 2.5]),
+        joint_mask=np.array([[True, True, False], [True, True, True]]),
+        offsets=np.array([0, 2, 3]),
+        times=np.array([0.5, 1.0, 0.25]),
+        positions=np.arange(9.0).reshape(3, nj),
+        velocities=np.ones((3, nj)),
+        has_velocities=np.array([False, True]),
+    )
+    index, back = decode_trajectories(np.frombuffer(encode_trajectories(2, batch), np.uint8))
+    assert index == 2
+    for field in ("worlds", "start_time", "joint_mask", "offsets", "times", "positions", "velocities", "has_velocities"):
+        np.testing.assert_array_equal(getattr(back, field), getattr(batch, field), err_msg=field)
+    assert back.accelerations is None and not back.has_accelerations.any()
+    both = concatenate([back, back])
+    assert both.worlds.tolist() == [4, 1, 4, 1] and both.offsets.tolist() == [0, 2, 3, 5, 6]
+    np.testing.assert_array_equal(both.positions[3:], batch.positions)
+
+
+def test_reset_requests_carry_their_worlds():
+    assert decode_reset(np.frombuffer(encode_reset(5, None), np.uint8)) == (5, None)
+    ticket, worlds = decode_reset(np.frombuffer(encode_reset(6, [3, 9]), np.uint8))
+    assert ticket == 6 and worlds.tolist() == [3, 9]
+    assert Kind.TRAJECTORY == 1
+
+
+# --- options, rates, the plan ---
+def test_one_rate_check_for_control_publish_and_update_rates():
+    assert whole_ratio(1000.0, 100.0) == 10
+    with pytest.raises(RateError) as e:
+        whole_ratio(100.0, 30.0)
+    assert e.value.nearest == pytest.approx(33.333333) and e.value.hint == "try 33.3333 Hz"
+    sim = batchsim.make("arm", 1, "cpu")
+    with pytest.raises(OptionError) as e:
+        SimLoop(sim, control_rate=300)
+    assert e.value.option == "control_rate" and "--" not in str(e.value)
+    assert e.value.named("--control-rate").startswith("--control-rate 300 Hz is not a whole number of physics steps")
+    with pytest.raises(OptionError) as e:
+        BridgeOptions(publish_rate=30).decimation("publish_rate", 100.0)
+    assert str(e.value) == "publish_rate 30 Hz must divide the control rate 100 Hz (try 33.3333 Hz)"
+    assert BridgeOptions(publish_rate=25).decimation("sensor_rate", 100.0) == 4  # follows the publish rate
+
+
+def test_default_workers_grow_with_the_fleet_and_the_cores():
+    assert default_workers(16, cores=16) == 0
+    assert default_workers(1024, cores=2) == 0
+    assert default_workers(256, cores=16) == 2
+    assert default_workers(1024, cores=16) == 8
+    assert default_workers(8192, cores=16) == 8
+    assert split(10, 3) == [(0, 3), (3, 7), (7, 10)] and split(2, 5) == [(0, 1), (1, 2)]
+
+
+def test_plan_of_the_arm_with_its_controllers():
+    sim = batchsim.make("arm", 8, "cpu")
+    sim.configure()
+    manager = load_controllers(default_controllers("arm"), sim.spec, 8)
+    plan, fills, inputs = build_plan(sim, 100.0, BridgeOptions(publish_rate=50, world_offset=100), manager, 3)
+    assert plan.namespaces[0] == "world_100" and plan.node_names == ["batchsim_100_102", "batchsim_103_104", "batchsim_105_107"]
+    topics = {o.topic: o for o in plan.outputs}
+    # the broadcaster's joint_states replace the bridge's own: one joint_states output
+    assert [o.topic for o in plan.outputs].count("joint_states") == 1
+    assert not topics["joint_states"].on_request and topics["joint_states"].every == 2
+    assert topics["sensors/wrist_force"].on_request and topics["sensors/wrist_force"].msg_type == "std_msgs/msg/Float64MultiArray"
+    assert topics["joint_trajectory_controller/controller_state/error"].on_request
+    assert not topics["wrist_ft_broadcaster/wrench"].on_request
+    assert set(plan.owners) == {"joint_trajectory_controller"}
+    assert [i.topic for i in plan.inputs] == ["joint_trajectory_controller/joint_trajectory"]
+    assert len(inputs) == 1 and len(fills) == len(plan.channels)
+    for c, fill in enumerate(fills):  # every channel fills from the live arrays
+        out = np.full((8, plan.channels[c].width), -7.0)
+        fill(out)
+        assert not (out == -7.0).all(), plan.channels[c].name
+    with pytest.raises(OptionError, match="qos_depth must be >= 1"):
+        build_plan(sim, 100.0, BridgeOptions(qos_depth=0), manager, 1)
