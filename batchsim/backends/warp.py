@@ -31,10 +31,12 @@ who stay on the device.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
 import os
+import threading
 from typing import Any, ClassVar
 
 import mujoco
@@ -61,6 +63,10 @@ from batchsim.model import RobotSpec  # noqa: E402
 from batchsim.sensors import Camera, Lidar  # noqa: E402
 
 log = logging.getLogger("batchsim.warp")
+
+# Warp captures and replays graphs on its CPU device through process-wide state: two systems
+# doing so from two threads at once (the shards of one fleet on CPU devices) crash the process
+_CPU_GRAPHS = threading.Lock()
 
 _O = mjw.OverflowType
 # Buffers that, once full, drop contacts or constraints: the world's results are wrong.
@@ -530,7 +536,8 @@ class WarpSystem(DeviceSystem):
             # grown, and every world back at the period's start: run the period again
 
     def _launch(self, nstep: int) -> None:
-        with wp.ScopedDevice(self.device):
+        serial = _CPU_GRAPHS if self.options["graph"] and not self._cuda else contextlib.nullcontext()
+        with wp.ScopedDevice(self.device), serial:
             if self.options["graph"]:
                 graph = self._graphs.get(nstep)
                 if graph is None:
