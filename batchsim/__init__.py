@@ -20,6 +20,7 @@ import numpy as np
 from batchsim import controllers  # batchsim.controllers.load_controllers after `import batchsim`
 from batchsim.backends import Backend, BackendUnavailable, backend_class, resolve
 from batchsim.backends.sharded import ShardedSystem
+from batchsim.failures import set_log_dir
 from batchsim.hardware import (
     BatchedSystem,
     CallbackReturn,
@@ -52,6 +53,7 @@ __all__ = [
     "load",
     "make",
     "model_names",
+    "set_log_dir",
 ]
 
 
@@ -85,8 +87,8 @@ def make(
       sensors: cameras, lidars and sensor noise (batchsim.sensors.config): a SensorConfig, a
         YAML file (mujoco_ros2_control's plugin parameters and/or batchsim's `sensors:`
         block) or its parsed mapping. None: the model's cameras and lidars, no noise.
-      **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `device`, `graph`
-        for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
+      **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `max_data_bytes`,
+        `device`, `graph` for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
         runs: always so on cpu, slower on a GPU). With "auto", those the chosen backend does
         not take are ignored, and `sim.reason` says so.
 

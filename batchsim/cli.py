@@ -69,8 +69,8 @@ def run_parser() -> argparse.ArgumentParser:
         default=None,
         help="mjx/warp: spread the worlds over several GPUs: all, or indices 0,1,... (default: one device)",
     )
-    p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world (default: sized from a CPU rollout)")
-    p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world (default: sized likewise)")
+    p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world to start with (default: sized from a CPU rollout; grows when it overflows)")
+    p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world to start with (default: sized likewise; grows likewise)")
     p.add_argument(
         "--deterministic",
         action="store_true",
@@ -86,6 +86,12 @@ def run_parser() -> argparse.ArgumentParser:
         "--skip-memory-check",
         action="store_true",
         help="start even where the memory estimate says the fleet will not fit",
+    )
+    p.add_argument(
+        "--log-dir",
+        default=None,
+        help="where MuJoCo's own log (MUJOCO_LOG.TXT) goes (default: $XDG_STATE_HOME/batchsim, "
+        "never the working directory)",
     )
     p.add_argument("--version", action="version", version=version_line())
     ros = p.add_argument_group("ROS 2 bridge")
@@ -276,6 +282,8 @@ def build(args: argparse.Namespace, progress: startup.Progress | None = None) ->
             options[option] = getattr(args, flag)
     if args.deterministic:
         options["deterministic"] = True
+    if args.log_dir is not None:  # else make() places it, away from the working directory
+        batchsim.set_log_dir(args.log_dir)
     if args.devices is not None:
         names = [d.strip() for d in args.devices.split(",") if d.strip()]
         options["devices"] = "all" if names == ["all"] else [int(d) if d.isdigit() else d for d in names]

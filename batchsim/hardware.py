@@ -12,18 +12,26 @@ enforced here, once; an illegal transition raises `LifecycleError` naming the st
 - `command` `(nworld, ncommand)` float64, applied by `write(time, period)` into `ctrl`;
   `write` does nothing unless ACTIVE.
 - `step(nstep)`, `reset(worlds=None)`, `status` `(nworld,)` bitmask of `Status`,
-  `sensordata[name]` `(nworld, dim)`, `time` `(nworld,)`.
+  `sensordata[name]` `(nworld, dim)`, `time` `(nworld,)` float64 on every backend.
 - `render(camera, worlds=None)` -> `(rgb (n, H, W, 3) uint8, depth (n, H, W) float32)`,
   `scan(lidar, worlds=None)` -> `(n, nray) float32`, `sensors` (batchsim.sensors): cameras,
   lidars and sensor noise; `true_state` / `true_sensordata` without the noise.
 
+A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule
+on every backend: until `reset` lists it, it reads the noise-free values `read()` would have
+shown just before the `step()` call in which it failed (state, base_state, sensordata, time),
+with no fresh sensor noise, and the failure is logged once, naming the world and the reason
+(`batchsim.failures`).
+
 A backend subclasses `BatchedSystem` and implements the engine hooks (`_open`, `_close`,
-`_upload_ctrl`, `_download`, `_step`, `_reset`); everything a user sees, checks and
-bookkeeping included, lives here so that every backend behaves the same.
+`_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, and `_park` where the engine
+cannot skip a world); everything a user sees, checks and bookkeeping included, lives here
+so that every backend behaves the same.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -32,6 +40,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 
 from batchsim.actuation import Actuation
+from batchsim.failures import FailureLog, ensure_log_dir
 from batchsim.model import RobotSpec, StateColumn, initial_command
 from batchsim.sensors import Camera, Lidar, LidarKind, SensorConfig, SensorSuite
 
@@ -72,7 +81,10 @@ class Status(enum.IntFlag):
 
 
 FROZEN = Status.DIVERGED | Status.OVERFLOW
+_FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
 MAX_COMMAND = 1e10  # MuJoCo's mjMAXVAL: a ctrl beyond it trips mjWARN_BADCTRL
+#: the engine fields read() gathers state interfaces from (`StateColumn.source`), in this order
+READ_FIELDS = ("qpos", "qvel", "qfrc_actuator", "sensordata")
 
 
 class LifecycleError(RuntimeError):
@@ -216,6 +228,28 @@ class SensorData(Mapping[str, np.ndarray]):
         return len(self._views)
 
 
+@dataclasses.dataclass
+class StepFailures:
+    """The worlds that failed during one `_step(nstep)` call, as a backend reports them.
+
+    Attributes:
+      worlds: (k,) int64, the worlds; none of them was frozen before the call.
+      status: (k,) uint8, their Status bits: DIVERGED and/or OVERFLOW.
+      reasons: k strings, why each failed (MuJoCo's warning text where there is one).
+      readings: (k, ncolumn) float64, their read() columns (`state`, then `base_state`) as
+        they were at the start of the call.
+      sensordata: (k, nsensordata) float64, likewise.
+      time: (k,) float64, likewise.
+    """
+
+    worlds: np.ndarray
+    status: np.ndarray
+    reasons: list[str]
+    readings: np.ndarray
+    sensordata: np.ndarray
+    time: np.ndarray
+
+
 class Frames(NamedTuple):
     """What `render` returns: RGB (n, H, W, 3) uint8 and depth (n, H, W) float32, metres."""
 
@@ -231,7 +265,8 @@ class BatchedSystem(SystemInterface):
       state: (nworld, nstate) float64, the state interfaces, refreshed by read().
       command: (nworld, ncommand) float64, the command interfaces, applied by write().
       status: (nworld,) uint8 bitmask of Status, current after step() and write().
-      time: (nworld,) float64 simulation time of each world, refreshed by read().
+      time: (nworld,) float64 simulation time of each world, refreshed by read(); float64 on
+        every backend (the GPU engines' own clocks are float32).
       sensordata: every MJCF sensor by name, (nworld, dim) each, refreshed by read().
       base_state: (nworld, 13) float64, the floating base (`spec.floating_base`) as MuJoCo's
         free joint holds it: position (3) and orientation quaternion (w, x, y, z) in the
@@ -281,7 +316,7 @@ class BatchedSystem(SystemInterface):
         )
         # state columns gathered per source field: (state columns, field indices)
         self._gather: list[tuple[str, np.ndarray, np.ndarray]] = []
-        for source in ("qpos", "qvel", "qfrc_actuator", "sensordata"):
+        for source in READ_FIELDS:
             cols = [i for i, c in enumerate(self._columns) if c.source == source]
             if cols:
                 idx = [self._columns[i].index for i in cols]
@@ -290,6 +325,16 @@ class BatchedSystem(SystemInterface):
         self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
         self._ctrl_cols = _as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster
         self._opened = False
+        # what frozen worlds show until reset: their readings from the start of the failing step()
+        self._held_readings = np.zeros_like(self._readings)
+        self._held_sensordata = np.zeros_like(self._sensor_host)
+        self._held_time = np.zeros_like(self.time)
+        self._none_frozen = np.zeros(self.nworld, bool)
+        self._none_frozen.setflags(write=False)
+        # whether the host readings are the engine's current values (read() since the last step())
+        self._readings_current = False
+        self._failure_log = FailureLog(self.name, self.nworld, mujoco_logs=self.name == "cpu")
+        ensure_log_dir()  # MuJoCo's own log out of the working directory, unless placed already
         self._sensor_config: SensorConfig | None = None
         self._sensors: SensorSuite | None = None
 
@@ -343,11 +388,12 @@ class BatchedSystem(SystemInterface):
 
     # --- read / write ---
     def read(self, time: float | None = None, period: float | None = None) -> ReturnType:
-        """Refresh `state`, `sensordata` and `time` from the simulation (INACTIVE or ACTIVE)."""
+        """Refresh `state`, `base_state`, `sensordata` and `time` from the simulation (INACTIVE
+        or ACTIVE). Frozen worlds show what they read before the step() in which they failed."""
         if self._lifecycle not in (S.INACTIVE, S.ACTIVE):
             return ReturnType.OK
         self._refresh()
-        self.sensors.add_reading_noise(self._readings, self._sensor_host)
+        self._add_noise()
         return ReturnType.OK
 
     def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
@@ -404,7 +450,10 @@ class BatchedSystem(SystemInterface):
     def set_command(self, command: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
         """Copy `command` into `self.command` for all or the listed worlds; `(ncommand,)` broadcasts.
 
-        Raises ValueError naming the expected and actual shapes.
+        `command` is `(nworld, ncommand)`, or `(len(worlds), ncommand)` with row i for
+        `worlds[i]`, in the order given (a `(nworld,)` bool mask lists worlds in order).
+        Raises ValueError naming the expected and actual shapes, a world out of range, or a
+        world listed twice.
         """
         command = np.asarray(command, dtype=np.float64)
         rows = self._worlds(worlds)
@@ -419,11 +468,37 @@ class BatchedSystem(SystemInterface):
 
     # --- stepping ---
     def step(self, nstep: int = 1) -> None:
-        """Advance every world `nstep` physics steps; frozen (diverged, overflowed) worlds stay put."""
+        """Advance every world `nstep` physics steps; frozen (diverged, overflowed) worlds stay put.
+
+        A world that fails during the call gets DIVERGED or OVERFLOW in `status`, is logged
+        once (rate-limited over worlds) and is frozen: it reads as it did before this call
+        until `reset` lists it.
+        """
         self._require("step", frozenset({S.INACTIVE, S.ACTIVE}))
         if nstep < 1:
             raise ValueError(f"nstep must be >= 1, got {nstep}")
-        self._step(int(nstep))
+        self._failure_log.flush()
+        failures = self._step(int(nstep))
+        self._readings_current = False
+        if failures is not None and failures.worlds.size:
+            self._freeze(failures)
+
+    def _freeze(self, failures: StepFailures) -> None:
+        """Hold what the failed worlds read before the failing step, mark them, park them, say so."""
+        worlds = failures.worlds
+        self._held_readings[worlds] = failures.readings
+        self._held_sensordata[worlds] = failures.sensordata
+        self._held_time[worlds] = failures.time
+        self.status[worlds] |= failures.status.astype(np.uint8)
+        self._park(worlds)
+        what = ["diverged" if s & Status.DIVERGED else "overflowed" for s in failures.status]
+        self._failure_log.report(worlds, what, failures.reasons, failures.time)
+
+    def number_worlds_as(self, offset: int, fleet_size: int) -> None:
+        """Name world i as `offset + i` of `fleet_size` in failure log lines: for a system that
+        is one shard of a larger fleet (batchsim.backends.sharded)."""
+        self._failure_log.offset = int(offset)
+        self._failure_log.nworld = int(fleet_size)
 
     def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
         """Reset all worlds, or only the listed ones, to the initial state and command.
@@ -435,6 +510,7 @@ class BatchedSystem(SystemInterface):
             raise LifecycleError("cannot reset: the system is UNCONFIGURED; configure it first")
         rows = self._worlds(worlds)
         sel = np.arange(self.nworld) if rows is None else rows
+        self.status[sel] = 0  # first: the engine's reset sees them unfrozen
         self._reset(rows)
         self._command[sel] = self._initial_command
         ctrl = self._ctrl_host()
@@ -444,9 +520,8 @@ class BatchedSystem(SystemInterface):
         else:
             self._actuation.reset(sel, ctrl, self._command)
         self._upload_ctrl()
-        self.status[sel] = 0
         self._refresh()
-        self.sensors.add_reading_noise(self._readings, self._sensor_host)
+        self._add_noise()
 
     # --- cameras, lidars and sensor noise (batchsim.sensors) ---
     @property
@@ -544,41 +619,19 @@ class BatchedSystem(SystemInterface):
     def _close_sensors(self) -> None:
         """Free renderers and ray-casting buffers (before _close)."""
 
-    # --- parked worlds: for engines that step every world (GPU backends) ---
-    def _init_parking(self) -> None:
-        """A frozen world on an engine that cannot skip it is parked: reset on the device with
-        its ctrl held at zero, while read() keeps showing what it read when it failed."""
-        self._parked = np.zeros(self.nworld, bool)
-        self._held = {
-            "readings": np.zeros_like(self._readings),
-            "sensordata": np.zeros_like(self._sensor_host),
-            "time": np.zeros_like(self.time),
-        }
-
-    def _hold_readings(self, worlds: np.ndarray) -> None:
-        """Keep what `worlds` read now (call right after a refresh) and mark them parked."""
-        for key, array in (("readings", self._readings), ("sensordata", self._sensor_host), ("time", self.time)):
-            self._held[key][worlds] = array[worlds]
-        self._parked[worlds] = True
-
-    def _unpark(self, worlds: np.ndarray | None) -> None:
-        """Reset worlds (None: all) are live again."""
-        self._parked[slice(None) if worlds is None else worlds] = False
-
-    def _show_held_readings(self) -> None:
-        """After a refresh: parked worlds show their held readings, not the device's rows."""
-        if self._parked.any():
-            parked = self._parked
-            self._readings[parked] = self._held["readings"][parked]
-            self._sensor_host[parked] = self._held["sensordata"][parked]
-            self.time[parked] = self._held["time"][parked]
-
     @property
     def frozen(self) -> np.ndarray:
         """(nworld,) bool: the worlds step() leaves alone until they are reset."""
-        return (self.status & np.uint8(FROZEN)) != 0
+        if not self.status.any():  # the usual case, on every read() and step(): no allocation
+            return self._none_frozen
+        return (self.status & _FROZEN_BITS) != 0
 
     def _worlds(self, worlds: Sequence[int] | np.ndarray | None) -> np.ndarray | None:
+        """World indices as given, (k,) int64, in the caller's order; None for all.
+
+        Raises ValueError for a world out of range, a world listed twice, or a mask of the
+        wrong shape.
+        """
         if worlds is None:
             return None
         rows = np.asarray(worlds)
@@ -586,24 +639,76 @@ class BatchedSystem(SystemInterface):
             if rows.shape != (self.nworld,):
                 raise ValueError(f"a world mask must have shape ({self.nworld},), got {rows.shape}")
             return np.flatnonzero(rows)
-        rows = np.unique(rows.astype(np.int64).reshape(-1))
-        if rows.size and (rows[0] < 0 or rows[-1] >= self.nworld):
-            bad = rows[0] if rows[0] < 0 else rows[-1]
-            raise ValueError(f"world {bad} is out of range: worlds are 0..{self.nworld - 1}")
+        if rows.size and not np.issubdtype(rows.dtype, np.integer):
+            raise ValueError(f"worlds must be integers or a ({self.nworld},) bool mask, got {rows.dtype}")
+        rows = rows.astype(np.int64).reshape(-1)
+        bad = rows[(rows < 0) | (rows >= self.nworld)]
+        if bad.size:
+            raise ValueError(f"world {bad[0]} is out of range: worlds are 0..{self.nworld - 1}")
+        unique, counts = np.unique(rows, return_counts=True)
+        if unique.size < rows.size:
+            raise ValueError(f"world {unique[counts > 1][0]} is listed more than once")
         return rows
 
-    def _apply_signs(self) -> None:
-        """After a gather: columns read negated (mujoco_ros2_control's force/torque sensors)."""
+    def _apply_signs(self, readings: np.ndarray | None = None) -> None:
+        """Negate the columns read negated (mujoco_ros2_control's force/torque sensors) in
+        readings gathered from the engine: `readings` (k, ncolumn), or None: `_readings`
+        right after `_read()`. Called once per gather, never on rows already signed."""
         if self._negated.size:
-            self._readings[:, self._negated] *= -1.0
+            target = self._readings if readings is None else readings
+            target[:, self._negated] *= -1.0
 
     def _refresh(self) -> None:
-        fields = self._download()
-        for source, cols, idx in self._gather:
-            self._readings[:, cols] = fields[source][:, idx]
+        """The engine's current readings into the host arrays, signed, then frozen worlds' held ones."""
+        self._read()
         self._apply_signs()
-        self._sensor_host[:] = fields["sensordata"]
-        self.time[:] = fields["time"]
+        self._readings_current = True
+        self._show_held()
+
+    def _show_held(self) -> None:
+        """Frozen worlds' rows of the host arrays: what they hold (noise-free)."""
+        if not self.status.any():  # the usual case: nothing held
+            return
+        frozen = self.frozen
+        if frozen.any():
+            self._readings[frozen] = self._held_readings[frozen]
+            self._sensor_host[frozen] = self._held_sensordata[frozen]
+            self.time[frozen] = self._held_time[frozen]
+
+    def _add_noise(self) -> None:
+        """Sensor noise on the refreshed host readings (read() and reset(), after `_refresh`),
+        the truth kept for `true_state`; a frozen world keeps its noise-free held readings
+        rather than fresh noise on every read."""
+        noise = self.sensors.reading_noise
+        if noise is None:
+            return
+        self.sensors.add_reading_noise(self._readings, self._sensor_host)
+        if self.status.any():
+            frozen = self.frozen
+            if frozen.any():
+                truth_readings, truth_sensordata = noise.truth
+                self._readings[frozen] = truth_readings[frozen]
+                self._sensor_host[frozen] = truth_sensordata[frozen]
+
+    def _noise_free(self) -> tuple[np.ndarray, np.ndarray]:
+        """The last read()'s readings `(nworld, ncolumn)` and sensordata `(nworld, nsensordata)`
+        without sensor noise: the truth buffers, or the host arrays where there is no noise."""
+        truth = self._truth()
+        return (self._readings, self._sensor_host) if truth is None else truth
+
+    def _gather_fields(
+        self,
+        fields: Mapping[str, np.ndarray],
+        readings: np.ndarray,
+        sensordata: np.ndarray,
+        time: np.ndarray,
+    ) -> None:
+        """Host engine fields (`READ_FIELDS` `(nworld, ...)` and `time` `(nworld,)`) into
+        readings `(nworld, ncolumn)`, sensordata `(nworld, nsensordata)` and time `(nworld,)`."""
+        for source, cols, idx in self._gather:
+            readings[:, cols] = fields[source][:, idx]
+        sensordata[:] = fields["sensordata"]
+        time[:] = fields["time"]
 
     # --- engine hooks, one set per backend ---
     def _open(self) -> None:
@@ -620,17 +725,25 @@ class BatchedSystem(SystemInterface):
     def _upload_ctrl(self) -> None:
         """Make the host ctrl the engine's ctrl (a no-op where they are the same memory)."""
 
-    def _download(self) -> Mapping[str, np.ndarray]:
-        """Host arrays qpos, qvel, qfrc_actuator, sensordata (nworld, ...) and time (nworld,)."""
+    def _read(self) -> None:
+        """Every world's current values into `_readings` `(nworld, ncolumn)` (the columns of
+        `_columns`), `_sensor_host` `(nworld, nsensordata)` and `time` `(nworld,)`, float64.
+        Frozen worlds' rows are overwritten afterwards with what they hold."""
         raise NotImplementedError
 
-    def _step(self, nstep: int) -> None:
-        """Advance the unfrozen worlds nstep steps; set DIVERGED / OVERFLOW bits of worlds that fail."""
+    def _step(self, nstep: int) -> StepFailures | None:
+        """Advance the unfrozen worlds nstep steps; report the worlds that failed in this call
+        (None or an empty StepFailures: none). The base class then freezes them."""
         raise NotImplementedError
 
     def _reset(self, worlds: np.ndarray | None) -> None:
-        """Reset the listed worlds (None: all) to the model's initial state."""
+        """Reset the listed worlds (None: all) to `spec.initial`. Their status is already clear."""
         raise NotImplementedError
+
+    def _park(self, worlds: np.ndarray) -> None:
+        """Worlds just frozen: for an engine that steps every world whatever happens, keep them
+        from costing the others anything (the GPU backends reset them and hold ctrl at zero).
+        An engine that skips frozen worlds (cpu) has nothing to do."""
 
 
 def _base_columns(spec: RobotSpec) -> list[StateColumn]:

@@ -10,15 +10,16 @@ and reports the median and spread of each:
   raw (TF32)      the same at JAX's default matmul precision (TF32 on recent NVIDIA GPUs)
   raw+ctrl        raw taking ctrl as an argument (device_put first), as the contract's program does
   raw+ctrl (NumPy)  the same with ctrl passed as a NumPy array, which JAX uploads itself
-  raw+ctrl+readings  and also returning the packed readings (the program less its check)
-  program         ctrl uploaded into the Data, the contract's period program, its one download
+  raw+ctrl+readings  and also returning the packed readings (gathered here as the contract
+                  gathers them: the program less its check)
+  step            sim.step(NSTEP) alone: the contract's upload, period program and download
   contract        sim.command[:] = u; sim.write(); sim.step(NSTEP); sim.read()
   contract(timed) the same, with write, step and read timed apart
   raw (own Data)  raw, stepping a Data of its own rather than the contract's
 
-All but the last step the contract's own Data, so they simulate one physical trajectory:
-an MJX step's cost depends on the contact state, and two fleets at different moments of
-their fall differ by more than the contract's overhead.
+All but the last step the contract's own Data (`sim.data`, read and assigned), so they
+simulate one physical trajectory: an MJX step's cost depends on the contact state, and two
+fleets at different moments of their fall differ by more than the contract's overhead.
 
     python benchmarks/mjx_period.py --worlds 16 --rounds 15
 """
@@ -66,6 +67,7 @@ def breakdown(model: str, nworld: int, rounds: int, periods: int) -> None:
     u = np.random.default_rng(0).uniform(-0.3, 0.3, sim.command.shape)
     ctrl = np.zeros((nworld, m.nu), np.float32)
     ctrl[:, [c.actuator_id for c in sim.spec.commands]] = u
+    columns = _read_columns(sim)
 
     # the raw loop of throughput.py
     rollout, d = mjx_rollout(sim, ctrl)
@@ -77,8 +79,8 @@ def breakdown(model: str, nworld: int, rounds: int, periods: int) -> None:
                 if on_own_data:
                     own["d"] = rollout(own["d"])
                 else:
-                    sim._d = rollout(sim._d)
-            jax.block_until_ready((own["d"] if on_own_data else sim._d).qpos)
+                    sim.data = rollout(sim.data)
+            jax.block_until_ready((own["d"] if on_own_data else sim.data).qpos)
 
         return body
 
@@ -86,8 +88,9 @@ def breakdown(model: str, nworld: int, rounds: int, periods: int) -> None:
     def with_ctrl(d, c):
         return rollout(d.replace(ctrl=c))  # inlined into the jit that calls it
 
-    def readings(d):  # the backend's own read program, inlined
-        return sim._programs.read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata, d.time)
+    def readings(d):  # the state columns and sensordata, packed as the contract's program packs them
+        fields = jnp.concatenate([d.qpos, d.qvel, d.qfrc_actuator, d.sensordata], axis=1)
+        return jnp.concatenate([fields[:, columns], d.sensordata], axis=1)
 
     grown = {
         "raw+ctrl": jax.jit(lambda d, c: (with_ctrl(d, c), jnp.zeros(())), donate_argnums=0),
@@ -98,17 +101,15 @@ def breakdown(model: str, nworld: int, rounds: int, periods: int) -> None:
 
     def grow(name: str, numpy_ctrl: bool = False) -> Callable[[], None]:
         def body() -> None:
-            c = sim._ctrl32 if numpy_ctrl else jax.device_put(sim._ctrl32, sim.device)
+            c = ctrl if numpy_ctrl else jax.device_put(ctrl, sim.device)
             with jax.default_matmul_precision("highest"):
-                sim._d, out = grown[name](sim._d, c)
+                sim.data, out = grown[name](sim.data, c)
             np.asarray(out)
 
         return body
 
     def program() -> None:
-        sim._d = sim._d.replace(ctrl=jax.device_put(sim._ctrl32, sim.device))
-        sim._d, out = sim._programs.period(sim._d, NSTEP)
-        np.asarray(out)
+        sim.step(NSTEP)
 
     def contract() -> None:
         sim.command[:] = u
@@ -137,7 +138,7 @@ def breakdown(model: str, nworld: int, rounds: int, periods: int) -> None:
         "raw+ctrl": grow("raw+ctrl"),
         "raw+ctrl (NumPy)": grow("raw+ctrl", numpy_ctrl=True),
         "raw+ctrl+readings": grow("raw+ctrl+readings"),
-        "program": program,
+        "step": program,
         "contract": contract,
         "contract(timed)": contract_phases,
         "raw (own Data)": raw("highest", on_own_data=True),
@@ -182,6 +183,18 @@ def breakdown(model: str, nworld: int, rounds: int, periods: int) -> None:
         f"max {ratios.max():.3f}; ratio of medians {np.median(per['raw']) / np.median(per['contract']):.3f}"
     )
     sim.shutdown()
+
+
+def _read_columns(sim: batchsim.BatchedSystem) -> np.ndarray:
+    """Where each read() column (state interfaces, then the floating base) sits in the
+    concatenation qpos | qvel | qfrc_actuator | sensordata, from the public spec."""
+    m = sim.model
+    offset = {"qpos": 0, "qvel": m.nq, "qfrc_actuator": m.nq + m.nv, "sensordata": m.nq + 2 * m.nv}
+    columns = [offset[c.source] + c.index for c in sim.spec.state]
+    base = sim.spec.floating_base
+    if base is not None:
+        columns += [base.qposadr + k for k in range(7)] + [m.nq + base.dofadr + k for k in range(6)]
+    return np.array(columns, dtype=np.int32)
 
 
 if __name__ == "__main__":

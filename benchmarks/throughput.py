@@ -8,8 +8,12 @@ sides see the same machine state, it times:
             cpu  mujoco.batch.Batch: ctrl[:] = u; batch.step(nstep=NSTEP)
             mjx  jax.jit(lax.scan over NSTEP of jax.vmap(mjx.step)), Data donated, float32
                  matrix products (batchsim's mjx asks for them; JAX's GPU default is TF32)
-            warp MuJoCo Warp: NSTEP mjw.step captured in one CUDA graph, launched and synchronized
-                 (plain launches on Warp's CPU device), same nconmax/njmax as the contract
+            warp MuJoCo Warp: NSTEP mjw.step captured in one graph, launched and synchronized
+                 (Warp replays graphs on its CPU device too), same nconmax/njmax as the contract
+  raw+keep (warp only): the raw loop, its graph also keeping a copy of the period's start
+            (mjw.get_state of mjSTATE_PHYSICS and the warmstart, qfrc_actuator, sensordata, a
+            float64 clock), as batchsim does so that an overflowing period can be repeated:
+            the cost of that copy, in the same terms
 
 Both sides start from the same state, warm up for the same number of periods and make the
 same number of calls per round, so they simulate the same stretch of time. It reports
@@ -76,10 +80,16 @@ def rate(body: Callable[[], None], calls: int, work: int) -> float:
 
 
 def interleaved(
-    contract: Callable[[], None], raw: Callable[[], None], work: int, seconds: float, rounds: int = 3
-) -> tuple[float, float, list[float]]:
+    contract: Callable[[], None],
+    raw: Callable[[], None],
+    work: int,
+    seconds: float,
+    rounds: int = 3,
+    extra: Callable[[], None] | None = None,
+) -> tuple[float, float, list[float], float | None]:
     """Median steps/s of contract and raw, measured in alternating rounds (who goes first
-    alternates), and each round's ratio contract/raw, to show the spread.
+    alternates), each round's ratio contract/raw, to show the spread, and the median steps/s
+    of `extra` (a variant of raw, timed after the two in each round) if given.
 
     Both sides make the same number of calls each round, so that, having started from the
     same initial state with the same commands and the same number of warm-up periods, they
@@ -90,7 +100,7 @@ def interleaved(
     raw()
     calls = max(3, round(seconds / rounds / (time.perf_counter() - t0)))
     contract()  # and the contract one period too: both stay in step
-    c, r = [], []
+    c, r, x = [], [], []
     for i in range(rounds):
         if i % 2:
             c.append(rate(contract, calls, work))
@@ -98,7 +108,14 @@ def interleaved(
         else:
             r.append(rate(raw, calls, work))
             c.append(rate(contract, calls, work))
-    return float(np.median(c)), float(np.median(r)), [a / b for a, b in zip(c, r, strict=True)]
+        if extra is not None:
+            x.append(rate(extra, calls, work))
+    return (
+        float(np.median(c)),
+        float(np.median(r)),
+        [a / b for a, b in zip(c, r, strict=True)],
+        float(np.median(x)) if x else None,
+    )
 
 
 # ---------------------------------------------------------------- raw loops
@@ -162,7 +179,7 @@ def raw_mjx(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]
     return body
 
 
-def raw_warp(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]:
+def raw_warp(sim: batchsim.BatchedSystem, ctrl: np.ndarray, keep_start: bool = False) -> Callable[[], None]:
     import mujoco
     import mujoco_warp as mjw
     import warp as wp
@@ -177,23 +194,35 @@ def raw_warp(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None
             mw.opt.deterministic = int(mjw.DeterminismType.ALL)  # as the contract sets it
         d = mjw.put_data(m, mjd, nworld=sim.nworld, nconmax=sim.nconmax, njmax=sim.njmax)
         d.ctrl.assign(ctrl.astype(np.float32))
-        if sim.device.is_cuda:
-            with wp.ScopedCapture() as capture:
-                for _ in range(NSTEP):
-                    mjw.step(mw, d)
-            graph = capture.graph
+        sig = int(mjw.State.PHYSICS | mjw.State.WARMSTART)
+        start = (
+            wp.zeros((sim.nworld, mujoco.mj_stateSize(m, sig)), dtype=wp.float32),
+            wp.zeros_like(d.qfrc_actuator),
+            wp.zeros_like(d.sensordata),
+            wp.zeros(sim.nworld, dtype=wp.float64),
+        )
+        clock = wp.zeros(sim.nworld, dtype=wp.float64)
 
-            def body() -> None:
-                wp.capture_launch(graph)
-                wp.synchronize_device(sim.device)
-        else:
+        def period() -> None:
+            if keep_start:  # what batchsim's warp backend copies at the start of each period
+                mjw.get_state(mw, d, start[0], sig)
+                wp.copy(start[1], d.qfrc_actuator)
+                if d.sensordata.size:
+                    wp.copy(start[2], d.sensordata)
+                wp.copy(start[3], clock)
+            for _ in range(NSTEP):
+                mjw.step(mw, d)
 
-            def body() -> None:
-                for _ in range(NSTEP):
-                    mjw.step(mw, d)
-                wp.synchronize_device(sim.device)
+        period()  # load every kernel before the capture
+        with wp.ScopedCapture() as capture:
+            period()
+        graph = capture.graph
 
-    body.keep = (mw, d)  # type: ignore[attr-defined]
+        def body() -> None:
+            wp.capture_launch(graph)
+            wp.synchronize_device(sim.device)
+
+    body.keep = (mw, d, start, clock)  # type: ignore[attr-defined]
     body()
     return body
 
@@ -229,8 +258,15 @@ def measure(
     raw = RAW[backend](sim, ctrl)
     for _ in range(2):
         raw()
-    c, r, per_round = interleaved(contract, raw, nworld * NSTEP, seconds, rounds)
+    keep = None
+    if backend == "warp":
+        keep = raw_warp(sim, ctrl, keep_start=True)
+        for _ in range(2):
+            keep()
+    c, r, per_round, k = interleaved(contract, raw, nworld * NSTEP, seconds, rounds, extra=keep)
     note = f"rounds {min(per_round):.2f}-{max(per_round):.2f}"
+    if k is not None:
+        note += f"; raw+keep {k:,.0f} steps/s: keeping the period's start costs {r / k - 1:+.1%} of a period"
     if sim.status.any():
         note += f"; {int((sim.status != 0).sum())} worlds frozen"
     if backend == "warp":

@@ -2,10 +2,16 @@
 
 It checks the ros2_control lifecycle table, interface names for each shipped model,
 shapes and dtypes, that write() does nothing unless ACTIVE, that reset touches only the
-listed worlds, determinism, and bad input (wrong-shaped and NaN commands).
+listed worlds, determinism, float64 time, bad input (wrong-shaped and NaN commands, world
+lists), and the one rule for a world that fails: frozen at the readings from before the
+failing step, logged once by name.
 """
 
 from __future__ import annotations
+
+import dataclasses
+import logging
+import re
 
 import numpy as np
 import pytest
@@ -286,6 +292,37 @@ def test_reset_touches_only_listed_worlds(arm):
 def test_reset_rejects_unknown_worlds(arm):
     with pytest.raises(ValueError, match="world 4 is out of range"):
         arm.reset(worlds=[4])
+    with pytest.raises(ValueError, match="world -1 is out of range"):
+        arm.reset(worlds=[2, -1])
+
+
+# ---------------------------------------------------------------- world lists
+
+
+def test_set_command_rows_follow_the_order_given(arm):
+    """Row i goes to worlds[i], whatever the order; the other worlds keep theirs."""
+    arm.reset()
+    ncmd = arm.command.shape[1]
+    rows = np.array([np.full(ncmd, 0.1), np.full(ncmd, 0.3)])
+    arm.set_command(rows, worlds=[3, 1])
+    np.testing.assert_array_equal(arm.command[3], rows[0])
+    np.testing.assert_array_equal(arm.command[1], rows[1])
+    np.testing.assert_array_equal(arm.command[[0, 2]], 0.0)
+    arm.set_command(rows, worlds=np.array([True, False, True, False]))  # a mask: in world order
+    np.testing.assert_array_equal(arm.command[[0, 2]], rows)
+    arm.reset()
+
+
+def test_a_world_listed_twice_is_an_error(arm):
+    ncmd = arm.command.shape[1]
+    before = arm.command.copy()
+    with pytest.raises(ValueError, match="world 1 is listed more than once"):
+        arm.set_command(np.zeros((3, ncmd)), worlds=[1, 2, 1])
+    with pytest.raises(ValueError, match="world 3 is listed more than once"):
+        arm.reset(worlds=[3, 3])
+    with pytest.raises(ValueError, match="must be integers"):
+        arm.set_command(np.zeros((1, ncmd)), worlds=[1.5])
+    np.testing.assert_array_equal(arm.command, before)
 
 
 # ---------------------------------------------------------------- determinism
@@ -333,10 +370,10 @@ def test_nan_command_sets_bad_command_and_spares_the_others(arm):
     arm.command[:] = 0.2
     arm.write()
     arm.step(50)
-    arm.read()
-    reference = arm.state.copy()
-    # world 2 gets a NaN: not applied, BAD_COMMAND; the others take their new command
+    # world 2 gets a NaN: not applied, BAD_COMMAND; world 1 gets 0.2 again, as a twin of what
+    # world 2 must do (hold its last good command); worlds 0 and 3 take 0.25
     arm.command[:] = 0.25
+    arm.command[1] = 0.2
     arm.command[2, 3] = np.nan
     assert arm.write() is ReturnType.OK
     assert arm.status[2] & Status.BAD_COMMAND
@@ -345,16 +382,18 @@ def test_nan_command_sets_bad_command_and_spares_the_others(arm):
     arm.read()
     names = arm.export_state_interfaces()
     j1 = names.index("joint1/position")
-    # world 2 kept holding 0.2 (its last good command), the others moved to 0.25
+    # world 2 followed its twin: the same commands from the same state, so the same readings
+    # (float32 round-off on the device backends, which compute each world alike)
+    np.testing.assert_allclose(arm.state[2], arm.state[1], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(arm.sensordata["wrist_force"][2], arm.sensordata["wrist_force"][1], rtol=0, atol=1e-5)
     assert abs(arm.state[2, j1] - 0.2) < 0.02
-    assert np.all(np.abs(arm.state[[0, 1, 3], j1] - 0.25) < 0.02)
+    assert np.all(np.abs(arm.state[[0, 3], j1] - 0.25) < 0.02)
     assert np.isfinite(arm.state).all()
     assert not np.any(arm.status & (Status.DIVERGED | Status.OVERFLOW))
     # a good command clears the bit
     arm.command[:] = 0.0
     arm.write()
     assert not np.any(arm.status & Status.BAD_COMMAND)
-    del reference
     arm.reset()
 
 
@@ -368,43 +407,191 @@ def test_inf_and_huge_commands_are_rejected_too(arm, value):
     assert arm.status[1] == 0
 
 
+# A floating base carrying a tiny link on an unlimited motor: an absurd but finite torque on
+# the link blows the world up in its first step, base included; zero torque keeps it falling.
 UNSTABLE = """
 <mujoco model="unstable">
   <worldbody>
-    <body><joint name="hinge" type="hinge" damping="0"/><geom type="capsule" size=".01" fromto="0 0 0 .1 0 0" mass="1e-3"/></body>
+    <body name="base" pos="0 0 1">
+      <freejoint name="root"/>
+      <geom type="box" size=".1 .1 .1" mass="1"/>
+      <body name="link">
+        <joint name="hinge" type="hinge" axis="0 0 1" damping="0"/>
+        <geom type="capsule" size=".01" fromto="0 0 0 .1 0 0" mass="1e-3"/>
+      </body>
+    </body>
   </worldbody>
   <actuator><motor name="motor" joint="hinge"/></actuator>
-  <sensor><jointvel name="vel" joint="hinge"/></sensor>
+  <sensor>
+    <jointvel name="vel" joint="hinge"/>
+    <framepos name="base_pos" objtype="body" objname="base"/>
+  </sensor>
 </mujoco>
 """
+SUBSTEPS, CALM = 5, 4  # steps per period; periods before world 1 gets its torque
 
 
-def test_a_diverging_world_is_frozen_and_the_others_go_on(backend, tmp_path):
+def _readings(sim) -> dict[str, np.ndarray]:
+    return {
+        "state": sim.state.copy(),
+        "base_state": sim.base_state.copy(),
+        "sensordata": np.concatenate([sim.sensordata[n] for n in sim.sensordata], axis=1),
+        "time": sim.time.copy(),
+    }
+
+
+def _blow_up_world_1(sim, read_every_period: bool) -> dict[str, np.ndarray]:
+    """CALM calm periods, then world 1's torque; returns the readings just before that step."""
+    sim.command[:] = 0.0
+    for _ in range(CALM):
+        sim.write()
+        sim.step(SUBSTEPS)
+        if read_every_period:
+            sim.read()
+    sim.read()
+    before = _readings(sim)
+    sim.command[1] = 1e9
+    sim.write()
+    sim.step(SUBSTEPS)
+    return before
+
+
+@pytest.fixture
+def unstable(tmp_path):
     path = tmp_path / "unstable.xml"
     path.write_text(UNSTABLE)
-    sim = active(str(path), backend, 3)
-    sim.command[:] = 0.0
-    # an absurd but finite torque on an unlimited motor of a tiny link blows world 1 up
-    sim.command[1] = 1e9
-    for _ in range(20):
-        sim.write()
-        sim.step(5)
-    sim.read()
+    return str(path)
+
+
+def test_a_diverging_world_is_frozen_at_its_last_readings_and_the_others_go_on(backend, unstable, caplog):
+    """One rule on every backend: a failed world reads, until reset, exactly what read() showed
+    before the failing step (state, base_state, sensordata, time); the log names it once."""
+    caplog.set_level(logging.WARNING, logger="batchsim")
+    sim = active(unstable, backend, 3, deterministic=True)
+    assert sim.base_state is not None
+    before = _blow_up_world_1(sim, read_every_period=True)
     assert sim.status[1] & Status.DIVERGED
     assert not np.any(sim.status[[0, 2]] & Status.DIVERGED)
-    assert np.isfinite(sim.state[[0, 2]]).all()
-    frozen_time = sim.time[1]
-    sim.step(5)
+    dt = sim.dt
+    for _ in range(3):  # frozen, however often it is stepped and read
+        sim.read()
+        for key, value in _readings(sim).items():
+            np.testing.assert_array_equal(value[1], before[key][1], err_msg=f"{backend}: frozen {key}")
+        assert np.isfinite(sim.state[[0, 2]]).all()
+        sim.step(SUBSTEPS)
     sim.read()
-    assert sim.time[1] == frozen_time  # frozen until reset
-    assert sim.time[0] > frozen_time or sim.time[0] > 0
+    np.testing.assert_array_equal(sim.state[1], before["state"][1])
+    # the others went on, one timestep at a time in float64
+    expected = before["time"][0]
+    for _ in range(4 * SUBSTEPS):
+        expected += dt
+    np.testing.assert_array_equal(sim.time[[0, 2]], expected)
+    assert np.all(sim.base_state[[0, 2], 2] < before["base_state"][[0, 2], 2])  # still falling
+    # one line, naming the world, when it froze and why
+    lines = [r.getMessage() for r in caplog.records if r.name == f"batchsim.{backend}"]
+    assert len(lines) == 1, lines
+    assert re.search(
+        rf"^batchsim: {backend}: world 1 diverged at sim time {before['time'][1]:.4f} s "
+        r"\(Nan, Inf or huge value in Q(POS|VEL|ACC) at DOF \d+\); frozen until reset",
+        lines[0],
+    ), lines[0]
+    # reset brings it back, finite, at its initial state
     sim.reset(worlds=[1])
     assert sim.status[1] == 0
+    assert sim.time[1] == 0.0
+    np.testing.assert_array_equal(sim.base_state[1, :3], [0, 0, 1])
     sim.command[1] = 0.0
     sim.write()
-    sim.step(5)
+    sim.step(SUBSTEPS)
     sim.read()
-    assert np.isfinite(sim.state).all()
+    assert np.isfinite(sim.state).all() and not sim.status.any()
+    sim.shutdown()
+
+
+def test_frozen_readings_do_not_depend_on_reading_between_steps(backend, unstable):
+    """A world that fails in a step() that followed another without read() freezes at the same
+    readings as when the loop reads every period."""
+    frozen = []
+    for read_every_period in (True, False):
+        sim = active(unstable, backend, 3, deterministic=True)
+        before = _blow_up_world_1(sim, read_every_period)
+        sim.read()
+        assert sim.status[1] & Status.DIVERGED
+        frozen.append(_readings(sim))
+        for key in frozen[-1]:
+            np.testing.assert_array_equal(frozen[-1][key][1], before[key][1])
+        sim.shutdown()
+    for key in frozen[0]:
+        np.testing.assert_array_equal(frozen[0][key], frozen[1][key], err_msg=key)
+
+
+# UNSTABLE with a force/torque sensor at the hinge (read negated, as mujoco_ros2_control does)
+UNSTABLE_FTS = UNSTABLE.replace(
+    '<geom type="capsule" size=".01"', '<site name="ft"/><geom type="capsule" size=".01"'
+).replace(
+    "</sensor>",
+    '<force name="ft_force" site="ft"/><torque name="ft_torque" site="ft"/></sensor>'
+    '<ros2_control name="u" type="system"><hardware><plugin>mujoco_ros2_control/MujocoSystemInterface</plugin>'
+    '</hardware><joint name="hinge"><command_interface name="effort"/><state_interface name="position"/>'
+    '<state_interface name="velocity"/></joint>'
+    '<sensor name="ft"><param name="mujoco_type">fts</param></sensor></ros2_control>',
+)
+NOISY = {"sensors": {"seed": 3, "noise": {"hinge/*": {"stddev": 0.01}, "ft/*": {"stddev": 0.01}}}}
+
+
+def test_frozen_readings_are_signed_and_noise_free(backend, tmp_path):
+    """A failed world holds its noise-free readings with the force/torque columns negated as
+    read() gives them, whether the loop read just before the failing step or not (an engine
+    gather then), and gets no fresh noise while frozen."""
+    path = tmp_path / "unstable_fts.xml"
+    path.write_text(UNSTABLE_FTS)
+    for read_before in (True, False):
+        sim = active(str(path), backend, 3, deterministic=True, sensors=NOISY)
+        torque_z = sim.export_state_interfaces().index("ft/torque.z")
+        sim.command[:] = 1e-3  # a small torque: the sensor reads something, of one sign
+        for _ in range(CALM):
+            sim.write()
+            sim.step(SUBSTEPS)
+        if read_before:
+            sim.read()
+            truth = sim.true_state.copy()
+            if not backend.startswith("mjx"):  # MJX's torque sensor reads 0 here (its cfrc_int): no sign to see
+                assert abs(truth[1, torque_z]) > 1e-5
+            assert not np.array_equal(sim.state, truth)  # the noise is on
+        sim.command[1] = 1e9
+        sim.write()
+        sim.step(SUBSTEPS)
+        assert sim.status[1] & Status.DIVERGED
+        for _ in range(3):  # the same, noise-free readings on every read, signed as before
+            sim.read()
+            np.testing.assert_array_equal(sim.state[1], truth[1], err_msg=f"{backend} read before: {read_before}")
+            np.testing.assert_array_equal(sim.true_state[1], truth[1])
+            assert not np.array_equal(sim.state[[0, 2]], sim.true_state[[0, 2]])  # the others stay noisy
+            sim.step(SUBSTEPS)
+        sim.shutdown()
+
+
+# ---------------------------------------------------------------- time
+
+
+def test_time_is_float64_far_from_zero(backend):
+    """Past 32768 s a float32 clock no longer moves by a 1 ms step; sim.time must, as cpu's."""
+    spec = batchsim.load("arm")
+    spec = dataclasses.replace(spec, initial=dataclasses.replace(spec.initial, time=40000.0))
+    sim = batchsim.make(spec, 2, backend)
+    sim.configure()
+    sim.activate()
+    assert sim.time.dtype == np.float64
+    np.testing.assert_array_equal(sim.time, 40000.0)
+    expected = 40000.0
+    for _ in range(3):
+        sim.step(10)
+        for _ in range(10):
+            expected += sim.dt
+    sim.read()
+    np.testing.assert_array_equal(sim.time, expected)  # one float64 addition per step, as mj_step
+    sim.reset(worlds=[1])
+    assert sim.time[0] == expected and sim.time[1] == 40000.0
     sim.shutdown()
 
 
@@ -444,3 +631,41 @@ def test_reset_returns_to_the_initial_state_not_qpos0(backend):
     assert (sim.state[:2, 0] < 0.3).all()
     np.testing.assert_allclose(sim.command[2], 0.5)
     sim.shutdown()
+
+
+def test_failure_lines_are_rate_limited_and_counted(monkeypatch, caplog):
+    """BURST lines per WINDOW, the rest counted: at once in the same breath, or once the window
+    is over when they came later; none is lost and none said twice."""
+    from batchsim import failures
+
+    now = [100.0]
+    monkeypatch.setattr(failures.wallclock, "monotonic", lambda: now[0])
+    caplog.set_level(logging.WARNING, logger="batchsim.test")
+    log = failures.FailureLog("test", 8192)
+
+    def report(worlds: list[int], at: float) -> list[str]:
+        now[0] = at
+        caplog.clear()
+        log.flush()
+        w = np.array(worlds)
+        log.report(w, ["diverged"] * len(w), ["why"] * len(w), np.full(len(w), 1.5))
+        return [r.getMessage() for r in caplog.records]
+
+    assert report([7, 9], 100.0) == [
+        "batchsim: test: world 7 diverged at sim time 1.5000 s (why); frozen until reset",
+        "batchsim: test: world 9 diverged at sim time 1.5000 s (why); frozen until reset",
+    ]
+    lines = report([1, 2, 3, 4, 5], 100.5)  # one left in the burst: it, and the count
+    assert lines == [
+        "batchsim: test: world 1 diverged at sim time 1.5000 s (why); frozen until reset",
+        "batchsim: test: 4 more of 8192 worlds diverged in the same period (worlds 2, 3, 4, 5); frozen until reset",
+    ]
+    assert report([10, 11], 101.0) == []  # burst spent: held
+    assert report([], 101.5) == []  # window not over
+    now[0] = 102.5
+    caplog.clear()
+    log.flush()
+    assert [r.getMessage() for r in caplog.records] == [
+        "batchsim: test: 2 more of 8192 worlds diverged in the last 2 s (worlds 10, 11); frozen until reset"
+    ]
+    assert report([12], 102.6)[0].startswith("batchsim: test: world 12 diverged")  # a new window

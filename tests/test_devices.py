@@ -6,6 +6,8 @@ these are the parts only a sharded system has.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -50,3 +52,35 @@ def test_devices_are_for_the_device_backends():
         batchsim.make("arm", 4, "cpu", devices=[0, 1])
     with pytest.raises(ValueError, match="device 5 does not exist"):
         batchsim.make("arm", 4, "warp", devices=[5])
+
+
+def test_a_shards_failed_world_is_named_and_held_by_its_fleet_number(tmp_path, caplog):
+    """World 2 is the second device's world 0: the log line names world 2 of 3, and the fleet's
+    arrays show its held readings while world 0 (the first device's) goes on."""
+    from test_contract import UNSTABLE
+
+    path = tmp_path / "unstable.xml"
+    path.write_text(UNSTABLE)
+    caplog.set_level(logging.WARNING, logger="batchsim")
+    sim = batchsim.make(str(path), 3, "warp", devices=["cpu", "cpu"], deterministic=True)
+    sim.configure()
+    sim.activate()
+    sim.command[:] = 0.0
+    sim.write()
+    sim.step(5)
+    sim.read()
+    before = sim.state.copy(), sim.time.copy()
+    sim.command[2] = 1e9
+    sim.write()
+    sim.step(5)
+    sim.step(5)
+    sim.read()
+    assert sim.status.tolist() == [0, 0, int(batchsim.Status.DIVERGED)]
+    np.testing.assert_array_equal(sim.state[2], before[0][2])
+    assert sim.time[2] == before[1][2] and sim.time.dtype == np.float64
+    assert sim.time[0] > before[1][0]
+    lines = [r.getMessage() for r in caplog.records if r.name.startswith("batchsim")]
+    assert len(lines) == 1 and lines[0].startswith("batchsim: warp: world 2 diverged"), lines
+    sim.reset([2])
+    assert not sim.status.any()
+    sim.shutdown()

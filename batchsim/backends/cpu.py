@@ -3,19 +3,25 @@
 Host arrays are the batch's own live bindings, so write() and read() copy nothing but
 the interface columns. Results are bit-identical to a loop of `mujoco.mj_step` over one
 `MjData` per world, at any thread count.
+
+A world fails when MuJoCo warns about it (mj_checkPos/Vel/Acc: NaN, inf or beyond mjMAXVAL;
+a full contact or constraint buffer) or raises in it. MuJoCo has by then reset it inside the
+step, so what it reads frozen comes from before the step() call: the host readings, when
+read() ran since the last step (the control loop's order), else a gather made just before
+stepping.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import mujoco
 import numpy as np
 from mujoco import batch as mjbatch
 
-from batchsim.hardware import BatchedSystem, Status
+from batchsim.failures import warning_text
+from batchsim.hardware import BatchedSystem, Status, StepFailures
 from batchsim.sensors import Camera, Lidar
 from batchsim.sensors.host import HostSensors
 
@@ -26,6 +32,7 @@ _OVERFLOW_WARNINGS = slice(int(_W.mjWARN_CONTACTFULL), int(_W.mjWARN_CNSTRFULL) 
 _DIVERGED_WARNINGS = slice(int(_W.mjWARN_BADQPOS), int(_W.mjWARN_BADCTRL) + 1)
 _WATCHED = slice(_OVERFLOW_WARNINGS.start, _DIVERGED_WARNINGS.stop)
 assert _OVERFLOW_WARNINGS.stop == _DIVERGED_WARNINGS.start
+_DEVICE_ARRAYS = ("qpos", "qvel", "qfrc_actuator", "sensordata", "time")
 
 
 class CpuSystem(BatchedSystem):
@@ -45,52 +52,79 @@ class CpuSystem(BatchedSystem):
         nthread = int(self.options["nthread"]) or min(self.nworld, os.cpu_count() or 1)
         self._batch = mjbatch.Batch(self.model, self.nworld, nthread=nthread)
         b = self._batch
-        self._fields = {
-            "qpos": b.bind("qpos"),
-            "qvel": b.bind("qvel"),
-            "qfrc_actuator": b.bind("qfrc_actuator"),
-            "sensordata": b.bind("sensordata"),
-            "time": b.bind("time"),
-        }
+        self._fields = {f: b.bind(f) for f in _DEVICE_ARRAYS}
         self._ctrl = b.bind("ctrl")
-        self._warning_count = b.warning[:, :, 1]  # (nworld, mjNWARNING) live counters
+        self._warnings = b.warning  # (nworld, mjNWARNING, 2) live: lastinfo, number
+        self._warning_count = b.warning[:, :, 1]
         self.nthread = b.nthread
+        # readings at the start of a step() that follows another without a read() in between
+        self._start = (np.empty_like(self._readings), np.empty_like(self._sensor_host), np.empty_like(self.time))
 
     def _close(self) -> None:
-        del self._batch, self._fields, self._ctrl, self._warning_count
+        del self._batch, self._fields, self._ctrl, self._warnings, self._warning_count, self._start
 
     def _ctrl_host(self) -> np.ndarray:
         return self._ctrl
 
-    def _download(self) -> Mapping[str, np.ndarray]:
-        return self._fields
+    def _read(self) -> None:
+        self._gather_fields(self._fields, self._readings, self._sensor_host, self.time)
 
-    def _step(self, nstep: int) -> None:
+    def _step(self, nstep: int) -> StepFailures | None:
         frozen = self.frozen
+        if self._readings_current:  # read() ran since the last step: its rows, noise-free, are the start
+            start = (*self._noise_free(), self.time)
+        else:
+            start = self._start
+            self._gather_fields(self._fields, *start)
+        errors: dict[int, str] = {}
         try:
             if not frozen.any():
                 self._batch.step(nstep=nstep)
             elif not frozen.all():
                 self._batch.step(ids=np.flatnonzero(~frozen).astype(np.int32), nstep=nstep)
         except mjbatch.SimulationError as e:
-            # mju_error in some worlds: they kept their previous state, the others ran
-            self.status[e.ids] |= np.uint8(Status.DIVERGED)
-        self._check_worlds()
+            # mju_error in some worlds: they kept their state from before the call, the others ran
+            errors = {int(w): self._batch.error(int(w)) for w in e.ids}
+        return self._failures(frozen, errors, start)
 
-    def _check_worlds(self) -> None:
-        """Freeze the worlds that tripped a MuJoCo instability or overflow warning.
+    def _failures(
+        self,
+        frozen: np.ndarray,
+        errors: dict[int, str],
+        start: tuple[np.ndarray, np.ndarray, np.ndarray],
+    ) -> StepFailures | None:
+        """The worlds that tripped a MuJoCo instability or overflow warning, or raised, in this call.
 
         MuJoCo checks qpos, qvel and qacc for NaN, inf and huge values at every step
         (mj_checkPos/Vel/Acc), resets a world that fails and counts the warning, so the
-        counters, which only mj_resetData clears, catch every divergence.
+        counters, which only mj_resetData clears, catch every divergence; a world counted
+        before this call is frozen already.
         """
         count = self._warning_count
-        if not count[:, _WATCHED].any():
-            return
-        diverged = count[:, _DIVERGED_WARNINGS].any(axis=1)
-        overflow = count[:, _OVERFLOW_WARNINGS].any(axis=1)
-        self.status[diverged] |= np.uint8(Status.DIVERGED)
-        self.status[overflow] |= np.uint8(Status.OVERFLOW)
+        if not errors and not count[:, _WATCHED].any():
+            return None
+        failed = count[:, _WATCHED].any(axis=1) & ~frozen
+        failed[list(errors)] = True
+        worlds = np.flatnonzero(failed)
+        if not worlds.size:
+            return None
+        status = np.zeros(worlds.size, np.uint8)
+        reasons = []
+        for k, w in enumerate(worlds):
+            kinds = np.flatnonzero(count[w, _WATCHED]) + _WATCHED.start
+            if w in errors or kinds.size == 0:
+                status[k] = Status.DIVERGED
+                reasons.append(errors.get(int(w), "MuJoCo error"))
+                continue
+            warning = int(kinds[0])  # an overflow before the instability it may have caused
+            overflow = warning < _OVERFLOW_WARNINGS.stop
+            status[k] = Status.OVERFLOW if overflow else Status.DIVERGED
+            reasons.append(warning_text(warning, int(self._warnings[w, warning, 0])))
+        readings, sensordata, time = start
+        held = readings[worlds]
+        if readings is self._start[0]:
+            self._apply_signs(held)  # an engine gather, unsigned like _read()'s; read()'s rows are signed
+        return StepFailures(worlds, status, reasons, held, sensordata[worlds], time[worlds])
 
     def device_arrays(self) -> dict[str, np.ndarray]:
         """The batch's live arrays, zero copy, as the GPU backends hand out theirs: qpos, qvel,
@@ -103,10 +137,10 @@ class CpuSystem(BatchedSystem):
     def _reset(self, worlds: np.ndarray | None) -> None:
         ids = None if worlds is None else worlds.astype(np.int32)
         initial = self.spec.initial
-        if initial.source == "qpos0":
+        if initial.source == "qpos0" and initial.time == 0.0:
             self._batch.reset(ids=ids)
             return
-        # a keyframe or initial values: the model's defaults, overwritten, then mj_forward
+        # a keyframe, initial values or a start time: the model's defaults, overwritten, then mj_forward
         self._batch.reset(ids=ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
         rows = slice(None) if worlds is None else worlds
         for field in ("qpos", "qvel", "act", "ctrl", "mocap_pos", "mocap_quat"):

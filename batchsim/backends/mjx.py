@@ -18,10 +18,16 @@ deterministic ops for bitwise-repeatable runs, at a cost in speed (benchmarks/RE
 On the CPU device results are bitwise repeatable either way.
 
 A world whose qpos, qvel or qacc goes non-finite or beyond MuJoCo's mjMAXVAL gets
-DIVERGED and is frozen as on the other backends: it reads as it was when it failed while,
-on the device, it is parked (reset, ctrl held at zero) until `reset()` lists it. MJX's
-JAX implementation sizes contacts and constraints statically from the model, so its
-buffers cannot overflow and OVERFLOW is never set here.
+DIVERGED and is frozen as on the other backends: it reads as it did before the step() in
+which it failed while, on the device, it is parked (reset, ctrl held at zero) until
+`reset()` lists it. The period program itself picks those readings: for a world that failed
+it returns the readings it gathered before the substeps, for the others those after, in the
+same download. MJX's JAX implementation sizes contacts and constraints statically from the
+model, so its buffers cannot overflow and OVERFLOW is never set here.
+
+Time is float64 on the host (JAX computes in float32 unless x64 is switched on process-wide):
+each period adds the timestep to every world's clock as mj_step does, and the device's
+float32 `time` is set from it when the period starts.
 
 `device_arrays()` hands out the live JAX arrays (zero copy, DLPack-capable) for users who
 stay on the device.
@@ -31,7 +37,7 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
 
 import jax
@@ -41,23 +47,30 @@ import numpy as np
 from mujoco import batch as mjbatch
 from mujoco import mjx
 
-from batchsim.backends import unsupported_error
-from batchsim.hardware import MAX_COMMAND, BatchedSystem, Status
+from batchsim.backends.device import (
+    DEVICE_ARRAYS,
+    FIELD_SHIFT,
+    INDEX_SHIFT,
+    MAX_INDEX,
+    DeviceSystem,
+    code_status,
+)
+from batchsim.hardware import MAX_COMMAND, READ_FIELDS, Status, StepFailures
 from batchsim.model import RobotSpec, StateColumn
 from batchsim.sensors import Camera, Lidar
 from batchsim.sensors.host import HostSensors
 
-_SOURCES = ("qpos", "qvel", "qfrc_actuator", "sensordata")
 _CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device)
 
 
 class _Programs(NamedTuple):
     """The jitted programs of one (model, nworld, device, determinism)."""
 
-    # (d, nstep: int) -> (d, readings + a status column): one control period
+    # (d, nstep: int) -> (d, (nworld, ncolumn + nsensordata + 1) float32): one control period;
+    # the readings after the period (before it, for a world that failed), then its failure code
     period: Callable[..., Any]
     reset: Callable[..., Any]  # (d, d0, mask) -> d
-    read: Callable[..., Any]  # (qpos, qvel, qfrc_actuator, sensordata, time) -> readings
+    read: Callable[..., Any]  # (qpos, qvel, qfrc_actuator, sensordata) -> (nworld, ncolumn + nsensordata)
 
 
 _PROGRAMS: OrderedDict[tuple[Any, ...], _Programs] = OrderedDict()
@@ -80,9 +93,9 @@ def _programs(
 ) -> _Programs:
     """Compile (once per key) what one system runs.
 
-    A period is one upload of ctrl, one program and one download: the readings (state
-    columns, sensordata, time) come back packed in one float32 array with the status flags
-    as a last column. On a GPU each separate jit call or download costs a few hundred
+    A period is one upload of ctrl and time, one program and one download: the readings
+    (state columns, sensordata) come back packed in one float32 array with each world's
+    failure code as a last column. On a GPU each separate jit call or download costs a few hundred
     microseconds of host time during which the device idles: at 16 worlds read()'s own
     program and downloads were ~5% of a period. ctrl is put into the Data before the call
     rather than passed to the program, which measured ~1.6 ms a period slower on an H200
@@ -94,27 +107,35 @@ def _programs(
         return _PROGRAMS[key]
     step = jax.vmap(mjx.step, in_axes=(None, 0))
     m = spec.mjmodel
-    offset = dict(zip(_SOURCES, np.cumsum([0, m.nq, m.nv, m.nv]), strict=True))
+    offset = dict(zip(READ_FIELDS, np.cumsum([0, m.nq, m.nv, m.nv]), strict=True))
     take = np.array([offset[c.source] + c.index for c in columns], dtype=np.int32)
 
-    def read(qpos: jax.Array, qvel: jax.Array, qfrc: jax.Array, sensordata: jax.Array, time: jax.Array):
-        # these five arrays, not the whole Data: a jit call costs per argument (~80 leaves in Data)
+    def read(qpos: jax.Array, qvel: jax.Array, qfrc: jax.Array, sensordata: jax.Array):
+        # these four arrays, not the whole Data: a jit call costs per argument (~80 leaves in Data)
         fields = jnp.concatenate([qpos, qvel, qfrc, sensordata], axis=1)
-        return jnp.concatenate([fields[:, take], sensordata, time[:, None]], axis=1)
+        return jnp.concatenate([fields[:, take], sensordata], axis=1)
 
     def check(d: mjx.Data) -> jax.Array:
-        bad = jnp.zeros(nworld, bool)
-        for x in (d.qpos, d.qvel, d.qacc):
-            bad |= (jnp.isnan(x) | (jnp.abs(x) > MAX_COMMAND)).any(axis=1)
-        return jnp.where(bad, jnp.float32(Status.DIVERGED), jnp.float32(0))
+        """Each world's failure code (batchsim.backends.device): the first bad entry of qpos,
+        then qvel, then qacc, as MuJoCo checks them."""
+        code = jnp.zeros(nworld, jnp.int32)
+        for field, x in ((3, d.qacc), (2, d.qvel), (1, d.qpos)):  # the last written wins: qpos first
+            bad = jnp.isnan(x) | (jnp.abs(x) > MAX_COMMAND)
+            index = jnp.minimum(jnp.argmax(bad, axis=1), MAX_INDEX).astype(jnp.int32)
+            here = int(Status.DIVERGED) | (field << FIELD_SHIFT) | (index << INDEX_SHIFT)
+            code = jnp.where(bad.any(axis=1), here, code)
+        return code.astype(jnp.float32)  # exact: codes stay below 2**24
 
     def period(d: mjx.Data, nstep: Any) -> tuple[mjx.Data, jax.Array]:
+        start = read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata)
         if isinstance(nstep, int):  # a static trip count: XLA runs the loop without asking the host
             d = jax.lax.scan(lambda d, _: (step(mx, d), None), d, None, length=nstep)[0]
         else:
             d = jax.lax.fori_loop(0, nstep, lambda _, d: step(mx, d), d)
-        readings = read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata, d.time)
-        return d, jnp.concatenate([readings, check(d)[:, None]], axis=1)
+        code = check(d)
+        # a world that failed reads as it did before this period (the contract's rule)
+        readings = jnp.where((code != 0)[:, None], start, read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata))
+        return d, jnp.concatenate([readings, code[:, None]], axis=1)
 
     def reset(d: mjx.Data, d0: mjx.Data, mask: jax.Array) -> mjx.Data:
         def pick(x, x0):
@@ -164,17 +185,7 @@ def _float32(program: Callable[..., Any]) -> Callable[..., Any]:
     return call
 
 
-def _device(option: Any) -> jax.Device:
-    if option is None:
-        return jax.devices()[0]
-    if isinstance(option, jax.Device):
-        return option
-    platform, _, index = str(option).partition(":")
-    platform = {"cuda": "gpu"}.get(platform, platform)
-    return jax.devices(platform)[int(index or 0)]
-
-
-class MjxSystem(BatchedSystem):
+class MjxSystem(DeviceSystem):
     """`nworld` worlds on MJX (JAX), one jitted device loop per control period.
 
     Options:
@@ -186,13 +197,19 @@ class MjxSystem(BatchedSystem):
     name: ClassVar[str] = "mjx"
     OPTIONS: ClassVar[dict[str, Any]] = {"device": None, "deterministic": False}
 
-    def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
-        super().__init__(spec, nworld, **options)
-        self.device = _device(self.options["device"])
-        try:
-            self._mx = mjx.put_model(self.model, device=self.device, impl="jax")
-        except NotImplementedError as e:
-            raise unsupported_error("mjx", spec, _feature(e)) from None
+    @staticmethod
+    def _resolve_device(option: Any) -> jax.Device:
+        if option is None:
+            return jax.devices()[0]
+        if isinstance(option, jax.Device):
+            return option
+        platform, _, index = str(option).partition(":")
+        platform = {"cuda": "gpu"}.get(platform, platform)
+        return jax.devices(platform)[int(index or 0)]
+
+    @staticmethod
+    def _put_model(m: mujoco.MjModel, device: jax.Device) -> mjx.Model:
+        return mjx.put_model(m, device=device, impl="jax")
 
     @staticmethod
     def available_devices() -> list[str]:
@@ -201,30 +218,24 @@ class MjxSystem(BatchedSystem):
         devices = jax.devices()
         return [f"{d.platform}:{i}" for i, d in enumerate(devices)]
 
-    @staticmethod
-    def unsupported(spec: RobotSpec) -> str | None:
-        """The model feature MJX cannot simulate, or None."""
-        try:
-            mjx.put_model(spec.mjmodel, impl="jax")
-        except NotImplementedError as e:
-            return _feature(e)
-        return None
-
     # --- engine hooks ---
     def _open(self) -> None:
         m = self.model
-        mjd = mujoco.MjData(m)
-        self.spec.initial.apply(m, mjd)  # with mj_forward: a reset world reads what cpu's reads
-        self._d0 = mjx.put_data(m, mjd, device=self.device, impl="jax")
+        self._d0 = mjx.put_data(m, self._initial_data(), device=self.device, impl="jax")
         self._programs = _programs(
-            self._mx, self.spec, self._columns, self.nworld, self.device, bool(self.options["deterministic"])
+            self._model_on_device,
+            self.spec,
+            self._columns,
+            self.nworld,
+            self.device,
+            bool(self.options["deterministic"]),
         )
         self._d = jax.tree.map(lambda x: jnp.repeat(x[None], self.nworld, axis=0), self._d0)
         self._ctrl = np.zeros((self.nworld, m.nu))
         self._ctrl32 = np.zeros((self.nworld, m.nu), np.float32)
         self._ctrl_on_device = True  # whether self._d.ctrl holds self._ctrl32
+        self._clock = np.full(self.nworld, self.spec.initial.time)  # float64: the worlds' time
         self._packed: np.ndarray | None = None  # what the last period downloaded, while current
-        self._init_parking()
 
     def _close(self) -> None:
         del self._d, self._d0, self._programs
@@ -235,49 +246,56 @@ class MjxSystem(BatchedSystem):
     def _upload_ctrl(self) -> None:
         # host side only: it goes up with the next step(), once however often write() ran
         np.copyto(self._ctrl32, self._ctrl, casting="same_kind")
-        if self._parked.any():
-            self._ctrl32[self._parked] = 0.0
+        frozen = self.frozen
+        if frozen.any():
+            self._ctrl32[frozen] = 0.0  # parked worlds stay still
         self._ctrl_on_device = False
 
-    def _sync_ctrl(self) -> None:
-        if not self._ctrl_on_device:
-            self._d = self._d.replace(ctrl=jax.device_put(self._ctrl32, self.device))
+    def _sync_inputs(self) -> None:
+        """ctrl (if write() changed it) and the float32 image of the float64 clock, up in one call."""
+        time32 = self._clock.astype(np.float32)
+        if self._ctrl_on_device:
+            self._d = self._d.replace(time=jax.device_put(time32, self.device))
+        else:
+            ctrl, time = jax.device_put((self._ctrl32, time32), self.device)
+            self._d = self._d.replace(ctrl=ctrl, time=time)
             self._ctrl_on_device = True
 
-    def _download(self) -> Mapping[str, np.ndarray]:
-        """Host float64 copies of the raw fields; read() itself takes the faster path of _refresh."""
-        fields = jax.device_get({f: getattr(self._d, f) for f in (*_SOURCES, "time")})
-        return {f: np.asarray(x, dtype=np.float64) for f, x in fields.items()}
-
-    def _refresh(self) -> None:
+    def _read(self) -> None:
         packed = self._packed  # the last period's download, unless a reset has since changed the worlds
         if packed is None:
             d = self._d
-            packed = np.asarray(self._programs.read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata, d.time))
-        nread = self._readings.shape[1]
+            packed = np.asarray(self._programs.read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata))
+        nread, nsensor = self._readings.shape[1], self._sensor_host.shape[1]
         np.copyto(self._readings, packed[:, :nread])
-        np.copyto(self._sensor_host, packed[:, nread:-1])
-        np.copyto(self.time, packed[:, -1])
-        self._apply_signs()
-        self._show_held_readings()
+        np.copyto(self._sensor_host, packed[:, nread : nread + nsensor])
+        np.copyto(self.time, self._clock)
 
-    def _step(self, nstep: int) -> None:
-        self._sync_ctrl()
+    def _step(self, nstep: int) -> StepFailures | None:
+        self._sync_inputs()
         self._d, out = self._programs.period(self._d, nstep)
-        out = np.asarray(out)  # one download: readings, then the status flags
-        self._packed, flags = out[:, :-1], out[:, -1]
-        if flags.any():
-            failed = (flags != 0) & ~self._parked
-            if failed.any():
-                self._freeze(np.flatnonzero(failed), flags)
-
-    def _freeze(self, worlds: np.ndarray, flags: np.ndarray) -> None:
-        """Hold what the failed worlds read now, then park them on the device."""
-        self.status[worlds] |= flags[worlds].astype(np.uint8)
-        self._refresh()  # the newly failed worlds are not parked yet: they read live, once
-        self._hold_readings(worlds)
-        self._reset_on_device(worlds)
-        self._upload_ctrl()
+        out = np.asarray(out)  # one download: readings, then the failure codes
+        self._packed, codes = out[:, :-1], out[:, -1]
+        failures = None
+        if codes.any():
+            worlds = np.flatnonzero((codes != 0) & ~self.frozen)
+            if worlds.size:
+                # the program returned these worlds' readings from before the period
+                nread = self._readings.shape[1]
+                readings = self._packed[worlds, :nread].astype(np.float64)
+                self._apply_signs(readings)  # an engine gather, unsigned like _read()'s
+                failures = StepFailures(
+                    worlds=worlds,
+                    status=code_status(codes[worlds]),
+                    reasons=self._failure_reasons(codes[worlds]),
+                    readings=readings,
+                    sensordata=self._packed[worlds, nread:].astype(np.float64),
+                    time=self._clock[worlds].copy(),
+                )
+        dt = self.dt
+        for _ in range(nstep):  # one addition per step, as mj_step adds them: cpu's time to the bit
+            self._clock += dt
+        return failures
 
     def _reset_on_device(self, worlds: np.ndarray | None) -> None:
         if worlds is None:
@@ -286,13 +304,26 @@ class MjxSystem(BatchedSystem):
             mask = np.zeros(self.nworld, bool)
             mask[worlds] = True
         self._d = self._programs.reset(self._d, self._d0, jax.device_put(mask, self.device))
+        self._clock[mask] = self.spec.initial.time
         self._packed = None
 
-    def _reset(self, worlds: np.ndarray | None) -> None:
-        self._reset_on_device(worlds)
-        self._unpark(worlds)
-
     # --- for users who stay on the device ---
+    @property
+    def data(self) -> mjx.Data:
+        """The simulation's own `mjx.Data`, batched over worlds (every leaf `(nworld, ...)`).
+
+        Valid until the next step(), write() or reset(), which donate its buffers. Assigning
+        a Data of the same structure and shapes (one your own jitted program returned)
+        replaces the simulation's state; read() then reads it, and a command write() made
+        before goes in with the next step().
+        """
+        return self._d
+
+    @data.setter
+    def data(self, value: mjx.Data) -> None:
+        self._d = value
+        self._packed = None
+
     def device_arrays(self) -> dict[str, jax.Array]:
         """The simulation's JAX arrays, zero copy: qpos, qvel, qfrc_actuator, sensordata, ctrl
         `(nworld, ...)` and time `(nworld,)`, float32, on `self.device`.
@@ -300,11 +331,12 @@ class MjxSystem(BatchedSystem):
         Each step() donates these buffers to the next period, so the arrays are valid until
         the next step(), write() or reset(): call device_arrays() again after those. Pass
         them on with DLPack (`torch.from_dlpack(a)`). Rows of frozen worlds (see `status`)
-        are parked and meaningless until reset.
+        are parked and meaningless until reset. `time` is the engine's float32 clock, set
+        from `sim.time` (float64) at the start of each period.
         """
-        self._sync_ctrl()  # write() keeps ctrl on the host until the next step
+        self._sync_inputs()  # write() keeps ctrl on the host until the next step
         d = self._d
-        return {f: getattr(d, f) for f in ("qpos", "qvel", "qfrc_actuator", "sensordata", "ctrl", "time")}
+        return {f: getattr(d, f) for f in DEVICE_ARRAYS}
 
     # --- cameras and lidars: through a host copy of the worlds (MuJoCo's renderer, mujoco.batch rays) ---
     _host: HostSensors | None = None  # made on the first render or scan
@@ -335,6 +367,3 @@ class MjxSystem(BatchedSystem):
         if self._host is not None:
             self._host.close()
             self._host = None
-
-def _feature(e: NotImplementedError) -> str:
-    return str(e).strip().rstrip(".") or type(e).__name__

@@ -99,6 +99,8 @@ class ShardedSystem(BatchedSystem):
             backend(spec, len(rows), **{**options, "device": device})
             for rows, device in zip(self.world_ranges, self.devices, strict=True)
         ]
+        for shard, rows in zip(self.shards, self.world_ranges, strict=True):
+            shard.number_worlds_as(rows.start, self.nworld)  # failure lines name fleet worlds
         self.options = dict(self.shards[0].options, device=self.devices)
         self.sensors_batched = self.shards[0].sensors_batched
         self._pool = ThreadPoolExecutor(len(self.shards), thread_name_prefix="batchsim-shard")
@@ -154,7 +156,7 @@ class ShardedSystem(BatchedSystem):
         # every device's download at once: each waits on its own device, not on the others
         self._each(lambda shard: shard.read(time, period))
         self._collect()
-        self.sensors.add_reading_noise(self._readings, self._sensor_host)
+        self._add_noise()  # frozen worlds keep their held, noise-free readings
         return ReturnType.OK
 
     def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
@@ -197,7 +199,7 @@ class ShardedSystem(BatchedSystem):
             else:
                 shard.read()  # reset refreshes every world's readings, as on one device
         self._collect()
-        self.sensors.add_reading_noise(self._readings, self._sensor_host)
+        self._add_noise()  # frozen worlds keep their held, noise-free readings
 
     def device_arrays(self) -> dict[str, PerDevice]:
         """The live device arrays of every shard (see the backend's device_arrays), field by

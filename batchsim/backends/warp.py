@@ -1,22 +1,29 @@
 """The `warp` backend: MuJoCo Warp (`mujoco_warp`) in float32, on an NVIDIA GPU or Warp's CPU device.
 
-One control period is one CUDA graph: the `nstep` physics steps and a per-world check
-kernel, captured once per `nstep` and launched with one call. Commands go up and state
-comes down once per period (`write`, `read`), through pinned host buffers allocated once
-at configure; nothing crosses the bus per physics step. On Warp's CPU device (a machine
-without a GPU) the same kernels run as plain launches.
+One control period is one captured graph: the `nstep` physics steps, the float64 clock and
+a per-world check kernel, captured once per `nstep` and launched with one call (Warp replays
+graphs on its CPU device too). Commands go up and state comes down once per period
+(`write`, `read`), through pinned host buffers allocated once at configure; nothing crosses
+the bus per physics step.
 
 Failures are data, as in MuJoCo Warp itself: a world whose qpos, qvel or qacc goes
-non-finite or beyond MuJoCo's mjMAXVAL gets DIVERGED, a world whose contact or constraint
-buffers overflow gets OVERFLOW. Such a world is frozen: its state and time read as they
-were when it failed, while on the device it is parked (reset, ctrl held at zero) so that
-it costs the others nothing, until `reset()` lists it.
+non-finite or beyond MuJoCo's mjMAXVAL gets DIVERGED. Such a world is frozen: it reads as it
+did before the step() in which it failed, while on the device it is parked (reset, ctrl
+held at zero) so that it costs the others nothing, until `reset()` lists it.
 
-Contact and constraint buffers (`nconmax` per world on average, pooled over the worlds as
-MuJoCo Warp does, and `njmax` per world) are sized from a short CPU rollout of the model,
-with headroom; both are options of `batchsim.make`. A contact-pool overflow cannot be
-pinned to one world, so it sets OVERFLOW on every world; a constraint overflow is per
-world. Each kind is reported once, in one line naming the option that fixes it.
+Buffers grow instead of freezing the fleet. Contact and constraint buffers (`nconmax` per
+world on average, pooled over the worlds as MuJoCo Warp does, and `njmax` per world) start
+at the size a short CPU rollout of the model suggests, with headroom (or the options'). Each
+period starts by keeping a device-side copy of every world's integration state; when a
+period overflows one of them, the buffers are re-allocated larger (at least twice, more
+where MuJoCo Warp's counters say so), the state carried over, the graphs re-captured and the
+period run again from its start, so that its result is as if the buffers had been big
+enough; one log line says what grew and to what. Only what cannot grow freezes worlds with
+OVERFLOW: the device's free memory (or `max_data_bytes`), or a limit of the model itself
+(height-field contacts per pair, tactile pairs, the EPA horizon).
+
+Time is float64: a device-side float64 clock per world, advanced in the graph one addition
+per step as mj_step adds them, copied into MuJoCo Warp's float32 `d.time` each period.
 
 `device_arrays()` hands out the live Warp arrays (zero copy, DLPack-capable) for users
 who stay on the device.
@@ -24,9 +31,12 @@ who stay on the device.
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import logging
 import math
-from collections.abc import Mapping
+import os
+import threading
 from typing import Any, ClassVar
 
 import mujoco
@@ -40,12 +50,23 @@ if wp.config.log_level <= wp.LOG_INFO:
 import mujoco_warp as mjw  # noqa: E402  (after the config above)
 from mujoco_warp._src import types as _warp_types  # noqa: E402  (vec6, the geom-group mask rays() takes)
 
-from batchsim.backends import unsupported_error  # noqa: E402
-from batchsim.hardware import MAX_COMMAND, BatchedSystem, Status  # noqa: E402
+from batchsim.backends.device import (  # noqa: E402
+    DEVICE_ARRAYS,
+    FIELD_SHIFT,
+    INDEX_SHIFT,
+    MAX_INDEX,
+    DeviceSystem,
+    code_status,
+)
+from batchsim.hardware import MAX_COMMAND, READ_FIELDS, Status, StepFailures  # noqa: E402
 from batchsim.model import RobotSpec  # noqa: E402
 from batchsim.sensors import Camera, Lidar  # noqa: E402
 
 log = logging.getLogger("batchsim.warp")
+
+# Warp captures and replays graphs on its CPU device through process-wide state: two systems
+# doing so from two threads at once (the shards of one fleet on CPU devices) crash the process
+_CPU_GRAPHS = threading.Lock()
 
 _O = mjw.OverflowType
 # Buffers that, once full, drop contacts or constraints: the world's results are wrong.
@@ -62,20 +83,33 @@ _BUFFER_OVERFLOWS = int(
     | _O.EPA_HORIZON
     | _O.TACTILE
 )
-# what to tell the user for each kind: (what filled up, the option that fixes it)
-_OVERFLOW_FIX = {
-    _O.NEFC: ("constraint rows (njmax)", "njmax"),
-    _O.NJMAX_NNZ: ("constraint Jacobian non-zeros (njmax)", "njmax"),
-    _O.BROADPHASE: ("contact candidates (nconmax, pooled over worlds)", "nconmax"),
-    _O.NARROWPHASE: ("contacts (nconmax, pooled over worlds)", "nconmax"),
-    _O.CCD: ("convex-collision contacts (nconmax)", "nconmax"),
-    _O.HFIELD: ("height-field contacts (nconmax)", "nconmax"),
-    _O.CONTACT_MATCH: ("contact-sensor matches", "nconmax"),
-    _O.NVMAX: ("island degrees of freedom", "njmax"),
-    _O.EPA_HORIZON: ("the convex-collision EPA horizon", "nconmax"),
-    _O.TACTILE: ("tactile-sensor pairs", "nconmax"),
+# what filled up, for the log; and which option's buffers hold it (None: none that can grow)
+_OVERFLOWS = {
+    _O.BROADPHASE: ("contact candidates", "nconmax"),
+    _O.NARROWPHASE: ("contacts", "nconmax"),
+    _O.CCD: ("convex-collision contacts", "nconmax"),
+    _O.NEFC: ("constraint rows", "njmax"),
+    _O.NJMAX_NNZ: ("constraint Jacobian non-zeros", "njmax"),
+    _O.HFIELD: ("height-field contacts per geom pair (lower the height field's resolution)", None),
+    _O.CONTACT_MATCH: ("contact-sensor matches (MuJoCo Warp's opt.contact_sensor_maxmatch)", None),
+    _O.NVMAX: ("island degrees of freedom (nvmax)", None),
+    _O.EPA_HORIZON: ("the convex-collision EPA horizon", None),
+    _O.TACTILE: ("tactile-sensor pairs", None),
 }
-_SOURCES = ("qpos", "qvel", "qfrc_actuator", "sensordata")
+_GROWS = {"nconmax": 0, "njmax": 0}
+for _kind, (_what, _option) in _OVERFLOWS.items():
+    if _option is not None:
+        _GROWS[_option] |= int(_kind)
+
+# what a period changes of MuJoCo's integration state (inputs such as ctrl and mocap it only
+# reads), kept at its start; and the whole integration state, carried into grown buffers
+_CHANGED = int(mjw.State.PHYSICS | mjw.State.WARMSTART)
+_INTEGRATION = int(mjw.State.PHYSICS | mjw.State.USER | mjw.State.WARMSTART)  # no PLUGIN in Warp
+
+# growth: at least this factor, at most that, per re-allocation
+_GROW_MIN, _GROW_MAX = 2.0, 8.0
+_MEMORY_MARGIN = 0.9  # of the free memory a grown Data may take
+_MAX_ELEMENTS = 2**31 - 1  # Warp indexes arrays with 32-bit integers
 
 # buffer sizing from a CPU rollout
 _SIZING_SECONDS = 2.0
@@ -94,26 +128,34 @@ def _check_worlds(
     overflow: wp.array(dtype=wp.int32),
     overflow_mask: wp.int32,
     maxval: wp.float32,
-    flags: wp.array(dtype=wp.int32),
+    code_out: wp.array(dtype=wp.int32),
 ):
-    """flags[w]: DIVERGED if qpos/qvel/qacc is NaN or beyond mjMAXVAL, OVERFLOW if a buffer overflowed."""
+    """code_out[w]: the world's failure code (batchsim.backends.device): DIVERGED with the first
+    bad entry of qpos, qvel, qacc (NaN or beyond mjMAXVAL), OVERFLOW if a buffer overflowed."""
     w = wp.tid()
-    bad = int(0)  # noqa: UP018  (int(): a mutable Warp variable, not a constant)
+    field = int(0)  # noqa: UP018  (int(): a mutable Warp variable, not a constant)
+    index = int(0)  # noqa: UP018
     for i in range(qpos.shape[1]):
         x = qpos[w, i]
-        if wp.isnan(x) or wp.abs(x) > maxval:
-            bad = 1
+        if field == 0 and (wp.isnan(x) or wp.abs(x) > maxval):
+            field = 1
+            index = i
     for i in range(qvel.shape[1]):
         x = qvel[w, i]
-        y = qacc[w, i]
-        if wp.isnan(x) or wp.abs(x) > maxval or wp.isnan(y) or wp.abs(y) > maxval:
-            bad = 1
-    f = int(0)  # noqa: UP018
-    if bad != 0:
-        f = int(Status.DIVERGED)
+        if field == 0 and (wp.isnan(x) or wp.abs(x) > maxval):
+            field = 2
+            index = i
+    for i in range(qacc.shape[1]):
+        x = qacc[w, i]
+        if field == 0 and (wp.isnan(x) or wp.abs(x) > maxval):
+            field = 3
+            index = i
+    code = int(0)  # noqa: UP018
+    if field != 0:
+        code = int(Status.DIVERGED) | (field << FIELD_SHIFT) | (wp.min(index, MAX_INDEX) << INDEX_SHIFT)
     if (overflow[w] & overflow_mask) != 0:
-        f = f | int(Status.OVERFLOW)
-    flags[w] = f
+        code = code | int(Status.OVERFLOW)
+    code_out[w] = code
 
 
 @wp.kernel
@@ -136,7 +178,7 @@ def _gather_state(
     qvel: wp.array2d(dtype=wp.float32),
     qfrc_actuator: wp.array2d(dtype=wp.float32),
     sensordata: wp.array2d(dtype=wp.float32),
-    time: wp.array(dtype=wp.float32),
+    clock: wp.array(dtype=wp.float64),
     source: wp.array(dtype=wp.int32),
     index: wp.array(dtype=wp.int32),
     nstate: wp.int32,
@@ -144,10 +186,10 @@ def _gather_state(
     sensordata_out: wp.array2d(dtype=wp.float64),
     time_out: wp.array(dtype=wp.float64),
 ):
-    """The state interfaces, sensordata and time of every world, widened to float64.
+    """The read() columns, sensordata and time of every world, widened to float64.
 
-    Column c < nstate is state column c, read from field source[c] at index[c]; the next
-    nsensordata columns are sensordata; the last is time.
+    Column c < nstate is read column c, from field source[c] at index[c]; the next
+    nsensordata columns are sensordata; the last is the float64 clock.
     """
     w, c = wp.tid()
     if c < nstate:
@@ -166,7 +208,24 @@ def _gather_state(
     elif c < nstate + sensordata.shape[1]:
         sensordata_out[w, c - nstate] = wp.float64(sensordata[w, c - nstate])
     else:
-        time_out[w] = wp.float64(time[w])
+        time_out[w] = clock[w]
+
+
+@wp.kernel
+def _advance_clock(
+    dt: wp.float64,
+    nstep: wp.int32,
+    clock: wp.array(dtype=wp.float64),
+    time_out: wp.array(dtype=wp.float32),
+):
+    """nstep timesteps onto each world's float64 clock, one addition each as mj_step adds them
+    (cpu's time to the bit), and MuJoCo Warp's float32 time set from it."""
+    w = wp.tid()
+    t = clock[w]
+    for _ in range(nstep):
+        t = t + dt
+    clock[w] = t
+    time_out[w] = wp.float32(t)
 
 
 @wp.kernel
@@ -178,10 +237,30 @@ def _set_rows(mask: wp.array(dtype=wp.bool), row: wp.array(dtype=Any), out: wp.a
 
 
 @wp.kernel
-def _set_time(mask: wp.array(dtype=wp.bool), value: wp.float32, out: wp.array(dtype=wp.float32)):
+def _set_clock(
+    mask: wp.array(dtype=wp.bool),
+    value: wp.float64,
+    clock: wp.array(dtype=wp.float64),
+    time_out: wp.array(dtype=wp.float32),
+):
     w = wp.tid()
     if mask[w]:
-        out[w] = value
+        clock[w] = value
+        time_out[w] = wp.float32(value)
+
+
+@wp.kernel
+def _copy_rows(mask: wp.array(dtype=wp.bool), src: wp.array2d(dtype=Any), out: wp.array2d(dtype=Any)):
+    w, j = wp.tid()
+    if mask[w]:
+        out[w, j] = src[w, j]
+
+
+@wp.kernel
+def _copy_items(mask: wp.array(dtype=wp.bool), src: wp.array(dtype=Any), out: wp.array(dtype=Any)):
+    w = wp.tid()
+    if mask[w]:
+        out[w] = src[w]
 
 
 # ---------------------------------------------------------------- buffer sizing
@@ -228,26 +307,34 @@ def rollout_sizes(m: mujoco.MjModel, *, seed: int = 0) -> tuple[int, int]:
 # ---------------------------------------------------------------- the backend
 
 
-class WarpSystem(BatchedSystem):
-    """`nworld` worlds on MuJoCo Warp, one CUDA graph per control period.
+class WarpSystem(DeviceSystem):
+    """`nworld` worlds on MuJoCo Warp, one captured graph per control period.
 
     Options:
-      nconmax: contacts per world, on average (MuJoCo Warp pools them over the worlds);
-        None sizes it from a short CPU rollout of the model, with headroom.
-      njmax: constraint rows per world; None sizes it from the same rollout.
+      nconmax: contacts per world, on average (MuJoCo Warp pools them over the worlds), to
+        start with; None sizes it from a short CPU rollout of the model, with headroom. It
+        grows when a period overflows it.
+      njmax: constraint rows per world to start with; None sizes it from the same rollout.
+        It grows likewise.
+      max_data_bytes: the most memory MuJoCo Warp's Data may take when buffers grow; None:
+        what the device has free.
       device: a Warp device ("cuda:0", "cpu"); None is Warp's default (the first GPU if
         there is one).
-      graph: capture each control period in a CUDA graph (GPU only); False launches the
+      graph: capture each control period in a graph and replay it; False launches the
         kernels one by one, for debugging.
       deterministic: bitwise-repeatable results on a GPU (MuJoCo Warp's sorted contacts,
         canonical constraint rows and order-invariant atomic sums), slower. Warp's CPU
         device is repeatable either way.
+
+    Attributes (beyond BatchedSystem's):
+      nconmax, njmax: the buffer sizes now, after any growth.
     """
 
     name: ClassVar[str] = "warp"
     OPTIONS: ClassVar[dict[str, Any]] = {
         "nconmax": None,
         "njmax": None,
+        "max_data_bytes": None,
         "device": None,
         "graph": True,
         "deterministic": False,
@@ -255,15 +342,13 @@ class WarpSystem(BatchedSystem):
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__(spec, nworld, **options)
-        self.device = wp.get_device(self.options["device"])
-        feature = self.unsupported(spec, self.device)
-        if feature is not None:
-            raise unsupported_error("warp", spec, feature)
         sized = None
         if self.options["nconmax"] is None or self.options["njmax"] is None:
             sized = rollout_sizes(self.model)
         self.nconmax = int(self.options["nconmax"] if self.options["nconmax"] is not None else sized[0])
         self.njmax = int(self.options["njmax"] if self.options["njmax"] is not None else sized[1])
+        if self.nconmax < 0 or self.njmax < 0:
+            raise ValueError(f"nconmax and njmax must be >= 0, got {self.nconmax} and {self.njmax}")
         self._cuda = self.device.is_cuda
         # The host arrays a user sees become pinned memory that the device copies into
         # directly: read() then costs one DMA per array and no host-side copy or conversion.
@@ -280,23 +365,21 @@ class WarpSystem(BatchedSystem):
         self.time = self._time_wp.numpy()
         self._ctrl = self._ctrl_wp.numpy()
         self._flags = self._flags_wp.numpy()
-        self._reported: set[int] = set()
+
+    @staticmethod
+    def _resolve_device(option: Any) -> Any:
+        return wp.get_device(option)
+
+    @staticmethod
+    def _put_model(m: mujoco.MjModel, device: Any) -> Any:
+        with wp.ScopedDevice(device):
+            return mjw.put_model(m)
 
     @staticmethod
     def available_devices() -> list[str]:
         """Warp's devices for this backend: every CUDA GPU ("cuda:0", ...), else ["cpu"]."""
         gpus = [d.alias for d in wp.get_cuda_devices()]
         return gpus or ["cpu"]
-
-    @staticmethod
-    def unsupported(spec: RobotSpec, device: Any = None) -> str | None:
-        """The model feature MuJoCo Warp cannot simulate, or None."""
-        try:
-            with wp.ScopedDevice(device):
-                mjw.put_model(spec.mjmodel)
-        except NotImplementedError as e:
-            return str(e).strip().rstrip(".") or type(e).__name__
-        return None
 
     def _host_array(self, shape: tuple[int, ...], dtype: Any) -> wp.array:
         """A zeroed host array: pinned (page-locked) when the device is a GPU."""
@@ -305,17 +388,25 @@ class WarpSystem(BatchedSystem):
     # --- engine hooks ---
     def _open(self) -> None:
         m, n = self.model, self.nworld
-        mjd = mujoco.MjData(m)
-        self.spec.initial.apply(m, mjd)  # with mj_forward: a reset world reads what cpu's reads
+        self._mjd0 = mjd = self._initial_data()
+        self._time0 = float(mjd.time)
         with wp.ScopedDevice(self.device):
-            self._m = mjw.put_model(m)
+            self._m = self._model_on_device
             # failures are read per world from d.overflow; MuJoCo Warp's own printf per
             # overflowing world and step would flood the console
             self._m.opt.warn_overflow = 0
             if self.options["deterministic"]:
                 self._m.opt.deterministic = int(mjw.DeterminismType.ALL)
+            # the initial state's own contacts and constraints must fit (put_data's rule)
+            if mjd.ncon > self.nconmax or mjd.nefc > self.njmax:
+                grown = max(self.nconmax, mjd.ncon), max(self.njmax, int(mjd.nefc))
+                log.info(
+                    "batchsim: warp: the initial state has %d contacts and %d constraint rows; buffers "
+                    "start at nconmax %d and njmax %d per world (asked: %d and %d)",
+                    mjd.ncon, mjd.nefc, *grown, self.nconmax, self.njmax,
+                )
+                self.nconmax, self.njmax = grown
             self._d = mjw.put_data(m, mjd, nworld=n, nconmax=self.nconmax, njmax=self.njmax)
-            d = self._d
             # what a reset world is set to beyond reset_data's defaults: the initial state (a
             # keyframe, initial values) and mj_forward's derived fields of it
             self._initial_rows = {
@@ -332,16 +423,29 @@ class WarpSystem(BatchedSystem):
                 )
                 if getattr(mjd, field).size
             }
-            self._time0 = float(mjd.time)
+            self._clock = wp.full(n, self._time0, dtype=wp.float64)
             self._parked_dev = wp.zeros(n, dtype=wp.int32)
             self._mask_dev = wp.zeros(n, dtype=wp.bool)
             nread = self._readings.shape[1]
             source = np.zeros(nread, np.int32)
             index = np.zeros(nread, np.int32)
             for c, col in enumerate(self._columns):
-                source[c], index[c] = _SOURCES.index(col.source), col.index
+                source[c], index[c] = READ_FIELDS.index(col.source), col.index
             self._source = wp.array(source, dtype=wp.int32)
             self._index = wp.array(index, dtype=wp.int32)
+            # the period's start, kept on the device: to repeat it, or to read a failed world
+            self._start = {
+                "state": wp.zeros((n, mujoco.mj_stateSize(m, _CHANGED)), dtype=wp.float32),
+                "qfrc_actuator": wp.zeros_like(self._d.qfrc_actuator),
+                "sensordata": wp.zeros_like(self._d.sensordata),
+                "clock": wp.zeros_like(self._clock),
+            }
+            # failed worlds' readings from the start, gathered apart from what read() shows
+            self._failed_readings = (
+                wp.zeros(self._readings.shape, dtype=wp.float64),
+                wp.zeros(self._sensor_host.shape, dtype=wp.float64),
+                wp.zeros(n, dtype=wp.float64),
+            )
             if self._cuda:
                 self._state_dev = wp.zeros(self._readings.shape, dtype=wp.float64)
                 self._sensor_dev = wp.zeros(self._sensor_host.shape, dtype=wp.float64)
@@ -355,14 +459,25 @@ class WarpSystem(BatchedSystem):
                     self._time_wp,
                 )
                 self._ctrl_dev, self._flags_dev = self._ctrl_wp, self._flags_wp
-        del d
+            self._keep_start()  # compile its kernels now rather than inside a capture
         self._graphs: dict[int, Any] = {}
-        self._init_parking()
         self._ncols = self._readings.shape[1] + self._sensor_host.shape[1] + 1
 
     def _close(self) -> None:
         self._graphs.clear()
-        for name in ("_m", "_d", "_initial_rows", "_parked_dev", "_mask_dev", "_source", "_index"):
+        for name in (
+            "_m",
+            "_d",
+            "_mjd0",
+            "_initial_rows",
+            "_clock",
+            "_parked_dev",
+            "_mask_dev",
+            "_source",
+            "_index",
+            "_start",
+            "_failed_readings",
+        ):
             self.__dict__.pop(name, None)
 
     def _ctrl_host(self) -> np.ndarray:
@@ -379,40 +494,51 @@ class WarpSystem(BatchedSystem):
                 outputs=[self._d.ctrl],
             )
 
-    def _download(self) -> Mapping[str, np.ndarray]:
-        """Host float64 copies of the raw fields; read() itself takes the faster path of _refresh."""
-        return {f: getattr(self._d, f).numpy().astype(np.float64) for f in (*_SOURCES, "time")}
-
-    def _refresh(self) -> None:
-        d = self._d
+    def _read(self) -> None:
         with wp.ScopedDevice(self.device):
-            wp.launch(
-                _gather_state,
-                dim=(self.nworld, self._ncols),
-                inputs=[
-                    d.qpos,
-                    d.qvel,
-                    d.qfrc_actuator,
-                    d.sensordata,
-                    d.time,
-                    self._source,
-                    self._index,
-                    self._readings.shape[1],
-                ],
-                outputs=[self._state_dev, self._sensor_dev, self._time_dev],
-            )
+            self._gather_on_device(self._state_dev, self._sensor_dev, self._time_dev)
             if self._cuda:
                 wp.copy(self._state_wp, self._state_dev)
                 if self._sensor_host.size:
                     wp.copy(self._sensor_wp, self._sensor_dev)
                 wp.copy(self._time_wp, self._time_dev)
             wp.synchronize_device(self.device)
-        self._apply_signs()
-        self._show_held_readings()
 
-    def _step(self, nstep: int) -> None:
-        with wp.ScopedDevice(self.device):
-            if self._cuda and self.options["graph"]:
+    def _gather_on_device(self, state_out: wp.array, sensordata_out: wp.array, time_out: wp.array) -> None:
+        d = self._d
+        wp.launch(
+            _gather_state,
+            dim=(self.nworld, self._ncols),
+            inputs=[
+                d.qpos,
+                d.qvel,
+                d.qfrc_actuator,
+                d.sensordata,
+                self._clock,
+                self._source,
+                self._index,
+                self._readings.shape[1],
+            ],
+            outputs=[state_out, sensordata_out, time_out],
+        )
+
+    def _step(self, nstep: int) -> StepFailures | None:
+        while True:
+            self._launch(nstep)
+            codes = self._flags
+            if not codes.any():
+                return None
+            live = (codes != 0) & ~self.frozen
+            if not live.any():
+                return None
+            if not self._grow(codes, live):
+                return self._failures(np.flatnonzero(live), codes)
+            # grown, and every world back at the period's start: run the period again
+
+    def _launch(self, nstep: int) -> None:
+        serial = _CPU_GRAPHS if self.options["graph"] and not self._cuda else contextlib.nullcontext()
+        with wp.ScopedDevice(self.device), serial:
+            if self.options["graph"]:
                 graph = self._graphs.get(nstep)
                 if graph is None:
                     graph = self._graphs[nstep] = self._capture(nstep)
@@ -422,16 +548,13 @@ class WarpSystem(BatchedSystem):
             if self._cuda:
                 wp.copy(self._flags_wp, self._flags_dev)
             wp.synchronize_device(self.device)
-        flags = self._flags
-        if flags.any():
-            failed = (flags != 0) & ~self._parked
-            if failed.any():
-                self._freeze(np.flatnonzero(failed), flags)
 
     def _period(self, nstep: int) -> None:
         m, d = self._m, self._d
+        self._keep_start()
         for _ in range(nstep):
             mjw.step(m, d)
+        wp.launch(_advance_clock, dim=self.nworld, inputs=[self.dt, nstep], outputs=[self._clock, d.time])
         wp.launch(
             _check_worlds,
             dim=self.nworld,
@@ -444,37 +567,145 @@ class WarpSystem(BatchedSystem):
             self._period(nstep)
         return capture.graph
 
-    def _freeze(self, worlds: np.ndarray, flags: np.ndarray) -> None:
-        """Hold what the failed worlds read now, then park them on the device."""
-        self.status[worlds] |= flags[worlds].astype(np.uint8)
-        overflowed = worlds[(flags[worlds] & int(Status.OVERFLOW)) != 0]
-        if overflowed.size:
-            self._report_overflow(overflowed)
-        self._refresh()  # the newly failed worlds are not parked yet: they read live, once
-        self._hold_readings(worlds)
-        self._reset_on_device(worlds)
-        with wp.ScopedDevice(self.device):
-            self._parked_dev.assign(self._parked.astype(np.int32))
-        self._upload_ctrl()
+    # --- the period's start: kept, restored ---
+    def _keep_start(self) -> None:
+        """Copy what a period changes (mjSTATE_PHYSICS, the warmstart, and the derived fields
+        read() gathers) of every world, on the device."""
+        d, start = self._d, self._start
+        mjw.get_state(self._m, d, start["state"], _CHANGED)
+        wp.copy(start["qfrc_actuator"], d.qfrc_actuator)
+        if d.sensordata.size:
+            wp.copy(start["sensordata"], d.sensordata)
+        wp.copy(start["clock"], self._clock)
 
-    def _report_overflow(self, worlds: np.ndarray) -> None:
-        overflow = self._d.overflow.numpy()[worlds] & _BUFFER_OVERFLOWS
-        for kind, (what, option) in _OVERFLOW_FIX.items():
-            hit = (overflow & int(kind)) != 0
-            if not hit.any() or int(kind) in self._reported:
-                continue
-            self._reported.add(int(kind))
-            now = self.nconmax if option == "nconmax" else self.njmax
-            log.warning(
-                "batchsim: warp: %s overflowed in %d of %d worlds; they are frozen with OVERFLOW until "
-                "reset. Fix: batchsim.make(..., %s=%d) (now %d)",
-                what,
-                int(hit.sum()),
-                self.nworld,
-                option,
-                2 * now,
-                now,
+    def _restore_start(self, mask: wp.array | None) -> None:
+        """Put the masked worlds (None: all) back where the period started."""
+        d, start = self._d, self._start
+        mjw.set_state(self._m, d, start["state"], _CHANGED, active=mask)
+        if mask is None:
+            wp.copy(d.qfrc_actuator, start["qfrc_actuator"])
+            if d.sensordata.size:
+                wp.copy(d.sensordata, start["sensordata"])
+            wp.copy(self._clock, start["clock"])
+            return
+        for field in ("qfrc_actuator", "sensordata"):
+            out = getattr(d, field)
+            if out.size:
+                wp.launch(_copy_rows, dim=out.shape, inputs=[mask, start[field]], outputs=[out])
+        wp.launch(_copy_items, dim=self.nworld, inputs=[mask, start["clock"]], outputs=[self._clock])
+
+    def _failures(self, worlds: np.ndarray, codes: np.ndarray) -> StepFailures:
+        """The failed worlds, read as they were when the period started."""
+        mask = np.zeros(self.nworld, bool)
+        mask[worlds] = True
+        with wp.ScopedDevice(self.device):
+            overflow = self._d.overflow.numpy()[worlds] & _BUFFER_OVERFLOWS
+            self._mask_dev.assign(mask)
+            self._restore_start(self._mask_dev)  # they are parked right after: no harm done
+            self._gather_on_device(*self._failed_readings)
+            state, sensordata, time = (a.numpy()[worlds] for a in self._failed_readings)
+        self._apply_signs(state)  # an engine gather, unsigned like _read()'s
+        return StepFailures(
+            worlds=worlds,
+            status=code_status(codes[worlds]),
+            reasons=self._failure_reasons(codes[worlds], lambda i: self._overflow_reason(int(overflow[i]))),
+            readings=state,
+            sensordata=sensordata,
+            time=time,
+        )
+
+    def _overflow_reason(self, bits: int) -> str:
+        kinds = [(what, option) for kind, (what, option) in _OVERFLOWS.items() if bits & int(kind)]
+        said = "; ".join(what + (f" ({option})" if option else "") for what, option in kinds)
+        if any(option for _, option in kinds) and self._cannot_grow:
+            said += f"; {self._cannot_grow}"
+        return said or "a buffer overflowed"
+
+    # --- growing the buffers ---
+    _cannot_grow = ""  # why the last growth was impossible, for the failure lines
+
+    def _grow(self, codes: np.ndarray, live: np.ndarray) -> bool:
+        """Grow the buffers that overflowed in this period and restore every world to its start.
+        False if nothing that overflowed can grow, or there is not the memory for it."""
+        self._cannot_grow = ""
+        overflowed = live & ((codes & int(Status.OVERFLOW)) != 0)
+        if not overflowed.any():
+            return False
+        d = self._d
+        bits = int(np.bitwise_or.reduce(d.overflow.numpy()[overflowed] & _BUFFER_OVERFLOWS))
+        grows = {option: bits & mask for option, mask in _GROWS.items() if bits & mask}
+        if not grows:
+            return False
+        # MuJoCo Warp's counters go on counting past the buffers: what the last step needed
+        need = {
+            "nconmax": math.ceil(max(int(d.ncollision.numpy()[0]), int(d.nacon.numpy()[0])) / self.nworld),
+            "njmax": int(d.nefc.numpy().max()),
+        }
+        now = {"nconmax": self.nconmax, "njmax": self.njmax}
+        plans = []
+        for grow in (True, False):  # ample first; then only what the counters ask
+            size = dict(now)
+            for option in grows:
+                lo = max(now[option] + 1, need[option])
+                size[option] = _grown(now[option], need[option]) if grow else lo
+            if size not in plans:
+                plans.append(size)
+        limit = self._memory_for_data()
+        for size in plans:
+            nbytes, elements = _data_size(d, size["nconmax"] / max(now["nconmax"], 1), size["njmax"] / max(now["njmax"], 1))
+            if nbytes <= limit and elements <= _MAX_ELEMENTS:
+                break
+        else:
+            size = plans[-1]
+            what = "the device's free memory" if self.options["max_data_bytes"] is None else "max_data_bytes"
+            self._cannot_grow = (
+                f"growing {' and '.join(f'{o} to {size[o]}' for o in grows)} per world needs "
+                f"{nbytes / 2**30:.2f} GiB, more than {what} allows ({limit / 2**30:.2f} GiB)"
             )
+            return False
+        self._reallocate(size["nconmax"], size["njmax"])
+        names = " and ".join(
+            " and ".join(what for kind, (what, option) in _OVERFLOWS.items() if option == o and bits & int(kind))
+            + f" ({o})"
+            for o in grows
+        )
+        log.warning(
+            "batchsim: warp: %s overflowed in %d of %d worlds; grew %s per world and repeated the period",
+            names,
+            int(overflowed.sum()),
+            self.nworld,
+            " and ".join(f"{o} {now[o]} -> {size[o]}" for o in grows),
+        )
+        return True
+
+    def _reallocate(self, nconmax: int, njmax: int) -> None:
+        """New Data with these buffers, every world at the period's start carried over; the
+        arrays device_arrays() hands out stay the same objects."""
+        m, n, old = self.model, self.nworld, self._d
+        with wp.ScopedDevice(self.device):
+            self._restore_start(None)
+            state = wp.zeros((n, mujoco.mj_stateSize(m, _INTEGRATION)), dtype=wp.float32)
+            mjw.get_state(self._m, old, state, _INTEGRATION)
+            new = mjw.make_data(m, nworld=n, nconmax=nconmax, njmax=njmax)
+            mjw.set_state(self._m, new, state, _INTEGRATION)
+            for field in DEVICE_ARRAYS:  # same values; keep the arrays users may hold
+                setattr(new, field, getattr(old, field))
+            wp.synchronize_device(self.device)
+        self._d = new
+        self.nconmax, self.njmax = nconmax, njmax
+        self._graphs.clear()  # they launch on the old buffers: capture again
+        del old
+
+    def _memory_for_data(self) -> float:
+        """Bytes a grown Data may take: max_data_bytes, else a margin under what is free."""
+        if self.options["max_data_bytes"] is not None:
+            return float(self.options["max_data_bytes"])
+        if self._cuda:
+            return _MEMORY_MARGIN * self.device.free_memory
+        try:  # Warp's CPU device: the host's available memory (Linux)
+            return _MEMORY_MARGIN * os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):
+            return math.inf
 
     def _reset_on_device(self, worlds: np.ndarray | None) -> None:
         mask = np.ones(self.nworld, bool) if worlds is None else np.isin(np.arange(self.nworld), worlds)
@@ -490,26 +721,24 @@ class WarpSystem(BatchedSystem):
                     inputs=[self._mask_dev, row],
                     outputs=[getattr(d, field)],
                 )
-            if self._time0:
-                wp.launch(_set_time, dim=self.nworld, inputs=[self._mask_dev, self._time0], outputs=[d.time])
-
-    def _reset(self, worlds: np.ndarray | None) -> None:
-        self._reset_on_device(worlds)
-        self._unpark(worlds)
-        with wp.ScopedDevice(self.device):
-            self._parked_dev.assign(self._parked.astype(np.int32))
+            wp.launch(
+                _set_clock, dim=self.nworld, inputs=[self._mask_dev, self._time0], outputs=[self._clock, d.time]
+            )
+            self._parked_dev.assign(self.frozen.astype(np.int32))
 
     # --- for users who stay on the device ---
     def device_arrays(self) -> dict[str, wp.array]:
         """The simulation's live Warp arrays, zero copy: qpos, qvel, qfrc_actuator, sensordata,
         ctrl `(nworld, ...)` and time `(nworld,)`, float32, on `self.device`.
 
-        They are the buffers MuJoCo Warp steps in place, valid until cleanup(); pass them to
-        other frameworks with DLPack (`torch.from_dlpack(a)`, `jax.dlpack.from_dlpack(a)`).
-        Rows of frozen worlds (see `status`) are parked and meaningless until reset.
+        They are the buffers MuJoCo Warp steps in place, valid until cleanup() (a buffer
+        growth keeps them); pass them to other frameworks with DLPack (`torch.from_dlpack(a)`,
+        `jax.dlpack.from_dlpack(a)`). Rows of frozen worlds (see `status`) are parked and
+        meaningless until reset. `time` is the engine's float32 clock, set from `sim.time`
+        (float64) at the end of each period.
         """
         d = self._d
-        return {f: getattr(d, f) for f in ("qpos", "qvel", "qfrc_actuator", "sensordata", "ctrl", "time")}
+        return {f: getattr(d, f) for f in DEVICE_ARRAYS}
 
     # --- cameras and lidars: MuJoCo Warp's ray-traced rendering and ray casting ---
     sensors_batched: ClassVar[bool] = True  # every world in one launch, whichever are asked for
@@ -650,3 +879,36 @@ def _lidar_rays(
     w, r = wp.tid()
     pnt_out[w, r] = site_xpos[w, site]
     vec_out[w, r] = site_xmat[w, site] @ directions[r]
+
+
+def _grown(now: int, need: int) -> int:
+    """The new size for a buffer of `now` that needed `need`: at least twice, more where the
+    counters ask for more (with a quarter on top), at most _GROW_MAX times."""
+    want = max(math.ceil(_GROW_MIN * max(now, 1)), math.ceil(1.25 * need))
+    return int(min(want, math.ceil(_GROW_MAX * max(now, 1))))
+
+
+def _data_size(d: Any, con_ratio: float, j_ratio: float) -> tuple[float, int]:
+    """(bytes, largest element count) of a Data like `d` with its contact buffers scaled by
+    con_ratio and its constraint buffers by j_ratio: an estimate from its arrays' shapes."""
+    con_dims = {d.naconmax, d.naccdmax}
+    j_dims = {d.njmax, d.njmax_pad, d.njmax_nnz}
+    total, largest = 0.0, 0
+
+    def visit(obj: Any) -> None:
+        nonlocal total, largest
+        for value in vars(obj).values():
+            if isinstance(value, wp.array):
+                scale = 1.0
+                for dim in value.shape:
+                    if dim in con_dims:
+                        scale *= con_ratio
+                    elif dim in j_dims:
+                        scale *= j_ratio
+                total += value.capacity * scale
+                largest = max(largest, math.ceil(value.size * scale))
+            elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+                visit(value)
+
+    visit(d)
+    return total, largest
