@@ -487,11 +487,12 @@ class WarpSystem(DeviceSystem):
         with wp.ScopedDevice(self.device):
             if self._cuda:
                 wp.copy(self._ctrl_dev, self._ctrl_wp)
-            wp.launch(
+            wp.launch(  # the device named: ScopedDevice is process-wide, and shards write at once
                 _narrow_ctrl,
                 dim=self._ctrl.shape,
                 inputs=[self._ctrl_dev, self._parked_dev],
                 outputs=[self._d.ctrl],
+                device=self.device,
             )
 
     def _read(self) -> None:
@@ -520,6 +521,7 @@ class WarpSystem(DeviceSystem):
                 self._readings.shape[1],
             ],
             outputs=[state_out, sensordata_out, time_out],
+            device=self.device,  # named: a sharded fleet reads its shards at once, and ScopedDevice is process-wide
         )
 
     def _step(self, nstep: int) -> StepFailures | None:
