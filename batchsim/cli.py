@@ -388,7 +388,7 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
         from ros_bridge.bridge import BridgeOptions, FleetConflict, Reliability, WorkerError, start_bridge
     except ModuleNotFoundError as e:
         raise UsageError(
-            f"ROS 2 is not installed ({e.name} is missing): pip install 'batchsim[ros]', or pass --no-ros"
+            f"ROS 2 is not installed ({e.name} is missing): {startup.install_command('ros')}, or pass --no-ros"
         ) from None
     options = BridgeOptions(
         namespace=args.namespace,

@@ -760,3 +760,26 @@ def test_odom_free_joint_name_picks_the_floating_base(tmp_path):
     block = BLOCK.format(hw='<param name="odom_free_joint_name">floating_base_joint</param>', extra="")
     spec = batchsim.load(_robot(tmp_path, block, text=scene))
     assert spec.floating_base is not None and spec.floating_base.body == "cart"
+
+
+def test_auto_picks_warp_from_the_measured_crossover_on_a_gpu(monkeypatch):
+    """The held-out run on an H200 (RESULTS.md): warp beats cpu at 256 humanoids, cpu wins at 128."""
+    pytest.importorskip("mujoco_warp")
+    monkeypatch.setattr(batchsim.backends, "cuda_gpu", lambda: True)
+    spec = batchsim.load("humanoid")
+    assert batchsim.backends.resolve("auto", spec, 128)[0] is batchsim.Backend.CPU
+    assert batchsim.backends.resolve("auto", spec, 256)[0] is batchsim.Backend.WARP
+
+
+def test_install_hints_name_the_checkout_not_a_package_index(monkeypatch):
+    """batchsim is not on a package index: a missing backend's hint installs from the checkout."""
+    real = batchsim.backends.importlib.import_module
+
+    def missing_warp(name: str):
+        if name == "batchsim.backends.warp":
+            raise ModuleNotFoundError("No module named 'mujoco_warp'", name="mujoco_warp")
+        return real(name)
+
+    monkeypatch.setattr(batchsim.backends.importlib, "import_module", missing_warp)
+    with pytest.raises(batchsim.BackendUnavailable, match=r"pip install -e '.*\[warp\]'"):
+        batchsim.backends.backend_class(batchsim.Backend.WARP)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from batchsim.hardware import BatchedSystem, ConfigurationError
 from batchsim.model import RobotSpec
+from batchsim.startup import install_command
 
 
 class Backend(enum.Enum):
@@ -43,8 +44,9 @@ _REGISTRY: dict[Backend, tuple[str, str, str | None]] = {
 
 # auto: on a CUDA GPU, warp from this many worlds up, cpu below. The crossover of the two
 # backends' contract throughput, measured with the humanoid on a 16-core H200 host by
-# benchmarks/throughput.py (benchmarks/RESULTS.md).
-WARP_MIN_WORLDS = 512
+# benchmarks/throughput.py --around-threshold (benchmarks/RESULTS.md, "Held out"): cpu
+# faster at 128 worlds, warp at 256.
+WARP_MIN_WORLDS = 256
 
 
 class BackendUnavailable(ImportError):
@@ -59,7 +61,7 @@ def backend_class(backend: Backend) -> type[BatchedSystem]:
     try:
         return getattr(importlib.import_module(module), cls)
     except ImportError as e:
-        hint = f": pip install 'batchsim[{extra}]'" if extra else ""
+        hint = f": {install_command(extra)}" if extra else ""
         raise BackendUnavailable(
             f"backend {backend.value!r} needs the package {e.name!r}, which is not installed{hint}"
         ) from None
@@ -116,7 +118,7 @@ def resolve(backend: str | Backend, spec: RobotSpec, nworld: int) -> tuple[Backe
     try:
         cls = backend_class(Backend.WARP)
     except BackendUnavailable:
-        return Backend.CPU, "auto: a CUDA GPU, but MuJoCo Warp is not installed (pip install 'batchsim[warp]')"
+        return Backend.CPU, f"auto: a CUDA GPU, but MuJoCo Warp is not installed ({install_command('warp')})"
     feature = cls.unsupported(spec)
     if feature is not None:
         return Backend.CPU, f"auto: MuJoCo Warp cannot simulate this model ({feature})"
