@@ -13,9 +13,13 @@ from __future__ import annotations
 import functools
 import importlib.util
 import os
+import tempfile
 
 # before JAX is imported anywhere: two CPU devices, for the multi-device tests
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+# mjx compiles the same programs again and again across tests (a fresh system per test, the
+# 2-device variants): JAX's persistent cache lets every test after the first load them
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), f"batchsim-jax-cache-{os.getuid()}"))
 
 import pytest  # noqa: E402
 
