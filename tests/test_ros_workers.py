@@ -33,7 +33,9 @@ NWORLD = 64
 RANGES = [(0, 20), (21, 42), (43, 63)]  # each worker's first and last world
 WATCHED = (0, 20, 21, 30, 42, 43, 50, 62, 63)
 JTC = "joint_trajectory_controller"
-CONTROLLERS = f"""
+def controllers_yaml(joints: list[str], open_loop: bool = False) -> str:
+    """A controller_manager YAML: the joint_state broadcaster and a trajectory controller on `joints`."""
+    return f"""
 controller_manager:
   ros__parameters:
     update_rate: 100
@@ -43,11 +45,13 @@ controller_manager:
       type: joint_trajectory_controller/JointTrajectoryController
 {JTC}:
   ros__parameters:
-    joints: [joint1, joint2, joint3]
+    joints: [{", ".join(joints)}]
     command_interfaces: [position]
     state_interfaces: [position, velocity]
-    open_loop_control: true
-"""
+""" + ("    open_loop_control: true\n" if open_loop else "")
+
+
+CONTROLLERS = controllers_yaml(["joint1", "joint2", "joint3"], open_loop=True)
 
 
 def sim_time(stamp) -> float:
@@ -198,20 +202,7 @@ def test_sigterm_stops_every_process_within_2_s_and_leaves_no_segment(fleet):
 
 
 # --- lockstep across workers, with a controller holding every interface ---
-LOCKSTEP_CONTROLLERS = f"""
-controller_manager:
-  ros__parameters:
-    update_rate: 100
-    joint_state_broadcaster:
-      type: joint_state_broadcaster/JointStateBroadcaster
-    {JTC}:
-      type: joint_trajectory_controller/JointTrajectoryController
-{JTC}:
-  ros__parameters:
-    joints: [joint1, joint2, joint3, joint4, joint5, joint6]
-    command_interfaces: [position]
-    state_interfaces: [position, velocity]
-"""
+LOCKSTEP_CONTROLLERS = controllers_yaml([f"joint{i}" for i in range(1, 7)])
 
 
 def test_lockstep_waits_for_every_worlds_trajectory_on_every_worker(tmp_path):
