@@ -88,10 +88,11 @@ def settle(fleet, seconds: float) -> None:
 
 def test_every_world_has_its_topics_and_services_whichever_worker_serves_it(fleet):
     node = fleet.node
-    nodes = {name for name, _ in node.get_node_names_and_namespaces()}
-    assert {f"batchsim_{a}_{b}" for a, b in RANGES} <= nodes
+    workers = {f"batchsim_{a}_{b}" for a, b in RANGES}
 
-    def complete() -> bool:
+    def complete() -> bool:  # discovery settles over a moment: wait for it, as for the topics
+        if not workers <= {name for name, _ in node.get_node_names_and_namespaces()}:
+            return False
         services = {name for name, _ in node.get_service_names_and_types()}
         return all(
             node.count_publishers(f"/world_{w}/joint_states") == 1
