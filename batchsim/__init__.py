@@ -64,6 +64,7 @@ def make(
     *,
     ros2_control: str | Path | None = None,
     devices: Sequence[int | str] | str | None = None,
+    processes: bool = False,
     sensors: SensorConfig | str | Path | Mapping[str, Any] | None = None,
     keyframe: str | int | None = None,
     **options: Any,
@@ -84,6 +85,11 @@ def make(
         or a list of device indices (0, 1: the backend's GPUs in order) or names ("cuda:1",
         "cpu"). The worlds are split into contiguous ranges, one per device, behind the one
         contract (batchsim/backends/sharded.py). None: one device (the `device` option).
+      processes: with several devices, run each device's share in a process of its own
+        (the fleet's arrays in shared memory): the shards' host work then runs on several
+        cores, which is what scales on several GPUs, but their device arrays stay in those
+        processes (`device_arrays()` and `render(device=True)` give host copies). False: one
+        thread per device in this process.
       sensors: cameras, lidars and sensor noise (batchsim.sensors.config): a SensorConfig, a
         YAML file (mujoco_ros2_control's plugin parameters and/or batchsim's `sensors:`
         block) or its parsed mapping. None: the model's cameras and lidars, no noise.
@@ -114,13 +120,15 @@ def make(
     if devices is not None:
         chosen_devices = _devices(cls, devices)
         if len(chosen_devices) > 1:
-            sim = ShardedSystem(cls, spec, nworld, chosen_devices, **options)
+            sim = ShardedSystem(cls, spec, nworld, chosen_devices, processes=processes, **options)
             sim.reason = f"{reason}; {len(chosen_devices)} devices: {', '.join(map(str, chosen_devices))}"
             sim.initialize()
             if sensors is not None:
                 sim.set_sensor_config(sensors)
             return sim
         options = {**options, "device": chosen_devices[0]}
+    elif processes:
+        raise ValueError("processes=True is for a fleet over several devices: give devices= too")
     sim = cls(spec, nworld, **options)
     sim.reason = reason
     sim.initialize()
@@ -146,8 +154,10 @@ def _devices(cls: type[BatchedSystem], devices: Sequence[int | str] | str) -> li
             if not 0 <= d < len(have):
                 raise ValueError(f"device {d} does not exist: the {cls.name} backend has {', '.join(have)}")
             chosen.append(have[int(d)])
-        else:
+        elif str(d) in have or str(d).partition(":")[0] == "cpu":  # the host's CPU is a device too
             chosen.append(d)
+        else:
+            raise ValueError(f"device {d!r} does not exist: the {cls.name} backend has {', '.join(have)}")
     if not chosen:
         raise ValueError("devices is empty: name at least one device")
     return chosen

@@ -69,6 +69,12 @@ def run_parser() -> argparse.ArgumentParser:
         default=None,
         help="mjx/warp: spread the worlds over several GPUs: all, or indices 0,1,... (default: one device)",
     )
+    p.add_argument(
+        "--shards",
+        choices=("processes", "threads"),
+        default="processes",
+        help="with --devices: one process per device (default), or one thread per device in this process",
+    )
     p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world to start with (default: sized from a CPU rollout; grows when it overflows)")
     p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world to start with (default: sized likewise; grows likewise)")
     p.add_argument(
@@ -287,6 +293,7 @@ def build(args: argparse.Namespace, progress: startup.Progress | None = None) ->
     if args.devices is not None:
         names = [d.strip() for d in args.devices.split(",") if d.strip()]
         options["devices"] = "all" if names == ["all"] else [int(d) if d.isdigit() else d for d in names]
+        options["processes"] = args.shards == "processes"
     sensors = SensorConfig.from_flags(
         args.sensors,
         camera_rate=args.camera_rate,

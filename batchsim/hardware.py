@@ -310,10 +310,7 @@ class BatchedSystem(SystemInterface):
         self.time = np.zeros(self.nworld)
         self._initial_command = initial_command(spec)
         self._command[:] = self._initial_command
-        self._sensor_host = np.zeros((self.nworld, m.nsensordata))
-        self.sensordata = SensorData(
-            {s.name: self._sensor_host[:, s.adr : s.adr + s.dim] for s in spec.sensors}
-        )
+        self._bind_sensordata(np.zeros((self.nworld, m.nsensordata)))
         # state columns gathered per source field: (state columns, field indices)
         self._gather: list[tuple[str, np.ndarray, np.ndarray]] = []
         for source in READ_FIELDS:
@@ -347,6 +344,12 @@ class BatchedSystem(SystemInterface):
         self.state = readings[:, :nstate]
         self.base_state = readings[:, nstate : nstate + nbase] if nbase else None
         self._feedback = readings[:, nstate + nbase :]
+
+    def _bind_sensordata(self, sensordata: np.ndarray) -> None:
+        """Make `sensordata` (nworld, nsensordata) the array read() fills; `self.sensordata`
+        holds a view of it per sensor."""
+        self._sensor_host = sensordata
+        self.sensordata = SensorData({s.name: sensordata[:, s.adr : s.adr + s.dim] for s in self.spec.sensors})
 
     # --- interfaces ---
     def export_state_interfaces(self) -> list[str]:

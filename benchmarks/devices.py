@@ -1,13 +1,14 @@
 """One fleet over several devices: steps/s through the contract against the sum of the raw
 library on each device alone, in one run.
 
-For each device count k (1, 2, ... up to the devices given), with `--worlds` worlds per
-device, it times the contract period (`command`, `write`, `step(NSTEP)`, `read`) of one
-system over the first k devices (batchsim.make(..., devices=[...])), and the raw library's
-loop (benchmarks/throughput.py's, the same physics per call) on each of those devices
-alone, one after the other; the ideal for k devices is the sum of those k raw figures.
-It prints a scaling table (k, worlds, contract steps/s, sum of raw, ratio, contract(k) /
-contract(1)) and writes devices.csv and devices.png to --out.
+First the raw library's loop (benchmarks/throughput.py's, the same physics per call) on each
+device alone, one after the other: the ideal for k devices is the sum of k of those. Then,
+for each device count k (1, 2, ... up to the devices given), with `--worlds` worlds per
+device, the contract period (`command`, `write`, `step(NSTEP)`, `read`) of one system over
+the first k devices (batchsim.make(..., devices=[...])), with the shards in processes and
+in threads (`--shards`). It prints a scaling table (k, shards, worlds, contract steps/s, sum
+of raw, ratio, contract(k) / contract(1), the period's median and worst) and writes
+devices.csv and devices.png to --out.
 
     python benchmarks/throughput.py --devices all --backends warp --worlds 8192 --model humanoid
     python benchmarks/devices.py --devices 0,1 --worlds 8192        # the same, directly
@@ -37,54 +38,73 @@ FIELDS = [
     "device",
     "model",
     "backend",
+    "shards",
     "ndevice",
     "nworld",
     "contract_sps",
     "raw_sum_sps",
     "ratio",
     "scaling",
+    "period_median_ms",
+    "period_worst_ms",
 ]
+SHARDS = ("processes", "threads")
 
 
-def measure(model: str, backend: str, devices: list, per_device: int, seconds: float) -> dict:
-    """Contract over `devices` at once, and the raw loop on each device alone."""
+def contract(model: str, backend: str, devices: list, per_device: int, seconds: float, shards: str) -> dict:
+    """Steps/s of the contract period over `devices` at once, and its median / worst period."""
     nworld = per_device * len(devices)
-    sim = batchsim.make(model, nworld, backend, devices=devices)
+    if len(devices) == 1:
+        sim = batchsim.make(model, nworld, backend, device=devices[0])
+    else:
+        sim = batchsim.make(model, nworld, backend, devices=devices, processes=shards == "processes")
     sim.configure()
     sim.activate()
-    command = np.random.default_rng(0).uniform(-0.3, 0.3, sim.command.shape)
+    command = _command(sim, nworld)
 
-    def contract() -> None:
+    def period() -> None:
         sim.command[:] = command
         sim.write()
         sim.step(NSTEP)
         sim.read()
 
     for _ in range(3):  # compile, capture, warm up
-        contract()
-    c = _timed(contract, nworld, seconds)
-    raw_sum = 0.0
-    for shard in getattr(sim, "shards", [sim]):  # each device alone, the others idle
-        ctrl = np.zeros((shard.nworld, sim.model.nu))
-        ctrl[:, [a.actuator_id for a in sim.spec.commands]] = command[: shard.nworld]
-        raw = RAW[backend](shard, ctrl)
-        for _ in range(2):
-            raw()
-        raw_sum += _timed(raw, shard.nworld, seconds)
-        del raw
+        period()
+    sps, periods = _timed(period, nworld, seconds)
     frozen = int((sim.status != 0).sum())
     sim.shutdown()
-    return {"contract_sps": c, "raw_sum_sps": raw_sum, "ratio": c / raw_sum, "frozen": frozen}
+    return {"sps": sps, "median": float(np.median(periods)), "worst": float(np.max(periods)), "frozen": frozen}
 
 
-def _timed(body, nworld: int, seconds: float) -> float:
-    """Steps/s of `body` (NSTEP steps of nworld worlds per call) over about `seconds`."""
+def raw_alone(model: str, backend: str, device: str, per_device: int, seconds: float) -> float:
+    """Steps/s of the raw library's loop (throughput.py's) on `device` alone, the same
+    physics per call as the contract's period, sized as batchsim sizes that device's shard."""
+    sim = batchsim.make(model, per_device, backend, device=device)
+    sim.configure()
+    ctrl = np.zeros((per_device, sim.model.nu))
+    ctrl[:, [a.actuator_id for a in sim.spec.commands]] = _command(sim, per_device)
+    raw = RAW[backend](sim, ctrl)
+    for _ in range(2):
+        raw()
+    sps, _ = _timed(raw, per_device, seconds)
+    del raw
+    sim.shutdown()
+    return sps
+
+
+def _command(sim: batchsim.BatchedSystem, nworld: int) -> np.ndarray:
+    return np.random.default_rng(0).uniform(-0.3, 0.3, (nworld, len(sim.spec.commands)))
+
+
+def _timed(body, nworld: int, seconds: float) -> tuple[float, list[float]]:
+    """Steps/s of `body` (NSTEP steps of nworld worlds per call) over about `seconds`, and
+    each call's duration in ms."""
+    periods = []
     t0 = time.perf_counter()
-    calls = 0
-    while time.perf_counter() - t0 < seconds:
+    while (start := time.perf_counter()) - t0 < seconds:
         body()
-        calls += 1
-    return calls * nworld * NSTEP / (time.perf_counter() - t0)
+        periods.append((time.perf_counter() - start) * 1e3)
+    return len(periods) * nworld * NSTEP / (time.perf_counter() - t0), periods
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -93,16 +113,21 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    k = [int(r["ndevice"]) for r in rows]
     fig, ax = plt.subplots(figsize=(5, 3.6))
-    ax.plot(k, [float(r["contract_sps"]) / 1e6 for r in rows], "o-", label="batchsim, one fleet")
-    ax.plot(k, [float(r["raw_sum_sps"]) / 1e6 for r in rows], "s--", label="sum of raw, each device alone")
+    one = [r for r in rows if r["ndevice"] == 1]
+    for shards, style in zip(SHARDS, ("o-", "^-"), strict=True):
+        mine = one + [r for r in rows if r["shards"] == shards and r["ndevice"] > 1]
+        if len(mine) > len(one):
+            ax.plot(
+                [r["ndevice"] for r in mine], [r["contract_sps"] / 1e6 for r in mine], style, label=f"batchsim, {shards}"
+            )
+    raw = one + [r for r in rows if r["shards"] == SHARDS[0] and r["ndevice"] > 1]
+    ax.plot([r["ndevice"] for r in raw], [r["raw_sum_sps"] / 1e6 for r in raw], "s--", label="sum of raw, each device alone")
+    k = sorted({r["ndevice"] for r in rows})
     ax.set_xlabel("devices")
     ax.set_ylabel("physics steps/s (millions)")
     ax.set_xticks(k)
-    ax.set_title(
-        f"{rows[0]['model']}, {rows[0]['nworld']} worlds per device, {rows[0]['backend']}", fontsize=9
-    )
+    ax.set_title(f"{rows[0]['model']}, {rows[0]['nworld']} worlds per device, {rows[0]['backend']}", fontsize=9)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -116,6 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--worlds", default="8192", help="worlds per device")
     p.add_argument("--model", default="humanoid")
     p.add_argument("--seconds", type=float, default=3.0)
+    p.add_argument("--shards", default=",".join(SHARDS), help="processes, threads, or both (default)")
     p.add_argument("--out", default="benchmarks/out")
     args, _ = p.parse_known_args(argv)
     backend = args.backends.split(",")[0].strip()
@@ -127,39 +153,48 @@ def main(argv: list[str] | None = None) -> int:
         have = cls.available_devices()
         devices = [have[d] if isinstance(d, int) else d for d in devices]
     per_device = int(args.worlds.split(",")[0])
+    modes = [m.strip() for m in args.shards.split(",") if m.strip()]
     date = datetime.date.today().isoformat()
     device = device_name([backend])
     print(f"batchsim devices: {args.model}, {per_device} worlds per device, {NSTEP} steps per period, {date}")
     print(f"{device}\n{versions()}\ndevices: {', '.join(map(str, devices))}", flush=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    # the raw library on each device alone, once: the ideal for k devices is the sum of k
+    raw = [raw_alone(args.model, backend, d, per_device, args.seconds) for d in devices]
+    print(f"raw, each device alone: {', '.join(f'{r:,.0f}' for r in raw)} steps/s", flush=True)
+    print(
+        f"{'devices':>7} {'shards':>9} {'worlds':>7} {'batchsim steps/s':>17} {'sum of raw':>14} {'ratio':>6} "
+        f"{'x one device':>12} {'period median / worst ms':>25}"
+    )
     rows = []
     one = None
-    print(
-        f"{'devices':>7} {'worlds':>7} {'batchsim steps/s':>17} {'sum of raw':>14} {'ratio':>6} {'x one device':>12}"
-    )
     for k in range(1, len(devices) + 1):
-        result = measure(args.model, backend, devices[:k], per_device, args.seconds)
-        one = one or result["contract_sps"]
-        row = {
-            "date": date,
-            "device": device,
-            "model": args.model,
-            "backend": backend,
-            "ndevice": k,
-            "nworld": per_device,
-            "contract_sps": result["contract_sps"],
-            "raw_sum_sps": result["raw_sum_sps"],
-            "ratio": result["ratio"],
-            "scaling": result["contract_sps"] / one,
-        }
-        rows.append(row)
-        print(
-            f"{k:7d} {k * per_device:7d} {row['contract_sps']:17,.0f} {row['raw_sum_sps']:14,.0f} "
-            f"{row['ratio']:6.3f} {row['scaling']:12.2f}"
-            + (f"  ({result['frozen']} worlds frozen)" if result["frozen"] else ""),
-            flush=True,
-        )
+        for shards in modes if k > 1 else ["-"]:
+            result = contract(args.model, backend, devices[:k], per_device, args.seconds, shards)
+            one = one or result["sps"]
+            row = {
+                "date": date,
+                "device": device,
+                "model": args.model,
+                "backend": backend,
+                "shards": shards,
+                "ndevice": k,
+                "nworld": per_device,
+                "contract_sps": result["sps"],
+                "raw_sum_sps": sum(raw[:k]),
+                "ratio": result["sps"] / sum(raw[:k]),
+                "scaling": result["sps"] / one,
+                "period_median_ms": result["median"],
+                "period_worst_ms": result["worst"],
+            }
+            rows.append(row)
+            print(
+                f"{k:7d} {shards:>9} {k * per_device:7d} {row['contract_sps']:17,.0f} {row['raw_sum_sps']:14,.0f} "
+                f"{row['ratio']:6.3f} {row['scaling']:12.2f} {result['median']:12.2f} / {result['worst']:9.2f}"
+                + (f"  ({result['frozen']} worlds frozen)" if result["frozen"] else ""),
+                flush=True,
+            )
     with open(out / "devices.csv", "w", newline="") as fh:
         writer = csv.DictWriter(fh, FIELDS)
         writer.writeheader()

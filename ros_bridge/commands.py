@@ -20,7 +20,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from batchsim.hardware import MAX_COMMAND
-from ros_bridge.memory import Memory
+from batchsim.memory import Memory
 
 TEXT = 240  # bytes of the last rejection's reason kept per world
 

@@ -35,9 +35,9 @@ import numpy as np
 from batchsim.controllers.topics import Input, MessageKind
 from batchsim.hardware import BatchedSystem, Status
 from batchsim.loop import SimLoop
+from batchsim.memory import Memory, Ring
 from batchsim.model import InterfaceKind
 from ros_bridge.commands import RejectionWriter, SlotReader
-from ros_bridge.memory import Memory, Ring
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, ChannelFill, FleetPlan, describe
 from ros_bridge.registry import Registry
 from ros_bridge.requests import Kind, concatenate, decode_reset, decode_ticket, decode_trajectories

@@ -22,8 +22,8 @@ import numpy as np
 from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import OUTPUT_FIELDS, Input, MessageKind, Output
 from batchsim.hardware import BatchedSystem
+from batchsim.memory import Layout, ring_arrays
 from ros_bridge.commands import rejection_arrays, slot_arrays
-from ros_bridge.memory import Layout, ring_arrays
 from ros_bridge.naming import ros_names, world_namespaces
 from ros_bridge.options import BridgeOptions, Reliability
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan

@@ -114,7 +114,7 @@ class SensorBlock:
     """One camera's or lidar's arrays in shared memory, and its per-world seqlock.
 
     Args:
-      memory: the shared arrays (ros_bridge.memory.Memory, or anything indexable by name).
+      memory: the shared arrays (batchsim.memory.Memory, or anything indexable by name).
       prefix: "cam{k}" or "lid{k}".
       parts: the data arrays' names after the prefix ("rgb", "depth" or "ranges").
     """

@@ -52,8 +52,8 @@ from std_srvs.srv import SetBool, Trigger
 
 from batchsim.controllers.topics import MessageKind, trajectory_batch
 from batchsim.hardware import Status
+from batchsim.memory import Memory, Ring
 from ros_bridge.commands import Problem, RejectionWriter, SlotWriter, check_single, check_vector
-from ros_bridge.memory import Memory, Ring
 from ros_bridge.messages import (
     MESSAGE_TYPES,
     BulkMessages,

@@ -3,6 +3,9 @@
 `mjx-2dev` and `warp-2dev` are the multi-device path: every `batchsim.make(..., "mjx")`
 (or "warp") of the module spreads its worlds over two CPU devices (JAX's, made two by
 XLA_FLAGS below; Warp's one CPU device, twice), so the suite runs unchanged on it.
+`warp-2proc` is the same with each device's share in a process of its own: set
+BATCHSIM_SHARD_PROCESSES=1 to run the suite on it too (a process fleet costs seconds to
+start on 2 cores, so CI runs tests/test_devices.py's process tests instead).
 
 A backend whose optional packages are missing is skipped, unless
 BATCHSIM_FORCE_BACKENDS=1 (CI sets it, so a broken install fails instead of skipping).
@@ -27,6 +30,8 @@ import batchsim  # noqa: E402
 
 # backend -> the module its optional packages provide
 BACKENDS = {"cpu": "mujoco", "mjx": "jax", "warp": "mujoco_warp", "mjx-2dev": "jax", "warp-2dev": "mujoco_warp"}
+if os.environ.get("BATCHSIM_SHARD_PROCESSES") == "1":  # 5 minutes more on 2 cores: not in CI's run
+    BACKENDS["warp-2proc"] = "mujoco_warp"
 TWO_DEVICES = {"mjx": ["cpu:0", "cpu:1"], "warp": ["cpu", "cpu"]}
 
 
@@ -59,6 +64,7 @@ def _backend(name: str):
     def make_on_two_devices(model, nworld=1, backend="auto", **options):
         if backend == base and "devices" not in options and nworld >= 2:
             options["devices"] = TWO_DEVICES[base]
+            options["processes"] = sharded == "2proc"
         return make(model, nworld, backend, **options)
 
     with pytest.MonkeyPatch.context() as patch:

@@ -12,6 +12,7 @@ import batchsim
 from batchsim.controllers import default_controllers, load_controllers
 from batchsim.controllers.topics import TrajectoryBatch
 from batchsim.loop import OptionError, RateError, SimLoop, whole_ratio
+from batchsim.memory import Layout, Memory, Ring, ring_arrays
 from ros_bridge.commands import (
     Problem,
     RejectionWriter,
@@ -21,7 +22,6 @@ from ros_bridge.commands import (
     check_vector,
     slot_arrays,
 )
-from ros_bridge.memory import Layout, Memory, Ring, ring_arrays
 from ros_bridge.naming import NamingError, ros_name, ros_names, world_namespaces
 from ros_bridge.options import BridgeOptions, default_workers
 from ros_bridge.plan import build_plan, split

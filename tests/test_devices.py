@@ -1,18 +1,27 @@
 """One fleet over several devices (batchsim/backends/sharded.py), on CPU devices.
 
 The contract suite runs on the multi-device path too (conftest's `mjx-2dev`, `warp-2dev`);
-these are the parts only a sharded system has.
+these are the parts only a sharded system has, with its shards in threads and in processes
+of their own (`processes=True`, batchsim/backends/shards.py).
 """
 
 from __future__ import annotations
 
+import gc
 import logging
+import os
+import signal
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import batchsim
 from batchsim.backends.sharded import split
+from batchsim.backends.shards import ShardProcessError
+
+SHARDS = pytest.mark.parametrize("processes", [False, True], ids=["threads", "processes"])
 
 
 def test_worlds_split_into_contiguous_ranges_larger_first():
@@ -22,10 +31,14 @@ def test_worlds_split_into_contiguous_ranges_larger_first():
         split(3, 4)
 
 
-def test_a_fleet_on_two_devices_is_the_fleet_on_one():
+@SHARDS
+def test_a_fleet_on_two_devices_is_the_fleet_on_one(processes):
     """Same commands, same physics: the sharded fleet's state equals the one-device fleet's,
     world for world, and a command to a world of the second device moves that world only."""
-    fleets = [batchsim.make("arm", 5, "warp", devices=["cpu", "cpu"]), batchsim.make("arm", 5, "warp")]
+    fleets = [
+        batchsim.make("arm", 5, "warp", devices=["cpu", "cpu"], processes=processes),
+        batchsim.make("arm", 5, "warp"),
+    ]
     assert fleets[0].world_ranges == [range(0, 3), range(3, 5)]
     for sim in fleets:
         sim.configure()
@@ -52,17 +65,23 @@ def test_devices_are_for_the_device_backends():
         batchsim.make("arm", 4, "cpu", devices=[0, 1])
     with pytest.raises(ValueError, match="device 5 does not exist"):
         batchsim.make("arm", 4, "warp", devices=[5])
+    with pytest.raises(ValueError, match="device 'cuda:3' does not exist: the warp backend has"):
+        batchsim.make("arm", 4, "warp", devices=["cpu", "cuda:3"], processes=True)
+    with pytest.raises(ValueError, match="processes=True is for a fleet over several devices"):
+        batchsim.make("arm", 4, "warp", processes=True)
 
 
-def test_a_shards_failed_world_is_named_and_held_by_its_fleet_number(tmp_path, caplog):
-    """World 2 is the second device's world 0: the log line names world 2 of 3, and the fleet's
-    arrays show its held readings while world 0 (the first device's) goes on."""
+@SHARDS
+def test_a_shards_failed_world_is_named_and_held_by_its_fleet_number(tmp_path, caplog, processes):
+    """World 2 is the second device's world 0: the log line names world 2 of 3 (logged in
+    the fleet's process, also when the shard runs in its own), and the fleet's arrays show
+    its held readings while world 0 (the first device's) goes on."""
     from test_contract import UNSTABLE
 
     path = tmp_path / "unstable.xml"
     path.write_text(UNSTABLE)
     caplog.set_level(logging.WARNING, logger="batchsim")
-    sim = batchsim.make(str(path), 3, "warp", devices=["cpu", "cpu"], deterministic=True)
+    sim = batchsim.make(str(path), 3, "warp", devices=["cpu", "cpu"], deterministic=True, processes=processes)
     sim.configure()
     sim.activate()
     sim.command[:] = 0.0
@@ -82,5 +101,89 @@ def test_a_shards_failed_world_is_named_and_held_by_its_fleet_number(tmp_path, c
     lines = [r.getMessage() for r in caplog.records if r.name.startswith("batchsim")]
     assert len(lines) == 1 and lines[0].startswith("batchsim: warp: world 2 diverged"), lines
     sim.reset([2])
+    assert not sim.status.any()
+    sim.shutdown()
+
+
+# ---------------------------------------------------------------- shards in processes
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie is gone for our purposes (its parent reaps it at the next wait)
+    stat = Path(f"/proc/{pid}/stat")
+    return not (stat.exists() and stat.read_text().split(")")[-1].split()[0] == "Z")
+
+
+def _segments() -> set[str]:
+    return {p.name for p in Path("/dev/shm").glob(f"batchsim_{os.getpid()}_*")}
+
+
+def _gone(pids: list[int], timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if not any(_alive(pid) for pid in pids):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_shard_processes_share_the_fleets_arrays_and_end_with_it():
+    """The shards run in processes of their own; the fleet's arrays are in shared memory
+    they write; device_arrays() are host copies of theirs; shutdown() ends the processes and
+    removes the segment, and so does a fleet dropped without shutdown()."""
+    before = _segments()
+    sim = batchsim.make("arm", 5, "warp", devices=["cpu", "cpu"], processes=True)
+    pids = [shard.pid for shard in sim.shards]
+    assert len(set(pids)) == 2 and os.getpid() not in pids and all(_alive(p) for p in pids)
+    assert len(_segments() - before) == 1
+    sim.configure()
+    sim.activate()
+    sim.command[:] = 0.3
+    sim.write()
+    sim.step(20)
+    sim.read()
+    names = sim.export_state_interfaces()
+    pos = sim.state[:, [names.index(f"joint{i}/position") for i in range(1, 7)]]
+    arrays = sim.device_arrays()
+    assert [np.asarray(a).shape[0] for a in arrays["qpos"]] == [3, 2]
+    np.testing.assert_allclose(np.asarray(arrays["qpos"]), pos, atol=1e-6)
+    sim.shutdown()
+    assert _gone(pids) and _segments() == before
+
+    dropped = batchsim.make("arm", 4, "warp", devices=["cpu", "cpu"], processes=True)
+    pids = [shard.pid for shard in dropped.shards]
+    del dropped
+    gc.collect()
+    assert _gone(pids) and _segments() == before
+
+
+def test_a_killed_shard_process_is_one_error_naming_its_device_and_worlds():
+    sim = batchsim.make("arm", 4, "warp", devices=["cpu", "cpu"], processes=True)
+    sim.configure()
+    sim.activate()
+    sim.step(1)
+    os.kill(sim.shards[1].pid, signal.SIGKILL)
+    with pytest.raises(ShardProcessError, match=r"shard process of cpu \(worlds 2\.\.3, pid \d+\) exited with code -9"):
+        sim.step(1)
+    sim.shutdown()  # the other shard still stops cleanly
+    assert _gone([shard.pid for shard in sim.shards])
+
+
+def test_a_bad_command_in_one_shard_process_marks_that_world_only():
+    """The shard process checks its rows as one system does: BAD_COMMAND on world 3 (the
+    second device's), the rest applied; the next good command clears it."""
+    sim = batchsim.make("arm", 4, "warp", devices=["cpu", "cpu"], processes=True)
+    sim.configure()
+    sim.activate()
+    sim.command[:] = 0.2
+    sim.command[3, 0] = np.nan
+    sim.write()
+    assert sim.status.tolist() == [0, 0, 0, int(batchsim.Status.BAD_COMMAND)]
+    sim.command[3, 0] = 0.2
+    sim.write()
     assert not sim.status.any()
     sim.shutdown()

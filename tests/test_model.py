@@ -630,8 +630,18 @@ def _pid_block(tmp_path) -> str:
     )
 
 
-def test_position_and_velocity_on_a_motor_run_through_the_pids_config(tmp_path):
-    sim = batchsim.make(_robot(tmp_path, _pid_block(tmp_path)), 2, "cpu")
+@pytest.mark.parametrize(
+    "backend, shards",
+    [("cpu", None), ("warp", "threads"), ("warp", "processes")],
+    ids=["cpu", "warp-2dev", "warp-2proc"],
+)
+def test_position_and_velocity_on_a_motor_run_through_the_pids_config(tmp_path, backend, shards):
+    """Also over two devices: a mode switch reaches every device's actuation (it once stayed
+    in the fleet's own, and the shards went on driving position)."""
+    devices = {} if shards is None else {"devices": ["cpu", "cpu"]}
+    if shards == "processes":
+        devices["processes"] = True
+    sim = batchsim.make(_robot(tmp_path, _pid_block(tmp_path)), 2, backend, **devices)
     cmds = {c.name: c for c in sim.spec.commands}
     # the same file writes pid_gains twice, as mujoco_ros2_control's does: both are read
     assert cmds["j2/position"].pid.p == 40.0 and cmds["j2/velocity"].pid.p == 1.0

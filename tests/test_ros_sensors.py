@@ -239,7 +239,7 @@ def _rss() -> int:
 def test_camera_blocks_take_memory_only_where_written(shared):
     """The humanoid's three 320x240 cameras for 2048 worlds lay out 3.3 GB of image blocks;
     only the rows a sample writes may take memory."""
-    from ros_bridge.memory import Layout, Memory
+    from batchsim.memory import Layout, Memory
     from ros_bridge.sensor_topics import SensorBlock, sensor_plan
 
     sim = batchsim.make("humanoid", 1, "cpu")

@@ -3,16 +3,27 @@ system per device, behind the one contract.
 
     sim = batchsim.make("humanoid", 16384, "warp", devices=[0, 1])
     sim.state          # (16384, nstate): worlds 0..8191 on cuda:0, 8192..16383 on cuda:1
-    sim.shards         # the per-device systems, sim.world_ranges their worlds
+    sim.world_ranges   # each device's worlds
 
-Each period every shard steps on its own device at once (one host thread per shard: Warp
-and JAX release the GIL while their devices run, so the devices overlap), and step()
-returns when the slowest is done, so every world is at the same sim time after each
-period. read() gathers the shards' readings into the fleet's arrays, write() scatters
-the commands; the loop, controllers and bridge see one system and never the devices.
+    sim = batchsim.make("humanoid", 16384, "warp", devices=[0, 1], processes=True)
 
-A shard is an ordinary backend system of its device: it checks its worlds' commands,
-freezes its diverged worlds and grows its own buffers; its status rows are the fleet's.
+Each period every shard steps on its own device at once, and step() returns when the
+slowest is done, so every world is at the same sim time after each period. A shard is an
+ordinary backend system of its device (batchsim/backends/shards.py): it checks its worlds'
+commands, freezes its diverged worlds and grows its own buffers. Its shard of the fleet's
+arrays (readings, sensordata, time, status, command) is where it reads its commands and
+writes its readings; the loop, controllers and bridge see one system and never the devices.
+
+Two ways to run the shards:
+- threads (the default): every device's system in this process, one thread each (Warp and
+  JAX release the GIL while their devices run). `device_arrays()` and `render(device=True)`
+  give each device's own arrays. The shards' host work (checking commands, gathering
+  readings) shares this process's GIL.
+- processes (`processes=True`, what `batchsim --devices` uses on GPUs): one process per
+  device, the fleet's arrays in shared memory (batchsim.memory), so each shard's host work
+  runs on its own core; a device's arrays then live in its process, and `device_arrays()`
+  and `render(device=True)` give host copies of them.
+
 Cameras and lidars render and cast on each shard; sensor noise is the fleet's, seeded by
 fleet world numbers, so a world's noise does not depend on how many devices there are.
 """
@@ -20,6 +31,7 @@ fleet world numbers, so a world's noise does not depend on how many devices ther
 from __future__ import annotations
 
 import dataclasses
+import weakref
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -27,7 +39,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from batchsim.backends.shards import FleetRows, LocalShard, ProcessShard, fleet_layout
 from batchsim.hardware import BatchedSystem, CallbackReturn, LifecycleState, ReturnType
+from batchsim.memory import Memory
 from batchsim.model import RobotSpec
 from batchsim.sensors import Camera, Lidar, SensorConfig
 
@@ -71,12 +85,15 @@ class ShardedSystem(BatchedSystem):
       backend: the per-device system class (a device backend: warp or mjx).
       spec, nworld: as for any system.
       devices: one device per shard, as that backend's `device` option takes it.
+      processes: run each shard in a process of its own (see the module's docstring).
       **options: the backend's options, given to every shard.
 
     Attributes:
-      shards: the per-device systems, in world order.
+      shards: one handle per device, in world order: a LocalShard (its `.system` is that
+        device's backend system) or a ProcessShard (its `.pid`).
       world_ranges: the worlds of each shard.
       devices: the device of each shard.
+      processes: whether the shards run in processes of their own.
     """
 
     OPTIONS: ClassVar[dict[str, Any]] = {}
@@ -87,6 +104,8 @@ class ShardedSystem(BatchedSystem):
         spec: RobotSpec,
         nworld: int,
         devices: Sequence[Any],
+        *,
+        processes: bool = False,
         **options: Any,
     ):
         super().__init__(spec, nworld)
@@ -94,80 +113,107 @@ class ShardedSystem(BatchedSystem):
             raise ValueError(f"the {backend.name} backend does not run on devices; it cannot be sharded")
         self.name = backend.name
         self.devices = list(devices)
+        self.processes = bool(processes)
         self.world_ranges = split(self.nworld, len(self.devices))
-        self.shards = [
-            backend(spec, len(rows), **{**options, "device": device})
-            for rows, device in zip(self.world_ranges, self.devices, strict=True)
-        ]
-        for shard, rows in zip(self.shards, self.world_ranges, strict=True):
-            shard.number_worlds_as(rows.start, self.nworld)  # failure lines name fleet worlds
+        self.sensors_batched = backend.sensors_batched
+        # the fleet's arrays, in one block that every shard reads its commands from and
+        # writes its readings to (shared memory when the shards are processes)
+        layout = fleet_layout(
+            self.nworld, self._readings.shape[1], self.model.nsensordata, len(spec.commands)
+        )
+        self.memory = Memory.create(layout, shared=self.processes)
+        self.memory["command"][:] = self._command
+        self._bind_readings(self.memory["readings"])
+        self._bind_sensordata(self.memory["sensordata"])
+        self.time, self.status, self._command = (
+            self.memory["time"],
+            self.memory["status"],
+            self.memory["command"],
+        )
+        nbase = 0 if self.base_state is None else self.base_state.shape[1]
+        rows = [FleetRows(self.memory, r, self.state.shape[1], nbase) for r in self.world_ranges]
+        self._pool: ThreadPoolExecutor | None = None
+        self.shards: list[LocalShard | ProcessShard] = []
+        if self.processes:
+            try:
+                for r, device in zip(self.world_ranges, self.devices, strict=True):
+                    self.shards.append(
+                        ProcessShard(backend.name, spec, r, device, options, self.memory, self.nworld)
+                    )
+                for shard in self.shards:  # they start at once: wait for each
+                    shard.started()
+            except BaseException:
+                _close(self.shards, self.memory)
+                raise
+        else:
+            self._pool = ThreadPoolExecutor(len(self.devices), thread_name_prefix="batchsim-shard")
+            for r, device, fleet_rows in zip(self.world_ranges, self.devices, rows, strict=True):
+                system = backend(spec, len(r), **{**options, "device": device})
+                system.number_worlds_as(r.start, self.nworld)  # failure lines name fleet worlds
+                self.shards.append(LocalShard(system, fleet_rows, self._pool))
         self.options = dict(self.shards[0].options, device=self.devices)
-        self.sensors_batched = self.shards[0].sensors_batched
-        self._pool = ThreadPoolExecutor(len(self.shards), thread_name_prefix="batchsim-shard")
         self._stepped: set[int] = set()  # period lengths every shard has compiled or captured
+        # a fleet dropped without shutdown() still stops its shard processes and frees its memory
+        self._finalizer = weakref.finalize(self, _close, list(self.shards), self.memory, self._pool)
 
     def __repr__(self) -> str:
-        return f"ShardedSystem({self.name}, {self.nworld} worlds on {self.devices})"
+        how = "processes" if self.processes else "threads"
+        return f"ShardedSystem({self.name}, {self.nworld} worlds on {self.devices}, {how})"
 
     # --- lifecycle: every shard follows the fleet ---
     def on_init(self) -> CallbackReturn:
-        for shard in self.shards:
-            shard.initialize()
+        self._each("initialize", parallel=self.processes)
         return CallbackReturn.SUCCESS
 
     def on_configure(self, previous_state: LifecycleState) -> CallbackReturn:
-        for shard in self.shards:  # one at a time: loading kernels and models is not thread-safe
-            shard.configure()
-        self._collect()
+        # the first shard alone: it compiles the kernels the others then load from the cache
+        # (and in one process, loading kernels and models is not thread-safe)
+        self.shards[0].call("configure")
+        self._each("configure", shards=self.shards[1:], parallel=self.processes)
         return CallbackReturn.SUCCESS
 
     def on_activate(self, previous_state: LifecycleState) -> CallbackReturn:
-        for shard in self.shards:
-            shard.activate()
+        self._each("activate", parallel=self.processes)
         return CallbackReturn.SUCCESS
 
     def on_deactivate(self, previous_state: LifecycleState) -> CallbackReturn:
-        for shard in self.shards:
-            shard.deactivate()
+        self._each("deactivate", parallel=self.processes)
         return CallbackReturn.SUCCESS
 
     def on_cleanup(self, previous_state: LifecycleState) -> CallbackReturn:
-        for shard in self.shards:
-            shard.cleanup()
+        self._each("cleanup", parallel=self.processes)
         return CallbackReturn.SUCCESS
 
     def on_shutdown(self, previous_state: LifecycleState) -> CallbackReturn:
-        for shard in self.shards:
-            if shard.lifecycle_state is not LifecycleState.FINALIZED:
-                shard.shutdown()
-        self._pool.shutdown(wait=False)
+        live = [s for s in self.shards if s.lifecycle_state is not LifecycleState.FINALIZED]
+        try:
+            self._each("shutdown", shards=live, parallel=self.processes)
+        finally:
+            self._finalizer()
         return CallbackReturn.SUCCESS
 
     def on_error(self, previous_state: LifecycleState) -> CallbackReturn:
-        for shard in self.shards:
-            if shard.lifecycle_state not in (LifecycleState.UNKNOWN, LifecycleState.FINALIZED):
-                shard.error()
+        live = [
+            s
+            for s in self.shards
+            if s.lifecycle_state not in (LifecycleState.UNKNOWN, LifecycleState.FINALIZED)
+        ]
+        self._each("error", shards=live, parallel=False)
         return CallbackReturn.SUCCESS
 
     # --- the contract, over the shards ---
     def read(self, time: float | None = None, period: float | None = None) -> ReturnType:
         if self.lifecycle_state not in (LifecycleState.INACTIVE, LifecycleState.ACTIVE):
             return ReturnType.OK
-        # every device's download at once: each waits on its own device, not on the others
-        self._each(lambda shard: shard.read(time, period))
-        self._collect()
+        # every device's download at once; each shard writes its rows of the fleet's arrays
+        self._each("read", time, period)
         self._add_noise()  # frozen worlds keep their held, noise-free readings
         return ReturnType.OK
 
     def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
         if self.lifecycle_state is not LifecycleState.ACTIVE:
             return ReturnType.OK
-        command = self._command
-        for shard, rows in zip(self.shards, self.world_ranges, strict=True):
-            shard.command[:] = command[rows.start : rows.stop]
-        self._each(lambda shard: shard.write(time, period))  # every device's upload at once
-        for shard, rows in zip(self.shards, self.world_ranges, strict=True):
-            self.status[rows.start : rows.stop] = shard.status
+        self._each("write", time, period)  # each shard takes its rows of `command`; uploads at once
         return ReturnType.OK
 
     def step(self, nstep: int = 1) -> None:
@@ -175,14 +221,9 @@ class ShardedSystem(BatchedSystem):
         self._require("step", frozenset({LifecycleState.INACTIVE, LifecycleState.ACTIVE}))
         if nstep < 1:
             raise ValueError(f"nstep must be >= 1, got {nstep}")
-        if nstep in self._stepped:
-            self._each(lambda shard: shard.step(nstep))
-        else:  # the first period of a length compiles or captures it: one device at a time
-            for shard in self.shards:
-                shard.step(nstep)
-            self._stepped.add(nstep)
-        for shard, rows in zip(self.shards, self.world_ranges, strict=True):
-            self.status[rows.start : rows.stop] = shard.status
+        # the first period of a length compiles or captures it: one device at a time
+        self._each("step", int(nstep), parallel=nstep in self._stepped)
+        self._stepped.add(nstep)
 
     def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
         """Reset all or the listed worlds (fleet numbering), each on its shard."""
@@ -190,49 +231,62 @@ class ShardedSystem(BatchedSystem):
             "reset", frozenset({LifecycleState.UNCONFIGURED, LifecycleState.INACTIVE, LifecycleState.ACTIVE})
         )
         rows = self._worlds(worlds)
+        calls = []
         for shard, r in zip(self.shards, self.world_ranges, strict=True):
             local = None if rows is None else rows[(rows >= r.start) & (rows < r.stop)] - r.start
-            if local is None or local.size:
-                shard.reset(local)
-                sel = slice(None) if local is None else local
-                self._command[r.start : r.stop][sel] = shard.command[sel]
-            else:
-                shard.read()  # reset refreshes every world's readings, as on one device
-        self._collect()
+            # reset refreshes every world's readings, as on one device
+            calls.append((shard, "reset", (local,)) if local is None or local.size else (shard, "read", ()))
+        self._run(calls, self.processes)
         self._add_noise()  # frozen worlds keep their held, noise-free readings
+
+    def perform_command_mode_switch(self, start: Sequence[str], stop: Sequence[str] = ()) -> None:
+        super().perform_command_mode_switch(start, stop)  # checks the names
+        self._each("perform_command_mode_switch", list(start), list(stop), parallel=self.processes)
 
     def device_arrays(self) -> dict[str, PerDevice]:
         """The live device arrays of every shard (see the backend's device_arrays), field by
         field: `arrays["qpos"][i]` is device i's (its worlds are `world_ranges[i]`), zero copy;
-        `np.asarray(arrays["qpos"])` copies the whole fleet's to the host."""
-        parts = [shard.device_arrays() for shard in self.shards]
+        `np.asarray(arrays["qpos"])` copies the whole fleet's to the host. With processes,
+        each device's arrays live in its shard process: these are host copies of them,
+        taken now (writing them changes nothing)."""
+        if self.processes:
+            parts = self._each("device_arrays")
+        else:
+            parts = [shard.system.device_arrays() for shard in self.shards]  # type: ignore[union-attr]
         return {field: PerDevice([p[field] for p in parts]) for field in parts[0]}
 
     # --- cameras, lidars, noise: rendered on the shards, noise added by the fleet ---
     def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
         super().set_sensor_config(config)
         quiet = dataclasses.replace(self._sensor_config, noise={})  # the fleet adds the noise
-        for shard in self.shards:
-            shard.set_sensor_config(quiet)
+        self._each("set_sensor_config", quiet, parallel=self.processes)
 
     def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        parts = [shard.render(camera.name, local) for shard, local in self._split(worlds)]
+        parts = self._run(
+            [(s, "render", (camera.name, local)) for s, local in self._split(worlds)], self.processes
+        )
         return np.concatenate([p.rgb for p in parts]), np.concatenate([p.depth for p in parts])
 
     def _device_frames(self, camera: Camera) -> tuple[PerDevice, PerDevice]:
-        parts = [shard.render(camera.name, device=True) for shard in self.shards]
+        if self.processes:  # host copies, from each shard process (see device_arrays)
+            parts = self._each("device_frames", camera.name)
+        else:
+            parts = [shard.system.render(camera.name, device=True) for shard in self.shards]  # type: ignore[union-attr]
         return PerDevice([p.rgb for p in parts]), PerDevice([p.depth for p in parts])
 
     def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
         # the shards' ranges, as distances again (< 0: no hit), for the fleet's ld.ranges()
+        scans = self._run(
+            [(s, "scan", (lidar.name, local)) for s, local in self._split(worlds)], self.processes
+        )
         parts = []
-        for shard, local in self._split(worlds):
-            ranges = shard.scan(lidar.name, local).astype(np.float64)
+        for ranges in scans:
+            ranges = ranges.astype(np.float64)
             # +inf (no return) back to a miss, -inf (closer than range_min) to a hit at 0
             parts.append(np.where(np.isposinf(ranges), -1.0, np.where(np.isneginf(ranges), 0.0, ranges)))
         return np.concatenate(parts)
 
-    def _split(self, worlds: np.ndarray) -> list[tuple[BatchedSystem, np.ndarray]]:
+    def _split(self, worlds: np.ndarray) -> list[tuple[LocalShard | ProcessShard, np.ndarray]]:
         """(shard, its local world indices) for the fleet's `worlds`, ascending, in shard order."""
         out = []
         for shard, r in zip(self.shards, self.world_ranges, strict=True):
@@ -242,19 +296,49 @@ class ShardedSystem(BatchedSystem):
         return out
 
     # --- helpers ---
-    def _each(self, call: Any) -> None:
-        """Run `call(shard)` for every shard at once; re-raise the first failure."""
-        for future in [self._pool.submit(call, shard) for shard in self.shards]:
-            future.result()
+    def _each(
+        self,
+        op: str,
+        *args: Any,
+        shards: Sequence[LocalShard | ProcessShard] | None = None,
+        parallel: bool = True,
+    ) -> list[Any]:
+        """`op(*args)` on every shard (or those given): at once, or one after the other."""
+        shards = self.shards if shards is None else shards
+        return self._run([(shard, op, args) for shard in shards], parallel)
 
-    def _collect(self) -> None:
-        """The shards' readings and status into the fleet's arrays."""
-        for shard, r in zip(self.shards, self.world_ranges, strict=True):
-            rows = slice(r.start, r.stop)
-            self.state[rows] = shard.state
-            if self.base_state is not None:
-                self.base_state[rows] = shard.base_state
-            self.time[rows] = shard.time
-            for name, values in shard.sensordata.items():
-                self.sensordata[name][rows] = values
-            self.status[rows] = shard.status
+    @staticmethod
+    def _run(calls: list[tuple[Any, str, tuple]], parallel: bool) -> list[Any]:
+        """Run (shard, op, args) calls, at once or in turn; their results in order. Every
+        call is answered before the first failure is raised (a shard process then still
+        takes requests)."""
+        if not parallel:
+            return [shard.call(op, *args) for shard, op, args in calls]
+        pending, failure = [], None
+        for shard, op, args in calls:
+            try:
+                pending.append(shard.submit(op, *args))
+            except Exception as e:  # a shard process that has exited: the others still answer
+                pending.append(None)
+                failure = failure or e
+        results = []
+        for p in pending:
+            try:
+                results.append(None if p is None else p.result())
+            except BaseException as e:
+                results.append(None)
+                failure = failure or e
+        if failure is not None:
+            raise failure
+        return results
+
+
+def _close(
+    shards: Sequence[LocalShard | ProcessShard], memory: Memory, pool: ThreadPoolExecutor | None = None
+) -> None:
+    """Stop the shard processes, free the fleet's memory and threads (shutdown, or the fleet's end)."""
+    for shard in shards:
+        shard.close()
+    memory.close()
+    if pool is not None:
+        pool.shutdown(wait=False)

@@ -358,10 +358,7 @@ class WarpSystem(DeviceSystem):
         self._ctrl_wp = self._host_array((self.nworld, self.model.nu), wp.float64)
         self._flags_wp = self._host_array((self.nworld,), wp.int32)
         self._bind_readings(self._state_wp.numpy())
-        self._sensor_host = self._sensor_wp.numpy()
-        self.sensordata = type(self.sensordata)(
-            {s.name: self._sensor_host[:, s.adr : s.adr + s.dim] for s in spec.sensors}
-        )
+        self._bind_sensordata(self._sensor_wp.numpy())
         self.time = self._time_wp.numpy()
         self._ctrl = self._ctrl_wp.numpy()
         self._flags = self._flags_wp.numpy()

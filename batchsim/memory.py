@@ -1,5 +1,6 @@
-"""Shared memory between the physics process and its bridge workers: named NumPy arrays in
-one segment, and single-producer single-consumer byte rings for variable-size messages.
+"""Shared memory between the physics process and its helper processes (the ROS bridge's
+workers, a fleet's per-device shard processes): named NumPy arrays in one segment, and
+single-producer single-consumer byte rings for variable-size messages.
 
     layout = Layout([("state", (nworld, 36), "f8"), ("seq", (2,), "i8")])
     memory = Memory.create(layout)                 # the physics process: creates, unlinks
@@ -10,8 +11,6 @@ Only the process that creates a segment unlinks it. On Python < 3.13 a process t
 attaches also registers the segment with its resource tracker, which would unlink it when
 that process exits; `attach` undoes that registration. A physics process killed outright
 still has its segment unlinked by its own resource tracker.
-
-No rclpy here.
 """
 
 from __future__ import annotations

@@ -1,0 +1,428 @@
+"""The shards of a fleet over several devices (batchsim/backends/sharded.py): one backend
+system per device, in this process on a thread, or in a process of its own.
+
+Both kinds serve the same operations (`serve`): `write` takes the shard's rows of the
+fleet's command array, `read` puts the shard's readings into the fleet's rows, `step`,
+`reset` and the lifecycle run on the shard's system. The fleet's arrays live in one
+`batchsim.memory.Memory`: local memory when the shards are threads, a shared-memory
+segment when they are processes, so that a process shard reads its commands and writes
+its readings where the fleet's arrays already are, and the fleet copies nothing.
+
+    shard = ProcessShard(backend, spec, rows, device, options, memory, fleet_size)
+    shard.started()                      # after starting every shard: they start at once
+    shard.submit("step", 10).result()    # every shard's submit first, then every result
+
+A process shard runs `main(FD)` of this module in a new Python and talks over a socket pair:
+one request, one reply, pickled. The reply carries the shard's log records, which the
+fleet's process logs as its own, so a failed world's line looks the same whatever the
+shard's kind. A shard process exits when the fleet's process closes the socket or dies.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import subprocess
+import sys
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from batchsim.hardware import BatchedSystem, Frames, LifecycleState
+from batchsim.memory import Layout, Memory
+from batchsim.model import RobotSpec
+
+log = logging.getLogger("batchsim")
+
+# what a shard serves besides write/step/read/reset: the lifecycle and the sensors
+CALLS = frozenset(
+    {
+        "initialize",
+        "configure",
+        "activate",
+        "deactivate",
+        "cleanup",
+        "shutdown",
+        "error",
+        "set_sensor_config",
+        "perform_command_mode_switch",
+        "render",
+        "scan",
+    }
+)
+START_TIMEOUT = 300.0  # s: a shard process importing its backend and building its model
+POLL = 1.0  # s: how often a waiting fleet checks that its shard process is still alive
+
+
+def fleet_layout(nworld: int, ncolumn: int, nsensordata: int, ncommand: int) -> Layout:
+    """The fleet's arrays that its shards read from or write to: readings `(nworld, ncolumn)`
+    (state, then base_state, then what the shards' actuation reads), sensordata `(nworld,
+    nsensordata)`, time, status and command `(nworld, ncommand)`."""
+    return Layout(
+        [
+            ("readings", (nworld, ncolumn), "f8"),
+            ("sensordata", (nworld, nsensordata), "f8"),
+            ("time", (nworld,), "f8"),
+            ("status", (nworld,), "u1"),
+            ("command", (nworld, ncommand), "f8"),
+        ]
+    )
+
+
+class FleetRows:
+    """One shard's rows of the fleet's arrays, and the copies between them and its system."""
+
+    def __init__(self, memory: Memory, rows: range, nstate: int, nbase: int):
+        sel = slice(rows.start, rows.stop)
+        self.readings = memory["readings"][sel]
+        self.state = self.readings[:, :nstate]
+        self.base_state = self.readings[:, nstate : nstate + nbase] if nbase else None
+        self.sensordata = memory["sensordata"][sel]
+        self.time = memory["time"][sel]
+        self.status = memory["status"][sel]
+        self.command = memory["command"][sel]
+
+    def take_command(self, system: BatchedSystem) -> None:
+        system.command[:] = self.command
+
+    def give_status(self, system: BatchedSystem) -> None:
+        self.status[:] = system.status
+
+    def give_readings(self, system: BatchedSystem) -> None:
+        self.state[:] = system.state
+        if self.base_state is not None:
+            self.base_state[:] = system.base_state
+        self.time[:] = system.time
+        for sensor in system.spec.sensors:
+            self.sensordata[:, sensor.adr : sensor.adr + sensor.dim] = system.sensordata[sensor.name]
+        self.status[:] = system.status
+
+    def give_command(self, system: BatchedSystem) -> None:
+        self.command[:] = system.command
+
+
+def serve(system: BatchedSystem, rows: FleetRows, op: str, args: tuple, kwargs: dict) -> Any:
+    """Run one operation of a shard on its system, moving what it needs through `rows`."""
+    if op == "write":
+        rows.take_command(system)
+        system.write(*args)
+        rows.give_status(system)
+    elif op == "step":
+        system.step(*args)
+        rows.give_status(system)
+    elif op == "read":
+        system.read(*args)
+        rows.give_readings(system)
+    elif op == "reset":
+        system.reset(*args)
+        rows.give_readings(system)
+        rows.give_command(system)  # the reset worlds' commands are their initial ones again
+    elif op == "configure":  # which resets every world
+        value = system.configure()
+        rows.give_readings(system)
+        rows.give_command(system)
+        return value
+    elif op in CALLS:
+        return getattr(system, op)(*args, **kwargs)
+    # a shard process's device arrays cannot leave it: it answers with host copies
+    elif op == "device_arrays":
+        return {field: _host(array) for field, array in system.device_arrays().items()}
+    elif op == "device_frames":
+        frames = system.render(*args, device=True)
+        return Frames(_host(frames.rgb), _host(frames.depth))
+    else:
+        raise ValueError(f"a shard serves no operation {op!r}")
+    return None
+
+
+def _host(array: Any) -> np.ndarray:
+    """A Warp, JAX or NumPy array as a NumPy array on the host."""
+    return array.numpy() if hasattr(array, "numpy") else np.asarray(array)
+
+
+class LocalShard:
+    """A shard in this process: its system, run on a thread of the fleet's pool.
+
+    Attributes:
+      system: the shard's backend system (device arrays, rendering on the device).
+    """
+
+    def __init__(self, system: BatchedSystem, rows: FleetRows, pool: ThreadPoolExecutor):
+        self.system = system
+        self.rows = rows
+        self._pool = pool
+
+    @property
+    def lifecycle_state(self) -> LifecycleState:
+        return self.system.lifecycle_state
+
+    @property
+    def options(self) -> dict[str, Any]:
+        return self.system.options
+
+    def submit(self, op: str, *args: Any, **kwargs: Any) -> Future:
+        return self._pool.submit(serve, self.system, self.rows, op, args, kwargs)
+
+    def call(self, op: str, *args: Any, **kwargs: Any) -> Any:
+        """Run `op` on this thread (lifecycle transitions: one shard at a time)."""
+        return serve(self.system, self.rows, op, args, kwargs)
+
+    def close(self) -> None:
+        pass
+
+
+class ShardProcessError(RuntimeError):
+    """A shard process exited, or failed to start."""
+
+
+class _Reply:
+    """The answer to one request of a ProcessShard, read when asked for."""
+
+    def __init__(self, shard: ProcessShard):
+        self._shard = shard
+
+    def result(self) -> Any:
+        return self._shard._receive()  # noqa: SLF001 (its own class's reply)
+
+
+class ProcessShard:
+    """A shard in a process of its own, on one device; the fleet's arrays in shared memory.
+
+    Args:
+      backend: the backend's name ("warp", "mjx").
+      spec: the robot (pickled to the shard process).
+      rows: the fleet's worlds this shard runs.
+      device: the shard's device, as the backend names it ("cuda:1", "gpu:0", "cpu").
+      options: the backend's options.
+      memory: the fleet's arrays, in a shared-memory segment (Memory.create(shared=True)).
+      fleet_size: the fleet's world count, for log lines.
+    """
+
+    def __init__(
+        self,
+        backend: str,
+        spec: RobotSpec,
+        rows: range,
+        device: Any,
+        options: dict[str, Any],
+        memory: Memory,
+        fleet_size: int,
+    ):
+        if memory.name is None:
+            raise ValueError("a shard process needs the fleet's arrays in shared memory")
+        if not isinstance(device, str):
+            raise ValueError(f"a shard process names its device as a string (e.g. 'cuda:1'), got {device!r}")
+        self.device = device
+        self.rows = rows
+        self.lifecycle_state = LifecycleState.UNKNOWN
+        self.options: dict[str, Any] = {}
+        ours, theirs = socket.socketpair()
+        env, local_device = _device_env(device)
+        root = str(Path(__file__).resolve().parents[2])
+        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        self._popen = subprocess.Popen(
+            [sys.executable, "-c", _MAIN, str(theirs.fileno())],
+            pass_fds=(theirs.fileno(),),
+            env=env,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,  # Ctrl-C goes to the fleet's process, which stops its shards
+        )
+        theirs.close()
+        self._conn = Connection(ours.detach())
+        self._pending = False
+        from batchsim.failures import mujoco_log
+
+        start = {
+            "backend": backend,
+            "spec": spec,
+            "rows": (rows.start, rows.stop),
+            "fleet_size": fleet_size,
+            "device": local_device,
+            "options": options,
+            "layout": memory.layout,
+            "memory": memory.name,
+            "log_dir": None if mujoco_log() is None else str(mujoco_log().parent),
+        }
+        try:
+            self._conn.send(start)
+        except OSError:
+            raise self._exited() from None
+        self._pending = True
+
+    def started(self) -> None:
+        """Wait until the shard process has built its system (call once, after __init__)."""
+        reply = self._receive(START_TIMEOUT)
+        self.options = dict(reply["options"], device=self.device)
+
+    def __repr__(self) -> str:
+        return f"ProcessShard({self.device}, worlds {self.rows.start}..{self.rows.stop - 1}, pid {self._popen.pid})"
+
+    @property
+    def pid(self) -> int:
+        return self._popen.pid
+
+    def submit(self, op: str, *args: Any, **kwargs: Any) -> _Reply:
+        """Send one request; its `result()` waits for the reply (one request at a time)."""
+        if self._pending:
+            raise RuntimeError(f"{self!r}: a request is already waiting for its reply")
+        try:
+            self._conn.send((op, args, kwargs))
+        except (OSError, EOFError):
+            raise self._exited() from None
+        self._pending = True
+        return _Reply(self)
+
+    def call(self, op: str, *args: Any, **kwargs: Any) -> Any:
+        return self.submit(op, *args, **kwargs).result()
+
+    def _receive(self, timeout: float | None = None) -> Any:
+        waited = 0.0
+        try:
+            while not self._conn.poll(POLL):
+                waited += POLL
+                if self._popen.poll() is not None:
+                    raise self._exited()
+                if timeout is not None and waited >= timeout:
+                    raise ShardProcessError(
+                        f"the shard process of {self.device} did not answer in {timeout:g} s"
+                    )
+            ok, value, lifecycle, records = self._conn.recv()
+        except (OSError, EOFError):
+            raise self._exited() from None
+        finally:
+            self._pending = False
+        for name, level, message in records:  # the shard's log lines, as if logged here
+            logging.getLogger(name).log(level, "%s", message)
+        if lifecycle is not None:
+            self.lifecycle_state = LifecycleState(lifecycle)
+        if not ok:
+            raise value
+        return value
+
+    def _exited(self) -> ShardProcessError:
+        try:
+            code = self._popen.wait(5.0)
+        except subprocess.TimeoutExpired:
+            code = None
+        self.lifecycle_state = LifecycleState.FINALIZED  # nothing more to ask of it
+        return ShardProcessError(
+            f"the shard process of {self.device} (worlds {self.rows.start}..{self.rows.stop - 1}, pid "
+            f"{self._popen.pid}) " + ("stopped answering" if code is None else f"exited with code {code}")
+        )
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop the shard process (it shuts its system down as it exits). Idempotent."""
+        if self._conn.closed:
+            return
+        self._conn.close()  # the shard process sees the end of its socket and exits
+        try:
+            self._popen.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self._popen.kill()
+            self._popen.wait()
+
+
+def _device_env(device: str) -> tuple[dict[str, str], str]:
+    """The shard process's environment and its name for `device`: a GPU shard sees only its
+    own GPU (CUDA_VISIBLE_DEVICES), so that it neither opens a context on the others nor,
+    with JAX, takes memory there; it then calls it device 0."""
+    env = dict(os.environ)
+    platform, _, index = device.partition(":")
+    if platform not in ("cuda", "gpu"):
+        return env, device
+    visible = [v for v in env.get("CUDA_VISIBLE_DEVICES", "").split(",") if v.strip()]
+    k = int(index or 0)
+    env["CUDA_VISIBLE_DEVICES"] = visible[k] if k < len(visible) else str(k)
+    return env, f"{platform}:0"
+
+
+# ---------------------------------------------------------------- the shard process
+
+_MAIN = "import sys; from batchsim.backends.shards import main; sys.exit(main(sys.argv[1:]))"
+
+
+class _Records(logging.Handler):
+    """Keeps this process's log records for the next reply."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[tuple[str, int, str]] = []
+        self._lock = threading.Lock()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with self._lock:
+            self.records.append((record.name, record.levelno, record.getMessage()))
+
+    def take(self) -> list[tuple[str, int, str]]:
+        with self._lock:
+            out, self.records = self.records, []
+        return out
+
+
+def main(argv: list[str]) -> int:
+    conn = Connection(int(argv[0]))
+    records = _Records()
+    root = logging.getLogger()
+    root.addHandler(records)
+    root.setLevel(logging.INFO)
+    system: BatchedSystem | None = None
+    memory: Memory | None = None
+    try:
+        start = conn.recv()
+        try:
+            from batchsim.backends import Backend, backend_class
+            from batchsim.failures import set_log_dir
+
+            if start["log_dir"] is not None:
+                set_log_dir(start["log_dir"])
+            memory = Memory.attach(start["layout"], start["memory"])
+            cls = backend_class(Backend.parse(start["backend"]))
+            rows = range(*start["rows"])
+            system = cls(start["spec"], len(rows), **{**start["options"], "device": start["device"]})
+            system.number_worlds_as(rows.start, start["fleet_size"])
+            nbase = 0 if system.base_state is None else system.base_state.shape[1]
+            fleet_rows = FleetRows(memory, rows, system.state.shape[1], nbase)
+            conn.send((True, {"options": system.options}, int(system.lifecycle_state), records.take()))
+        except Exception as e:
+            conn.send((False, _picklable(e), None, records.take()))
+            return 1
+        while True:
+            try:
+                op, args, kwargs = conn.recv()
+            except EOFError:
+                return 0
+            try:
+                value = serve(system, fleet_rows, op, args, kwargs)
+                reply = (True, value, int(system.lifecycle_state), records.take())
+            except Exception as e:
+                reply = (False, _picklable(e), int(system.lifecycle_state), records.take())
+            conn.send(reply)
+    except (EOFError, BrokenPipeError, ConnectionResetError, KeyboardInterrupt):
+        return 0
+    finally:
+        if system is not None and system.lifecycle_state not in (
+            LifecycleState.UNKNOWN,
+            LifecycleState.FINALIZED,
+        ):
+            try:
+                system.shutdown()
+            except Exception:
+                pass
+        if memory is not None:
+            memory.close()
+
+
+def _picklable(e: BaseException) -> BaseException:
+    """`e` if it survives pickling, else a RuntimeError with its text."""
+    import pickle
+
+    try:
+        pickle.loads(pickle.dumps(e))
+        return e
+    except Exception:
+        return RuntimeError(f"{type(e).__name__}: {e}")
