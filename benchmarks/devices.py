@@ -8,7 +8,8 @@ device, the contract period (`command`, `write`, `step(NSTEP)`, `read`) of one s
 the first k devices (batchsim.make(..., devices=[...])), with the shards in processes and
 in threads (`--shards`). It prints a scaling table (k, shards, worlds, contract steps/s, sum
 of raw, ratio, contract(k) / contract(1), the period's median and worst) and writes
-devices.csv and devices.png to --out.
+devices.csv and devices.png to --out. Beside the sum of raw, "raw at once" is the raw loop
+run on the k devices at the same time, one process each: what the devices give together.
 
     python benchmarks/throughput.py --devices all --backends warp --worlds 8192 --model humanoid
     python benchmarks/devices.py --devices 0,1 --worlds 8192        # the same, directly
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import csv
 import datetime
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -47,6 +49,8 @@ FIELDS = [
     "scaling",
     "period_median_ms",
     "period_worst_ms",
+    "raw_together_sps",
+    "ratio_together",
 ]
 SHARDS = ("processes", "threads")
 
@@ -62,18 +66,32 @@ def contract(model: str, backend: str, devices: list, per_device: int, seconds: 
     sim.activate()
     command = _command(sim, nworld)
 
+    parts: list[tuple[float, float, float]] = []  # write, step, read: where a period goes
+
     def period() -> None:
+        t0 = time.perf_counter()
         sim.command[:] = command
         sim.write()
+        t1 = time.perf_counter()
         sim.step(NSTEP)
+        t2 = time.perf_counter()
         sim.read()
+        parts.append((t1 - t0, t2 - t1, time.perf_counter() - t2))
 
     for _ in range(3):  # compile, capture, warm up
         period()
+    parts.clear()
     sps, periods = _timed(period, nworld, seconds)
     frozen = int((sim.status != 0).sum())
     sim.shutdown()
-    return {"sps": sps, "median": float(np.median(periods)), "worst": float(np.max(periods)), "frozen": frozen}
+    split = np.median(np.array(parts), axis=0) * 1e3
+    return {
+        "sps": sps,
+        "median": float(np.median(periods)),
+        "worst": float(np.max(periods)),
+        "frozen": frozen,
+        "split": split,
+    }
 
 
 def raw_alone(model: str, backend: str, device: str, per_device: int, seconds: float) -> float:
@@ -90,6 +108,48 @@ def raw_alone(model: str, backend: str, device: str, per_device: int, seconds: f
     del raw
     sim.shutdown()
     return sps
+
+
+def raw_together(model: str, backend: str, devices: list, per_device: int, seconds: float) -> list[float]:
+    """Steps/s of the raw loop on each of `devices` at once, one process per device (each
+    seeing only its own GPU, as batchsim's shard processes do), timed over the same window:
+    what the devices give together, beside the sum of what each gives alone."""
+    from batchsim.backends.shards import device_env
+
+    procs = []
+    for d in devices:
+        env, local = device_env(str(d))
+        argv = [sys.executable, __file__, "--raw-worker", local, "--backends", backend, "--model", model]
+        argv += ["--worlds", str(per_device), "--seconds", str(seconds)]
+        procs.append(subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env))
+    try:
+        for proc in procs:  # built, compiled, warmed up
+            line = proc.stdout.readline()
+            if line.strip() != "ready":
+                raise RuntimeError(f"a raw worker failed to start: {line.strip() or proc.wait()}")
+        for proc in procs:
+            proc.stdin.write("go\n")
+            proc.stdin.flush()
+        return [float(proc.stdout.readline()) for proc in procs]
+    finally:
+        for proc in procs:
+            proc.stdin.close()
+            proc.wait()
+
+
+def _raw_worker(model: str, backend: str, device: str, per_device: int, seconds: float) -> None:
+    """raw_together's process: the raw loop on `device`, timed once the parent says go."""
+    sim = batchsim.make(model, per_device, backend, device=device)
+    sim.configure()
+    ctrl = np.zeros((per_device, sim.model.nu))
+    ctrl[:, [a.actuator_id for a in sim.spec.commands]] = _command(sim, per_device)
+    raw = RAW[backend](sim, ctrl)
+    for _ in range(2):
+        raw()
+    print("ready", flush=True)
+    sys.stdin.readline()
+    sps, _ = _timed(raw, per_device, seconds)
+    print(sps, flush=True)
 
 
 def _command(sim: batchsim.BatchedSystem, nworld: int) -> np.ndarray:
@@ -143,8 +203,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=3.0)
     p.add_argument("--shards", default=",".join(SHARDS), help="processes, threads, or both (default)")
     p.add_argument("--out", default="benchmarks/out")
+    p.add_argument("--raw-worker", default=None, help=argparse.SUPPRESS)
     args, _ = p.parse_known_args(argv)
     backend = args.backends.split(",")[0].strip()
+    if args.raw_worker is not None:
+        _raw_worker(args.model, backend, args.raw_worker, int(args.worlds), args.seconds)
+        return 0
     cls = backend_class(batchsim.Backend.parse(backend))
     if args.devices == "all":
         devices: list = list(cls.available_devices())
@@ -163,9 +227,16 @@ def main(argv: list[str] | None = None) -> int:
     # the raw library on each device alone, once: the ideal for k devices is the sum of k
     raw = [raw_alone(args.model, backend, d, per_device, args.seconds) for d in devices]
     print(f"raw, each device alone: {', '.join(f'{r:,.0f}' for r in raw)} steps/s", flush=True)
+    # and all at once: whether the devices themselves give the sum when they run together
+    together = {1: raw[0]}
+    for k in range(2, len(devices) + 1):
+        each = raw_together(args.model, backend, devices[:k], per_device, args.seconds)
+        together[k] = sum(each)
+        print(f"raw, {k} devices at once: {', '.join(f'{r:,.0f}' for r in each)} = {together[k]:,.0f} steps/s", flush=True)
     print(
         f"{'devices':>7} {'shards':>9} {'worlds':>7} {'batchsim steps/s':>17} {'sum of raw':>14} {'ratio':>6} "
-        f"{'x one device':>12} {'period median / worst ms':>25}"
+        f"{'x one device':>12} {'period median / worst ms':>25} {'raw at once':>12} {'ratio':>6} "
+        f"{'write / step / read ms':>23}"
     )
     rows = []
     one = None
@@ -187,11 +258,15 @@ def main(argv: list[str] | None = None) -> int:
                 "scaling": result["sps"] / one,
                 "period_median_ms": result["median"],
                 "period_worst_ms": result["worst"],
+                "raw_together_sps": together[k],
+                "ratio_together": result["sps"] / together[k],
             }
             rows.append(row)
             print(
                 f"{k:7d} {shards:>9} {k * per_device:7d} {row['contract_sps']:17,.0f} {row['raw_sum_sps']:14,.0f} "
-                f"{row['ratio']:6.3f} {row['scaling']:12.2f} {result['median']:12.2f} / {result['worst']:9.2f}"
+                f"{row['ratio']:6.3f} {row['scaling']:12.2f} {result['median']:12.2f} / {result['worst']:9.2f} "
+                f"{together[k]:12,.0f} {row['ratio_together']:6.3f} "
+                f"{' / '.join(f'{t:.2f}' for t in result['split']):>23}"
                 + (f"  ({result['frozen']} worlds frozen)" if result["frozen"] else ""),
                 flush=True,
             )

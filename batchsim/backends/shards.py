@@ -222,7 +222,7 @@ class ProcessShard:
         self.lifecycle_state = LifecycleState.UNKNOWN
         self.options: dict[str, Any] = {}
         ours, theirs = socket.socketpair()
-        env, local_device = _device_env(device)
+        env, local_device = device_env(device)
         root = str(Path(__file__).resolve().parents[2])
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         self._popen = subprocess.Popen(
@@ -327,7 +327,7 @@ class ProcessShard:
             self._popen.wait()
 
 
-def _device_env(device: str) -> tuple[dict[str, str], str]:
+def device_env(device: str) -> tuple[dict[str, str], str]:
     """The shard process's environment and its name for `device`: a GPU shard sees only its
     own GPU (CUDA_VISIBLE_DEVICES), so that it neither opens a context on the others nor,
     with JAX, takes memory there; it then calls it device 0."""
