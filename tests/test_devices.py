@@ -187,3 +187,25 @@ def test_a_bad_command_in_one_shard_process_marks_that_world_only():
     sim.write()
     assert not sim.status.any()
     sim.shutdown()
+
+
+def test_a_waiting_side_polls_only_where_there_are_cores_to_spare(monkeypatch):
+    """The fleet and its shard processes poll for messages (no wake-up latency) only where
+    each polling process leaves a core to spare; a fleet that polls works as one that sleeps."""
+    from batchsim.backends import shards
+
+    monkeypatch.setattr(shards.os, "sched_getaffinity", lambda pid: set(range(5)))
+    assert shards.spin_budget(2) == 0.0  # 3 polling processes need 6 cores
+    monkeypatch.setattr(shards.os, "sched_getaffinity", lambda pid: set(range(6)))
+    assert shards.spin_budget(2) == shards.SPIN
+    sim = batchsim.make("arm", 4, "warp", devices=["cpu", "cpu"], processes=True)
+    assert [shard.spin for shard in sim.shards] == [shards.SPIN] * 2
+    sim.configure()
+    sim.activate()
+    sim.command[:] = 0.2
+    for _ in range(3):
+        sim.write()
+        sim.step(5)
+    sim.read()
+    assert sim.time == pytest.approx(np.full(4, 15 * sim.dt))
+    sim.shutdown()

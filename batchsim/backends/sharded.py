@@ -22,7 +22,9 @@ Two ways to run the shards:
 - processes (`processes=True`, what `batchsim --devices` uses on GPUs): one process per
   device, the fleet's arrays in shared memory (batchsim.memory), so each shard's host work
   runs on its own core; a device's arrays then live in its process, and `device_arrays()`
-  and `render(device=True)` give host copies of them.
+  and `render(device=True)` give host copies of them. Where there are cores to spare, the
+  fleet and its shard processes poll for each other's messages rather than sleep
+  (shards.spin_budget): a woken process starts late, four times a period.
 
 Cameras and lidars render and cast on each shard; sensor noise is the fleet's, seeded by
 fleet world numbers, so a world's noise does not depend on how many devices there are.
@@ -39,7 +41,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from batchsim.backends.shards import FleetRows, LocalShard, ProcessShard, fleet_layout
+from batchsim.backends.shards import FleetRows, LocalShard, ProcessShard, fleet_layout, spin_budget
 from batchsim.hardware import BatchedSystem, CallbackReturn, LifecycleState, ReturnType
 from batchsim.memory import Memory
 from batchsim.model import RobotSpec
@@ -135,10 +137,11 @@ class ShardedSystem(BatchedSystem):
         self._pool: ThreadPoolExecutor | None = None
         self.shards: list[LocalShard | ProcessShard] = []
         if self.processes:
+            spin = spin_budget(len(self.devices))
             try:
                 for r, device in zip(self.world_ranges, self.devices, strict=True):
                     self.shards.append(
-                        ProcessShard(backend.name, spec, r, device, options, self.memory, self.nworld)
+                        ProcessShard(backend.name, spec, r, device, options, self.memory, self.nworld, spin)
                     )
                 for shard in self.shards:  # they start at once: wait for each
                     shard.started()
