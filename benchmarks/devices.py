@@ -34,6 +34,7 @@ from throughput import NSTEP, RAW, device_name, versions  # noqa: E402
 
 import batchsim  # noqa: E402
 from batchsim.backends import backend_class  # noqa: E402
+from batchsim.backends.sharded import ShardedSystem  # noqa: E402
 
 FIELDS = [
     "date",
@@ -52,7 +53,7 @@ FIELDS = [
     "raw_together_sps",
     "ratio_together",
 ]
-SHARDS = ("processes", "threads")
+SHARDS = ("processes", "pinned", "threads")  # pinned: processes, each on cores of its own
 
 
 def contract(model: str, backend: str, devices: list, per_device: int, seconds: float, shards: str) -> dict:
@@ -61,26 +62,40 @@ def contract(model: str, backend: str, devices: list, per_device: int, seconds: 
     if len(devices) == 1:
         sim = batchsim.make(model, nworld, backend, device=devices[0])
     else:
-        sim = batchsim.make(model, nworld, backend, devices=devices, processes=shards == "processes")
+        cls = backend_class(batchsim.Backend.parse(backend))
+        spec = batchsim.load(model)
+        processes = shards in ("processes", "pinned")
+        sim = ShardedSystem(cls, spec, nworld, devices, processes=processes, pin=shards == "pinned")
+        sim.initialize()
     sim.configure()
     sim.activate()
     command = _command(sim, nworld)
 
     parts: list[tuple[float, float, float]] = []  # write, step, read: where a period goes
+    busy: list[tuple[float, float, float]] = []  # the slowest shard process's own work in each
+    shards_busy = [getattr(s, "busy", None) is not None for s in getattr(sim, "shards", [])]
+    processes = bool(shards_busy) and all(shards_busy)
+
+    def slowest() -> float:
+        return max(s.busy for s in sim.shards)
 
     def period() -> None:
         t0 = time.perf_counter()
         sim.command[:] = command
         sim.write()
         t1 = time.perf_counter()
+        b1 = slowest() if processes else 0.0
         sim.step(NSTEP)
         t2 = time.perf_counter()
+        b2 = slowest() if processes else 0.0
         sim.read()
         parts.append((t1 - t0, t2 - t1, time.perf_counter() - t2))
+        busy.append((b1, b2, slowest() if processes else 0.0))
 
     for _ in range(3):  # compile, capture, warm up
         period()
     parts.clear()
+    busy.clear()
     sps, periods = _timed(period, nworld, seconds)
     frozen = int((sim.status != 0).sum())
     sim.shutdown()
@@ -91,6 +106,7 @@ def contract(model: str, backend: str, devices: list, per_device: int, seconds: 
         "worst": float(np.max(periods)),
         "frozen": frozen,
         "split": split,
+        "busy": np.median(np.array(busy), axis=0) * 1e3 if processes else None,
     }
 
 
@@ -175,13 +191,13 @@ def plot(rows: list[dict], path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(5, 3.6))
     one = [r for r in rows if r["ndevice"] == 1]
-    for shards, style in zip(SHARDS, ("o-", "^-"), strict=True):
+    for shards, style in zip(SHARDS, ("o-", "v-", "^-"), strict=True):
         mine = one + [r for r in rows if r["shards"] == shards and r["ndevice"] > 1]
         if len(mine) > len(one):
             ax.plot(
                 [r["ndevice"] for r in mine], [r["contract_sps"] / 1e6 for r in mine], style, label=f"batchsim, {shards}"
             )
-    raw = one + [r for r in rows if r["shards"] == SHARDS[0] and r["ndevice"] > 1]
+    raw = one + [r for r in rows if r["shards"] == rows[-1]["shards"] and r["ndevice"] > 1]
     ax.plot([r["ndevice"] for r in raw], [r["raw_sum_sps"] / 1e6 for r in raw], "s--", label="sum of raw, each device alone")
     k = sorted({r["ndevice"] for r in rows})
     ax.set_xlabel("devices")
@@ -236,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'devices':>7} {'shards':>9} {'worlds':>7} {'batchsim steps/s':>17} {'sum of raw':>14} {'ratio':>6} "
         f"{'x one device':>12} {'period median / worst ms':>25} {'raw at once':>12} {'ratio':>6} "
-        f"{'write / step / read ms':>23}"
+        f"{'write / step / read ms':>23} {'in the shard processes':>23}"
     )
     rows = []
     one = None
@@ -266,7 +282,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{k:7d} {shards:>9} {k * per_device:7d} {row['contract_sps']:17,.0f} {row['raw_sum_sps']:14,.0f} "
                 f"{row['ratio']:6.3f} {row['scaling']:12.2f} {result['median']:12.2f} / {result['worst']:9.2f} "
                 f"{together[k]:12,.0f} {row['ratio_together']:6.3f} "
-                f"{' / '.join(f'{t:.2f}' for t in result['split']):>23}"
+                f"{' / '.join(f'{t:.2f}' for t in result['split']):>23} "
+                + (f"{' / '.join(f'{t:.2f}' for t in result['busy']):>23}" if result["busy"] is not None else "")
                 + (f"  ({result['frozen']} worlds frozen)" if result["frozen"] else ""),
                 flush=True,
             )

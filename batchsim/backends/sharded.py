@@ -33,6 +33,7 @@ fleet world numbers, so a world's noise does not depend on how many devices ther
 from __future__ import annotations
 
 import dataclasses
+import os
 import weakref
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -88,6 +89,8 @@ class ShardedSystem(BatchedSystem):
       spec, nworld: as for any system.
       devices: one device per shard, as that backend's `device` option takes it.
       processes: run each shard in a process of its own (see the module's docstring).
+      pin: with processes, run each shard process on cores of its own, an equal share of
+        this process's (benchmarks/devices.py compares it).
       **options: the backend's options, given to every shard.
 
     Attributes:
@@ -108,6 +111,7 @@ class ShardedSystem(BatchedSystem):
         devices: Sequence[Any],
         *,
         processes: bool = False,
+        pin: bool = False,
         **options: Any,
     ):
         super().__init__(spec, nworld)
@@ -138,10 +142,11 @@ class ShardedSystem(BatchedSystem):
         self.shards: list[LocalShard | ProcessShard] = []
         if self.processes:
             spin = spin_budget(len(self.devices))
+            cpus = _share_cores(len(self.devices)) if pin else [None] * len(self.devices)
             try:
-                for r, device in zip(self.world_ranges, self.devices, strict=True):
+                for r, device, mine in zip(self.world_ranges, self.devices, cpus, strict=True):
                     self.shards.append(
-                        ProcessShard(backend.name, spec, r, device, options, self.memory, self.nworld, spin)
+                        ProcessShard(backend.name, spec, r, device, options, self.memory, self.nworld, spin, mine)
                     )
                 for shard in self.shards:  # they start at once: wait for each
                     shard.started()
@@ -334,6 +339,16 @@ class ShardedSystem(BatchedSystem):
         if failure is not None:
             raise failure
         return results
+
+
+def _share_cores(nshard: int) -> list[set[int] | None]:
+    """Each of `nshard` shard processes its own cores: this process's cores split into
+    nshard + 1 equal groups, the first left to this process and the rest; None where too few."""
+    cores = sorted(os.sched_getaffinity(0))
+    size = len(cores) // (nshard + 1)
+    if size < 1:
+        return [None] * nshard
+    return [set(cores[(i + 1) * size : (i + 2) * size]) for i in range(nshard)]
 
 
 def _close(

@@ -230,6 +230,11 @@ class ProcessShard:
       fleet_size: the fleet's world count, for log lines.
       spin: seconds the fleet and the shard process poll for a message before sleeping
         (spin_budget).
+      cpus: the cores the shard process runs on (None: this process's).
+
+    Attributes:
+      busy: seconds the shard process spent on the last request, its own work without the
+        messages (benchmarks/devices.py sets it beside the fleet's wait).
     """
 
     def __init__(
@@ -242,6 +247,7 @@ class ProcessShard:
         memory: Memory,
         fleet_size: int,
         spin: float = 0.0,
+        cpus: set[int] | None = None,
     ):
         if memory.name is None:
             raise ValueError("a shard process needs the fleet's arrays in shared memory")
@@ -252,6 +258,7 @@ class ProcessShard:
         self.lifecycle_state = LifecycleState.UNKNOWN
         self.options: dict[str, Any] = {}
         self.spin = float(spin)
+        self.busy = 0.0
         ours, theirs = socket.socketpair()
         env, local_device = device_env(device)
         root = str(Path(__file__).resolve().parents[2])
@@ -279,6 +286,7 @@ class ProcessShard:
             "memory": memory.name,
             "log_dir": None if mujoco_log() is None else str(mujoco_log().parent),
             "spin": self.spin,
+            "cpus": None if cpus is None else sorted(cpus),
         }
         try:
             self._conn.send(start)
@@ -323,7 +331,7 @@ class ProcessShard:
                     raise ShardProcessError(
                         f"the shard process of {self.device} did not answer in {timeout:g} s"
                     )
-            ok, value, lifecycle, records = self._conn.recv()
+            ok, value, lifecycle, records, self.busy = self._conn.recv()
         except (OSError, EOFError):
             raise self._exited() from None
         finally:
@@ -412,6 +420,8 @@ def main(argv: list[str]) -> int:
 
             if start["log_dir"] is not None:
                 set_log_dir(start["log_dir"])
+            if start.get("cpus"):
+                os.sched_setaffinity(0, start["cpus"])
             memory = Memory.attach(start["layout"], start["memory"])
             cls = backend_class(Backend.parse(start["backend"]))
             rows = range(*start["rows"])
@@ -419,9 +429,9 @@ def main(argv: list[str]) -> int:
             system.number_worlds_as(rows.start, start["fleet_size"])
             nbase = 0 if system.base_state is None else system.base_state.shape[1]
             fleet_rows = FleetRows(memory, rows, system.state.shape[1], nbase)
-            conn.send((True, {"options": system.options}, int(system.lifecycle_state), records.take()))
+            conn.send((True, {"options": system.options}, int(system.lifecycle_state), records.take(), 0.0))
         except Exception as e:
-            conn.send((False, _picklable(e), None, records.take()))
+            conn.send((False, _picklable(e), None, records.take(), 0.0))
             return 1
         spin = float(start.get("spin", 0.0))
         while True:
@@ -431,11 +441,12 @@ def main(argv: list[str]) -> int:
                 op, args, kwargs = conn.recv()
             except EOFError:
                 return 0
+            begin = time.perf_counter()
             try:
                 value = serve(system, fleet_rows, op, args, kwargs)
-                reply = (True, value, int(system.lifecycle_state), records.take())
+                reply = (True, value, int(system.lifecycle_state), records.take(), time.perf_counter() - begin)
             except Exception as e:
-                reply = (False, _picklable(e), int(system.lifecycle_state), records.take())
+                reply = (False, _picklable(e), int(system.lifecycle_state), records.take(), 0.0)
             conn.send(reply)
     except (EOFError, BrokenPipeError, ConnectionResetError, KeyboardInterrupt):
         return 0
