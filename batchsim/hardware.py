@@ -210,10 +210,16 @@ class SystemInterface:
 
 
 class SensorData(Mapping[str, np.ndarray]):
-    """Every MJCF sensor by name: `sim.sensordata["wrist_force"]` is `(nworld, dim)`."""
+    """Every MJCF sensor by name: `sim.sensordata["wrist_force"]` is `(nworld, dim)`.
 
-    def __init__(self, views: dict[str, np.ndarray]):
-        self._views = views
+    Attributes:
+      array: (nworld, nsensordata) float64, every sensor's values in MuJoCo's sensordata
+        order; the named arrays are views of it.
+    """
+
+    def __init__(self, array: np.ndarray, sensors: Sequence[Any]):
+        self.array = array
+        self._views = {s.name: array[:, s.adr : s.adr + s.dim] for s in sensors}
 
     def __getitem__(self, name: str) -> np.ndarray:
         try:
@@ -335,6 +341,13 @@ class BatchedSystem(SystemInterface):
         self._sensor_config: SensorConfig | None = None
         self._sensors: SensorSuite | None = None
 
+    @property
+    def readings(self) -> np.ndarray:
+        """(nworld, ncolumn) float64: all that read() fills, in one block: the columns of
+        `state`, then of `base_state`, then the joint positions and velocities the actuation
+        reads (PID feedback). For copying a fleet's readings whole; edit nothing in it."""
+        return self._readings
+
     def _bind_readings(self, readings: np.ndarray) -> None:
         """Make `readings` (nworld, len(_columns)) the array read() fills; `state` and
         `base_state` are views of its columns."""
@@ -349,7 +362,7 @@ class BatchedSystem(SystemInterface):
         """Make `sensordata` (nworld, nsensordata) the array read() fills; `self.sensordata`
         holds a view of it per sensor."""
         self._sensor_host = sensordata
-        self.sensordata = SensorData({s.name: sensordata[:, s.adr : s.adr + s.dim] for s in self.spec.sensors})
+        self.sensordata = SensorData(sensordata, self.spec.sensors)
 
     # --- interfaces ---
     def export_state_interfaces(self) -> list[str]:
@@ -555,7 +568,7 @@ class BatchedSystem(SystemInterface):
         truth = self._truth()
         if truth is None:
             return self.sensordata
-        return SensorData({s.name: truth[1][:, s.adr : s.adr + s.dim] for s in self.spec.sensors})
+        return SensorData(truth[1], self.spec.sensors)
 
     def _truth(self) -> tuple[np.ndarray, np.ndarray] | None:
         noise = self.sensors.reading_noise

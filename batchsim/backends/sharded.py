@@ -136,8 +136,7 @@ class ShardedSystem(BatchedSystem):
             self.memory["status"],
             self.memory["command"],
         )
-        nbase = 0 if self.base_state is None else self.base_state.shape[1]
-        rows = [FleetRows(self.memory, r, self.state.shape[1], nbase) for r in self.world_ranges]
+        rows = [FleetRows(self.memory, r) for r in self.world_ranges]
         self._pool: ThreadPoolExecutor | None = None
         self.shards: list[LocalShard | ProcessShard] = []
         if self.processes:

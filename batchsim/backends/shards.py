@@ -104,11 +104,9 @@ def fleet_layout(nworld: int, ncolumn: int, nsensordata: int, ncommand: int) -> 
 class FleetRows:
     """One shard's rows of the fleet's arrays, and the copies between them and its system."""
 
-    def __init__(self, memory: Memory, rows: range, nstate: int, nbase: int):
+    def __init__(self, memory: Memory, rows: range):
         sel = slice(rows.start, rows.stop)
         self.readings = memory["readings"][sel]
-        self.state = self.readings[:, :nstate]
-        self.base_state = self.readings[:, nstate : nstate + nbase] if nbase else None
         self.sensordata = memory["sensordata"][sel]
         self.time = memory["time"][sel]
         self.status = memory["status"][sel]
@@ -121,12 +119,10 @@ class FleetRows:
         self.status[:] = system.status
 
     def give_readings(self, system: BatchedSystem) -> None:
-        self.state[:] = system.state
-        if self.base_state is not None:
-            self.base_state[:] = system.base_state
+        # whole blocks, one copy each (the same robot: the same columns on both sides)
+        self.readings[:] = system.readings
+        self.sensordata[:] = system.sensordata.array
         self.time[:] = system.time
-        for sensor in system.spec.sensors:
-            self.sensordata[:, sensor.adr : sensor.adr + sensor.dim] = system.sensordata[sensor.name]
         self.status[:] = system.status
 
     def give_command(self, system: BatchedSystem) -> None:
@@ -427,8 +423,7 @@ def main(argv: list[str]) -> int:
             rows = range(*start["rows"])
             system = cls(start["spec"], len(rows), **{**start["options"], "device": start["device"]})
             system.number_worlds_as(rows.start, start["fleet_size"])
-            nbase = 0 if system.base_state is None else system.base_state.shape[1]
-            fleet_rows = FleetRows(memory, rows, system.state.shape[1], nbase)
+            fleet_rows = FleetRows(memory, rows)
             conn.send((True, {"options": system.options}, int(system.lifecycle_state), records.take(), 0.0))
         except Exception as e:
             conn.send((False, _picklable(e), None, records.take(), 0.0))
