@@ -121,7 +121,8 @@ def make(
         chosen_devices = _devices(cls, devices)
         if len(chosen_devices) > 1:
             sim = ShardedSystem(cls, spec, nworld, chosen_devices, processes=processes, **options)
-            sim.reason = f"{reason}; {len(chosen_devices)} devices: {', '.join(map(str, chosen_devices))}"
+            how = "a process each" if processes else "a thread each"
+            sim.reason = f"{reason}; {len(chosen_devices)} devices, {how}: {', '.join(map(str, chosen_devices))}"
             sim.initialize()
             if sensors is not None:
                 sim.set_sensor_config(sensors)
