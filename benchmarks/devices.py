@@ -24,6 +24,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -113,6 +114,15 @@ def contract(model: str, backend: str, devices: list, per_device: int, seconds: 
 def raw_alone(model: str, backend: str, device: str, per_device: int, seconds: float) -> float:
     """Steps/s of the raw library's loop (throughput.py's) on `device` alone, the same
     physics per call as the contract's period, sized as batchsim sizes that device's shard."""
+    sim, raw = _raw_loop(model, backend, device, per_device)
+    sps, _ = _timed(raw, per_device, seconds)
+    del raw
+    sim.shutdown()
+    return sps
+
+
+def _raw_loop(model: str, backend: str, device: str, per_device: int) -> tuple[batchsim.BatchedSystem, Any]:
+    """A configured system on `device` (for its model and sizes) and the raw loop beside it, warmed up."""
     sim = batchsim.make(model, per_device, backend, device=device)
     sim.configure()
     ctrl = np.zeros((per_device, sim.model.nu))
@@ -120,10 +130,7 @@ def raw_alone(model: str, backend: str, device: str, per_device: int, seconds: f
     raw = RAW[backend](sim, ctrl)
     for _ in range(2):
         raw()
-    sps, _ = _timed(raw, per_device, seconds)
-    del raw
-    sim.shutdown()
-    return sps
+    return sim, raw
 
 
 def raw_together(model: str, backend: str, devices: list, per_device: int, seconds: float) -> list[float]:
@@ -155,13 +162,7 @@ def raw_together(model: str, backend: str, devices: list, per_device: int, secon
 
 def _raw_worker(model: str, backend: str, device: str, per_device: int, seconds: float) -> None:
     """raw_together's process: the raw loop on `device`, timed once the parent says go."""
-    sim = batchsim.make(model, per_device, backend, device=device)
-    sim.configure()
-    ctrl = np.zeros((per_device, sim.model.nu))
-    ctrl[:, [a.actuator_id for a in sim.spec.commands]] = _command(sim, per_device)
-    raw = RAW[backend](sim, ctrl)
-    for _ in range(2):
-        raw()
+    _, raw = _raw_loop(model, backend, device, per_device)
     print("ready", flush=True)
     sys.stdin.readline()
     sps, _ = _timed(raw, per_device, seconds)
