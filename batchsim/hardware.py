@@ -583,25 +583,36 @@ class BatchedSystem(SystemInterface):
         self.sensors.add_noise(cam.name, depth, sel)
         return Frames(rgb, depth)
 
-    def scan(self, lidar: str, worlds: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
+    def scan(
+        self, lidar: str, worlds: Sequence[int] | np.ndarray | None = None, *, device: bool = False, copy: bool = True
+    ) -> np.ndarray:
         """One scan of `lidar` in all or the listed worlds: (n, nray) float32 ranges in metres, REP 117
         (+inf: no hit within range_max, -inf: closer than range_min, NaN: dropped by noise).
 
         Rangefinder lidars read the MJCF rangefinders (as of the last step, like every
-        sensor); the others cast their rays now, at the current state.
+        sensor); the others cast their rays now, at the current state. `device=True` returns
+        the backend's own (nworld, nray) array of every world without a host copy or noise
+        (a Warp array on warp, JAX on mjx, NumPy on cpu), as `render(device=True)`;
+        `copy=False` may return a buffer the next scan of this lidar overwrites.
         """
         self._require("scan", frozenset({S.INACTIVE, S.ACTIVE}))
         ld = self.sensors.lidar(lidar)
+        if device:
+            if worlds is not None:
+                raise ValueError("scan(device=True) scans every world: leave worlds=None and index on the device")
+            return self._device_ranges(ld)
         rows = self._worlds(worlds)
         sel = np.arange(self.nworld) if rows is None else rows
-        if ld.kind is LidarKind.RANGEFINDER:
-            truth = self._truth()
-            distance = (self._sensor_host if truth is None else truth[1])[np.ix_(sel, ld.sensor_adr)]
-        else:
-            distance = self._cast_rays(ld, sel)
-        ranges = ld.ranges(distance)
+        ranges = self._ranges(ld, sel, copy)
         self.sensors.add_noise(ld.name, ranges, sel)
         return ranges
+
+    def _ranges(self, ld: Lidar, worlds: np.ndarray, copy: bool = True) -> np.ndarray:
+        """Noise-free REP 117 ranges (n, nray) float32 of `ld` in `worlds` (a buffer if not `copy`)."""
+        if ld.kind is LidarKind.RANGEFINDER:
+            truth = self._truth()
+            return ld.ranges((self._sensor_host if truth is None else truth[1])[np.ix_(worlds, ld.sensor_adr)])
+        return self._cast_ranges(ld, worlds, copy)
 
     # sensor hooks, one set per backend
     def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -612,9 +623,18 @@ class BatchedSystem(SystemInterface):
         """The backend's own (nworld, H, W, 3) uint8 and (nworld, H, W) float32 arrays of `camera`."""
         return self._render_frames(camera, np.arange(self.nworld))
 
+    def _cast_ranges(self, lidar: Lidar, worlds: np.ndarray, copy: bool) -> np.ndarray:
+        """(n, nray) float32 REP 117 ranges of `lidar`'s rays in `worlds` at the current state, noise-free;
+        with `copy` False it may be a buffer the next cast overwrites."""
+        return lidar.ranges(self._cast_rays(lidar, worlds))
+
     def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
         """(n, nray) distances along `lidar`'s rays in `worlds` at the current state; < 0: no hit."""
         raise NotImplementedError(f"the {self.name} backend cannot cast lidar rays")
+
+    def _device_ranges(self, lidar: Lidar) -> Any:
+        """The backend's own (nworld, nray) float32 REP 117 ranges of every world, noise-free."""
+        return self._ranges(lidar, np.arange(self.nworld))
 
     def _close_sensors(self) -> None:
         """Free renderers and ray-casting buffers (before _close)."""

@@ -363,6 +363,10 @@ class MjxSystem(DeviceSystem):
     def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
         return self._host_copy().cast(lidar, worlds)
 
+    def _device_ranges(self, lidar: Lidar) -> jax.Array:
+        """Every world's ranges, cast on the host and put on this system's device."""
+        return jax.device_put(self._ranges(lidar, np.arange(self.nworld)), self.device)
+
     def _close_sensors(self) -> None:
         if self._host is not None:
             self._host.close()

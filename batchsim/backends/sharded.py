@@ -223,14 +223,11 @@ class ShardedSystem(BatchedSystem):
         parts = [shard.render(camera.name, device=True) for shard in self.shards]
         return PerDevice([p.rgb for p in parts]), PerDevice([p.depth for p in parts])
 
-    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
-        # the shards' ranges, as distances again (< 0: no hit), for the fleet's ld.ranges()
-        parts = []
-        for shard, local in self._split(worlds):
-            ranges = shard.scan(lidar.name, local).astype(np.float64)
-            # +inf (no return) back to a miss, -inf (closer than range_min) to a hit at 0
-            parts.append(np.where(np.isposinf(ranges), -1.0, np.where(np.isneginf(ranges), 0.0, ranges)))
-        return np.concatenate(parts)
+    def _cast_ranges(self, lidar: Lidar, worlds: np.ndarray, copy: bool) -> np.ndarray:
+        return np.concatenate([shard.scan(lidar.name, local) for shard, local in self._split(worlds)])
+
+    def _device_ranges(self, lidar: Lidar) -> PerDevice:
+        return PerDevice([shard.scan(lidar.name, device=True) for shard in self.shards])
 
     def _split(self, worlds: np.ndarray) -> list[tuple[BatchedSystem, np.ndarray]]:
         """(shard, its local world indices) for the fleet's `worlds`, ascending, in shard order."""

@@ -97,7 +97,7 @@ class SensorSampler:
             rgb, depth = sim.render(name, worlds, copy=False)
             sample = Sample(name, time, worlds, rgb=rgb, depth=depth)
         else:
-            sample = Sample(name, time, worlds, ranges=sim.scan(name, worlds))
+            sample = Sample(name, time, worlds, ranges=sim.scan(name, worlds, copy=False))
         self.produced[name] += len(worlds)
         self.latest[name] = sample
         for listener in self.listeners:
