@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
 
@@ -255,6 +256,36 @@ class Frames(NamedTuple):
 
     rgb: Any
     depth: Any
+
+
+class PendingFrames:
+    """Frames being rendered (`BatchedSystem.render_async`): `result()` waits for them.
+
+    Attributes:
+      camera: the camera's name.
+      worlds: (n,) the worlds, ascending, as `render` orders them.
+    """
+
+    def __init__(self, future: Future, camera: str, worlds: np.ndarray, suite: SensorSuite):
+        self.camera = camera
+        self.worlds = worlds
+        self._future = future
+        self._suite = suite
+        self._frames: Frames | None = None
+
+    def done(self) -> bool:
+        """True once `result()` would not wait."""
+        return self._frames is not None or self._future.done()
+
+    def result(self) -> Frames:
+        """Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32), the caller's own arrays, as
+        `render(camera, worlds)` returned at the call; depth noise is drawn here, the first time.
+        Re-raises what the render raised."""
+        if self._frames is None:
+            rgb, depth = self._future.result()
+            self._suite.add_noise(self.camera, depth, self.worlds)
+            self._frames = Frames(rgb, depth)
+        return self._frames
 
 
 class BatchedSystem(SystemInterface):
@@ -583,6 +614,32 @@ class BatchedSystem(SystemInterface):
         self.sensors.add_noise(cam.name, depth, sel)
         return Frames(rgb, depth)
 
+    def render_async(self, camera: str, worlds: Sequence[int] | np.ndarray | None = None) -> PendingFrames:
+        """Start rendering `camera` in all or the listed worlds at the current state; return at once.
+
+        `result()` of the PendingFrames gives what `render(camera, worlds)` would have given
+        now (host arrays of the caller's own, noise included), waiting if need be. cpu and mjx
+        draw them on a background thread with its own OpenGL context, from a copy of the
+        worlds' poses taken now, so the caller can step on meanwhile (SensorSampler does:
+        the physics and the rendering then use two cores); the others render before
+        returning. Renders run in the order they were asked for.
+        """
+        self._require("render", frozenset({S.INACTIVE, S.ACTIVE}))
+        cam = self.sensors.camera(camera)
+        rows = self._worlds(worlds)
+        sel = np.arange(self.nworld) if rows is None else rows
+        return PendingFrames(self._render_frames_later(cam, sel), cam.name, sel, self.sensors)
+
+    def prepare_rendering(self) -> None:
+        """Set up now what the first `render_async` would otherwise set up inside the loop: on cpu
+        and mjx the render thread and its OpenGL context (making one holds Python's GIL for
+        ~0.2 s, a stalled control period if the loop runs). Nothing on warp, whose render
+        context, holding every world's frames, is made on a camera's first render.
+        SensorSampler calls it when it is made."""
+        self._require("prepare rendering", frozenset({S.INACTIVE, S.ACTIVE}))
+        if self.sensors.cameras:
+            self._prepare_rendering(list(self.sensors.cameras.values()))
+
     def scan(
         self, lidar: str, worlds: Sequence[int] | np.ndarray | None = None, *, device: bool = False, copy: bool = True
     ) -> np.ndarray:
@@ -622,6 +679,17 @@ class BatchedSystem(SystemInterface):
     def _device_frames(self, camera: Camera) -> tuple[Any, Any]:
         """The backend's own (nworld, H, W, 3) uint8 and (nworld, H, W) float32 arrays of `camera`."""
         return self._render_frames(camera, np.arange(self.nworld))
+
+    def _prepare_rendering(self, cameras: list[Camera]) -> None:
+        """Make ready what `_render_frames_later` needs for `cameras` (nothing by default)."""
+
+    def _render_frames_later(self, camera: Camera, worlds: np.ndarray) -> Future:
+        """A future of host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds`
+        at the current state, arrays of the caller's own; by default rendered now."""
+        future: Future = Future()
+        rgb, depth = self._render_frames(camera, worlds)
+        future.set_result((rgb.copy(), depth.copy()))
+        return future
 
     def _cast_ranges(self, lidar: Lidar, worlds: np.ndarray, copy: bool) -> np.ndarray:
         """(n, nray) float32 REP 117 ranges of `lidar`'s rays in `worlds` at the current state, noise-free;
