@@ -13,7 +13,8 @@ interleaved rounds, compile / context creation / graph capture excluded:
              cpu   per world mujoco.batch get_data, mj_kinematics, mj_camlight, mjv_updateScene,
                    mjr_render, mjr_readPixels (RGB and depth in one read), one GL context, and
                    rows flipped and depth in metres, as mujoco.Renderer does
-             mjx   one download of qpos, then the cpu loop on a host batch
+             mjx   one download of qpos, then the cpu loop on a host batch (the rover's
+                   obstacles do not collide on mjx: `mjx_rover()`)
              warp  mjw.kinematics + camlight, refit_bvh, render, get_rgb + get_depth (device),
                    launched one by one
            raw graph  (warp) the same launches captured once in a graph and replayed, as
@@ -53,8 +54,10 @@ import argparse
 import datetime
 import json
 import os
+import re
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -77,13 +80,29 @@ LIDAR = "base_scan"
 DRIVE_SECONDS = 1.0
 
 
+def mjx_rover() -> str:
+    """The rover with its walls, pillars and crates seen but not collided with: MJX has no
+    cylinder-box collision (the wheels and mast against the walls and crates), and refuses the
+    model. In the one second each world drives before a measurement no rover reaches them."""
+    path = Path(tempfile.gettempdir()) / f"batchsim_rover_mjx_{os.getpid()}.xml"
+    if not path.exists():
+        text = (ROOT / "models" / "rover.xml").read_text()
+        wall = '<geom type="box" material="wall" contype="1" conaffinity="1"/>'
+        assert wall in text, "models/rover.xml's wall class changed: update mjx_rover()"
+        text = text.replace(wall, wall.replace('"1"', '"0"'))
+        text = re.sub(r'(<geom name="(pillar|crate)_\d")', r'\1 contype="0" conaffinity="0"', text)
+        path.write_text(text)
+    return str(path)
+
+
 def make(backend: str, nworld: int, size: tuple[int, int] | None, **rates: float) -> batchsim.BatchedSystem:
     """The rover fleet, each world driven for a second on its own wheel command; `rates`:
-    camera_rate, lidar_rate (Hz)."""
+    camera_rate, lidar_rate (Hz). mjx gets `mjx_rover()`."""
     block: dict = dict(rates)
     if size:
         block["camera_resolution"] = list(size)
-    sim = batchsim.make(MODEL, nworld, backend, sensors={"sensors": block} if block else None)
+    model = mjx_rover() if backend == "mjx" else MODEL
+    sim = batchsim.make(model, nworld, backend, sensors={"sensors": block} if block else None)
     sim.configure()
     sim.activate()
     rng = np.random.default_rng(0)
@@ -437,6 +456,7 @@ def loop_row(
         sim.step(substeps)
         t_sim += period
         periods.append(time.perf_counter() - t)
+    sampler.flush()  # renders still in flight (cpu and mjx draw on a thread) count, and their time
     wall = time.perf_counter() - t0
     frames = sampler.produced[CAMERA]
     scans = sampler.produced[LIDAR]
@@ -528,6 +548,7 @@ def children(pid: int) -> list[int]:
 def ros_row(
     backend: str, nworld: int, size: tuple[int, int], seconds: float, control: float, camera: float, lidar: float,
     workers: int | None, subscribers: int, domain: int, warmup: float | None = None, rtf: float = 0.0,
+    extra: list[str] | None = None,
 ) -> dict:  # fmt: skip
     """`batchsim --rtf <rtf>` (0: flat out) with the bridge while `subscribers` processes take
     every world's image, depth and scan: the RTF it holds, what reaches the subscribers per
@@ -541,6 +562,7 @@ def ros_row(
     ]  # fmt: skip
     if workers is not None:
         args += ["--bridge-workers", str(workers)]
+    args += extra or []
     k = max(1, min(subscribers, nworld))
     edges = [round(i * nworld / k) for i in range(k + 1)]
     env = {**os.environ, **LOCALHOST, "PYTHONPATH": str(ROOT)}
@@ -685,6 +707,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--subscriber-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 2)))
     p.add_argument("--ros-seconds", type=float, default=8.0, help="ROS section: wall seconds measured")
     p.add_argument("--ros-rtf", type=float, default=0.0, help="ROS section: batchsim's --rtf (0: flat out; 1: paced at real time)")
+    p.add_argument("--ros-warmup", type=float, default=None, help="ROS section: seconds from the start line to the window (default: max(3, worlds / 100))")
+    p.add_argument("--ros-args", default="", help="ROS section: more arguments for batchsim (e.g. '--threads 1')")
     p.add_argument("--domain", type=int, default=72, help="ROS section: the ROS domain")
     p.add_argument("--json", default="benchmarks/out/sensors.json")
     p.add_argument("--samples", default="", help="write a figure of four worlds' images and scans here (PNG) and stop")
@@ -747,7 +771,8 @@ def main(argv: list[str] | None = None) -> int:
             size = size_arg(args.loop_size)
             row = ros_row(
                 backend, n, size, args.ros_seconds, args.control_rate, args.camera_rate, args.lidar_rate,
-                args.bridge_workers, args.subscriber_processes, args.domain, rtf=args.ros_rtf,
+                args.bridge_workers, args.subscriber_processes, args.domain, warmup=args.ros_warmup, rtf=args.ros_rtf,
+                extra=args.ros_args.split(),
             )  # fmt: skip
             rows.append(row)
             paced = "flat out" if not row["paced"] else f"paced at rtf {row['paced']:g}"
