@@ -13,8 +13,10 @@ So, where the plan has cameras or lidars and the user has not configured Fast DD
 (FASTRTPS_DEFAULT_PROFILES_FILE, FASTDDS_DEFAULT_PROFILES_FILE, FASTDDS_BUILTIN_TRANSPORTS,
 a DEFAULT_FASTRTPS_PROFILES.xml in the working directory, or another RMW_IMPLEMENTATION),
 the bridge's participants get a profile with Fast DDS's two default transports, UDPv4 and
-shared memory, the segment sized for twice the largest burst of sensor messages a worker
-publishes at once (at least 4 MiB). Only the publishers' side changes: subscribers keep
+shared memory, the segment sized for twice the sensor messages of all a worker's worlds
+(at least 4 MiB, at most 64 MiB, and all workers together at most a quarter of /dev/shm).
+Fast DDS takes the whole segment up front (a 1 GiB one took 1 GiB of /dev/shm at once),
+so the cap is memory, not a guess. Only the publishers' side changes: subscribers keep
 their own configuration, and other hosts still reach the bridge over UDP.
 """
 
@@ -31,7 +33,7 @@ PROFILES_FILE = "FASTRTPS_DEFAULT_PROFILES_FILE"  # what Fast DDS 2.x (ROS 2 Jaz
 _USER_SETTINGS = (PROFILES_FILE, "FASTDDS_DEFAULT_PROFILES_FILE", "FASTDDS_BUILTIN_TRANSPORTS")
 _FAST_DDS = ("", "rmw_fastrtps_cpp", "rmw_fastrtps_dynamic_cpp")
 MIN_SEGMENT = 4 << 20  # bytes
-MAX_SEGMENT = 1 << 30
+MAX_SEGMENT = 64 << 20
 MESSAGE_OVERHEAD = 1024  # bytes per message beyond its payload: header, frame id, CDR, RTPS
 
 
@@ -48,12 +50,12 @@ def burst_bytes(sensors: SensorPlan, nworld: int) -> int:
     return nworld * per_world
 
 
-def segment_bytes(sensors: SensorPlan, nworld: int, shm_total: int | None = None) -> int:
-    """The segment for a worker of `nworld` worlds: twice its burst, at least MIN_SEGMENT, at
-    most MAX_SEGMENT and a quarter of /dev/shm (`shm_total` bytes; writing past a full tmpfs
-    would kill the process)."""
+def segment_bytes(sensors: SensorPlan, nworld: int, shm_total: int | None = None, nworker: int = 1) -> int:
+    """The segment for each of `nworker` workers of up to `nworld` worlds: twice the burst, at
+    least MIN_SEGMENT, at most MAX_SEGMENT, and all of them together at most a quarter of
+    /dev/shm (`shm_total` bytes: writing past a full tmpfs kills the process)."""
     size = max(MIN_SEGMENT, 2 * burst_bytes(sensors, nworld))
-    cap = MAX_SEGMENT if shm_total is None else min(MAX_SEGMENT, max(MIN_SEGMENT, shm_total // 4))
+    cap = MAX_SEGMENT if shm_total is None else min(MAX_SEGMENT, max(MIN_SEGMENT, shm_total // (4 * max(1, nworker))))
     return int(min(size, cap))
 
 
@@ -119,10 +121,11 @@ class TransportProfile:
         if sensors is None or not worker_worlds or user_configured() is not None:
             return
         try:
-            shm_total = os.statvfs("/dev/shm").f_frsize * os.statvfs("/dev/shm").f_blocks
+            stat = os.statvfs("/dev/shm")
+            shm_total = stat.f_frsize * stat.f_blocks
         except OSError:
             shm_total = None
-        self.segment = segment_bytes(sensors, max(worker_worlds), shm_total)
+        self.segment = segment_bytes(sensors, max(worker_worlds), shm_total, len(worker_worlds))
         fd, name = tempfile.mkstemp(prefix=f"batchsim_fastdds_{os.getpid()}_", suffix=".xml")
         with os.fdopen(fd, "w") as f:
             f.write(profile_xml(self.segment))

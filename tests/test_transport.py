@@ -30,8 +30,10 @@ def test_the_segment_holds_twice_a_workers_burst_of_frames():
     assert burst_bytes(plan, 16) == 16 * per_world
     assert segment_bytes(plan, 16) == 2 * 16 * per_world  # 17.3 MB: one pair is 537 KB, Fast DDS's default 512 KiB
     assert segment_bytes(_plan((16, 12)), 1) == MIN_SEGMENT
-    assert segment_bytes(plan, 100_000) == MAX_SEGMENT
+    assert segment_bytes(plan, 100_000) == MAX_SEGMENT  # Fast DDS takes all of it up front
     assert segment_bytes(plan, 16, shm_total=64 << 20) == 16 << 20  # a quarter of a 64 MiB /dev/shm
+    assert segment_bytes(plan, 16, shm_total=256 << 20, nworker=8) == 8 << 20  # 8 workers share a quarter
+    assert segment_bytes(plan, 16, shm_total=64 << 20, nworker=8) == MIN_SEGMENT  # never under the floor
 
 
 def test_the_profile_keeps_fast_dds_default_transports():
