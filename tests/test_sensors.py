@@ -14,6 +14,7 @@ from __future__ import annotations
 import importlib.util
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -287,6 +288,29 @@ def test_sampler_stamps_a_frame_with_the_time_its_state_was_taken():
     for sample in seen:
         np.testing.assert_array_equal(sample.depth, depth_at[sample.time])
     assert sampler.produced["front"] == 6
+    sim.shutdown()
+
+
+def test_sampler_hands_out_one_frame_of_a_world_per_update():
+    """Renders that finished together go out one per world and update: the bridge's shared
+    memory keeps one sample per world, and a second in the same period would overwrite the
+    first before a worker published it (a stamp missing from the topic)."""
+    sim = batchsim.make(str(SCENE), 2, "cpu", sensors={"sensors": {"camera_rate": 100}})
+    sim.configure()
+    sim.activate()
+    sim.sensors.want("front", [0])
+    per_update: list[int] = []
+    sampler = SensorSampler(sim, [lambda sample: per_update.__setitem__(-1, per_update[-1] + 1)])
+    for k in range(8):  # faster than the render thread: renders pile up
+        per_update.append(0)
+        sampler.update(sim, k * 0.01, 0.01)
+    time.sleep(0.5)  # all of them done
+    for k in range(8, 16):
+        per_update.append(0)
+        sampler.update(sim, k * 0.01, 0.01)
+    assert max(per_update) == 1, per_update
+    sampler.flush()
+    assert sampler.produced["front"] == 16
     sim.shutdown()
 
 

@@ -18,8 +18,10 @@ Cameras are rendered with `render_async`: on cpu and mjx a render thread draws t
 the loop steps the physics, so rendering and physics share two cores instead of queueing
 on one. A render is handed to the listeners once it is done, at the next update() or the
 one after (its stamp stays the sim time its state was taken at); at most MAX_PENDING
-renders wait at once (MAX_STARTING until the first is done), beyond which update() waits for
-the oldest, so no frame is dropped. `flush()` waits for them all.
+renders wait at once, beyond which update() waits for the oldest, so no frame is dropped.
+One update() hands out at most one frame of a world per camera, as the synchronous order
+did (the bridge's shared memory holds one sample per world: a second in the same period
+would overwrite the first before a worker published it). `flush()` waits for them all.
 """
 
 from __future__ import annotations
@@ -35,9 +37,6 @@ if TYPE_CHECKING:
     from batchsim.hardware import BatchedSystem, PendingFrames
 
 MAX_PENDING = 4  # renders in flight at once; one is a control period's share of a camera's worlds
-# ... until the first is done: the render thread's start (its GL context and shaders, 0.2-0.4 s
-# on Mesa's software rasterizer) then holds up no control period
-MAX_STARTING = 256
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,7 +84,6 @@ class SensorSampler:
         self._spread = not sim.sensors_batched
         self._world = np.arange(sim.nworld)
         self._pending: collections.deque[tuple[float, PendingFrames]] = collections.deque()  # oldest first
-        self._flowing = False  # a render has been handed out
         sim.prepare_rendering()  # the render thread's GL context now, not in a control period
 
     def update(self, sim: BatchedSystem, time: float, period: float) -> None:
@@ -107,9 +105,19 @@ class SensorSampler:
                 due = self._due[name] + every
                 self._due[name] = due if due > time else time + every
             self._produce(sim, name, np.flatnonzero(mask), time)
-        # renders done by now go out, oldest first; past the limit, the oldest is waited for
-        limit = MAX_PENDING if self._flowing else MAX_STARTING
-        while self._pending and (self._pending[0][1].done() or len(self._pending) > limit):
+        # renders done by now go out, oldest first, past MAX_PENDING the oldest is waited for;
+        # but a world's second frame of a camera waits for the next update
+        handed: dict[str, np.ndarray] = {}  # per camera, the worlds handed out in this update
+        while self._pending:
+            job = self._pending[0][1]
+            if not (job.done() or len(self._pending) > MAX_PENDING):
+                break
+            seen = handed.get(job.camera)
+            if seen is None:
+                seen = handed[job.camera] = np.zeros(len(self._world), bool)
+            elif seen[job.worlds].any():
+                break
+            seen[job.worlds] = True
             self._deliver(*self._pending.popleft())
 
     def flush(self) -> None:
@@ -125,7 +133,6 @@ class SensorSampler:
 
     def _deliver(self, time: float, job: PendingFrames) -> None:
         rgb, depth = job.result()
-        self._flowing = True
         self._hand_out(Sample(job.camera, time, job.worlds, rgb=rgb, depth=depth))
 
     def _hand_out(self, sample: Sample) -> None:
