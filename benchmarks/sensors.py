@@ -209,10 +209,10 @@ def captured(device, program: Callable[[], None]) -> Callable[[], None]:
     return replay
 
 
-def raw_render_warp(sim: batchsim.BatchedSystem, graph: bool = False) -> Callable[[], None]:
+def raw_render_warp(sim: batchsim.BatchedSystem) -> dict[str, Callable[[], None]]:
     """MuJoCo Warp's rendering on its own Data (qpos copied from the system): kinematics,
-    camlight, refit_bvh, render, get_rgb + get_depth, synchronized; launched one by one, or
-    (`graph`) captured once and replayed."""
+    camlight, refit_bvh, render, get_rgb + get_depth, synchronized; "raw" launches them one
+    by one, "raw_graph" replays them from a graph captured once (one Data for both)."""
     import mujoco
     import mujoco_warp as mjw
     import warp as wp
@@ -240,15 +240,16 @@ def raw_render_warp(sim: batchsim.BatchedSystem, graph: bool = False) -> Callabl
         mjw.get_rgb(rc, 0, rgb)
         mjw.get_depth(rc, 0, 1.0, depth)
 
-    run = captured(sim.device, program) if graph else program
+    def body(run: Callable[[], None]) -> Callable[[], None]:
+        def call() -> None:
+            with wp.ScopedDevice(sim.device):
+                run()
+                wp.synchronize_device(sim.device)
 
-    def body() -> None:
-        with wp.ScopedDevice(sim.device):
-            run()
-            wp.synchronize_device(sim.device)
+        call.keep = (mw, d, rc, rgb, depth, run)  # type: ignore[attr-defined]
+        return call
 
-    body.keep = (mw, d, rc, rgb, depth, run)  # type: ignore[attr-defined]
-    return body
+    return {"raw": body(program), "raw_graph": body(captured(sim.device, program))}
 
 
 # ---------------------------------------------------------------- raw ray casting
@@ -275,10 +276,11 @@ def raw_scan_cpu(sim: batchsim.BatchedSystem, qpos_source: Callable[[], np.ndarr
     return body
 
 
-def raw_scan_warp(sim: batchsim.BatchedSystem, graph: bool = False, to_host: bool = True) -> Callable[[], None]:
+def raw_scan_warp(sim: batchsim.BatchedSystem) -> dict[str, Callable[[], None]]:
     """MuJoCo Warp's ray casting on its own Data: kinematics, a kernel making each world's rays
-    from the site pose, mjw.rays; the distances then copied to the host (`to_host`, as
-    `.numpy()`: a new array) or not; launched one by one or (`graph`) replayed from a graph."""
+    from the site pose, mjw.rays; launched one by one ("raw") or replayed from a graph
+    ("raw_graph"), the distances then copied to the host (`.numpy()`: a new array), or not
+    ("raw_device", "raw_graph_device"). One Data for the four."""
     import mujoco
     import mujoco_warp as mjw
     import warp as wp
@@ -324,18 +326,25 @@ def raw_scan_warp(sim: batchsim.BatchedSystem, graph: bool = False, to_host: boo
         wp.launch(rays, dim=shape, inputs=[d.site_xpos, d.site_xmat, ld.site_id, b["directions"]], outputs=[b["pnt"], b["vec"]])
         mjw.rays(mw, d, b["pnt"], b["vec"], everything, True, b["exclude"], b["dist"], b["geomid"], b["normal"])
 
-    run = captured(sim.device, program) if graph else program
+    def body(run: Callable[[], None], to_host: bool) -> Callable[[], None]:
+        def call() -> None:
+            with wp.ScopedDevice(sim.device):
+                run()
+                if to_host:
+                    b["dist"].numpy()  # to the host, as the contract's scan (a new array, synchronized)
+                else:
+                    wp.synchronize_device(sim.device)
 
-    def body() -> None:
-        with wp.ScopedDevice(sim.device):
-            run()
-            if to_host:
-                b["dist"].numpy()  # to the host, as the contract's scan (a new array, synchronized)
-            else:
-                wp.synchronize_device(sim.device)
+        call.keep = (mw, d, b, run)  # type: ignore[attr-defined]
+        return call
 
-    body.keep = (mw, d, b, run)  # type: ignore[attr-defined]
-    return body
+    graph = captured(sim.device, program)
+    return {
+        "raw": body(program, True),
+        "raw_graph": body(graph, True),
+        "raw_device": body(program, False),
+        "raw_graph_device": body(graph, False),
+    }
 
 
 def mjx_qpos(sim: batchsim.BatchedSystem) -> Callable[[], np.ndarray]:
@@ -344,16 +353,18 @@ def mjx_qpos(sim: batchsim.BatchedSystem) -> Callable[[], np.ndarray]:
     return lambda: np.asarray(jax.device_get(sim.device_arrays()["qpos"]))
 
 
-def raw_render(sim: batchsim.BatchedSystem) -> Callable[[], None]:
+def raw_render(sim: batchsim.BatchedSystem) -> dict[str, Callable[[], None]]:
+    """The raw library's rendering bodies by name: "raw", and on warp "raw_graph"."""
     if sim.name == "warp":
         return raw_render_warp(sim)
-    return raw_render_cpu(sim, mjx_qpos(sim) if sim.name == "mjx" else None)
+    return {"raw": raw_render_cpu(sim, mjx_qpos(sim) if sim.name == "mjx" else None)}
 
 
-def raw_scan(sim: batchsim.BatchedSystem) -> Callable[[], None]:
+def raw_scan(sim: batchsim.BatchedSystem) -> dict[str, Callable[[], None]]:
+    """The raw library's ray-casting bodies by name: "raw", and on warp the graph and device ones."""
     if sim.name == "warp":
         return raw_scan_warp(sim)
-    return raw_scan_cpu(sim, mjx_qpos(sim) if sim.name == "mjx" else None)
+    return {"raw": raw_scan_cpu(sim, mjx_qpos(sim) if sim.name == "mjx" else None)}
 
 
 # ---------------------------------------------------------------- measurements
@@ -364,7 +375,7 @@ def camera_row(backend: str, nworld: int, size: tuple[int, int], seconds: float)
     t0 = time.perf_counter()
     sim.render(CAMERA)  # context, BVH, kernels
     setup = time.perf_counter() - t0
-    bodies: dict[str, Callable[[], None]] = {"contract": lambda: sim.render(CAMERA), "raw": raw_render(sim)}
+    bodies: dict[str, Callable[[], None]] = {"contract": lambda: sim.render(CAMERA), **raw_render(sim)}
     if backend == "warp":
         import warp as wp
 
@@ -373,7 +384,6 @@ def camera_row(backend: str, nworld: int, size: tuple[int, int], seconds: float)
             wp.synchronize_device(sim.device)
 
         bodies["device"] = device
-        bodies["raw_graph"] = raw_render_warp(sim, graph=True)
     elif backend == "mjx":
         bodies["device"] = lambda: sim.render(CAMERA, device=True).depth.block_until_ready()
     for body in bodies.values():
@@ -394,7 +404,7 @@ def lidar_rows(backend: str, nworld: int, seconds: float) -> list[dict]:
     t0 = time.perf_counter()
     sim.scan(LIDAR)
     setup = time.perf_counter() - t0
-    bodies: dict[str, Callable[[], None]] = {"contract": lambda: sim.scan(LIDAR), "raw": raw_scan(sim)}
+    bodies: dict[str, Callable[[], None]] = {"contract": lambda: sim.scan(LIDAR), **raw_scan(sim)}
     if backend == "warp":
         import warp as wp
 
@@ -402,12 +412,7 @@ def lidar_rows(backend: str, nworld: int, seconds: float) -> list[dict]:
             sim.scan(LIDAR, device=True)
             wp.synchronize_device(sim.device)
 
-        bodies.update(
-            raw_graph=raw_scan_warp(sim, graph=True),
-            device=device,
-            raw_device=raw_scan_warp(sim, to_host=False),
-            raw_graph_device=raw_scan_warp(sim, graph=True, to_host=False),
-        )
+        bodies["device"] = device
     for body in bodies.values():
         body()
     rates = {k: v * nworld for k, v in interleaved(bodies, seconds).items()}
