@@ -176,7 +176,7 @@ class BridgeHost:
         self._worker: Any = None  # the in-process worker
         self.registry = Registry.for_domain()
         # Fast DDS's shared-memory segment sized for the cameras' and lidars' messages
-        self.transport = TransportProfile(plan.sensors, [hi - lo for lo, hi in plan.ranges])
+        self.transport = TransportProfile(plan.sensors, [hi - lo for lo, hi in plan.ranges], plan.control_rate)
         self._environ_before: str | None = None
         self._notify_r, self._notify_w = os.pipe()
         os.set_blocking(self._notify_r, False)

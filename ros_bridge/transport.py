@@ -13,8 +13,10 @@ So, where the plan has cameras or lidars and the user has not configured Fast DD
 (FASTRTPS_DEFAULT_PROFILES_FILE, FASTDDS_DEFAULT_PROFILES_FILE, FASTDDS_BUILTIN_TRANSPORTS,
 a DEFAULT_FASTRTPS_PROFILES.xml in the working directory, or another RMW_IMPLEMENTATION),
 the bridge's participants get a profile with Fast DDS's two default transports, UDPv4 and
-shared memory, the segment sized for twice the sensor messages of all a worker's worlds
-(at least 4 MiB, at most 64 MiB, and all workers together at most a quarter of /dev/shm).
+shared memory, the segment sized for twice the sensor messages a worker may publish in one
+control period (at least 4 MiB, at most 64 MiB, and all workers together at most a quarter
+of /dev/shm): all its worlds' where the backend produces every world at once (warp), a
+share of them where it spreads the worlds over the sensor's period (cpu, mjx).
 Fast DDS takes the whole segment up front (a 1 GiB one took 1 GiB of /dev/shm at once),
 so the cap is memory, not a guess. Only the publishers' side changes: subscribers keep
 their own configuration, and other hosts still reach the bridge over UDP.
@@ -22,11 +24,13 @@ their own configuration, and other hosts still reach the bridge over UDP.
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from collections.abc import MutableMapping
 from pathlib import Path
 
+from batchsim.sensors.sampler import MAX_PENDING
 from ros_bridge.sensor_topics import SensorPlan
 
 PROFILES_FILE = "FASTRTPS_DEFAULT_PROFILES_FILE"  # what Fast DDS 2.x (ROS 2 Jazzy) reads
@@ -37,24 +41,31 @@ MAX_SEGMENT = 64 << 20
 MESSAGE_OVERHEAD = 1024  # bytes per message beyond its payload: header, frame id, CDR, RTPS
 
 
-def burst_bytes(sensors: SensorPlan, nworld: int) -> int:
-    """Bytes of sensor messages one worker of `nworld` worlds may publish in one tick: every
-    world's image, depth, camera_info and scan (warp produces them all in one period)."""
-    per_world = 0
-    for topics in sensors.cameras:
-        cam = topics.camera
-        per_world += cam.pixels * (3 + 4) + 3 * MESSAGE_OVERHEAD
-    for topics in sensors.lidars:
-        ld = topics.lidar
-        per_world += ld.nray * (12 if ld.is_3d else 4) + MESSAGE_OVERHEAD
-    return nworld * per_world
+def burst_bytes(sensors: SensorPlan, nworld: int, control_rate: float | None = None) -> int:
+    """Bytes of sensor messages one worker of `nworld` worlds may publish in one control period:
+    each camera's image, depth and camera_info and each lidar's scan, for every world where the
+    backend produces them all at once (or `control_rate` is None), else for the worlds one
+    period covers (SensorSampler spreads them over the sensor's period; up to MAX_PENDING + 1
+    periods' renders can be handed out together)."""
+    total = 0
+    sensors_bytes = [(t.rate, t.camera.pixels * (3 + 4) + 3 * MESSAGE_OVERHEAD, True) for t in sensors.cameras]
+    sensors_bytes += [(t.rate, t.lidar.nray * (12 if t.lidar.is_3d else 4) + MESSAGE_OVERHEAD, False) for t in sensors.lidars]
+    for rate, per_world, camera in sensors_bytes:
+        worlds = nworld
+        if not sensors.batched and control_rate:
+            phases = max(1, round(control_rate / rate))
+            worlds = min(nworld, math.ceil(nworld / phases) * ((MAX_PENDING + 1) if camera else 1))
+        total += worlds * per_world
+    return total
 
 
-def segment_bytes(sensors: SensorPlan, nworld: int, shm_total: int | None = None, nworker: int = 1) -> int:
+def segment_bytes(
+    sensors: SensorPlan, nworld: int, shm_total: int | None = None, nworker: int = 1, control_rate: float | None = None
+) -> int:
     """The segment for each of `nworker` workers of up to `nworld` worlds: twice the burst, at
     least MIN_SEGMENT, at most MAX_SEGMENT, and all of them together at most a quarter of
     /dev/shm (`shm_total` bytes: writing past a full tmpfs kills the process)."""
-    size = max(MIN_SEGMENT, 2 * burst_bytes(sensors, nworld))
+    size = max(MIN_SEGMENT, 2 * burst_bytes(sensors, nworld, control_rate))
     cap = MAX_SEGMENT if shm_total is None else min(MAX_SEGMENT, max(MIN_SEGMENT, shm_total // (4 * max(1, nworker))))
     return int(min(size, cap))
 
@@ -109,13 +120,14 @@ class TransportProfile:
     Args:
       sensors: the plan's cameras and lidars (None: no profile; joint states fit the default).
       worker_worlds: the worlds of each worker.
+      control_rate: Hz, for the share of worlds a spreading backend produces per period.
 
     Attributes:
       path: the file (None: none written), removed by close().
       segment: its segment size in bytes (0: none).
     """
 
-    def __init__(self, sensors: SensorPlan | None, worker_worlds: list[int]):
+    def __init__(self, sensors: SensorPlan | None, worker_worlds: list[int], control_rate: float | None = None):
         self.path: Path | None = None
         self.segment = 0
         if sensors is None or not worker_worlds or user_configured() is not None:
@@ -125,7 +137,7 @@ class TransportProfile:
             shm_total = stat.f_frsize * stat.f_blocks
         except OSError:
             shm_total = None
-        self.segment = segment_bytes(sensors, max(worker_worlds), shm_total, len(worker_worlds))
+        self.segment = segment_bytes(sensors, max(worker_worlds), shm_total, len(worker_worlds), control_rate)
         fd, name = tempfile.mkstemp(prefix=f"batchsim_fastdds_{os.getpid()}_", suffix=".xml")
         with os.fdopen(fd, "w") as f:
             f.write(profile_xml(self.segment))

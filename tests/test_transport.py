@@ -26,9 +26,13 @@ def _plan(resolution: tuple[int, int]):
 
 def test_the_segment_holds_twice_a_workers_burst_of_frames():
     plan = _plan((320, 240))
-    per_world = 320 * 240 * 7 + 3 * 1024 + 360 * 4 + 1024  # RGB + depth + info, and the scan
-    assert burst_bytes(plan, 16) == 16 * per_world
-    assert segment_bytes(plan, 16) == 2 * 16 * per_world  # 17.3 MB: one pair is 537 KB, Fast DDS's default 512 KiB
+    assert not plan.batched  # cpu spreads the worlds over the sensor's period
+    camera, scan = 320 * 240 * 7 + 3 * 1024, 360 * 4 + 1024  # RGB + depth + info; the scan
+    assert burst_bytes(plan, 16) == 16 * (camera + scan)  # every world at once, as warp produces them
+    assert segment_bytes(plan, 16) == 2 * 16 * (camera + scan)  # 17.3 MB: one pair is 537 KB, Fast DDS's default 512 KiB
+    # at 100 Hz the 5 Hz camera covers 1 of 16 worlds a period (5 periods' renders may go out
+    # together) and the 10 Hz lidar 2
+    assert burst_bytes(plan, 16, control_rate=100.0) == 5 * camera + 2 * scan
     assert segment_bytes(_plan((16, 12)), 1) == MIN_SEGMENT
     assert segment_bytes(plan, 100_000) == MAX_SEGMENT  # Fast DDS takes all of it up front
     assert segment_bytes(plan, 16, shm_total=64 << 20) == 16 << 20  # a quarter of a 64 MiB /dev/shm
