@@ -771,8 +771,9 @@ class WarpSystem(DeviceSystem):
     def _run_sensor(self, name: str, program: Any) -> None:
         """Run `program` (a camera's or lidar's launches, on buffers fixed until they grow). With
         graphs on, it runs eagerly the first time (kernels compile, the renderer specializes),
-        is captured then, and is replayed after: one launch per call, not a dozen launches'
-        argument packing in Python (~100 us a call at 16 worlds, measured on Warp's CPU device)."""
+        is captured then, and is replayed after: one launch per call, not ten launches'
+        argument packing in Python (a render of 1 world at 4x4 on Warp's CPU device: 1.1 ms a
+        call launched one by one, 30 us replayed)."""
         if not self.options["graph"]:
             program()
             return
