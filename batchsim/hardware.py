@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
 
@@ -261,6 +262,36 @@ class Frames(NamedTuple):
 
     rgb: Any
     depth: Any
+
+
+class PendingFrames:
+    """Frames being rendered (`BatchedSystem.render_async`): `result()` waits for them.
+
+    Attributes:
+      camera: the camera's name.
+      worlds: (n,) the worlds, ascending, as `render` orders them.
+    """
+
+    def __init__(self, future: Future, camera: str, worlds: np.ndarray, suite: SensorSuite):
+        self.camera = camera
+        self.worlds = worlds
+        self._future = future
+        self._suite = suite
+        self._frames: Frames | None = None
+
+    def done(self) -> bool:
+        """True once `result()` would not wait."""
+        return self._frames is not None or self._future.done()
+
+    def result(self) -> Frames:
+        """Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32), the caller's own arrays, as
+        `render(camera, worlds)` returned at the call; depth noise is drawn here, the first time.
+        Re-raises what the render raised."""
+        if self._frames is None:
+            rgb, depth = self._future.result()
+            self._suite.add_noise(self.camera, depth, self.worlds)
+            self._frames = Frames(rgb, depth)
+        return self._frames
 
 
 class BatchedSystem(SystemInterface):
@@ -599,25 +630,62 @@ class BatchedSystem(SystemInterface):
         self.sensors.add_noise(cam.name, depth, sel)
         return Frames(rgb, depth)
 
-    def scan(self, lidar: str, worlds: Sequence[int] | np.ndarray | None = None) -> np.ndarray:
+    def render_async(self, camera: str, worlds: Sequence[int] | np.ndarray | None = None) -> PendingFrames:
+        """Start rendering `camera` in all or the listed worlds at the current state; return at once.
+
+        `result()` of the PendingFrames gives what `render(camera, worlds)` would have given
+        now (host arrays of the caller's own, noise included), waiting if need be. cpu and mjx
+        draw them on a background thread with its own OpenGL context, from a copy of the
+        worlds' poses taken now, so the caller can step on meanwhile (SensorSampler does:
+        the physics and the rendering then use two cores); the others render before
+        returning. Renders run in the order they were asked for.
+        """
+        self._require("render", frozenset({S.INACTIVE, S.ACTIVE}))
+        cam = self.sensors.camera(camera)
+        rows = self._worlds(worlds)
+        sel = np.arange(self.nworld) if rows is None else rows
+        return PendingFrames(self._render_frames_later(cam, sel), cam.name, sel, self.sensors)
+
+    def prepare_rendering(self) -> None:
+        """Set up now what the first `render_async` would otherwise set up inside the loop: on cpu
+        and mjx the render thread and its OpenGL context (making one holds Python's GIL for
+        ~0.2 s, a stalled control period if the loop runs). Nothing on warp, whose render
+        context, holding every world's frames, is made on a camera's first render.
+        SensorSampler calls it when it is made."""
+        self._require("prepare rendering", frozenset({S.INACTIVE, S.ACTIVE}))
+        if self.sensors.cameras:
+            self._prepare_rendering(list(self.sensors.cameras.values()))
+
+    def scan(
+        self, lidar: str, worlds: Sequence[int] | np.ndarray | None = None, *, device: bool = False, copy: bool = True
+    ) -> np.ndarray:
         """One scan of `lidar` in all or the listed worlds: (n, nray) float32 ranges in metres, REP 117
         (+inf: no hit within range_max, -inf: closer than range_min, NaN: dropped by noise).
 
         Rangefinder lidars read the MJCF rangefinders (as of the last step, like every
-        sensor); the others cast their rays now, at the current state.
+        sensor); the others cast their rays now, at the current state. `device=True` returns
+        the backend's own (nworld, nray) array of every world without a host copy or noise
+        (a Warp array on warp, JAX on mjx, NumPy on cpu), as `render(device=True)`;
+        `copy=False` may return a buffer the next scan of this lidar overwrites.
         """
         self._require("scan", frozenset({S.INACTIVE, S.ACTIVE}))
         ld = self.sensors.lidar(lidar)
+        if device:
+            if worlds is not None:
+                raise ValueError("scan(device=True) scans every world: leave worlds=None and index on the device")
+            return self._device_ranges(ld)
         rows = self._worlds(worlds)
         sel = np.arange(self.nworld) if rows is None else rows
-        if ld.kind is LidarKind.RANGEFINDER:
-            truth = self._truth()
-            distance = (self._sensor_host if truth is None else truth[1])[np.ix_(sel, ld.sensor_adr)]
-        else:
-            distance = self._cast_rays(ld, sel)
-        ranges = ld.ranges(distance)
+        ranges = self._ranges(ld, sel, copy)
         self.sensors.add_noise(ld.name, ranges, sel)
         return ranges
+
+    def _ranges(self, ld: Lidar, worlds: np.ndarray, copy: bool = True) -> np.ndarray:
+        """Noise-free REP 117 ranges (n, nray) float32 of `ld` in `worlds` (a buffer if not `copy`)."""
+        if ld.kind is LidarKind.RANGEFINDER:
+            truth = self._truth()
+            return ld.ranges((self._sensor_host if truth is None else truth[1])[np.ix_(worlds, ld.sensor_adr)])
+        return self._cast_ranges(ld, worlds, copy)
 
     # sensor hooks, one set per backend
     def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -628,9 +696,29 @@ class BatchedSystem(SystemInterface):
         """The backend's own (nworld, H, W, 3) uint8 and (nworld, H, W) float32 arrays of `camera`."""
         return self._render_frames(camera, np.arange(self.nworld))
 
+    def _prepare_rendering(self, cameras: list[Camera]) -> None:
+        """Make ready what `_render_frames_later` needs for `cameras` (nothing by default)."""
+
+    def _render_frames_later(self, camera: Camera, worlds: np.ndarray) -> Future:
+        """A future of host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds`
+        at the current state, arrays of the caller's own; by default rendered now."""
+        future: Future = Future()
+        rgb, depth = self._render_frames(camera, worlds)
+        future.set_result((rgb.copy(), depth.copy()))
+        return future
+
+    def _cast_ranges(self, lidar: Lidar, worlds: np.ndarray, copy: bool) -> np.ndarray:
+        """(n, nray) float32 REP 117 ranges of `lidar`'s rays in `worlds` at the current state, noise-free;
+        with `copy` False it may be a buffer the next cast overwrites."""
+        return lidar.ranges(self._cast_rays(lidar, worlds))
+
     def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
         """(n, nray) distances along `lidar`'s rays in `worlds` at the current state; < 0: no hit."""
         raise NotImplementedError(f"the {self.name} backend cannot cast lidar rays")
+
+    def _device_ranges(self, lidar: Lidar) -> Any:
+        """The backend's own (nworld, nray) float32 REP 117 ranges of every world, noise-free."""
+        return self._ranges(lidar, np.arange(self.nworld))
 
     def _close_sensors(self) -> None:
         """Free renderers and ray-casting buffers (before _close)."""

@@ -13,11 +13,21 @@ interleaved rounds, compile / context creation / graph capture excluded:
              cpu   per world mujoco.batch get_data, mj_kinematics, mj_camlight, mjv_updateScene,
                    mjr_render, mjr_readPixels (RGB and depth in one read), one GL context, and
                    rows flipped and depth in metres, as mujoco.Renderer does
-             mjx   one download of qpos, then the cpu loop on a host batch
-             warp  mjw.kinematics + camlight, refit_bvh, render, get_rgb + get_depth (device)
+             mjx   one download of qpos, then the cpu loop on a host batch (the rover's
+                   obstacles do not collide on mjx: `mjx_rover()`)
+             warp  mjw.kinematics + camlight, refit_bvh, render, get_rgb + get_depth (device),
+                   launched one by one
+           raw graph  (warp) the same launches captured once in a graph and replayed, as
+                   MuJoCo Warp's own benchmarks run them
   lidar    contract  sim.scan(lidar): (n, 360) float32 ranges on the host
            raw       the same rays: cpu/mjx mujoco.batch's ray from bound site poses; warp a
-                     ray kernel + mjw.rays + the distances to the host
+                     ray kernel + mjw.rays + the distances to the host (`.numpy()`), launched
+                     one by one (raw) or replayed from a graph (raw graph)
+           on the device (warp)  sim.scan(lidar, device=True) against the same raw casts
+                     without the host copy
+
+ratio: the project's best (device, else contract; the host scan for the lidar row) over the
+raw library's best (raw or raw graph).
 
 The loop section (--loop) runs the physics at --control-rate with the camera at
 --camera-rate and the lidar at --lidar-rate for every world, as fast as it goes, through
@@ -25,15 +35,17 @@ SensorSampler (the participant the ROS bridge will use), and reports the real-ti
 held, frames/s, and the median and worst control period.
 
 The ROS section (--ros) runs the same loop as the `batchsim` command with the bridge
-(`--rtf 0`, its bridge workers), while subscriber processes take every world's image_raw,
-depth/image_raw and scan (raw, not deserialized): the RTF held (median and worst
-one-second window), and frames/s, depth frames/s and scans/s received, beside the loop
-section's figures without ROS at the same size and rates, and what the fleet produced per
-wall second (worlds x rate x RTF).
+(`--rtf 0` flat out, or paced with --ros-rtf 1; its bridge workers), while subscriber
+processes take every world's image_raw, depth/image_raw and scan (raw, not deserialized):
+the RTF held (median and worst one-second window), frames/s, depth frames/s and scans/s
+received, what the fleet produced per wall second (worlds x rate x RTF), and the cores the
+physics process, its bridge workers and the subscribers used meanwhile (Linux /proc).
 
     python benchmarks/sensors.py --backends cpu --worlds 16,256 --sizes 64x64,320x240
     python benchmarks/sensors.py --backends warp,mjx,cpu --worlds 16,256,1024,4096 --loop 1024
     python benchmarks/sensors.py --backends cpu --no-camera --no-lidar --loop 16 --ros 16    # with and without ROS
+    python benchmarks/sensors.py --backends cpu --no-camera --no-lidar --loop 16 --loop-size 320x240 \
+        --camera-rate 10 --ros 16 --ros-rtf 1 --subscriber-processes 1               # the 2-core target
 """
 
 from __future__ import annotations
@@ -42,8 +54,10 @@ import argparse
 import datetime
 import json
 import os
+import re
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -66,13 +80,29 @@ LIDAR = "base_scan"
 DRIVE_SECONDS = 1.0
 
 
+def mjx_rover() -> str:
+    """The rover with its walls, pillars and crates seen but not collided with: MJX has no
+    cylinder-box collision (the wheels and mast against the walls and crates), and refuses the
+    model. In the one second each world drives before a measurement no rover reaches them."""
+    path = Path(tempfile.gettempdir()) / f"batchsim_rover_mjx_{os.getpid()}.xml"
+    if not path.exists():
+        text = (ROOT / "models" / "rover.xml").read_text()
+        wall = '<geom type="box" material="wall" contype="1" conaffinity="1"/>'
+        assert wall in text, "models/rover.xml's wall class changed: update mjx_rover()"
+        text = text.replace(wall, wall.replace('"1"', '"0"'))
+        text = re.sub(r'(<geom name="(pillar|crate)_\d")', r'\1 contype="0" conaffinity="0"', text)
+        path.write_text(text)
+    return str(path)
+
+
 def make(backend: str, nworld: int, size: tuple[int, int] | None, **rates: float) -> batchsim.BatchedSystem:
     """The rover fleet, each world driven for a second on its own wheel command; `rates`:
-    camera_rate, lidar_rate (Hz)."""
+    camera_rate, lidar_rate (Hz). mjx gets `mjx_rover()`."""
     block: dict = dict(rates)
     if size:
         block["camera_resolution"] = list(size)
-    sim = batchsim.make(MODEL, nworld, backend, sensors={"sensors": block} if block else None)
+    model = mjx_rover() if backend == "mjx" else MODEL
+    sim = batchsim.make(model, nworld, backend, sensors={"sensors": block} if block else None)
     sim.configure()
     sim.activate()
     rng = np.random.default_rng(0)
@@ -162,7 +192,27 @@ def raw_render_cpu(sim: batchsim.BatchedSystem, qpos_source: Callable[[], np.nda
     return body
 
 
-def raw_render_warp(sim: batchsim.BatchedSystem) -> Callable[[], None]:
+def captured(device, program: Callable[[], None]) -> Callable[[], None]:
+    """`program` (Warp launches) run once (kernels load, MuJoCo Warp's renderer specializes),
+    then captured in a graph: a call replays it, as MuJoCo Warp's own benchmarks do."""
+    import warp as wp
+
+    with wp.ScopedDevice(device):
+        program()
+        with wp.ScopedCapture(device=device) as capture:
+            program()
+    graph = capture.graph
+
+    def replay() -> None:
+        wp.capture_launch(graph)
+
+    return replay
+
+
+def raw_render_warp(sim: batchsim.BatchedSystem) -> dict[str, Callable[[], None]]:
+    """MuJoCo Warp's rendering on its own Data (qpos copied from the system): kinematics,
+    camlight, refit_bvh, render, get_rgb + get_depth, synchronized; "raw" launches them one
+    by one, "raw_graph" replays them from a graph captured once (one Data for both)."""
     import mujoco
     import mujoco_warp as mjw
     import warp as wp
@@ -182,18 +232,24 @@ def raw_render_warp(sim: batchsim.BatchedSystem) -> Callable[[], None]:
         rgb = wp.zeros((sim.nworld, cam.height, cam.width), dtype=wp.vec3)
         depth = wp.zeros((sim.nworld, cam.height, cam.width), dtype=wp.float32)
 
-    def body() -> None:
-        with wp.ScopedDevice(sim.device):
-            mjw.kinematics(mw, d)
-            mjw.camlight(mw, d)
-            mjw.refit_bvh(mw, d, rc)
-            mjw.render(mw, d, rc)
-            mjw.get_rgb(rc, 0, rgb)
-            mjw.get_depth(rc, 0, 1.0, depth)
-            wp.synchronize_device(sim.device)
+    def program() -> None:
+        mjw.kinematics(mw, d)
+        mjw.camlight(mw, d)
+        mjw.refit_bvh(mw, d, rc)
+        mjw.render(mw, d, rc)
+        mjw.get_rgb(rc, 0, rgb)
+        mjw.get_depth(rc, 0, 1.0, depth)
 
-    body.keep = (mw, d, rc, rgb, depth)  # type: ignore[attr-defined]
-    return body
+    def body(run: Callable[[], None]) -> Callable[[], None]:
+        def call() -> None:
+            with wp.ScopedDevice(sim.device):
+                run()
+                wp.synchronize_device(sim.device)
+
+        call.keep = (mw, d, rc, rgb, depth, run)  # type: ignore[attr-defined]
+        return call
+
+    return {"raw": body(program), "raw_graph": body(captured(sim.device, program))}
 
 
 # ---------------------------------------------------------------- raw ray casting
@@ -220,7 +276,11 @@ def raw_scan_cpu(sim: batchsim.BatchedSystem, qpos_source: Callable[[], np.ndarr
     return body
 
 
-def raw_scan_warp(sim: batchsim.BatchedSystem) -> Callable[[], None]:
+def raw_scan_warp(sim: batchsim.BatchedSystem) -> dict[str, Callable[[], None]]:
+    """MuJoCo Warp's ray casting on its own Data: kinematics, a kernel making each world's rays
+    from the site pose, mjw.rays; launched one by one ("raw") or replayed from a graph
+    ("raw_graph"), the distances then copied to the host (`.numpy()`: a new array), or not
+    ("raw_device", "raw_graph_device"). One Data for the four."""
     import mujoco
     import mujoco_warp as mjw
     import warp as wp
@@ -261,15 +321,30 @@ def raw_scan_warp(sim: batchsim.BatchedSystem) -> Callable[[], None]:
         }
         everything = warp_types.vec6(-1.0, -1.0, -1.0, -1.0, -1.0, -1.0)
 
-    def body() -> None:
-        with wp.ScopedDevice(sim.device):
-            mjw.kinematics(mw, d)
-            wp.launch(rays, dim=shape, inputs=[d.site_xpos, d.site_xmat, ld.site_id, b["directions"]], outputs=[b["pnt"], b["vec"]])
-            mjw.rays(mw, d, b["pnt"], b["vec"], everything, True, b["exclude"], b["dist"], b["geomid"], b["normal"])
-            b["dist"].numpy()  # to the host, as the contract's scan
+    def program() -> None:
+        mjw.kinematics(mw, d)
+        wp.launch(rays, dim=shape, inputs=[d.site_xpos, d.site_xmat, ld.site_id, b["directions"]], outputs=[b["pnt"], b["vec"]])
+        mjw.rays(mw, d, b["pnt"], b["vec"], everything, True, b["exclude"], b["dist"], b["geomid"], b["normal"])
 
-    body.keep = (mw, d, b)  # type: ignore[attr-defined]
-    return body
+    def body(run: Callable[[], None], to_host: bool) -> Callable[[], None]:
+        def call() -> None:
+            with wp.ScopedDevice(sim.device):
+                run()
+                if to_host:
+                    b["dist"].numpy()  # to the host, as the contract's scan (a new array, synchronized)
+                else:
+                    wp.synchronize_device(sim.device)
+
+        call.keep = (mw, d, b, run)  # type: ignore[attr-defined]
+        return call
+
+    graph = captured(sim.device, program)
+    return {
+        "raw": body(program, True),
+        "raw_graph": body(graph, True),
+        "raw_device": body(program, False),
+        "raw_graph_device": body(graph, False),
+    }
 
 
 def mjx_qpos(sim: batchsim.BatchedSystem) -> Callable[[], np.ndarray]:
@@ -278,16 +353,18 @@ def mjx_qpos(sim: batchsim.BatchedSystem) -> Callable[[], np.ndarray]:
     return lambda: np.asarray(jax.device_get(sim.device_arrays()["qpos"]))
 
 
-def raw_render(sim: batchsim.BatchedSystem) -> Callable[[], None]:
+def raw_render(sim: batchsim.BatchedSystem) -> dict[str, Callable[[], None]]:
+    """The raw library's rendering bodies by name: "raw", and on warp "raw_graph"."""
     if sim.name == "warp":
         return raw_render_warp(sim)
-    return raw_render_cpu(sim, mjx_qpos(sim) if sim.name == "mjx" else None)
+    return {"raw": raw_render_cpu(sim, mjx_qpos(sim) if sim.name == "mjx" else None)}
 
 
-def raw_scan(sim: batchsim.BatchedSystem) -> Callable[[], None]:
+def raw_scan(sim: batchsim.BatchedSystem) -> dict[str, Callable[[], None]]:
+    """The raw library's ray-casting bodies by name: "raw", and on warp the graph and device ones."""
     if sim.name == "warp":
         return raw_scan_warp(sim)
-    return raw_scan_cpu(sim, mjx_qpos(sim) if sim.name == "mjx" else None)
+    return {"raw": raw_scan_cpu(sim, mjx_qpos(sim) if sim.name == "mjx" else None)}
 
 
 # ---------------------------------------------------------------- measurements
@@ -298,7 +375,7 @@ def camera_row(backend: str, nworld: int, size: tuple[int, int], seconds: float)
     t0 = time.perf_counter()
     sim.render(CAMERA)  # context, BVH, kernels
     setup = time.perf_counter() - t0
-    bodies: dict[str, Callable[[], None]] = {"contract": lambda: sim.render(CAMERA), "raw": raw_render(sim)}
+    bodies: dict[str, Callable[[], None]] = {"contract": lambda: sim.render(CAMERA), **raw_render(sim)}
     if backend == "warp":
         import warp as wp
 
@@ -316,22 +393,49 @@ def camera_row(backend: str, nworld: int, size: tuple[int, int], seconds: float)
     row = {f"{k}_fps": v * nworld for k, v in rates.items()}
     row.update(kind="camera", backend=backend, nworld=nworld, size=f"{size[0]}x{size[1]}", setup_s=setup)
     best = max(row.get("device_fps", 0.0), row["contract_fps"])
-    row["ratio"] = best / row["raw_fps"]
+    row["ratio"] = best / max(row["raw_fps"], row.get("raw_graph_fps", 0.0))
     return row
 
 
-def lidar_row(backend: str, nworld: int, seconds: float) -> dict:
+def lidar_rows(backend: str, nworld: int, seconds: float) -> list[dict]:
+    """The host scan against the raw cast with its host copy; on warp also the device scan
+    (`scan(lidar, device=True)`, no host copy) against the raw cast without one."""
     sim = make(backend, nworld, None)
     t0 = time.perf_counter()
     sim.scan(LIDAR)
     setup = time.perf_counter() - t0
-    rates = interleaved({"contract": lambda: sim.scan(LIDAR), "raw": raw_scan(sim)}, seconds)
+    bodies: dict[str, Callable[[], None]] = {"contract": lambda: sim.scan(LIDAR), **raw_scan(sim)}
+    if backend == "warp":
+        import warp as wp
+
+        def device() -> None:
+            sim.scan(LIDAR, device=True)
+            wp.synchronize_device(sim.device)
+
+        bodies["device"] = device
+    for body in bodies.values():
+        body()
+    rates = {k: v * nworld for k, v in interleaved(bodies, seconds).items()}
     nray = sim.sensors.lidar(LIDAR).nray
     sim.shutdown()
-    row = {f"{k}_fps": v * nworld for k, v in rates.items()}
-    row.update(kind=f"lidar {nray} rays", backend=backend, nworld=nworld, size="", setup_s=setup)
-    row["ratio"] = row["contract_fps"] / row["raw_fps"]
-    return row
+    common = dict(backend=backend, nworld=nworld, size="", setup_s=setup)
+    host = {"kind": f"lidar {nray} rays", "contract_fps": rates["contract"], "raw_fps": rates["raw"], **common}
+    if "raw_graph" in rates:
+        host["raw_graph_fps"] = rates["raw_graph"]
+    host["ratio"] = host["contract_fps"] / max(host["raw_fps"], host.get("raw_graph_fps", 0.0))
+    rows = [host]
+    if "device" in rates:
+        dev = {
+            "kind": f"lidar {nray} rays, on the device",
+            "contract_fps": float("nan"),
+            "device_fps": rates["device"],
+            "raw_fps": rates["raw_device"],
+            "raw_graph_fps": rates["raw_graph_device"],
+            **common,
+        }
+        dev["ratio"] = dev["device_fps"] / max(dev["raw_fps"], dev["raw_graph_fps"])
+        rows.append(dev)
+    return rows
 
 
 def loop_row(
@@ -357,6 +461,7 @@ def loop_row(
         sim.step(substeps)
         t_sim += period
         periods.append(time.perf_counter() - t)
+    sampler.flush()  # renders still in flight (cpu and mjx draw on a thread) count, and their time
     wall = time.perf_counter() - t0
     frames = sampler.produced[CAMERA]
     scans = sampler.produced[LIDAR]
@@ -423,21 +528,46 @@ def subscriber(domain: int, lo: int, hi: int) -> None:
     rclpy.try_shutdown(context=context)
 
 
+def cpu_seconds(pid: int) -> float:
+    """CPU seconds (user + system) process `pid` has used so far; NaN where /proc cannot say."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return float("nan")
+
+
+def children(pid: int) -> list[int]:
+    """The direct child processes of `pid` (Linux /proc); none where it cannot say."""
+    out = []
+    try:
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                out += [int(c) for c in f.read().split()]
+    except OSError:
+        pass
+    return out
+
+
 def ros_row(
     backend: str, nworld: int, size: tuple[int, int], seconds: float, control: float, camera: float, lidar: float,
-    workers: int | None, subscribers: int, domain: int, warmup: float | None = None,
+    workers: int | None, subscribers: int, domain: int, warmup: float | None = None, rtf: float = 0.0,
+    extra: list[str] | None = None,
 ) -> dict:  # fmt: skip
-    """`batchsim --rtf 0` with the bridge while `subscribers` processes take every world's
-    image, depth and scan: the RTF it holds and what reaches the subscribers per wall second."""
+    """`batchsim --rtf <rtf>` (0: flat out) with the bridge while `subscribers` processes take
+    every world's image, depth and scan: the RTF it holds, what reaches the subscribers per
+    wall second, and the cores each kind of process used meanwhile."""
     from fleet import Batchsim  # noqa: PLC0415 (its process handling and status parsing)
 
     args = [
-        "--model", MODEL, "--worlds", str(nworld), "--backend", backend, "--controllers", "none", "--rtf", "0",
+        "--model", MODEL, "--worlds", str(nworld), "--backend", backend, "--controllers", "none", "--rtf", f"{rtf:g}",
         "--control-rate", f"{control:g}", "--camera-rate", f"{camera:g}", "--lidar-rate", f"{lidar:g}",
         "--camera-resolution", f"{size[0]}x{size[1]}",
     ]  # fmt: skip
     if workers is not None:
         args += ["--bridge-workers", str(workers)]
+    args += extra or []
     k = max(1, min(subscribers, nworld))
     edges = [round(i * nworld / k) for i in range(k + 1)]
     env = {**os.environ, **LOCALHOST, "PYTHONPATH": str(ROOT)}
@@ -472,9 +602,13 @@ def ros_row(
             b.wait_started(300.0)
             # discovery, publishers created on request, the first subscriber refresh, rendering under way
             time.sleep(warmup if warmup is not None else max(3.0, nworld / 100))
+            groups = {"physics": [b.proc.pid], "workers": children(b.proc.pid), "subscribers": [p.pid for p in procs]}
+            cpu0 = {k: sum(cpu_seconds(pid) for pid in v) for k, v in groups.items()}
             t0 = time.time()
             c0 = total(t0)
             time.sleep(seconds)
+            cpu1 = {k: sum(cpu_seconds(pid) for pid in v) for k, v in groups.items()}
+            cores = {k: (cpu1[k] - cpu0[k]) / (time.time() - t0) for k in groups}
             t1 = time.time() - 0.3  # the subscribers' last reports lag a little
             c1 = total(t1)
             status = b.status(t0, t1 + 0.8)
@@ -493,6 +627,7 @@ def ros_row(
                 p.kill()
     rtfs = [r for r, _ in status] or [float("nan")]
     got = (c1 - c0) / (t1 - t0)
+    paced = rtf
     rtf = float(np.median(rtfs))
     # cpu and mjx spread a camera's worlds over whole control periods: its rate rounds to one
     rate = camera if backend == "warp" else control / max(1, round(control / camera))
@@ -501,8 +636,11 @@ def ros_row(
         "backend": backend,
         "nworld": nworld,
         "size": f"{size[0]}x{size[1]}",
+        "paced": paced,
         "rtf": rtf,
         "rtf_worst": float(min(rtfs)),
+        "rtf_windows": rtfs,
+        "cores": cores,
         "frames_received": float(got[0]),
         "depth_received": float(got[1]),
         "scans_received": float(got[2]),
@@ -573,6 +711,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--bridge-workers", type=int, default=None, help="ROS section: default batchsim's own choice")
     p.add_argument("--subscriber-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 2)))
     p.add_argument("--ros-seconds", type=float, default=8.0, help="ROS section: wall seconds measured")
+    p.add_argument("--ros-rtf", type=float, default=0.0, help="ROS section: batchsim's --rtf (0: flat out; 1: paced at real time)")
+    p.add_argument("--ros-warmup", type=float, default=None, help="ROS section: seconds from the start line to the window (default: max(3, worlds / 100))")
+    p.add_argument("--ros-args", default="", help="ROS section: more arguments for batchsim (e.g. '--threads 1')")
     p.add_argument("--domain", type=int, default=72, help="ROS section: the ROS domain")
     p.add_argument("--json", default="benchmarks/out/sensors.json")
     p.add_argument("--samples", default="", help="write a figure of four worlds' images and scans here (PNG) and stop")
@@ -588,15 +729,22 @@ def main(argv: list[str] | None = None) -> int:
         f"(camera {CAMERA}, lidar {LIDAR})"
     )
     print(header, flush=True)
-    print(f"{'what':44s} {'backend':7s} {'worlds':>6s} {'size':>8s} {'contract/s':>12s} {'device/s':>12s} {'raw/s':>12s} {'ratio':>6s}")
+    print(
+        f"{'what':44s} {'backend':7s} {'worlds':>6s} {'size':>8s} {'contract/s':>12s} {'device/s':>12s} {'raw/s':>12s} "
+        f"{'raw graph/s':>12s} {'ratio':>6s}"
+    )
     rows = []
 
     def show(row: dict) -> None:
         rows.append(row)
-        dev = row.get("device_fps")
+
+        def cell(key: str) -> str:
+            value = row.get(key, float("nan"))
+            return f"{value:12,.0f}" if np.isfinite(value) else " " * 12
+
         print(
-            f"{row['kind']:44s} {row['backend']:7s} {row['nworld']:6d} {row['size']:>8s} {row['contract_fps']:12,.0f} "
-            f"{(f'{dev:12,.0f}' if dev else ' ' * 12)} {row['raw_fps']:12,.0f} {row['ratio']:6.3f}",
+            f"{row['kind']:44s} {row['backend']:7s} {row['nworld']:6d} {row['size']:>8s} {cell('contract_fps')} "
+            f"{cell('device_fps')} {cell('raw_fps')} {cell('raw_graph_fps')} {row['ratio']:6.3f}",
             flush=True,
         )
 
@@ -609,7 +757,8 @@ def main(argv: list[str] | None = None) -> int:
                         continue
                     show(camera_row(backend, n, size, args.seconds))
             if not args.no_lidar:
-                show(lidar_row(backend, n, args.seconds))
+                for row in lidar_rows(backend, n, args.seconds):
+                    show(row)
     for backend in backends:
         for n in [int(x) for x in args.loop.split(",") if x]:
             row = loop_row(
@@ -627,14 +776,18 @@ def main(argv: list[str] | None = None) -> int:
             size = size_arg(args.loop_size)
             row = ros_row(
                 backend, n, size, args.ros_seconds, args.control_rate, args.camera_rate, args.lidar_rate,
-                args.bridge_workers, args.subscriber_processes, args.domain,
+                args.bridge_workers, args.subscriber_processes, args.domain, warmup=args.ros_warmup, rtf=args.ros_rtf,
+                extra=args.ros_args.split(),
             )  # fmt: skip
             rows.append(row)
+            paced = "flat out" if not row["paced"] else f"paced at rtf {row['paced']:g}"
+            cores = ", ".join(f"{k} {v:.2f}" for k, v in row["cores"].items())
             print(
-                f"{row['kind']}, {backend}, {n} worlds, {row['size']}, with ROS publishing: rtf {row['rtf']:.2f} "
+                f"{row['kind']}, {backend}, {n} worlds, {row['size']}, with ROS publishing ({paced}): rtf {row['rtf']:.2f} "
                 f"(worst {row['rtf_worst']:.2f}), received {row['frames_received']:,.0f} frames/s + "
                 f"{row['depth_received']:,.0f} depth/s + {row['scans_received']:,.0f} scans/s "
-                f"(produced {row['frames_produced']:,.0f} frames/s, {row['scans_produced']:,.0f} scans/s)",
+                f"(produced {row['frames_produced']:,.0f} frames/s, {row['scans_produced']:,.0f} scans/s); "
+                f"cores used: {cores}",
                 flush=True,
             )
     out = Path(args.json)

@@ -2,5 +2,5 @@
 
 rclpy is imported only by worker.py and messages.py (and by the physics process only when
 the bridge runs inside it); plan, memory, commands, requests, host, registry, options,
-naming and throttle are plain Python and NumPy.
+naming, throttle and transport are plain Python and NumPy.
 """

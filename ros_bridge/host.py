@@ -42,6 +42,7 @@ from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, ChannelFill, 
 from ros_bridge.registry import Registry
 from ros_bridge.requests import Kind, concatenate, decode_reset, decode_ticket, decode_trajectories
 from ros_bridge.throttle import LogThrottle
+from ros_bridge.transport import PROFILES_FILE, TransportProfile
 
 SUPERVISE = 0.25  # s of wall time between two looks at the workers
 START_TIMEOUT = 120.0  # s a worker may take to come up (imports, endpoints, the start-up check)
@@ -174,6 +175,9 @@ class BridgeHost:
         self._procs: list[_Process] = []
         self._worker: Any = None  # the in-process worker
         self.registry = Registry.for_domain()
+        # Fast DDS's shared-memory segment sized for the cameras' and lidars' messages
+        self.transport = TransportProfile(plan.sensors, [hi - lo for lo, hi in plan.ranges], plan.control_rate)
+        self._environ_before: str | None = None
         self._notify_r, self._notify_w = os.pipe()
         os.set_blocking(self._notify_r, False)
         os.set_blocking(self._notify_w, False)
@@ -195,6 +199,9 @@ class BridgeHost:
                 self._await_ready(self._procs[1:])
             else:
                 from ros_bridge.worker import Worker  # rclpy comes in only here
+
+                self._environ_before = os.environ.get(PROFILES_FILE)
+                self.transport.apply(os.environ)  # read when this process's first participant is made
 
                 self._worker = Worker(self.plan, 0, self.memory, notify_fd=self._notify_w if self.lockstep else None)
                 conflict = self._worker.check_conflicts()
@@ -251,6 +258,12 @@ class BridgeHost:
             self._worker = None
         self.memory.close()
         self.registry.release()
+        if self.transport.path is not None and os.environ.get(PROFILES_FILE) == str(self.transport.path):
+            if self._environ_before is None:
+                os.environ.pop(PROFILES_FILE, None)
+            else:
+                os.environ[PROFILES_FILE] = self._environ_before
+        self.transport.close()
         for fd in (self._notify_r, self._notify_w):
             try:
                 os.close(fd)
@@ -263,6 +276,7 @@ class BridgeHost:
         root = str(Path(__file__).resolve().parent.parent)
         env = dict(os.environ)
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        self.transport.apply(env)
         argv = [sys.executable, "-m", "ros_bridge.worker", str(index), str(wake_r), str(status_w), str(self._notify_w)]
         popen = subprocess.Popen(
             argv + (["--check"] if check else []),

@@ -67,10 +67,12 @@ class LidarTopics:
 @dataclasses.dataclass(frozen=True)
 class SensorPlan:
     """Every camera and lidar the bridge publishes, in `sensors.want` column order
-    (cameras, then lidars). Picklable: part of the FleetPlan."""
+    (cameras, then lidars). Picklable: part of the FleetPlan. `batched`: the backend produces
+    every wanted world in one period (warp), else spread over the sensor's period (cpu, mjx)."""
 
     cameras: tuple[CameraTopics, ...]
     lidars: tuple[LidarTopics, ...]
+    batched: bool = True
 
     @property
     def nsensor(self) -> int:
@@ -107,7 +109,7 @@ def sensor_plan(sim: BatchedSystem) -> SensorPlan | None:
     lidars = tuple(LidarTopics(ld, ld.rate or suite.lidar_rate) for ld in suite.lidars.values())
     if not cameras and not lidars:
         return None
-    return SensorPlan(cameras, lidars)
+    return SensorPlan(cameras, lidars, batched=sim.sensors_batched)
 
 
 class SensorBlock:

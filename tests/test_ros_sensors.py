@@ -15,8 +15,10 @@ to this file.
 from __future__ import annotations
 
 import math
+import re
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,13 +30,14 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.serialization import deserialize_message  # noqa: E402
 from rclpy.signals import SignalHandlerOptions  # noqa: E402
-from ros_fleet import LOCALHOST, Fleet, domain_id, release_domain  # noqa: E402
+from ros_fleet import LOCALHOST, Fleet, bridge_workers, domain_id, release_domain  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
 import batchsim  # noqa: E402
 from batchsim.loop import SimLoop  # noqa: E402
+from ros_bridge.transport import MIN_SEGMENT, PROFILES_FILE  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -158,6 +161,27 @@ def test_worlds_placed_differently_see_differently(rovers):
     rovers.publish_until(Float64MultiArray, "/world_1/commands", Float64MultiArray(data=[1.0, -1.0]), turned)
     assert np.abs(image(2) - image(0)).mean() < 1
     np.testing.assert_allclose(rovers.sinks["scan", 2].msg.ranges, rovers.sinks["scan", 0].msg.ranges, atol=1e-3)
+
+
+def test_workers_publish_through_a_shared_memory_segment_sized_for_the_frames(rovers):
+    """Fast DDS's default segment (512 KiB) is smaller than one 320x240 RGB-D frame pair: the
+    workers' participants get one sized for their frames (ros_bridge/transport.py), and Fast
+    DDS maps it."""
+    workers = bridge_workers(rovers.proc.pid)
+    assert len(workers) == 2
+    for pid in workers.values():
+        environ = dict(
+            item.split("=", 1) for item in Path(f"/proc/{pid}/environ").read_text().split("\0") if "=" in item
+        )
+        profile = Path(environ[PROFILES_FILE])
+        segment = int(re.search(r"<segment_size>(\d+)</segment_size>", profile.read_text()).group(1))
+        assert segment >= MIN_SEGMENT
+        mapped = []  # the worker's /dev/shm/fastrtps_* mappings, bytes
+        for line in Path(f"/proc/{pid}/maps").read_text().splitlines():
+            if "/dev/shm/fastrtps_" in line and "port" not in line:
+                lo, hi = (int(x, 16) for x in line.split()[0].split("-"))
+                mapped.append(hi - lo)
+        assert max(mapped) >= segment, f"segment {segment} bytes; mapped {sorted(mapped)}"
 
 
 # ---------------------------------------------------------------- on demand, bridge in process

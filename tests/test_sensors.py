@@ -11,8 +11,10 @@ centroid within half a pixel of where the intrinsics project it (pixel quantizat
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -125,6 +127,191 @@ def test_device_frames(box):
     assert np.mean(differ > 1) < 0.02, f"{np.mean(differ > 1):.1%} of the channels differ by more than 1 level"
     with pytest.raises(ValueError, match="every world"):
         box.render("front", worlds=[0], device=True)
+
+
+@pytest.mark.parametrize("name", ["scan", "fan", "cloud"])
+def test_device_scan_is_the_host_scan(box, name):
+    ranges = box.scan(name, device=True)
+    assert not isinstance(ranges, np.ndarray) or box.name == "cpu"  # the backend's own array (Warp, JAX)
+    np.testing.assert_array_equal(host(ranges), box.scan(name))
+    with pytest.raises(ValueError, match="every world"):
+        box.scan(name, worlds=[0], device=True)
+
+
+def test_ranges_beyond_the_limits_read_as_rep_117_on_every_backend(one_device_backend):
+    """Rays closer than range_min read -inf, beyond range_max or into nothing +inf: warp converts
+    on the device, the others on the host; all agree with Lidar.ranges."""
+    config = {
+        "sensors": {
+            "lidars": {
+                "near": {  # straight ahead 1.9 m (< range_min), at +-0.5 rad 2.165 m (> range_max), up: nothing
+                    "site": "lidar",
+                    "horizontal": {"samples": 5, "min_angle": -0.5, "max_angle": 0.5},
+                    "vertical": {"samples": 2, "min_angle": 0.0, "max_angle": 1.5},
+                    "range_min": 1.95,
+                    "range_max": 2.1,
+                }
+            }
+        }
+    }
+    sim = batchsim.make(str(SCENE), 1, one_device_backend, sensors=config)
+    sim.configure()
+    ranges = sim.scan("near")[0]
+    ahead = WALL / np.cos(np.linspace(-0.5, 0.5, 5))
+    expected = np.where(ahead < 1.95, -np.inf, np.where(ahead > 2.1, np.inf, ahead)).astype(np.float32)
+    np.testing.assert_allclose(ranges[:5], expected, atol=DEPTH_TOL)
+    assert np.all(ranges[5:] == np.inf)  # 1.5 rad up: over the wall
+    np.testing.assert_array_equal(host(sim.scan("near", device=True))[0], ranges)
+    sim.shutdown()
+
+
+FALLING_BOX = """<mujoco>
+  <option timestep="0.005"/>
+  <worldbody>
+    <light pos="0 0 3" dir="0 0 -1"/>
+    <geom type="plane" size="3 3 0.1" rgba="0.4 0.4 0.4 1"/>
+    <camera name="eye" pos="0 -2 0.4" xyaxes="1 0 0 0 0 1" fovy="60" resolution="16 12"/>
+    <site name="lidar" pos="0 -2 0.15"/>
+    <body pos="0 0 0.6"><freejoint/><geom type="box" size="0.15 0.15 0.15" rgba="0.9 0.2 0.2 1"/></body>
+  </worldbody>
+</mujoco>"""
+
+
+@pytest.mark.skipif(importlib.util.find_spec("mujoco_warp") is None, reason="needs mujoco_warp")
+def test_warp_sensor_graphs_follow_resets_and_grown_buffers(tmp_path):
+    """warp captures each camera's and lidar's launches in a graph and replays it: it must show
+    what launching them one by one shows, after a reset, and after the buffers grew (new arrays)."""
+    path = tmp_path / "falling_box.xml"
+    path.write_text(FALLING_BOX)
+    lidar = {"ring": {"site": "lidar", "horizontal": {"samples": 9, "min_angle": 1.2, "max_angle": 1.9}}}
+    sims = {}
+    for graph in (True, False):
+        # one contact per world to start with: the box's landing (4 contacts) grows the buffers;
+        # devices= names one device whatever the backend fixture's two-device variant patches in
+        config = {"sensors": {"lidars": lidar}}
+        sim = batchsim.make(str(path), 2, "warp", devices=["cpu"], graph=graph, nconmax=1, sensors=config)
+        sim.configure()
+        sim.activate()
+        sims[graph] = sim
+
+    def sense() -> dict[bool, tuple[np.ndarray, np.ndarray]]:
+        out = {}
+        for graph, sim in sims.items():
+            for _ in range(2):  # the first call captures the graph, the second replays it
+                depth = host(sim.render("eye", device=True).depth).copy()
+                ranges = host(sim.scan("ring", device=True)).copy()
+            np.testing.assert_array_equal(sim.scan("ring"), ranges)
+            out[graph] = depth, ranges
+        for a, b in zip(out[True], out[False], strict=True):
+            np.testing.assert_array_equal(a, b)
+        return out[True]
+
+    falling = sense()
+    for sim in sims.values():
+        for _ in range(40):  # 2 s: the box lands, which overflows nconmax 1
+            sim.step(10)
+    assert all(sim.nconmax > 1 for sim in sims.values())
+    landed = sense()
+    # the rays passed under the box in the air and meet it on the floor; the camera sees it lower
+    assert np.isinf(falling[1]).all()
+    assert np.isfinite(landed[1]).any(axis=1).all() and not np.array_equal(landed[0], falling[0])
+    for sim in sims.values():
+        sim.reset([1])
+    again = sense()
+    for a, b, c in zip(again, landed, falling, strict=True):
+        np.testing.assert_array_equal(a[0], b[0])  # world 0 still on the floor
+        np.testing.assert_array_equal(a[1], c[1])  # world 1 back in the air
+    for sim in sims.values():
+        sim.shutdown()
+
+
+def test_render_async_gives_what_render_gives(box):
+    job = box.render_async("front", worlds=[1])
+    now = box.render("front", worlds=[1])
+    rgb, depth = job.result()
+    assert list(job.worlds) == [1] and rgb.shape == (1, 24, 32, 3) and depth.shape == (1, 24, 32)
+    assert job.done() and job.result().rgb is rgb  # one result, kept
+    # NVIDIA's EGL does not repeat a rasterization bit for bit (test_device_frames): as there
+    differ = np.abs(rgb.astype(int) - now.rgb.astype(int))
+    assert np.mean(differ > 1) < 0.02
+    np.testing.assert_allclose(depth, now.depth, atol=DEPTH_TOL)
+
+
+def test_render_async_draws_the_worlds_as_they_were_at_the_call():
+    """cpu and mjx draw on a render thread while the caller steps on: from poses copied at the call."""
+    sim = batchsim.make(str(SCENE), 2, "cpu")
+    sim.configure()
+    sim.activate()
+    before = sim.render("front")
+    jobs = [sim.render_async("front"), sim.render_async("front", worlds=[1])]
+    sim.command[1, 0] = SHIFT  # world 1 drives towards the wall while the renders are in flight
+    for _ in range(10):
+        sim.write()
+        sim.step(10)
+    after = sim.render("front")
+    assert abs(float(after.depth[1, 12, 8]) - (WALL - SHIFT)) < DEPTH_TOL  # it moved
+    np.testing.assert_array_equal(jobs[0].result().rgb, before.rgb)
+    np.testing.assert_array_equal(jobs[0].result().depth, before.depth)
+    np.testing.assert_array_equal(jobs[1].result().depth, before.depth[1:])
+    sim.shutdown()  # with no render in flight, and again with one: the render thread is joined either way
+    sim = batchsim.make(str(SCENE), 2, "cpu")
+    sim.configure()
+    job = sim.render_async("front")
+    sim.shutdown()
+    assert job.result().rgb.shape == (2, 24, 32, 3)
+
+
+def test_render_async_draws_depth_noise_as_render_does():
+    a, b = _noisy(2), _noisy(2)
+    np.testing.assert_array_equal(a.render_async("front").result().depth, b.render("front").depth)
+    a.shutdown()
+    b.shutdown()
+
+
+def test_sampler_stamps_a_frame_with_the_time_its_state_was_taken():
+    sim = batchsim.make(str(SCENE), 2, "cpu", sensors={"sensors": {"camera_rate": 100}})
+    sim.configure()
+    sim.activate()
+    sim.sensors.want("front", [1])
+    seen = []
+    sampler = SensorSampler(sim, [lambda sample: seen.append(sample)])
+    sim.command[1, 0] = SHIFT
+    depth_at = {}
+    for k in range(6):
+        sim.read()
+        depth_at[k * 0.01] = sim.render("front", worlds=[1]).depth
+        sampler.update(sim, k * 0.01, 0.01)
+        sim.write()
+        sim.step(5)
+    sampler.flush()
+    assert [round(s.time, 6) for s in seen] == [round(k * 0.01, 6) for k in range(6)]
+    for sample in seen:
+        np.testing.assert_array_equal(sample.depth, depth_at[sample.time])
+    assert sampler.produced["front"] == 6
+    sim.shutdown()
+
+
+def test_sampler_hands_out_one_frame_of_a_world_per_update():
+    """Renders that finished together go out one per world and update: the bridge's shared
+    memory keeps one sample per world, and a second in the same period would overwrite the
+    first before a worker published it (a stamp missing from the topic)."""
+    sim = batchsim.make(str(SCENE), 2, "cpu", sensors={"sensors": {"camera_rate": 100}})
+    sim.configure()
+    sim.activate()
+    sim.sensors.want("front", [0])
+    per_update: list[int] = []
+    sampler = SensorSampler(sim, [lambda sample: per_update.__setitem__(-1, per_update[-1] + 1)])
+    for k in range(8):  # faster than the render thread: renders pile up
+        per_update.append(0)
+        sampler.update(sim, k * 0.01, 0.01)
+    time.sleep(0.5)  # all of them done
+    for k in range(8, 16):
+        per_update.append(0)
+        sampler.update(sim, k * 0.01, 0.01)
+    assert max(per_update) == 1, per_update
+    sampler.flush()
+    assert sampler.produced["front"] == 16
+    sim.shutdown()
 
 
 # ---------------------------------------------------------------- intrinsics as data
@@ -242,9 +429,9 @@ def test_a_camera_nobody_wants_costs_nothing(monkeypatch, backend):
     sim.configure()
     sim.activate()
     calls = []
-    render, scan = sim.render, sim.scan
-    monkeypatch.setattr(sim, "render", lambda name, worlds=None, **kw: calls.append(name) or render(name, worlds, **kw))
-    monkeypatch.setattr(sim, "scan", lambda name, worlds=None: calls.append(name) or scan(name, worlds))
+    render, scan = sim.render_async, sim.scan
+    monkeypatch.setattr(sim, "render_async", lambda name, worlds=None: calls.append(name) or render(name, worlds))
+    monkeypatch.setattr(sim, "scan", lambda name, worlds=None, **kw: calls.append(name) or scan(name, worlds, **kw))
     sampler = SensorSampler(sim)
     period = 0.01
     for k in range(10):
@@ -258,6 +445,7 @@ def test_a_camera_nobody_wants_costs_nothing(monkeypatch, backend):
     # cpu spread over the periods (world 0's scans in even periods, world 1's in odd ones), on
     # warp both worlds in one launch
     spread = not sim.sensors_batched
+    sampler.flush()  # the renders still in flight
     assert calls.count("front") == 5 and calls.count("pinhole") == 0
     assert calls.count("scan") == (10 if spread else 5)
     assert sampler.produced["front"] == 5 and sampler.produced["scan"] == 10

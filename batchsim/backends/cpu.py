@@ -14,6 +14,7 @@ stepping.
 from __future__ import annotations
 
 import os
+from concurrent.futures import Future
 from typing import Any, ClassVar
 
 import mujoco
@@ -160,6 +161,12 @@ class CpuSystem(BatchedSystem):
 
     def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self._host_sensors().frames(camera, worlds)
+
+    def _prepare_rendering(self, cameras: list[Camera]) -> None:
+        self._host_sensors().prepare(cameras)
+
+    def _render_frames_later(self, camera: Camera, worlds: np.ndarray) -> Future:
+        return self._host_sensors().submit(camera, worlds)  # drawn on the render thread while the caller steps on
 
     def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
         return self._host_sensors().cast(lidar, worlds)

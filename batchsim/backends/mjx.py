@@ -38,6 +38,7 @@ from __future__ import annotations
 import hashlib
 from collections import OrderedDict
 from collections.abc import Callable
+from concurrent.futures import Future
 from typing import Any, ClassVar, NamedTuple
 
 import jax
@@ -341,11 +342,15 @@ class MjxSystem(DeviceSystem):
     # --- cameras and lidars: through a host copy of the worlds (MuJoCo's renderer, mujoco.batch rays) ---
     _host: HostSensors | None = None  # made on the first render or scan
 
-    def _host_copy(self) -> HostSensors:
-        """The host mirror, its state rows filled from the device: one download of qpos and mocap."""
+    def _host_sensors(self) -> HostSensors:
+        """The host mirror (its rows as last filled)."""
         if self._host is None:
             self._host = HostSensors(self.model, mjbatch.Batch(self.model, self.nworld, nthread=0))
-        batch = self._host.batch
+        return self._host
+
+    def _host_copy(self) -> HostSensors:
+        """The host mirror, its state rows filled from the device: one download of qpos and mocap."""
+        batch = self._host_sensors().batch
         fields = ["qpos"] + (["mocap_pos", "mocap_quat"] if self.model.nmocap else [])
         values = jax.device_get({f: getattr(self._d, f) for f in fields})
         for field, value in values.items():
@@ -360,8 +365,18 @@ class MjxSystem(DeviceSystem):
         rgb, depth = self._render_frames(camera, np.arange(self.nworld))
         return jax.device_put(rgb, self.device), jax.device_put(depth, self.device)
 
+    def _prepare_rendering(self, cameras: list[Camera]) -> None:
+        self._host_sensors().prepare(cameras)
+
+    def _render_frames_later(self, camera: Camera, worlds: np.ndarray) -> Future:
+        return self._host_copy().submit(camera, worlds)  # drawn on the render thread while the caller steps on
+
     def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
         return self._host_copy().cast(lidar, worlds)
+
+    def _device_ranges(self, lidar: Lidar) -> jax.Array:
+        """Every world's ranges, cast on the host and put on this system's device."""
+        return jax.device_put(self._ranges(lidar, np.arange(self.nworld)), self.device)
 
     def _close_sensors(self) -> None:
         if self._host is not None:

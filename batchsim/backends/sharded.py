@@ -281,17 +281,14 @@ class ShardedSystem(BatchedSystem):
             parts = [shard.system.render(camera.name, device=True) for shard in self.shards]  # type: ignore[union-attr]
         return PerDevice([p.rgb for p in parts]), PerDevice([p.depth for p in parts])
 
-    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
-        # the shards' ranges, as distances again (< 0: no hit), for the fleet's ld.ranges()
-        scans = self._run(
-            [(s, "scan", (lidar.name, local)) for s, local in self._split(worlds)], self.processes
-        )
-        parts = []
-        for ranges in scans:
-            ranges = ranges.astype(np.float64)
-            # +inf (no return) back to a miss, -inf (closer than range_min) to a hit at 0
-            parts.append(np.where(np.isposinf(ranges), -1.0, np.where(np.isneginf(ranges), 0.0, ranges)))
-        return np.concatenate(parts)
+    def _cast_ranges(self, lidar: Lidar, worlds: np.ndarray, copy: bool) -> np.ndarray:
+        calls = [(s, "scan", (lidar.name, local)) for s, local in self._split(worlds)]
+        return np.concatenate(self._run(calls, self.processes))
+
+    def _device_ranges(self, lidar: Lidar) -> PerDevice:
+        if self.processes:  # host copies, from each shard process (see device_arrays)
+            return PerDevice(self._each("device_ranges", lidar.name))
+        return PerDevice([shard.system.scan(lidar.name, device=True) for shard in self.shards])  # type: ignore[union-attr]
 
     def _split(self, worlds: np.ndarray) -> list[tuple[LocalShard | ProcessShard, np.ndarray]]:
         """(shard, its local world indices) for the fleet's `worlds`, ascending, in shard order."""

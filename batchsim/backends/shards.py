@@ -158,6 +158,8 @@ def serve(system: BatchedSystem, rows: FleetRows, op: str, args: tuple, kwargs: 
     elif op == "device_frames":
         frames = system.render(*args, device=True)
         return Frames(_host(frames.rgb), _host(frames.depth))
+    elif op == "device_ranges":
+        return _host(system.scan(*args, device=True))
     else:
         raise ValueError(f"a shard serves no operation {op!r}")
     return None

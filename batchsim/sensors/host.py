@@ -12,6 +12,10 @@ display, EGL is tried first, then OSMesa. One render per world and camera reads 
 and depth together; depth comes back in metres along the optical axis, with +inf where
 nothing was hit (REP 117/118). Ray casting is mujoco.batch's `ray`, threaded over worlds
 in C.
+
+`submit` renders on a thread of its own instead, with its own GL context, from a copy of
+the worlds' poses taken at the call: the caller (the control loop) steps the physics while
+the frames are drawn on another core (MuJoCo's renderer releases the GIL).
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from __future__ import annotations
 import copy
 import os
 import sys
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import mujoco
 import numpy as np
@@ -111,6 +116,9 @@ class _Renderer:
         out[raw <= 0.0] = np.inf
 
 
+_POSES = ("qpos", "mocap_pos", "mocap_quat")  # what mj_kinematics reads of a world's state
+
+
 class HostSensors:
     """Cameras and lidars of the worlds of a batch, computed on the CPU.
 
@@ -125,6 +133,9 @@ class HostSensors:
         self._data = mujoco.MjData(m)
         self._renderer: _Renderer | None = None
         self._frames: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # per camera, a row per world
+        # the batch's live rows of what kinematics reads: a render needs no more of a world
+        self._rows = {f: batch.bind(f) for f in _POSES if getattr(self._data, f).size}
+        self._background: _RenderThread | None = None
 
     def frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Render `camera` in `worlds` into this object's buffers: (n, H, W, 3) uint8 and (n, H, W)
@@ -139,7 +150,43 @@ class HostSensors:
         self.render(camera, worlds, rgb, depth)
         return rgb, depth
 
+    def poses(self, worlds: np.ndarray) -> dict[str, np.ndarray]:
+        """Copies of the rows of `worlds` that a render reads (qpos (n, nq), mocap_pos, mocap_quat)."""
+        rows = np.asarray(worlds, np.intp)
+        return {f: bound[rows] for f, bound in self._rows.items()}
+
+    def render(self, camera: Camera, worlds: np.ndarray, rgb_out: np.ndarray, depth_out: np.ndarray) -> None:
+        """Render `camera` in each of `worlds` into rgb_out (n, H, W, 3) uint8 and depth_out (n, H, W) float32.
+
+        Images are top row first (ROS), depth in metres along the optical axis, +inf where
+        the ray met nothing before the far plane.
+        """
+        self._renderer = _fitted(self._renderer, self.model, camera.width, camera.height)
+        _draw(self.model, self._renderer, self._data, camera, self.poses(worlds), rgb_out, depth_out)
+
+    def submit(self, camera: Camera, worlds: np.ndarray) -> Future[tuple[np.ndarray, np.ndarray]]:
+        """Start rendering `camera` in `worlds` as they are now, on this object's render thread
+        (its own OpenGL context), and return at once; the future's result is (n, H, W, 3) uint8
+        and (n, H, W) float32 arrays of its own, as `render` fills. Jobs run in order."""
+        if self._background is None:
+            self._background = _RenderThread(self.model)
+        return self._background.submit(camera, len(worlds), self.poses(worlds))
+
+    def prepare(self, cameras: list[Camera]) -> None:
+        """Start the render thread and make its GL context, for the largest of `cameras`, now:
+        making a context holds Python's GIL for ~0.2 s (MuJoCo's MjrContext; measured on Mesa's
+        software rasterizer), which in a running control loop would be a stalled period."""
+        if not cameras:
+            return
+        if self._background is None:
+            self._background = _RenderThread(self.model)
+        self._background.prepare(max(c.width for c in cameras), max(c.height for c in cameras))
+
     def close(self) -> None:
+        """Free the renderers (after the render thread's pending jobs)."""
+        if self._background is not None:
+            self._background.close()
+            self._background = None
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
@@ -148,35 +195,6 @@ class HostSensors:
         d = self.batch.get_data(int(world), self._data)
         mujoco.mj_kinematics(self.model, d)
         return d
-
-    def render(self, camera: Camera, worlds: np.ndarray, rgb_out: np.ndarray, depth_out: np.ndarray) -> None:
-        """Render `camera` in each of `worlds` into rgb_out (n, H, W, 3) uint8 and depth_out (n, H, W) float32.
-
-        Images are top row first (ROS), depth in metres along the optical axis, +inf where
-        the ray met nothing before the far plane.
-        """
-        r = self._renderer
-        if r is None or r.width < camera.width or r.height < camera.height:
-            if r is not None:
-                r.close()
-            width = max(camera.width, r.width if r else 0)
-            height = max(camera.height, r.height if r else 0)
-            r = self._renderer = _Renderer(self.model, width, height)
-        r.gl.make_current()  # a context is current per thread: the caller's may have changed
-        m = self.model
-        viewport = mujoco.MjrRect(0, 0, camera.width, camera.height)
-        r.camera.fixedcamid = camera.id
-        # one world's pixels as OpenGL reads them, bottom row first
-        rgb = np.empty((camera.height, camera.width, 3), np.uint8)
-        depth = np.empty((camera.height, camera.width), np.float32)
-        for k, w in enumerate(worlds):
-            d = self._load(w)
-            mujoco.mj_camlight(m, d)
-            mujoco.mjv_updateScene(m, d, r.option, None, r.camera, mujoco.mjtCatBit.mjCAT_ALL.value, r.scene)
-            mujoco.mjr_render(viewport, r.scene, r.context)
-            mujoco.mjr_readPixels(rgb, depth, viewport, r.context)
-            rgb_out[k] = rgb[::-1]  # OpenGL's rows start at the bottom
-            r.depth_to_metres(depth[::-1], depth_out[k])
 
     def cast(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
         """(n, nray) float64 distances along `lidar`'s rays in each of `worlds`; -1 where a ray hit nothing."""
@@ -191,3 +209,81 @@ class HostSensors:
         ids = None if n == self.batch.nsim else np.asarray(worlds, np.int32)
         dist, _ = self.batch.ray(origin, vec, bodyexclude=lidar.body_id, ids=ids)
         return dist
+
+
+def _fitted(r: _Renderer | None, m: mujoco.MjModel, width: int, height: int) -> _Renderer:
+    """`r`, or a new renderer where `r` is None or its offscreen buffer is smaller than
+    `width` x `height`; current in the calling thread either way (a GL context is current per
+    thread)."""
+    if r is None or r.width < width or r.height < height:
+        if r is not None:
+            r.close()
+        return _Renderer(m, max(width, r.width if r else 0), max(height, r.height if r else 0))
+    r.gl.make_current()  # the caller's thread may have made another context current since
+    return r
+
+
+def _draw(
+    m: mujoco.MjModel,
+    r: _Renderer,
+    d: mujoco.MjData,
+    camera: Camera,
+    poses: dict[str, np.ndarray],
+    rgb_out: np.ndarray,
+    depth_out: np.ndarray,
+) -> None:
+    """Render `camera` in each world whose pose rows `poses` holds (HostSensors.poses), with the
+    scratch data `d`, into rgb_out (n, H, W, 3) uint8 and depth_out (n, H, W) float32."""
+    viewport = mujoco.MjrRect(0, 0, camera.width, camera.height)
+    r.camera.fixedcamid = camera.id
+    # one world's pixels as OpenGL reads them, bottom row first
+    rgb = np.empty((camera.height, camera.width, 3), np.uint8)
+    depth = np.empty((camera.height, camera.width), np.float32)
+    for k in range(len(rgb_out)):
+        for field, rows in poses.items():
+            getattr(d, field)[:] = rows[k]
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_camlight(m, d)
+        mujoco.mjv_updateScene(m, d, r.option, None, r.camera, mujoco.mjtCatBit.mjCAT_ALL.value, r.scene)
+        mujoco.mjr_render(viewport, r.scene, r.context)
+        mujoco.mjr_readPixels(rgb, depth, viewport, r.context)
+        rgb_out[k] = rgb[::-1]  # OpenGL's rows start at the bottom
+        r.depth_to_metres(depth[::-1], depth_out[k])
+
+
+class _RenderThread:
+    """One thread that renders snapshots of worlds in order, with a GL context of its own (made,
+    used and freed on that thread): MuJoCo's renderer releases the GIL, so the caller steps the
+    physics meanwhile on another core."""
+
+    def __init__(self, m: mujoco.MjModel):
+        self.model = m
+        self._data = mujoco.MjData(m)
+        self._renderer: _Renderer | None = None
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="batchsim-render")
+
+    def submit(self, camera: Camera, n: int, poses: dict[str, np.ndarray]) -> Future[tuple[np.ndarray, np.ndarray]]:
+        return self._pool.submit(self._render, camera, n, poses)
+
+    def prepare(self, width: int, height: int) -> None:
+        """Make the thread's renderer for images up to `width` x `height`; return when it is made."""
+        self._pool.submit(self._fit, width, height).result()
+
+    def close(self) -> None:
+        self._pool.submit(self._free).result()
+        self._pool.shutdown(wait=True)
+
+    def _fit(self, width: int, height: int) -> None:
+        self._renderer = _fitted(self._renderer, self.model, width, height)
+
+    def _render(self, camera: Camera, n: int, poses: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        rgb = np.empty((n, camera.height, camera.width, 3), np.uint8)
+        depth = np.empty((n, camera.height, camera.width), np.float32)
+        self._fit(camera.width, camera.height)
+        _draw(self.model, self._renderer, self._data, camera, poses, rgb, depth)
+        return rgb, depth
+
+    def _free(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

@@ -13,10 +13,20 @@ images (its worst period, not only its mean, stays in budget). Where one launch 
 every world at the same cost (warp: `BatchedSystem.sensors_batched`), all wanted worlds are
 produced together. Either way each world's sensor runs at its rate, rounded to a whole
 number of control periods when spread.
+
+Cameras are rendered with `render_async`: on cpu and mjx a render thread draws them while
+the loop steps the physics, so rendering and physics share two cores instead of queueing
+on one. A render is handed to the listeners once it is done, at the next update() or the
+one after (its stamp stays the sim time its state was taken at); at most MAX_PENDING
+renders wait at once, beyond which update() waits for the oldest, so no frame is dropped.
+One update() hands out at most one frame of a world per camera, as the synchronous order
+did (the bridge's shared memory holds one sample per world: a second in the same period
+would overwrite the first before a worker published it). `flush()` waits for them all.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -24,7 +34,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from batchsim.hardware import BatchedSystem
+    from batchsim.hardware import BatchedSystem, PendingFrames
+
+MAX_PENDING = 4  # renders in flight at once; one is a control period's share of a camera's worlds
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,7 +70,7 @@ class SensorSampler:
 
     Attributes:
       latest: the last Sample of each sensor.
-      produced: how many world-frames (or world-scans) each sensor has produced.
+      produced: how many world-frames (or world-scans) each sensor has handed out.
     """
 
     def __init__(self, sim: BatchedSystem, listeners: list[Callable[[Sample], None]] | None = None):
@@ -71,6 +83,8 @@ class SensorSampler:
         self._due = dict.fromkeys(self._period, 0.0)
         self._spread = not sim.sensors_batched
         self._world = np.arange(sim.nworld)
+        self._pending: collections.deque[tuple[float, PendingFrames]] = collections.deque()  # oldest first
+        sim.prepare_rendering()  # the render thread's GL context now, not in a control period
 
     def update(self, sim: BatchedSystem, time: float, period: float) -> None:
         suite = sim.sensors
@@ -91,14 +105,38 @@ class SensorSampler:
                 due = self._due[name] + every
                 self._due[name] = due if due > time else time + every
             self._produce(sim, name, np.flatnonzero(mask), time)
+        # renders done by now go out, oldest first, past MAX_PENDING the oldest is waited for;
+        # but a world's second frame of a camera waits for the next update
+        handed: dict[str, np.ndarray] = {}  # per camera, the worlds handed out in this update
+        while self._pending:
+            job = self._pending[0][1]
+            if not (job.done() or len(self._pending) > MAX_PENDING):
+                break
+            seen = handed.get(job.camera)
+            if seen is None:
+                seen = handed[job.camera] = np.zeros(len(self._world), bool)
+            elif seen[job.worlds].any():
+                break
+            seen[job.worlds] = True
+            self._deliver(*self._pending.popleft())
+
+    def flush(self) -> None:
+        """Wait for every render still in flight and hand it to the listeners."""
+        while self._pending:
+            self._deliver(*self._pending.popleft())
 
     def _produce(self, sim: BatchedSystem, name: str, worlds: np.ndarray, time: float) -> None:
         if name in sim.sensors.cameras:
-            rgb, depth = sim.render(name, worlds, copy=False)
-            sample = Sample(name, time, worlds, rgb=rgb, depth=depth)
+            self._pending.append((time, sim.render_async(name, worlds)))
         else:
-            sample = Sample(name, time, worlds, ranges=sim.scan(name, worlds))
-        self.produced[name] += len(worlds)
-        self.latest[name] = sample
+            self._hand_out(Sample(name, time, worlds, ranges=sim.scan(name, worlds, copy=False)))
+
+    def _deliver(self, time: float, job: PendingFrames) -> None:
+        rgb, depth = job.result()
+        self._hand_out(Sample(job.camera, time, job.worlds, rgb=rgb, depth=depth))
+
+    def _hand_out(self, sample: Sample) -> None:
+        self.produced[sample.name] += len(sample.worlds)
+        self.latest[sample.name] = sample
         for listener in self.listeners:
             listener(sample)
