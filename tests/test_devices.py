@@ -209,3 +209,24 @@ def test_a_waiting_side_polls_only_where_there_are_cores_to_spare(monkeypatch):
     sim.read()
     assert sim.time == pytest.approx(np.full(4, 15 * sim.dt))
     sim.shutdown()
+
+
+def test_mjx_shards_in_processes_run_the_fleet_of_one_device():
+    """mjx's shard processes on JAX's two CPU devices (conftest makes two): the same physics as
+    one device, to float32 rounding."""
+    fleets = [
+        batchsim.make("arm", 4, "mjx", devices=["cpu:0", "cpu:1"], processes=True),
+        batchsim.make("arm", 4, "mjx"),
+    ]
+    for sim in fleets:
+        sim.configure()
+        sim.activate()
+        sim.command[3, 1] = 0.3
+        for _ in range(5):
+            sim.write()
+            sim.step(10)
+        sim.read()
+    np.testing.assert_allclose(fleets[0].state, fleets[1].state, atol=1e-5)
+    assert np.abs(fleets[0].state[3] - fleets[0].state[0]).max() > 1e-3  # world 3 moved, on device 1
+    for sim in fleets:
+        sim.shutdown()
