@@ -38,8 +38,6 @@ from batchsim.hardware import BatchedSystem, Frames, LifecycleState
 from batchsim.memory import Layout, Memory
 from batchsim.model import RobotSpec
 
-log = logging.getLogger("batchsim")
-
 # what a shard serves besides write/step/read/reset: the lifecycle and the sensors
 CALLS = frozenset(
     {
@@ -60,9 +58,10 @@ START_TIMEOUT = 300.0  # s: a shard process importing its backend and building i
 POLL = 1.0  # s: how often a waiting fleet checks that its shard process is still alive
 # s: how long a waiting side (the fleet for a reply, a shard for its next request) polls
 # before it sleeps. A sleeping process wakes tens to hundreds of microseconds after its
-# message arrives (more in a virtual machine, whose idle cores halt); four such wake-ups per
-# period cost a 4-GPU fleet about 10 % of its steps. Polling keeps a core busy while it waits,
-# so it is done only where there are cores to spare (spin_budget).
+# message arrives (more in a virtual machine, whose idle cores halt); with four such wake-ups
+# per period, polling gave 2 and 4 H200s 6 % and 3 % more steps/s (benchmarks/RESULTS.md, GPU
+# session 4). It keeps a core busy while it waits, so it is done only where there are cores
+# to spare (spin_budget).
 SPIN = 0.05
 
 
