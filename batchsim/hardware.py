@@ -624,9 +624,7 @@ class BatchedSystem(SystemInterface):
             return Frames(*self._device_frames(cam))
         rows = self._worlds(worlds)
         sel = np.arange(self.nworld) if rows is None else rows
-        rgb, depth = self._render_frames(cam, sel)
-        if copy:
-            rgb, depth = rgb.copy(), depth.copy()
+        rgb, depth = self._render_frames(cam, sel, copy)
         self.sensors.add_noise(cam.name, depth, sel)
         return Frames(rgb, depth)
 
@@ -688,13 +686,15 @@ class BatchedSystem(SystemInterface):
         return self._cast_ranges(ld, worlds, copy)
 
     # sensor hooks, one set per backend
-    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds` (may be views)."""
+    def _render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds`: with `copy`
+        arrays of the caller's own (rendered into, not copied: a frame's bytes are written once),
+        else possibly buffers the next render overwrites."""
         raise NotImplementedError(f"the {self.name} backend cannot render cameras")
 
     def _device_frames(self, camera: Camera) -> tuple[Any, Any]:
         """The backend's own (nworld, H, W, 3) uint8 and (nworld, H, W) float32 arrays of `camera`."""
-        return self._render_frames(camera, np.arange(self.nworld))
+        return self._render_frames(camera, np.arange(self.nworld), False)
 
     def _prepare_rendering(self, cameras: list[Camera]) -> None:
         """Make ready what `_render_frames_later` needs for `cameras` (nothing by default)."""
@@ -703,8 +703,7 @@ class BatchedSystem(SystemInterface):
         """A future of host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds`
         at the current state, arrays of the caller's own; by default rendered now."""
         future: Future = Future()
-        rgb, depth = self._render_frames(camera, worlds)
-        future.set_result((rgb.copy(), depth.copy()))
+        future.set_result(self._render_frames(camera, worlds, True))
         return future
 
     def _cast_ranges(self, lidar: Lidar, worlds: np.ndarray, copy: bool) -> np.ndarray:

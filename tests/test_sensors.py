@@ -622,3 +622,28 @@ def test_sensor_config_from_flags():
     assert (config.camera_rate, config.camera_resolution, config.seed) == (30.0, (64, 48), 3)
     with pytest.raises(SensorConfigError, match="--camera-resolution"):
         SensorConfig.from_flags(None, camera_resolution="64")
+
+
+def test_host_site_poses_are_each_worlds_kinematics_at_its_current_state():
+    """HostSensors.site_poses (threaded, for cpu and mjx lidars) gives what mj_kinematics gives per
+    world, bit for bit, at the state rows as they are now (not the last step's kinematics)."""
+    import mujoco
+    from mujoco import batch as mjbatch
+
+    from batchsim.sensors.host import HostSensors
+
+    sim = batchsim.make(str(SCENE), 1, "cpu")  # the scene's <lidar> elements: not plain MJCF
+    m = sim.model
+    sim.shutdown()
+    batch = mjbatch.Batch(m, 5, nthread=2)
+    batch.bind("qpos")[:] = np.random.default_rng(3).uniform(-0.5, 0.5, (5, m.nq))
+    sensors = HostSensors(m, batch)
+    d = mujoco.MjData(m)
+    for worlds in (np.arange(5), np.array([4, 1])):
+        for site in range(m.nsite):
+            xpos, xmat = sensors.site_poses(site, worlds)
+            for k, w in enumerate(worlds):
+                batch.get_data(int(w), d)
+                mujoco.mj_kinematics(m, d)
+                assert np.array_equal(xpos[k], d.site_xpos[site]) and np.array_equal(xmat[k], d.site_xmat[site].reshape(3, 3))
+    sensors.close()

@@ -159,8 +159,8 @@ class CpuSystem(BatchedSystem):
             self._host = HostSensors(self.model, self._batch)
         return self._host
 
-    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return self._host_sensors().frames(camera, worlds)
+    def _render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
+        return self._host_sensors().frames(camera, worlds, copy)
 
     def _prepare_rendering(self, cameras: list[Camera]) -> None:
         self._host_sensors().prepare(cameras)

@@ -357,12 +357,12 @@ class MjxSystem(DeviceSystem):
             batch.bind(field)[:] = value
         return self._host
 
-    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return self._host_copy().frames(camera, worlds)
+    def _render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
+        return self._host_copy().frames(camera, worlds, copy)
 
     def _device_frames(self, camera: Camera) -> tuple[jax.Array, jax.Array]:
         """Every world's images, rendered on the host and put on this system's device."""
-        rgb, depth = self._render_frames(camera, np.arange(self.nworld))
+        rgb, depth = self._render_frames(camera, np.arange(self.nworld), False)
         return jax.device_put(rgb, self.device), jax.device_put(depth, self.device)
 
     def _prepare_rendering(self, cameras: list[Camera]) -> None:

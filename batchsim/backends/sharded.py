@@ -268,7 +268,8 @@ class ShardedSystem(BatchedSystem):
         quiet = dataclasses.replace(self._sensor_config, noise={})  # the fleet adds the noise
         self._each("set_sensor_config", quiet, parallel=self.processes)
 
-    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
+        # the shards' parts concatenated: arrays of the caller's own whatever `copy` says
         parts = self._run(
             [(s, "render", (camera.name, local)) for s, local in self._split(worlds)], self.processes
         )

@@ -822,7 +822,7 @@ class WarpSystem(DeviceSystem):
             self._run_sensor(f"camera {camera.name}", program)
         return rgb, depth
 
-    def _render_frames(self, camera: Camera, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
         rgb, depth = self._device_frames(camera)
         host_rgb, host_depth = self._render_contexts[camera.name][3:]
         with wp.ScopedDevice(self.device):
@@ -833,9 +833,9 @@ class WarpSystem(DeviceSystem):
                 host_rgb, host_depth = rgb, depth
             wp.synchronize_device(self.device)
         rgb_np, depth_np = host_rgb.numpy(), host_depth.numpy()
-        if len(worlds) == self.nworld:  # every world: the buffers themselves (render() copies unless told not to)
-            return rgb_np, depth_np
-        return rgb_np[worlds], depth_np[worlds]
+        if len(worlds) == self.nworld:  # every world: the buffers themselves, or one copy of them
+            return (rgb_np.copy(), depth_np.copy()) if copy else (rgb_np, depth_np)
+        return rgb_np[worlds], depth_np[worlds]  # fancy indexing: a copy
 
     def _device_ranges(self, lidar: Lidar) -> wp.array:
         """Every world's (nworld, nray) float32 REP 117 ranges on the device, overwritten by the next
