@@ -84,8 +84,8 @@ def main() -> None:
     from sensor_msgs.msg import JointState
 
     from batchsim.controllers.topics import MessageKind, Output
-    from ros_bridge.messages import BulkMessages, new_message
     from ros_bridge.plan import Field, OutputSpec
+    from ros_bridge.worker.messages import BulkMessages, new_message
 
     n = args.topics
     context = Context()

@@ -31,7 +31,7 @@ from rclpy.serialization import serialize_message  # noqa: E402
 from sensor_msgs.msg import Image, LaserScan  # noqa: E402
 
 import batchsim  # noqa: E402
-from ros_bridge.sensor_messages import image_framing, laser_scan_framing  # noqa: E402
+from ros_bridge.worker.sensor_messages import image_framing, laser_scan_framing  # noqa: E402
 
 
 def per_second(body: Callable[[], None], seconds: float = 0.6, rounds: int = 5) -> float:

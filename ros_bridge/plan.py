@@ -8,7 +8,7 @@ arrays the physics process copies into shared memory at publish periods, when so
 worker has a subscriber for an output that reads them.
 
 Adding a message kind to the bridge (a sensor's Image, LaserScan, ...): give it a row in
-ros_bridge/messages.py's FIELD_PATHS (which message fields each named field fills) and
+ros_bridge/worker/messages.py's FIELD_PATHS (which message fields each named field fills) and
 add an output here whose channel the physics process fills.
 """
 
@@ -50,7 +50,7 @@ class OutputSpec:
     Attributes:
       topic: under the world's namespace.
       msg_type: "sensor_msgs/msg/JointState", ...
-      fields: what fills the message (ros_bridge/messages.py maps names onto message fields).
+      fields: what fills the message (ros_bridge/worker/messages.py maps names onto message fields).
       names: JointState.name.
       frame_id, child_frame_id: "{ns}" is replaced by the world's namespace.
       covariance: (part, values) constants.

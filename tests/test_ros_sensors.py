@@ -290,7 +290,7 @@ def test_camera_blocks_take_memory_only_where_written(shared):
 def test_framing_deserializes_to_the_messages():
     from batchsim.sensors.camera import Camera
     from batchsim.sensors.camera import CameraInfo as Info
-    from ros_bridge.sensor_messages import (
+    from ros_bridge.worker.sensor_messages import (
         camera_info_framing,
         image_framing,
         laser_scan_framing,

@@ -63,7 +63,7 @@ def test_messages_round_trip_through_rows():
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     from batchsim.controllers import Input, Output
-    from ros_bridge.messages import fill_message, new_message, parse_row, parse_trajectory
+    from ros_bridge.worker.messages import fill_message, new_message, parse_row, parse_trajectory
 
     out = Output("odom", MessageKind.ODOMETRY, dict, frame_id="{ns}/odom", child_frame_id="{ns}/base")
     built = new_message(out, "world_3")

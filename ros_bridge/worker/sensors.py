@@ -7,7 +7,7 @@ each topic in the graph, and a topic of ours that someone subscribes to gets its
 (lazy publishing): the topics with a subscriber become want bits in shared memory, which
 the physics side turns into rendering and scanning for those worlds only. It calls
 `publish()` on every tick: each world's sample that is new since the last tick (its seq
-moved) is published once, as CDR bytes built in bulk (ros_bridge/sensor_messages.py),
+moved) is published once, as CDR bytes built in bulk (ros_bridge/worker/sensor_messages.py),
 stamped with the sim time of the sample.
 """
 
@@ -21,15 +21,15 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2
 
-from ros_bridge.messages import stamp_of
-from ros_bridge.sensor_messages import (
+from ros_bridge.sensor_topics import WANT_DEPTH, WANT_INFO, WANT_RGB, SensorBlock, SensorPlan
+from ros_bridge.worker.messages import stamp_of
+from ros_bridge.worker.sensor_messages import (
     Framing,
     camera_info_framing,
     image_framing,
     laser_scan_framing,
     point_cloud_framing,
 )
-from ros_bridge.sensor_topics import WANT_DEPTH, WANT_INFO, WANT_RGB, SensorBlock, SensorPlan
 
 
 def under(namespaces: Sequence[str], name: str) -> list[str]:

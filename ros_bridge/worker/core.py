@@ -1,6 +1,6 @@
 """A bridge worker: one rclpy context and node serving a contiguous range of worlds.
 
-    python -m ros_bridge.worker INDEX WAKE_FD STATUS_FD NOTIFY_FD [--check]   (started by host.py)
+    python -m ros_bridge.worker ...   (ros_bridge/worker/process.py, started by host.py)
 
 or, with `--bridge-workers 0`, the same `Worker` inside the physics process. It reads its
 plan (ros_bridge/plan.py) once, attaches the shared memory, and then:
@@ -8,7 +8,7 @@ plan (ros_bridge/plan.py) once, attaches the shared memory, and then:
 - per control period, woken by the loop (a byte on WAKE_FD, or a direct `tick()` in the
   physics process): copies its worlds' rows of the newest snapshot (seqlocked, so never a
   torn row), and publishes what is due to the worlds that have subscribers, built in bulk
-  (ros_bridge/messages.py); `/clock` from worker 0;
+  (ros_bridge/worker/messages.py); `/clock` from worker 0;
 - on its executor thread (rclpy's EventsExecutor: per message, not per entity): checks
   each command and writes it into its world's slots in shared memory; trajectories are
   batched and handed over through its ring; rejections are counted per world, logged at
@@ -25,13 +25,9 @@ sends SIGTERM through PR_SET_PDEATHSIG) or sends `q`.
 
 from __future__ import annotations
 
-import ctypes
 import os
-import pickle
 import re
 import select
-import signal
-import sys
 import threading
 import time as wallclock
 from collections.abc import Callable
@@ -39,7 +35,6 @@ from typing import Any
 
 import numpy as np
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, ShutdownException
 from rclpy.experimental import EventsExecutor
@@ -48,13 +43,17 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
-from std_srvs.srv import SetBool, Trigger
 
 from batchsim.controllers.topics import MessageKind, trajectory_batch
-from batchsim.hardware import Status
 from batchsim.memory import Memory, Ring
-from ros_bridge.commands import Problem, RejectionWriter, SlotWriter, check_single, check_vector
-from ros_bridge.messages import (
+from ros_bridge.commands import Problem, SlotWriter, check_single, check_vector
+from ros_bridge.options import Reliability
+from ros_bridge.plan import FLAG_FROZEN, FleetPlan, OutputSpec
+from ros_bridge.requests import Kind, encode_trajectories
+from ros_bridge.throttle import LogThrottle
+from ros_bridge.worker.conflicts import check_conflicts
+from ros_bridge.worker.diagnostics import Diagnostics
+from ros_bridge.worker.messages import (
     MESSAGE_TYPES,
     BulkMessages,
     clock_payload,
@@ -63,16 +62,12 @@ from ros_bridge.messages import (
     parse_trajectory,
     stamp_of,
 )
-from ros_bridge.options import Reliability
-from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, FleetPlan, OutputSpec
-from ros_bridge.requests import Kind, encode_reset, encode_ticket, encode_trajectories
-from ros_bridge.sensor_worker import SensorPublishers
-from ros_bridge.throttle import LogThrottle
+from ros_bridge.worker.sensors import SensorPublishers
+from ros_bridge.worker.services import LoopRequests, create_loop_services
 
 SUBSCRIBER_REFRESH = 0.5  # s: subscriber counts re-read (lazy publishing)
 GRAPH_SCAN = 1.0  # s: topics created on request, commands to unknown actuators
 DIAGNOSTICS_PERIOD = 0.5  # s
-SERVICE_WAIT = 2.0  # s a service waits for the loop to carry out its request
 FLUSH_AFTER = 0.001  # s: trajectories reach the loop this long after they arrive, at most
 _ACTUATOR_TOPIC = re.compile(r"^/(.+)/actuators/([^/]+)/command$")
 
@@ -164,11 +159,9 @@ class Worker:
         )
         self.snapshot = Snapshot()
         self.commands = SlotWriter(memory, "cmd")
-        self.rejections = RejectionWriter(memory, "rej")
-        self.host_rejections = RejectionWriter(memory, "hrej")
         self.ring = Ring(memory, f"ring{index}")
         self._ring_lock = threading.Lock()
-        self._service_cond = threading.Condition()
+        self.requests = LoopRequests(memory, index, self.ring, self._ring_lock, self._nudge)
         self._pending: dict[int, list] = {}  # trajectory input -> [(world, parsed...)]
         self._pending_since = 0.0
         self._pending_lock = threading.Lock()
@@ -181,74 +174,24 @@ class Worker:
         self._thread: threading.Thread | None = None
         self._due = {"refresh": 0.0, "scan": 0.0, "diag": 0.0}
         self._clock_pub: Any = None
-        self._diag_pub: Any = None
         self._last_clock = (-1, -1)
         self._clock_subscribers = 0
         self._last_done = -1
-        # per world (row): rejections per (topic, reason), for /diagnostics
-        self._rejected: list[dict[tuple[str, str], int]] = [{} for _ in self.namespaces]
-        self._rejected_lock = threading.Lock()
-        self._host_seen = self.host_rejections.count[self.lo : self.hi].copy()
+        self.diagnostics: Diagnostics | None = None
         self.published = 0  # messages published, for benchmarks
-        self.sensors: SensorPublishers | None = None  # cameras and lidars (ros_bridge/sensor_worker.py)
+        self.sensors: SensorPublishers | None = None  # cameras and lidars (ros_bridge/worker/sensors.py)
 
     # --- start ---
     def check_conflicts(self) -> tuple[str, str] | None:
-        """Watch the graph for `plan.startup_check` s: another process that serves one of
-        these namespaces, or a /clock publisher when this process would publish one too.
-        Returns (kind, message) with kind "namespace" or "clock", or None."""
-        plan = self.plan
-        if os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").upper() in ("LOCALHOST", "OFF"):
-            return None  # no other host can join: the host's registry (registry.py) has seen every fleet
-        mine = {f"/{ns}/reset" for ns in plan.namespaces}
-        own = plan.node_names[self.index]
-        deadline = wallclock.monotonic() + plan.startup_check
-        extended = False
-        while True:
-            unresolved = False
-            names = self.node.get_node_names_and_namespaces()
-            seen_own = False
-            for name, ns in names:
-                if not name.startswith("batchsim"):
-                    continue
-                if name == own and ns == "/" and not seen_own:
-                    seen_own = True  # this node; another of the same name is another process's
-                    continue
-                services = [s for s, _ in self.node.get_service_names_and_types_by_node(name, ns)]
-                if not any(s.endswith("/reset") for s in services):
-                    unresolved = True  # the node is known, its worlds' services not yet
-                    continue
-                clash = sorted(s for s in services if s in mine)
-                if clash:
-                    where = clash[0].rsplit("/", 1)[0]
-                    more = f" and {len(clash) - 1} more" if len(clash) > 1 else ""
-                    return (
-                        "namespace",
-                        f"another batchsim process already serves {where}{more} (node {_full(ns, name)}): "
-                        "give this one other worlds (a world offset or another namespace template) or another "
-                        "ROS domain (a process killed outright stays in the ROS graph for up to 20 s)",
-                    )
-            if plan.clock:
-                for info in self.node.get_publishers_info_by_topic("/clock"):
-                    return (
-                        "clock",
-                        f"another process already publishes /clock (node {_full(info.node_namespace, info.node_name)}): "
-                        "only one process of a fleet may",
-                    )
-            now = wallclock.monotonic()
-            if now >= deadline:
-                if unresolved and not extended:
-                    deadline, extended = now + 4.0, True
-                    continue
-                return None
-            wallclock.sleep(0.1)
+        """Another process serving these worlds or /clock (ros_bridge/worker/conflicts.py)."""
+        return check_conflicts(self.node, self.plan, self.index)
 
     def build(self) -> None:
         """Create what every world has from the start; the rest is created on request."""
         plan, node, qos = self.plan, self.node, self.qos
         if plan.clock and self.index == 0:
             self._clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
-        self._diag_pub = node.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
+        self.diagnostics = Diagnostics(node, self.memory, self.lo, self.hi, self.namespaces)
         self._on_request: dict[str, tuple[_Output, int]] = {}
         for spec in plan.outputs:
             out = _Output(spec, self.namespaces)
@@ -291,12 +234,7 @@ class Worker:
             self.sensors = SensorPublishers(
                 node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, all_topics=plan.all_topics
             )
-        for row, ns in enumerate(self.namespaces):
-            node.create_service(Trigger, f"/{ns}/reset", self._reset_service([self.lo + row], f"/{ns}"))
-        if self.index == 0:
-            node.create_service(Trigger, "/batchsim/reset", self._reset_service(None, "all worlds"))
-            node.create_service(SetBool, "/batchsim/pause", self._pause_service)
-            node.create_service(Trigger, "/batchsim/step", self._step_service)
+        create_loop_services(node, self.requests, self.namespaces, self.lo, fleet=self.index == 0)
 
     def start(self) -> None:
         """Spin the executor on its own thread."""
@@ -309,6 +247,7 @@ class Worker:
     def close(self) -> None:
         """Stop spinning and leave the ROS graph. Safe to call twice."""
         running, self._running = self._running, False
+        self.requests.running = False
         if running and self._thread is not None:
             self._thread.join(timeout=2.0)
         try:
@@ -339,8 +278,7 @@ class Worker:
         done = int(self._svc_done[self.index])
         if done != self._last_done:
             self._last_done = done
-            with self._service_cond:
-                self._service_cond.notify_all()
+            self.requests.notify()
         now = wallclock.monotonic()
         due = self._due
         if now >= due["refresh"]:
@@ -351,7 +289,7 @@ class Worker:
             self._scan_graph()
         if now >= due["diag"] and self.snapshot.n >= 0:
             due["diag"] = now + DIAGNOSTICS_PERIOD
-            self._publish_diagnostics()
+            self.diagnostics.publish(self.snapshot)
             self.throttle.flush()
 
     def _read_snapshot(self) -> Snapshot | None:
@@ -469,61 +407,6 @@ class Worker:
                         f"no actuator named {match.group(2)!r} in this model (actuators: {self._actuator_list})",
                     )
 
-    def _publish_diagnostics(self) -> None:
-        if self._diag_pub.get_subscription_count() == 0:
-            return
-        snap = self.snapshot
-        out = DiagnosticArray()
-        sec, nanosec = stamp_of(snap.time)
-        out.header.stamp.sec, out.header.stamp.nanosec = sec, nanosec
-        mine, host = self.rejections, self.host_rejections
-        # what the controllers refused in the loop since the last round, on its last topic
-        host_counts = host.count[self.lo : self.hi].copy()
-        for row in np.flatnonzero(host_counts != self._host_seen).tolist():
-            topic = host.reason(self.lo + row).partition(": ")[0]
-            self._count_rejection(row, topic, Problem.INVALID, int(host_counts[row] - self._host_seen[row]))
-        self._host_seen = host_counts
-        with self._rejected_lock:
-            rejected = [sorted(c.items()) for c in self._rejected]
-        for row, ns in enumerate(self.namespaces):
-            w = self.lo + row
-            bits = int(snap.status[row])
-            flags = int(snap.flags[row])
-            problems = [s.name.lower() for s in Status if s and bits & s]
-            if flags & FLAG_TIMED_OUT:
-                problems.append("command_timeout")
-            level = DiagnosticStatus.OK
-            if bits & (Status.DIVERGED | Status.OVERFLOW):
-                level = DiagnosticStatus.ERROR
-            elif problems:
-                level = DiagnosticStatus.WARN
-            count = int(mine.count[w]) + int(host.count[w])
-            last = ""
-            if count:
-                last = host.reason(w) if host.period[w] > mine.period[w] else mine.reason(w)
-            message = "ok" if not problems else ", ".join(problems)
-            if flags & FLAG_FROZEN:
-                message += " (frozen until reset: its state topics stopped)"
-            if flags & FLAG_BAD and last:
-                message += f" ({last})"
-            out.status.append(
-                DiagnosticStatus(
-                    level=level,
-                    name=f"batchsim: {ns}",
-                    message=message,
-                    hardware_id=ns,
-                    values=[
-                        KeyValue(key="status", value=str(bits)),
-                        KeyValue(key="frozen", value=str(bool(flags & FLAG_FROZEN)).lower()),
-                        KeyValue(key="bad_commands", value=str(count)),
-                        KeyValue(key="command_timeout", value=str(bool(flags & FLAG_TIMED_OUT)).lower()),
-                        KeyValue(key="last_problem", value=last),
-                    ]
-                    + [KeyValue(key=f"rejected {topic} {reason}", value=str(n)) for (topic, reason), n in rejected[row]],
-                )
-            )
-        self._diag_pub.publish(out)
-
     # --- the executor thread ---
     def _spin(self) -> None:
         while self._running:
@@ -550,14 +433,8 @@ class Worker:
                 pass  # the pipe is full: the loop has been told already
 
     def _reject(self, world: int, topic: str, problem: Problem, reason: str) -> None:
-        self.rejections.put(world, self.snapshot.period, f"{topic}: {reason}")
-        self._count_rejection(world - self.lo, topic, problem, 1)
+        self.diagnostics.reject(world, self.snapshot.period, topic, problem, reason)
         self.throttle.warn((topic, problem), f"rejected command on {topic}: {reason}")
-
-    def _count_rejection(self, row: int, topic: str, problem: Problem, count: int) -> None:
-        with self._rejected_lock:
-            counts = self._rejected[row]
-            counts[topic, problem.value] = counts.get((topic, problem.value), 0) + count
 
     def _vector_callback(self, w: int, topic: str, interfaces: list[str], owners: list[str]) -> Callable[[Any], None]:
         def callback(msg: Float64MultiArray) -> None:
@@ -635,128 +512,3 @@ class Worker:
                 continue
             np.add.at(self.memory[f"{spec.slots}.seq"], batch.worlds, 1)
         self._nudge()
-
-    # --- services (executor thread; each waits for the loop) ---
-    def _request(self, kind: Kind, encode: Callable[[int], bytes]) -> int | None:
-        issued = self.memory["svc.issued"]
-        with self._ring_lock:
-            ticket = int(issued[self.index]) + 1
-            if not self.ring.put(kind, encode(ticket)):
-                return None
-            issued[self.index] = ticket
-        self._nudge()
-        return ticket
-
-    def _wait(self, ticket: int | None) -> bool:
-        if ticket is None:
-            return False
-        done = self.memory["svc.done"]
-        deadline = wallclock.monotonic() + SERVICE_WAIT
-        with self._service_cond:
-            while int(done[self.index]) < ticket:
-                left = deadline - wallclock.monotonic()
-                if left <= 0 or not self._running:
-                    return False
-                self._service_cond.wait(min(left, 0.05))
-        return True
-
-    def _reset_service(self, worlds: list[int] | None, target: str) -> Callable[[Any, Any], Any]:
-        def reset(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-            done = self._wait(self._request(Kind.RESET, lambda t: encode_reset(t, worlds)))
-            response.success = True
-            response.message = f"reset {target}" if done else f"reset of {target} queued (the loop is busy)"
-            return response
-
-        return reset
-
-    def _pause_service(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
-        done = self._wait(self._request(Kind.PAUSE, lambda t: encode_ticket(t, int(bool(request.data)))))
-        response.success = done
-        response.message = ("paused" if request.data else "running") if done else "the loop did not answer in time"
-        return response
-
-    def _step_service(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        done = self._wait(self._request(Kind.STEP, lambda t: encode_ticket(t)))
-        ok = done and bool(self.memory["svc.ok"][self.index])
-        response.success = ok
-        if not done:
-            response.message = "the loop did not step in time"
-        elif not ok:
-            response.message = "not paused: /batchsim/step advances one control period while paused"
-        else:
-            response.message = f"stepped to sim time {float(self.memory['svc.time'][self.index]):.6f} s"
-        return response
-
-
-def _full(namespace: str, name: str) -> str:
-    return f"{namespace.rstrip('/')}/{name}"
-
-
-def _die_with_parent() -> None:
-    """SIGTERM when the physics process dies, however it dies (Linux)."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-
-
-def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    index, wake_fd, status_fd, notify_fd = (int(a) for a in argv[:4])
-    check = "--check" in argv
-    parent = os.getppid()
-    _die_with_parent()
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the physics process, which stops us
-
-    def on_term(signum: int, frame: Any) -> None:
-        raise SystemExit(0)
-
-    signal.signal(signal.SIGTERM, on_term)
-    if os.getppid() != parent:
-        return 0
-    status = os.fdopen(status_fd, "w", buffering=1)
-    try:
-        plan: FleetPlan = pickle.load(sys.stdin.buffer)
-    except (EOFError, pickle.UnpicklingError):
-        return 0  # the physics process stopped (Ctrl-C) before it handed the whole plan over
-    memory: Memory | None = None
-    worker = None
-    ready = False
-    try:
-        memory = Memory.attach(plan.layout, plan.memory_name)
-        os.set_blocking(notify_fd, False)
-        worker = Worker(plan, index, memory, notify_fd=notify_fd if plan.lockstep else None)
-        conflict = worker.check_conflicts() if check else None
-        if conflict is not None:
-            status.write(f"conflict {conflict[0]} {conflict[1]}\n")
-            return 0
-        worker.build()
-        worker.start()
-        status.write("ready\n")
-        ready = True
-        worker.serve(wake_fd)
-        return 0
-    except SystemExit:
-        return 0
-    except BaseException as e:
-        if os.getppid() != parent:
-            return 0  # the physics process went (and took the shared memory): nothing to say
-        if not ready:
-            try:
-                status.write(f"error {type(e).__name__}: {e}\n")
-            except OSError:
-                pass
-        raise
-    finally:
-        if worker is not None:
-            worker.close()
-        if memory is not None:
-            memory.close()
-
-
-if __name__ == "__main__":
-    code = main()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(code)  # all is closed: skip the interpreter's teardown of rclpy and DDS (tenths of a second)

@@ -1,0 +1,104 @@
+"""A worker's bookkeeping of rejected commands, and its worlds' /diagnostics.
+
+Every rejection is written to shared memory (count, period and last reason per world, for
+the physics process's status line) and counted per world, topic and reason here; the
+controllers' own rejections in the loop arrive through the `hrej` block. /diagnostics
+(diagnostic_msgs/DiagnosticArray) carries one status per world: its status bits, whether
+it is frozen or its commands timed out, and its rejection counts.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+
+from batchsim.hardware import Status
+from batchsim.memory import Memory
+from ros_bridge.commands import Problem, RejectionWriter
+from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT
+from ros_bridge.worker.messages import stamp_of
+
+
+class Diagnostics:
+    """Rejections and /diagnostics for worlds [lo, hi) named `namespaces`."""
+
+    def __init__(self, node: Node, memory: Memory, lo: int, hi: int, namespaces: list[str]):
+        self.lo, self.hi = lo, hi
+        self.namespaces = namespaces
+        self.rejections = RejectionWriter(memory, "rej")
+        self.host_rejections = RejectionWriter(memory, "hrej")
+        # per world (row): rejections per (topic, reason)
+        self._rejected: list[dict[tuple[str, str], int]] = [{} for _ in namespaces]
+        self._lock = threading.Lock()
+        self._host_seen = self.host_rejections.count[lo:hi].copy()
+        self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
+
+    def reject(self, world: int, period: int, topic: str, problem: Problem, reason: str) -> None:
+        """One command for `world` on `topic` was refused."""
+        self.rejections.put(world, period, f"{topic}: {reason}")
+        self.count(world - self.lo, topic, problem, 1)
+
+    def count(self, row: int, topic: str, problem: Problem, count: int) -> None:
+        with self._lock:
+            counts = self._rejected[row]
+            counts[topic, problem.value] = counts.get((topic, problem.value), 0) + count
+
+    def publish(self, snap) -> None:
+        """One DiagnosticArray for this worker's worlds, from snapshot `snap`, if someone listens."""
+        if self._pub.get_subscription_count() == 0:
+            return
+        out = DiagnosticArray()
+        sec, nanosec = stamp_of(snap.time)
+        out.header.stamp.sec, out.header.stamp.nanosec = sec, nanosec
+        mine, host = self.rejections, self.host_rejections
+        # what the controllers refused in the loop since the last round, on its last topic
+        host_counts = host.count[self.lo : self.hi].copy()
+        for row in np.flatnonzero(host_counts != self._host_seen).tolist():
+            topic = host.reason(self.lo + row).partition(": ")[0]
+            self.count(row, topic, Problem.INVALID, int(host_counts[row] - self._host_seen[row]))
+        self._host_seen = host_counts
+        with self._lock:
+            rejected = [sorted(c.items()) for c in self._rejected]
+        for row, ns in enumerate(self.namespaces):
+            w = self.lo + row
+            bits = int(snap.status[row])
+            flags = int(snap.flags[row])
+            problems = [s.name.lower() for s in Status if s and bits & s]
+            if flags & FLAG_TIMED_OUT:
+                problems.append("command_timeout")
+            level = DiagnosticStatus.OK
+            if bits & (Status.DIVERGED | Status.OVERFLOW):
+                level = DiagnosticStatus.ERROR
+            elif problems:
+                level = DiagnosticStatus.WARN
+            count = int(mine.count[w]) + int(host.count[w])
+            last = ""
+            if count:
+                last = host.reason(w) if host.period[w] > mine.period[w] else mine.reason(w)
+            message = "ok" if not problems else ", ".join(problems)
+            if flags & FLAG_FROZEN:
+                message += " (frozen until reset: its state topics stopped)"
+            if flags & FLAG_BAD and last:
+                message += f" ({last})"
+            out.status.append(
+                DiagnosticStatus(
+                    level=level,
+                    name=f"batchsim: {ns}",
+                    message=message,
+                    hardware_id=ns,
+                    values=[
+                        KeyValue(key="status", value=str(bits)),
+                        KeyValue(key="frozen", value=str(bool(flags & FLAG_FROZEN)).lower()),
+                        KeyValue(key="bad_commands", value=str(count)),
+                        KeyValue(key="command_timeout", value=str(bool(flags & FLAG_TIMED_OUT)).lower()),
+                        KeyValue(key="last_problem", value=last),
+                    ]
+                    + [KeyValue(key=f"rejected {topic} {reason}", value=str(n)) for (topic, reason), n in rejected[row]],
+                )
+            )
+        self._pub.publish(out)
+
