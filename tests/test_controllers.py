@@ -294,16 +294,6 @@ BAD = {
         ),
         ["controller 't'", "state_interfaces", "'joint1/acceleration'"],
     ),
-    "two controllers claim one interface": (
-        arm_yaml(
-            "a:\n  type: position_controllers/JointGroupPositionController\n"
-            "b:\n  type: joint_trajectory_controller/JointTrajectoryController\n",
-            "a:\n  ros__parameters:\n    joints: [joint1, joint2]\n"
-            "b:\n  ros__parameters:\n    joints: [joint2, joint3]\n    command_interfaces: [position]\n"
-            "    state_interfaces: [position]\n",
-        ),
-        ["controller 'b'", "'joint2/position'", "already claimed by controller 'a'"],
-    ),
     "missing required parameter": (
         arm_yaml("c:\n  type: position_controllers/JointGroupPositionController\n"),
         ["controller 'c'", "joints: missing"],
@@ -333,6 +323,25 @@ def test_bad_configuration_is_one_line_naming_controller_and_key(case, tmp_path)
     assert message.startswith(str(path))
     for part in expected:
         assert part in message, (part, message)
+
+
+def test_two_controllers_claiming_one_interface_load_and_the_second_starts_inactive(tmp_path):
+    # was a ConfigurationError; ros2_control loads both and activates one
+    path = tmp_path / "controllers.yaml"
+    path.write_text(
+        arm_yaml(
+            "a:\n  type: position_controllers/JointGroupPositionController\n"
+            "b:\n  type: joint_trajectory_controller/JointTrajectoryController\n",
+            "a:\n  ros__parameters:\n    joints: [joint1, joint2]\n"
+            "b:\n  ros__parameters:\n    joints: [joint2, joint3]\n    command_interfaces: [position]\n"
+            "    state_interfaces: [position]\n",
+        )
+    )
+    manager = load_controllers(str(path), batchsim.load("arm"), 2)
+    assert manager.active("a").all() and not manager.active("b").any()
+    [line] = [w for w in manager.warnings if "starts inactive" in w]
+    for part in ("controller 'b'", "'joint2/position'", "claimed by 'a'", "switch_controller"):
+        assert part in line, (part, line)
 
 
 def test_cli_reports_bad_configuration_before_starting(tmp_path, capsys):

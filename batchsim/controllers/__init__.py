@@ -10,7 +10,7 @@ bound in ros_bridge/controllers.py.
 
 from __future__ import annotations
 
-from batchsim.controllers.base import Controller, ControllerManager, Params
+from batchsim.controllers.base import Controller, Params
 from batchsim.controllers.broadcasters import (
     ForceTorqueSensorBroadcaster,
     IMUSensorBroadcaster,
@@ -36,13 +36,22 @@ from batchsim.controllers.gripper import (
     GripperActionController,
     ParallelGripperActionController,
 )
-from batchsim.controllers.joint_trajectory import JointTrajectoryController
+from batchsim.controllers.manager import (
+    ControllerInfo,
+    ControllerManager,
+    HardwareInterfaces,
+    InterfaceInfo,
+    Strictness,
+    SwitchResult,
+)
 from batchsim.controllers.pose_broadcaster import PoseBroadcaster
 from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch
+from batchsim.controllers.trajectory import JointTrajectoryController
 
 __all__ = [
     "CONTROLLER_TYPES",
     "Controller",
+    "ControllerInfo",
     "ControllerManager",
     "ControllerTopics",
     "DiffDriveController",
@@ -50,8 +59,10 @@ __all__ = [
     "ForceTorqueSensorBroadcaster",
     "ForwardCommandController",
     "GripperActionController",
+    "HardwareInterfaces",
     "IMUSensorBroadcaster",
     "Input",
+    "InterfaceInfo",
     "JointGroupEffortController",
     "JointGroupPositionController",
     "JointGroupVelocityController",
@@ -63,6 +74,8 @@ __all__ = [
     "ParallelGripperActionController",
     "Params",
     "PoseBroadcaster",
+    "Strictness",
+    "SwitchResult",
     "TrajectoryBatch",
     "build",
     "default_controllers",

@@ -41,7 +41,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from batchsim.controllers.base import Controller, ControllerManager, Params
+from batchsim.controllers.base import Controller, Params
 from batchsim.controllers.broadcasters import (
     ForceTorqueSensorBroadcaster,
     IMUSensorBroadcaster,
@@ -59,8 +59,9 @@ from batchsim.controllers.gripper import (
     GripperActionController,
     ParallelGripperActionController,
 )
-from batchsim.controllers.joint_trajectory import JointTrajectoryController
+from batchsim.controllers.manager import ControllerManager
 from batchsim.controllers.pose_broadcaster import PoseBroadcaster
+from batchsim.controllers.trajectory import JointTrajectoryController
 from batchsim.hardware import ConfigurationError
 from batchsim.model import RobotSpec
 from batchsim.model.params import ParamsError, load_yaml
@@ -232,7 +233,12 @@ def build(config: ManagerConfig, spec: RobotSpec, nworld: int) -> ControllerMana
             )
         controllers.append(controller)
     return ControllerManager(
-        controllers, update_rate=config.update_rate, source=config.source, warnings=warnings
+        controllers,
+        update_rate=config.update_rate,
+        source=config.source,
+        warnings=warnings,
+        spec=spec,
+        types=CONTROLLER_TYPES,
     )
 
 

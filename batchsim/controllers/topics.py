@@ -35,6 +35,20 @@ class MessageKind(enum.Enum):
     TWIST = "geometry_msgs/msg/Twist"
     TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
     JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
+    JOINT_TRAJECTORY_CONTROLLER_STATE = "control_msgs/msg/JointTrajectoryControllerState"
+
+
+class GoalOutcome(enum.IntEnum):
+    """A world's action goal, as a controller's `outcome` array holds it (int8): what the
+    bridge turns into the goal's final state and result."""
+
+    NONE = 0  # no goal: none yet, or a topic trajectory replaced it
+    ACTIVE = 1  # queued or running
+    SUCCEEDED = 2
+    PATH_TOLERANCE_VIOLATED = 3
+    GOAL_TOLERANCE_VIOLATED = 4
+    CANCELED = 5
+    ABORTED = 6  # the world was reset
 
 
 #: The fields an Output of each kind is filled from, and each one's width (None: one value
@@ -45,6 +59,16 @@ OUTPUT_FIELDS: dict[MessageKind, dict[str, int | None]] = {
     MessageKind.WRENCH_STAMPED: {"force": 3, "torque": 3},
     MessageKind.ODOMETRY: {"position": 3, "orientation": 4, "linear": 3, "angular": 3},
     MessageKind.POSE_STAMPED: {"position": 3, "orientation": 4},
+    MessageKind.JOINT_TRAJECTORY_CONTROLLER_STATE: {
+        f"{part}_{quantity}": None
+        for part, quantities in (
+            ("reference", ("positions", "velocities", "accelerations")),
+            ("feedback", ("positions", "velocities")),
+            ("error", ("positions", "velocities")),
+            ("output", ("positions",)),
+        )
+        for quantity in quantities
+    },
 }
 
 #: What one message of each fixed-size input kind becomes: a row of this many float64.
@@ -79,6 +103,15 @@ class TrajectoryBatch:
         ignored); None: all of them, when `velocities` is given.
       accelerations: (npoint, njoint) float64, or None likewise.
       has_accelerations: (n,) bool, or None likewise.
+      goals: (n,) int64, the action goal each trajectory carries: a tag the sender chooses
+        (> 0), 0 for a plain topic trajectory; None: all 0. An accepted trajectory replaces
+        its world's goal (JointTrajectoryController.goal then shows its tag, or 0).
+      path_tolerance: (n, njoint, 3) float64, each goal's path tolerance per joint (position,
+        velocity, acceleration), as control_msgs/JointTolerance: 0 or NaN (a joint the goal
+        leaves out) takes the controller's default, -1 no limit, > 0 this limit; None: defaults.
+      goal_tolerance: (n, njoint, 3) float64, the goal tolerances likewise.
+      goal_time_tolerance: (n,) float64 seconds, 0 the default (`constraints.goal_time`),
+        -1 none (wait), > 0 this; None: defaults. Rows of topic trajectories are ignored.
     """
 
     worlds: np.ndarray
@@ -91,6 +124,10 @@ class TrajectoryBatch:
     has_velocities: np.ndarray | None = None
     accelerations: np.ndarray | None = None
     has_accelerations: np.ndarray | None = None
+    goals: np.ndarray | None = None
+    path_tolerance: np.ndarray | None = None
+    goal_tolerance: np.ndarray | None = None
+    goal_time_tolerance: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.worlds)
@@ -99,10 +136,19 @@ class TrajectoryBatch:
 def trajectory_batch(
     joints: Sequence[str],
     messages: Sequence[tuple[int, Sequence[str], np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None, float]],
+    *,
+    goals: Sequence[int] | np.ndarray | None = None,
+    path_tolerance: np.ndarray | None = None,
+    goal_tolerance: np.ndarray | None = None,
+    goal_time_tolerance: Sequence[float] | np.ndarray | None = None,
 ) -> tuple[TrajectoryBatch, list[int], Rejections]:
     """A TrajectoryBatch from JointTrajectory messages, each as
     (world, joint_names, times (npoint,), positions (npoint, nnamed), velocities or None,
     accelerations or None, header stamp in seconds), its arrays in the message's joint order.
+
+    For FollowJointTrajectory goals, `goals` (nmessage,) gives each message's tag (0: none),
+    and `path_tolerance`, `goal_tolerance` (nmessage, njoint, 3) and `goal_time_tolerance`
+    (nmessage,) its tolerances, in the controller's joint order (see TrajectoryBatch).
 
     Returns the batch, the index of the message each trajectory came from, and the
     messages rejected here (an unknown or repeated joint name), with their reasons.
@@ -154,6 +200,14 @@ def trajectory_batch(
         has_velocities=has_v,
         accelerations=accelerations if has_a.any() else None,
         has_accelerations=has_a,
+        goals=None if goals is None else np.asarray(goals, dtype=np.int64).reshape(-1)[kept],
+        path_tolerance=None if path_tolerance is None else np.asarray(path_tolerance, dtype=np.float64)[kept],
+        goal_tolerance=None if goal_tolerance is None else np.asarray(goal_tolerance, dtype=np.float64)[kept],
+        goal_time_tolerance=(
+            None
+            if goal_time_tolerance is None
+            else np.asarray(goal_time_tolerance, dtype=np.float64).reshape(-1)[kept]
+        ),
     )
     return batch, kept, rejected
 

@@ -1,0 +1,608 @@
+"""JointTrajectoryController itself: parameters, input, the loop, commands, topics.
+
+Its semantics are the package's docstring (batchsim/controllers/trajectory/__init__.py);
+the segment pool, the spline math, the batch checks and the goals live beside it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import numpy as np
+
+from batchsim.controllers.base import Controller, Params, last_per_world, ranges
+from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch
+from batchsim.controllers.trajectory.goals import Constraints, GoalTracker
+from batchsim.controllers.trajectory.pool import PENDING, RUNNING, SegmentPool
+from batchsim.controllers.trajectory.splines import (
+    CUBIC,
+    QUINTIC,
+    Interpolation,
+    coefficients,
+    evaluate,
+    point_rows,
+)
+from batchsim.controllers.trajectory.validation import CommandBound, Unpacked, check, one_trajectory, unpack
+from batchsim.model import RobotSpec
+
+# the combinations of command interfaces the stock controller accepts
+COMMAND_COMBINATIONS = (
+    ("position",),
+    ("velocity",),
+    ("effort",),
+    ("position", "velocity"),
+    ("position", "velocity", "acceleration"),
+)
+STATE_COMBINATIONS = (("position",), ("position", "velocity"), ("position", "velocity", "acceleration"))
+DEFAULT_MAX_POINTS = 10_000
+
+
+class JointTrajectoryController(Controller):
+    """joint_trajectory_controller/JointTrajectoryController (semantics: the package's docstring).
+
+    Parameters (stock): `joints`, `command_joints`, `command_interfaces`,
+    `state_interfaces`, `allow_partial_joints_goal`, `open_loop_control`,
+    `interpolation_method` (splines, none), `gains.<joint>.{p, i, d, i_clamp,
+    ff_velocity_scale}`, `constraints.{stopped_velocity_tolerance, goal_time,
+    <joint>.trajectory, <joint>.goal}` (goals.py; `decelerate_on_cancel` and
+    `<joint>.max_deceleration_on_cancel` are read and not acted on); `action_monitor_rate`,
+    `state_publish_rate` and the rest are accepted and not acted on. batchsim's own:
+    `max_trajectory_points` (default 10,000), the most points a trajectory may have.
+
+    Attributes (all (nworld, njoint), refreshed every update):
+      reference_position, reference_velocity, reference_acceleration: the sampled trajectory.
+      feedback_position, feedback_velocity: the measured state.
+      error_position, error_velocity: reference minus feedback.
+      output: the values written to the command interfaces, (nworld, ncommand).
+      executing: (nworld,) bool, a trajectory is running and not yet past its last point.
+      goal: (nworld,) int64, the tag of the action goal the world follows or last followed
+        (TrajectoryBatch.goals); 0: none, or a topic trajectory replaced it.
+      outcome: (nworld,) int8 GoalOutcome of that goal (NONE without one).
+      outcome_joint: (nworld,) int64, the joint (index into `joints`) that violated a
+        tolerance when `outcome` says so; -1 otherwise.
+    """
+
+    TYPE: ClassVar[str] = "joint_trajectory_controller/JointTrajectoryController"
+    ACCEPTED = (
+        *Controller.ACCEPTED,
+        "action_monitor_rate",
+        "state_publish_rate",
+        "allow_integration_in_goal_trajectories",
+        "allow_nonzero_velocity_at_trajectory_end",
+        "cmd_timeout",
+        "set_last_command_interface_value_as_state_on_activation",
+        "angle_wraparound",
+        "start_with_holding",
+        "open_loop_control_reset",
+        "speed_scaling",
+        "interpolate_from_desired_state",
+    )
+
+    def __init__(self, name: str, params: Params, spec: RobotSpec, nworld: int):
+        super().__init__(name, params, spec, nworld)
+        self.joints = params.string_list("joints", nonempty=True)
+        self.check_joints("joints", self.joints)
+        command_joints = params.string_list("command_joints", []) or self.joints
+        self.check_joints("command_joints", command_joints)
+        if len(command_joints) != len(self.joints):
+            raise params.error("command_joints", f"must name as many joints as joints ({len(self.joints)})")
+        self.command_kinds = tuple(params.string_list("command_interfaces", nonempty=True))
+        if tuple(sorted(self.command_kinds, key=_order)) not in COMMAND_COMBINATIONS:
+            raise params.error(
+                "command_interfaces",
+                f"{list(self.command_kinds)} is not a combination the "
+                f"controller supports ({'; '.join(map(str, map(list, COMMAND_COMBINATIONS)))})",
+            )
+        self.state_kinds = tuple(params.string_list("state_interfaces", nonempty=True))
+        if tuple(sorted(self.state_kinds, key=_order)) not in STATE_COMBINATIONS:
+            raise params.error(
+                "state_interfaces",
+                f"{list(self.state_kinds)} is not a combination the "
+                f"controller supports ({'; '.join(map(str, map(list, STATE_COMBINATIONS)))})",
+            )
+        self.allow_partial = params.boolean("allow_partial_joints_goal", False)
+        self.open_loop = params.boolean("open_loop_control", False)
+        self.interpolation = Interpolation(
+            params.choice("interpolation_method", [i.value for i in Interpolation], "splines")
+        )
+        self._step_points = self.interpolation is Interpolation.NONE  # hold each point, no splines
+        self.max_trajectory_points = int(
+            params.number("max_trajectory_points", DEFAULT_MAX_POINTS, minimum=1)
+        )
+
+        nj = len(self.joints)
+        self._pos_cols = self.state_columns("state_interfaces", [f"{j}/position" for j in self.joints])
+        self._vel_cols = (
+            self.state_columns("state_interfaces", [f"{j}/velocity" for j in self.joints])
+            if "velocity" in self.state_kinds
+            else None
+        )
+        self._acc_cols = (
+            self.state_columns("state_interfaces", [f"{j}/acceleration" for j in self.joints])
+            if "acceleration" in self.state_kinds
+            else None
+        )
+        self._cmd: list[tuple[str, np.ndarray]] = []
+        for kind in self.command_kinds:
+            self._cmd.append(
+                (kind, self.claim("command_interfaces", [f"{j}/{kind}" for j in command_joints]))
+            )
+
+        # PID for a lone velocity or effort interface (ros2_control: required for effort)
+        self._pid = self.command_kinds in (("velocity",), ("effort",))
+        self.kp, self.ki, self.kd = np.zeros(nj), np.zeros(nj), np.zeros(nj)
+        self.i_clamp = np.full(nj, np.inf)
+        self.ff_velocity_scale = np.zeros(nj) if self.command_kinds == ("effort",) else np.ones(nj)
+        for k, j in enumerate(self.joints):
+            params.keys_under(f"gains.{j}")
+            if params.has(f"gains.{j}.p") or params.has(f"gains.{j}.d") or params.has(f"gains.{j}.i"):
+                self.kp[k] = params.number(f"gains.{j}.p", 0.0)
+                self.ki[k] = params.number(f"gains.{j}.i", 0.0)
+                self.kd[k] = params.number(f"gains.{j}.d", 0.0)
+                self.i_clamp[k] = (
+                    params.number(f"gains.{j}.i_clamp", np.inf)
+                    if params.has(f"gains.{j}.i_clamp")
+                    else np.inf
+                )
+                if params.has(f"gains.{j}.i_clamp_max"):
+                    self.i_clamp[k] = params.number(f"gains.{j}.i_clamp_max")
+                self.ff_velocity_scale[k] = params.number(
+                    f"gains.{j}.ff_velocity_scale", float(self.ff_velocity_scale[k])
+                )
+            elif self.command_kinds == ("effort",):
+                raise params.error(
+                    f"gains.{j}",
+                    "missing: an effort command interface needs PID gains (gains.<joint>.p, .i, .d)",
+                )
+
+        self._bound = CommandBound(
+            self.command_kinds, self._pid, np.abs(self.ff_velocity_scale) + np.abs(self.kd), np.abs(self.kp)
+        )
+        self.constraints = Constraints.read(params, self.joints)
+        self._goals = GoalTracker(self.nworld, self.constraints)
+        self.goal, self.outcome, self.outcome_joint = (
+            self._goals.goal,
+            self._goals.outcome,
+            self._goals.outcome_joint,
+        )
+        # the errors upstream computes, and so checks tolerances on (tolerances.hpp)
+        self._velocity_error = self._vel_cols is not None and self.command_kinds in (
+            ("velocity",),
+            ("effort",),
+        )
+        self._acceleration_error = self._acc_cols is not None and "acceleration" in self.command_kinds
+
+        W = self.nworld
+        self.reference_position = np.zeros((W, nj))
+        self.reference_velocity = np.zeros((W, nj))
+        self.reference_acceleration = np.zeros((W, nj))
+        self.feedback_position = np.zeros((W, nj))
+        self.feedback_velocity = np.zeros((W, nj))
+        self.error_position = np.zeros((W, nj))
+        self.error_velocity = np.zeros((W, nj))
+        self.output = np.zeros((W, sum(len(c) for _, c in self._cmd)))
+        self.executing = np.zeros(W, bool)
+        self._i_term = np.zeros((W, nj))
+        self._hold = np.zeros((W, nj))  # the reference of a world with no running trajectory
+        # the reference came from a trajectory (since the last reset or stop): a partial
+        # goal's other joints then hold the reference, not the measured position
+        self._on_trajectory = np.zeros(W, bool)
+
+        self._pool = SegmentPool(W, nj)
+        # the running trajectory: block rows 0..last, `segment` the row time has reached
+        self._running = np.zeros(W, bool)
+        self._t0 = np.zeros(W)  # its start, sim time
+        self._segment = np.zeros(W, np.int64)
+        self._last = np.zeros(W, np.int64)
+        # the trajectory waiting to start: its points are block rows 1..npoint
+        self._pending_start = np.full(W, np.inf)
+        self._pending_npoint = np.zeros(W, np.int64)
+        self._pending_spline = np.zeros(W, np.int8)
+        self._pending_mask = np.zeros((W, nj), bool)
+
+    # --- what the buffers hold ---
+    @property
+    def pending(self) -> np.ndarray:
+        """(nworld,) bool: a trajectory is queued and waiting for its start time."""
+        return np.isfinite(self._pending_start)
+
+    @property
+    def buffer_rows(self) -> int:
+        """Trajectory rows allocated for the whole fleet (each ~(6 * njoint + 1) float64)."""
+        return self._pool.capacity
+
+    # --- input (from the loop thread) ---
+    def set_trajectory(
+        self,
+        world: int,
+        joint_names: Sequence[str],
+        times: Sequence[float],
+        positions: Sequence[Sequence[float]],
+        velocities: Sequence[Sequence[float]] | None = None,
+        accelerations: Sequence[Sequence[float]] | None = None,
+        start_time: float = 0.0,
+    ) -> None:
+        """Queue a trajectory for one world: a JointTrajectory's joint_names, points and stamp.
+
+        The one-world convenience over `set_trajectories`.
+
+        Args:
+          world: which world.
+          joint_names: the message's joint order.
+          times: (npoint,) each point's time_from_start, seconds, strictly increasing.
+          positions: (npoint, len(joint_names)).
+          velocities, accelerations: the same shape, or None / empty when the points carry none.
+          start_time: the header stamp in sim time; 0 starts at the next update.
+
+        Raises:
+          ValueError: the trajectory is rejected; the world keeps what it was doing.
+        """
+        batch = one_trajectory(
+            self._world(world),
+            joint_names,
+            times,
+            positions,
+            velocities,
+            accelerations,
+            start_time,
+            name=self.name,
+            joints=self.joints,
+        )
+        rejected = self.set_trajectories(batch)
+        if rejected:
+            raise ValueError(rejected[0][1])
+
+    def set_trajectories(self, batch: TrajectoryBatch) -> list[tuple[int, str]]:
+        """Queue every trajectory of a batch, as set_trajectory would one by one, in one vectorized pass.
+
+        Returns (index in the batch, reason) for each rejected trajectory, in batch order;
+        the others are queued (a later one for a world replaces an earlier one). An accepted
+        trajectory replaces its world's goal: with a tag (`batch.goals`), it is the world's
+        new ACTIVE goal; without, the world has none.
+
+        Raises:
+          ValueError: the batch itself is malformed (shapes, offsets): the sender's bug.
+        """
+        b = unpack(batch, name=self.name, nworld=self.nworld, njoint=len(self.joints))
+        if len(b.worlds) == 0:
+            return []
+        verdict = check(
+            b,
+            name=self.name,
+            nworld=self.nworld,
+            joints=self.joints,
+            allow_partial=self.allow_partial,
+            max_points=self.max_trajectory_points,
+            time=self.time,
+            bound=self._bound,
+            step_points=self._step_points,
+        )
+        rows = point_rows(
+            b.steps, b.offsets, verdict.owner, verdict.spline, verdict.points, self._step_points
+        )
+        self._queue(b, np.flatnonzero(~verdict.failed), b.counts, verdict.spline, rows)
+        return verdict.rejected
+
+    def cancel(self, worlds: np.ndarray, goals: np.ndarray) -> None:
+        """Cancel goals, as upstream's cancel callback: each of `worlds` (n,) whose current goal
+        is `goals` (n,) int64 and still ACTIVE becomes CANCELED and holds where it was measured
+        at the last update (its queued trajectory is dropped too). Others are left alone.
+
+        Raises:
+          ValueError: a world out of range, or shapes that differ (the caller's bug).
+        """
+        rows, bad = self._batch_worlds(worlds)
+        if bad:
+            raise ValueError(next(iter(bad.values())))
+        tags = np.asarray(goals).reshape(-1)
+        if tags.shape != rows.shape:
+            raise ValueError(f"{self.name}: cancel: {len(rows)} worlds but {len(tags)} goals")
+        self._stop(self._goals.cancel(rows, tags.astype(np.int64)))
+
+    def _queue(
+        self, b: Unpacked, accepted: np.ndarray, counts: np.ndarray, spline: np.ndarray, rows: np.ndarray
+    ) -> None:
+        """Store the accepted trajectories (the last per world) as their worlds' pending ones."""
+        if not accepted.size:
+            return
+        keep = accepted[last_per_world(b.worlds[accepted])]
+        worlds, npoint = b.worlds[keep], counts[keep]
+        pool = self._pool
+        pool.release(PENDING, worlds)  # a newer goal replaces one still waiting to start
+        filled = npoint > 0
+        pool.allocate(PENDING, worlds[filled], npoint[filled] + 1)  # + the start row
+        off = pool.offset[PENDING, worlds[filled]]
+        dest = ranges(off + 1, npoint[filled])
+        if len(dest) == len(rows):  # every point is kept (the usual case): no gather
+            pool.times[dest], pool.coefficients[dest] = b.times, rows
+        else:
+            source = ranges(b.offsets[keep][filled], npoint[filled])
+            pool.times[dest] = b.times[source]
+            pool.coefficients[dest] = rows[source]
+        self._pending_start[worlds] = b.start_time[keep]
+        self._pending_npoint[worlds] = npoint
+        self._pending_spline[worlds] = spline[keep]
+        self._pending_mask[worlds] = b.joint_mask[keep]
+        self._goals.queue(
+            worlds,
+            b.goals[keep],
+            *(
+                None if t is None else t[keep]
+                for t in (b.path_tolerance, b.goal_tolerance, b.goal_time_tolerance)
+            ),
+        )
+
+    def _start(self, due: np.ndarray, time: float) -> None:
+        """Make the due worlds' queued trajectories their running ones, from the current state."""
+        pool = self._pool
+        nj = len(self.joints)
+        t0 = np.where(self._pending_start[due] > 0, self._pending_start[due], time)
+        npoint = self._pending_npoint[due]
+        here = (self.reference_position if self.open_loop else self.feedback_position)[due]
+        if self.open_loop:
+            here_v = self.reference_velocity[due]
+        elif self._vel_cols is not None:
+            here_v = self.feedback_velocity[due]
+        else:
+            here_v = np.zeros((len(due), nj))
+        # the first point still ahead: points already in the past at the start are dropped
+        off = pool.offset[PENDING, due]
+        skip = np.zeros(len(due), np.int64)
+        late = npoint > 0
+        late[late] = t0[late] + pool.times[off[late] + 1] <= time
+        if late.any():  # times increase, so the passed points are a prefix: count them
+            passed = ranges(off[late] + 1, npoint[late])
+            which = np.repeat(np.arange(int(late.sum())), npoint[late])
+            gone = np.repeat(t0[late], npoint[late]) + pool.times[passed] <= time
+            skip[late] = np.bincount(which, weights=gone, minlength=int(late.sum())).astype(np.int64)
+        ends = t0.copy()  # sim time of each trajectory's last point, for its goal's checks
+        filled = npoint > 0
+        ends[filled] += pool.times[off[filled] + npoint[filled]]
+        self._goals.start(due, ends)
+        stop = skip >= npoint
+        stopped = due[stop]
+        pool.release(RUNNING, stopped)
+        pool.release(PENDING, stopped)
+        pool.trim(stopped)
+        self._running[stopped] = False
+        self._on_trajectory[stopped] = False
+        self._hold[stopped] = here[stop]
+
+        go = ~stop
+        worlds = due[go]
+        if worlds.size:
+            hold = np.where(self._on_trajectory[worlds, None], self.reference_position[worlds], here[go])
+            pool.promote(worlds)
+            self._begin(worlds, t0[go], time, skip[go], here[go], here_v[go], hold)
+        self._pending_start[due] = np.inf
+        self._pending_npoint[due] = 0
+
+    def _begin(
+        self,
+        worlds: np.ndarray,
+        t0: np.ndarray,
+        time: float,
+        skip: np.ndarray,
+        here: np.ndarray,
+        here_v: np.ndarray,
+        hold: np.ndarray,
+    ) -> None:
+        """Insert the current point before the first point ahead and set the worlds running."""
+        pool = self._pool
+        off = pool.offset[RUNNING, worlds]
+        npoint = self._pending_npoint[worlds]
+        mask = self._pending_mask[worlds]
+        spline = self._pending_spline[worlds]
+        start_row, first = off + skip, off + skip + 1
+        rel = time - t0
+        row = np.zeros((len(worlds), 6, len(self.joints)))
+        if self._step_points:
+            row[:, 0], row[:, 1] = here, here_v
+        else:
+            # the first point ahead, from its row (a point's row starts with its p, v and a / 2)
+            c = pool.coefficients[first]
+            p1 = np.where(mask, c[:, 0], hold)
+            v1 = np.where(mask & (spline >= CUBIC)[:, None], c[:, 1], 0.0)
+            a1 = np.where(mask & (spline == QUINTIC)[:, None], 2 * c[:, 2], 0.0)
+            T = pool.times[first] - rel
+            T = np.where(T > 0, T, 1.0)[:, None]  # a zero-length segment is never sampled
+            for k, plane in enumerate(coefficients(spline, here, p1, here_v, v1, np.zeros_like(here), a1, T)):
+                row[:, k] = plane
+        pool.times[start_row] = rel
+        pool.coefficients[start_row] = row
+        partial = ~mask.all(axis=1)
+        if partial.any():  # joints a partial goal leaves out hold after the first segment
+            rows = ranges(first[partial], npoint[partial] - skip[partial])
+            which = np.repeat(np.flatnonzero(partial), npoint[partial] - skip[partial])
+            block = pool.coefficients[rows]  # (n, 6, nj)
+            out = ~mask[which]
+            block.transpose(0, 2, 1)[out] = 0.0
+            block[:, 0][out] = hold[which][out]
+            pool.coefficients[rows] = block
+        self._t0[worlds] = t0
+        self._segment[worlds] = skip
+        self._last[worlds] = npoint
+        self._running[worlds] = True
+        self._on_trajectory[worlds] = True
+        self._i_term[worlds] = 0.0
+
+    def topics(self) -> ControllerTopics:
+        """`<ns>/<controller>/joint_trajectory` in; `<ns>/<controller>/controller_state` out
+        (control_msgs/JointTrajectoryControllerState, as upstream), and, deprecated, kept for
+        one release, its parts as JointState on `<ns>/<controller>/controller_state/
+        {reference, feedback, error}` (reference carries the acceleration in its effort)."""
+        names = tuple(self.joints)
+        state = f"{self.name}/controller_state"
+
+        def reference() -> dict[str, np.ndarray]:
+            return {
+                "position": self.reference_position,
+                "velocity": self.reference_velocity,
+                "effort": self.reference_acceleration,
+            }
+
+        def feedback() -> dict[str, np.ndarray]:
+            return {"position": self.feedback_position, "velocity": self.feedback_velocity}
+
+        def error() -> dict[str, np.ndarray]:
+            return {"position": self.error_position, "velocity": self.error_velocity}
+
+        def controller_state() -> dict[str, np.ndarray]:
+            return {
+                "reference_positions": self.reference_position,
+                "reference_velocities": self.reference_velocity,
+                "reference_accelerations": self.reference_acceleration,
+                "feedback_positions": self.feedback_position,
+                "feedback_velocities": self.feedback_velocity,
+                "error_positions": self.error_position,
+                "error_velocities": self.error_velocity,
+                "output_positions": self.reference_position,
+            }
+
+        state_message = Output(state, MessageKind.JOINT_TRAJECTORY_CONTROLLER_STATE, controller_state, names=names)
+        return ControllerTopics(
+            self.name,
+            inputs=(
+                Input(
+                    f"{self.name}/joint_trajectory",
+                    MessageKind.JOINT_TRAJECTORY,
+                    self.set_trajectories,
+                    joints=names,
+                ),
+            ),
+            outputs=(state_message,)
+            + tuple(
+                Output(f"{state}/{part}", MessageKind.JOINT_STATE, read, names=names)
+                for part, read in (("reference", reference), ("feedback", feedback), ("error", error))
+            ),
+        )
+
+    # --- the loop ---
+    def activate(self, sim: Any, time: float) -> None:
+        self._read(sim)
+        self._hold[:] = self.feedback_position
+        self.reference_position[:] = self.feedback_position
+
+    def reset(self, sim: Any, worlds: np.ndarray) -> None:
+        self._read(sim)
+        self._goals.abort(worlds)
+        self._stop(worlds)
+        self._pool.shrink()
+        self._i_term[worlds] = 0.0
+
+    def _stop(self, worlds: np.ndarray) -> None:
+        """Drop the worlds' trajectories, running and queued, and hold them where they were
+        measured at the last read."""
+        self._pool.release(RUNNING, worlds)
+        self._pool.release(PENDING, worlds)
+        self._pool.trim(worlds)
+        self._running[worlds] = False
+        self._on_trajectory[worlds] = False
+        self._hold[worlds] = self.feedback_position[worlds]
+        self.reference_position[worlds] = self.feedback_position[worlds]
+        self.reference_velocity[worlds] = 0.0
+        self.reference_acceleration[worlds] = 0.0
+        self.executing[worlds] = False
+        self._pending_start[worlds] = np.inf
+        self._pending_npoint[worlds] = 0
+
+    def _read(self, sim: Any) -> None:
+        state = sim.state
+        self.feedback_position[:] = state[:, self._pos_cols]
+        if self._vel_cols is not None:
+            self.feedback_velocity[:] = state[:, self._vel_cols]
+
+    def update(self, sim: Any, time: float, period: float) -> None:
+        self._read(sim)
+        if self._pending_start.min() <= time + 1e-9:
+            self._start(np.flatnonzero(self._pending_start <= time + 1e-9), time)
+        self._sample(time)
+        self._pool.shrink()
+        self.error_position[:] = self.reference_position - self.feedback_position
+        self.error_velocity[:] = self.reference_velocity - self.feedback_velocity
+        if self._goals.checking:
+            self._check_goals(sim, time)
+        self._command(sim, period)
+
+    def _check_goals(self, sim: Any, time: float) -> None:
+        """Goal outcomes of this update; a world whose goal was aborted for a violation holds."""
+        errors = (
+            self.error_position,
+            self.error_velocity if self._velocity_error else None,
+            self.reference_acceleration - sim.state[:, self._acc_cols] if self._acceleration_error else None,
+        )
+        hold = self._goals.check(time, self.executing, errors)
+        if hold.size:
+            self._stop(hold)
+            self.error_position[hold] = 0.0
+            self.error_velocity[hold] = -self.feedback_velocity[hold]
+
+    def _sample(self, time: float) -> None:
+        """Reference position/velocity/acceleration of every world at `time`."""
+        pos, vel, acc = self.reference_position, self.reference_velocity, self.reference_acceleration
+        running = np.flatnonzero(self._running)
+        if len(running) < self.nworld:
+            pos[:] = self._hold
+            vel[:] = 0.0
+            acc[:] = 0.0
+            self.executing[:] = False
+        if not running.size:
+            return
+        pool = self._pool
+        times = pool.times
+        rel = time - self._t0[running]
+        base = pool.offset[RUNNING, running]
+        segment, last = self._segment[running], self._last[running]
+        # segment: the last point at or before rel; usually the same as last period or the next
+        moving = np.flatnonzero(
+            (segment < last) & (times[base + np.minimum(segment + 1, last)] <= rel + 1e-12)
+        )
+        while moving.size:
+            segment[moving] += 1
+            s = segment[moving]
+            ahead = (s < last[moving]) & (
+                times[base[moving] + np.minimum(s + 1, last[moving])] <= rel[moving] + 1e-12
+            )
+            moving = moving[ahead]
+        self._segment[running] = segment
+        row = base + segment
+        done = segment >= last  # past the last point: its position, at rest
+        reference = evaluate(pool.coefficients[row], rel - times[row], done, self._step_points)
+        pos[running], vel[running], acc[running] = reference[:, 0], reference[:, 1], reference[:, 2]
+        self.executing[running] = ~done
+        finished = running[done]
+        if finished.size:  # past the last point: hold it and give the rows back
+            self._hold[finished] = pos[finished]
+            self._running[finished] = False
+            pool.release(RUNNING, finished)
+            pool.trim(finished)
+
+    def _command(self, sim: Any, period: float) -> None:
+        if self._pid:
+            e, de = self.error_position, self.error_velocity
+            self._i_term += self.ki * e * period
+            np.clip(self._i_term, -self.i_clamp, self.i_clamp, out=self._i_term)
+            u = self.ff_velocity_scale * self.reference_velocity + self.kp * e + self._i_term + self.kd * de
+            kind, cols = self._cmd[0]
+            self.output[:] = u
+            sim.command[:, cols] = u
+            return
+        start = 0
+        for kind, cols in self._cmd:
+            value = {
+                "position": self.reference_position,
+                "velocity": self.reference_velocity,
+                "acceleration": self.reference_acceleration,
+            }[kind]
+            self.output[:, start : start + len(cols)] = value
+            sim.command[:, cols] = value
+            start += len(cols)
+
+
+def _order(kind: str) -> int:
+    return (
+        ("position", "velocity", "acceleration", "effort").index(kind)
+        if kind in ("position", "velocity", "acceleration", "effort")
+        else 99
+    )

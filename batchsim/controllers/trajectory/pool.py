@@ -1,0 +1,132 @@
+"""The trajectory controller's segment pool: every world's trajectory rows in one flat array.
+
+Memory follows each world's own trajectory: a block of rows per world and trajectory
+(running, pending, and a spare kept for reuse), carved from one array that is copied into
+a right-sized one only when it fills or empties.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from batchsim.controllers.base import ranges
+
+# the blocks of pool rows a world may hold: rows of SegmentPool.offset and .size
+RUNNING = 0  # the trajectory being followed
+PENDING = 1  # the one waiting for its start time
+SPARE = 2  # a released block, kept for the world's next trajectory
+SPARE_ROWS = 64  # a spare up to this many rows stays with its world until it is reused
+MIN_POOL_ROWS = 256
+
+
+class SegmentPool:
+    """Every world's trajectory rows in one flat array, a block of contiguous rows per trajectory.
+
+    Row r of a block is point r's segment: `times[r]` its time from the trajectory's start
+    and `coefficients[r]` the polynomial of the segment that leaves it. Blocks are carved
+    from the end of the used rows. A released block becomes its world's spare, reused by
+    its next trajectory if that needs between half of it and all of it (or it is small), so
+    a fleet streaming trajectories reuses rows instead of allocating; a spare larger than
+    SPARE_ROWS is freed when it does not fit that way, or when the world's trajectory ends.
+    When the end of the array is reached, or fewer than a quarter of its rows are held, the
+    held blocks are copied into a right-sized array.
+
+    Attributes:
+      times: (capacity,) float64.
+      coefficients: (capacity, 6, njoint) float64, of s^0 .. s^5.
+      offset: (3, nworld) int64, the first row of each world's running, pending and spare
+        block, -1 for none.
+      size: (3, nworld) int64, the rows each of those blocks holds.
+      held: rows in blocks some world holds.
+    """
+
+    def __init__(self, nworld: int, njoint: int):
+        self.njoint = njoint
+        self.times = np.zeros(0)
+        self.coefficients = np.zeros((0, 6, njoint))
+        self.offset = np.full((3, nworld), -1, np.int64)
+        self.size = np.zeros((3, nworld), np.int64)
+        self.held = 0
+        self.used = 0  # rows handed out from the start of the array, held or not
+
+    @property
+    def capacity(self) -> int:
+        return len(self.times)
+
+    def release(self, kind: int, worlds: np.ndarray) -> None:
+        """Give up the `kind` blocks of `worlds` (each listed once): each becomes its world's
+        spare if larger than the one it has (which is then freed), or is freed."""
+        held = self.offset[kind, worlds] >= 0
+        if not held.all():
+            worlds = worlds[held]
+            if not worlds.size:
+                return
+        off, size = self.offset[kind, worlds], self.size[kind, worlds]
+        self.offset[kind, worlds] = -1
+        self.size[kind, worlds] = 0
+        keep = size > self.size[SPARE, worlds]
+        kept = worlds[keep]
+        self.held -= int(size[~keep].sum()) + int(self.size[SPARE, kept].sum())
+        self.offset[SPARE, kept] = off[keep]
+        self.size[SPARE, kept] = size[keep]
+
+    def trim(self, worlds: np.ndarray, rows: np.ndarray | int = 0) -> None:
+        """Free the spares of `worlds` larger than SPARE_ROWS and than twice `rows` (the size of
+        the trajectory each world now has): memory follows the trajectories."""
+        size = self.size[SPARE, worlds]
+        if not size.size or size.max() <= SPARE_ROWS:  # the usual case: nothing to free
+            return
+        large = worlds[(size > SPARE_ROWS) & (size > 2 * np.asarray(rows))]
+        self.held -= int(self.size[SPARE, large].sum())
+        self.offset[SPARE, large] = -1
+        self.size[SPARE, large] = 0
+
+    def promote(self, worlds: np.ndarray) -> None:
+        """The pending blocks of `worlds` become their running ones; the running ones are released."""
+        self.release(RUNNING, worlds)
+        self.offset[RUNNING, worlds] = self.offset[PENDING, worlds]
+        self.size[RUNNING, worlds] = self.size[PENDING, worlds]
+        self.offset[PENDING, worlds] = -1
+        self.size[PENDING, worlds] = 0
+        self.trim(worlds, self.size[RUNNING, worlds])  # a large block replaced by a small one goes
+
+    def allocate(self, kind: int, worlds: np.ndarray, rows: np.ndarray) -> None:
+        """Blocks of `rows` rows for `worlds` (each listed once, with no `kind` block yet)."""
+        self.trim(worlds, rows)  # a large spare the new trajectory would not half fill goes
+        fits = self.size[SPARE, worlds] >= rows
+        reuse = worlds[fits]
+        self.offset[kind, reuse] = self.offset[SPARE, reuse]
+        self.size[kind, reuse] = self.size[SPARE, reuse]
+        self.offset[SPARE, reuse] = -1
+        self.size[SPARE, reuse] = 0
+        if len(reuse) == len(worlds):  # the usual case, streaming: every spare served
+            return
+        new, need = worlds[~fits], rows[~fits]
+        total = int(need.sum())
+        if not total:
+            return
+        if self.used + total > self.capacity:
+            self._compact(total)
+        self.offset[kind, new] = self.used + np.cumsum(need) - need
+        self.size[kind, new] = need
+        self.used += total
+        self.held += total
+
+    def shrink(self) -> None:
+        """Copy the held blocks into a smaller array when most rows are no longer held."""
+        if self.capacity > MIN_POOL_ROWS and self.held < self.capacity // 4:
+            self._compact(0)
+
+    def _compact(self, extra: int) -> None:
+        kinds, worlds = np.nonzero(self.offset >= 0)
+        off, size = self.offset[kinds, worlds], self.size[kinds, worlds]
+        total = int(size.sum())
+        capacity = max(MIN_POOL_ROWS, 2 * (total + extra))  # room for as much again before the next copy
+        times = np.zeros(capacity)
+        coefficients = np.zeros((capacity, 6, self.njoint))
+        source = ranges(off, size)
+        times[:total] = self.times[source]
+        coefficients[:total] = self.coefficients[source]
+        self.offset[kinds, worlds] = np.cumsum(size) - size
+        self.times, self.coefficients = times, coefficients
+        self.used = self.held = total

@@ -1,0 +1,434 @@
+"""A TrajectoryBatch unpacked and checked, as the trajectory controller accepts it.
+
+`unpack` types and shape-checks the batch's arrays (a malformed batch is the sender's bug:
+ValueError); `check` runs every per-trajectory check vectorized over the batch and names
+the reason of each rejected trajectory; `CommandBound` bounds the commands a reference
+gives, so that no accepted trajectory can command MAX_COMMAND or more, which write()
+would refuse.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from batchsim.controllers.topics import TrajectoryBatch
+from batchsim.controllers.trajectory.splines import coefficients, spline_of
+from batchsim.hardware import MAX_COMMAND
+
+
+@dataclasses.dataclass
+class Unpacked:
+    """A TrajectoryBatch's arrays, typed and checked (see TrajectoryBatch); worlds out of range are 0."""
+
+    worlds_given: np.ndarray
+    worlds: np.ndarray
+    bad_world: np.ndarray
+    start_time: np.ndarray
+    joint_mask: np.ndarray
+    offsets: np.ndarray
+    counts: np.ndarray  # (n,) points per trajectory
+    times: np.ndarray
+    steps: np.ndarray  # (npoint - 1,) times[1:] - times[:-1]
+    positions: np.ndarray
+    velocities: np.ndarray | None
+    has_velocities: np.ndarray
+    accelerations: np.ndarray | None
+    has_accelerations: np.ndarray
+    goals: np.ndarray  # (n,) int64, 0: a topic trajectory
+    path_tolerance: np.ndarray | None  # (n, njoint, 3) or None: every goal takes the defaults
+    goal_tolerance: np.ndarray | None  # likewise
+    goal_time_tolerance: np.ndarray | None  # (n,) or None
+
+
+@dataclasses.dataclass
+class Verdict:
+    """What `check` found.
+
+    Attributes:
+      failed: (n,) bool, the rejected trajectories.
+      rejected: (index in the batch, reason) of each, in batch order.
+      spline: (n,) int8 Spline of each trajectory.
+      owner: (npoint,) the trajectory of each point.
+      points: (p, v, a), each (npoint, njoint): the points' values, 0 where not given.
+    """
+
+    failed: np.ndarray
+    rejected: list[tuple[int, str]]
+    spline: np.ndarray
+    owner: np.ndarray
+    points: tuple[np.ndarray, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class CommandBound:
+    """A bound on the commands, from bounds on the reference's position, velocity and acceleration.
+
+    Attributes:
+      kinds: the command interfaces, in claim order ("position", "velocity", ...).
+      pid: a lone velocity or effort interface, commanded through a PID.
+      kv: (njoint,) |ff_velocity_scale| + |d| of the PID.
+      kp: (njoint,) |p| of the PID.
+    """
+
+    kinds: tuple[str, ...]
+    pid: bool
+    kv: np.ndarray
+    kp: np.ndarray
+
+    def __call__(self, position: np.ndarray, velocity: np.ndarray, acceleration: np.ndarray) -> np.ndarray:
+        if self.pid:  # the measured state adds what the PID makes of it: physical, so small
+            kv, kp = self.kv, self.kp
+            if np.ndim(position) < 2:  # one bound for every joint
+                kv, kp = kv.max(), kp.max()
+            return kv * velocity + kp * position
+        reference = {"position": position, "velocity": velocity, "acceleration": acceleration}
+        return np.maximum.reduce([reference[kind] for kind in self.kinds])
+
+
+def unpack(batch: TrajectoryBatch, *, name: str, nworld: int, njoint: int) -> Unpacked:
+    """The batch's arrays, typed and shape-checked; ValueError naming what is malformed."""
+    nj = njoint
+
+    def malformed(what: str) -> ValueError:
+        return ValueError(f"{name}: malformed TrajectoryBatch: {what}")
+
+    given = np.asarray(batch.worlds).reshape(-1)
+    n = given.size
+    if given.dtype.kind in "iu":
+        integral = np.ones(n, bool)
+    elif given.dtype.kind == "f":
+        integral = np.isfinite(given) & (given == np.round(given))
+    else:
+        raise malformed(f"worlds must be integers, got {given.dtype}")
+    worlds = np.where(integral, given, -1).astype(np.int64)
+    bad_world = ~integral | (worlds < 0) | (worlds >= nworld)
+    worlds[bad_world] = 0
+
+    def array(value: Any, shape: tuple[int, ...], dtype: Any, what: str) -> np.ndarray:
+        a = np.asarray(value, dtype=dtype)
+        if a.shape != shape:
+            raise malformed(f"{what} must have shape {shape}, got {a.shape}")
+        return a
+
+    offsets = array(batch.offsets, (n + 1,), np.int64, "offsets")
+    counts = np.diff(offsets)
+    if offsets[0] != 0 or (counts < 0).any():
+        raise malformed("offsets must start at 0 and never decrease")
+    npoint = int(offsets[-1])
+    start = array(batch.start_time, (n,), np.float64, "start_time")
+    mask = array(batch.joint_mask, (n, nj), bool, "joint_mask")
+    times = array(batch.times, (npoint,), np.float64, "times")
+    positions = array(batch.positions, (npoint, nj), np.float64, "positions")
+    tables: list[Any] = []
+    for values, has, what in (
+        (batch.velocities, batch.has_velocities, "velocities"),
+        (batch.accelerations, batch.has_accelerations, "accelerations"),
+    ):
+        if values is None:
+            tables += [None, np.zeros(n, bool)]
+            continue
+        tables.append(array(values, (npoint, nj), np.float64, what))
+        tables.append(np.ones(n, bool) if has is None else array(has, (n,), bool, f"has_{what}"))
+    goals = np.zeros(n, np.int64) if batch.goals is None else array(batch.goals, (n,), np.int64, "goals")
+    if (goals < 0).any():
+        raise malformed(f"goals must be >= 0 (0: no goal), got {int(goals.min())}")
+    path = (
+        None
+        if batch.path_tolerance is None
+        else array(batch.path_tolerance, (n, nj, 3), np.float64, "path_tolerance")
+    )
+    goal = (
+        None
+        if batch.goal_tolerance is None
+        else array(batch.goal_tolerance, (n, nj, 3), np.float64, "goal_tolerance")
+    )
+    goal_time = (
+        None
+        if batch.goal_time_tolerance is None
+        else array(batch.goal_time_tolerance, (n,), np.float64, "goal_time_tolerance")
+    )
+    steps = np.diff(times)
+    return Unpacked(
+        given, worlds, bad_world, start, mask, offsets, counts, times, steps, positions, *tables,
+        goals, path, goal, goal_time,
+    )  # fmt: skip
+
+
+def one_trajectory(
+    world: int,
+    joint_names: Sequence[str],
+    times: Sequence[float],
+    positions: Any,
+    velocities: Any,
+    accelerations: Any,
+    start_time: float,
+    *,
+    name: str,
+    joints: Sequence[str],
+) -> TrajectoryBatch:
+    """A one-trajectory batch from a JointTrajectory's fields in the message's joint order
+    (see JointTrajectoryController.set_trajectory); ValueError for an unknown or repeated
+    joint name or a table of the wrong shape."""
+    names = list(joint_names)
+    unknown = [n for n in names if n not in joints]
+    if unknown:
+        raise ValueError(f"{name}: unknown joint {unknown[0]!r} (controller joints: {', '.join(joints)})")
+    if len(set(names)) != len(names):
+        raise ValueError(f"{name}: joint_names lists a joint twice: {names}")
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    n, nj = t.size, len(joints)
+    cols = np.array([list(joints).index(j) for j in names], dtype=np.intp)
+    mask = np.zeros(nj, bool)
+    mask[cols] = True
+
+    def table(values: Any, what: str, required: bool) -> np.ndarray | None:
+        if values is None or (np.size(values) == 0 and not required):
+            return None
+        try:
+            a = np.asarray(values, dtype=np.float64)
+        except ValueError:
+            raise ValueError(f"{name}: every point's {what} must have {len(names)} values") from None
+        if a.shape != (n, len(names)):
+            raise ValueError(f"{name}: {what} must be {n} points x {len(names)} joints, got shape {a.shape}")
+        full = np.zeros((n, nj))
+        full[:, cols] = a
+        return full
+
+    if n == 0:  # an empty trajectory stops the world: its points' fields do not matter
+        p, v, a = np.zeros((0, nj)), None, None
+    else:
+        p = table(positions, "positions", True)
+        v = table(velocities, "velocities", False)
+        a = table(accelerations, "accelerations", False)
+    return TrajectoryBatch(
+        worlds=np.array([world]),
+        start_time=np.array([start_time], dtype=np.float64),
+        joint_mask=mask[None],
+        offsets=np.array([0, n]),
+        times=t,
+        positions=p,
+        velocities=v,
+        accelerations=a,
+    )
+
+
+def check(
+    b: Unpacked,
+    *,
+    name: str,
+    nworld: int,
+    joints: Sequence[str],
+    allow_partial: bool,
+    max_points: int,
+    time: float,
+    bound: CommandBound,
+    step_points: bool,
+) -> Verdict:
+    """Every check of every trajectory of the batch, in one vectorized pass.
+
+    A rejected trajectory's reason names the first check it fails, in the order of the
+    controller's documentation; `name` prefixes every reason.
+    """
+    n, npoint = len(b.worlds), len(b.times)
+    counts = b.counts
+    owner = np.repeat(np.arange(n), counts)  # (npoint,) the trajectory of each point
+    empty = counts == 0
+    named = b.joint_mask[owner]  # (npoint, nj)
+
+    def per_trajectory(bad_point: np.ndarray) -> np.ndarray:
+        return np.bincount(owner, weights=bad_point, minlength=n) > 0
+
+    # the checks of single points: one pass over the points, the per-check split only if needed
+    points = _points(b, owner, named)
+    magnitude = np.stack([np.abs(x).max(axis=1, initial=0.0) for x in points])  # (3, npoint), NaN: NaN
+    disorder = np.zeros(npoint, bool)  # a point not after the one before it
+    disorder[1:] = ~(b.steps > 0) & (owner[1:] == owner[:-1])
+    point_checks = [
+        ~(np.isfinite(b.times) & (b.times >= 0)),
+        disorder,
+        *~(magnitude < MAX_COMMAND),  # positions, velocities, accelerations
+    ]
+    none = np.zeros(n, bool)
+    if per_trajectory(np.logical_or.reduce(point_checks)).any():
+        bad_time, bad_order, bad_p, bad_v, bad_a = (per_trajectory(c) for c in point_checks)
+    else:
+        bad_time = bad_order = bad_p = bad_v = bad_a = none
+    last_time = b.times[np.maximum(b.offsets[1:] - 1, 0)] if npoint else np.zeros(n)
+    # (failing trajectories, reason for one of them): the first that fails names the reason
+    checks = [
+        (
+            b.bad_world,
+            lambda k: f"world {b.worlds_given[k].item()!r} is out of range: worlds are 0..{nworld - 1}",
+        ),
+        (~np.isfinite(b.start_time), lambda k: f"start time must be finite, got {b.start_time[k]}"),
+        (
+            # upstream rejects an action goal with no points; an empty topic trajectory stops the world
+            empty & (b.goals != 0),
+            lambda k: "the goal's trajectory has no points",
+        ),
+        (
+            ~empty & ~b.joint_mask.all(axis=1) & (not allow_partial),
+            lambda k: (
+                f"the trajectory lacks joint {joints[int(np.argmin(b.joint_mask[k]))]!r} and "
+                "allow_partial_joints_goal is false"
+            ),
+        ),
+        (
+            counts > max_points,
+            lambda k: (
+                f"the trajectory has {counts[k]} points, more than max_trajectory_points ({max_points})"
+            ),
+        ),
+        (
+            bad_time,
+            lambda k: (
+                "time_from_start must be finite and >= 0, got "
+                f"{b.times[b.offsets[k] : b.offsets[k + 1]].tolist()}"
+            ),
+        ),
+        (bad_order, lambda k: _order_reason(b, k)),
+        (bad_p, lambda k: _value_reason(b, k, "positions")),
+        (bad_v, lambda k: _value_reason(b, k, "velocities")),
+        (
+            b.has_accelerations & ~b.has_velocities,
+            lambda k: "points give accelerations without velocities",
+        ),
+        (bad_a, lambda k: _value_reason(b, k, "accelerations")),
+        (
+            ~empty & (b.start_time > 0) & (b.start_time + last_time < time),
+            lambda k: (
+                f"the trajectory ends at {b.start_time[k] + last_time[k]:g} s, before the "
+                f"current time {time:g} s"
+            ),
+        ),
+    ]
+    failed = np.logical_or.reduce([bad for bad, _ in checks])
+    rejected: dict[int, str] = {}
+    if failed.any():
+        for k in np.flatnonzero(failed).tolist():  # the first check it fails names the reason
+            reason = next(reason for bad, reason in checks if bad[k])
+            rejected[k] = f"{name}: {reason(k)}"
+
+    spline = spline_of(b.has_velocities, b.has_accelerations)
+    reach = _reach(b, owner, spline, points, magnitude, failed | empty, bound, step_points)
+    too_far = per_trajectory(~(reach < MAX_COMMAND)) & ~failed
+    for k in np.flatnonzero(too_far).tolist():
+        point = int(np.argmax(~(reach[b.offsets[k] : b.offsets[k + 1]] < MAX_COMMAND)))
+        where = "the start (from rest)" if point == 0 else f"point {point - 1}"
+        rejected[k] = (
+            f"{name}: between {where} and point {point} the trajectory's commands may reach "
+            f"{reach[b.offsets[k] + point]:.3g} (a bound), beyond the {MAX_COMMAND:g} write() accepts"
+        )
+    failed |= too_far
+    return Verdict(failed, sorted(rejected.items()), spline, owner, points)
+
+
+def _order_reason(b: Unpacked, k: int) -> str:
+    t = b.times[b.offsets[k] : b.offsets[k + 1]]
+    i = int(np.flatnonzero(~(np.diff(t) > 0))[0]) + 1
+    return (
+        f"time_from_start must be strictly increasing: point {i} at {t[i]:g} s "
+        f"follows point {i - 1} at {t[i - 1]:g} s"
+    )
+
+
+def _value_reason(b: Unpacked, k: int, what: str) -> str:
+    values = getattr(b, what)[b.offsets[k] : b.offsets[k + 1]][:, b.joint_mask[k]]
+    if not np.isfinite(values).all():
+        return f"{what} must be finite"
+    worst = float(values.flat[np.argmax(np.abs(values))])
+    return (
+        f"{what} must be below {MAX_COMMAND:g} in magnitude (write() refuses larger commands), got {worst:g}"
+    )
+
+
+def _points(b: Unpacked, owner: np.ndarray, named: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(p, v, a), each (npoint, njoint): the points' values, 0 for joints or fields not given."""
+    p = np.where(named, b.positions, 0.0)
+    v = np.zeros_like(p) if b.velocities is None else np.where(named, b.velocities, 0.0)
+    a = np.zeros_like(p) if b.accelerations is None else np.where(named, b.accelerations, 0.0)
+    if not b.has_velocities.all():
+        v[~b.has_velocities[owner]] = 0.0
+    if not b.has_accelerations.all():
+        a[~b.has_accelerations[owner]] = 0.0
+    return p, v, a
+
+
+def _reach(
+    b: Unpacked,
+    owner: np.ndarray,
+    spline: np.ndarray,
+    points: tuple[np.ndarray, ...],
+    magnitude: np.ndarray,
+    skip: np.ndarray,
+    bound: CommandBound,
+    step_points: bool,
+) -> np.ndarray:
+    """(npoint,) a bound on the commands the segment ending at each point gives (the first
+    point's: from rest at time 0); 0 for the points of `skip` and first points at time 0.
+
+    A cheap bound from the segment's end values screens every segment; the polynomial's
+    own bound is computed only for the few the cheap one cannot clear.
+    """
+    p, v, a = points
+    npoint = len(p)
+    if npoint == 0:
+        return np.zeros(0)
+    with np.errstate(all="ignore"):
+        mp, mv, ma = magnitude  # (npoint,) each: the largest |value| of each point
+        first = np.zeros(npoint, bool)
+        first[b.offsets[:-1][b.offsets[:-1] < npoint]] = True
+        T = np.concatenate([b.times[:1], b.steps])
+        T[first] = b.times[first]
+        ignore = skip[owner] | (first & ~(T > 0))  # a first point at time 0 is dropped at the start
+        if step_points:  # each point is commanded as given
+            reach = bound(mp, mv, ma)
+            reach[ignore] = 0.0
+            return reach
+        # the end values bound a Hermite segment's position, velocity and acceleration:
+        # |basis| <= 1, its derivatives <= ~6 / T^k; 100 leaves room for the cubic's own a.
+        # First the whole batch at once, from its largest values and longest and shortest segments
+        used = T[~ignore]
+        longest, shortest = used.max(initial=1.0), used[used > 0].min(initial=1.0)
+        Mp, Mv, Ma = mp.max(initial=0.0), mv.max(initial=0.0), ma.max(initial=0.0)
+        whole = 100.0 * bound(
+            Mp + Mv * longest + Ma * longest**2,
+            Mp / shortest + Mv + Ma * longest,
+            Mp / shortest**2 + Mv / shortest + Ma,
+        )
+        if whole < MAX_COMMAND:
+            return np.zeros(npoint)
+        m = magnitude
+        Mp, Mv, Ma = np.maximum(
+            m, np.where(first, 0.0, np.concatenate([np.zeros((3, 1)), m[:, :-1]], axis=1))
+        )
+        safe = np.where(T > 0, T, 1.0)
+        reach = 100.0 * bound(
+            Mp + Mv * safe + Ma * safe**2, Mp / safe + Mv + Ma * safe, Mp / safe**2 + Mv / safe + Ma
+        )
+        reach[ignore] = 0.0
+        close = np.flatnonzero(~(reach < MAX_COMMAND))
+        if close.size:  # the polynomial's own bound, sum |c_k| s^k over the segment
+            start = first[close][:, None]
+            before = np.maximum(close - 1, 0)
+            c = coefficients(
+                spline[owner[close]],
+                np.where(start, 0.0, p[before]),
+                p[close],
+                np.where(start, 0.0, v[before]),
+                v[close],
+                np.where(start, 0.0, a[before]),
+                a[close],
+                safe[close, None],
+            )
+            powers = safe[close, None, None] ** np.arange(6)[:, None]  # (n, 6, 1)
+            mag = np.abs(np.stack(c, axis=1))  # (n, 6, nj)
+            position = (mag * powers).sum(axis=1)
+            velocity = (mag[:, 1:] * np.arange(1, 6)[:, None] * powers[:, :5]).sum(axis=1)
+            acceleration = (mag[:, 2:] * np.array([2, 6, 12, 20])[:, None] * powers[:, :4]).sum(axis=1)
+            reach[close] = bound(position, velocity, acceleration).max(axis=1)
+    return reach
