@@ -16,6 +16,8 @@ enforced here, once; an illegal transition raises `LifecycleError` naming the st
 - `render(camera, worlds=None)` -> `(rgb (n, H, W, 3) uint8, depth (n, H, W) float32)`,
   `scan(lidar, worlds=None)` -> `(n, nray) float32`, `sensors` (batchsim.sensors): cameras,
   lidars and sensor noise; `true_state` / `true_sensordata` without the noise.
+- `body_poses(worlds=None)` -> `(xpos (n, nbody, 3), xquat (n, nbody, 4) w, x, y, z)` float64,
+  on demand only: the links' poses for tf (batchsim.model.frames).
 
 A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule
 on every backend: until `reset` lists it, it reads the noise-free values `read()` would have
@@ -24,8 +26,8 @@ with no fresh sensor noise, and the failure is logged once, naming the world and
 (`batchsim.failures`).
 
 A backend subclasses `BatchedSystem` and implements the engine hooks (`_open`, `_close`,
-`_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, and `_park` where the engine
-cannot skip a world); everything a user sees, checks and bookkeeping included, lives here
+`_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, `_body_poses`, and `_park` where the
+engine cannot skip a world); everything a user sees, checks and bookkeeping included, lives here
 so that every backend behaves the same.
 """
 
@@ -38,6 +40,7 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
 
+import mujoco
 import numpy as np
 
 from batchsim.actuation import Actuation
@@ -370,6 +373,7 @@ class BatchedSystem(SystemInterface):
         self._failure_log = FailureLog(self.name, self.nworld, mujoco_logs=self.name == "cpu")
         ensure_log_dir()  # MuJoCo's own log out of the working directory, unless placed already
         self._sensor_config: SensorConfig | None = None
+        self._shown_poses: tuple[np.ndarray, np.ndarray] | None = None  # body_poses()' last, per world
         self._sensors: SensorSuite | None = None
 
     @property
@@ -569,6 +573,34 @@ class BatchedSystem(SystemInterface):
         self._upload_ctrl()
         self._refresh()
         self._add_noise()
+
+    # --- body poses (tf) ---
+    def body_poses(self, worlds: Sequence[int] | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Every body's pose in the world frame, in all or the listed worlds (indices, in the order
+        given, or a bool mask): positions `(n, nbody, 3)` and orientation quaternions
+        `(n, nbody, 4)` (w, x, y, z), float64 arrays of the caller's own; body 0 is the world body.
+
+        They are MuJoCo's `xpos`/`xquat` as the engine computed them in its last step, i.e. the
+        kinematics of the state before the last physics substep, like `sensordata`; after
+        reset(), of the reset state. A frozen world shows the poses the last call gave it before
+        it froze (the initial state's, if no call did). Nothing is fetched or computed until
+        the first call (batchsim.model.frames turns them into tf transforms).
+        """
+        self._require("read body poses", frozenset({S.INACTIVE, S.ACTIVE}))
+        rows = self._worlds(worlds)
+        sel = np.arange(self.nworld) if rows is None else rows
+        xpos, xquat = self._body_poses(sel)
+        xpos, xquat = xpos.astype(np.float64, copy=False), xquat.astype(np.float64, copy=False)
+        if self._shown_poses is None:  # what a world that freezes goes on showing
+            mjd = mujoco.MjData(self.model)
+            self.spec.initial.apply(self.model, mjd)
+            self._shown_poses = (np.tile(mjd.xpos, (self.nworld, 1, 1)), np.tile(mjd.xquat, (self.nworld, 1, 1)))
+        frozen = self.frozen[sel]
+        for shown, now in zip(self._shown_poses, (xpos, xquat), strict=True):
+            if frozen.any():
+                now[frozen] = shown[sel[frozen]]
+            shown[sel] = now
+        return xpos, xquat
 
     # --- cameras, lidars and sensor noise (batchsim.sensors) ---
     @property
@@ -842,6 +874,11 @@ class BatchedSystem(SystemInterface):
     def _reset(self, worlds: np.ndarray | None) -> None:
         """Reset the listed worlds (None: all) to `spec.initial`. Their status is already clear."""
         raise NotImplementedError
+
+    def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The engine's `xpos` `(n, nbody, 3)` and `xquat` `(n, nbody, 4)` of `worlds` `(n,)`, any
+        float dtype, arrays the caller may keep and change; frozen worlds' rows are replaced."""
+        raise NotImplementedError(f"the {self.name} backend cannot report body poses")
 
     def _park(self, worlds: np.ndarray) -> None:
         """Worlds just frozen: for an engine that steps every world whatever happens, keep them

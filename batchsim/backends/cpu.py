@@ -9,6 +9,12 @@ a full contact or constraint buffer) or raises in it. MuJoCo has by then reset i
 step, so what it reads frozen comes from before the step() call: the host readings, when
 read() ran since the last step (the control loop's order), else a gather made just before
 stepping.
+
+Body poses (`body_poses()`) are the batch's `xpos`/`xquat` outputs, bound at the first call
+(a bound output is copied out of every world at every step from then on, so not before). Until
+the batch's next call on a world fills them, that world's come from mj_kinematics of its
+current state: exact when the first call follows configure() or reset(), one substep ahead of
+the contract's "before the last substep" when it follows a step().
 """
 
 from __future__ import annotations
@@ -63,6 +69,7 @@ class CpuSystem(BatchedSystem):
 
     def _close(self) -> None:
         del self._batch, self._fields, self._ctrl, self._warnings, self._warning_count, self._start
+        self._poses = self._unfilled = None
 
     def _ctrl_host(self) -> np.ndarray:
         return self._ctrl
@@ -78,6 +85,8 @@ class CpuSystem(BatchedSystem):
             start = self._start
             self._gather_fields(self._fields, *start)
         errors: dict[int, str] = {}
+        if self._unfilled is not None:  # the stepped worlds' bound poses get filled by this call
+            self._unfilled &= frozen
         try:
             if not frozen.any():
                 self._batch.step(nstep=nstep)
@@ -137,6 +146,8 @@ class CpuSystem(BatchedSystem):
 
     def _reset(self, worlds: np.ndarray | None) -> None:
         ids = None if worlds is None else worlds.astype(np.int32)
+        if self._unfilled is not None:
+            self._unfilled[slice(None) if worlds is None else worlds] = False
         initial = self.spec.initial
         if initial.source == "qpos0" and initial.time == 0.0:
             self._batch.reset(ids=ids)
@@ -150,6 +161,32 @@ class CpuSystem(BatchedSystem):
                 self._batch.bind(field)[rows] = value
         self._fields["time"][rows] = initial.time
         self._batch.forward(ids=ids)
+
+    # --- body poses: xpos and xquat, bound on the first body_poses() ---
+    _poses: tuple[np.ndarray, np.ndarray] | None = None
+    _unfilled: np.ndarray | None = None  # (nworld,) bool: rows the batch has not filled since binding
+
+    def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self._poses is None:
+            # bound only when asked for: a bound output is copied out of every world at every call
+            self._poses = (self._batch.bind("xpos"), self._batch.bind("xquat"))
+            self._unfilled = np.ones(self.nworld, bool)
+        xpos, xquat = (a[worlds] for a in self._poses)
+        if self._unfilled is not None:
+            if not self._unfilled.any():
+                self._unfilled = None
+            else:  # zero until the batch's next call on them: the current state's kinematics, this once
+                self._kinematics_now(worlds, self._unfilled[worlds], xpos, xquat)
+        return xpos, xquat
+
+    def _kinematics_now(self, worlds: np.ndarray, rows: np.ndarray, xpos: np.ndarray, xquat: np.ndarray) -> None:
+        """xpos/xquat of the current state into the `rows` (bool) of `worlds`: mj_kinematics per world."""
+        m = self.model
+        d = mujoco.MjData(m)
+        for k in np.flatnonzero(rows):
+            self._batch.get_data(int(worlds[k]), d)
+            mujoco.mj_kinematics(m, d)
+            xpos[k], xquat[k] = d.xpos, d.xquat
 
     # --- cameras and lidars: MuJoCo's renderer and the batch's threaded ray casting ---
     _host: HostSensors | None = None  # made on the first render or scan

@@ -308,6 +308,11 @@ class MjxSystem(DeviceSystem):
         self._clock[mask] = self.spec.initial.time
         self._packed = None
 
+    def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # both in one download, indexed on the host: a device-side gather compiles per world count
+        xpos, xquat = jax.device_get((self._d.xpos, self._d.xquat))
+        return np.asarray(xpos)[worlds], np.asarray(xquat)[worlds]
+
     # --- for users who stay on the device ---
     @property
     def data(self) -> mjx.Data:

@@ -291,6 +291,15 @@ class ShardedSystem(BatchedSystem):
             return PerDevice(self._each("device_ranges", lidar.name))
         return PerDevice([shard.system.scan(lidar.name, device=True) for shard in self.shards])  # type: ignore[union-attr]
 
+    def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # each shard's worlds in ascending order, then put back in the order asked for
+        order = np.argsort(worlds, kind="stable")
+        parts = self._run([(s, "body_poses", (local,)) for s, local in self._split(worlds[order])], self.processes)
+        xpos, xquat = np.empty((len(worlds), self.model.nbody, 3)), np.empty((len(worlds), self.model.nbody, 4))
+        if parts:
+            xpos[order], xquat[order] = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+        return xpos, xquat
+
     def _split(self, worlds: np.ndarray) -> list[tuple[LocalShard | ProcessShard, np.ndarray]]:
         """(shard, its local world indices) for the fleet's `worlds`, ascending, in shard order."""
         out = []

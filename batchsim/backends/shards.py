@@ -38,7 +38,8 @@ from batchsim.hardware import BatchedSystem, Frames, LifecycleState
 from batchsim.memory import Layout, Memory
 from batchsim.model import RobotSpec
 
-# what a shard serves besides write/step/read/reset: the lifecycle and the sensors
+# what a shard serves besides write/step/read/reset: the lifecycle, the sensors and the body
+# poses (an answer of host arrays, as a render's)
 CALLS = frozenset(
     {
         "initialize",
@@ -52,6 +53,7 @@ CALLS = frozenset(
         "perform_command_mode_switch",
         "render",
         "scan",
+        "body_poses",
     }
 )
 START_TIMEOUT = 300.0  # s: a shard process importing its backend and building its model

@@ -250,6 +250,24 @@ def _set_clock(
 
 
 @wp.kernel
+def _gather_poses(
+    worlds: wp.array(dtype=wp.int32),
+    xpos: wp.array2d(dtype=wp.vec3),
+    xquat: wp.array2d(dtype=wp.quat),
+    poses_out: wp.array3d(dtype=wp.float32),
+):
+    """poses_out[i, body] = xpos (3), then xquat (4, MuJoCo's order: w, x, y, z) of world worlds[i]."""
+    i, body = wp.tid()
+    w = worlds[i]
+    p = xpos[w, body]
+    q = xquat[w, body]
+    for k in range(3):
+        poses_out[i, body, k] = p[k]
+    for k in range(4):
+        poses_out[i, body, 3 + k] = q[k]
+
+
+@wp.kernel
 def _copy_rows(mask: wp.array(dtype=wp.bool), src: wp.array2d(dtype=Any), out: wp.array2d(dtype=Any)):
     w, j = wp.tid()
     if mask[w]:
@@ -417,6 +435,8 @@ class WarpSystem(DeviceSystem):
                     ("sensordata", wp.float32),
                     ("mocap_pos", wp.vec3),
                     ("mocap_quat", wp.quat),
+                    ("xpos", wp.vec3),  # body poses of the initial state, as cpu's reset computes them
+                    ("xquat", wp.quat),
                 )
                 if getattr(mjd, field).size
             }
@@ -725,6 +745,22 @@ class WarpSystem(DeviceSystem):
                 _set_clock, dim=self.nworld, inputs=[self._mask_dev, self._time0], outputs=[self._clock, d.time]
             )
             self._parked_dev.assign(self.frozen.astype(np.int32))
+
+    def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # gathered on the device, then one copy of just those worlds to the host
+        with wp.ScopedDevice(self.device):
+            index = wp.array(worlds.astype(np.int32), dtype=wp.int32)
+            poses = wp.empty((len(worlds), self.model.nbody, 7), dtype=wp.float32)
+            if len(worlds):
+                wp.launch(
+                    _gather_poses,
+                    dim=(len(worlds), self.model.nbody),
+                    inputs=[index, self._d.xpos, self._d.xquat],
+                    outputs=[poses],
+                    device=self.device,
+                )
+            host = poses.numpy()
+        return host[..., :3], host[..., 3:]
 
     # --- for users who stay on the device ---
     def device_arrays(self) -> dict[str, wp.array]:
