@@ -126,6 +126,9 @@ def run_parser() -> argparse.ArgumentParser:
         help="create every per-world topic at start (default: sensor, actuator and controller_state topics "
         "appear when someone subscribes or publishes)",
     )
+    ros.add_argument(
+        "--no-tf", action="store_true", help="publish no tf, tf_static or robot_description (default: every world's)"
+    )
     sens = p.add_argument_group("cameras, lidars and sensor noise")
     sens.add_argument(
         "--sensors",
@@ -410,7 +413,14 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
         world_offset=args.world_offset,
         clock=not args.no_clock,
         all_topics=args.all_topics,
+        tf=not args.no_tf,
+        description=args.ros2_control,
     )
+    from ros_bridge.interfaces import missing_line
+
+    missing = missing_line()
+    if missing:
+        print(f"batchsim: {missing}", file=sys.stderr)
     try:
         return start_bridge(sim, loop, options, manager)
     except OptionError as e:

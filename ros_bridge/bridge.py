@@ -88,6 +88,7 @@ def start_bridge(
         command_timeout=options.command_timeout,
         lockstep_timeout=options.lockstep_timeout,
         readers=readers,
+        manager=manager,
     )
     # rclpy aborts a process whose context is still up at exit: close even if the run fails
     atexit.register(host.close)

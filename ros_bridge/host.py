@@ -32,12 +32,15 @@ from typing import Any
 
 import numpy as np
 
+from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import Input, MessageKind
 from batchsim.hardware import BatchedSystem, Status
 from batchsim.loop import SimLoop
 from batchsim.memory import Memory, Ring
 from batchsim.model import InterfaceKind
+from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
 from ros_bridge.commands import RejectionWriter, SlotReader
+from ros_bridge.manager_link import ManagerLink
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, ChannelFill, FleetPlan, describe
 from ros_bridge.registry import Registry
 from ros_bridge.requests import Kind, concatenate, decode_reset, decode_ticket, decode_trajectories
@@ -102,6 +105,7 @@ class BridgeHost:
       command_timeout, lockstep_timeout: see BridgeOptions.
       readers: controllers that only read the state (broadcasters): after a reset while
         paused they are updated once, so what is published at once shows the reset state.
+      manager: the controllers, for the controller_manager services and the actions.
     """
 
     def __init__(
@@ -116,6 +120,7 @@ class BridgeHost:
         command_timeout: float | None = None,
         lockstep_timeout: float = 1.0,
         readers: Sequence[Any] = (),
+        manager: ControllerManager | None = None,
     ):
         self.sim = sim
         self.loop = loop
@@ -148,6 +153,8 @@ class BridgeHost:
         self.rejections = RejectionWriter(m, "hrej")
         self._worker_rejections = m["rej.count"]
         self._worker_rejections_seen = self._worker_rejections.copy()
+        # controller_manager's services and the actions' goals (switch, cancel, gripper goals)
+        self.manager_link = ManagerLink(manager, m, plan.namespaces) if manager is not None and plan.manager else None
         self._rings = [Ring(m, f"ring{j}") for j in range(plan.nworker)]
         self._channels = [m[f"ch{c}"] for c in range(len(plan.channels))]
         self.free = np.array([not o for o in plan.owners], dtype=bool)
@@ -158,6 +165,10 @@ class BridgeHost:
         for out in plan.outputs:
             for c in out.channels:
                 self._channel_every[c].add(out.every)
+        if plan.tf is not None:
+            self._channel_every[plan.tf.channel].add(plan.tf.every)
+        for action in plan.actions:
+            self._channel_every[action.channel].add(action.every)
 
         self.bad = np.zeros(n, dtype=bool)
         self._last_command = np.full(n, np.inf)  # sim time of the last command; inf: never
@@ -528,6 +539,15 @@ class BridgeHost:
                         self._steps.append((j, ticket, self.loop.sim_time))
                     else:
                         self._done(j, ticket, self.loop.sim_time, ok=False)
+                elif kind == Kind.CANCEL and self.manager_link is not None:
+                    index, world, goal = decode_cancel(payload)
+                    controller = self.manager_link.manager[self.plan.actions[index].controller]
+                    controller.cancel(np.array([world]), np.array([goal]))
+                elif kind == Kind.GRIPPER_GOAL and self.manager_link is not None:
+                    self._gripper_goal(payload)
+                elif kind == Kind.SWITCH and self.manager_link is not None:
+                    ticket, _, ok, message = self.manager_link.switch(payload)
+                    self._done(j, ticket, self.loop.sim_time, ok=ok, message=message)
         reset_rows: np.ndarray | None = None
         if resets:
             reset_rows = None if reset_all else np.unique(np.concatenate(reset_worlds))
@@ -547,6 +567,9 @@ class BridgeHost:
             if good is not None:
                 good[batch.worlds] = True
             self._refused(index, batch.worlds, refused, good, rejected)
+            if batch.goals is not None and refused:  # goals the controller refused: their workers answer
+                at = np.array([k for k, _ in refused], dtype=np.intp)
+                self.memory["goal.refused"][batch.worlds[at]] = batch.goals[at]
         return anything
 
     def _refused(
@@ -565,9 +588,22 @@ class BridgeHost:
             else:
                 self.bad[w] = True
 
-    def _done(self, worker: int, ticket: int, time: float, ok: bool) -> None:
+    def _gripper_goal(self, payload: np.ndarray) -> None:
+        """A GripperCommand goal to its controller; a refused one is marked for its worker."""
+        index, world, goal, position, max_effort = decode_gripper_goal(payload)
+        controller = self.manager_link.manager[self.plan.actions[index].controller]
+        refused = controller.set_goals(np.array([world]), np.array([goal]), np.array([position]), np.array([max_effort]))
+        for _, reason in refused:
+            self.rejections.put(world, self._period, f"{controller.name}/gripper_cmd: {reason}")
+            self.memory["goal.refused"][world] = goal
+
+    def _done(self, worker: int, ticket: int, time: float, ok: bool, message: str = "") -> None:
         m = self.memory
         m["svc.ok"][worker] = int(ok)
+        answer = m["svc.msg"][worker]
+        text = message.encode()[: len(answer)]
+        answer[:] = 0
+        answer[: len(text)] = np.frombuffer(text, np.uint8)
         m["svc.time"][worker] = time
         m["svc.done"][worker] = max(int(m["svc.done"][worker]), ticket)
         self._wake(worker)
@@ -692,6 +728,10 @@ def _select(batch: Any, keep: np.ndarray) -> Any:
         has_velocities=None if batch.has_velocities is None else batch.has_velocities[idx],
         accelerations=None if batch.accelerations is None else batch.accelerations[point_rows],
         has_accelerations=None if batch.has_accelerations is None else batch.has_accelerations[idx],
+        **{
+            k: None if getattr(batch, k) is None else getattr(batch, k)[idx]
+            for k in ("goals", "path_tolerance", "goal_tolerance", "goal_time_tolerance")
+        },
     )
 
 

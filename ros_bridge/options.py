@@ -60,6 +60,9 @@ class BridgeOptions:
       all_topics: create every per-world topic at start, also those otherwise created when
         someone asks (sensors, actuator commands, controller_state): for tools that list
         topics before they subscribe, at the price of discovery time in large fleets.
+      tf: publish tf, tf_static and robot_description (ros_bridge/worker/tf.py).
+      description: the user's robot description (`--ros2-control`, xacro arguments after
+        the path): robot_description publishes it where it is a URDF.
     """
 
     namespace: str = DEFAULT_TEMPLATE
@@ -75,6 +78,8 @@ class BridgeOptions:
     clock: bool = True
     startup_check: float = 1.0
     all_topics: bool = False
+    tf: bool = True
+    description: str | None = None
 
     def check(self) -> None:
         """OptionError for a value no fleet can run with (rates are checked against the loop later)."""

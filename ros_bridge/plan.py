@@ -23,15 +23,26 @@ from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import OUTPUT_FIELDS, Input, MessageKind, Output
 from batchsim.hardware import BatchedSystem
 from batchsim.memory import Layout, ring_arrays
+from ros_bridge.action_plan import (
+    ACTION_MONITOR_RATE,
+    GripperActionSpec,
+    TrajectoryActionSpec,
+    gripper_action,
+    trajectory_action,
+)
 from ros_bridge.commands import rejection_arrays, slot_arrays
+from ros_bridge.interfaces import available
+from ros_bridge.manager_link import ManagerSpec, manager_spec
 from ros_bridge.naming import ros_names, world_namespaces
 from ros_bridge.options import BridgeOptions, Reliability
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan
+from ros_bridge.tf_plan import TfSpec, tf_spec
 
 #: outputs whose topic holds one of these parts are created only when a subscriber appears
 ON_REQUEST_PARTS = ("/controller_state/",)
 RING_BASE = 1 << 18  # bytes of each worker's ring, plus RING_PER_WORLD per world it serves
 RING_PER_WORLD = 8 << 10
+SERVICE_MESSAGE = 1024  # bytes of a service answer's message the loop hands back
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,6 +139,9 @@ class FleetPlan:
       startup_check: seconds worker 0 watches the graph for another fleet at start.
       all_topics: create the on-request topics at start too.
       sensors: cameras and lidars (ros_bridge/sensor_topics.py), or None.
+      tf: the tf tree and robot description, or None.
+      manager: the controller_manager services' data, or None without controllers.
+      actions: the FollowJointTrajectory and GripperCommand actions (ros_bridge/action_plan.py).
       layout, memory_name: the shared arrays.
     """
 
@@ -150,6 +164,9 @@ class FleetPlan:
     startup_check: float
     all_topics: bool = False
     sensors: SensorPlan | None = None
+    tf: TfSpec | None = None
+    manager: ManagerSpec | None = None
+    actions: list[TrajectoryActionSpec | GripperActionSpec] = dataclasses.field(default_factory=list)
     layout: Layout = dataclasses.field(init=False)
     memory_name: str | None = None
 
@@ -167,6 +184,7 @@ class FleetPlan:
             ("svc.done", (nw,), "i8"),  # per worker: the last ticket the loop carried out
             ("svc.time", (nw,), "f8"),  # the sim time when it did
             ("svc.ok", (nw,), "i8"),  # 1 when it succeeded
+            ("svc.msg", (nw, SERVICE_MESSAGE), "u1"),  # the answer's message, utf-8, NUL-padded
             ("beat", (nw,), "i8"),  # per worker: ticks served
         ]
         for c, ch in enumerate(self.channels):
@@ -180,6 +198,10 @@ class FleetPlan:
         arrays += rejection_arrays("rej", n) + rejection_arrays("hrej", n)
         if self.sensors is not None:
             arrays += self.sensors.arrays(n)
+        if self.manager is not None:
+            arrays.append(("cm.active", (n, max(1, len(self.manager.controllers))), "u1"))
+        if self.actions:  # per world: the last goal tag a controller refused (its reason in hrej)
+            arrays.append(("goal.refused", (n,), "i8"))
         for j, (lo, hi) in enumerate(self.ranges):
             arrays += ring_arrays(f"ring{j}", RING_BASE + RING_PER_WORLD * (hi - lo))
         self.layout = Layout(arrays)
@@ -356,7 +378,9 @@ def build_plan(
         outputs.append(_controller_output(out, nworld, publish_every, channel))
     for t in topics:
         for out in t.outputs:
-            outputs.append(_controller_output(out, nworld, publish_every, channel))
+            package = out.kind.value.partition("/")[0]
+            if available().get(package, True):  # a message package batchsim builds, missing: no topic
+                outputs.append(_controller_output(out, nworld, publish_every, channel))
         for inp in t.inputs:
             slots = f"in{len(inputs)}"
             width = 0 if inp.kind is MessageKind.JOINT_TRAJECTORY else inp.row_width()
@@ -364,6 +388,19 @@ def build_plan(
             input_specs.append(
                 InputSpec(inp.topic, inp.kind, slots, width, tuple(inp.joints), inp.max_points, t.controller)
             )
+
+    tf = tf_spec(sim, publish_every, channel, options.description) if options.tf and available()["tf2_msgs"] else None
+    actions: list[TrajectoryActionSpec | GripperActionSpec] = []
+    if manager is not None and available()["control_msgs"]:
+        monitor_every = max(1, round(control_rate / ACTION_MONITOR_RATE))
+        for k, c in enumerate(manager):
+            if not hasattr(c, "cancel"):  # the controllers that serve an action
+                continue
+            if hasattr(c, "set_goals"):  # GripperCommand: the gripper action controllers
+                actions.append(gripper_action(c, k, monitor_every, channel))
+                continue
+            i = next(i for i, spec in enumerate(input_specs) if spec.controller == c.name and spec.joints)
+            actions.append(trajectory_action(c, k, i, monitor_every, input_specs[i].max_points, channel))
 
     nworker = max(1, nworker)
     ranges = split(nworld, nworker)
@@ -388,6 +425,9 @@ def build_plan(
         startup_check=options.startup_check,
         all_topics=options.all_topics,
         sensors=sensor_plan(sim),
+        tf=tf,
+        actions=actions,
+        manager=manager_spec(sim, manager, control_rate) if manager is not None else None,
     )
     return plan, fills, inputs
 

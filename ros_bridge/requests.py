@@ -10,6 +10,7 @@ the last ticket it carried out back to shared memory, and the worker answers the
 from __future__ import annotations
 
 import enum
+import json
 import struct
 
 import numpy as np
@@ -24,9 +25,12 @@ class Kind(enum.IntEnum):
     RESET = 2
     PAUSE = 3
     STEP = 4
+    SWITCH = 5  # controller_manager's switch_controller in one world
+    CANCEL = 6  # an action goal canceled (ros_bridge/action_plan.py)
+    GRIPPER_GOAL = 7  # a GripperCommand goal (ros_bridge/action_plan.py)
 
 
-_TRAJ = struct.Struct("<iiiiii")  # input index, trajectories, points, joints, has velocities, has accelerations
+_TRAJ = struct.Struct("<iiiiiiii")  # input, trajectories, points, joints, has velocities, accelerations, goals, 0
 _TICKET = struct.Struct("<qq")  # ticket, argument
 
 
@@ -40,8 +44,9 @@ def encode_trajectories(input_index: int, batch: TrajectoryBatch) -> bytes:
     npoint = int(batch.offsets[-1])
     has_v = batch.velocities is not None
     has_a = batch.accelerations is not None
+    has_g = batch.goals is not None
     parts = [
-        _TRAJ.pack(input_index, n, npoint, nj, int(has_v), int(has_a)),
+        _TRAJ.pack(input_index, n, npoint, nj, int(has_v), int(has_a), int(has_g), 0),
         np.asarray(batch.worlds, np.int64).tobytes(),
         np.asarray(batch.start_time, np.float64).tobytes(),
         np.asarray(batch.offsets, np.int64).tobytes(),
@@ -59,13 +64,16 @@ def encode_trajectories(input_index: int, batch: TrajectoryBatch) -> bytes:
         parts.append(np.ascontiguousarray(batch.velocities, np.float64).tobytes())
     if has_a:
         parts.append(np.ascontiguousarray(batch.accelerations, np.float64).tobytes())
+    if has_g:  # FollowJointTrajectory goals: their tags and tolerances
+        path, goal, goal_time = _tolerances(batch)
+        parts += [np.asarray(batch.goals, np.int64).tobytes(), path.tobytes(), goal.tobytes(), goal_time.tobytes()]
     head = parts[0]
     return head + bytes(_pad8(len(head)) - len(head)) + b"".join(parts[1:])
 
 
 def decode_trajectories(payload: np.ndarray) -> tuple[int, TrajectoryBatch]:
     """(input index, the batch) of a TRAJECTORY record's payload (views of it)."""
-    index, n, npoint, nj, has_v, has_a = _TRAJ.unpack_from(payload, 0)
+    index, n, npoint, nj, has_v, has_a, has_g, _ = _TRAJ.unpack_from(payload, 0)
     at = _pad8(_TRAJ.size)
 
     def take(count: int, dtype: str, pad: bool = False) -> np.ndarray:
@@ -84,6 +92,10 @@ def decode_trajectories(payload: np.ndarray) -> tuple[int, TrajectoryBatch]:
     flags = take(2 * n, "u1", pad=True).reshape(2, n).astype(bool)
     velocities = take(npoint * nj, "f8").reshape(npoint, nj) if has_v else None
     accelerations = take(npoint * nj, "f8").reshape(npoint, nj) if has_a else None
+    goals = take(n, "i8") if has_g else None
+    path = take(n * nj * 3, "f8").reshape(n, nj, 3) if has_g else None
+    goal = take(n * nj * 3, "f8").reshape(n, nj, 3) if has_g else None
+    goal_time = take(n, "f8") if has_g else None
     batch = TrajectoryBatch(
         worlds=worlds,
         start_time=start,
@@ -95,8 +107,23 @@ def decode_trajectories(payload: np.ndarray) -> tuple[int, TrajectoryBatch]:
         has_velocities=flags[0],
         accelerations=accelerations,
         has_accelerations=flags[1],
+        goals=goals,
+        path_tolerance=path,
+        goal_tolerance=goal,
+        goal_time_tolerance=goal_time,
     )
     return index, batch
+
+
+def _tolerances(batch: TrajectoryBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A batch's (path, goal, goal time) tolerances, the defaults (0) where it has none."""
+    n, nj = batch.joint_mask.shape
+
+    def per_joint(value: np.ndarray | None) -> np.ndarray:
+        return np.zeros((n, nj, 3)) if value is None else np.ascontiguousarray(value, np.float64).reshape(n, nj, 3)
+
+    goal_time = np.zeros(n) if batch.goal_time_tolerance is None else np.asarray(batch.goal_time_tolerance, np.float64)
+    return per_joint(batch.path_tolerance), per_joint(batch.goal_tolerance), np.ascontiguousarray(goal_time)
 
 
 def concatenate(batches: list[TrajectoryBatch]) -> TrajectoryBatch:
@@ -127,7 +154,17 @@ def concatenate(batches: list[TrajectoryBatch]) -> TrajectoryBatch:
             [getattr(b, attr) if getattr(b, attr) is not None else np.zeros(len(b), bool) for b in batches]
         )
 
+    goals: dict[str, np.ndarray | None] = {}
+    if any(b.goals is not None for b in batches):
+        parts = [_tolerances(b) for b in batches]
+        goals = {
+            "goals": np.concatenate([b.goals if b.goals is not None else np.zeros(len(b), np.int64) for b in batches]),
+            "path_tolerance": np.concatenate([p[0] for p in parts]),
+            "goal_tolerance": np.concatenate([p[1] for p in parts]),
+            "goal_time_tolerance": np.concatenate([p[2] for p in parts]),
+        }
     return TrajectoryBatch(
+        **goals,
         worlds=np.concatenate([b.worlds for b in batches]),
         start_time=np.concatenate([b.start_time for b in batches]),
         joint_mask=np.concatenate([b.joint_mask for b in batches]),
@@ -163,3 +200,19 @@ def decode_reset(payload: np.ndarray) -> tuple[int, np.ndarray | None]:
     if n < 0:
         return ticket, None
     return ticket, payload[_TICKET.size : _TICKET.size + 8 * n].view(np.int64).copy()
+
+
+_SWITCH = struct.Struct("<qqii")  # ticket, world, strictness, activate_asap
+
+
+def encode_switch(ticket: int, world: int, activate: list[str], deactivate: list[str], strictness: int, asap: bool) -> bytes:
+    """switch_controller in one world (a local index)."""
+    names = json.dumps([list(activate), list(deactivate)]).encode()
+    return _SWITCH.pack(ticket, world, strictness, int(asap)) + names
+
+
+def decode_switch(payload: np.ndarray) -> tuple[int, int, list[str], list[str], int, bool]:
+    """(ticket, world, activate, deactivate, strictness, activate_asap)."""
+    ticket, world, strictness, asap = _SWITCH.unpack_from(payload, 0)
+    activate, deactivate = json.loads(payload[_SWITCH.size :].tobytes().rstrip(b"\0").decode())
+    return ticket, world, activate, deactivate, strictness, bool(asap)

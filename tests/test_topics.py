@@ -27,7 +27,8 @@ def test_every_default_controller_declares_its_topics():
                     assert np.shape(values)[0] == 2, (c.name, o.topic, field)
     jtc = "joint_trajectory_controller"
     assert seen["JointTrajectoryController"] == (
-        [(f"{jtc}/controller_state/{p}", MessageKind.JOINT_STATE) for p in ("reference", "feedback", "error")],
+        [(f"{jtc}/controller_state", MessageKind.JOINT_TRAJECTORY_CONTROLLER_STATE)]
+        + [(f"{jtc}/controller_state/{p}", MessageKind.JOINT_STATE) for p in ("reference", "feedback", "error")],
         [(f"{jtc}/joint_trajectory", MessageKind.JOINT_TRAJECTORY)],
         False,
     )

@@ -25,9 +25,11 @@ sends SIGTERM through PR_SET_PDEATHSIG) or sends `q`.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import select
+import sys
 import threading
 import time as wallclock
 from collections.abc import Callable
@@ -47,6 +49,7 @@ from std_msgs.msg import Float64, Float64MultiArray
 from batchsim.controllers.topics import MessageKind, trajectory_batch
 from batchsim.memory import Memory, Ring
 from ros_bridge.commands import Problem, SlotWriter, check_single, check_vector
+from ros_bridge.interfaces import available
 from ros_bridge.options import Reliability
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan, OutputSpec
 from ros_bridge.requests import Kind, encode_trajectories
@@ -68,6 +71,7 @@ from ros_bridge.worker.services import LoopRequests, create_loop_services
 SUBSCRIBER_REFRESH = 0.5  # s: subscriber counts re-read (lazy publishing)
 GRAPH_SCAN = 1.0  # s: topics created on request, commands to unknown actuators
 DIAGNOSTICS_PERIOD = 0.5  # s
+ACTION_POLL = 0.005  # s: while goals are in flight, their feedback and results wait at most this
 FLUSH_AFTER = 0.001  # s: trajectories reach the loop this long after they arrive, at most
 _ACTUATOR_TOPIC = re.compile(r"^/(.+)/actuators/([^/]+)/command$")
 
@@ -180,6 +184,10 @@ class Worker:
         self.diagnostics: Diagnostics | None = None
         self.published = 0  # messages published, for benchmarks
         self.sensors: SensorPublishers | None = None  # cameras and lidars (ros_bridge/worker/sensors.py)
+        self.actions: Any = None  # FollowJointTrajectory servers (ros_bridge/worker/actions.py)
+        self._pending_goals: dict[int, dict[int, tuple]] = {}  # input -> {message index: goal}
+        self.manager: Any = None  # controller_manager services (ros_bridge/worker/controller_manager.py)
+        self.tf: Any = None  # tf, tf_static, robot_description (ros_bridge/worker/tf.py)
 
     # --- start ---
     def check_conflicts(self) -> tuple[str, str] | None:
@@ -230,16 +238,38 @@ class Worker:
                     callback = self._input_callback(spec, slots, counter, w, topic)
                 self._subscribe(msg_type, topic, callback)
 
+        if plan.tf is not None:  # the plan has one only where tf2_msgs is there
+            from ros_bridge.worker.tf import TfPublishers
+
+            self.tf = TfPublishers(node, plan.tf, self.namespaces, all_topics=plan.all_topics)
         if plan.sensors is not None:
             self.sensors = SensorPublishers(
                 node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, all_topics=plan.all_topics
             )
         create_loop_services(node, self.requests, self.namespaces, self.lo, fleet=self.index == 0)
+        if plan.actions:  # the plan has them only where control_msgs is there
+            from ros_bridge.worker.actions import ActionServers
+
+            self.actions = ActionServers(
+                node, plan.actions, self.memory, self.requests, self.namespaces, self.lo, self.index,
+                self._submit, lambda: self.snapshot.time,
+            )  # fmt: skip
+        if plan.manager is not None and available()["controller_manager_msgs"]:
+            from ros_bridge.worker.controller_manager import ControllerManagerServices
+
+            self.manager = ControllerManagerServices(
+                node, plan.manager, self.memory, self.requests, self.namespaces, self.lo
+            )
 
     def start(self) -> None:
         """Spin the executor on its own thread."""
         self.executor = EventsExecutor(context=self.context)
         self.executor.add_node(self.node)
+        # the EventsExecutor prints two lines to stdout for every timer beyond 8 on a clock
+        # when it first takes them in, and every action server has one (rcl_action's goal
+        # expiry): a fleet's hundreds would flood the console with them
+        with _stdout_silenced():
+            self.executor.spin_once(timeout_sec=0)
         self._running = True
         self._thread = threading.Thread(target=self._spin, name=f"ros_bridge_{self.index}", daemon=True)
         self._thread.start()
@@ -273,6 +303,8 @@ class Worker:
         snap = self._read_snapshot()
         if snap is not None:
             self._publish(snap)
+            if self.actions is not None:
+                self.actions.update(snap.channels, snap.time)
         if self.sensors is not None:
             self.sensors.publish()
         done = int(self._svc_done[self.index])
@@ -329,6 +361,9 @@ class Worker:
         for out in self._active:
             if snap.forced or snap.period % out.spec.every == 0:
                 self._publish_rows(out, snap, out.rows, sec, nanosec)
+        tf = self.tf
+        if tf is not None and tf.wanted and tf.channel in snap.channels:
+            self.published += tf.publish(snap.channels[tf.channel], sec, nanosec)
 
     def _publish_rows(self, out: _Output, snap: Snapshot, rows: list[int], sec: int, nanosec: int) -> None:
         spec = out.spec
@@ -364,6 +399,12 @@ class Worker:
         self._active = active
         if self.sensors is not None:
             self.sensors.refresh()
+        if self.tf is not None:
+            self.tf.refresh()
+            if self.tf.wanted:
+                demand[self.tf.channel] = 1
+        if self.actions is not None:
+            demand[self.actions.channels()] = 1
         if len(demand):
             self.memory["demand"][self.index, : len(demand)] = demand
         if self._clock_pub is not None:
@@ -377,7 +418,9 @@ class Worker:
         commands to actuators this model does not have."""
         node = self.node
         for name, _types in node.get_topic_names_and_types():
-            if self.sensors is not None and self.sensors.requested(name):
+            if (self.sensors is not None and self.sensors.requested(name)) or (
+                self.tf is not None and self.tf.requested(name)
+            ):
                 self._due["refresh"] = 0.0
                 continue
             hit = self._on_request.get(name)
@@ -409,9 +452,18 @@ class Worker:
 
     # --- the executor thread ---
     def _spin(self) -> None:
+        actions = self.actions
         while self._running:
+            if self._pending:
+                timeout = FLUSH_AFTER
+            elif actions is not None and actions.busy:
+                timeout = ACTION_POLL  # feedback and results the loop thread queued
+            else:
+                timeout = 0.1
             try:
-                self.executor.spin_once(timeout_sec=FLUSH_AFTER if self._pending else 0.1)
+                self.executor.spin_once(timeout_sec=timeout)
+                if actions is not None:
+                    actions.drain()
             except (ExternalShutdownException, ShutdownException):
                 break
             except Exception as e:  # a failing callback must not end the worker
@@ -483,20 +535,29 @@ class Worker:
             if spec.max_points and len(parsed[1]) > spec.max_points:
                 self._reject(w, topic, Problem.MALFORMED, f"{len(parsed[1])} points, more than {spec.max_points}")
                 return
-            with self._pending_lock:
-                if not self._pending:
-                    self._pending_since = wallclock.monotonic()
-                self._pending.setdefault(i, []).append((w, *parsed))
+            self._submit(i, w, parsed)
 
         return callback
+
+    def _submit(self, i: int, w: int, parsed: tuple, goal: tuple | None = None) -> None:
+        """A trajectory for input `i` in world `w`, handed to the loop with the next flush;
+        `goal`: (tag, path tolerance, goal tolerance, goal time tolerance) of an action goal."""
+        with self._pending_lock:
+            if not self._pending:
+                self._pending_since = wallclock.monotonic()
+            messages = self._pending.setdefault(i, [])
+            if goal is not None:
+                self._pending_goals.setdefault(i, {})[len(messages)] = goal
+            messages.append((w, *parsed))
 
     def _flush(self) -> None:
         """Hand every trajectory that arrived to the loop: one ring record per input."""
         with self._pending_lock:
             pending, self._pending = self._pending, {}
+            goals, self._pending_goals = self._pending_goals, {}
         for i, messages in pending.items():
             spec = self.plan.inputs[i]
-            batch, kept, rejected = trajectory_batch(spec.joints, messages)
+            batch, kept, rejected = trajectory_batch(spec.joints, messages, **_goal_arrays(goals.get(i), len(messages), len(spec.joints)))
             for k, reason in rejected:
                 w = messages[k][0]
                 self._reject(w, f"/{self.plan.namespaces[w]}/{spec.topic}", Problem.MALFORMED, reason)
@@ -512,3 +573,28 @@ class Worker:
                 continue
             np.add.at(self.memory[f"{spec.slots}.seq"], batch.worlds, 1)
         self._nudge()
+
+
+def _goal_arrays(goals: dict[int, tuple] | None, n: int, njoint: int) -> dict[str, Any]:
+    """trajectory_batch's goal arguments for `n` messages, the `goals` among them
+    ({message index: (tag, path (njoint, 3), goal (njoint, 3), goal time tolerance)})."""
+    if not goals:
+        return {}
+    tags, path, final, goal_time = np.zeros(n, np.int64), np.zeros((n, njoint, 3)), np.zeros((n, njoint, 3)), np.zeros(n)
+    for k, (tag, p, g, t) in goals.items():
+        tags[k], path[k], final[k], goal_time[k] = tag, p, g, t
+    return {"goals": tags, "path_tolerance": path, "goal_tolerance": final, "goal_time_tolerance": goal_time}
+
+
+@contextlib.contextmanager
+def _stdout_silenced():
+    """File descriptor 1 points at /dev/null for the duration (C++ writes too)."""
+    sys.stdout.flush()
+    saved, null = os.dup(1), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(null)

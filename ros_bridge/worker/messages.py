@@ -218,6 +218,11 @@ FIELD_PATHS: dict[str, dict[str, str | tuple[str, ...]]] = {
         "angular": _vec("twist.twist.angular"),
     },
     "geometry_msgs/msg/PoseStamped": {"position": _vec("pose.position"), "orientation": _quat("pose.orientation")},
+    "control_msgs/msg/JointTrajectoryControllerState": {
+        f"{part}_{quantity}": f"{part}.{quantity}"
+        for part in ("reference", "feedback", "error", "output")
+        for quantity in ("positions", "velocities", "accelerations")
+    },
     "std_msgs/msg/Float64": {"data": ("data",)},
     "std_msgs/msg/Float64MultiArray": {"data": "data"},
 }
@@ -231,6 +236,11 @@ COVARIANCE_PATHS: dict[str, dict[str, str]] = {
     },
     "nav_msgs/msg/Odometry": {"pose": "pose.covariance", "twist": "twist.covariance"},
 }
+
+#: per message type, the field OutputSpec.names fills (default: JointState's `name`)
+NAME_PATHS: dict[str, str] = {"control_msgs/msg/JointTrajectoryControllerState": "joint_names"}
+#: per message type, constant fields every message carries
+CONSTANTS: dict[str, dict[str, Any]] = {"control_msgs/msg/JointTrajectoryControllerState": {"speed_scaling_factor": 1.0}}
 
 _STAMP_SEC, _STAMP_NANOSEC = 0x5A3C5A3C, 0x2A5C2A5C  # markers: where the stamp lies
 _CLOCK = struct.Struct("<4siI")
@@ -309,7 +319,9 @@ class BulkMessages:
             if spec.child_frame_id:
                 msg.child_frame_id = spec.child_frame_id.replace("{ns}", ns)
             if spec.names:
-                msg.name = list(spec.names)
+                _set(msg, NAME_PATHS.get(spec.msg_type, "name"), list(spec.names))
+            for path, value in CONSTANTS.get(spec.msg_type, {}).items():
+                _set(msg, path, value)
             for part, values in spec.covariance:
                 _set(msg, cov_paths[part], [float(v) for v in values])
             k = 0
@@ -352,6 +364,39 @@ class BulkMessages:
         """Row `row`'s message, serialized."""
         g, i = self._where[row]
         return g.buf[i].tobytes()
+
+
+def locate_markers(data: bytes, n: int, what: str) -> np.ndarray:
+    """(n,) byte offsets of the float64 markers `_markers(n)` in a serialized message: each
+    must lie exactly once (CDR aligns a float64 to 8 bytes past the 4-byte header)."""
+    body = np.frombuffer(data, np.uint8, count=(len(data) - 4) // 8 * 8, offset=4).view("<u8")
+    tagged = np.flatnonzero((body & np.uint64(0xFFFF_FF00_0000_00FF)) == np.uint64(0x7E3A_5C00_0000_00A5))
+    index = ((body[tagged] >> np.uint64(8)) & np.uint64(0xFFFF_FFFF)).astype(np.int64)
+    at = np.full(n, -1, np.int64)
+    at[index[index < n]] = 4 + 8 * tagged[index < n]
+    if (at < 0).any() or len(np.unique(index)) != len(index) or len(index) != n:
+        raise RuntimeError(f"{what}: cannot lay out the serialized message (a marker is missing or repeated)")
+    return at
+
+
+def locate_stamps(data: bytes) -> np.ndarray:
+    """Byte offsets of every header stamp marker (`_STAMP_SEC`, `_STAMP_NANOSEC`)."""
+    pattern = struct.pack("<iI", _STAMP_SEC, _STAMP_NANOSEC)
+    found, at = [], data.find(pattern)
+    while at >= 0:
+        found.append(at)
+        at = data.find(pattern, at + 8)
+    return np.array(found, dtype=np.intp)
+
+
+def set_stamp_marker(stamp: Any) -> None:
+    """Mark a builtin_interfaces/Time so that `locate_stamps` finds it once serialized."""
+    stamp.sec, stamp.nanosec = _STAMP_SEC, _STAMP_NANOSEC
+
+
+def stamp_bytes(sec: int, nanosec: int) -> np.ndarray:
+    """A stamp as the 8 bytes CDR holds."""
+    return np.frombuffer(struct.pack("<iI", sec, nanosec), np.uint8)
 
 
 def _find_once(data: bytes, pattern: bytes, topic: str) -> int:

@@ -67,6 +67,10 @@ class LoopRequests:
         """Whether the last request the loop carried out succeeded."""
         return bool(self.memory["svc.ok"][self.index])
 
+    def message(self) -> str:
+        """The message the loop gave with its answer to the last request."""
+        return self.memory["svc.msg"][self.index].tobytes().rstrip(b"\0").decode(errors="replace")
+
     def time(self) -> float:
         """The sim time at which the loop carried out the last request."""
         return float(self.memory["svc.time"][self.index])

@@ -1,0 +1,402 @@
+"""The ROS stack at fleet scale: joint_states and tf on every world, and action goals, at real time.
+
+    .venv/bin/python benchmarks/ros_stack.py --preset 2core   # 16 arms, 100 Hz, a goal per world per second
+    .venv/bin/python benchmarks/ros_stack.py --preset gpu     # 1024 arms on warp, 100 Hz, 1024 goals at once
+
+The loop runs in this process (a SimLoop with the arm's default controllers and the ROS 2
+bridge, its workers in processes of their own), paced at RTF 1. Beside it:
+
+  subscribers   K processes, each taking a contiguous share of the worlds: every world's
+                `joint_states` and `tf` (`/<ns>/tf`), counted raw (no deserialization);
+                the first also takes the fleet-wide `/tf` (one message per bridge worker
+                and period, every world's transforms in it)
+  goal clients  G processes, each with a FollowJointTrajectory client per world of its
+                share: `burst` sends every world one goal at the same moment and waits for
+                every result; `rate` sends every world a goal each 1/R s
+
+Reported: the RTF held; the loop's own time per control period (read, controllers, bridge,
+write, step; the pacing sleep excluded), median and worst, against the period's budget;
+messages received against expected for each topic kind; goals sent, results by status,
+and the time from a burst to its last result. With `--capacity`, the same host's plain
+rclpy capacity for small messages, K publisher and K subscriber processes, measured in the
+same run, to show where Python subscribers are the ceiling. Nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+ARM = [f"joint{i}" for i in range(1, 7)]
+JTC = "joint_trajectory_controller"
+
+PRESETS = {
+    "2core": dict(backend="cpu", worlds=16, control=100.0, subscribers=1, goal_clients=1, goals="rate", goal_rate=1.0),
+    "gpu": dict(backend="warp", worlds=1024, control=100.0, subscribers=8, goal_clients=8, goals="burst", goal_rate=0.0),
+}
+
+
+def _env() -> dict[str, str]:
+    extra = os.environ.get("PYTHONPATH")
+    return {**os.environ, **LOCALHOST, "PYTHONPATH": str(ROOT) + (os.pathsep + extra if extra else "")}
+
+
+def _init(domain: int, name: str):
+    os.environ.update(LOCALHOST)
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+
+    context = Context()
+    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    return context, Node(name, context=context)
+
+
+def _until_stdin_closes() -> threading.Event:
+    stop = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    return stop
+
+
+# --- child processes ---
+def subscriber(domain: int, lo: int, hi: int, fleet_tf: bool) -> None:
+    """Count joint_states and tf of worlds lo..hi-1 (and /tf): `count <wall> <js> <tf> <fleet tf>`."""
+    from rclpy.experimental import EventsExecutor
+    from sensor_msgs.msg import JointState
+    from tf2_msgs.msg import TFMessage
+
+    context, node = _init(domain, f"stack_subscriber_{lo}")
+    counts = [0, 0, 0]
+
+    def counter(k: int):
+        def callback(msg: bytes) -> None:
+            counts[k] += 1
+
+        return callback
+
+    for w in range(lo, hi):
+        node.create_subscription(JointState, f"/world_{w}/joint_states", counter(0), 10, raw=True)
+        node.create_subscription(TFMessage, f"/world_{w}/tf", counter(1), 100, raw=True)
+    if fleet_tf:
+        node.create_subscription(TFMessage, "/tf", counter(2), 100, raw=True)
+    executor = EventsExecutor(context=context)
+    executor.add_node(node)
+    stop = _until_stdin_closes()
+    next_report = time.time()
+    while not stop.is_set():
+        executor.spin_once(timeout_sec=0.05)
+        if time.time() >= next_report:
+            next_report = time.time() + 0.25
+            print(f"count {time.time():.3f} {counts[0]} {counts[1]} {counts[2]}", flush=True)
+
+
+def goal_client(domain: int, lo: int, hi: int, mode: str, rate: float, start: float) -> None:
+    """FollowJointTrajectory goals to worlds lo..hi-1 from wall time `start`: `sent <wall> <n>`,
+    `result <wall> <status> <error_code>` per result."""
+    from builtin_interfaces.msg import Duration
+    from control_msgs.action import FollowJointTrajectory
+    from rclpy.action import ActionClient
+    from rclpy.executors import SingleThreadedExecutor
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    context, node = _init(domain, f"stack_goals_{lo}")
+    clients = [ActionClient(node, FollowJointTrajectory, f"/world_{w}/{JTC}/follow_joint_trajectory") for w in range(lo, hi)]
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    for c in clients:
+        c.wait_for_server(timeout_sec=60)
+    lock = threading.Lock()
+
+    def done(future) -> None:
+        r = future.result()
+        with lock:
+            print(f"result {time.time():.3f} {r.status} {r.result.error_code} {r.result.error_string!r}", flush=True)
+
+    def accepted(future) -> None:
+        handle = future.result()
+        if not handle.accepted:
+            with lock:
+                print(f"result {time.time():.3f} rejected -", flush=True)
+            return
+        handle.get_result_async().add_done_callback(done)
+
+    def send(k: int) -> None:
+        target = [0.3 * np.sin(k + j) for j in range(6)]
+        point = JointTrajectoryPoint(positions=[float(x) for x in target], time_from_start=Duration(nanosec=500_000_000))
+        goal = FollowJointTrajectory.Goal(trajectory=JointTrajectory(joint_names=ARM, points=[point]))
+        for c in clients:
+            c.send_goal_async(goal).add_done_callback(accepted)
+
+    stop = _until_stdin_closes()
+    while time.time() < start and not stop.is_set():
+        time.sleep(0.005)
+    k = 0
+    while not stop.is_set():
+        send(k)
+        with lock:
+            print(f"sent {time.time():.3f} {len(clients)}", flush=True)
+        k += 1
+        if mode == "burst":
+            break
+        stop.wait(1.0 / rate)
+    stop.wait()
+    time.sleep(2.0)  # the results of goals still in flight
+
+
+def publisher_pair(domain: int, index: int, seconds: float) -> None:
+    """Plain rclpy capacity: publish std_msgs/Float64MultiArray (6 values) flat out; `published <n>`."""
+    from std_msgs.msg import Float64MultiArray
+
+    context, node = _init(domain, f"cap_pub_{index}")
+    pub = node.create_publisher(Float64MultiArray, f"/cap_{index}", 10)
+    time.sleep(2.0)  # discovery
+    msg = Float64MultiArray(data=[0.0] * 6)
+    n, end = 0, time.time() + seconds
+    while time.time() < end:
+        pub.publish(msg)
+        n += 1
+    print(f"published {n}", flush=True)
+
+
+def capacity_subscriber(domain: int, index: int, seconds: float) -> None:
+    from rclpy.experimental import EventsExecutor
+    from std_msgs.msg import Float64MultiArray
+
+    context, node = _init(domain, f"cap_sub_{index}")
+    count = [0]
+    node.create_subscription(Float64MultiArray, f"/cap_{index}", lambda m: count.__setitem__(0, count[0] + 1), 10, raw=True)
+    executor = EventsExecutor(context=context)
+    executor.add_node(node)
+    end = time.time() + seconds + 3.0
+    while time.time() < end:
+        executor.spin_once(timeout_sec=0.05)
+    print(f"received {count[0]}", flush=True)
+
+
+# --- the parent ---
+class Children:
+    """Child processes of this script, their output lines with the wall time they came."""
+
+    def __init__(self, argvs: list[list[str]]):
+        self.procs = [
+            subprocess.Popen([sys.executable, __file__, *a], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=_env())
+            for a in argvs
+        ]
+        self.lines: list[list[str]] = [[] for _ in self.procs]
+        for i in range(len(self.procs)):
+            threading.Thread(target=self._read, args=(i,), daemon=True).start()
+
+    def _read(self, i: int) -> None:
+        for line in self.procs[i].stdout:
+            self.lines[i].append(line.split())
+
+    def close(self, timeout: float = 10.0) -> None:
+        for p in self.procs:
+            try:
+                p.stdin.close()
+            except OSError:
+                pass
+        for p in self.procs:
+            try:
+                p.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def _shares(n: int, k: int) -> list[tuple[int, int]]:
+    k = max(1, min(k, n))
+    edges = [round(i * n / k) for i in range(k + 1)]
+    return list(zip(edges[:-1], edges[1:], strict=True))
+
+
+def _counted(children: Children, at: float) -> np.ndarray:
+    """joint_states, per-world tf and fleet tf received by all subscribers up to wall time `at`."""
+    total = np.zeros(3)
+    for lines in children.lines:
+        before = [line for line in list(lines) if line[0] == "count" and float(line[1]) <= at]
+        if before:
+            total += [float(x) for x in before[-1][2:5]]
+    return total
+
+
+def run(opts: argparse.Namespace) -> None:
+    os.environ.update(LOCALHOST)
+    os.environ["ROS_DOMAIN_ID"] = str(opts.domain)
+    import batchsim
+    from batchsim.controllers import default_controllers, load_controllers
+    from batchsim.loop import SimLoop
+    from ros_bridge.bridge import BridgeOptions, start_bridge
+
+    sim = batchsim.make(opts.model, opts.worlds, opts.backend)
+    sim.configure()
+    sim.activate()
+    manager = load_controllers(default_controllers(opts.model), sim.spec, opts.worlds)
+    loop = SimLoop(sim, control_rate=opts.control_rate, rtf=1.0, participants=[manager])
+    host = start_bridge(sim, loop, BridgeOptions(workers=opts.bridge_workers), manager)
+    nworker = host.plan.nworker
+    periods: list[tuple[float, float]] = []  # (wall time at the start, the period's own seconds)
+    run_period = loop.run_period
+
+    def timed() -> None:
+        t = time.perf_counter()
+        run_period()
+        periods.append((time.time(), time.perf_counter() - t))
+
+    loop.run_period = timed
+    stop = threading.Event()
+    runner = threading.Thread(target=lambda: loop.run(), daemon=True)
+    runner.start()
+    subs = Children(
+        [["--subscriber", str(opts.domain), str(lo), str(hi), str(int(k == 0))] for k, (lo, hi) in enumerate(_shares(opts.worlds, opts.subscribers))]
+    )
+    began = time.time()
+    while time.time() - began < opts.warmup:
+        time.sleep(0.1)
+    start = time.time() + 3.0 if opts.goals != "none" else 0.0
+    goals = (
+        Children(
+            [["--goals", str(opts.domain), str(lo), str(hi), opts.goals, str(opts.goal_rate), f"{start:.3f}"] for lo, hi in _shares(opts.worlds, opts.goal_clients)]
+        )
+        if opts.goals != "none"
+        else None
+    )
+    t0 = max(time.time(), start) + 0.5
+    t1 = t0 + opts.seconds
+    sim0 = None
+    while time.time() < t1:
+        if sim0 is None and time.time() >= t0:
+            sim0 = loop.sim_time
+        time.sleep(0.05)
+    sim1 = loop.sim_time
+    counted = _counted(subs, t1) - _counted(subs, t0)
+    if goals is not None:
+        deadline = time.time() + opts.result_timeout
+        while opts.goals == "burst" and time.time() < deadline:
+            sent = sum(int(line[2]) for lines in goals.lines for line in list(lines) if line[0] == "sent")
+            results = sum(1 for lines in goals.lines for line in list(lines) if line[0] == "result")
+            if sent and results >= sent:
+                break
+            time.sleep(0.1)
+        goals.close()  # no more goals; the clients wait for those in flight, the loop still running
+    stop.set()
+    loop.stop()
+    runner.join(timeout=10)
+    subs.close()
+    window = [p for t, p in periods if t0 <= t <= t1]
+    budget = 1.0 / opts.control_rate
+    rtf = (sim1 - sim0) / opts.seconds if sim0 is not None else float("nan")
+    wall = t1 - t0
+    expected = opts.worlds * opts.control_rate * rtf
+    print(f"# {platform.node() or 'host'}, {os.cpu_count()} cores, Python {platform.python_version()}, {_versions()}, "
+          f"{opts.backend} {opts.model}, {opts.worlds} worlds, control {opts.control_rate:g} Hz, {nworker} bridge workers, "
+          f"{opts.subscribers} subscriber processes, load {os.getloadavg()[0]:.1f}, {time.strftime('%Y-%m-%d')}")  # fmt: skip
+    p = np.array(window) * 1e3
+    print(f"RTF held {rtf:.3f} over {wall:.1f} s; loop period {np.median(p):.2f} ms median, {p.max():.2f} ms worst, "
+          f"{np.percentile(p, 99):.2f} ms p99 (budget {budget * 1e3:.1f} ms, {len(p)} periods)")  # fmt: skip
+    print(f"joint_states received {counted[0] / wall:,.0f}/s of {expected:,.0f}/s expected ({counted[0] / wall / expected:.3f})")
+    print(f"tf (/<ns>/tf) received {counted[1] / wall:,.0f}/s of {expected:,.0f}/s expected ({counted[1] / wall / expected:.3f})")
+    fleet_expected = nworker * opts.control_rate * rtf
+    print(f"tf (/tf, {nworker} worker messages per period) received {counted[2] / wall:,.0f}/s of {fleet_expected:,.0f}/s expected")
+    if goals is not None:
+        sent_lines = [line for lines in goals.lines for line in list(lines) if line[0] == "sent"]
+        results = [line for lines in goals.lines for line in list(lines) if line[0] == "result"]
+        sent = sum(int(line[2]) for line in sent_lines)
+        statuses: dict[str, int] = {}
+        for line in results:
+            key = line[2] if line[2] != "6" else f"6 ({line[3]})"
+            statuses[key] = statuses.get(key, 0) + 1
+        first = min((float(line[1]) for line in sent_lines), default=float("nan"))
+        last = max((float(line[1]) for line in results), default=float("nan"))
+        names = {"4": "SUCCEEDED", "5": "CANCELED", "rejected": "rejected"}
+        by = ", ".join(f"{names.get(k, k.replace('6 (', 'ABORTED (error_code '))} {v}" for k, v in sorted(statuses.items()))
+        print(f"goals: {opts.goals}, sent {sent}, results {len(results)} ({by}); first sent to last result {last - first:.2f} s")
+        if opts.verbose:
+            for line in results:
+                print(" ".join(line))
+    host.close()
+    sim.shutdown()
+    if opts.capacity:
+        capacity(opts)
+
+
+def capacity(opts: argparse.Namespace) -> None:
+    k = opts.subscribers
+    seconds = 5.0
+    kids = Children(
+        [["--cap-pub", str(opts.domain + 1), str(i), str(seconds)] for i in range(k)]
+        + [["--cap-sub", str(opts.domain + 1), str(i), str(seconds)] for i in range(k)]
+    )
+    for p in kids.procs:
+        p.wait(timeout=60)
+    time.sleep(0.2)
+    published = sum(int(line[1]) for lines in kids.lines for line in lines if line[0] == "published")
+    received = sum(int(line[1]) for lines in kids.lines for line in lines if line[0] == "received")
+    print(f"plain rclpy capacity: {k} publisher + {k} subscriber processes, Float64MultiArray: "
+          f"{published / seconds:,.0f} published/s, {received / seconds:,.0f} received/s")  # fmt: skip
+
+
+def _versions() -> str:
+    parts = []
+    for name in ("mujoco", "rclpy", "numpy", "warp", "mujoco_warp"):
+        try:
+            module = __import__(name)
+            parts.append(f"{name} {getattr(module, '__version__', '?')}")
+        except Exception:
+            continue
+    return ", ".join(parts)
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--subscriber":
+        subscriber(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == "1")
+        return
+    if len(sys.argv) > 1 and sys.argv[1] == "--goals":
+        goal_client(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5], float(sys.argv[6]), float(sys.argv[7]))
+        return
+    if len(sys.argv) > 1 and sys.argv[1] in ("--cap-pub", "--cap-sub"):
+        fn = publisher_pair if sys.argv[1] == "--cap-pub" else capacity_subscriber
+        fn(int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]))
+        return
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", choices=sorted(PRESETS), default=None)
+    p.add_argument("--backend", default="cpu")
+    p.add_argument("--model", default="arm")
+    p.add_argument("--worlds", type=int, default=16)
+    p.add_argument("--control-rate", type=float, default=100.0)
+    p.add_argument("--subscribers", type=int, default=1, help="subscriber processes")
+    p.add_argument("--goal-clients", type=int, default=1, help="goal client processes")
+    p.add_argument("--goals", choices=("none", "burst", "rate"), default="rate")
+    p.add_argument("--goal-rate", type=float, default=1.0, help="rate: goals per world per second")
+    p.add_argument("--bridge-workers", type=int, default=None)
+    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--warmup", type=float, default=3.0)
+    p.add_argument("--result-timeout", type=float, default=30.0)
+    p.add_argument("--capacity", action="store_true", help="also measure plain rclpy's capacity on this host")
+    p.add_argument("--domain", type=int, default=88)
+    p.add_argument("--verbose", action="store_true", help="every goal's result")
+    opts = p.parse_args()
+    if opts.preset:
+        preset = PRESETS[opts.preset]
+        for key, flag in (("backend", "--backend"), ("worlds", "--worlds"), ("subscribers", "--subscribers"),
+                          ("goal_clients", "--goal-clients"), ("goals", "--goals"), ("goal_rate", "--goal-rate")):  # fmt: skip
+            if flag not in sys.argv:
+                setattr(opts, key, preset[key])
+        if "--control-rate" not in sys.argv:
+            opts.control_rate = preset["control"]
+    run(opts)
+
+
+if __name__ == "__main__":
+    main()

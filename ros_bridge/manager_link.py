@@ -1,0 +1,110 @@
+"""The loop's side of every world's controller_manager services. No rclpy here.
+
+The workers answer list_controllers, list_hardware_interfaces and list_controller_types
+from the plan (ManagerSpec) and from `cm.active` in shared memory, which this module
+keeps equal to the ControllerManager's per-world active masks. switch_controller comes
+through a worker's ring as a SWITCH request; `switch` carries it out between two
+periods and says what to answer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from batchsim.controllers import ControllerManager
+from batchsim.hardware import BatchedSystem
+from batchsim.memory import Memory
+from ros_bridge.requests import decode_switch
+
+
+@dataclasses.dataclass(frozen=True)
+class ControllerSpec:
+    """One controller as controller_manager's ListControllers shows it (the static part).
+
+    Attributes:
+      name, type: the YAML's name and plugin name.
+      command_interfaces: the command interfaces it claims while active.
+      state_interfaces: the state interfaces it reads.
+      update_rate: Hz.
+    """
+
+    name: str
+    type: str
+    command_interfaces: tuple[str, ...]
+    state_interfaces: tuple[str, ...]
+    update_rate: int
+
+
+@dataclasses.dataclass(frozen=True)
+class ManagerSpec:
+    """What every world's `<ns>/controller_manager/...` services serve
+    (ros_bridge/worker/controller_manager.py). Which controller is active in which world
+    lives in shared memory (`cm.active`, (nworld, ncontroller)), written by the loop.
+
+    Attributes:
+      controllers: in the YAML's order.
+      types: (plugin name, base class) of every controller type batchsim can load.
+      command_interfaces, state_interfaces: the system's.
+      hardware: the hardware component's name (the `<ros2_control>` block's, else the model's).
+    """
+
+    controllers: tuple[ControllerSpec, ...]
+    types: tuple[tuple[str, str], ...]
+    command_interfaces: tuple[str, ...]
+    state_interfaces: tuple[str, ...]
+    hardware: str
+
+
+
+def manager_spec(sim: BatchedSystem, manager: ControllerManager, control_rate: float) -> ManagerSpec:
+    controllers = tuple(
+        ControllerSpec(
+            c.name,
+            c.type,
+            c.command_interfaces,
+            c.state_interfaces,
+            int(round(c.update_rate if c.update_rate else control_rate)),
+        )
+        for c in manager.describe()
+    )
+    return ManagerSpec(
+        controllers=controllers,
+        types=tuple(manager.controller_types()),
+        command_interfaces=tuple(sim.spec.command_interfaces),
+        state_interfaces=tuple(sim.spec.state_interfaces),
+        hardware=sim.spec.name,
+    )
+
+
+class ManagerLink:
+    """Keeps `cm.active` equal to `manager`'s active masks; carries out switch requests.
+
+    Args:
+      manager: the controllers.
+      memory: the bridge's shared memory (with `cm.active`, (nworld, ncontroller) u1).
+      world_names: per world, its name for messages (the namespace).
+    """
+
+    def __init__(self, manager: ControllerManager, memory: Memory, world_names: list[str]):
+        self.manager = manager
+        self.active = memory["cm.active"]
+        self.names = [c.name for c in manager]
+        self.world_names = world_names
+        for k, name in enumerate(self.names):
+            self.active[:, k] = manager.active(name)
+
+    def switch(self, payload: np.ndarray) -> tuple[int, int, bool, str]:
+        """A SWITCH request: (ticket, world, ok, message) to answer with."""
+        ticket, world, activate, deactivate, strictness, asap = decode_switch(payload)
+        try:
+            result = self.manager.switch(np.array([world]), activate, deactivate, strictness, asap)
+        except ValueError as e:  # an unknown strictness
+            return ticket, world, False, str(e)
+        index = {n: k for k, n in enumerate(self.names)}
+        for name, worlds in result.deactivated.items():
+            self.active[worlds, index[name]] = 0
+        for name, worlds in result.activated.items():
+            self.active[worlds, index[name]] = 1
+        return ticket, world, result.ok, result.message

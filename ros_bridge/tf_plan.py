@@ -1,0 +1,106 @@
+"""Every world's tf tree and robot description, as the plan carries them. No rclpy here.
+
+ros_bridge/worker/tf.py publishes them; the frame conventions are documented there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import xml.etree.ElementTree as ET
+from collections.abc import Callable
+
+import numpy as np
+
+from batchsim.hardware import BatchedSystem
+from batchsim.model.frames import frame_tree, initial_transforms, relative_transforms
+from batchsim.model.urdf import robot_description, urdf_from_model
+
+FLEET_FRAME = "world"  # the fixed frame every world's tf tree hangs from
+log = logging.getLogger("batchsim.ros_bridge")
+
+
+@dataclasses.dataclass(frozen=True)
+class TfSpec:
+    """Every world's tf tree and robot description (ros_bridge/worker/tf.py publishes them).
+
+    Frame names are unprefixed here; the workers prefix them with `<ns>/`.
+
+    Attributes:
+      moving: (parent, child) of each transform that moves, in channel order.
+      static: (parent, child) of each fixed transform.
+      static_values: (nstatic, 7) translation xyz and rotation xyzw of the fixed ones.
+      channel: the snapshot channel of the moving ones, (nworld, 7 * nmoving).
+      root: each world's root frame (`world`, or `odom` for a floating base).
+      fleet_frame: the frame every world's root hangs from in the fleet's tree.
+      description: the robot's URDF (robot_description).
+      every: control periods between two tf messages.
+    """
+
+    moving: tuple[tuple[str, str], ...]
+    static: tuple[tuple[str, str], ...]
+    static_values: np.ndarray
+    channel: int
+    root: str
+    fleet_frame: str
+    description: str
+    every: int = 1
+
+
+
+def tf_spec(
+    sim: BatchedSystem,
+    every: int,
+    channel: Callable[[str, int, Callable[[np.ndarray], None]], int],
+    source: str | None = None,
+) -> TfSpec:
+    """The tf tree of `sim`'s robot, its moving transforms filled from the engine's body
+    poses (forward kinematics of every world at once) into one channel. `source`: the
+    user's robot description (`--ros2-control`), published when it is a URDF whose links
+    are the tree's frames."""
+    tree = frame_tree(sim.spec)
+    sim.body_poses()  # the engine's kinematics bound now: the first tf is the current state
+    moving = np.flatnonzero(~tree.static)
+    fixed = np.flatnonzero(tree.static)
+    t0, r0 = initial_transforms(tree, sim.spec)
+    nworld = sim.nworld
+
+    def fill_tf(out: np.ndarray) -> None:
+        xpos, xquat = sim.body_poses()
+        t, r = relative_transforms(tree, xpos, xquat)
+        v = out.reshape(nworld, len(moving), 7)
+        v[:, :, :3] = t[:, moving]
+        v[:, :, 3:] = r[:, moving]
+
+    pairs = list(zip(tree.parents, tree.names, strict=True))
+    return TfSpec(
+        moving=tuple(pairs[k] for k in moving),
+        static=tuple(pairs[k] for k in fixed),
+        static_values=np.concatenate([t0[fixed], r0[fixed]], axis=1),
+        channel=channel("tf", 7 * len(moving), fill_tf),
+        root=tree.root,
+        fleet_frame=FLEET_FRAME,
+        description=_description(sim, tree, source),
+        every=every,
+    )
+
+
+
+
+def _description(sim: BatchedSystem, tree, source: str | None) -> str:
+    """The user's URDF if its links are frames of the tree (so RViz finds a transform for
+    each), else the one generated from the MJCF, with a warning saying why."""
+    text = robot_description(sim.spec, source)
+    if source is None:
+        return text
+    links = {link.get("name") for link in ET.fromstring(text).iter("link")}
+    unknown = sorted(links - set(tree.names) - {tree.root})
+    if not unknown:
+        return text
+    more = f" and {len(unknown) - 3} more" if len(unknown) > 3 else ""
+    log.warning(
+        "batchsim: robot_description: the links %s%s of %s are no bodies of the MJCF (tf's frames are "
+        "its body names): publishing the URDF generated from the MJCF instead",
+        ", ".join(unknown[:3]), more, str(source).split()[0],
+    )
+    return urdf_from_model(sim.spec)

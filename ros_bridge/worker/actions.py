@@ -1,0 +1,335 @@
+"""The actions of every world of a worker: FollowJointTrajectory on every trajectory
+controller, GripperCommand on every gripper action controller.
+
+GripperCommand (`/<ns>/<controller>/gripper_cmd`): a goal goes to the loop as one
+GRIPPER_GOAL request; the controller decides each world's outcome as upstream's
+gripper_action_controller (batchsim/controllers/gripper.py): SUCCEEDED with reached_goal,
+a stall SUCCEEDED or ABORTED by `allow_stalling`, a cancel CANCELED where it holds.
+
+`/<ns>/<controller>/follow_joint_trajectory` (control_msgs/action/FollowJointTrajectory),
+served as ros2_controllers' JointTrajectoryController serves it:
+
+- a goal for a world where the controller is inactive is rejected (as upstream);
+- an accepted goal is checked here first: no joint names, an unknown or repeated joint, a
+  tolerance naming a joint the controller lacks -> INVALID_JOINTS; a stamped trajectory
+  that ends before the current sim time -> OLD_HEADER_TIMESTAMP; a goal the controller
+  refuses (NaN, times not increasing, limits: its reason) -> INVALID_GOAL. Such a goal is
+  aborted at once with that code and an error string naming the problem (upstream rejects
+  it without a reason; the codes exist for this);
+- a valid goal goes to the loop with the topic's trajectories, as one batch, tagged, with
+  its path and goal tolerances and goal_time_tolerance; the controller checks them in
+  every world at once (batchsim/controllers/trajectory/goals.py);
+- at the action monitor rate (20 Hz, upstream's default) the worker reads each world's
+  goal tag, outcome and desired/actual/error from a snapshot channel: feedback while the
+  goal runs; SUCCEEDED (SUCCESSFUL), or ABORTED with PATH_TOLERANCE_VIOLATED or
+  GOAL_TOLERANCE_VIOLATED naming the joint; a cancel request goes to the loop and the goal
+  ends CANCELED once the world holds; a newer goal or a topic trajectory for the world
+  ends the old goal ABORTED with INVALID_GOAL ("Current goal cancelled due to new incoming
+  action.", upstream's words; rclpy has no way from executing to canceled without a
+  cancel request); a reset world's goal is ABORTED.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import threading
+import time as wallclock
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from control_msgs.action import FollowJointTrajectory, GripperCommand
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.node import Node
+from rclpy.task import Future
+
+from batchsim.controllers.topics import GoalOutcome
+from batchsim.memory import Memory
+from ros_bridge.action_plan import (
+    STATUS_COLUMNS,
+    GripperActionSpec,
+    TrajectoryActionSpec,
+    encode_cancel,
+    encode_gripper_goal,
+)
+from ros_bridge.commands import RejectionWriter
+from ros_bridge.requests import Kind
+from ros_bridge.worker.messages import parse_trajectory, seconds, stamp_of
+from ros_bridge.worker.services import LoopRequests
+
+FJT = FollowJointTrajectory.Result
+UNSEEN_TIMEOUT = 5.0  # s a goal may wait to show up in its world before it is given up
+PREEMPTED = "Current goal cancelled due to new incoming action."  # upstream's words
+
+
+@dataclasses.dataclass
+class _Goal:
+    handle: Any
+    tag: int
+    world: int
+    action: int
+    future: Future
+    since: float
+    seen: bool = False  # the controller has shown its tag
+    cancel_sent: bool = False
+
+
+class ActionServers:
+    """The action servers of worlds [lo, lo + len(namespaces)), one per action and world.
+
+    Args:
+      submit: `submit(input_index, world, parsed trajectory, goal)`, the worker's way of
+        handing a trajectory to the loop; goal = (tag, path (njoint, 3), goal (njoint, 3),
+        goal_time_tolerance).
+      time: the newest sim time the worker has seen.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        specs: list[TrajectoryActionSpec | GripperActionSpec],
+        memory: Memory,
+        requests: LoopRequests,
+        namespaces: list[str],
+        lo: int,
+        index: int,
+        submit: Callable[[int, int, tuple, tuple], None],
+        time: Callable[[], float],
+    ):
+        self.specs = specs
+        self.requests = requests
+        self.logger = node.get_logger()
+        self.active = memory["cm.active"]
+        self.refused = memory["goal.refused"]
+        self.demand = memory["demand"][index]  # this worker's channel demand (the loop copies those)
+        self.host_rejections = RejectionWriter(memory, "hrej")
+        self.submit = submit
+        self.time = time
+        self.lo = lo
+        self._tag = index << 40  # tags unique across the fleet's workers
+        self._lock = threading.Lock()
+        self.inflight: list[dict[int, _Goal]] = [{} for _ in specs]  # per action: world -> goal
+        self._handles: dict[int, _Goal] = {}  # accepted goals until their execute callback runs
+        # what the loop thread decided, carried out on the executor thread (the worker's spin
+        # loop calls drain()): rclpy's goal handles are not safe to drive from two threads
+        # (feedback from one deadlocked a state change on the other), and the EventsExecutor
+        # takes no guard condition to wake it
+        self._queue: collections.deque[tuple[_Goal, Any, Any]] = collections.deque()
+        self._servers = []
+        for a, spec in enumerate(specs):
+            kind, name = (
+                (FollowJointTrajectory, "follow_joint_trajectory")
+                if isinstance(spec, TrajectoryActionSpec)
+                else (GripperCommand, "gripper_cmd")
+            )
+            for row, ns in enumerate(namespaces):
+                w = lo + row
+                self._servers.append(
+                    ActionServer(
+                        node,
+                        kind,
+                        f"/{ns}/{spec.controller}/{name}",
+                        execute_callback=self._execute,
+                        goal_callback=lambda request, a=a, w=w: self._goal(a, w),
+                        handle_accepted_callback=lambda handle, a=a, w=w: self._accepted(a, w, handle),
+                        cancel_callback=lambda handle, a=a, w=w: self._cancel(a, w, handle),
+                    )
+                )
+
+    def channels(self) -> list[int]:
+        """The snapshot channels this worker needs now (actions with a goal in flight)."""
+        return [spec.channel for spec, goals in zip(self.specs, self.inflight, strict=True) if goals]
+
+    # --- the executor thread ---
+    def _goal(self, a: int, world: int) -> GoalResponse:
+        spec = self.specs[a]
+        if not self.active[world, spec.controller_index]:
+            self.logger.error(f"{spec.controller} in world {world}: can't accept new action goals: controller is not running")
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
+
+    def _accepted(self, a: int, world: int, handle: Any) -> None:
+        spec = self.specs[a]
+        with self._lock:
+            self._tag += 1
+            goal = _Goal(handle, self._tag, world, a, Future(), wallclock.monotonic())
+        self._handles[id(handle)] = goal
+        if isinstance(spec, TrajectoryActionSpec):
+            problem = _check_trajectory_goal(spec, handle.request, self.time())
+            if problem is not None:
+                self.logger.error(f"{spec.controller} in world {world}: goal aborted: {problem[1]}")
+                goal.future.set_result((GoalOutcome.ABORTED, FJT(error_code=problem[0], error_string=problem[1])))
+                handle.execute()
+                return
+        with self._lock:
+            old = self.inflight[a].get(world)
+            self.inflight[a][world] = goal
+        self.demand[spec.channel] = 1  # at once: the worker's refresh re-reads demand only twice a second
+        if old is not None:  # preempted, as upstream's preempt_active_goal
+            self._finish(old, GoalOutcome.ABORTED, self._result(old, FJT.INVALID_GOAL, PREEMPTED))
+        request = handle.request
+        if isinstance(spec, TrajectoryActionSpec):
+            nj = len(spec.joints)
+            path, final = np.zeros((nj, 3)), np.zeros((nj, 3))
+            for tolerances, out in ((request.path_tolerance, path), (request.goal_tolerance, final)):
+                for t in tolerances:
+                    out[spec.joints.index(t.name)] = (t.position, t.velocity, t.acceleration)
+            tolerances = (goal.tag, path, final, seconds(request.goal_time_tolerance))
+            self.submit(spec.input, world, parse_trajectory(request.trajectory), tolerances)
+        else:
+            command = request.command
+            encoded = encode_gripper_goal(a, world, goal.tag, float(command.position), float(command.max_effort))
+            if self.requests.put(Kind.GRIPPER_GOAL, lambda t: encoded) is None:
+                self._finish(goal, GoalOutcome.ABORTED, self._result(goal, FJT.INVALID_GOAL, "the loop is too far behind"))
+        handle.execute()
+
+    def _cancel(self, a: int, world: int, handle: Any) -> CancelResponse:
+        goal = self.inflight[a].get(world)
+        if goal is None or goal.handle is not handle:
+            return CancelResponse.REJECT
+        if not goal.cancel_sent:
+            goal.cancel_sent = True
+            self.requests.put(Kind.CANCEL, lambda t: encode_cancel(a, world, goal.tag))
+        return CancelResponse.ACCEPT
+
+    async def _execute(self, handle: Any) -> Any:
+        goal = self._handles.pop(id(handle))
+        outcome, result = await goal.future
+        if outcome is GoalOutcome.SUCCEEDED:
+            handle.succeed()
+        elif outcome is GoalOutcome.CANCELED and handle.is_cancel_requested:
+            handle.canceled()
+        else:
+            handle.abort()
+        return result
+
+    # --- the worker's loop thread ---
+    def update(self, channels: dict[int, np.ndarray], time: float) -> None:
+        """Feedback and outcomes from the snapshot's action channels (the rows of this worker)."""
+        self._decide(channels, time)
+
+    def _decide(self, channels: dict[int, np.ndarray], time: float) -> None:
+        now = wallclock.monotonic()
+        stamp = stamp_of(time)
+        for a, spec in enumerate(self.specs):
+            goals = self.inflight[a]
+            values = channels.get(spec.channel)
+            if not goals or values is None:
+                continue
+            for world, goal in list(goals.items()):
+                row = values[world - self.lo]
+                if int(row[0]) != goal.tag:
+                    if int(self.refused[world]) == goal.tag:
+                        reason = self.host_rejections.reason(world).partition(": ")[2] or "refused by the controller"
+                        self._finish(goal, GoalOutcome.ABORTED, self._result(goal, FJT.INVALID_GOAL, reason, row))
+                    elif goal.seen:
+                        text = "replaced by a command on the controller's topic"
+                        self._finish(goal, GoalOutcome.ABORTED, self._result(goal, FJT.INVALID_GOAL, text, row))
+                    elif now - goal.since > UNSEEN_TIMEOUT:
+                        text = "the simulation loop did not take the goal"
+                        self._finish(goal, GoalOutcome.ABORTED, self._result(goal, FJT.INVALID_GOAL, text, row))
+                    continue
+                goal.seen = True
+                outcome = GoalOutcome(int(row[1]))
+                if outcome is GoalOutcome.ACTIVE:
+                    self._queue.append((goal, None, self._feedback(spec, row, stamp)))
+                elif isinstance(spec, TrajectoryActionSpec):
+                    self._finish(goal, *_trajectory_outcome(spec, outcome, int(row[2])))
+                else:
+                    final = GoalOutcome.ABORTED if outcome is GoalOutcome.NONE else outcome
+                    self._finish(goal, final, self._result(goal, 0, "", row))
+
+    def _result(self, goal: _Goal, code: int, text: str, row: np.ndarray | None = None) -> Any:
+        """The action's result: FollowJointTrajectory's code and text, or GripperCommand's state."""
+        if isinstance(self.specs[goal.action], TrajectoryActionSpec):
+            return FJT(error_code=code, error_string=text)
+        result = GripperCommand.Result()
+        if row is not None:
+            result.stalled, result.reached_goal = bool(row[2]), bool(row[3])
+            result.position, result.effort = float(row[4]), float(np.nan_to_num(row[5]))
+        return result
+
+    def _feedback(self, spec: TrajectoryActionSpec | GripperActionSpec, row: np.ndarray, stamp: tuple[int, int]) -> Any:
+        if isinstance(spec, GripperActionSpec):
+            return GripperCommand.Feedback(
+                position=float(row[4]), effort=float(np.nan_to_num(row[5])), stalled=bool(row[2]), reached_goal=bool(row[3])
+            )
+        nj = len(spec.joints)
+        fb = FollowJointTrajectory.Feedback()
+        fb.header.stamp.sec, fb.header.stamp.nanosec = stamp
+        fb.joint_names = list(spec.joints)
+        parts = [row[STATUS_COLUMNS + k * nj : STATUS_COLUMNS + (k + 1) * nj] for k in range(6)]
+        for point, (p, v) in zip((fb.desired, fb.actual, fb.error), (parts[0:2], parts[2:4], parts[4:6]), strict=True):
+            point.positions, point.velocities = p.tolist(), v.tolist()
+        return fb
+
+    def _finish(self, goal: _Goal, outcome: GoalOutcome, result: Any) -> None:
+        """The goal is over: out of flight now, its result set on the executor thread."""
+        with self._lock:
+            if self.inflight[goal.action].get(goal.world) is goal:
+                del self.inflight[goal.action][goal.world]
+        self._queue.append((goal, outcome, result))
+
+    @property
+    def busy(self) -> bool:
+        """Goals in flight or decisions waiting: the spin loop should come back soon."""
+        return bool(self._queue) or any(self.inflight) or bool(self._handles)
+
+    def drain(self) -> None:
+        """The executor thread: feedback published and results handed to the goals' execute callbacks."""
+        while self._queue:
+            goal, outcome, payload = self._queue.popleft()
+            if outcome is None:
+                if not goal.future.done():
+                    goal.handle.publish_feedback(payload)
+            elif not goal.future.done():
+                goal.future.set_result((outcome, payload))
+
+
+def _trajectory_outcome(spec: TrajectoryActionSpec, outcome: GoalOutcome, joint: int) -> tuple[GoalOutcome, Any]:
+    """A finished FollowJointTrajectory goal's state and result, from the controller's outcome."""
+    name = spec.joints[joint] if 0 <= joint < len(spec.joints) else "?"
+    if outcome is GoalOutcome.SUCCEEDED:
+        return outcome, FJT(error_code=FJT.SUCCESSFUL)
+    if outcome is GoalOutcome.PATH_TOLERANCE_VIOLATED:
+        return GoalOutcome.ABORTED, FJT(error_code=FJT.PATH_TOLERANCE_VIOLATED, error_string=f"joint {name!r} left its path tolerance")
+    if outcome is GoalOutcome.GOAL_TOLERANCE_VIOLATED:
+        text = f"joint {name!r} is outside its goal tolerance"
+        return GoalOutcome.ABORTED, FJT(error_code=FJT.GOAL_TOLERANCE_VIOLATED, error_string=text)
+    if outcome is GoalOutcome.CANCELED:
+        return outcome, FJT(error_code=FJT.SUCCESSFUL, error_string="canceled")
+    return GoalOutcome.ABORTED, FJT(error_code=FJT.INVALID_GOAL, error_string="the world was reset")
+
+
+def _check_trajectory_goal(spec: TrajectoryActionSpec, request: Any, time: float) -> tuple[int, str] | None:
+    """(upstream's error code, the problem) of a FollowJointTrajectory goal, or None."""
+    names = list(request.trajectory.joint_names)
+    if not names:
+        return FJT.INVALID_JOINTS, "empty joint_names on the goal's trajectory"
+    for name in names:
+        if name not in spec.joints:
+            return FJT.INVALID_JOINTS, f"joint {name!r} is not one of the controller's joints ({', '.join(spec.joints)})"
+    if len(set(names)) != len(names):
+        return FJT.INVALID_JOINTS, f"joint_names lists a joint twice: {names}"
+    for what, tolerances in (("path_tolerance", request.path_tolerance), ("goal_tolerance", request.goal_tolerance)):
+        for t in tolerances:
+            if t.name not in spec.joints:
+                return FJT.INVALID_JOINTS, f"{what} names joint {t.name!r}, which the controller does not have"
+            if not all(np.isfinite((t.position, t.velocity, t.acceleration))):
+                return FJT.INVALID_GOAL, f"{what} of joint {t.name!r} is not finite"
+    if spec.max_points and len(request.trajectory.points) > spec.max_points:
+        return FJT.INVALID_GOAL, f"{len(request.trajectory.points)} points, more than {spec.max_points}"
+    try:
+        parse_trajectory(request.trajectory)
+    except (ValueError, TypeError) as e:
+        return FJT.INVALID_GOAL, str(e)
+    start = seconds(request.trajectory.header.stamp)
+    if start != 0.0 and request.trajectory.points:
+        end = start + seconds(request.trajectory.points[-1].time_from_start)
+        if end < time:
+            return (
+                FJT.OLD_HEADER_TIMESTAMP,
+                f"the trajectory starts at {start:.3f} s and ends at {end:.3f} s, before the sim time {time:.3f} s",
+            )
+    return None

@@ -1,0 +1,160 @@
+"""Every world's controller_manager services, as ros2_control's controller_manager serves them.
+
+Under `/<ns>/controller_manager/` for each world of the worker (what `ros2 control ...
+-c /<ns>/controller_manager` and MoveIt's ros2_control controller manager plugin call):
+
+- list_controllers, list_hardware_interfaces, list_hardware_components,
+  list_controller_types: answered here, from the plan (ManagerSpec) and the per-world
+  active masks the loop keeps in shared memory (`cm.active`);
+- switch_controller: handed to the loop as a SWITCH request (ros_bridge/manager_link.py);
+  the answer (ros2_control's `ok` and `message`) waits until the loop carried it out;
+- load_controller / configure_controller: every controller of the YAML is loaded and
+  configured at start, so these answer `ok` for a controller that exists (a spawner run
+  against the fleet goes on to switch it) and not for others; unload_controller and
+  reload_controller_libraries answer not ok (batchsim does not load plugins at run time).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from controller_manager_msgs.msg import ControllerState, HardwareComponentState, HardwareInterface
+from controller_manager_msgs.srv import (
+    ConfigureController,
+    ListControllers,
+    ListControllerTypes,
+    ListHardwareComponents,
+    ListHardwareInterfaces,
+    LoadController,
+    ReloadControllerLibraries,
+    SwitchController,
+    UnloadController,
+)
+from lifecycle_msgs.msg import State
+from rclpy.node import Node
+
+from batchsim.memory import Memory
+from ros_bridge.manager_link import ManagerSpec
+from ros_bridge.requests import Kind, encode_switch
+from ros_bridge.worker.services import LoopRequests
+
+
+class ControllerManagerServices:
+    """The services of worlds [lo, lo + len(namespaces)) (local indices)."""
+
+    def __init__(self, node: Node, spec: ManagerSpec, memory: Memory, requests: LoopRequests, namespaces: list[str], lo: int):
+        self.spec = spec
+        self.active = memory["cm.active"]
+        self.requests = requests
+        self.logger = node.get_logger()
+        self.known = {c.name for c in spec.controllers}
+        self._services: list[Any] = []
+        for row, ns in enumerate(namespaces):
+            w = lo + row
+            base = f"/{ns}/controller_manager"
+            for srv, name, handler in (
+                (ListControllers, "list_controllers", self._list_controllers),
+                (ListHardwareInterfaces, "list_hardware_interfaces", self._list_hardware_interfaces),
+                (ListHardwareComponents, "list_hardware_components", self._list_hardware_components),
+                (ListControllerTypes, "list_controller_types", self._list_controller_types),
+                (SwitchController, "switch_controller", self._switch_controller),
+                (LoadController, "load_controller", self._exists),
+                (ConfigureController, "configure_controller", self._exists),
+                (UnloadController, "unload_controller", self._refuse),
+                (ReloadControllerLibraries, "reload_controller_libraries", self._refuse),
+            ):
+                self._services.append(node.create_service(srv, f"{base}/{name}", _bind(handler, w, f"{base}/{name}")))
+
+    def _claimed(self, world: int) -> dict[str, str]:
+        """command interface -> the controller active in `world` that claims it."""
+        active = self.active[world]
+        return {i: c.name for k, c in enumerate(self.spec.controllers) if active[k] for i in c.command_interfaces}
+
+    def _list_controllers(self, world: int, where: str, request: Any, response: Any) -> Any:
+        active = self.active[world]
+        for k, c in enumerate(self.spec.controllers):
+            on = bool(active[k])
+            response.controller.append(
+                ControllerState(
+                    name=c.name,
+                    state="active" if on else "inactive",
+                    type=c.type,
+                    is_async=False,
+                    update_rate=min(max(c.update_rate, 0), 65535),
+                    claimed_interfaces=list(c.command_interfaces) if on else [],
+                    required_command_interfaces=list(c.command_interfaces),
+                    required_state_interfaces=list(c.state_interfaces),
+                    is_chainable=False,
+                    is_chained=False,
+                )
+            )
+        return response
+
+    def _interfaces(self, world: int) -> tuple[list[HardwareInterface], list[HardwareInterface]]:
+        claimed = self._claimed(world)
+        command = [
+            HardwareInterface(name=n, data_type="double", is_available=True, is_claimed=n in claimed)
+            for n in self.spec.command_interfaces
+        ]
+        state = [
+            HardwareInterface(name=n, data_type="double", is_available=True, is_claimed=False)
+            for n in self.spec.state_interfaces
+        ]
+        return command, state
+
+    def _list_hardware_interfaces(self, world: int, where: str, request: Any, response: Any) -> Any:
+        response.command_interfaces, response.state_interfaces = self._interfaces(world)
+        return response
+
+    def _list_hardware_components(self, world: int, where: str, request: Any, response: Any) -> Any:
+        command, state = self._interfaces(world)
+        response.component.append(
+            HardwareComponentState(
+                name=self.spec.hardware,
+                type="system",
+                is_async=False,
+                plugin_name="batchsim/BatchedSystem",
+                state=State(id=State.PRIMARY_STATE_ACTIVE, label="active"),
+                command_interfaces=command,
+                state_interfaces=state,
+            )
+        )
+        return response
+
+    def _list_controller_types(self, world: int, where: str, request: Any, response: Any) -> Any:
+        response.types = [t for t, _ in self.spec.types]
+        response.base_classes = [b for _, b in self.spec.types]
+        return response
+
+    def _switch_controller(self, world: int, where: str, request: Any, response: Any) -> Any:
+        activate, deactivate = list(request.activate_controllers), list(request.deactivate_controllers)
+        strictness = int(request.strictness)
+        ticket = self.requests.put(
+            Kind.SWITCH, lambda t: encode_switch(t, world, activate, deactivate, strictness, bool(request.activate_asap))
+        )
+        if not self.requests.wait(ticket):
+            response.ok = False
+            response.message = "the simulation loop did not carry out the switch in time"
+        else:
+            response.ok = self.requests.ok()
+            response.message = self.requests.message()
+        if not response.ok:
+            self.logger.warning(f"{where}: switch refused: {response.message}")
+        return response
+
+    def _exists(self, world: int, where: str, request: Any, response: Any) -> Any:
+        response.ok = request.name in self.known
+        if not response.ok:
+            names = ", ".join(sorted(self.known)) or "none"
+            self.logger.warning(f"{where}: no controller named {request.name!r} (batchsim loads the YAML's: {names})")
+        return response
+
+    def _refuse(self, world: int, where: str, request: Any, response: Any) -> Any:
+        response.ok = False
+        self.logger.warning(f"{where}: not supported: batchsim loads its controllers from the YAML at start")
+        return response
+
+
+def _bind(handler: Callable[..., Any], world: int, where: str) -> Callable[[Any, Any], Any]:
+    return lambda request, response: handler(world, where, request, response)

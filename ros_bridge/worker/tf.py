@@ -1,0 +1,159 @@
+"""tf, tf_static and robot_description for a worker's worlds, built in bulk.
+
+Frame names follow the fleet's convention (README, "tf and robot_description"): every
+frame of world `<ns>` is `<ns>/<link>` (the link names of its robot_description), and
+each world's root frame hangs from the fleet's fixed frame (`world`) by an identity
+transform, so one tf tree holds every world and RViz shows them all in `world`:
+
+- `/tf` (one TFMessage per worker and publish period: every moving transform of its
+  worlds) and `/tf_static` (transient local: every world's fixed transforms, once);
+- `/<ns>/tf` and `/<ns>/tf_static`: the same transforms of one world alone, for a robot
+  stack that listens to its own namespace (nav2's multi-robot setups remap tf so);
+- `/<ns>/robot_description` (std_msgs/String, transient local): the URDF, whose link
+  names are the frames without their prefix (RViz's RobotModel takes `<ns>` as TF Prefix).
+
+Per-world topics exist only once somebody subscribes (found by the worker's graph scan);
+the fleet-wide ones from the start. Moving transforms are filled from one snapshot
+channel ((nworld, 7 * nmoving): translation xyz, rotation xyzw per frame) into serialized
+templates, as ros_bridge/worker/messages.py does for every other message.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import TransformStamped
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
+from std_msgs.msg import String
+from tf2_msgs.msg import TFMessage
+
+from ros_bridge.tf_plan import TfSpec
+from ros_bridge.worker.messages import _markers, locate_markers, locate_stamps, set_stamp_marker, stamp_bytes
+
+#: tf2_ros's DynamicBroadcasterQoS and StaticBroadcasterQoS
+DYNAMIC_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+STATIC_QOS = QoSProfile(
+    depth=1,
+    history=HistoryPolicy.KEEP_LAST,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+
+def _transform(parent: str, child: str, value: Any) -> TransformStamped:
+    t = TransformStamped()
+    set_stamp_marker(t.header.stamp)
+    t.header.frame_id, t.child_frame_id = parent, child
+    tr, rot = t.transform.translation, t.transform.rotation
+    tr.x, tr.y, tr.z, rot.x, rot.y, rot.z, rot.w = (float(v) for v in value)
+    return t
+
+
+class TfTemplate:
+    """The moving transforms of some worlds as one serialized TFMessage, filled in bulk."""
+
+    def __init__(self, spec: TfSpec, namespaces: list[str]):
+        nmoving = len(spec.moving)
+        markers = _markers(7 * nmoving * len(namespaces)).reshape(len(namespaces), nmoving, 7)
+        msg = TFMessage()
+        for w, ns in enumerate(namespaces):
+            for k, (parent, child) in enumerate(spec.moving):
+                msg.transforms.append(_transform(f"{ns}/{parent}", f"{ns}/{child}", markers[w, k]))
+        data = bytes(serialize_message(msg))
+        self.buf = np.frombuffer(data, np.uint8).copy()
+        at = locate_markers(data, markers.size, "tf")
+        self.value_bytes = (at[:, None] + np.arange(8)).reshape(-1)
+        self.stamp_bytes = (locate_stamps(data)[:, None] + np.arange(8)).reshape(-1)
+
+    def fill(self, values: np.ndarray, sec: int, nanosec: int) -> bytes:
+        """values: (nworld of the template, 7 * nmoving) float64."""
+        self.buf[self.value_bytes] = np.ascontiguousarray(values, np.float64).view(np.uint8).reshape(-1)
+        self.buf[self.stamp_bytes] = np.tile(stamp_bytes(sec, nanosec), len(self.stamp_bytes) // 8)
+        return self.buf.tobytes()
+
+
+def static_message(spec: TfSpec, namespaces: list[str], sec: int = 0, nanosec: int = 0) -> TFMessage:
+    """Every fixed transform of these worlds, each world's root hung from the fleet frame."""
+    msg = TFMessage()
+    identity = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    for ns in namespaces:
+        msg.transforms.append(_transform(spec.fleet_frame, f"{ns}/{spec.root}", identity))
+        for (parent, child), value in zip(spec.static, spec.static_values, strict=True):
+            msg.transforms.append(_transform(f"{ns}/{parent}", f"{ns}/{child}", value))
+    for t in msg.transforms:
+        t.header.stamp.sec, t.header.stamp.nanosec = sec, nanosec
+    return msg
+
+
+class TfPublishers:
+    """tf, tf_static and robot_description of worlds [lo, hi) named `namespaces`."""
+
+    def __init__(self, node: Node, spec: TfSpec, namespaces: list[str], *, all_topics: bool = False):
+        self.node = node
+        self.spec = spec
+        self.namespaces = namespaces
+        self.channel = spec.channel
+        self.fleet = TfTemplate(spec, namespaces) if spec.moving else None
+        self._fleet_pub = node.create_publisher(TFMessage, "/tf", DYNAMIC_QOS)
+        self._fleet_static = node.create_publisher(TFMessage, "/tf_static", STATIC_QOS)
+        self._fleet_static.publish(static_message(spec, namespaces))
+        self._world: list[Any] = [None] * len(namespaces)  # per world: (template, publisher)
+        self._wanted: list[int] = []  # worlds with a /<ns>/tf subscriber
+        self._fleet_wanted = False
+        # per-world topics, created once somebody subscribes: topic -> (kind, row)
+        self._on_request: dict[str, tuple[str, int]] = {}
+        for row, ns in enumerate(namespaces):
+            for kind in ("tf", "tf_static", "robot_description"):
+                self._on_request[f"/{ns}/{kind}"] = (kind, row)
+        self._keep: list[Any] = []  # publishers of latched messages
+        if all_topics:
+            for topic in list(self._on_request):
+                self._create(topic)
+
+    @property
+    def wanted(self) -> bool:
+        """Whether anybody listens to a moving transform of these worlds."""
+        return self._fleet_wanted or bool(self._wanted)
+
+    def requested(self, topic: str) -> bool:
+        """The graph scan saw `topic`: create its publisher if somebody subscribes. True if ours."""
+        if topic not in self._on_request:
+            return False
+        if self.node.count_subscribers(topic) > 0:
+            self._create(topic)
+        return True
+
+    def _create(self, topic: str) -> None:
+        kind, row = self._on_request.pop(topic)
+        ns = self.namespaces[row]
+        if kind == "tf":
+            if self.spec.moving:
+                self._world[row] = (TfTemplate(self.spec, [ns]), self.node.create_publisher(TFMessage, topic, DYNAMIC_QOS))
+        elif kind == "tf_static":
+            pub = self.node.create_publisher(TFMessage, topic, STATIC_QOS)
+            pub.publish(static_message(self.spec, [ns]))
+            self._keep.append(pub)
+        else:
+            pub = self.node.create_publisher(String, topic, STATIC_QOS)
+            pub.publish(String(data=self.spec.description))
+            self._keep.append(pub)
+
+    def refresh(self) -> None:
+        """Re-read who listens (lazy publishing)."""
+        self._fleet_wanted = self.fleet is not None and self._fleet_pub.get_subscription_count() > 0
+        self._wanted = [r for r, w in enumerate(self._world) if w is not None and w[1].get_subscription_count() > 0]
+
+    def publish(self, values: np.ndarray, sec: int, nanosec: int) -> int:
+        """values: (nworld of this worker, 7 * nmoving). Returns the messages published."""
+        n = 0
+        if self._fleet_wanted:
+            self._fleet_pub.publish(self.fleet.fill(values, sec, nanosec))
+            n += 1
+        for r in self._wanted:
+            template, pub = self._world[r]
+            pub.publish(template.fill(values[r : r + 1], sec, nanosec))
+            n += 1
+        return n
