@@ -261,3 +261,56 @@ def test_plan_of_the_arm_with_its_controllers():
         assert not (out == -7.0).all(), plan.channels[c].name
     with pytest.raises(OptionError, match="qos_depth must be >= 1"):
         build_plan(sim, 100.0, BridgeOptions(qos_depth=0), manager, 1)
+
+
+def test_a_remote_endpoint_with_another_definition_is_named_once():
+    """ros_bridge/worker/type_check.py on a stand-in graph: a subscriber of /tf whose
+    TFMessage hash differs from batchsim's own gets one line naming both; a matching one,
+    a topic of another package and an unchanged graph get none."""
+    import types
+
+    from ros_bridge.worker.type_check import TypeCheck
+
+    def info(node: str, gid: int, digest: str, type_name: str = "tf2_msgs/msg/TFMessage"):
+        return types.SimpleNamespace(
+            node_name=node, node_namespace="/", endpoint_gid=[gid] * 16, topic_type=type_name, topic_type_hash=digest
+        )
+
+    class Graph:
+        def __init__(self):
+            self.pubs = {"/tf": [info("batchsim_0_3", 1, "RIHS01_aa")]}
+            self.subs = {"/tf": [info("rviz", 2, "RIHS01_aa"), info("old_rviz", 3, "RIHS01_bb")]}
+            self.errors: list[str] = []
+
+        def get_logger(self):
+            return types.SimpleNamespace(error=self.errors.append)
+
+        def get_name(self):
+            return "batchsim_0_3"
+
+        def get_namespace(self):
+            return "/"
+
+        def count_publishers(self, topic):
+            return len(self.pubs.get(topic, []))
+
+        def count_subscribers(self, topic):
+            return len(self.subs.get(topic, []))
+
+        def get_publishers_info_by_topic(self, topic):
+            return list(self.pubs.get(topic, []))
+
+        def get_subscriptions_info_by_topic(self, topic):
+            return list(self.subs.get(topic, []))
+
+    graph = Graph()
+    check = TypeCheck(graph)
+    topics = [("/tf", ["tf2_msgs/msg/TFMessage"]), ("/world_0/joint_states", ["sensor_msgs/msg/JointState"])]
+    check.scan(topics)
+    assert len(graph.errors) == 1
+    line = graph.errors[0]
+    assert "/tf: node /old_rviz" in line and "tf2_msgs/msg/TFMessage" in line and "RIHS01_bb" in line and "RIHS01_aa" in line
+    check.scan(topics)  # nothing changed: nothing looked at again
+    graph.subs["/tf"].append(info("late", 4, "RIHS01_aa"))
+    check.scan(topics)
+    assert len(graph.errors) == 1

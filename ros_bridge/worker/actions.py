@@ -9,6 +9,8 @@ a stall SUCCEEDED or ABORTED by `allow_stalling`, a cancel CANCELED where it hol
 `/<ns>/<controller>/follow_joint_trajectory` (control_msgs/action/FollowJointTrajectory),
 served as ros2_controllers' JointTrajectoryController serves it:
 
+- each world's server is created when an action client for it appears in the ROS graph
+  (scanned every second), or all at start with `--all-topics`;
 - a goal for a world where the controller is inactive is rejected (as upstream);
 - an accepted goal is checked here first: no joint names, an unknown or repeated joint, a
   tolerance naming a joint the controller lacks -> INVALID_JOINTS; a stamped trajectory
@@ -59,6 +61,7 @@ from ros_bridge.worker.messages import parse_trajectory, seconds, stamp_of
 from ros_bridge.worker.services import LoopRequests
 
 FJT = FollowJointTrajectory.Result
+_ACTION_NAME = {TrajectoryActionSpec: "follow_joint_trajectory", GripperActionSpec: "gripper_cmd"}
 UNSEEN_TIMEOUT = 5.0  # s a goal may wait to show up in its world before it is given up
 PREEMPTED = "Current goal cancelled due to new incoming action."  # upstream's words
 
@@ -117,25 +120,45 @@ class ActionServers:
         # takes no guard condition to wake it
         self._queue: collections.deque[tuple[_Goal, Any, Any]] = collections.deque()
         self._servers = []
+        self._node = node
+        # per world and action, created when a client appears in the ROS graph (the worker's
+        # graph scan), as every per-world topic is: five endpoints per action and world
+        self._pending: dict[str, tuple[int, int]] = {}  # action name -> (action, world)
         for a, spec in enumerate(specs):
-            kind, name = (
-                (FollowJointTrajectory, "follow_joint_trajectory")
-                if isinstance(spec, TrajectoryActionSpec)
-                else (GripperCommand, "gripper_cmd")
-            )
             for row, ns in enumerate(namespaces):
-                w = lo + row
-                self._servers.append(
-                    ActionServer(
-                        node,
-                        kind,
-                        f"/{ns}/{spec.controller}/{name}",
-                        execute_callback=self._execute,
-                        goal_callback=lambda request, a=a, w=w: self._goal(a, w),
-                        handle_accepted_callback=lambda handle, a=a, w=w: self._accepted(a, w, handle),
-                        cancel_callback=lambda handle, a=a, w=w: self._cancel(a, w, handle),
-                    )
-                )
+                self._pending[f"/{ns}/{spec.controller}/{_ACTION_NAME[type(spec)]}"] = (a, lo + row)
+
+    def requested(self, name: str) -> bool:
+        """The graph scan saw `name` (a topic or service of an action client): create that
+        action's server if it is ours. True if ours."""
+        if "/_action/" not in name:
+            return False
+        action = name.partition("/_action/")[0]
+        hit = self._pending.pop(action, None)
+        if hit is None:
+            return False
+        self._create(action, *hit)
+        return True
+
+    def create_all(self) -> None:
+        """Every world's action servers now (`--all-topics`)."""
+        for action, hit in list(self._pending.items()):
+            del self._pending[action]
+            self._create(action, *hit)
+
+    def _create(self, action: str, a: int, w: int) -> None:
+        kind = FollowJointTrajectory if isinstance(self.specs[a], TrajectoryActionSpec) else GripperCommand
+        self._servers.append(
+            ActionServer(
+                self._node,
+                kind,
+                action,
+                execute_callback=self._execute,
+                goal_callback=lambda request: self._goal(a, w),
+                handle_accepted_callback=lambda handle: self._accepted(a, w, handle),
+                cancel_callback=lambda handle: self._cancel(a, w, handle),
+            )
+        )
 
     def channels(self) -> list[int]:
         """The snapshot channels this worker needs now (actions with a goal in flight)."""

@@ -8,6 +8,9 @@ Under `/<ns>/controller_manager/` for each world of the worker (what `ros2 contr
   active masks the loop keeps in shared memory (`cm.active`);
 - switch_controller: handed to the loop as a SWITCH request (ros_bridge/manager_link.py);
   the answer (ros2_control's `ok` and `message`) waits until the loop carried it out;
+Each world's services are created when a client of one of them appears in the ROS graph
+(scanned every second), or all at start with `--all-topics`.
+
 - load_controller / configure_controller: every controller of the YAML is loaded and
   configured at start, so these answer `ok` for a controller that exists (a spawner run
   against the fleet goes on to switch it) and not for others; unload_controller and
@@ -50,21 +53,40 @@ class ControllerManagerServices:
         self.logger = node.get_logger()
         self.known = {c.name for c in spec.controllers}
         self._services: list[Any] = []
-        for row, ns in enumerate(namespaces):
-            w = lo + row
-            base = f"/{ns}/controller_manager"
-            for srv, name, handler in (
-                (ListControllers, "list_controllers", self._list_controllers),
-                (ListHardwareInterfaces, "list_hardware_interfaces", self._list_hardware_interfaces),
-                (ListHardwareComponents, "list_hardware_components", self._list_hardware_components),
-                (ListControllerTypes, "list_controller_types", self._list_controller_types),
-                (SwitchController, "switch_controller", self._switch_controller),
-                (LoadController, "load_controller", self._exists),
-                (ConfigureController, "configure_controller", self._exists),
-                (UnloadController, "unload_controller", self._refuse),
-                (ReloadControllerLibraries, "reload_controller_libraries", self._refuse),
-            ):
-                self._services.append(node.create_service(srv, f"{base}/{name}", _bind(handler, w, f"{base}/{name}")))
+        self._node = node
+        # per world, created when a client of one of its services appears (the worker's graph
+        # scan), as every per-world topic is: nine services a world in a fleet of thousands
+        # would cost discovery time for nothing
+        self._pending = {f"/{ns}/controller_manager": lo + row for row, ns in enumerate(namespaces)}
+
+    def requested(self, service: str) -> bool:
+        """The graph scan saw `service`: create its world's services if they are ours. True if ours."""
+        base, _, _ = service.rpartition("/")
+        world = self._pending.pop(base, None)
+        if world is None:
+            return False
+        self._create(base, world)
+        return True
+
+    def create_all(self) -> None:
+        """Every world's services now (`--all-topics`)."""
+        for base, world in list(self._pending.items()):
+            del self._pending[base]
+            self._create(base, world)
+
+    def _create(self, base: str, w: int) -> None:
+        for srv, name, handler in (
+            (ListControllers, "list_controllers", self._list_controllers),
+            (ListHardwareInterfaces, "list_hardware_interfaces", self._list_hardware_interfaces),
+            (ListHardwareComponents, "list_hardware_components", self._list_hardware_components),
+            (ListControllerTypes, "list_controller_types", self._list_controller_types),
+            (SwitchController, "switch_controller", self._switch_controller),
+            (LoadController, "load_controller", self._exists),
+            (ConfigureController, "configure_controller", self._exists),
+            (UnloadController, "unload_controller", self._refuse),
+            (ReloadControllerLibraries, "reload_controller_libraries", self._refuse),
+        ):
+            self._services.append(self._node.create_service(srv, f"{base}/{name}", _bind(handler, w, f"{base}/{name}")))
 
     def _claimed(self, world: int) -> dict[str, str]:
         """command interface -> the controller active in `world` that claims it."""

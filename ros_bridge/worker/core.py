@@ -46,82 +46,32 @@ from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64, Float64MultiArray
 
-from batchsim.controllers.topics import MessageKind, trajectory_batch
+from batchsim.controllers.topics import MessageKind
 from batchsim.memory import Memory, Ring
 from ros_bridge.commands import Problem, SlotWriter, check_single, check_vector
 from ros_bridge.interfaces import available
 from ros_bridge.options import Reliability
-from ros_bridge.plan import FLAG_FROZEN, FleetPlan, OutputSpec
-from ros_bridge.requests import Kind, encode_trajectories
+from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.worker.conflicts import check_conflicts
 from ros_bridge.worker.diagnostics import Diagnostics
 from ros_bridge.worker.messages import (
     MESSAGE_TYPES,
-    BulkMessages,
     clock_payload,
-    message_type,
     parse_row,
     parse_trajectory,
     stamp_of,
 )
 from ros_bridge.worker.sensors import SensorPublishers
 from ros_bridge.worker.services import LoopRequests, create_loop_services
+from ros_bridge.worker.snapshot import Output, Snapshot, read_snapshot
+from ros_bridge.worker.trajectories import FLUSH_AFTER, TrajectoryIntake
 
 SUBSCRIBER_REFRESH = 0.5  # s: subscriber counts re-read (lazy publishing)
 GRAPH_SCAN = 1.0  # s: topics created on request, commands to unknown actuators
 DIAGNOSTICS_PERIOD = 0.5  # s
 ACTION_POLL = 0.005  # s: while goals are in flight, their feedback and results wait at most this
-FLUSH_AFTER = 0.001  # s: trajectories reach the loop this long after they arrive, at most
 _ACTUATOR_TOPIC = re.compile(r"^/(.+)/actuators/([^/]+)/command$")
-
-
-class _Output:
-    """One OutputSpec over this worker's worlds: publishers (None until created), bulk bytes."""
-
-    def __init__(self, spec: OutputSpec, namespaces: list[str]):
-        self.spec = spec
-        self.namespaces = namespaces
-        self._bulk: BulkMessages | None = None
-        self.publishers: list[Any] = [None] * len(namespaces)
-        self.rows: list[int] = []  # the worlds (rows) with a subscriber
-        self.msg_type = message_type(spec.msg_type)
-        # per field: (channel, columns with -1 clipped, the columns that are -1)
-        self.gather = [
-            (f.channel, np.maximum(np.array(f.columns, dtype=np.intp), 0), np.array(f.columns) < 0) for f in spec.fields
-        ]
-
-    @property
-    def bulk(self) -> BulkMessages:
-        """The serialized messages, laid out when first published (most outputs never are)."""
-        if self._bulk is None:
-            self._bulk = BulkMessages(self.spec, self.namespaces)
-        return self._bulk
-
-    def values(self, channels: dict[int, np.ndarray]) -> np.ndarray:
-        parts = []
-        for ch, cols, nan in self.gather:
-            v = channels[ch][:, cols]
-            if nan.any():
-                v[:, nan] = np.nan
-            parts.append(v)
-        return np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
-
-
-class Snapshot:
-    """This worker's rows of one snapshot, copied out of shared memory."""
-
-    __slots__ = ("n", "period", "time", "forced", "status", "flags", "channels", "written")
-
-    def __init__(self) -> None:
-        self.n = -1
-        self.period = 0
-        self.time = 0.0
-        self.forced = False
-        self.status = np.zeros(0, np.uint8)
-        self.flags = np.zeros(0, np.uint8)
-        self.channels: dict[int, np.ndarray] = {}
-        self.written = np.zeros(0, np.int64)
 
 
 class Worker:
@@ -166,11 +116,9 @@ class Worker:
         self.ring = Ring(memory, f"ring{index}")
         self._ring_lock = threading.Lock()
         self.requests = LoopRequests(memory, index, self.ring, self._ring_lock, self._nudge)
-        self._pending: dict[int, list] = {}  # trajectory input -> [(world, parsed...)]
-        self._pending_since = 0.0
-        self._pending_lock = threading.Lock()
-        self._outputs: list[_Output] = []
-        self._active: list[_Output] = []  # outputs with a subscriber on some world
+        self.trajectories = TrajectoryIntake(plan, memory, self.ring, self._ring_lock, self._reject, self._nudge)
+        self._outputs: list[Output] = []
+        self._active: list[Output] = []  # outputs with a subscriber on some world
         self._beat = memory["beat"]
         self._svc_done = memory["svc.done"]
         self._subscriptions: list[Any] = []
@@ -185,7 +133,7 @@ class Worker:
         self.published = 0  # messages published, for benchmarks
         self.sensors: SensorPublishers | None = None  # cameras and lidars (ros_bridge/worker/sensors.py)
         self.actions: Any = None  # FollowJointTrajectory servers (ros_bridge/worker/actions.py)
-        self._pending_goals: dict[int, dict[int, tuple]] = {}  # input -> {message index: goal}
+        self.type_check: Any = None  # remote endpoints of another definition (ros_bridge/worker/type_check.py)
         self.manager: Any = None  # controller_manager services (ros_bridge/worker/controller_manager.py)
         self.tf: Any = None  # tf, tf_static, robot_description (ros_bridge/worker/tf.py)
 
@@ -200,9 +148,9 @@ class Worker:
         if plan.clock and self.index == 0:
             self._clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
         self.diagnostics = Diagnostics(node, self.memory, self.lo, self.hi, self.namespaces)
-        self._on_request: dict[str, tuple[_Output, int]] = {}
+        self._on_request: dict[str, tuple[Output, int]] = {}
         for spec in plan.outputs:
-            out = _Output(spec, self.namespaces)
+            out = Output(spec, self.namespaces)
             self._outputs.append(out)
             for row, ns in enumerate(self.namespaces):
                 topic = f"/{ns}/{spec.topic}"
@@ -252,7 +200,7 @@ class Worker:
 
             self.actions = ActionServers(
                 node, plan.actions, self.memory, self.requests, self.namespaces, self.lo, self.index,
-                self._submit, lambda: self.snapshot.time,
+                self.trajectories.submit, lambda: self.snapshot.time,
             )  # fmt: skip
         if plan.manager is not None and available()["controller_manager_msgs"]:
             from ros_bridge.worker.controller_manager import ControllerManagerServices
@@ -260,6 +208,14 @@ class Worker:
             self.manager = ControllerManagerServices(
                 node, plan.manager, self.memory, self.requests, self.namespaces, self.lo
             )
+        if plan.all_topics:
+            for served in (self.manager, self.actions):
+                if served is not None:
+                    served.create_all()
+        if any(available().values()):  # the types batchsim builds: a client of another definition is named
+            from ros_bridge.worker.type_check import TypeCheck
+
+            self.type_check = TypeCheck(node)
 
     def start(self) -> None:
         """Spin the executor on its own thread."""
@@ -300,7 +256,7 @@ class Worker:
     def tick(self) -> None:
         """Publish the newest snapshot if it is new; answer services; housekeeping."""
         self._beat[self.index] += 1
-        snap = self._read_snapshot()
+        snap = read_snapshot(self.memory, len(self.plan.channels), self.lo, self.hi, self.snapshot)
         if snap is not None:
             self._publish(snap)
             if self.actions is not None:
@@ -324,33 +280,6 @@ class Worker:
             self.diagnostics.publish(self.snapshot)
             self.throttle.flush()
 
-    def _read_snapshot(self) -> Snapshot | None:
-        """This worker's rows of the newest snapshot, if newer than the last; None otherwise."""
-        m = self.memory
-        latest, seq = m["latest"], m["seq"]
-        lo, hi = self.lo, self.hi
-        snap = self.snapshot
-        for _ in range(8):
-            n = int(latest[0])
-            if n <= snap.n:
-                return None
-            b = n % 2
-            if int(seq[b]) != 2 * n + 2:
-                continue  # being rewritten: a newer one is coming
-            meta = m["meta"][b].copy()
-            status = m["status"][b, lo:hi].copy()
-            flags = m["flags"][b, lo:hi].copy()
-            written = m["written"][b].copy()
-            channels = {
-                c: m[f"ch{c}"][b, lo:hi].copy() for c in range(len(self.plan.channels)) if written[c] == n
-            }
-            if int(seq[b]) != 2 * n + 2:
-                continue  # torn: the loop lapped us
-            snap.n, snap.period, snap.time, snap.forced = n, int(meta[1]), float(meta[2]), bool(meta[3])
-            snap.status, snap.flags, snap.written, snap.channels = status, flags, written, channels
-            return snap
-        return None
-
     def _publish(self, snap: Snapshot) -> None:
         sec, nanosec = stamp_of(snap.time)
         # /clock only while someone listens (re-read with the other counts; a new subscriber
@@ -365,7 +294,7 @@ class Worker:
         if tf is not None and tf.wanted and tf.channel in snap.channels:
             self.published += tf.publish(snap.channels[tf.channel], sec, nanosec)
 
-    def _publish_rows(self, out: _Output, snap: Snapshot, rows: list[int], sec: int, nanosec: int) -> None:
+    def _publish_rows(self, out: Output, snap: Snapshot, rows: list[int], sec: int, nanosec: int) -> None:
         spec = out.spec
         if any(c not in snap.channels for c in spec.channels):
             return  # not copied this time (nobody wanted it until now)
@@ -417,9 +346,12 @@ class Worker:
         """Create on-request publishers and actuator subscriptions someone asks for; reject
         commands to actuators this model does not have."""
         node = self.node
-        for name, _types in node.get_topic_names_and_types():
-            if (self.sensors is not None and self.sensors.requested(name)) or (
-                self.tf is not None and self.tf.requested(name)
+        topics = node.get_topic_names_and_types()
+        for name, _types in topics:
+            if (
+                (self.sensors is not None and self.sensors.requested(name))
+                or (self.tf is not None and self.tf.requested(name))
+                or (self.actions is not None and self.actions.requested(name))
             ):
                 self._due["refresh"] = 0.0
                 continue
@@ -449,12 +381,20 @@ class Worker:
                         Problem.UNKNOWN_ACTUATOR,
                         f"no actuator named {match.group(2)!r} in this model (actuators: {self._actuator_list})",
                     )
+        if self.manager is not None or self.actions is not None:  # their services appear with a client
+            for name, _types in node.get_service_names_and_types():
+                if (self.manager is not None and self.manager.requested(name)) or (
+                    self.actions is not None and self.actions.requested(name)
+                ):
+                    self._due["refresh"] = 0.0
+        if self.type_check is not None:
+            self.type_check.scan(topics)
 
     # --- the executor thread ---
     def _spin(self) -> None:
         actions = self.actions
         while self._running:
-            if self._pending:
+            if self.trajectories.pending:
                 timeout = FLUSH_AFTER
             elif actions is not None and actions.busy:
                 timeout = ACTION_POLL  # feedback and results the loop thread queued
@@ -470,8 +410,8 @@ class Worker:
                 if not self._running or not self.context.ok():
                     break
                 self.throttle.warn(("callback", type(e).__name__), f"ROS callback failed: {type(e).__name__}: {e}")
-            if self._pending and wallclock.monotonic() - self._pending_since >= FLUSH_AFTER:
-                self._flush()
+            if self.trajectories.due():
+                self.trajectories.flush()
 
     def _subscribe(self, msg_type: type, topic: str, callback: Callable[[Any], None]) -> None:
         self._subscriptions.append(self.node.create_subscription(msg_type, topic, callback, self.qos))
@@ -535,55 +475,10 @@ class Worker:
             if spec.max_points and len(parsed[1]) > spec.max_points:
                 self._reject(w, topic, Problem.MALFORMED, f"{len(parsed[1])} points, more than {spec.max_points}")
                 return
-            self._submit(i, w, parsed)
+            self.trajectories.submit(i, w, parsed)
 
         return callback
 
-    def _submit(self, i: int, w: int, parsed: tuple, goal: tuple | None = None) -> None:
-        """A trajectory for input `i` in world `w`, handed to the loop with the next flush;
-        `goal`: (tag, path tolerance, goal tolerance, goal time tolerance) of an action goal."""
-        with self._pending_lock:
-            if not self._pending:
-                self._pending_since = wallclock.monotonic()
-            messages = self._pending.setdefault(i, [])
-            if goal is not None:
-                self._pending_goals.setdefault(i, {})[len(messages)] = goal
-            messages.append((w, *parsed))
-
-    def _flush(self) -> None:
-        """Hand every trajectory that arrived to the loop: one ring record per input."""
-        with self._pending_lock:
-            pending, self._pending = self._pending, {}
-            goals, self._pending_goals = self._pending_goals, {}
-        for i, messages in pending.items():
-            spec = self.plan.inputs[i]
-            batch, kept, rejected = trajectory_batch(spec.joints, messages, **_goal_arrays(goals.get(i), len(messages), len(spec.joints)))
-            for k, reason in rejected:
-                w = messages[k][0]
-                self._reject(w, f"/{self.plan.namespaces[w]}/{spec.topic}", Problem.MALFORMED, reason)
-            if not len(batch):
-                continue
-            with self._ring_lock:
-                ok = self.ring.put(Kind.TRAJECTORY, encode_trajectories(i, batch))
-            if not ok:
-                for w in batch.worlds.tolist():
-                    self._reject(
-                        w, f"/{self.plan.namespaces[w]}/{spec.topic}", Problem.BACKLOG, "the loop is too far behind to take it"
-                    )
-                continue
-            np.add.at(self.memory[f"{spec.slots}.seq"], batch.worlds, 1)
-        self._nudge()
-
-
-def _goal_arrays(goals: dict[int, tuple] | None, n: int, njoint: int) -> dict[str, Any]:
-    """trajectory_batch's goal arguments for `n` messages, the `goals` among them
-    ({message index: (tag, path (njoint, 3), goal (njoint, 3), goal time tolerance)})."""
-    if not goals:
-        return {}
-    tags, path, final, goal_time = np.zeros(n, np.int64), np.zeros((n, njoint, 3)), np.zeros((n, njoint, 3)), np.zeros(n)
-    for k, (tag, p, g, t) in goals.items():
-        tags[k], path[k], final[k], goal_time[k] = tag, p, g, t
-    return {"goals": tags, "path_tolerance": path, "goal_tolerance": final, "goal_time_tolerance": goal_time}
 
 
 @contextlib.contextmanager

@@ -43,6 +43,12 @@ def main(argv: list[str] | None = None) -> int:
     if os.getppid() != parent:
         return 0
     status = os.fdopen(status_fd, "w", buffering=1)
+    # a worker writes nothing to stdout (its status goes to STATUS_FD, its log to stderr),
+    # but rclpy's EventsExecutor prints two lines there for every timer beyond 8 on a clock,
+    # and each action server created on request brings one (rcl_action's goal expiry)
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 1)
+    os.close(null)
     try:
         plan: FleetPlan = pickle.load(sys.stdin.buffer)
     except (EOFError, pickle.UnpicklingError):
