@@ -14,7 +14,7 @@ import numpy as np
 
 from batchsim.hardware import BatchedSystem
 from batchsim.model.frames import frame_tree, initial_transforms, relative_transforms
-from batchsim.model.urdf import robot_description, urdf_from_model
+from batchsim.model.urdf import generate_urdf, robot_description
 
 FLEET_FRAME = "world"  # the fixed frame every world's tf tree hangs from
 log = logging.getLogger("batchsim.ros_bridge")
@@ -73,34 +73,41 @@ def tf_spec(
         v[:, :, 3:] = r[:, moving]
 
     pairs = list(zip(tree.parents, tree.names, strict=True))
+    description, extra = _description(sim, tree, source)
+    static = [pairs[k] for k in fixed] + [(body, link) for body, link, _, _ in extra]
+    values = [np.concatenate([t0[fixed], r0[fixed]], axis=1)]
+    values += [np.concatenate([pos, quat[[1, 2, 3, 0]]])[None] for _, _, pos, quat in extra]
     return TfSpec(
         moving=tuple(pairs[k] for k in moving),
-        static=tuple(pairs[k] for k in fixed),
-        static_values=np.concatenate([t0[fixed], r0[fixed]], axis=1),
+        static=tuple(static),
+        static_values=np.concatenate(values, axis=0),
         channel=channel("tf", 7 * len(moving), fill_tf),
         root=tree.root,
         fleet_frame=FLEET_FRAME,
-        description=_description(sim, tree, source),
+        description=description,
         every=every,
     )
 
 
 
 
-def _description(sim: BatchedSystem, tree, source: str | None) -> str:
+def _description(sim: BatchedSystem, tree, source: str | None) -> tuple[str, list]:
     """The user's URDF if its links are frames of the tree (so RViz finds a transform for
-    each), else the one generated from the MJCF, with a warning saying why."""
-    text = robot_description(sim.spec, source)
-    if source is None:
-        return text
-    links = {link.get("name") for link in ET.fromstring(text).iter("link")}
-    unknown = sorted(links - set(tree.names) - {tree.root})
-    if not unknown:
-        return text
-    more = f" and {len(unknown) - 3} more" if len(unknown) > 3 else ""
-    log.warning(
-        "batchsim: robot_description: the links %s%s of %s are no bodies of the MJCF (tf's frames are "
-        "its body names): publishing the URDF generated from the MJCF instead",
-        ", ".join(unknown[:3]), more, str(source).split()[0],
-    )
-    return urdf_from_model(sim.spec)
+    each), else the one generated from the MJCF (with a warning saying why), and the
+    generated one's links that are no body (Urdf.extra_frames: tf_static carries them)."""
+    if source is not None:
+        text = robot_description(sim.spec, source)
+        links = {link.get("name") for link in ET.fromstring(text).iter("link")}
+        unknown = sorted(links - set(tree.names) - {tree.root})
+        if not unknown:
+            return text, []
+        more = f" and {len(unknown) - 3} more" if len(unknown) > 3 else ""
+        log.warning(
+            "batchsim: robot_description: the links %s%s of %s are no bodies of the MJCF (tf's frames are "
+            "its body names): publishing the URDF generated from the MJCF instead",
+            ", ".join(unknown[:3]), more, str(source).split()[0],
+        )
+    urdf = generate_urdf(sim.spec)
+    for line in urdf.warnings:
+        log.warning("batchsim: robot_description: %s", line)
+    return urdf.text, urdf.extra_frames

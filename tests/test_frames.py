@@ -417,3 +417,24 @@ def test_a_fleet_over_two_devices_gives_the_poses_of_one_system(processes):
     finally:
         for sim in fleets:
             sim.shutdown()
+
+
+def test_every_link_of_the_generated_urdf_has_a_tf_frame():
+    """RViz draws a link only where tf has its frame: the links of multi-joint bodies'
+    chains are fixed children of their body (Urdf.extra_frames), at the joint's anchor."""
+    import xml.etree.ElementTree as ET
+
+    from batchsim.model.frames import frame_tree
+    from batchsim.model.urdf import generate_urdf
+
+    spec = batchsim.load("humanoid")
+    urdf = generate_urdf(spec)
+    tree = frame_tree(spec)
+    links = {link.get("name") for link in ET.fromstring(urdf.text).iter("link")}
+    extra = {link: (body, pos, quat) for body, link, pos, quat in urdf.extra_frames}
+    assert extra and set(tree.names) <= links <= set(tree.names) | {tree.root} | set(extra)
+    m = spec.mjmodel
+    body, pos, quat = extra["waist_lower__abdomen_y"]
+    assert body == "waist_lower"
+    assert pos == pytest.approx(m.jnt_pos[m.joint("abdomen_y").id], abs=1e-12)
+    assert quat == pytest.approx([1, 0, 0, 0], abs=1e-12)

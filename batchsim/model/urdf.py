@@ -11,7 +11,8 @@ Joints carry the MJCF joint names:
 - hinge -> `revolute` with its range (`continuous` when unlimited), slide -> `prismatic`;
   a URDF joint's zero is the body's pose at qpos0 (a joint with a `ref` reads qpos - ref).
 - several joints in one body -> a chain through links of their own, `<body>__<joint>`, which
-  have no visuals and no tf frame (RViz may list them as having no transform).
+  have no visuals; tf publishes them as fixed children of the body (`Urdf.extra_frames`),
+  posed as at the body's later joints' zero, so that RViz finds a transform for every link.
 - a hinge whose anchor is off the body's origin -> the joint at the anchor, then a fixed joint
   `<body>__anchor` back to the body's origin (URDF axes pass through the child's origin).
 - no joint -> `fixed` (`<body>__fixed`); ball -> `fixed`, named in `warnings`.
@@ -66,11 +67,16 @@ class Urdf:
       text: the URDF XML.
       warnings: one line per thing the URDF cannot say as the MJCF does (ball joints, left-out trees).
       meshes: the STL files it references (written, or found written, in the cache).
+      extra_frames: the links that are no body (`<body>__<joint>`, `<body>__anchor` chains),
+        each as (its body's frame, the link, position (3,), quaternion w x y z (4,)): its
+        pose in the body's frame with the body's later joints at zero. tf publishes them
+        as fixed, so that RViz finds a transform for every link (they carry no visuals).
     """
 
     text: str
     warnings: list[str]
     meshes: list[Path]
+    extra_frames: list[tuple[str, str, np.ndarray, np.ndarray]] = dataclasses.field(default_factory=list)
 
 
 def robot_description(spec: RobotSpec, source: str | Path | None = None) -> str:
@@ -152,6 +158,7 @@ def _joints(
     pos, quat = m.body_pos[b].copy(), m.body_quat[b].copy()  # the next joint's origin, in its parent
     joints = range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b])
     previous = parent
+    chain: list[tuple[str, np.ndarray, np.ndarray]] = []  # (child link, its joint's origin pos, quat)
     for k, j in enumerate(joints):
         jname = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint_{j}"
         kind = int(m.jnt_type[j])
@@ -165,6 +172,7 @@ def _joints(
         _origin(el, pos, quat)
         ET.SubElement(el, "parent", link=previous)
         ET.SubElement(el, "child", link=child)
+        chain.append((child, pos.copy(), quat.copy()))
         if kind in (_T.mjJNT_HINGE, _T.mjJNT_SLIDE):
             ET.SubElement(el, "axis", xyz=_floats(m.jnt_axis[j]))
             _limit(el, m, j)
@@ -179,6 +187,17 @@ def _joints(
         _origin(el, pos, quat)
         ET.SubElement(el, "parent", link=previous)
         ET.SubElement(el, "child", link=link)
+        chain.append((link, pos.copy(), quat.copy()))
+    # each link of the chain but the body's own, posed in the body's frame (later joints at zero)
+    to_body_pos, to_body_quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])  # link -> body
+    for k in range(len(chain) - 1, 0, -1):
+        _, p, q = chain[k]  # the origin of chain[k] in chain[k - 1]'s frame
+        pos_out, quat_out = np.zeros(3), np.zeros(4)
+        mujoco.mju_mulPose(pos_out, quat_out, p, q, to_body_pos, to_body_quat)
+        to_body_pos, to_body_quat = pos_out, quat_out
+        inv_pos, inv_quat = np.zeros(3), np.zeros(4)
+        mujoco.mju_negPose(inv_pos, inv_quat, to_body_pos, to_body_quat)
+        out.extra_frames.append((link, chain[k - 1][0], inv_pos, inv_quat))
 
 
 def _joint_type(m: mujoco.MjModel, j: int, name: str, out: Urdf) -> str:
