@@ -13,21 +13,18 @@ Per control period, in the loop thread:
                 world's command (or controller input) arrived
     idle        while paused: requests, resets published at once, steps answered
 
-A worker that dies is noticed within SUPERVISE seconds: its worlds hold their last
-commands (or go safe under a command timeout), the log names them, and it is restarted
-on the same shared memory (its counters continue, so nothing is replayed).
+The workers themselves are ros_bridge/supervisor.py's: a worker that dies is noticed
+within a quarter second, its worlds hold their last commands (or go safe under a command
+timeout), the log names them, and it is restarted on the same shared memory.
 """
 
 from __future__ import annotations
 
 import os
-import pickle
 import select
-import subprocess
 import sys
 import time as wallclock
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -42,54 +39,13 @@ from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
 from ros_bridge.commands import RejectionWriter, SlotReader
 from ros_bridge.manager_link import ManagerLink
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, ChannelFill, FleetPlan, describe
-from ros_bridge.registry import Registry
 from ros_bridge.requests import Kind, concatenate, decode_reset, decode_ticket, decode_trajectories
+from ros_bridge.supervisor import Supervisor
 from ros_bridge.throttle import LogThrottle
-from ros_bridge.transport import PROFILES_FILE, TransportProfile
 
-SUPERVISE = 0.25  # s of wall time between two looks at the workers
-START_TIMEOUT = 120.0  # s a worker may take to come up (imports, endpoints, the start-up check)
-STOP_TIMEOUT = 1.5  # s workers get to leave the ROS graph before they are killed
 IDLE_TICK = 0.02  # s between two in-process worker ticks while paused
 _BAD = np.uint8(Status.BAD_COMMAND)
 _FROZEN = np.uint8(Status.DIVERGED | Status.OVERFLOW)
-
-
-class FleetConflict(ValueError):
-    """Another process on the ROS domain already serves these worlds, or /clock.
-
-    Attributes:
-      kind: "namespace" or "clock".
-    """
-
-    def __init__(self, kind: str, message: str):
-        super().__init__(message)
-        self.kind = kind
-
-
-class WorkerError(RuntimeError):
-    """A bridge worker failed to start."""
-
-
-class _Process:
-    """One worker process and its pipes."""
-
-    def __init__(self, index: int, popen: subprocess.Popen, wake: int, status: int):
-        self.index = index
-        self.popen = popen
-        self.wake = wake  # write end: a byte per period
-        self.status = status  # read end: "ready", "conflict ...", "error ..."
-        self.ready = False
-        self.restarts = 0
-        self.died_at = 0.0
-
-    def close_pipes(self) -> None:
-        for fd in (self.wake, self.status):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-        self.wake = self.status = -1
 
 
 class BridgeHost:
@@ -180,49 +136,35 @@ class BridgeHost:
         self._force = False
         self._gate_since: float | None = None
         self._steps: list[tuple[int, int, float]] = []  # (worker, ticket, sim time when asked)
-        self._next_supervise = 0.0
         self._next_idle_tick = 0.0
         self._closed = False
-        self._procs: list[_Process] = []
-        self._worker: Any = None  # the in-process worker
-        self.registry = Registry.for_domain()
-        # Fast DDS's shared-memory segment sized for the cameras' and lidars' messages
-        self.transport = TransportProfile(plan.sensors, [hi - lo for lo, hi in plan.ranges], plan.control_rate)
-        self._environ_before: str | None = None
-        self._notify_r, self._notify_w = os.pipe()
-        os.set_blocking(self._notify_r, False)
-        os.set_blocking(self._notify_w, False)
+        # the workers: started, woken, watched and restarted (ros_bridge/supervisor.py)
+        self.workers = Supervisor(plan, m, processes=processes, throttle=self.throttle, command_timeout=command_timeout)
 
     # --- start and stop ---
     def start(self) -> None:
-        """Bring the workers up (worker 0 first: it checks the graph for another fleet).
-        FleetConflict or WorkerError if they cannot serve."""
+        """Bring the workers up. FleetConflict or WorkerError if they cannot serve (then
+        the shared memory is gone too)."""
         try:
-            conflict = self.registry.claim(self.plan.node_names[0], self.plan.namespaces, self.plan.clock)
-            if conflict is not None:
-                raise FleetConflict(*conflict)
-            if self.processes:
-                first = self._spawn(0, check=True)
-                self._procs.append(first)
-                self._await_ready([first])
-                for j in range(1, self.plan.nworker):
-                    self._procs.append(self._spawn(j, check=False))  # appended at once: close() stops it
-                self._await_ready(self._procs[1:])
-            else:
-                from ros_bridge.worker import Worker  # rclpy comes in only here
-
-                self._environ_before = os.environ.get(PROFILES_FILE)
-                self.transport.apply(os.environ)  # read when this process's first participant is made
-
-                self._worker = Worker(self.plan, 0, self.memory, notify_fd=self._notify_w if self.lockstep else None)
-                conflict = self._worker.check_conflicts()
-                if conflict is not None:
-                    raise FleetConflict(*conflict)
-                self._worker.build()
-                self._worker.start()
+            self.workers.start()
         except BaseException:
             self.close()
             raise
+
+    @property
+    def worker_pids(self) -> list[int]:
+        """The worker processes' ids (empty when the bridge runs in this process)."""
+        return self.workers.pids
+
+    def close(self) -> None:
+        """Stop every worker and unlink the shared memory. Safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        if self.loop.gate == self.gate:
+            self.loop.gate = None
+        self.workers.close()
+        self.memory.close()
 
     def attach(self) -> None:
         """Join the loop: first participant (controllers after it see this period's
@@ -236,157 +178,10 @@ class BridgeHost:
         workers = f"{self.plan.nworker} bridge worker{'s' if self.plan.nworker > 1 else ''}" if self.processes else ""
         return text[:-1] + f", {workers})" if workers else text
 
-    @property
-    def worker_pids(self) -> list[int]:
-        """The worker processes' ids (empty when the bridge runs in this process)."""
-        return [p.popen.pid for p in self._procs if p.popen.poll() is None]
-
-    def close(self) -> None:
-        """Stop every worker (they leave the ROS graph; killed after STOP_TIMEOUT) and
-        unlink the shared memory. Safe to call twice."""
-        if self._closed:
-            return
-        self._closed = True
-        if self.loop.gate == self.gate:
-            self.loop.gate = None
-        for p in self._procs:
-            try:
-                os.write(p.wake, b"q")
-            except OSError:
-                pass
-            if not p.ready and p.popen.poll() is None:
-                p.popen.terminate()  # still starting: it reads no pipe yet
-            p.close_pipes()
-        deadline = wallclock.monotonic() + STOP_TIMEOUT
-        for p in self._procs:
-            try:
-                p.popen.wait(max(0.0, deadline - wallclock.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.popen.kill()
-                p.popen.wait()
-        if self._worker is not None:
-            self._worker.close()
-            self._worker = None
-        self.memory.close()
-        self.registry.release()
-        if self.transport.path is not None and os.environ.get(PROFILES_FILE) == str(self.transport.path):
-            if self._environ_before is None:
-                os.environ.pop(PROFILES_FILE, None)
-            else:
-                os.environ[PROFILES_FILE] = self._environ_before
-        self.transport.close()
-        for fd in (self._notify_r, self._notify_w):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
-
-    def _spawn(self, index: int, check: bool) -> _Process:
-        wake_r, wake_w = os.pipe()
-        status_r, status_w = os.pipe()
-        root = str(Path(__file__).resolve().parent.parent)
-        env = dict(os.environ)
-        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-        self.transport.apply(env)
-        argv = [sys.executable, "-m", "ros_bridge.worker", str(index), str(wake_r), str(status_w), str(self._notify_w)]
-        popen = subprocess.Popen(
-            argv + (["--check"] if check else []),
-            stdin=subprocess.PIPE,
-            pass_fds=(wake_r, status_w, self._notify_w),
-            env=env,
-            start_new_session=True,  # Ctrl-C goes to the physics process, which stops the workers
-        )
-        os.close(wake_r)
-        os.close(status_w)
-        try:
-            popen.stdin.write(pickle.dumps(self.plan))
-            popen.stdin.close()
-        except BrokenPipeError:
-            pass
-        except BaseException:  # interrupted (Ctrl-C) while handing the plan over: no orphan
-            popen.kill()
-            popen.wait()
-            for fd in (wake_w, status_r):
-                os.close(fd)
-            raise
-        os.set_blocking(wake_w, False)
-        os.set_blocking(status_r, False)
-        return _Process(index, popen, wake_w, status_r)
-
-    def _await_ready(self, procs: list[_Process]) -> None:
-        deadline = wallclock.monotonic() + START_TIMEOUT
-        waiting = {p.status: p for p in procs}
-        lines: dict[int, bytes] = {fd: b"" for fd in waiting}
-        while waiting:
-            left = deadline - wallclock.monotonic()
-            if left <= 0:
-                raise WorkerError(f"bridge worker {next(iter(waiting.values())).index} did not start in {START_TIMEOUT:g} s")
-            ready, _, _ = select.select(list(waiting), [], [], min(left, 0.2))
-            for fd in ready:
-                chunk = os.read(fd, 4096)
-                lines[fd] += chunk
-                if b"\n" in lines[fd] or not chunk:
-                    p = waiting.pop(fd)
-                    self._started(p, lines[fd].decode(errors="replace").strip())
-            for fd, p in list(waiting.items()):
-                if p.popen.poll() is not None and fd not in ready:
-                    waiting.pop(fd)
-                    self._started(p, lines[fd].decode(errors="replace").strip())
-
-    def _started(self, p: _Process, line: str) -> None:
-        if line == "ready":
-            p.ready = True
-            return
-        if line.startswith("conflict "):
-            kind, _, message = line[len("conflict ") :].partition(" ")
-            raise FleetConflict(kind, message)
-        detail = line[len("error ") :] if line.startswith("error ") else f"exit code {p.popen.poll()}"
-        raise WorkerError(f"bridge worker {p.index} failed to start: {detail}")
-
-    # --- supervision ---
-    def _supervise(self) -> None:
-        now = wallclock.monotonic()
-        if now < self._next_supervise:
-            return
-        self._next_supervise = now + SUPERVISE
-        self.throttle.flush()  # windows that closed: how many lines each held back
-        for j, p in enumerate(self._procs):
-            if not p.ready and p.status >= 0:  # a restarted worker: is it up?
-                try:
-                    line = os.read(p.status, 4096)
-                except BlockingIOError:
-                    line = None
-                if line is not None and line.startswith(b"ready"):
-                    p.ready = True
-                    lo, hi = self.plan.ranges[j]
-                    self.throttle.warn(("worker", j, "back"), f"bridge worker {j} is back: {self._worlds(lo, hi)} are served again")
-            code = p.popen.poll()
-            if code is None:
-                continue
-            lo, hi = self.plan.ranges[j]
-            if p.died_at == 0.0:
-                hold = "go safe after the command timeout" if self.command_timeout else "hold their last commands"
-                self.throttle.warn(
-                    ("worker", j, "died"),
-                    f"bridge worker {j} (pid {p.popen.pid}) died with exit code {code}: {self._worlds(lo, hi)} "
-                    f"{hold}; restarting it",
-                )
-                p.died_at = now
-            if now - p.died_at < min(30.0, 0.5 * 2 ** min(p.restarts, 6)) and p.restarts:
-                continue  # it died again soon after a restart: back off
-            replacement = self._spawn(j, check=False)
-            replacement.restarts = p.restarts + 1
-            p.close_pipes()
-            self._procs[j] = replacement
-
-    def _worlds(self, lo: int, hi: int) -> str:
-        ns = self.namespaces
-        return f"/{ns[lo]}" if hi - lo == 1 else f"/{ns[lo]} .. /{ns[hi - 1]}"
-
     # --- the loop thread ---
     def update(self, sim: BatchedSystem, time: float, period: float) -> None:
         """Requests, commands, timeouts, BAD_COMMAND; the controllers run after this."""
-        self._supervise()
+        self.workers.supervise()
         good = np.zeros(self.nworld, dtype=bool)
         rejected = np.zeros(self.nworld, dtype=bool)
         self._serve_requests(sim, good, rejected)
@@ -433,7 +228,7 @@ class BridgeHost:
     def idle(self, sim: BatchedSystem, time: float) -> None:
         """While paused: requests; a reset or a finished step is published at once."""
         self._gate_since = None
-        self._supervise()
+        self.workers.supervise()
         if self._serve_requests(sim, None, None) and self._force:
             for c in self.readers:  # the controllers' copies of the state, for what is published now
                 c.update(sim, time, 0.0)
@@ -445,16 +240,16 @@ class BridgeHost:
             self._steps = []
         if self._force or self._published_time != time:
             self._snapshot(time, force=True)
-        elif self._worker is not None and wallclock.monotonic() >= self._next_idle_tick:
+        elif self.workers.worker is not None and wallclock.monotonic() >= self._next_idle_tick:
             self._next_idle_tick = wallclock.monotonic() + IDLE_TICK
-            self._worker.tick()
+            self.workers.worker.tick()
 
     def gate(self, sim_time: float) -> bool:
         """Lockstep: True when every world's command for this period has arrived (or the
         wait timed out); False to be asked again, so stop() and pause() stay responsive."""
         if self._closed:
             return True
-        self._supervise()
+        self.workers.supervise()
         self._serve_requests(self.sim, None, None)
         now = wallclock.monotonic()
         if self._gate_since is None:
@@ -468,13 +263,13 @@ class BridgeHost:
             return True
         left = self._gate_since + self.lockstep_timeout - now
         if left > 0:
-            select.select([self._notify_r], [], [], min(left, 0.05))
+            select.select([self.workers.notify_r], [], [], min(left, 0.05))
             try:
-                os.read(self._notify_r, 65536)
+                os.read(self.workers.notify_r, 65536)
             except BlockingIOError:
                 pass
-            if self._worker is not None:
-                self._worker.tick()  # in-process: services and housekeeping while we wait
+            if self.workers.worker is not None:
+                self.workers.worker.tick()  # in-process: services and housekeeping while we wait
             ready = self._ready()
             if ready.all():
                 self._gate_since = None
@@ -606,7 +401,7 @@ class BridgeHost:
         answer[: len(text)] = np.frombuffer(text, np.uint8)
         m["svc.time"][worker] = time
         m["svc.done"][worker] = max(int(m["svc.done"][worker]), ticket)
-        self._wake(worker)
+        self.workers.wake(worker)
 
     # --- publishing ---
     def _snapshot(self, time: float, force: bool, every_channel: bool = False) -> None:
@@ -643,19 +438,7 @@ class BridgeHost:
         self._n = n
         self._published_time = time
         self._force = False
-        if self._worker is not None:
-            self._worker.tick()
-        else:
-            for j in range(len(self._procs)):
-                self._wake(j)
-
-    def _wake(self, worker: int) -> None:
-        if self._worker is not None or worker >= len(self._procs):
-            return
-        try:
-            os.write(self._procs[worker].wake, b"w")
-        except (BlockingIOError, OSError):
-            pass  # its pipe is full (it is behind) or it is gone (supervision restarts it)
+        self.workers.wake_all()
 
     # --- lockstep and timeouts ---
     def _ready(self) -> np.ndarray:
