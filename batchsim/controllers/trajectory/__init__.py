@@ -1,8 +1,9 @@
 """joint_trajectory_controller/JointTrajectoryController, over every world at once.
 
-Modules: `controller` (the controller), `pool` (the segment pool), `splines` (segment
-polynomials and their sampling), `validation` (batch unpacking and checks, command
-bounds), `goals` (action goals: tolerances and outcomes).
+Modules: `controller` (the controller), `timeline` (each world's queued and running
+trajectory, and the reference sampled from it), `pool` (the segment pool), `splines`
+(segment polynomials and their sampling), `validation` (batch unpacking and checks,
+command bounds), `goals` (action goals: tolerances and outcomes).
 
 Semantics follow ros2_control's controller:
 

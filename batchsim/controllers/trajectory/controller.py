@@ -1,7 +1,8 @@
 """JointTrajectoryController itself: parameters, input, the loop, commands, topics.
 
 Its semantics are the package's docstring (batchsim/controllers/trajectory/__init__.py);
-the segment pool, the spline math, the batch checks and the goals live beside it.
+each world's trajectory timeline (and the segment pool under it), the spline math, the
+batch checks and the goals live beside it.
 """
 
 from __future__ import annotations
@@ -11,19 +12,12 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from batchsim.controllers.base import Controller, Params, last_per_world, ranges
+from batchsim.controllers.base import Controller, Params
 from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch
 from batchsim.controllers.trajectory.goals import Constraints, GoalTracker
-from batchsim.controllers.trajectory.pool import PENDING, RUNNING, SegmentPool
-from batchsim.controllers.trajectory.splines import (
-    CUBIC,
-    QUINTIC,
-    Interpolation,
-    coefficients,
-    evaluate,
-    point_rows,
-)
-from batchsim.controllers.trajectory.validation import CommandBound, Unpacked, check, one_trajectory, unpack
+from batchsim.controllers.trajectory.splines import Interpolation, point_rows
+from batchsim.controllers.trajectory.timeline import Timeline
+from batchsim.controllers.trajectory.validation import CommandBound, check, one_trajectory, unpack
 from batchsim.model import RobotSpec
 
 # the combinations of command interfaces the stock controller accepts
@@ -174,43 +168,31 @@ class JointTrajectoryController(Controller):
         self._acceleration_error = self._acc_cols is not None and "acceleration" in self.command_kinds
 
         W = self.nworld
-        self.reference_position = np.zeros((W, nj))
-        self.reference_velocity = np.zeros((W, nj))
-        self.reference_acceleration = np.zeros((W, nj))
+        # the reference and `executing` are the timeline's arrays, written in place
+        self._timeline = Timeline(W, nj, step_points=self._step_points)
+        self.reference_position, self.reference_velocity, self.reference_acceleration = (
+            self._timeline.reference_position,
+            self._timeline.reference_velocity,
+            self._timeline.reference_acceleration,
+        )
+        self.executing = self._timeline.executing
         self.feedback_position = np.zeros((W, nj))
         self.feedback_velocity = np.zeros((W, nj))
         self.error_position = np.zeros((W, nj))
         self.error_velocity = np.zeros((W, nj))
         self.output = np.zeros((W, sum(len(c) for _, c in self._cmd)))
-        self.executing = np.zeros(W, bool)
         self._i_term = np.zeros((W, nj))
-        self._hold = np.zeros((W, nj))  # the reference of a world with no running trajectory
-        # the reference came from a trajectory (since the last reset or stop): a partial
-        # goal's other joints then hold the reference, not the measured position
-        self._on_trajectory = np.zeros(W, bool)
-
-        self._pool = SegmentPool(W, nj)
-        # the running trajectory: block rows 0..last, `segment` the row time has reached
-        self._running = np.zeros(W, bool)
-        self._t0 = np.zeros(W)  # its start, sim time
-        self._segment = np.zeros(W, np.int64)
-        self._last = np.zeros(W, np.int64)
-        # the trajectory waiting to start: its points are block rows 1..npoint
-        self._pending_start = np.full(W, np.inf)
-        self._pending_npoint = np.zeros(W, np.int64)
-        self._pending_spline = np.zeros(W, np.int8)
-        self._pending_mask = np.zeros((W, nj), bool)
 
     # --- what the buffers hold ---
     @property
     def pending(self) -> np.ndarray:
         """(nworld,) bool: a trajectory is queued and waiting for its start time."""
-        return np.isfinite(self._pending_start)
+        return self._timeline.pending
 
     @property
     def buffer_rows(self) -> int:
         """Trajectory rows allocated for the whole fleet (each ~(6 * njoint + 1) float64)."""
-        return self._pool.capacity
+        return self._timeline.pool.capacity
 
     # --- input (from the loop thread) ---
     def set_trajectory(
@@ -281,7 +263,16 @@ class JointTrajectoryController(Controller):
         rows = point_rows(
             b.steps, b.offsets, verdict.owner, verdict.spline, verdict.points, self._step_points
         )
-        self._queue(b, np.flatnonzero(~verdict.failed), b.counts, verdict.spline, rows)
+        keep = self._timeline.queue(b, np.flatnonzero(~verdict.failed), verdict.spline, rows)
+        if keep.size:
+            self._goals.queue(
+                b.worlds[keep],
+                b.goals[keep],
+                *(
+                    None if t is None else t[keep]
+                    for t in (b.path_tolerance, b.goal_tolerance, b.goal_time_tolerance)
+                ),
+            )
         return verdict.rejected
 
     def cancel(self, worlds: np.ndarray, goals: np.ndarray) -> None:
@@ -299,133 +290,6 @@ class JointTrajectoryController(Controller):
         if tags.shape != rows.shape:
             raise ValueError(f"{self.name}: cancel: {len(rows)} worlds but {len(tags)} goals")
         self._stop(self._goals.cancel(rows, tags.astype(np.int64)))
-
-    def _queue(
-        self, b: Unpacked, accepted: np.ndarray, counts: np.ndarray, spline: np.ndarray, rows: np.ndarray
-    ) -> None:
-        """Store the accepted trajectories (the last per world) as their worlds' pending ones."""
-        if not accepted.size:
-            return
-        keep = accepted[last_per_world(b.worlds[accepted])]
-        worlds, npoint = b.worlds[keep], counts[keep]
-        pool = self._pool
-        pool.release(PENDING, worlds)  # a newer goal replaces one still waiting to start
-        filled = npoint > 0
-        pool.allocate(PENDING, worlds[filled], npoint[filled] + 1)  # + the start row
-        off = pool.offset[PENDING, worlds[filled]]
-        dest = ranges(off + 1, npoint[filled])
-        if len(dest) == len(rows):  # every point is kept (the usual case): no gather
-            pool.times[dest], pool.coefficients[dest] = b.times, rows
-        else:
-            source = ranges(b.offsets[keep][filled], npoint[filled])
-            pool.times[dest] = b.times[source]
-            pool.coefficients[dest] = rows[source]
-        self._pending_start[worlds] = b.start_time[keep]
-        self._pending_npoint[worlds] = npoint
-        self._pending_spline[worlds] = spline[keep]
-        self._pending_mask[worlds] = b.joint_mask[keep]
-        self._goals.queue(
-            worlds,
-            b.goals[keep],
-            *(
-                None if t is None else t[keep]
-                for t in (b.path_tolerance, b.goal_tolerance, b.goal_time_tolerance)
-            ),
-        )
-
-    def _start(self, due: np.ndarray, time: float) -> None:
-        """Make the due worlds' queued trajectories their running ones, from the current state."""
-        pool = self._pool
-        nj = len(self.joints)
-        t0 = np.where(self._pending_start[due] > 0, self._pending_start[due], time)
-        npoint = self._pending_npoint[due]
-        here = (self.reference_position if self.open_loop else self.feedback_position)[due]
-        if self.open_loop:
-            here_v = self.reference_velocity[due]
-        elif self._vel_cols is not None:
-            here_v = self.feedback_velocity[due]
-        else:
-            here_v = np.zeros((len(due), nj))
-        # the first point still ahead: points already in the past at the start are dropped
-        off = pool.offset[PENDING, due]
-        skip = np.zeros(len(due), np.int64)
-        late = npoint > 0
-        late[late] = t0[late] + pool.times[off[late] + 1] <= time
-        if late.any():  # times increase, so the passed points are a prefix: count them
-            passed = ranges(off[late] + 1, npoint[late])
-            which = np.repeat(np.arange(int(late.sum())), npoint[late])
-            gone = np.repeat(t0[late], npoint[late]) + pool.times[passed] <= time
-            skip[late] = np.bincount(which, weights=gone, minlength=int(late.sum())).astype(np.int64)
-        ends = t0.copy()  # sim time of each trajectory's last point, for its goal's checks
-        filled = npoint > 0
-        ends[filled] += pool.times[off[filled] + npoint[filled]]
-        self._goals.start(due, ends)
-        stop = skip >= npoint
-        stopped = due[stop]
-        pool.release(RUNNING, stopped)
-        pool.release(PENDING, stopped)
-        pool.trim(stopped)
-        self._running[stopped] = False
-        self._on_trajectory[stopped] = False
-        self._hold[stopped] = here[stop]
-
-        go = ~stop
-        worlds = due[go]
-        if worlds.size:
-            hold = np.where(self._on_trajectory[worlds, None], self.reference_position[worlds], here[go])
-            pool.promote(worlds)
-            self._begin(worlds, t0[go], time, skip[go], here[go], here_v[go], hold)
-        self._pending_start[due] = np.inf
-        self._pending_npoint[due] = 0
-
-    def _begin(
-        self,
-        worlds: np.ndarray,
-        t0: np.ndarray,
-        time: float,
-        skip: np.ndarray,
-        here: np.ndarray,
-        here_v: np.ndarray,
-        hold: np.ndarray,
-    ) -> None:
-        """Insert the current point before the first point ahead and set the worlds running."""
-        pool = self._pool
-        off = pool.offset[RUNNING, worlds]
-        npoint = self._pending_npoint[worlds]
-        mask = self._pending_mask[worlds]
-        spline = self._pending_spline[worlds]
-        start_row, first = off + skip, off + skip + 1
-        rel = time - t0
-        row = np.zeros((len(worlds), 6, len(self.joints)))
-        if self._step_points:
-            row[:, 0], row[:, 1] = here, here_v
-        else:
-            # the first point ahead, from its row (a point's row starts with its p, v and a / 2)
-            c = pool.coefficients[first]
-            p1 = np.where(mask, c[:, 0], hold)
-            v1 = np.where(mask & (spline >= CUBIC)[:, None], c[:, 1], 0.0)
-            a1 = np.where(mask & (spline == QUINTIC)[:, None], 2 * c[:, 2], 0.0)
-            T = pool.times[first] - rel
-            T = np.where(T > 0, T, 1.0)[:, None]  # a zero-length segment is never sampled
-            for k, plane in enumerate(coefficients(spline, here, p1, here_v, v1, np.zeros_like(here), a1, T)):
-                row[:, k] = plane
-        pool.times[start_row] = rel
-        pool.coefficients[start_row] = row
-        partial = ~mask.all(axis=1)
-        if partial.any():  # joints a partial goal leaves out hold after the first segment
-            rows = ranges(first[partial], npoint[partial] - skip[partial])
-            which = np.repeat(np.flatnonzero(partial), npoint[partial] - skip[partial])
-            block = pool.coefficients[rows]  # (n, 6, nj)
-            out = ~mask[which]
-            block.transpose(0, 2, 1)[out] = 0.0
-            block[:, 0][out] = hold[which][out]
-            pool.coefficients[rows] = block
-        self._t0[worlds] = t0
-        self._segment[worlds] = skip
-        self._last[worlds] = npoint
-        self._running[worlds] = True
-        self._on_trajectory[worlds] = True
-        self._i_term[worlds] = 0.0
 
     def topics(self) -> ControllerTopics:
         """`<ns>/<controller>/joint_trajectory` in; `<ns>/<controller>/controller_state` out
@@ -481,31 +345,20 @@ class JointTrajectoryController(Controller):
     # --- the loop ---
     def activate(self, sim: Any, time: float) -> None:
         self._read(sim)
-        self._hold[:] = self.feedback_position
+        self._timeline.hold[:] = self.feedback_position
         self.reference_position[:] = self.feedback_position
 
     def reset(self, sim: Any, worlds: np.ndarray) -> None:
         self._read(sim)
         self._goals.abort(worlds)
         self._stop(worlds)
-        self._pool.shrink()
+        self._timeline.pool.shrink()
         self._i_term[worlds] = 0.0
 
     def _stop(self, worlds: np.ndarray) -> None:
         """Drop the worlds' trajectories, running and queued, and hold them where they were
         measured at the last read."""
-        self._pool.release(RUNNING, worlds)
-        self._pool.release(PENDING, worlds)
-        self._pool.trim(worlds)
-        self._running[worlds] = False
-        self._on_trajectory[worlds] = False
-        self._hold[worlds] = self.feedback_position[worlds]
-        self.reference_position[worlds] = self.feedback_position[worlds]
-        self.reference_velocity[worlds] = 0.0
-        self.reference_acceleration[worlds] = 0.0
-        self.executing[worlds] = False
-        self._pending_start[worlds] = np.inf
-        self._pending_npoint[worlds] = 0
+        self._timeline.stop(worlds, self.feedback_position[worlds])
 
     def _read(self, sim: Any) -> None:
         state = sim.state
@@ -515,10 +368,11 @@ class JointTrajectoryController(Controller):
 
     def update(self, sim: Any, time: float, period: float) -> None:
         self._read(sim)
-        if self._pending_start.min() <= time + 1e-9:
-            self._start(np.flatnonzero(self._pending_start <= time + 1e-9), time)
-        self._sample(time)
-        self._pool.shrink()
+        due = self._timeline.due(time)
+        if due.size:
+            self._start(due, time)
+        self._timeline.sample(time)
+        self._timeline.pool.shrink()
         self.error_position[:] = self.reference_position - self.feedback_position
         self.error_velocity[:] = self.reference_velocity - self.feedback_velocity
         if self._goals.checking:
@@ -538,45 +392,18 @@ class JointTrajectoryController(Controller):
             self.error_position[hold] = 0.0
             self.error_velocity[hold] = -self.feedback_velocity[hold]
 
-    def _sample(self, time: float) -> None:
-        """Reference position/velocity/acceleration of every world at `time`."""
-        pos, vel, acc = self.reference_position, self.reference_velocity, self.reference_acceleration
-        running = np.flatnonzero(self._running)
-        if len(running) < self.nworld:
-            pos[:] = self._hold
-            vel[:] = 0.0
-            acc[:] = 0.0
-            self.executing[:] = False
-        if not running.size:
-            return
-        pool = self._pool
-        times = pool.times
-        rel = time - self._t0[running]
-        base = pool.offset[RUNNING, running]
-        segment, last = self._segment[running], self._last[running]
-        # segment: the last point at or before rel; usually the same as last period or the next
-        moving = np.flatnonzero(
-            (segment < last) & (times[base + np.minimum(segment + 1, last)] <= rel + 1e-12)
-        )
-        while moving.size:
-            segment[moving] += 1
-            s = segment[moving]
-            ahead = (s < last[moving]) & (
-                times[base[moving] + np.minimum(s + 1, last[moving])] <= rel[moving] + 1e-12
-            )
-            moving = moving[ahead]
-        self._segment[running] = segment
-        row = base + segment
-        done = segment >= last  # past the last point: its position, at rest
-        reference = evaluate(pool.coefficients[row], rel - times[row], done, self._step_points)
-        pos[running], vel[running], acc[running] = reference[:, 0], reference[:, 1], reference[:, 2]
-        self.executing[running] = ~done
-        finished = running[done]
-        if finished.size:  # past the last point: hold it and give the rows back
-            self._hold[finished] = pos[finished]
-            self._running[finished] = False
-            pool.release(RUNNING, finished)
-            pool.trim(finished)
+    def _start(self, due: np.ndarray, time: float) -> None:
+        """Start the due worlds' queued trajectories from the current state, with their goals."""
+        here = (self.reference_position if self.open_loop else self.feedback_position)[due]
+        if self.open_loop:
+            here_v = self.reference_velocity[due]
+        elif self._vel_cols is not None:
+            here_v = self.feedback_velocity[due]
+        else:
+            here_v = np.zeros((len(due), len(self.joints)))
+        end, started = self._timeline.start(due, time, here, here_v)
+        self._goals.start(due, end)
+        self._i_term[started] = 0.0
 
     def _command(self, sim: Any, period: float) -> None:
         if self._pid:

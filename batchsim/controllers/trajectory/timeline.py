@@ -1,0 +1,265 @@
+"""Every world's trajectory timeline: the queued trajectory, the running one, and the reference.
+
+A world holds at most two trajectories in the segment pool: the one waiting for its start
+time and the one running. `queue` stores accepted trajectories as the pending ones, `start`
+makes the due ones running from the state the controller measured (inserting it as the
+point the first segment leaves from, dropping points already past), and `sample` advances
+each world's current segment and evaluates the reference at the update's time. A world
+with no running trajectory holds its reference. Goals and commands stay with the
+controller: `queue` and `start` return what it needs for them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from batchsim.controllers.base import last_per_world, ranges
+from batchsim.controllers.trajectory.pool import PENDING, RUNNING, SegmentPool
+from batchsim.controllers.trajectory.splines import CUBIC, QUINTIC, coefficients, evaluate
+from batchsim.controllers.trajectory.validation import Unpacked
+
+
+class Timeline:
+    """Every world's queued and running trajectory, and the reference sampled from them.
+
+    Args:
+      nworld, njoint: the fleet and the controller's joints.
+      step_points: `interpolation_method: none`: hold each point, no splines.
+
+    Attributes (the running trajectory is block rows 0..last of `pool`, the pending one's
+    points rows 1..npoint of its block; row 0 is the start row, filled when it starts):
+      pool: the SegmentPool holding every world's rows.
+      reference_position, reference_velocity, reference_acceleration: (nworld, njoint), the
+        reference at the last `sample` (or `stop`).
+      executing: (nworld,) bool, a trajectory is running and not yet past its last point.
+      hold: (nworld, njoint), the reference of a world with no running trajectory.
+      on_trajectory: (nworld,) bool, the reference came from a trajectory (since the last
+        stop): a partial goal's other joints then hold the reference, not the measured position.
+      running: (nworld,) bool, a trajectory is running.
+      t0: (nworld,) float64, its start, sim time.
+      segment: (nworld,) int64, the block row time has reached.
+      last: (nworld,) int64, its last row.
+      pending_start: (nworld,) float64, the pending trajectory's start time (0: the next
+        update), inf for none.
+      pending_npoint: (nworld,) int64, its points.
+      pending_spline: (nworld,) int8 Spline, its interpolation.
+      pending_mask: (nworld, njoint) bool, the joints it names.
+    """
+
+    def __init__(self, nworld: int, njoint: int, *, step_points: bool):
+        W, nj = nworld, njoint
+        self.nworld, self.njoint = nworld, njoint
+        self.step_points = step_points
+        self.pool = SegmentPool(W, nj)
+        self.reference_position = np.zeros((W, nj))
+        self.reference_velocity = np.zeros((W, nj))
+        self.reference_acceleration = np.zeros((W, nj))
+        self.executing = np.zeros(W, bool)
+        self.hold = np.zeros((W, nj))
+        self.on_trajectory = np.zeros(W, bool)
+        self.running = np.zeros(W, bool)
+        self.t0 = np.zeros(W)
+        self.segment = np.zeros(W, np.int64)
+        self.last = np.zeros(W, np.int64)
+        self.pending_start = np.full(W, np.inf)
+        self.pending_npoint = np.zeros(W, np.int64)
+        self.pending_spline = np.zeros(W, np.int8)
+        self.pending_mask = np.zeros((W, nj), bool)
+
+    @property
+    def pending(self) -> np.ndarray:
+        """(nworld,) bool: a trajectory is queued and waiting for its start time."""
+        return np.isfinite(self.pending_start)
+
+    def due(self, time: float) -> np.ndarray:
+        """The worlds whose pending trajectory starts at or before `time`, (n,) int64."""
+        if self.pending_start.min() > time + 1e-9:  # the usual case: none
+            return np.zeros(0, np.int64)
+        return np.flatnonzero(self.pending_start <= time + 1e-9)
+
+    def queue(self, b: Unpacked, accepted: np.ndarray, spline: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Store the accepted trajectories (the last per world) as their worlds' pending ones.
+
+        Args:
+          b: the batch.
+          accepted: (n,) indices into the batch of the accepted trajectories.
+          spline: (ntrajectory,) int8 Spline of each trajectory of the batch.
+          rows: (npoint, 6, njoint) the accepted points' segment rows (splines.point_rows).
+
+        Returns:
+          (k,) the indices into the batch of the trajectories queued, one per world.
+        """
+        if not accepted.size:
+            return accepted
+        keep = accepted[last_per_world(b.worlds[accepted])]
+        worlds, npoint = b.worlds[keep], b.counts[keep]
+        pool = self.pool
+        pool.release(PENDING, worlds)  # a newer goal replaces one still waiting to start
+        filled = npoint > 0
+        pool.allocate(PENDING, worlds[filled], npoint[filled] + 1)  # + the start row
+        off = pool.offset[PENDING, worlds[filled]]
+        dest = ranges(off + 1, npoint[filled])
+        if len(dest) == len(rows):  # every point is kept (the usual case): no gather
+            pool.times[dest], pool.coefficients[dest] = b.times, rows
+        else:
+            source = ranges(b.offsets[keep][filled], npoint[filled])
+            pool.times[dest] = b.times[source]
+            pool.coefficients[dest] = rows[source]
+        self.pending_start[worlds] = b.start_time[keep]
+        self.pending_npoint[worlds] = npoint
+        self.pending_spline[worlds] = spline[keep]
+        self.pending_mask[worlds] = b.joint_mask[keep]
+        return keep
+
+    def start(
+        self, due: np.ndarray, time: float, here: np.ndarray, here_v: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Make the due worlds' queued trajectories their running ones, from the current state.
+
+        Args:
+          due: (n,) the worlds (`due`).
+          time: the update's sim time.
+          here, here_v: (n, njoint) the position and velocity each trajectory leaves from.
+
+        Returns:
+          end: (n,) sim time of each trajectory's last point.
+          started: the worlds of `due` now running (the others had no point ahead, and hold).
+        """
+        pool = self.pool
+        t0 = np.where(self.pending_start[due] > 0, self.pending_start[due], time)
+        npoint = self.pending_npoint[due]
+        # the first point still ahead: points already in the past at the start are dropped
+        off = pool.offset[PENDING, due]
+        skip = np.zeros(len(due), np.int64)
+        late = npoint > 0
+        late[late] = t0[late] + pool.times[off[late] + 1] <= time
+        if late.any():  # times increase, so the passed points are a prefix: count them
+            passed = ranges(off[late] + 1, npoint[late])
+            which = np.repeat(np.arange(int(late.sum())), npoint[late])
+            gone = np.repeat(t0[late], npoint[late]) + pool.times[passed] <= time
+            skip[late] = np.bincount(which, weights=gone, minlength=int(late.sum())).astype(np.int64)
+        end = t0.copy()
+        filled = npoint > 0
+        end[filled] += pool.times[off[filled] + npoint[filled]]
+        stop = skip >= npoint
+        stopped = due[stop]
+        pool.release(RUNNING, stopped)
+        pool.release(PENDING, stopped)
+        pool.trim(stopped)
+        self.running[stopped] = False
+        self.on_trajectory[stopped] = False
+        self.hold[stopped] = here[stop]
+
+        go = ~stop
+        worlds = due[go]
+        if worlds.size:
+            hold = np.where(self.on_trajectory[worlds, None], self.reference_position[worlds], here[go])
+            pool.promote(worlds)
+            self._begin(worlds, t0[go], time, skip[go], here[go], here_v[go], hold)
+        self.pending_start[due] = np.inf
+        self.pending_npoint[due] = 0
+        return end, worlds
+
+    def _begin(
+        self,
+        worlds: np.ndarray,
+        t0: np.ndarray,
+        time: float,
+        skip: np.ndarray,
+        here: np.ndarray,
+        here_v: np.ndarray,
+        hold: np.ndarray,
+    ) -> None:
+        """Insert the current point before the first point ahead and set the worlds running."""
+        pool = self.pool
+        off = pool.offset[RUNNING, worlds]
+        npoint = self.pending_npoint[worlds]
+        mask = self.pending_mask[worlds]
+        spline = self.pending_spline[worlds]
+        start_row, first = off + skip, off + skip + 1
+        rel = time - t0
+        row = np.zeros((len(worlds), 6, self.njoint))
+        if self.step_points:
+            row[:, 0], row[:, 1] = here, here_v
+        else:
+            # the first point ahead, from its row (a point's row starts with its p, v and a / 2)
+            c = pool.coefficients[first]
+            p1 = np.where(mask, c[:, 0], hold)
+            v1 = np.where(mask & (spline >= CUBIC)[:, None], c[:, 1], 0.0)
+            a1 = np.where(mask & (spline == QUINTIC)[:, None], 2 * c[:, 2], 0.0)
+            T = pool.times[first] - rel
+            T = np.where(T > 0, T, 1.0)[:, None]  # a zero-length segment is never sampled
+            for k, plane in enumerate(coefficients(spline, here, p1, here_v, v1, np.zeros_like(here), a1, T)):
+                row[:, k] = plane
+        pool.times[start_row] = rel
+        pool.coefficients[start_row] = row
+        partial = ~mask.all(axis=1)
+        if partial.any():  # joints a partial goal leaves out hold after the first segment
+            rows = ranges(first[partial], npoint[partial] - skip[partial])
+            which = np.repeat(np.flatnonzero(partial), npoint[partial] - skip[partial])
+            block = pool.coefficients[rows]  # (n, 6, nj)
+            out = ~mask[which]
+            block.transpose(0, 2, 1)[out] = 0.0
+            block[:, 0][out] = hold[which][out]
+            pool.coefficients[rows] = block
+        self.t0[worlds] = t0
+        self.segment[worlds] = skip
+        self.last[worlds] = npoint
+        self.running[worlds] = True
+        self.on_trajectory[worlds] = True
+
+    def sample(self, time: float) -> None:
+        """Reference position/velocity/acceleration of every world at `time`."""
+        pos, vel, acc = self.reference_position, self.reference_velocity, self.reference_acceleration
+        running = np.flatnonzero(self.running)
+        if len(running) < self.nworld:
+            pos[:] = self.hold
+            vel[:] = 0.0
+            acc[:] = 0.0
+            self.executing[:] = False
+        if not running.size:
+            return
+        pool = self.pool
+        times = pool.times
+        rel = time - self.t0[running]
+        base = pool.offset[RUNNING, running]
+        segment, last = self.segment[running], self.last[running]
+        # segment: the last point at or before rel; usually the same as last period or the next
+        moving = np.flatnonzero(
+            (segment < last) & (times[base + np.minimum(segment + 1, last)] <= rel + 1e-12)
+        )
+        while moving.size:
+            segment[moving] += 1
+            s = segment[moving]
+            ahead = (s < last[moving]) & (
+                times[base[moving] + np.minimum(s + 1, last[moving])] <= rel[moving] + 1e-12
+            )
+            moving = moving[ahead]
+        self.segment[running] = segment
+        row = base + segment
+        done = segment >= last  # past the last point: its position, at rest
+        reference = evaluate(pool.coefficients[row], rel - times[row], done, self.step_points)
+        pos[running], vel[running], acc[running] = reference[:, 0], reference[:, 1], reference[:, 2]
+        self.executing[running] = ~done
+        finished = running[done]
+        if finished.size:  # past the last point: hold it and give the rows back
+            self.hold[finished] = pos[finished]
+            self.running[finished] = False
+            pool.release(RUNNING, finished)
+            pool.trim(finished)
+
+    def stop(self, worlds: np.ndarray, position: np.ndarray) -> None:
+        """Drop the worlds' trajectories, running and queued, and hold them at `position`
+        ((n, njoint), or anything that broadcasts to it)."""
+        self.pool.release(RUNNING, worlds)
+        self.pool.release(PENDING, worlds)
+        self.pool.trim(worlds)
+        self.running[worlds] = False
+        self.on_trajectory[worlds] = False
+        self.hold[worlds] = position
+        self.reference_position[worlds] = position
+        self.reference_velocity[worlds] = 0.0
+        self.reference_acceleration[worlds] = 0.0
+        self.executing[worlds] = False
+        self.pending_start[worlds] = np.inf
+        self.pending_npoint[worlds] = 0
