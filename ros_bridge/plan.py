@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from batchsim.controllers import ControllerManager
-from batchsim.controllers.topics import OUTPUT_FIELDS, Input, MessageKind, Output
+from batchsim.controllers.topics import OUTPUT_FIELDS, ActionKind, Input, MessageKind, Output
 from batchsim.hardware import BatchedSystem
 from batchsim.memory import Layout, ring_arrays
 from ros_bridge.action_plan import (
@@ -393,14 +393,12 @@ def build_plan(
     actions: list[TrajectoryActionSpec | GripperActionSpec] = []
     if manager is not None and available()["control_msgs"]:
         monitor_every = max(1, round(control_rate / ACTION_MONITOR_RATE))
-        for k, c in enumerate(manager):
-            if not hasattr(c, "cancel"):  # the controllers that serve an action
-                continue
-            if hasattr(c, "set_goals"):  # GripperCommand: the gripper action controllers
+        for k, (c, t) in enumerate(zip(manager, topics, strict=True)):
+            if t.action is ActionKind.GRIPPER_COMMAND:
                 actions.append(gripper_action(c, k, monitor_every, channel))
-                continue
-            i = next(i for i, spec in enumerate(input_specs) if spec.controller == c.name and spec.joints)
-            actions.append(trajectory_action(c, k, i, monitor_every, input_specs[i].max_points, channel))
+            elif t.action is ActionKind.FOLLOW_JOINT_TRAJECTORY:
+                i = next(i for i, spec in enumerate(input_specs) if spec.controller == c.name and spec.joints)
+                actions.append(trajectory_action(c, k, i, monitor_every, input_specs[i].max_points, channel))
 
     nworker = max(1, nworker)
     ranges = split(nworld, nworker)

@@ -22,7 +22,15 @@ from typing import Any, ClassVar
 import numpy as np
 
 from batchsim.controllers.base import Controller, Params
-from batchsim.controllers.topics import ControllerTopics, GoalOutcome, Input, MessageKind, Output, each_row
+from batchsim.controllers.topics import (
+    ActionKind,
+    ControllerTopics,
+    GoalOutcome,
+    Input,
+    MessageKind,
+    Output,
+    each_row,
+)
 from batchsim.model import RobotSpec
 from batchsim.pid import PidBank, PidGains
 
@@ -168,6 +176,7 @@ class GripperActionController(Controller):
             self.name,
             inputs=(Input(f"{self.name}/gripper_cmd", MessageKind.FLOAT64_MULTI_ARRAY, each_row(self.set_goal), width=2),),
             outputs=(Output(f"{self.name}/state", MessageKind.JOINT_STATE, lambda: fields, names=(self.joint,)),),
+            action=ActionKind.GRIPPER_COMMAND,
         )
 
 

@@ -51,6 +51,13 @@ class GoalOutcome(enum.IntEnum):
     ABORTED = 6  # the world was reset
 
 
+class ActionKind(enum.Enum):
+    """The ROS actions a controller serves, by their type."""
+
+    FOLLOW_JOINT_TRAJECTORY = "control_msgs/action/FollowJointTrajectory"
+    GRIPPER_COMMAND = "control_msgs/action/GripperCommand"
+
+
 #: The fields an Output of each kind is filled from, and each one's width (None: one value
 #: per name in `Output.names`). Quaternions are in ROS order (x, y, z, w).
 OUTPUT_FIELDS: dict[MessageKind, dict[str, int | None]] = {
@@ -279,12 +286,16 @@ class ControllerTopics:
       outputs, inputs: its per-world messages.
       replaces_joint_states: it publishes `<ns>/joint_states` itself (a joint state
         broadcaster), so the bridge's own joint_states stop.
+      action: the action it serves per world, or None. FOLLOW_JOINT_TRAJECTORY's goals go
+        through its JOINT_TRAJECTORY input with a goal tag and tolerances; both kinds keep
+        per-world `goal` and `outcome` arrays (GoalOutcome) and a `cancel(worlds, goals)`.
     """
 
     controller: str
     outputs: tuple[Output, ...] = ()
     inputs: tuple[Input, ...] = ()
     replaces_joint_states: bool = False
+    action: ActionKind | None = None
 
 
 def each_row(apply_one: Callable[[int, np.ndarray], Any]) -> Callable[[np.ndarray, np.ndarray], Rejections]:

@@ -13,7 +13,14 @@ from typing import Any, ClassVar
 import numpy as np
 
 from batchsim.controllers.base import Controller, Params
-from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch
+from batchsim.controllers.topics import (
+    ActionKind,
+    ControllerTopics,
+    Input,
+    MessageKind,
+    Output,
+    TrajectoryBatch,
+)
 from batchsim.controllers.trajectory.goals import Constraints, GoalTracker
 from batchsim.controllers.trajectory.splines import Interpolation, point_rows
 from batchsim.controllers.trajectory.timeline import Timeline
@@ -340,6 +347,7 @@ class JointTrajectoryController(Controller):
                 Output(f"{state}/{part}", MessageKind.JOINT_STATE, read, names=names)
                 for part, read in (("reference", reference), ("feedback", feedback), ("error", error))
             ),
+            action=ActionKind.FOLLOW_JOINT_TRAJECTORY,
         )
 
     # --- the loop ---
