@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test lint bench
+.PHONY: install run test quick lint bench
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,6 +23,10 @@ run: $(STAMP)
 test: $(STAMP)
 	@$(PY) -m pytest -q -n 2 $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "no test was collected; that is a failure" >&2; fi; exit $$rc
+
+# the newcomer's subset: the cpu backend and the ROS stack, no mjx or warp compiles
+quick: $(STAMP)
+	@$(PY) -m pytest -q -n 2 -k "not mjx and not warp and not devices" $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check batchsim ros_bridge benchmarks tests examples

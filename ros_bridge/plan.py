@@ -21,6 +21,7 @@ import numpy as np
 
 from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import OUTPUT_FIELDS, ActionKind, Input, MessageKind, Output
+from batchsim.controllers.trajectory import DEFAULT_MAX_POINTS
 from batchsim.hardware import BatchedSystem
 from batchsim.memory import Layout, ring_arrays
 from ros_bridge.action_plan import (
@@ -202,8 +203,15 @@ class FleetPlan:
             arrays.append(("cm.active", (n, max(1, len(self.manager.controllers))), "u1"))
         if self.actions:  # per world: the last goal tag a controller refused (its reason in hrej)
             arrays.append(("goal.refused", (n,), "i8"))
+        # room for two of the largest trajectories an input takes (a record may take at most
+        # half the ring): a 10,000-point trajectory of 6 joints is 1.5 MB
+        largest = max(
+            (_trajectory_bytes(spec.max_points or DEFAULT_MAX_POINTS, len(spec.joints))
+             for spec in self.inputs if spec.kind is MessageKind.JOINT_TRAJECTORY),
+            default=0,
+        )  # fmt: skip
         for j, (lo, hi) in enumerate(self.ranges):
-            arrays += ring_arrays(f"ring{j}", RING_BASE + RING_PER_WORLD * (hi - lo))
+            arrays += ring_arrays(f"ring{j}", RING_BASE + RING_PER_WORLD * (hi - lo) + 2 * largest)
         self.layout = Layout(arrays)
 
     @property
@@ -212,6 +220,12 @@ class FleetPlan:
 
     def world_name(self, index: int) -> str:
         return self.namespaces[index]
+
+
+def _trajectory_bytes(points: int, joints: int) -> int:
+    """The ring record of one trajectory of `points` points (positions, velocities and
+    accelerations of every joint, times), with its batch's fixed parts and tolerances."""
+    return points * (3 * joints + 1) * 8 + (6 * joints + 64) * 8 + 4096
 
 
 FLAG_BAD = 1  # the bridge rejected this world's last command

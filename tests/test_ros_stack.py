@@ -156,6 +156,30 @@ def test_bad_goals_get_upstreams_codes_and_a_reason(arms, ros):
     assert answer.result.error_code == ros["FJT"].Result.INVALID_GOAL and answer.result.error_string
 
 
+def test_long_goals_up_to_max_trajectory_points_are_taken_and_beyond_refused_with_the_reason(arms, ros):
+    """A 5,000-point goal outgrew the worker's request ring and was refused as 'too far
+    behind'; up to max_trajectory_points (10,000) a trajectory is taken, beyond it refused."""
+    n = 5000
+    times = np.linspace(0.1, 1.0, n)
+    points = [
+        ros["JointTrajectoryPoint"](
+            positions=[0.2 * t] * 6, time_from_start=ros["Duration"](sec=0, nanosec=int(t * 1e9))
+        )
+        for t in times
+    ]
+    goal = ros["FJT"].Goal(trajectory=ros["JointTrajectory"](joint_names=ARM_JOINTS, points=points))
+    handle, result = _send(arms, ros, 3, goal)
+    answer = _result(arms, result)
+    assert answer.status == 4, answer.result.error_string
+    too_many = ros["FJT"].Goal(
+        trajectory=ros["JointTrajectory"](joint_names=ARM_JOINTS, points=points + points[:1] * 5001)
+    )
+    handle, result = _send(arms, ros, 3, too_many)
+    answer = _result(arms, result)
+    assert answer.result.error_code == ros["FJT"].Result.INVALID_GOAL
+    assert "10001 points, more than 10000" in answer.result.error_string
+
+
 def test_tf_gives_a_worlds_end_link_pose_equal_to_mujocos(arms, ros):
     """A tf listener written here (TFMessage subscriptions and a lookup up the tree)."""
     transforms: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}

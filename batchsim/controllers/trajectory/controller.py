@@ -340,6 +340,7 @@ class JointTrajectoryController(Controller):
                     MessageKind.JOINT_TRAJECTORY,
                     self.set_trajectories,
                     joints=names,
+                    max_points=self.max_trajectory_points,
                 ),
             ),
             outputs=(state_message,)
