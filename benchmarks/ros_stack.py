@@ -261,6 +261,8 @@ def run(opts: argparse.Namespace) -> None:
     subs = Children(
         [["--subscriber", str(opts.domain), str(lo), str(hi), str(int(k == 0))] for k, (lo, hi) in enumerate(_shares(opts.worlds, opts.subscribers))]
     )
+    while not periods:  # warp compiles its kernels in the first period: warm up after it
+        time.sleep(0.1)
     began = time.time()
     while time.time() - began < opts.warmup:
         time.sleep(0.1)
@@ -302,7 +304,7 @@ def run(opts: argparse.Namespace) -> None:
     print(f"# {platform.node() or 'host'}, {os.cpu_count()} cores, Python {platform.python_version()}, {_versions()}, "
           f"{opts.backend} {opts.model}, {opts.worlds} worlds, control {opts.control_rate:g} Hz, {nworker} bridge workers, "
           f"{opts.subscribers} subscriber processes, load {os.getloadavg()[0]:.1f}, {time.strftime('%Y-%m-%d')}")  # fmt: skip
-    p = np.array(window) * 1e3
+    p = np.array(window or [float("nan")]) * 1e3  # no period in the window: say so with NaN
     print(f"RTF held {rtf:.3f} over {wall:.1f} s; loop period {np.median(p):.2f} ms median, {p.max():.2f} ms worst, "
           f"{np.percentile(p, 99):.2f} ms p99 (budget {budget * 1e3:.1f} ms, {len(p)} periods)")  # fmt: skip
     print(f"joint_states received {counted[0] / wall:,.0f}/s of {expected:,.0f}/s expected ({counted[0] / wall / expected:.3f})")
