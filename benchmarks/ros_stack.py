@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from fleet import _versions  # benchmarks/fleet.py: the libraries' versions for the header
 
 ROOT = Path(__file__).resolve().parent.parent
 LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
@@ -347,17 +348,6 @@ def capacity(opts: argparse.Namespace) -> None:
     received = sum(int(line[1]) for lines in kids.lines for line in lines if line[0] == "received")
     print(f"plain rclpy capacity: {k} publisher + {k} subscriber processes, Float64MultiArray: "
           f"{published / seconds:,.0f} published/s, {received / seconds:,.0f} received/s")  # fmt: skip
-
-
-def _versions() -> str:
-    parts = []
-    for name in ("mujoco", "rclpy", "numpy", "warp", "mujoco_warp"):
-        try:
-            module = __import__(name)
-            parts.append(f"{name} {getattr(module, '__version__', '?')}")
-        except Exception:
-            continue
-    return ", ".join(parts)
 
 
 def main() -> None:

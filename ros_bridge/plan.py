@@ -36,6 +36,7 @@ from ros_bridge.interfaces import available
 from ros_bridge.manager_link import ManagerSpec, manager_spec
 from ros_bridge.naming import ros_names, world_namespaces
 from ros_bridge.options import BridgeOptions, Reliability
+from ros_bridge.requests import trajectory_bytes
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan
 from ros_bridge.tf_plan import TfSpec, tf_spec
 
@@ -206,7 +207,7 @@ class FleetPlan:
         # room for two of the largest trajectories an input takes (a record may take at most
         # half the ring): a 10,000-point trajectory of 6 joints is 1.5 MB
         largest = max(
-            (_trajectory_bytes(spec.max_points or DEFAULT_MAX_POINTS, len(spec.joints))
+            (trajectory_bytes(spec.max_points or DEFAULT_MAX_POINTS, len(spec.joints))
              for spec in self.inputs if spec.kind is MessageKind.JOINT_TRAJECTORY),
             default=0,
         )  # fmt: skip
@@ -220,12 +221,6 @@ class FleetPlan:
 
     def world_name(self, index: int) -> str:
         return self.namespaces[index]
-
-
-def _trajectory_bytes(points: int, joints: int) -> int:
-    """The ring record of one trajectory of `points` points (positions, velocities and
-    accelerations of every joint, times), with its batch's fixed parts and tolerances."""
-    return points * (3 * joints + 1) * 8 + (6 * joints + 64) * 8 + 4096
 
 
 FLAG_BAD = 1  # the bridge rejected this world's last command

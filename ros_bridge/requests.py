@@ -216,3 +216,9 @@ def decode_switch(payload: np.ndarray) -> tuple[int, int, list[str], list[str], 
     ticket, world, strictness, asap = _SWITCH.unpack_from(payload, 0)
     activate, deactivate = json.loads(payload[_SWITCH.size :].tobytes().rstrip(b"\0").decode())
     return ticket, world, activate, deactivate, strictness, bool(asap)
+
+
+def trajectory_bytes(points: int, joints: int) -> int:
+    """The ring record of one trajectory of `points` points (positions, velocities and
+    accelerations of every joint, times), with its batch's fixed parts and tolerances."""
+    return points * (3 * joints + 1) * 8 + (6 * joints + 64) * 8 + 4096

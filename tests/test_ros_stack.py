@@ -77,14 +77,14 @@ def _send(fleet, ros, world: int, goal, feedback=None):
     if client is None:
         client = ros["ActionClient"](fleet.node, ros["FJT"], f"/world_{world}/{JTC}/follow_joint_trajectory")
         fleet.__dict__.setdefault("_fjt", {})[world] = client
-        assert client.wait_for_server(timeout_sec=20), fleet.log()
+        assert client.wait_for_server(timeout_sec=40), fleet.log()
     sent = client.send_goal_async(goal, feedback_callback=feedback)
-    fleet.wait(sent.done, 20, "the goal's acceptance")
+    fleet.wait(sent.done, 40, "the goal's acceptance")
     handle = sent.result()
     return handle, (handle.get_result_async() if handle.accepted else None)
 
 
-def _result(fleet, future, timeout=20):
+def _result(fleet, future, timeout=40):
     fleet.wait(future.done, timeout, "the goal's result")
     return future.result()
 
@@ -279,15 +279,15 @@ def test_gripper_command_closes_one_worlds_gripper_and_a_blocked_one_stalls(tmp_
         fleet.wait(lambda: all(s.count > 0 for s in js), 30, "joint_states")
         left = list(js[1].msg.name).index("gripper_left_finger_joint")
         client = ros["ActionClient"](fleet.node, GripperCommand, "/world_1/gripper_controller/gripper_cmd")
-        assert client.wait_for_server(timeout_sec=20), fleet.log()
+        assert client.wait_for_server(timeout_sec=40), fleet.log()
 
         def command(position: float, max_effort: float = 5.0):
             goal = GripperCommand.Goal()
             goal.command.position, goal.command.max_effort = position, max_effort
             sent = client.send_goal_async(goal)
-            fleet.wait(sent.done, 20, "the goal's acceptance")
+            fleet.wait(sent.done, 40, "the goal's acceptance")
             future = sent.result().get_result_async()
-            fleet.wait(future.done, 20, "the goal's result")
+            fleet.wait(future.done, 40, "the goal's result")
             return future.result()
 
         closed = command(-0.02)

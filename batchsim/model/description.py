@@ -129,6 +129,32 @@ def split_source(source: str) -> tuple[str, dict[str, str]]:
     return parts[0], args
 
 
+def read_source(
+    source: str | Path, args: dict[str, str] | None = None, *, what: str = "robot description XML"
+) -> tuple[str, str, Path | None]:
+    """(text, where, path) of a description given as a file path (optionally followed by
+    xacro `key:=value` arguments; xacro expanded) or as XML text (`where` is then `what`).
+
+    Raises:
+      ModelError: a missing file, a xacro error, or xacro given as text.
+    """
+    text = str(source)
+    if text.lstrip().startswith("<"):
+        if XACRO_NS in text:
+            raise ModelError(f"{what}: xacro XML must be given as a file (its includes and $(find) need one)")
+        return text, what, None
+    file, from_source = split_source(text) if isinstance(source, str) else (text, {})
+    xacro_args = {**from_source, **(args or {})}
+    path = Path(file).expanduser()
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ModelError(f"{path}: {e.strerror}") from None
+    if path.name.endswith(".xacro") or XACRO_NS in text or xacro_args:
+        text = expand_xacro(path, xacro_args)
+    return text, str(path), path
+
+
 def read_description(
     source: str | Path, *, args: dict[str, str] | None = None
 ) -> Description:
@@ -141,23 +167,7 @@ def read_description(
     Raises:
       ModelError: a missing file, malformed XML, a xacro error, or no <ros2_control> block.
     """
-    text = str(source)
-    path: Path | None = None
-    where = "ros2_control XML"
-    xacro_args = dict(args or {})
-    if not text.lstrip().startswith("<"):
-        file, from_source = split_source(text) if isinstance(source, str) else (text, {})
-        xacro_args = {**from_source, **xacro_args}
-        path = Path(file).expanduser()
-        where = str(path)
-        try:
-            text = path.read_text()
-        except OSError as e:
-            raise ModelError(f"{path}: {e.strerror}") from None
-        if path.name.endswith(".xacro") or XACRO_NS in text or xacro_args:
-            text = expand_xacro(path, xacro_args)
-    elif XACRO_NS in text:
-        raise ModelError(f"{where}: xacro XML must be given as a file (its includes and $(find) need one)")
+    text, where, path = read_source(source, args, what="ros2_control XML")
     root = parse_xml(text, where)
     elements = [root] if root.tag == "ros2_control" else list(root.iter("ros2_control"))
     if not elements:

@@ -45,10 +45,10 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from batchsim.model.description import XACRO_NS, expand_xacro, parse_xml, split_source
+from batchsim.model.description import parse_xml, read_source
 from batchsim.model.frames import body_frame_names, frame_tree
 from batchsim.model.interfaces import floating_base
-from batchsim.model.spec import ModelError, RobotSpec
+from batchsim.model.spec import RobotSpec
 
 log = logging.getLogger("batchsim.urdf")
 
@@ -84,19 +84,7 @@ def robot_description(spec: RobotSpec, source: str | Path | None = None) -> str:
     `--ros2-control` description: a file, optionally xacro with `key:=value` arguments) is a
     URDF (root `<robot>`), expanded; else the URDF generated from the model."""
     if source is not None:
-        text = str(source)
-        if not text.lstrip().startswith("<"):
-            file, args = split_source(text) if isinstance(source, str) else (text, {})
-            path = Path(file).expanduser()
-            try:
-                text = path.read_text()
-            except OSError as e:
-                raise ModelError(f"{path}: {e.strerror}") from None
-            if path.name.endswith(".xacro") or XACRO_NS in text or args:
-                text = expand_xacro(path, args)
-            where = str(path)
-        else:
-            where = "robot description XML"
+        text, where, _ = read_source(source)
         if parse_xml(text, where).tag == "robot":
             return text
     return urdf_from_model(spec)

@@ -124,6 +124,7 @@ class ActionServers:
         # per world and action, created when a client appears in the ROS graph (the worker's
         # graph scan), as every per-world topic is: five endpoints per action and world
         self._pending: dict[str, tuple[int, int]] = {}  # action name -> (action, world)
+        self._to_create: collections.deque[tuple[str, int, int]] = collections.deque()
         for a, spec in enumerate(specs):
             for row, ns in enumerate(namespaces):
                 self._pending[f"/{ns}/{spec.controller}/{_ACTION_NAME[type(spec)]}"] = (a, lo + row)
@@ -137,7 +138,7 @@ class ActionServers:
         hit = self._pending.pop(action, None)
         if hit is None:
             return False
-        self._create(action, *hit)
+        self._to_create.append((action, *hit))  # on the executor thread (drain): rclpy's entities
         return True
 
     def create_all(self) -> None:
@@ -297,10 +298,12 @@ class ActionServers:
     @property
     def busy(self) -> bool:
         """Goals in flight or decisions waiting: the spin loop should come back soon."""
-        return bool(self._queue) or any(self.inflight) or bool(self._handles)
+        return bool(self._queue) or any(self.inflight) or bool(self._handles) or bool(self._to_create)
 
     def drain(self) -> None:
         """The executor thread: feedback published and results handed to the goals' execute callbacks."""
+        while self._to_create:
+            self._create(*self._to_create.popleft())
         while self._queue:
             goal, outcome, payload = self._queue.popleft()
             if outcome is None:

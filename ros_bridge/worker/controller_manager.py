@@ -19,6 +19,7 @@ Each world's services are created when a client of one of them appears in the RO
 
 from __future__ import annotations
 
+import collections
 from collections.abc import Callable
 from typing import Any
 
@@ -58,6 +59,7 @@ class ControllerManagerServices:
         # scan), as every per-world topic is: nine services a world in a fleet of thousands
         # would cost discovery time for nothing
         self._pending = {f"/{ns}/controller_manager": lo + row for row, ns in enumerate(namespaces)}
+        self._to_create: collections.deque[tuple[str, int]] = collections.deque()
 
     def requested(self, service: str) -> bool:
         """The graph scan saw `service`: create its world's services if they are ours. True if ours."""
@@ -65,8 +67,13 @@ class ControllerManagerServices:
         world = self._pending.pop(base, None)
         if world is None:
             return False
-        self._create(base, world)
+        self._to_create.append((base, world))  # on the executor thread (drain): rclpy's entities
         return True
+
+    def drain(self) -> None:
+        """The executor thread: create the services the graph scan asked for."""
+        while self._to_create:
+            self._create(*self._to_create.popleft())
 
     def create_all(self) -> None:
         """Every world's services now (`--all-topics`)."""

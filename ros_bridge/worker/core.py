@@ -404,6 +404,8 @@ class Worker:
                 self.executor.spin_once(timeout_sec=timeout)
                 if actions is not None:
                     actions.drain()
+                if self.manager is not None:
+                    self.manager.drain()
             except (ExternalShutdownException, ShutdownException):
                 break
             except Exception as e:  # a failing callback must not end the worker
