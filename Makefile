@@ -18,10 +18,11 @@ install: $(STAMP)
 run: $(STAMP)
 	$(VENV)/bin/batchsim --worlds 16
 
-# two test processes (CI has 2 cores; mjx compiles dominate); pytest's status 5 (no test
+# two test processes (CI has 2 cores; mjx compiles dominate), a file per process at a time (the
+# ROS files are scenarios in file order over one fleet); pytest's status 5 (no test
 # collected) is a failure like any other, and says so
 test: $(STAMP)
-	@$(PY) -m pytest -q -n 2 $(PYTEST_ARGS); rc=$$?; \
+	@$(PY) -m pytest -q -n 2 --dist loadfile $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "no test was collected; that is a failure" >&2; fi; exit $$rc
 
 # the newcomer's subset: the cpu backend and the ROS stack, no mjx or warp compiles
