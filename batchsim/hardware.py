@@ -272,14 +272,22 @@ class PendingFrames:
 
     Attributes:
       camera: the camera's name.
-      worlds: (n,) the worlds, ascending, as `render` orders them.
+      worlds: (n,) the worlds, in the order asked for, as `render` orders them.
     """
 
-    def __init__(self, future: Future, camera: str, worlds: np.ndarray, suite: SensorSuite):
+    def __init__(
+        self,
+        future: Future,
+        camera: str,
+        worlds: np.ndarray,
+        suite: SensorSuite,
+        order: np.ndarray | None = None,
+    ):
         self.camera = camera
         self.worlds = worlds
         self._future = future
         self._suite = suite
+        self._order = order  # the future's rows (ascending worlds) -> the worlds' order; None: already
         self._frames: Frames | None = None
 
     def done(self) -> bool:
@@ -292,6 +300,8 @@ class PendingFrames:
         Re-raises what the render raised."""
         if self._frames is None:
             rgb, depth = self._future.result()
+            if self._order is not None:
+                rgb, depth = rgb[self._order], depth[self._order]
             self._suite.add_noise(self.camera, depth, self.worlds)
             self._frames = Frames(rgb, depth)
         return self._frames
@@ -642,11 +652,12 @@ class BatchedSystem(SystemInterface):
     ) -> Frames:
         """Render `camera` in all or the listed worlds (indices or a bool mask), at the current state.
 
-        Returns Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32) for the n worlds in
-        ascending order: top row first, depth in metres along the optical axis, +inf where
-        nothing was hit, NaN where noise dropped a pixel. `device=True` returns the backend's
-        own arrays for every world without a host copy or noise (Warp arrays on warp, JAX on
-        mjx, NumPy on cpu); `copy=False` may return buffers the next render overwrites.
+        Returns Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32), row i for world
+        `worlds[i]` in the order given (a bool mask lists worlds in order): top row first, depth
+        in metres along the optical axis, +inf where nothing was hit, NaN where noise dropped a
+        pixel. `device=True` returns the backend's own arrays for every world without a host
+        copy or noise (Warp arrays on warp, JAX on mjx, NumPy on cpu); `copy=False` may return
+        buffers the next render overwrites.
         """
         self._require("render", frozenset({S.INACTIVE, S.ACTIVE}))
         cam = self.sensors.camera(camera)
@@ -656,8 +667,11 @@ class BatchedSystem(SystemInterface):
             return Frames(*self._device_frames(cam))
         rows = self._worlds(worlds)
         sel = np.arange(self.nworld) if rows is None else rows
-        rgb, depth = self._render_frames(cam, sel, copy)
-        self.sensors.add_noise(cam.name, depth, sel)
+        ascending, order = _ascending(sel)
+        rgb, depth = self._render_frames(cam, ascending, copy)
+        if order is not None:
+            rgb, depth = rgb[order], depth[order]
+        self.sensors.add_noise(cam.name, depth, sel)  # after the reordering: world w's noise on world w's row
         return Frames(rgb, depth)
 
     def render_async(self, camera: str, worlds: Sequence[int] | np.ndarray | None = None) -> PendingFrames:
@@ -674,7 +688,8 @@ class BatchedSystem(SystemInterface):
         cam = self.sensors.camera(camera)
         rows = self._worlds(worlds)
         sel = np.arange(self.nworld) if rows is None else rows
-        return PendingFrames(self._render_frames_later(cam, sel), cam.name, sel, self.sensors)
+        ascending, order = _ascending(sel)
+        return PendingFrames(self._render_frames_later(cam, ascending), cam.name, sel, self.sensors, order)
 
     def prepare_rendering(self) -> None:
         """Set up now what the first `render_async` would otherwise set up inside the loop: on cpu
@@ -690,7 +705,8 @@ class BatchedSystem(SystemInterface):
         self, lidar: str, worlds: Sequence[int] | np.ndarray | None = None, *, device: bool = False, copy: bool = True
     ) -> np.ndarray:
         """One scan of `lidar` in all or the listed worlds: (n, nray) float32 ranges in metres, REP 117
-        (+inf: no hit within range_max, -inf: closer than range_min, NaN: dropped by noise).
+        (+inf: no hit within range_max, -inf: closer than range_min, NaN: dropped by noise), row i
+        for world `worlds[i]` in the order given (a bool mask lists worlds in order).
 
         Rangefinder lidars read the MJCF rangefinders (as of the last step, like every
         sensor); the others cast their rays now, at the current state. `device=True` returns
@@ -706,8 +722,11 @@ class BatchedSystem(SystemInterface):
             return self._device_ranges(ld)
         rows = self._worlds(worlds)
         sel = np.arange(self.nworld) if rows is None else rows
-        ranges = self._ranges(ld, sel, copy)
-        self.sensors.add_noise(ld.name, ranges, sel)
+        ascending, order = _ascending(sel)
+        ranges = self._ranges(ld, ascending, copy)
+        if order is not None:
+            ranges = ranges[order]
+        self.sensors.add_noise(ld.name, ranges, sel)  # after the reordering: world w's noise on world w's row
         return ranges
 
     def _ranges(self, ld: Lidar, worlds: np.ndarray, copy: bool = True) -> np.ndarray:
@@ -717,7 +736,8 @@ class BatchedSystem(SystemInterface):
             return ld.ranges((self._sensor_host if truth is None else truth[1])[np.ix_(worlds, ld.sensor_adr)])
         return self._cast_ranges(ld, worlds, copy)
 
-    # sensor hooks, one set per backend
+    # sensor hooks, one set per backend; the `worlds` they get are ascending and unique (the
+    # callers put the rows back in the order asked for), as mujoco.batch's ids must be
     def _render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
         """Host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds`: with `copy`
         arrays of the caller's own (rendered into, not copied: a frame's bytes are written once),
@@ -884,6 +904,17 @@ class BatchedSystem(SystemInterface):
         """Worlds just frozen: for an engine that steps every world whatever happens, keep them
         from costing the others anything (the GPU backends reset them and hold ctrl at zero).
         An engine that skips frozen worlds (cpu) has nothing to do."""
+
+
+def _ascending(worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """`worlds` (unique) sorted, and the index that puts rows of the sorted worlds back in the
+    order of `worlds` (None where they are sorted already: the usual case, no copy)."""
+    if worlds.size < 2 or bool((worlds[1:] > worlds[:-1]).all()):
+        return worlds, None
+    by_world = np.argsort(worlds, kind="stable")
+    order = np.empty_like(by_world)
+    order[by_world] = np.arange(worlds.size)
+    return worlds[by_world], order
 
 
 def _base_columns(spec: RobotSpec) -> list[StateColumn]:

@@ -116,6 +116,36 @@ def test_two_worlds_see_different_images(box):
     np.testing.assert_allclose(box.scan("scan", worlds=np.array([False, True]))[0], box.scan("scan")[1])
 
 
+def test_rows_and_noise_follow_the_order_the_worlds_are_listed_in(backend):
+    """render, render_async and scan give row i to worlds[i], and world w's noise is world w's,
+    whatever the order: cpu and mjx once refused an unsorted subset ("ids must be sorted"), and
+    a sharded fleet gave the rows in shard order while drawing the noise in the caller's."""
+    config = {"sensors": {**NOISE["sensors"], "seed": 7}}
+    listed, whole = (batchsim.make(str(SCENE), 3, backend, sensors=config) for _ in range(2))
+    for sim in (listed, whole):  # world 2's head moved: each world sees the wall at its own distance
+        sim.configure()
+        sim.activate()
+        sim.command[2, 0] = SHIFT
+        for _ in range(10):
+            sim.write()
+            sim.step(10)
+    order = [2, 0]  # on two devices, world 2 is on the second and world 0 on the first
+    # the same noise draws on both systems: each call takes one draw per world it names
+    scan, expect = listed.scan("scan", worlds=order), whole.scan("scan")[order]
+    assert np.nanmean(scan[0]) < np.nanmean(scan[1]) - SHIFT / 2  # world 2 first
+    np.testing.assert_allclose(scan, expect, atol=DEPTH_TOL)
+    for frames, all_frames in (
+        (listed.render("front", worlds=order), whole.render("front")),
+        (listed.render_async("front", worlds=order).result(), whole.render_async("front").result()),
+    ):
+        assert frames.depth.shape == (2, 24, 32)
+        np.testing.assert_allclose(frames.depth, all_frames.depth[order], atol=DEPTH_TOL)
+        assert np.mean(np.abs(frames.rgb.astype(int) - all_frames.rgb[order].astype(int)) > 1) < 0.02
+    assert list(listed.render_async("front", worlds=order).worlds) == order
+    listed.shutdown()
+    whole.shutdown()
+
+
 def test_device_frames(box):
     frames = box.render("front", device=True)
     rgb, depth = host(frames.rgb), host(frames.depth)
