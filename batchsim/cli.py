@@ -35,6 +35,7 @@ from batchsim.controllers import ControllerManager, default_controllers, load_co
 from batchsim.hardware import BatchedSystem, ConfigurationError, LifecycleError
 from batchsim.loop import LoopStats, OptionError, RateError, SimLoop, format_stats, whole_ratio
 from batchsim.model import ModelError, model_names
+from batchsim.model.description import model_file, read_description
 from batchsim.sensors import SensorConfig, SensorSuite
 
 EXIT_USAGE = 2
@@ -56,7 +57,11 @@ def run_parser() -> argparse.ArgumentParser:
         epilog="`batchsim info MODEL` lists a model's interfaces and sensors.",
     )
     p.add_argument("--worlds", type=int, default=16, help="number of worlds (default 16)")
-    p.add_argument("--model", default="arm", help="shipped model name or MJCF path (default arm)")
+    p.add_argument(
+        "--model",
+        default=None,
+        help="shipped model name or MJCF path (default: the --ros2-control file's mujoco_model param, else arm)",
+    )
     p.add_argument(
         "--backend", default="auto", help="cpu, mjx, warp or auto (default auto: picked for the hardware)"
     )
@@ -159,16 +164,19 @@ def version_line() -> str:
 
 def info_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="batchsim info", description="List a model's interfaces and sensors.")
-    p.add_argument("model", help="shipped model name or MJCF path")
+    p.add_argument("model", nargs="?", help="shipped model name or MJCF path (default: as batchsim's --model)")
     p.add_argument("--worlds", type=int, default=16, help="world count the backend choice is for")
     p.add_argument("--backend", default="auto")
     p.add_argument("--ros2-control", default=None)
     p.add_argument("--keyframe", default=None)
+    p.add_argument("--sensors", action="append", metavar="FILE", help="as batchsim's --sensors: what it makes of them")
     return p
 
 
 def info(argv: Sequence[str]) -> int:
     args = info_parser().parse_args(argv)
+    args.model = default_model(args.model, args.ros2_control)
+    sensors = SensorConfig.from_flags(args.sensors)
     spec = batchsim.load(args.model, ros2_control=args.ros2_control, keyframe=args.keyframe)
     chosen, reason = resolve(args.backend, spec, args.worlds)
     m = spec.mjmodel
@@ -199,10 +207,12 @@ def info(argv: Sequence[str]) -> int:
     out += [
         f"  {s.name:24s} {s.type:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors
     ]
-    out += sensor_lines(SensorSuite.build(spec, args.worlds))
-    if spec.warnings:
+    suite = SensorSuite.build(spec, args.worlds, sensors)
+    out += sensor_lines(suite)
+    warnings = spec.warnings + suite.config.warnings
+    if warnings:
         out.append("\nwarnings (not acted on)")
-        out += [f"  {w}" for w in spec.warnings]
+        out += [f"  {w}" for w in warnings]
     if spec.problems:
         out.append("\nproblems (configure will fail)")
         out += [f"  {p}" for p in spec.problems]
@@ -268,6 +278,7 @@ def check_args(args: argparse.Namespace) -> None:
         value = getattr(args, name)
         if value is not None and value < 1:
             raise UsageError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    args.model = default_model(args.model, args.ros2_control)
     model = Path(args.model).expanduser()
     if str(args.model) not in model_names() and model.is_dir():
         raise UsageError(f"--model {args.model}: is a directory, not an MJCF file")
@@ -280,6 +291,18 @@ def check_args(args: argparse.Namespace) -> None:
             except ValueError as e:  # NamingError; an OptionError names its flag through named()
                 named = getattr(e, "named", None)
                 raise UsageError(named("--namespace") if named else str(e)) from None
+
+
+def default_model(model: str | None, ros2_control: str | None) -> str:
+    """`--model`, else the --ros2-control file's `mujoco_model` param (as mujoco_ros2_control
+    finds its simulation), else the shipped arm."""
+    if model is not None:
+        return model
+    if ros2_control is not None:
+        found = model_file(read_description(ros2_control))
+        if found is not None:
+            return found
+    return "arm"
 
 
 def build(args: argparse.Namespace, progress: startup.Progress | None = None) -> BatchedSystem:
@@ -313,6 +336,8 @@ def build(args: argparse.Namespace, progress: startup.Progress | None = None) ->
         sim = batchsim.make(spec, args.worlds, args.backend, sensors=sensors, **options)
         sim.configure()
         sim.activate()
+    for warning in sim.sensors.config.warnings:  # plugins not run, params not taken: never dropped silently
+        print(f"batchsim: warning: {warning}", file=sys.stderr, flush=True)
     return sim
 
 

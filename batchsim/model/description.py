@@ -92,12 +92,15 @@ class Description:
       directory: the folder relative paths in it (pids_config_file) are taken from, or None.
       hardware: one per block, in document order.
       warnings: one line per element or parameter batchsim does not act on.
+      document: the whole (xacro-expanded) document the blocks came from, when it was a file
+        or text of its own (a URDF), else None.
     """
 
     where: str
     directory: Path | None
     hardware: list[HardwareInfo]
     warnings: list[str] = dataclasses.field(default_factory=list)
+    document: ET.Element | None = None
 
     @property
     def joints(self) -> list[ComponentInfo]:
@@ -113,6 +116,18 @@ class Description:
             if name in hw.params:
                 return hw.params[name], hw
         return None
+
+
+def model_file(description: Description) -> str | None:
+    """The MJCF a ros2_control file names in its `mujoco_model` hardware param (mujoco_ros2_control
+    loads the simulation from it), relative paths taken from the file's folder; None if unset."""
+    found = description.param("mujoco_model")
+    if found is None or not found[0].strip():
+        return None
+    path = Path(found[0].strip()).expanduser()
+    if not path.is_absolute() and description.directory is not None:
+        path = description.directory / path
+    return str(path)
 
 
 def split_source(source: str) -> tuple[str, dict[str, str]]:
@@ -192,7 +207,7 @@ def from_elements(
     elements: list[ET.Element], where: str, directory: Path | None, *, urdf: ET.Element | None = None
 ) -> Description:
     """The blocks of already-parsed `<ros2_control>` elements (inline in an MJCF, or a URDF's)."""
-    description = Description(where, directory, [])
+    description = Description(where, directory, [], document=urdf)
     mimics = _urdf_mimics(urdf) if urdf is not None else {}
     for block in elements:
         description.hardware.append(_block(block, where, description.warnings, mimics))

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import mujoco
 
-from batchsim.model.description import from_elements, parse_xml, read_description
+from batchsim.model.description import Description, from_elements, parse_xml, read_description
 from batchsim.model.interfaces import discover
 from batchsim.model.spec import ROS2_PLUGIN, ROS2_PLUGIN_KEYS, ModelError, RobotSpec, RosPluginConfig
-from batchsim.sensors.mjcf import DeclarationError, lidar_elements_of, take_declarations
+from batchsim.sensors.mjcf import DeclarationError, SensorDeclarations, lidar_elements_of, take_declarations
 
 
 def _models_root():
@@ -132,13 +132,10 @@ def load_string(
     description = None
     if ros2_control is not None:
         description = read_description(ros2_control)
-        try:
-            extra = lidar_elements_of(ros2_control)
-        except DeclarationError as e:
-            raise ModelError(str(e)) from None
-        declarations = declarations.merged(type(declarations)(lidar_elements=extra))
     elif blocks:
         description = from_elements(blocks, where, path.parent if path else None)
+    if description is not None:
+        declarations = declarations.merged(_declared(description))
     name = root.get("model") or (path.stem if path else "model")
     key_ctrl = [len(k.ctrl) > 0 for k in mjspec.keys]
     try:
@@ -147,6 +144,25 @@ def load_string(
         raise ModelError(f"{where}: {e}") from None
     spec.sensor_declarations = declarations
     return spec
+
+
+def _declared(description: Description) -> SensorDeclarations:
+    """What a ros2_control file declares for the bridge's cameras and lidars: its `<lidar>`
+    elements (of the expanded document), the params of its sensors without a mujoco_type,
+    and the camera/lidar publish rates among its hardware params."""
+    lidars: tuple = ()
+    if description.document is not None:
+        try:
+            lidars = lidar_elements_of(description.document, description.where)
+        except DeclarationError as e:
+            raise ModelError(str(e)) from None
+    params = tuple(
+        (s.name, tuple(s.params.items())) for s in description.sensors if "mujoco_type" not in s.params and s.params
+    )
+    rates = tuple(
+        (key, found[0]) for key in ("camera_publish_rate", "lidar_publish_rate") if (found := description.param(key))
+    )
+    return SensorDeclarations(lidars, (), params, rates, description.where)
 
 
 def _one_line(message: str) -> str:

@@ -44,6 +44,7 @@ from batchsim.model.spec import (
     StateColumn,
 )
 from batchsim.pid import PidGains
+from batchsim.sensors.lidar import rangefinder_groups
 
 # mujoco_type -> {state interface field: (MJCF sensor suffix param, default suffix, component)}
 _XYZ = ("x", "y", "z")
@@ -284,13 +285,14 @@ def _sensors(description: Description, m: mujoco.MjModel, sensors: list[Sensor],
         out.sensors = sensors
         return
     by_name = {s.name: s for s in sensors}
+    bridged = {m.camera(c).name for c in range(m.ncam)} | {g.name for g in rangefinder_groups(m)}
     kept: list[Sensor] = []
     for el in listed:
         mujoco_type = el.params.get("mujoco_type")
         if mujoco_type is None:
             if el.name in by_name:
                 kept.append(by_name[el.name])
-            else:
+            elif el.name not in bridged:  # a camera's or lidar's: its params configure the bridge's topics
                 out.warnings.append(
                     f"ros2_control sensor {el.name!r}: no mujoco_type and no MJCF sensor of that name: "
                     "not a state interface (cameras and lidars are served by the bridge)"

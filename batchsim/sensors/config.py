@@ -5,12 +5,20 @@ mujoco_ros2_control's plugin parameters (under any node's `ros__parameters.mujoc
 
     mujoco_camera_plugin:                          # type mujoco_ros2_control_plugins/CameraPlugin
       camera_publish_rate: 5.0
-      <camera>: {frame_name, image_topic, depth_topic, info_topic, camera_type}
-    mujoco_rangefinder_plugin:                     # type .../RangefinderLidarPlugin
-      publish_rate: 10.0
-      <lidar>: {frame_name, min_angle, max_angle, angle_increment, topic, range_min, range_max}
+      <camera>: {policy, frame_name, image_topic, depth_topic, info_topic, trigger_service_name}
+    rangefinder_lidar_plugin:                      # type .../RangefinderLidarPlugin
+      lidar_publish_rate: 10.0
+      <lidar>: {frame_name, min_angle, max_angle, angle_increment, range_min, range_max, laserscan_topic}
     mujoco_3d_lidar_plugin:                        # type .../Mujoco3dLidarPlugin
       <sensor>: {frame_name, topic}
+
+as upstream's plugins read them (mujoco_ros2_control_plugins/src/*.cpp); older spellings are
+read too (`camera_type` for `policy`, `publish_rate` and `topic` for the lidar's). Plugins
+batchsim does not run (the base velocity, heartbeat, free-joint state and external wrench
+plugins, or any other type) are named in `warnings`, which `batchsim` and `batchsim info`
+print, with what to use instead. The same camera and lidar params given as `<param>`s of a
+ros2_control `<sensor>` of the camera's (or the lidar's) name are read too, as upstream's
+legacy path does; the YAML wins where both set a key (`with_defaults`).
 
 batchsim's block (top level):
 
@@ -49,8 +57,26 @@ CAMERA_PLUGIN = "mujoco_ros2_control_plugins/CameraPlugin"
 RANGEFINDER_PLUGIN = "mujoco_ros2_control_plugins/RangefinderLidarPlugin"
 LIDAR3D_PLUGIN = "mujoco_ros2_control_plugins/Mujoco3dLidarPlugin"
 
-_CAMERA_KEYS = ("frame_name", "image_topic", "depth_topic", "info_topic", "camera_type", "trigger_service_name", "width", "height")
-_RANGEFINDER_KEYS = ("frame_name", "min_angle", "max_angle", "angle_increment", "topic", "range_min", "range_max")
+BASE_VELOCITY_PLUGIN = "mujoco_ros2_control_plugins/BaseVelocityPlugin"
+HEARTBEAT_PLUGIN = "mujoco_ros2_control_plugins/HeartbeatPublisherPlugin"
+FREE_JOINT_STATE_PLUGIN = "mujoco_ros2_control_plugins/FreeJointStatePublisherPlugin"
+EXTERNAL_WRENCH_PLUGIN = "mujoco_ros2_control_plugins/ExternalWrenchPlugin"
+#: plugins batchsim does not run, and what a user has instead
+NOT_RUN = {
+    BASE_VELOCITY_PLUGIN: "/cmd_vel does not move the base: drive it with its actuators (diff_drive_controller)",
+    HEARTBEAT_PLUGIN: "no mujoco_heartbeat topic: /clock and /diagnostics show the simulation is alive",
+    FREE_JOINT_STATE_PLUGIN: "no free_joint_states topic: free bodies' poses are on /tf (and odom for the robot's base)",
+    EXTERNAL_WRENCH_PLUGIN: "no external wrench service from this plugin",
+}
+
+_CAMERA_KEYS = (
+    "policy", "frame_name", "image_topic", "depth_topic", "info_topic", "trigger_service_name",
+    "camera_type", "width", "height",
+)  # fmt: skip
+_RANGEFINDER_KEYS = (
+    "frame_name", "min_angle", "max_angle", "angle_increment", "range_min", "range_max", "laserscan_topic", "topic",
+)  # fmt: skip
+_RENAMED = {"policy": "camera_type", "laserscan_topic": "topic"}  # upstream's key -> the field it fills
 _LIDAR3D_KEYS = ("frame_name", "topic")
 _DENSE_KEYS = ("site", "horizontal", "vertical", "range_min", "range_max", "frame_name", "topic", "rate")
 _AXIS_KEYS = ("samples", "min_angle", "max_angle")
@@ -194,6 +220,44 @@ class SensorConfig:
             config.seed = seed
         return config
 
+    def with_defaults(
+        self,
+        cameras: Mapping[str, Mapping[str, str]],
+        lidars: Mapping[str, Mapping[str, str]],
+        rates: Mapping[str, str],
+        where: str,
+    ) -> SensorConfig:
+        """This configuration over a ros2_control file's camera and lidar settings (the params
+        of a `<sensor>` named after a camera or a rangefinder lidar, and the hardware params
+        camera_publish_rate, lidar_publish_rate), as mujoco_ros2_control's legacy path reads
+        them: a key this configuration sets wins. Params no camera or lidar takes are warned of."""
+        out = dataclasses.replace(
+            self,
+            cameras=dict(self.cameras),
+            rangefinder_lidars=dict(self.rangefinder_lidars),
+            warnings=list(self.warnings),
+        )
+        if out.camera_rate is None and "camera_publish_rate" in rates:
+            out.camera_rate = _rate(rates["camera_publish_rate"], f"{where}: hardware param camera_publish_rate")
+        if out.lidar_rate is None and "lidar_publish_rate" in rates:
+            out.lidar_rate = _rate(rates["lidar_publish_rate"], f"{where}: hardware param lidar_publish_rate")
+        for table, keys, cls, given in (
+            (cameras, _CAMERA_KEYS, CameraSettings, out.cameras),
+            (lidars, _RANGEFINDER_KEYS, LidarSettings, out.rangefinder_lidars),
+        ):
+            for name, params in table.items():
+                at = f"{where}: ros2_control sensor {name!r}"
+                for key in sorted(set(params) - set(keys)):
+                    out.warnings.append(f"{at}: param {key!r} is not a {cls.__name__[:-8].lower()} setting: ignored")
+                legacy = _settings(cls, keys, {k: v for k, v in params.items() if k in keys}, at)
+                mine = given.get(name)
+                if mine is not None:
+                    legacy = dataclasses.replace(
+                        legacy, **{f.name: v for f in dataclasses.fields(mine) if (v := getattr(mine, f.name)) is not None}
+                    )
+                given[name] = legacy
+        return out
+
     # --- parsing ---
     def _read(self, document: Any, where: str) -> None:
         if not isinstance(document, Mapping):
@@ -235,15 +299,17 @@ class SensorConfig:
                         self.cameras[str(key)] = _settings(CameraSettings, _CAMERA_KEYS, value, f"{at}.{key}")
             elif kind == RANGEFINDER_PLUGIN:
                 for key, value in rest.items():
-                    if key == "publish_rate":
+                    if key in ("lidar_publish_rate", "publish_rate"):
                         self.lidar_rate = _rate(value, f"{at}.{key}")
                     else:
                         self.rangefinder_lidars[str(key)] = _settings(LidarSettings, _RANGEFINDER_KEYS, value, f"{at}.{key}")
             elif kind == LIDAR3D_PLUGIN:
                 for key, value in rest.items():
                     self.plugin_lidars[str(key)] = _settings(LidarSettings, _LIDAR3D_KEYS, value, f"{at}.{key}")
+            elif kind in NOT_RUN:
+                self.warnings.append(f"{at}: {kind} is not run by batchsim: {NOT_RUN[kind]}")
             else:
-                self.warnings.append(f"{at}: plugin type {kind!r} has no batchsim counterpart, ignored")
+                self.warnings.append(f"{at}: plugin type {kind!r} is unknown to batchsim: not run")
 
     def _read_block(self, block: Any, where: str) -> None:
         if not isinstance(block, Mapping):
@@ -316,6 +382,9 @@ def _settings(cls: type, keys: tuple[str, ...], value: Any, where: str) -> Any:
     fields = {f.name for f in dataclasses.fields(cls)}
     out: dict[str, Any] = {}
     for key, raw in value.items():
+        if key in _RENAMED and _RENAMED[key] in value:
+            raise SensorConfigError(f"{where}: both {key!r} and its older spelling {_RENAMED[key]!r}: give one")
+        key = _RENAMED.get(key, key)
         if key not in fields:  # read for compatibility, not used (trigger_service_name)
             continue
         if key in _NUMBER_KEYS:
@@ -327,7 +396,7 @@ def _settings(cls: type, keys: tuple[str, ...], value: Any, where: str) -> Any:
         else:
             out[key] = str(raw)
     if cls is CameraSettings and out.get("camera_type") not in (None, "streaming", "polled", "disabled"):
-        raise SensorConfigError(f"{where}.camera_type: streaming, polled or disabled, got {out['camera_type']!r}")
+        raise SensorConfigError(f"{where}.policy: streaming, polled or disabled, got {out['camera_type']!r}")
     return cls(**out)
 
 

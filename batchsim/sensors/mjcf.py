@@ -17,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 LIDAR_PLUGIN = "mujoco.plugin.lidar"
 LIDAR_PLUGIN_KEYS = ("resolution", "azimuth_range", "elevation_range", "max_range", "min_range", "update_rate", "async")
@@ -60,13 +59,23 @@ class SensorDeclarations:
 
     lidar_elements: tuple[LidarElement, ...] = ()
     plugin_lidars: tuple[PluginLidar, ...] = ()
+    #: the `<param>`s of each ros2_control `<sensor>` without a mujoco_type (a camera's or a
+    #: lidar's, by its name: mujoco_ros2_control's legacy camera and lidar settings)
+    sensor_params: tuple[tuple[str, tuple[tuple[str, str], ...]], ...] = ()
+    #: the hardware params camera_publish_rate and lidar_publish_rate, where given
+    rates: tuple[tuple[str, str], ...] = ()
+    where: str = ""  # the ros2_control file, for messages
 
     def __bool__(self) -> bool:
-        return bool(self.lidar_elements or self.plugin_lidars)
+        return bool(self.lidar_elements or self.plugin_lidars or self.sensor_params or self.rates)
 
     def merged(self, other: SensorDeclarations) -> SensorDeclarations:
         return SensorDeclarations(
-            self.lidar_elements + other.lidar_elements, self.plugin_lidars + other.plugin_lidars
+            self.lidar_elements + other.lidar_elements,
+            self.plugin_lidars + other.plugin_lidars,
+            self.sensor_params + other.sensor_params,
+            self.rates + other.rates,
+            self.where or other.where,
         )
 
 
@@ -86,20 +95,9 @@ def take_declarations(root: ET.Element, where: str) -> SensorDeclarations:
     return SensorDeclarations(tuple(elements), tuple(plugins))
 
 
-def lidar_elements_of(source: str | Path) -> tuple[LidarElement, ...]:
-    """The `<lidar>` elements anywhere in a ros2_control file or XML text (a URDF's mujoco_inputs)."""
-    text = str(source)
-    where = "ros2_control XML"
-    if not text.lstrip().startswith("<"):
-        where = text
-        try:
-            text = Path(text).expanduser().read_text()
-        except OSError:
-            return ()  # the ros2_control loader reports a missing file
-    try:
-        root = ET.fromstring(text)
-    except ET.ParseError:
-        return ()  # likewise a malformed one
+def lidar_elements_of(root: ET.Element, where: str) -> tuple[LidarElement, ...]:
+    """The `<lidar>` elements anywhere in a ros2_control file's document (a URDF's mujoco_inputs),
+    read after xacro expanded it, so a lidar inside a false `<xacro:if>` is not one."""
     return tuple(_lidar_element(el, where) for el in root.iter("lidar") if el.get("ref_site") is not None)
 
 

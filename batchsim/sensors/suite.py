@@ -170,9 +170,11 @@ class SensorSuite:
         """
         config = config or SensorConfig()
         m = spec.mjmodel
+        declarations = getattr(spec, "sensor_declarations", None) or SensorDeclarations()
+        if declarations.sensor_params or declarations.rates:
+            config = _with_ros2_control(config, m, declarations)
         where = config.source
         cameras = _cameras(m, config, where)
-        declarations = getattr(spec, "sensor_declarations", None) or SensorDeclarations()
         lidars = _lidars(m, declarations, config, where)
         clash = set(cameras) & set(lidars)
         if clash:
@@ -197,6 +199,19 @@ class SensorSuite:
             reading_noise=reading,
             config=config,
         )
+
+
+def _with_ros2_control(config: SensorConfig, m: mujoco.MjModel, declared: SensorDeclarations) -> SensorConfig:
+    """`config` over the ros2_control file's settings for the model's cameras and rangefinder lidars."""
+    cameras = {m.camera(c).name for c in range(m.ncam)}
+    groups = {g.name for g in lid.rangefinder_groups(m)}
+    params = {name: dict(p) for name, p in declared.sensor_params}
+    return config.with_defaults(
+        {n: p for n, p in params.items() if n in cameras},
+        {n: p for n, p in params.items() if n in groups},
+        dict(declared.rates),
+        declared.where,
+    )
 
 
 def _match(patterns: dict[str, Noise], name: str) -> tuple[str, Noise] | None:

@@ -1,0 +1,127 @@
+"""mujoco_ros2_control's own robots and files (tests/upstream, unchanged) read as upstream reads
+them: the plugin YAML whole, the URDF's camera and lidar params, the model named by the
+`mujoco_model` hardware param, lidars of the expanded description. No ROS here; the
+behaviour over ROS is tests/test_mujoco_ros2_control_ros.py's.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import batchsim
+from batchsim.sensors import SensorConfig, SensorConfigError, SensorSuite
+
+DEMOS = Path(__file__).parent / "upstream" / "mujoco_ros2_control_demos"
+URDF = DEMOS / "demo_resources" / "robot" / "test_robot.urdf"
+SCENE = DEMOS / "demo_resources" / "scenes" / "scene.xml"
+PLUGINS = DEMOS / "config" / "mujoco_ros2_control_plugins.yaml"
+
+
+def _suite(config: SensorConfig | None = None, ros2_control: Path = URDF) -> SensorSuite:
+    spec = batchsim.load(str(SCENE), ros2_control=str(ros2_control))
+    return SensorSuite.build(spec, 1, config)
+
+
+def test_the_demos_plugin_yaml_loads_unchanged():
+    # before: "mujoco_camera_plugin.camera: unknown key 'policy'", then lidar_publish_rate read as a lidar
+    config = SensorConfig.load(PLUGINS)
+    suite = _suite(config)
+    camera = suite.camera("camera")
+    assert (camera.frame_id, camera.image_topic, camera.depth_topic, camera.info_topic) == (
+        "camera_color_optical_frame",  # the YAML's, over the URDF's camera_color_mujoco_frame
+        "/camera/color/image_raw",
+        "/camera/aligned_depth_to_color/image_raw",
+        "/camera/color/camera_info",
+    )
+    assert suite.camera_rate == 6.0 and suite.lidar_rate == 5.0  # camera_publish_rate, lidar_publish_rate
+    lidar = suite.lidar("lidar")
+    assert (lidar.frame_id, lidar.topic, lidar.range_min, lidar.range_max) == ("lidar_sensor_frame", "/scan", 0.05, 10.0)
+    assert (lidar.angle_min, lidar.angle_max, lidar.angle_increment) == (-0.3, 0.3, 0.025)
+    # the plugins batchsim does not run are named, with what to use instead
+    warned = "\n".join(suite.config.warnings)
+    assert "heart_beat_plugin: mujoco_ros2_control_plugins/HeartbeatPublisherPlugin is not run" in warned
+    assert "free_joint_state_publisher: mujoco_ros2_control_plugins/FreeJointStatePublisherPlugin is not run" in warned
+
+
+def test_the_base_velocity_plugin_is_named_not_dropped():
+    config = SensorConfig.load(DEMOS / "config" / "mujoco_ros2_control_plugins_base_velocity.yaml")
+    assert len(config.warnings) == 1 and "BaseVelocityPlugin is not run by batchsim: /cmd_vel" in config.warnings[0]
+
+
+def test_the_urdfs_camera_and_lidar_params_are_honoured():
+    # before: the camera on camera/image_raw and the lidar's range_max 1000 where the URDF says 10
+    suite = _suite()
+    camera = suite.camera("camera")
+    assert (camera.frame_id, camera.image_topic, camera.info_topic) == (
+        "camera_color_mujoco_frame",
+        "/camera/color/image_raw",
+        "/camera/color/camera_info",
+    )
+    lidar = suite.lidar("lidar")
+    assert (lidar.topic, lidar.range_min, lidar.range_max, lidar.frame_id) == ("/scan", 0.05, 10.0, "lidar_sensor_frame")
+
+
+@pytest.mark.parametrize(
+    "plugin, message",
+    [
+        ({"mujoco_camera_plugin": {"type": "mujoco_ros2_control_plugins/CameraPlugin", "camera": {"policy": "sometimes"}}},
+         "camera.policy: streaming, polled or disabled, got 'sometimes'"),
+        ({"lidar": {"type": "mujoco_ros2_control_plugins/RangefinderLidarPlugin", "lidar": {"laser_topic": "/x"}}},
+         "lidar.lidar: unknown key 'laser_topic'"),
+        ({"lidar": {"type": "mujoco_ros2_control_plugins/RangefinderLidarPlugin", "lidar": {"topic": "/a", "laserscan_topic": "/b"}}},
+         "both 'laserscan_topic' and its older spelling 'topic'"),
+    ],
+)  # fmt: skip
+def test_a_bad_plugin_key_is_one_line_naming_it(plugin, message):
+    with pytest.raises(SensorConfigError, match=message) as e:
+        SensorConfig.load({"/**": {"ros__parameters": {"mujoco_plugins": plugin}}})
+    assert "\n" not in str(e.value)
+
+
+def test_an_unknown_plugin_type_is_named():
+    config = SensorConfig.load({"/**": {"ros__parameters": {"mujoco_plugins": {"mine": {"type": "pkg/Thing"}}}}})
+    assert config.warnings == ["<sensor config>: /**.ros__parameters.mujoco_plugins.mine: plugin type 'pkg/Thing' is unknown to batchsim: not run"]
+
+
+LIDAR_XACRO = """<?xml version="1.0"?>
+<robot xmlns:xacro="http://www.ros.org/wiki/xacro" name="r">
+  <xacro:arg name="with_lidar" default="false"/>
+  <xacro:if value="$(arg with_lidar)">
+    <mujoco_inputs><processed_inputs>
+      <lidar ref_site="{site}" sensor_name="fan" min_angle="-0.3" max_angle="0.3" angle_increment="0.1"/>
+    </processed_inputs></mujoco_inputs>
+  </xacro:if>
+  <ros2_control name="S" type="system">
+    <hardware><plugin>mujoco_ros2_control/MujocoSystemInterface</plugin></hardware>
+    <joint name="joint1"><command_interface name="position"/><state_interface name="position"/></joint>
+  </ros2_control>
+</robot>
+"""
+
+
+def test_lidars_are_read_from_the_expanded_description(tmp_path):
+    # before: the <lidar> inside a false xacro:if appeared (read before expansion)
+    path = tmp_path / "robot.urdf.xacro"
+    path.write_text(LIDAR_XACRO.format(site="lidar_sensor_frame"))
+    assert "fan" not in _suite(ros2_control=path).lidars
+    spec = batchsim.load(str(SCENE), ros2_control=f"{path} with_lidar:=true")
+    assert SensorSuite.build(spec, 1).lidar("fan").ncol == 6  # (max - min) / increment, as upstream generates them
+
+
+def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "batchsim.cli", *args], capture_output=True, text=True, timeout=120, cwd=cwd
+    )
+
+
+def test_the_model_comes_from_the_mujoco_model_param():
+    # `$(find mujoco_ros2_control_demos)` resolves to tests/upstream/mujoco_ros2_control_demos
+    out = _cli("info", "--ros2-control", str(URDF), "--sensors", str(PLUGINS))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith(f"model      scene  ({SCENE})")
+    assert "-> /camera/color/image_raw" in out.stdout and "range 0.05..10 m -> /scan" in out.stdout
+    assert "HeartbeatPublisherPlugin is not run by batchsim" in out.stdout
