@@ -38,6 +38,7 @@ from batchsim.model import InterfaceKind
 from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
 from ros_bridge.commands import RejectionWriter, SlotReader
 from ros_bridge.manager_link import ManagerLink
+from ros_bridge.naming import topic_name
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, ChannelFill, FleetPlan, describe
 from ros_bridge.requests import Kind, concatenate, decode_reset, decode_ticket, decode_trajectories
 from ros_bridge.supervisor import Supervisor
@@ -374,7 +375,7 @@ class BridgeHost:
         topic = self.plan.inputs[index].topic
         for k, reason in refused:
             w = int(worlds[k])
-            where = f"/{self.namespaces[w]}/{topic}"
+            where = topic_name(self.namespaces[w], topic)
             self.rejections.put(w, self._period, f"{where}: {reason}")
             self.throttle.warn((where, "refused"), f"rejected command on {where}: {reason}")
             if good is not None and rejected is not None:

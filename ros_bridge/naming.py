@@ -4,7 +4,9 @@ No rclpy here, so the rules are testable without a ROS graph.
 
 - A world's namespace is the template with `{i}` replaced by the world index
   (`world_{i}` -> `world_3`, `w_{i:03d}` -> `w_003`: format specs work), without leading
-  or trailing slashes; two worlds never share one.
+  or trailing slashes; two worlds never share one. A single world may have the root
+  namespace (template `""` or `/`): its names are then exactly mujoco_ros2_control's
+  (`/joint_states`, frames without a prefix). `topic_name()` and `frame()` build every name.
 - With one world, the default template, and an MJCF whose `mujoco.ros2` extension block
   sets `ros_namespace`, the namespace is that key's value, so topic names are exactly the
   plugin's (`ros_namespace="car/"` -> `/car/sensors/<sensor>`).
@@ -33,6 +35,22 @@ class NamingError(OptionError):
 
     def __init__(self, detail: str, option: str = "namespace"):
         super().__init__(option, detail)
+
+
+def topic_name(namespace: str, name: str) -> str:
+    """The absolute name of `name` in a world's namespace: `/<ns>/<name>`, or `/<name>` at the root."""
+    name = name.strip("/")
+    return f"/{namespace}/{name}" if namespace else f"/{name}"
+
+
+def frame(namespace: str, name: str) -> str:
+    """A world's tf frame: `<ns>/<name>`, or `<name>` at the root."""
+    return f"{namespace}/{name}" if namespace else name
+
+
+def expand_frame(template: str, namespace: str) -> str:
+    """A frame template holding `{ns}` (`"{ns}/odom"`) for a world."""
+    return template.replace("{ns}/", frame(namespace, "")).replace("{ns}", namespace)
 
 
 def ros_name(name: str) -> str:
@@ -95,6 +113,9 @@ def world_namespaces(
             ns = template.format(i=i).strip("/")
         except (KeyError, IndexError, ValueError) as e:
             raise NamingError(f"{template!r}: only {{i}} may be substituted ({e})") from None
+        if ns == "" and nworld == 1 and not offset:
+            out.append(ns)  # the root namespace, for one world
+            break
         _check_namespace(ns, f"{template!r} gives {ns!r}, which")
         if first.setdefault(ns, i) != i:  # a spec that truncates or pads away the index
             raise NamingError(

@@ -263,7 +263,7 @@ class Supervisor:
 
     def _worlds(self, lo: int, hi: int) -> str:
         ns = self.plan.namespaces
-        return f"/{ns[lo]}" if hi - lo == 1 else f"/{ns[lo]} .. /{ns[hi - 1]}"
+        return f"/{ns[lo]}" if hi - lo == 1 else f"/{ns[lo]} .. /{ns[hi - 1]}"  # "/" at the root
 
     def wake(self, worker: int) -> None:
         """Worker `worker`'s tick: a new snapshot or an answered request."""

@@ -56,6 +56,7 @@ from ros_bridge.action_plan import (
     encode_gripper_goal,
 )
 from ros_bridge.commands import RejectionWriter
+from ros_bridge.naming import topic_name
 from ros_bridge.requests import Kind
 from ros_bridge.worker.messages import parse_trajectory, seconds, stamp_of
 from ros_bridge.worker.services import LoopRequests
@@ -127,7 +128,7 @@ class ActionServers:
         self._to_create: collections.deque[tuple[str, int, int]] = collections.deque()
         for a, spec in enumerate(specs):
             for row, ns in enumerate(namespaces):
-                self._pending[f"/{ns}/{spec.controller}/{_ACTION_NAME[type(spec)]}"] = (a, lo + row)
+                self._pending[topic_name(ns, f"{spec.controller}/{_ACTION_NAME[type(spec)]}")] = (a, lo + row)
 
     def requested(self, name: str) -> bool:
         """The graph scan saw `name` (a topic or service of an action client): create that

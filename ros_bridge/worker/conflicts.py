@@ -7,6 +7,7 @@ import time as wallclock
 
 from rclpy.node import Node
 
+from ros_bridge.naming import topic_name
 from ros_bridge.plan import FleetPlan
 
 
@@ -16,7 +17,7 @@ def check_conflicts(node: Node, plan: FleetPlan, index: int) -> tuple[str, str] 
     Returns (kind, message) with kind "namespace" or "clock", or None."""
     if os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").upper() in ("LOCALHOST", "OFF"):
         return None  # no other host can join: the host's registry (registry.py) has seen every fleet
-    mine = {f"/{ns}/reset" for ns in plan.namespaces}
+    mine = {topic_name(ns, "reset") for ns in plan.namespaces}
     own = plan.node_names[index]
     deadline = wallclock.monotonic() + plan.startup_check
     extended = False

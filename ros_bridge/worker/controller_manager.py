@@ -40,6 +40,7 @@ from rclpy.node import Node
 
 from batchsim.memory import Memory
 from ros_bridge.manager_link import ManagerSpec
+from ros_bridge.naming import topic_name
 from ros_bridge.requests import Kind, encode_switch
 from ros_bridge.worker.services import LoopRequests
 
@@ -58,7 +59,7 @@ class ControllerManagerServices:
         # per world, created when a client of one of its services appears (the worker's graph
         # scan), as every per-world topic is: nine services a world in a fleet of thousands
         # would cost discovery time for nothing
-        self._pending = {f"/{ns}/controller_manager": lo + row for row, ns in enumerate(namespaces)}
+        self._pending = {topic_name(ns, "controller_manager"): lo + row for row, ns in enumerate(namespaces)}
         self._to_create: collections.deque[tuple[str, int]] = collections.deque()
 
     def requested(self, service: str) -> bool:

@@ -50,6 +50,7 @@ from batchsim.controllers.topics import MessageKind
 from batchsim.memory import Memory, Ring
 from ros_bridge.commands import Problem, SlotWriter, check_single, check_vector
 from ros_bridge.interfaces import available
+from ros_bridge.naming import topic_name
 from ros_bridge.options import Reliability
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.throttle import LogThrottle
@@ -153,7 +154,7 @@ class Worker:
             out = Output(spec, self.namespaces)
             self._outputs.append(out)
             for row, ns in enumerate(self.namespaces):
-                topic = f"/{ns}/{spec.topic}"
+                topic = topic_name(ns, spec.topic)
                 if spec.on_request and not plan.all_topics:
                     self._on_request[topic] = (out, row)
                 else:
@@ -164,10 +165,10 @@ class Worker:
         self._actuators: dict[str, tuple[int, int]] = {}  # topic -> (world, column; -1 once subscribed)
         for row, ns in enumerate(self.namespaces):
             w = self.lo + row
-            topic = f"/{ns}/commands"
+            topic = topic_name(ns, "commands")
             self._subscribe(Float64MultiArray, topic, self._vector_callback(w, topic, interfaces, owners))
             for c, token in enumerate(plan.actuator_topics):
-                topic = f"/{ns}/actuators/{token}/command"
+                topic = topic_name(ns, f"actuators/{token}/command")
                 if plan.all_topics:
                     self._subscribe(Float64, topic, self._single_callback(w, c, topic, interfaces, owners))
                 self._actuators[topic] = (w, -1 if plan.all_topics else c)
@@ -179,7 +180,7 @@ class Worker:
             slots = None if spec.kind is MessageKind.JOINT_TRAJECTORY else SlotWriter(self.memory, spec.slots)
             for row, ns in enumerate(self.namespaces):
                 w = self.lo + row
-                topic = f"/{ns}/{spec.topic}"
+                topic = topic_name(ns, spec.topic)
                 if slots is None:
                     callback = self._trajectory_callback(i, w, topic)
                 else:

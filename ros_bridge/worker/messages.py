@@ -34,6 +34,7 @@ from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
 from batchsim.controllers.topics import Input, MessageKind, Output
+from ros_bridge.naming import expand_frame
 from ros_bridge.plan import OutputSpec
 
 MESSAGE_TYPES: dict[MessageKind, type] = {
@@ -81,7 +82,7 @@ def new_message(output: Output, namespace: str) -> Built:
     """A world's message of `output`, its constant parts (names, frames, covariances) set."""
     msg = MESSAGE_TYPES[output.kind]()
     views: dict[str, np.ndarray] = {}
-    frame = output.frame_id.replace("{ns}", namespace)
+    frame = expand_frame(output.frame_id, namespace)
     if hasattr(msg, "header"):
         msg.header.frame_id = frame
     kind = output.kind
@@ -95,7 +96,7 @@ def new_message(output: Output, namespace: str) -> Built:
             if part in output.covariance:
                 setattr(msg, f"{part}_covariance", [float(v) for v in output.covariance[part]])
     elif kind is MessageKind.ODOMETRY:
-        msg.child_frame_id = output.child_frame_id.replace("{ns}", namespace)
+        msg.child_frame_id = expand_frame(output.child_frame_id, namespace)
         if "pose" in output.covariance:
             msg.pose.covariance = [float(v) for v in output.covariance["pose"]]
         if "twist" in output.covariance:
@@ -313,11 +314,11 @@ class BulkMessages:
         for row, ns in enumerate(namespaces):
             msg = cls()
             if hasattr(msg, "header"):
-                msg.header.frame_id = spec.frame_id.replace("{ns}", ns)
+                msg.header.frame_id = expand_frame(spec.frame_id, ns)
                 msg.header.stamp.sec, msg.header.stamp.nanosec = _STAMP_SEC, _STAMP_NANOSEC
                 self.stamped = True
             if spec.child_frame_id:
-                msg.child_frame_id = spec.child_frame_id.replace("{ns}", ns)
+                msg.child_frame_id = expand_frame(spec.child_frame_id, ns)
             if spec.names:
                 _set(msg, NAME_PATHS.get(spec.msg_type, "name"), list(spec.names))
             for path, value in CONSTANTS.get(spec.msg_type, {}).items():

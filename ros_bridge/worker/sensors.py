@@ -21,6 +21,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2
 
+from ros_bridge.naming import topic_name
 from ros_bridge.sensor_topics import WANT_DEPTH, WANT_INFO, WANT_RGB, SensorBlock, SensorPlan
 from ros_bridge.worker.messages import stamp_of
 from ros_bridge.worker.sensor_messages import (
@@ -35,8 +36,7 @@ from ros_bridge.worker.sensor_messages import (
 def under(namespaces: Sequence[str], name: str) -> list[str]:
     """`name` under each namespace, without a leading `/`: a configured topic or frame that is
     absolute (mujoco_ros2_control's `/camera/color/image_raw`) goes under the world's too."""
-    name = name.strip("/")
-    return [f"{ns}/{name}" if ns else name for ns in namespaces]
+    return [topic_name(ns, name)[1:] for ns in namespaces]
 
 
 class _Topic:

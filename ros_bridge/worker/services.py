@@ -18,6 +18,7 @@ from rclpy.node import Node
 from std_srvs.srv import SetBool, Trigger
 
 from batchsim.memory import Memory, Ring
+from ros_bridge.naming import topic_name
 from ros_bridge.requests import Kind, encode_reset, encode_ticket
 
 SERVICE_WAIT = 2.0  # s a service waits for the loop to carry out its request
@@ -83,7 +84,7 @@ class LoopRequests:
 def create_loop_services(node: Node, requests: LoopRequests, namespaces: list[str], lo: int, fleet: bool) -> None:
     """`<ns>/reset` for each world; with `fleet`, `/batchsim/{reset,pause,step}` too."""
     for row, ns in enumerate(namespaces):
-        node.create_service(Trigger, f"/{ns}/reset", _reset_service(requests, [lo + row], f"/{ns}"))
+        node.create_service(Trigger, topic_name(ns, "reset"), _reset_service(requests, [lo + row], topic_name(ns, "")))
     if not fleet:
         return
     node.create_service(Trigger, "/batchsim/reset", _reset_service(requests, None, "all worlds"))

@@ -30,6 +30,7 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 
+from ros_bridge.naming import frame, topic_name
 from ros_bridge.tf_plan import TfSpec
 from ros_bridge.worker.messages import _markers, locate_markers, locate_stamps, set_stamp_marker, stamp_bytes
 
@@ -61,7 +62,7 @@ class TfTemplate:
         msg = TFMessage()
         for w, ns in enumerate(namespaces):
             for k, (parent, child) in enumerate(spec.moving):
-                msg.transforms.append(_transform(f"{ns}/{parent}", f"{ns}/{child}", markers[w, k]))
+                msg.transforms.append(_transform(frame(ns, parent), frame(ns, child), markers[w, k]))
         data = bytes(serialize_message(msg))
         self.buf = np.frombuffer(data, np.uint8).copy()
         at = locate_markers(data, markers.size, "tf")
@@ -80,9 +81,10 @@ def static_message(spec: TfSpec, namespaces: list[str], sec: int = 0, nanosec: i
     msg = TFMessage()
     identity = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     for ns in namespaces:
-        msg.transforms.append(_transform(spec.fleet_frame, f"{ns}/{spec.root}", identity))
+        if frame(ns, spec.root) != spec.fleet_frame:  # a root-namespace world's `world` body is the fleet frame
+            msg.transforms.append(_transform(spec.fleet_frame, frame(ns, spec.root), identity))
         for (parent, child), value in zip(spec.static, spec.static_values, strict=True):
-            msg.transforms.append(_transform(f"{ns}/{parent}", f"{ns}/{child}", value))
+            msg.transforms.append(_transform(frame(ns, parent), frame(ns, child), value))
     for t in msg.transforms:
         t.header.stamp.sec, t.header.stamp.nanosec = sec, nanosec
     return msg
@@ -106,8 +108,9 @@ class TfPublishers:
         # per-world topics, created once somebody subscribes: topic -> (kind, row)
         self._on_request: dict[str, tuple[str, int]] = {}
         for row, ns in enumerate(namespaces):
-            for kind in ("tf", "tf_static", "robot_description"):
-                self._on_request[f"/{ns}/{kind}"] = (kind, row)
+            # a root-namespace world's /tf and /tf_static are the fleet's own
+            for kind in ("tf", "tf_static", "robot_description") if ns else ("robot_description",):
+                self._on_request[topic_name(ns, kind)] = (kind, row)
         self._keep: list[Any] = []  # publishers of latched messages
         if all_topics:
             for topic in list(self._on_request):

@@ -14,6 +14,7 @@ import numpy as np
 from batchsim.controllers.topics import trajectory_batch
 from batchsim.memory import Memory, Ring
 from ros_bridge.commands import Problem
+from ros_bridge.naming import topic_name
 from ros_bridge.plan import FleetPlan
 from ros_bridge.requests import Kind, encode_trajectories
 
@@ -77,7 +78,7 @@ class TrajectoryIntake:
             batch, kept, rejected = trajectory_batch(spec.joints, messages, **_goal_arrays(goals.get(i), len(messages), len(spec.joints)))
             for k, reason in rejected:
                 w = messages[k][0]
-                self._reject(w, f"/{self.plan.namespaces[w]}/{spec.topic}", Problem.MALFORMED, reason)
+                self._reject(w, topic_name(self.plan.namespaces[w], spec.topic), Problem.MALFORMED, reason)
             if not len(batch):
                 continue
             with self._ring_lock:
@@ -85,7 +86,7 @@ class TrajectoryIntake:
             if not ok:
                 for w in batch.worlds.tolist():
                     self._reject(
-                        w, f"/{self.plan.namespaces[w]}/{spec.topic}", Problem.BACKLOG, "the loop is too far behind to take it"
+                        w, topic_name(self.plan.namespaces[w], spec.topic), Problem.BACKLOG, "the loop is too far behind to take it"
                     )
                 continue
             np.add.at(self.memory[f"{spec.slots}.seq"], batch.worlds, 1)
