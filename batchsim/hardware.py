@@ -26,8 +26,8 @@ with no fresh sensor noise, and the failure is logged once, naming the world and
 (`batchsim.failures`).
 
 A backend subclasses `BatchedSystem` and implements the engine hooks (`_open`, `_close`,
-`_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, `_body_poses`, and `_park` where the
-engine cannot skip a world); everything a user sees, checks and bookkeeping included, lives here
+`_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, `_body_poses`, `_qstate`, `_set_qstate`,
+and `_park` where the engine cannot skip a world); everything a user sees, checks and bookkeeping included, lives here
 so that every backend behaves the same.
 """
 
@@ -612,6 +612,41 @@ class BatchedSystem(SystemInterface):
             shown[sel] = now
         return xpos, xquat
 
+    # --- the whole joint state (mujoco_ros2_control's reset_world overrides, set_free_joint_state) ---
+    def qstate(self, worlds: Sequence[int] | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """MuJoCo's `qpos` `(n, nq)` and `qvel` `(n, nv)` of all or the listed worlds (in the order
+        given), float64 arrays of the caller's own: every joint, free joints included."""
+        self._require("read the joint state", frozenset({S.INACTIVE, S.ACTIVE}))
+        rows = self._worlds(worlds)
+        qpos, qvel = self._qstate(np.arange(self.nworld) if rows is None else rows)
+        return qpos.astype(np.float64), qvel.astype(np.float64)
+
+    def set_qstate(self, worlds: Sequence[int] | np.ndarray | None, qpos: Any, qvel: Any) -> None:
+        """Teleport: write whole `qpos` `(n, nq)` and `qvel` `(n, nv)` rows into all or the listed
+        worlds (the order given); `state` shows them at once, the bodies' poses and sensordata
+        after the next step (cpu: at once). No other world changes.
+
+        Raises:
+          ValueError: a wrong shape, a non-finite value, or a frozen world (reset it first).
+        """
+        self._require("write the joint state", frozenset({S.INACTIVE, S.ACTIVE}))
+        rows = self._worlds(worlds)
+        sel = np.arange(self.nworld) if rows is None else rows
+        m = self.model
+        qpos = np.asarray(qpos, dtype=np.float64)
+        qvel = np.asarray(qvel, dtype=np.float64)
+        for name, value, width in (("qpos", qpos, m.nq), ("qvel", qvel, m.nv)):
+            if value.shape != (len(sel), width):
+                raise ValueError(f"{name} must have shape ({len(sel)}, {width}), got {value.shape}")
+            if not np.isfinite(value).all():
+                raise ValueError(f"{name} holds NaN or infinity")
+        frozen = sel[self.frozen[sel]]
+        if frozen.size:
+            raise ValueError(f"world {frozen[0]} is frozen (it diverged or overflowed): reset it first")
+        self._set_qstate(sel, qpos, qvel)
+        self._refresh()
+        self._add_noise()
+
     # --- cameras, lidars and sensor noise (batchsim.sensors) ---
     @property
     def sensors(self) -> SensorSuite:
@@ -899,6 +934,14 @@ class BatchedSystem(SystemInterface):
         """The engine's `xpos` `(n, nbody, 3)` and `xquat` `(n, nbody, 4)` of `worlds` `(n,)`, any
         float dtype, arrays the caller may keep and change; frozen worlds' rows are replaced."""
         raise NotImplementedError(f"the {self.name} backend cannot report body poses")
+
+    def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The engine's `qpos` `(n, nq)` and `qvel` `(n, nv)` of `worlds`, any float dtype, copies."""
+        raise NotImplementedError(f"the {self.name} backend cannot read the joint state")
+
+    def _set_qstate(self, worlds: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        """Write `qpos` `(n, nq)` and `qvel` `(n, nv)` float64 rows into the engine's `worlds` (live ones)."""
+        raise NotImplementedError(f"the {self.name} backend cannot write the joint state")
 
     def _park(self, worlds: np.ndarray) -> None:
         """Worlds just frozen: for an engine that steps every world whatever happens, keep them

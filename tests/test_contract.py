@@ -289,6 +289,33 @@ def test_reset_touches_only_listed_worlds(arm):
     arm.reset()
 
 
+def test_set_qstate_teleports_only_the_listed_worlds(arm):
+    """qstate/set_qstate (mujoco_ros2_control's reset_world overrides and set_free_joint_state):
+    whole qpos/qvel rows in the caller's order; state shows them at once; nothing else moves."""
+    arm.reset()
+    arm.read()
+    m = arm.model
+    qpos, qvel = arm.qstate()
+    assert qpos.shape == (NWORLD, m.nq) and qvel.shape == (NWORLD, m.nv) and qpos.dtype == np.float64
+    before = arm.state.copy()
+    rows = np.array([np.full(m.nq, 0.3), np.full(m.nq, -0.2)])
+    arm.set_qstate([3, 1], rows, np.zeros((2, m.nv)))
+    position = [arm.export_state_interfaces().index(f"joint{j}/position") for j in range(1, 7)]
+    np.testing.assert_allclose(arm.state[3, position], 0.3, atol=1e-6)
+    np.testing.assert_allclose(arm.state[1, position], -0.2, atol=1e-6)
+    np.testing.assert_array_equal(arm.state[[0, 2]], before[[0, 2]])
+    np.testing.assert_allclose(arm.qstate([1, 3])[0], rows[::-1], atol=1e-6)
+    arm.write()
+    arm.step(1)  # the engine goes on from there
+    arm.read()
+    assert abs(arm.state[3, position[0]] - 0.3) < 0.05
+    with pytest.raises(ValueError, match=r"qpos must have shape \(1, 6\), got \(6,\)"):
+        arm.set_qstate([0], np.zeros(m.nq), np.zeros((1, m.nv)))
+    with pytest.raises(ValueError, match="qvel holds NaN"):
+        arm.set_qstate([0], np.zeros((1, m.nq)), np.full((1, m.nv), np.nan))
+    arm.reset()
+
+
 def test_reset_rejects_unknown_worlds(arm):
     with pytest.raises(ValueError, match="world 4 is out of range"):
         arm.reset(worlds=[4])

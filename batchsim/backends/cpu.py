@@ -179,6 +179,14 @@ class CpuSystem(BatchedSystem):
                 self._kinematics_now(worlds, self._unfilled[worlds], xpos, xquat)
         return xpos, xquat
 
+    def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._fields["qpos"][worlds], self._fields["qvel"][worlds]  # fancy indexing: copies
+
+    def _set_qstate(self, worlds: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        self._fields["qpos"][worlds] = qpos
+        self._fields["qvel"][worlds] = qvel
+        self._batch.forward(ids=np.sort(worlds).astype(np.int32))  # poses and sensordata of the new state
+
     def _kinematics_now(self, worlds: np.ndarray, rows: np.ndarray, xpos: np.ndarray, xquat: np.ndarray) -> None:
         """xpos/xquat of the current state into the `rows` (bool) of `worlds`: mj_kinematics per world."""
         m = self.model

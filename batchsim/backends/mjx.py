@@ -308,6 +308,17 @@ class MjxSystem(DeviceSystem):
         self._clock[mask] = self.spec.initial.time
         self._packed = None
 
+    def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        qpos, qvel = jax.device_get((self._d.qpos, self._d.qvel))
+        return np.asarray(qpos)[worlds], np.asarray(qvel)[worlds]
+
+    def _set_qstate(self, worlds: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        d = self._d
+        self._d = d.replace(
+            qpos=d.qpos.at[worlds].set(qpos.astype(d.qpos.dtype)), qvel=d.qvel.at[worlds].set(qvel.astype(d.qvel.dtype))
+        )
+        self._packed = None  # read() downloads the new state
+
     def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # both in one download, indexed on the host: a device-side gather compiles per world count
         xpos, xquat = jax.device_get((self._d.xpos, self._d.xquat))

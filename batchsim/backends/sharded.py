@@ -300,6 +300,26 @@ class ShardedSystem(BatchedSystem):
             xpos[order], xquat[order] = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
         return xpos, xquat
 
+    def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        order = np.argsort(worlds, kind="stable")
+        parts = self._run([(s, "qstate", (local,)) for s, local in self._split(worlds[order])], self.processes)
+        qpos, qvel = np.empty((len(worlds), self.model.nq)), np.empty((len(worlds), self.model.nv))
+        if parts:
+            qpos[order], qvel[order] = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+        return qpos, qvel
+
+    def _refresh(self) -> None:
+        self._each("read", None, None)  # each shard writes its rows of the fleet's arrays
+
+    def _set_qstate(self, worlds: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        order = np.argsort(worlds, kind="stable")
+        qpos, qvel = qpos[order], qvel[order]
+        calls, at = [], 0
+        for s, local in self._split(worlds[order]):
+            calls.append((s, "set_qstate", (local, qpos[at : at + len(local)], qvel[at : at + len(local)])))
+            at += len(local)
+        self._run(calls, self.processes)
+
     def _split(self, worlds: np.ndarray) -> list[tuple[LocalShard | ProcessShard, np.ndarray]]:
         """(shard, its local world indices) for the fleet's `worlds`, ascending, in shard order."""
         out = []

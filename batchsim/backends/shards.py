@@ -54,6 +54,8 @@ CALLS = frozenset(
         "render",
         "scan",
         "body_poses",
+        "qstate",
+        "set_qstate",
     }
 )
 START_TIMEOUT = 300.0  # s: a shard process importing its backend and building its model

@@ -429,6 +429,18 @@ class WarpSystem(WarpSensors, DeviceSystem):
             )
             self._parked_dev.assign(self.frozen.astype(np.int32))
 
+    def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        with wp.ScopedDevice(self.device):
+            return self._d.qpos.numpy()[worlds], self._d.qvel.numpy()[worlds]
+
+    def _set_qstate(self, worlds: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        # a rare teleport: whole arrays down and up, written in place (captured graphs keep their pointers)
+        with wp.ScopedDevice(self.device):
+            for array, rows in ((self._d.qpos, qpos), (self._d.qvel, qvel)):
+                host = array.numpy()
+                host[worlds] = rows
+                array.assign(host)
+
     def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # gathered on the device, then one copy of just those worlds to the host
         with wp.ScopedDevice(self.device):
