@@ -136,7 +136,7 @@ class SimLoop:
         self.stats = LoopStats()
         self._stop = threading.Event()
         self._paused = threading.Event()
-        self._single_steps = 0
+        self._pending_steps = 0  # physics steps asked for while paused
         self._lock = threading.Lock()
         self.gate: Callable[[float], bool] | None = None  # lockstep: wait for commands
 
@@ -160,8 +160,27 @@ class SimLoop:
 
     def single_step(self) -> None:
         """While paused, advance one control period."""
+        self.step_physics(self.substeps)
+
+    def step_physics(self, nstep: int) -> None:
+        """While paused, advance `nstep` physics steps (added to any still pending): whole control
+        periods, and a last, shorter one for a remainder (controllers then see its shorter period)."""
+        if nstep < 1:
+            raise ValueError(f"step count must be >= 1, got {nstep}")
         with self._lock:
-            self._single_steps += 1
+            self._pending_steps += int(nstep)
+
+    @property
+    def pending_steps(self) -> int:
+        """Physics steps asked for (step_physics, single_step) and not yet run."""
+        return self._pending_steps
+
+    def abort_steps(self) -> int:
+        """Forget the pending physics steps (a resume interrupts them, as mujoco_ros2_control's
+        does); how many there were."""
+        with self._lock:
+            pending, self._pending_steps = self._pending_steps, 0
+        return pending
 
     def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
         """Reset all or the listed worlds and tell every participant (`on_reset`).
@@ -177,10 +196,12 @@ class SimLoop:
                 hook(self.sim, rows)
 
     # --- the loop ---
-    def run_period(self) -> None:
-        """One control period: read, participants, write, step."""
+    def run_period(self, nstep: int | None = None) -> None:
+        """One control period: read, participants, write, step (`nstep` physics steps: a shorter
+        period; default a whole one)."""
         sim = self.sim
-        t, period = self.sim_time, self.period
+        nstep = self.substeps if nstep is None else nstep
+        t, period = self.sim_time, self.period if nstep == self.substeps else nstep * sim.dt
         if sim.read(t, period) is ReturnType.ERROR:
             raise RuntimeError("read() failed")
         for p in self.participants:
@@ -190,7 +211,7 @@ class SimLoop:
             after = getattr(p, "after_write", None)
             if after is not None:
                 after(sim, t, period)
-        sim.step(self.substeps)
+        sim.step(nstep)
         self.sim_time += period
         self.stats.periods += 1
 
@@ -203,20 +224,23 @@ class SimLoop:
         while not self._stop.is_set():
             if self.duration is not None and self.sim_time >= self.duration - 1e-9:
                 break
+            nstep = None
             if self._paused.is_set():
                 with self._lock:
-                    go = self._single_steps > 0
-                    if go:
-                        self._single_steps -= 1
-                if not go:
+                    if self._pending_steps > 0:
+                        nstep = min(self.substeps, self._pending_steps)
+                if nstep is None:
                     self._idle_participants()
                     wallclock.sleep(0.002)
                     anchor_wall, anchor_sim = wallclock.perf_counter(), self.sim_time
                     continue
             if self.gate is not None and not self.gate(self.sim_time):
                 continue
-            self.run_period()
-            window_steps += self.substeps * nworld
+            self.run_period(nstep)
+            if nstep is not None:  # counted down once they ran (a resume may have dropped them meanwhile)
+                with self._lock:
+                    self._pending_steps = max(0, self._pending_steps - nstep)
+            window_steps += (nstep or self.substeps) * nworld
             now = wallclock.perf_counter()
             if self.rtf > 0:
                 target = anchor_wall + (self.sim_time - anchor_sim) / self.rtf

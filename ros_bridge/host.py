@@ -39,8 +39,25 @@ from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
 from ros_bridge.commands import RejectionWriter, SlotReader
 from ros_bridge.manager_link import ManagerLink
 from ros_bridge.naming import topic_name
-from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, ChannelFill, FleetPlan, describe
-from ros_bridge.requests import Kind, concatenate, decode_reset, decode_ticket, decode_trajectories
+from ros_bridge.plan import (
+    FLAG_BAD,
+    FLAG_FROZEN,
+    FLAG_TIMED_OUT,
+    SERVICE_SLOTS,
+    ChannelFill,
+    FleetPlan,
+    describe,
+)
+from ros_bridge.requests import (
+    Kind,
+    concatenate,
+    decode_document,
+    decode_reset,
+    decode_ticket,
+    decode_trajectories,
+)
+from ros_bridge.simulation import SimulationRequests
+from ros_bridge.snapshot import write_snapshot
 from ros_bridge.supervisor import Supervisor
 from ros_bridge.throttle import LogThrottle
 
@@ -113,7 +130,6 @@ class BridgeHost:
         # controller_manager's services and the actions' goals (switch, cancel, gripper goals)
         self.manager_link = ManagerLink(manager, m, plan.namespaces) if manager is not None and plan.manager else None
         self._rings = [Ring(m, f"ring{j}") for j in range(plan.nworker)]
-        self._channels = [m[f"ch{c}"] for c in range(len(plan.channels))]
         self.free = np.array([not o for o in plan.owners], dtype=bool)
         self.all_claimed = bool(plan.interfaces) and not self.free.any()
 
@@ -136,7 +152,7 @@ class BridgeHost:
         self._published_time: float | None = None
         self._force = False
         self._gate_since: float | None = None
-        self._steps: list[tuple[int, int, float]] = []  # (worker, ticket, sim time when asked)
+        self.simulation = SimulationRequests(sim, loop, self._done)  # pause, steps, state writes
         self._next_idle_tick = 0.0
         self._closed = False
         # the workers: started, woken, watched and restarted (ros_bridge/supervisor.py)
@@ -186,10 +202,7 @@ class BridgeHost:
         good = np.zeros(self.nworld, dtype=bool)
         rejected = np.zeros(self.nworld, dtype=bool)
         self._serve_requests(sim, good, rejected)
-        if self._steps and not self.loop.paused:  # unpaused while a step was asked: it ran
-            for j, ticket, _ in self._steps:
-                self._done(j, ticket, time, ok=True)
-            self._steps = []
+        self.simulation.poll()
 
         new, values = self.commands.take()
         if new.any():
@@ -233,12 +246,9 @@ class BridgeHost:
         if self._serve_requests(sim, None, None) and self._force:
             for c in self.readers:  # the controllers' copies of the state, for what is published now
                 c.update(sim, time, 0.0)
-        if self._steps and time > self._steps[0][2]:  # the step ran: answer with the new time
-            if self._published_time != time:
-                self._snapshot(time, force=True)
-            for j, ticket, _ in self._steps:
-                self._done(j, ticket, time, ok=True)
-            self._steps = []
+        if self._published_time != time:  # a step ran: publish it before the answer
+            self._snapshot(time, force=True)
+        self.simulation.poll()
         if self._force or self._published_time != time:
             self._snapshot(time, force=True)
         elif self.workers.worker is not None and wallclock.monotonic() >= self._next_idle_tick:
@@ -326,15 +336,15 @@ class BridgeHost:
                         reset_worlds.append(worlds)
                 elif kind == Kind.PAUSE:
                     ticket, value = decode_ticket(payload)
-                    self.loop.pause(bool(value))
-                    self._done(j, ticket, self.loop.sim_time, ok=True)
-                elif kind == Kind.STEP:
-                    ticket, _ = decode_ticket(payload)
-                    if self.loop.paused:
-                        self.loop.single_step()
-                        self._steps.append((j, ticket, self.loop.sim_time))
-                    else:
-                        self._done(j, ticket, self.loop.sim_time, ok=False)
+                    self.simulation.pause(j, ticket, bool(value))
+                elif kind in (Kind.STEP, Kind.STEP_N):
+                    ticket, value = decode_ticket(payload)
+                    self.simulation.step(j, ticket, value if kind == Kind.STEP_N else None)
+                elif kind == Kind.RESET_WORLD:
+                    self.simulation.reset_world(j, *decode_document(payload))
+                elif kind == Kind.SET_FREE_JOINTS:
+                    self.simulation.set_free_joints(j, *decode_document(payload))
+                    self._force = True  # published at once, paused or not
                 elif kind == Kind.CANCEL and self.manager_link is not None:
                     index, world, goal = decode_cancel(payload)
                     controller = self.manager_link.manager[self.plan.actions[index].controller]
@@ -356,7 +366,7 @@ class BridgeHost:
             if resets:  # a trajectory that arrived with a reset does not survive it
                 keep = np.zeros(len(batch), bool) if reset_rows is None else ~np.isin(batch.worlds, reset_rows)
                 if not keep.all():
-                    batch = _select(batch, keep)
+                    batch = batch.select(keep)
             if not len(batch):
                 continue
             refused = self.inputs[index].apply(batch)
@@ -394,49 +404,36 @@ class BridgeHost:
             self.memory["goal.refused"][world] = goal
 
     def _done(self, worker: int, ticket: int, time: float, ok: bool, message: str = "") -> None:
+        """Answer `worker`'s request `ticket` (its slot of svc.*, the ticket written last)."""
         m = self.memory
-        m["svc.ok"][worker] = int(ok)
-        answer = m["svc.msg"][worker]
+        slot = ticket % SERVICE_SLOTS
+        m["svc.ok"][worker, slot] = int(ok)
+        answer = m["svc.msg"][worker, slot]
         text = message.encode()[: len(answer)]
         answer[:] = 0
         answer[: len(text)] = np.frombuffer(text, np.uint8)
-        m["svc.time"][worker] = time
+        m["svc.time"][worker, slot] = time
+        m["svc.ticket"][worker, slot] = ticket
         m["svc.done"][worker] = max(int(m["svc.done"][worker]), ticket)
         self.workers.wake(worker)
 
     # --- publishing ---
     def _snapshot(self, time: float, force: bool, every_channel: bool = False) -> None:
-        """Copy what is due into the next snapshot buffer and wake the workers.
+        """Copy what is due into the next snapshot (ros_bridge/snapshot.py) and wake the workers.
         `every_channel`: every channel, wanted or not (the state lockstep waits in, which a
         subscriber that comes during the wait gets at once)."""
-        m = self.memory
-        n = self._n + 1
-        b = n % 2
-        m["seq"][b] = 2 * n + 1
-        m["meta"][b] = (n, self._period, time, float(force))
-        status = self.sim.status
-        m["status"][b] = status
-        flags = m["flags"][b]
-        flags[:] = 0
+        flags = np.zeros(self.nworld, np.uint8)
+        status = self.sim.status.copy()
         if self.bad.any():
-            m["status"][b][self.bad] |= _BAD
+            status[self.bad] |= _BAD
             flags[self.bad] |= FLAG_BAD
         if self._timed_out.any():
             flags[self._timed_out] |= FLAG_TIMED_OUT
         if status.any():
             flags[(status & _FROZEN) != 0] |= FLAG_FROZEN
-        demand = m["demand"].any(axis=0).tolist()
-        written = m["written"][b]
         k = self._period
-        for c, fill in enumerate(self.fills):
-            if every_channel or (demand[c] and (force or any(k % e == 0 for e in self._channel_every[c]))):
-                fill(self._channels[c][b])
-                written[c] = n
-            else:
-                written[c] = -1
-        m["seq"][b] = 2 * n + 2
-        m["latest"][0] = n
-        self._n = n
+        due = [every_channel or force or any(k % e == 0 for e in every) for every in self._channel_every]
+        self._n = write_snapshot(self.memory, self._n + 1, k, time, force, status, flags, self.fills, due, every_channel)
         self._published_time = time
         self._force = False
         self.workers.wake_all()
@@ -492,31 +489,6 @@ def _safe_plan(sim: BatchedSystem) -> tuple[list[int], list[int], list[int]]:
         else:
             zero_cols.append(c)
     return hold_cols, hold_src, zero_cols
-
-
-def _select(batch: Any, keep: np.ndarray) -> Any:
-    """The trajectories of a batch where `keep` is true."""
-    from batchsim.controllers.topics import TrajectoryBatch
-
-    idx = np.flatnonzero(keep)
-    counts = np.diff(batch.offsets)[idx]
-    point_rows = np.concatenate([np.arange(batch.offsets[k], batch.offsets[k + 1]) for k in idx]) if idx.size else np.zeros(0, np.intp)
-    return TrajectoryBatch(
-        worlds=batch.worlds[idx],
-        start_time=batch.start_time[idx],
-        joint_mask=batch.joint_mask[idx],
-        offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-        times=batch.times[point_rows],
-        positions=batch.positions[point_rows],
-        velocities=None if batch.velocities is None else batch.velocities[point_rows],
-        has_velocities=None if batch.has_velocities is None else batch.has_velocities[idx],
-        accelerations=None if batch.accelerations is None else batch.accelerations[point_rows],
-        has_accelerations=None if batch.has_accelerations is None else batch.has_accelerations[idx],
-        **{
-            k: None if getattr(batch, k) is None else getattr(batch, k)[idx]
-            for k in ("goals", "path_tolerance", "goal_tolerance", "goal_time_tolerance")
-        },
-    )
 
 
 def _stderr(line: str) -> None:

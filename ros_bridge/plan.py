@@ -36,6 +36,7 @@ from ros_bridge.interfaces import available
 from ros_bridge.manager_link import ManagerSpec, manager_spec
 from ros_bridge.naming import ros_names, world_namespaces
 from ros_bridge.options import BridgeOptions, Reliability
+from ros_bridge.outputs import ChannelFill, Field, OutputSpec, robot_outputs
 from ros_bridge.requests import trajectory_bytes
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan
 from ros_bridge.tf_plan import TfSpec, tf_spec
@@ -45,48 +46,7 @@ ON_REQUEST_PARTS = ("/controller_state/",)
 RING_BASE = 1 << 18  # bytes of each worker's ring, plus RING_PER_WORLD per world it serves
 RING_PER_WORLD = 8 << 10
 SERVICE_MESSAGE = 1024  # bytes of a service answer's message the loop hands back
-
-
-@dataclasses.dataclass(frozen=True)
-class Field:
-    """A named field of an output's message, filled from columns of a channel (-1: NaN)."""
-
-    name: str
-    channel: int
-    columns: tuple[int, ...]
-
-
-@dataclasses.dataclass(frozen=True)
-class OutputSpec:
-    """A message every world publishes on `<ns>/<topic>`.
-
-    Attributes:
-      topic: under the world's namespace.
-      msg_type: "sensor_msgs/msg/JointState", ...
-      fields: what fills the message (ros_bridge/worker/messages.py maps names onto message fields).
-      names: JointState.name.
-      frame_id, child_frame_id: "{ns}" is replaced by the world's namespace.
-      covariance: (part, values) constants.
-      every: control periods between two messages.
-      on_request: the publisher is created only once a subscriber appears in the graph.
-      state: the world's state: not published while the world is frozen (diverged), so a
-        frozen world's stamps stop rather than look alive.
-    """
-
-    topic: str
-    msg_type: str
-    fields: tuple[Field, ...]
-    names: tuple[str, ...] = ()
-    frame_id: str = ""
-    child_frame_id: str = ""
-    covariance: tuple[tuple[str, tuple[float, ...]], ...] = ()
-    every: int = 1
-    on_request: bool = False
-    state: bool = True
-
-    @property
-    def channels(self) -> frozenset[int]:
-        return frozenset(f.channel for f in self.fields)
+SERVICE_SLOTS = 16  # answers kept per worker: at most this many of its requests may wait at once
 
 
 @dataclasses.dataclass(frozen=True)
@@ -183,10 +143,13 @@ class FleetPlan:
             ("written", (2, max(1, len(self.channels))), "i8"),  # snapshot that wrote each channel
             ("demand", (nw, max(1, len(self.channels))), "u1"),  # per worker: channels it publishes
             ("svc.issued", (nw,), "i8"),  # per worker: its last service ticket
-            ("svc.done", (nw,), "i8"),  # per worker: the last ticket the loop carried out
-            ("svc.time", (nw,), "f8"),  # the sim time when it did
-            ("svc.ok", (nw,), "i8"),  # 1 when it succeeded
-            ("svc.msg", (nw, SERVICE_MESSAGE), "u1"),  # the answer's message, utf-8, NUL-padded
+            ("svc.done", (nw,), "i8"),  # per worker: the newest ticket the loop carried out
+            # per worker, the answers to its last SERVICE_SLOTS tickets, in slot ticket % SERVICE_SLOTS
+            # (several services may wait at once: a step_simulation while a set_pause is answered)
+            ("svc.ticket", (nw, SERVICE_SLOTS), "i8"),  # the ticket a slot answers, written last
+            ("svc.time", (nw, SERVICE_SLOTS), "f8"),  # the sim time when the loop carried it out
+            ("svc.ok", (nw, SERVICE_SLOTS), "i8"),  # 1 when it succeeded
+            ("svc.msg", (nw, SERVICE_SLOTS, SERVICE_MESSAGE), "u1"),  # the answer's message, utf-8, NUL-padded
             ("beat", (nw,), "i8"),  # per worker: ticks served
         ]
         for c, ch in enumerate(self.channels):
@@ -227,7 +190,6 @@ FLAG_BAD = 1  # the bridge rejected this world's last command
 FLAG_TIMED_OUT = 2  # --command-timeout: the world went safe
 FLAG_FROZEN = 4  # diverged or overflowed: frozen until reset
 
-ChannelFill = Callable[[np.ndarray], None]
 
 
 def split(nworld: int, parts: int) -> list[tuple[int, int]]:
@@ -276,109 +238,8 @@ def build_plan(
         for c, name in enumerate(spec.command_interfaces):
             owners[c] = manager.owner.get(name, "")
 
-    # <ns>/joint_states, unless a joint state broadcaster publishes it
-    joints = [j.name for j in spec.joints]
-    if joints and not any(t.replaces_joint_states for t in topics):
-        column = {name: i for i, name in enumerate(spec.state_interfaces)}
-        gather = np.array(
-            [column.get(f"{j}/{kind}", -1) for kind in ("position", "velocity", "effort") for j in joints], dtype=np.intp
-        )
-        missing = gather < 0
-        src = np.maximum(gather, 0)
-
-        def fill_joint_states(out: np.ndarray) -> None:
-            np.take(sim.state, src, axis=1, out=out)
-            if missing.any():
-                out[:, missing] = np.nan
-
-        ch = channel("joint_states", len(gather), fill_joint_states)
-        nj = len(joints)
-        fields = tuple(
-            Field(kind, ch, tuple(range(k * nj, (k + 1) * nj)))
-            for k, kind in enumerate(("position", "velocity", "effort"))
-            if not missing[k * nj : (k + 1) * nj].all()
-        )
-        outputs.append(OutputSpec("joint_states", "sensor_msgs/msg/JointState", fields, names=tuple(joints), every=publish_every))
-
-    # sensors/<sensor>, and typed sensors per site: created on request
-    if spec.sensors:
-        offsets = np.cumsum([0] + [s.dim for s in spec.sensors])
-        sensors = list(spec.sensors)
-
-        def fill_sensors(out: np.ndarray) -> None:
-            data = sim.sensordata
-            for s, lo, hi in zip(sensors, offsets[:-1], offsets[1:], strict=True):
-                out[:, lo:hi] = data[s.name]
-
-        ch = channel("sensordata", int(offsets[-1]), fill_sensors)
-        at = {s.name: int(lo) for s, lo in zip(sensors, offsets[:-1], strict=True)}
-        for s, token in zip(sensors, ros_names([s.name for s in sensors]), strict=True):
-            cols = tuple(range(at[s.name], at[s.name] + s.dim))
-            kind = "std_msgs/msg/Float64" if s.dim == 1 else "std_msgs/msg/Float64MultiArray"
-            outputs.append(
-                OutputSpec(f"sensors/{token}", kind, (Field("data", ch, cols),), every=sensor_every, on_request=True)
-            )
-        by_site: dict[str, dict[str, str]] = {}
-        for s in sensors:
-            if s.objname and s.type in ("framequat", "gyro", "accelerometer", "force", "torque"):
-                by_site.setdefault(s.objname, {}).setdefault(s.type, s.name)
-        for site, kinds in by_site.items():
-            token = ros_names([site])[0]
-
-            def cols(name: str, order: Sequence[int]) -> tuple[int, ...]:
-                return tuple(at[name] + k for k in order)
-
-            frame = f"{{ns}}/{site}"
-            if "gyro" in kinds and "accelerometer" in kinds:
-                fields = [
-                    Field("angular_velocity", ch, cols(kinds["gyro"], (0, 1, 2))),
-                    Field("linear_acceleration", ch, cols(kinds["accelerometer"], (0, 1, 2))),
-                ]
-                covariance: tuple[tuple[str, tuple[float, ...]], ...] = ()
-                if "framequat" in kinds:  # MuJoCo (w, x, y, z) -> ROS (x, y, z, w)
-                    fields.insert(0, Field("orientation", ch, cols(kinds["framequat"], (1, 2, 3, 0))))
-                else:  # REP 145: no orientation estimate
-                    covariance = (("orientation", (-1.0,) + (0.0,) * 8),)
-                outputs.append(
-                    OutputSpec(
-                        f"sensors/{token}/imu", "sensor_msgs/msg/Imu", tuple(fields), frame_id=frame,
-                        covariance=covariance, every=publish_every, on_request=True,
-                    )
-                )  # fmt: skip
-            if "force" in kinds and "torque" in kinds:
-                fields = [
-                    Field("force", ch, cols(kinds["force"], (0, 1, 2))),
-                    Field("torque", ch, cols(kinds["torque"], (0, 1, 2))),
-                ]
-                outputs.append(
-                    OutputSpec(
-                        f"sensors/{token}/wrench", "geometry_msgs/msg/WrenchStamped", tuple(fields),
-                        frame_id=frame, every=publish_every, on_request=True,
-                    )
-                )  # fmt: skip
-
-    # <ns>/odom: the floating base, its twist in the body frame
-    if spec.floating_base is not None:
-
-        def fill_base(out: np.ndarray) -> None:
-            base = sim.base_state  # pose, world-frame linear and body-frame angular velocity
-            out[:, 0:7] = base[:, 0:7]
-            out[:, 7:10] = rotate_inverse(base[:, 3:7], base[:, 7:10])
-            out[:, 10:13] = base[:, 10:13]
-
-        ch = channel("base", 13, fill_base)
-        fields = (
-            Field("position", ch, (0, 1, 2)),
-            Field("orientation", ch, (4, 5, 6, 3)),
-            Field("linear", ch, (7, 8, 9)),
-            Field("angular", ch, (10, 11, 12)),
-        )
-        outputs.append(
-            OutputSpec(
-                "odom", "nav_msgs/msg/Odometry", fields, frame_id="{ns}/odom",
-                child_frame_id=f"{{ns}}/{spec.floating_base.body}", every=publish_every,
-            )
-        )  # fmt: skip
+    replaced = any(t.replaces_joint_states for t in topics)
+    outputs += robot_outputs(sim, channel, publish_every, sensor_every, joint_states=not replaced)
 
     # the controllers' outputs and inputs
     inputs: list[Input] = []
@@ -476,14 +337,6 @@ def _controller_output(out: Output, nworld: int, every: int, channel: Callable[[
         on_request=any(part in f"/{out.topic}/" for part in ON_REQUEST_PARTS),
         state=True,
     )
-
-
-def rotate_inverse(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
-    """Rotate (n, 3) world vectors into the frames of (n, 4) unit quaternions (w, x, y, z)."""
-    w = quat[:, :1]
-    u = -quat[:, 1:4]  # the conjugate rotates world -> body
-    t = 2.0 * np.cross(u, vec)
-    return vec + w * t + np.cross(u, t)
 
 
 def describe(plan: FleetPlan, publish_every: int | None = None) -> str:

@@ -28,6 +28,9 @@ class Kind(enum.IntEnum):
     SWITCH = 5  # controller_manager's switch_controller in one world
     CANCEL = 6  # an action goal canceled (ros_bridge/action_plan.py)
     GRIPPER_GOAL = 7  # a GripperCommand goal (ros_bridge/action_plan.py)
+    STEP_N = 8  # mujoco_ros2_control's step_simulation: N physics steps, aborted by a resume
+    RESET_WORLD = 9  # mujoco_ros2_control's reset_world: a keyframe, joint and free-joint overrides
+    SET_FREE_JOINTS = 10  # mujoco_ros2_control's set_free_joint_state
 
 
 _TRAJ = struct.Struct("<iiiiiiii")  # input, trajectories, points, joints, has velocities, accelerations, goals, 0
@@ -216,6 +219,20 @@ def decode_switch(payload: np.ndarray) -> tuple[int, int, list[str], list[str], 
     ticket, world, strictness, asap = _SWITCH.unpack_from(payload, 0)
     activate, deactivate = json.loads(payload[_SWITCH.size :].tobytes().rstrip(b"\0").decode())
     return ticket, world, activate, deactivate, strictness, bool(asap)
+
+
+_DOC = struct.Struct("<qq")  # ticket, world (-1: every world)
+
+
+def encode_document(ticket: int, world: int, document: dict) -> bytes:
+    """A request whose arguments are a small JSON document (RESET_WORLD, SET_FREE_JOINTS)."""
+    return _DOC.pack(ticket, world) + json.dumps(document).encode()
+
+
+def decode_document(payload: np.ndarray) -> tuple[int, int, dict]:
+    """(ticket, world or -1, the document)."""
+    ticket, world = _DOC.unpack_from(payload, 0)
+    return ticket, world, json.loads(payload[_DOC.size :].tobytes().rstrip(b"\0").decode())
 
 
 def trajectory_bytes(points: int, joints: int) -> int:

@@ -139,6 +139,37 @@ class TrajectoryBatch:
     def __len__(self) -> int:
         return len(self.worlds)
 
+    def select(self, keep: np.ndarray) -> TrajectoryBatch:
+        """The trajectories where `keep` `(len(self),)` bool is true, as a batch of their own."""
+        idx = np.flatnonzero(keep)
+        counts = np.diff(self.offsets)[idx]
+        rows = (
+            np.concatenate([np.arange(self.offsets[k], self.offsets[k + 1]) for k in idx]) if idx.size else np.zeros(0, np.intp)
+        )
+
+        def per_point(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[rows]
+
+        def per_trajectory(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[idx]
+
+        return TrajectoryBatch(
+            worlds=self.worlds[idx],
+            start_time=self.start_time[idx],
+            joint_mask=self.joint_mask[idx],
+            offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            times=self.times[rows],
+            positions=self.positions[rows],
+            velocities=per_point(self.velocities),
+            has_velocities=per_trajectory(self.has_velocities),
+            accelerations=per_point(self.accelerations),
+            has_accelerations=per_trajectory(self.has_accelerations),
+            goals=per_trajectory(self.goals),
+            path_tolerance=per_trajectory(self.path_tolerance),
+            goal_tolerance=per_trajectory(self.goal_tolerance),
+            goal_time_tolerance=per_trajectory(self.goal_time_tolerance),
+        )
+
 
 def trajectory_batch(
     joints: Sequence[str],

@@ -59,6 +59,7 @@ from ros_bridge.commands import RejectionWriter
 from ros_bridge.naming import topic_name
 from ros_bridge.requests import Kind
 from ros_bridge.worker.messages import parse_trajectory, seconds, stamp_of
+from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import LoopRequests
 
 FJT = FollowJointTrajectory.Result
@@ -79,7 +80,7 @@ class _Goal:
     cancel_sent: bool = False
 
 
-class ActionServers:
+class ActionServers(OnRequest):
     """The action servers of worlds [lo, lo + len(namespaces)), one per action and world.
 
     Args:
@@ -101,6 +102,7 @@ class ActionServers:
         submit: Callable[[int, int, tuple, tuple], None],
         time: Callable[[], float],
     ):
+        super().__init__()
         self.specs = specs
         self.requests = requests
         self.logger = node.get_logger()
@@ -122,33 +124,18 @@ class ActionServers:
         self._queue: collections.deque[tuple[_Goal, Any, Any]] = collections.deque()
         self._servers = []
         self._node = node
-        # per world and action, created when a client appears in the ROS graph (the worker's
-        # graph scan), as every per-world topic is: five endpoints per action and world
-        self._pending: dict[str, tuple[int, int]] = {}  # action name -> (action, world)
-        self._to_create: collections.deque[tuple[str, int, int]] = collections.deque()
+        # per world and action, created when a client appears in the ROS graph (on_request.py):
+        # five endpoints per action and world
         for a, spec in enumerate(specs):
             for row, ns in enumerate(namespaces):
-                self._pending[topic_name(ns, f"{spec.controller}/{_ACTION_NAME[type(spec)]}")] = (a, lo + row)
+                self.offer(topic_name(ns, f"{spec.controller}/{_ACTION_NAME[type(spec)]}"), (a, lo + row))
 
-    def requested(self, name: str) -> bool:
-        """The graph scan saw `name` (a topic or service of an action client): create that
-        action's server if it is ours. True if ours."""
-        if "/_action/" not in name:
-            return False
-        action = name.partition("/_action/")[0]
-        hit = self._pending.pop(action, None)
-        if hit is None:
-            return False
-        self._to_create.append((action, *hit))  # on the executor thread (drain): rclpy's entities
-        return True
+    def base_of(self, name: str) -> str | None:
+        """An action client's topics and services are `<action>/_action/...`."""
+        return name.partition("/_action/")[0] if "/_action/" in name else None
 
-    def create_all(self) -> None:
-        """Every world's action servers now (`--all-topics`)."""
-        for action, hit in list(self._pending.items()):
-            del self._pending[action]
-            self._create(action, *hit)
-
-    def _create(self, action: str, a: int, w: int) -> None:
+    def _create(self, action: str, hit: tuple[int, int]) -> None:
+        a, w = hit
         kind = FollowJointTrajectory if isinstance(self.specs[a], TrajectoryActionSpec) else GripperCommand
         self._servers.append(
             ActionServer(
@@ -302,9 +289,9 @@ class ActionServers:
         return bool(self._queue) or any(self.inflight) or bool(self._handles) or bool(self._to_create)
 
     def drain(self) -> None:
-        """The executor thread: feedback published and results handed to the goals' execute callbacks."""
-        while self._to_create:
-            self._create(*self._to_create.popleft())
+        """The executor thread: servers created; feedback published and results handed to the goals'
+        execute callbacks."""
+        super().drain()
         while self._queue:
             goal, outcome, payload = self._queue.popleft()
             if outcome is None:

@@ -19,7 +19,6 @@ Each world's services are created when a client of one of them appears in the RO
 
 from __future__ import annotations
 
-import collections
 from collections.abc import Callable
 from typing import Any
 
@@ -42,13 +41,15 @@ from batchsim.memory import Memory
 from ros_bridge.manager_link import ManagerSpec
 from ros_bridge.naming import topic_name
 from ros_bridge.requests import Kind, encode_switch
+from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import LoopRequests
 
 
-class ControllerManagerServices:
+class ControllerManagerServices(OnRequest):
     """The services of worlds [lo, lo + len(namespaces)) (local indices)."""
 
     def __init__(self, node: Node, spec: ManagerSpec, memory: Memory, requests: LoopRequests, namespaces: list[str], lo: int):
+        super().__init__()
         self.spec = spec
         self.active = memory["cm.active"]
         self.requests = requests
@@ -56,31 +57,10 @@ class ControllerManagerServices:
         self.known = {c.name for c in spec.controllers}
         self._services: list[Any] = []
         self._node = node
-        # per world, created when a client of one of its services appears (the worker's graph
-        # scan), as every per-world topic is: nine services a world in a fleet of thousands
-        # would cost discovery time for nothing
-        self._pending = {topic_name(ns, "controller_manager"): lo + row for row, ns in enumerate(namespaces)}
-        self._to_create: collections.deque[tuple[str, int]] = collections.deque()
-
-    def requested(self, service: str) -> bool:
-        """The graph scan saw `service`: create its world's services if they are ours. True if ours."""
-        base, _, _ = service.rpartition("/")
-        world = self._pending.pop(base, None)
-        if world is None:
-            return False
-        self._to_create.append((base, world))  # on the executor thread (drain): rclpy's entities
-        return True
-
-    def drain(self) -> None:
-        """The executor thread: create the services the graph scan asked for."""
-        while self._to_create:
-            self._create(*self._to_create.popleft())
-
-    def create_all(self) -> None:
-        """Every world's services now (`--all-topics`)."""
-        for base, world in list(self._pending.items()):
-            del self._pending[base]
-            self._create(base, world)
+        # per world, created when a client of one of its services appears (on_request.py):
+        # nine services a world in a fleet of thousands would cost discovery time for nothing
+        for row, ns in enumerate(namespaces):
+            self.offer(topic_name(ns, "controller_manager"), lo + row)
 
     def _create(self, base: str, w: int) -> None:
         for srv, name, handler in (
@@ -163,12 +143,12 @@ class ControllerManagerServices:
         ticket = self.requests.put(
             Kind.SWITCH, lambda t: encode_switch(t, world, activate, deactivate, strictness, bool(request.activate_asap))
         )
-        if not self.requests.wait(ticket):
+        answer = self.requests.wait(ticket)
+        if answer is None:
             response.ok = False
             response.message = "the simulation loop did not carry out the switch in time"
         else:
-            response.ok = self.requests.ok()
-            response.message = self.requests.message()
+            response.ok, response.message = answer.ok, answer.message
         if not response.ok:
             self.logger.warning(f"{where}: switch refused: {response.message}")
         return response

@@ -13,9 +13,8 @@ plan (ros_bridge/plan.py) once, attaches the shared memory, and then:
   each command and writes it into its world's slots in shared memory; trajectories are
   batched and handed over through its ring; rejections are counted per world, logged at
   most once per topic and reason every 2 s;
-- serves the per-world `reset` services, and worker 0 `/batchsim/{reset,pause,step}`:
-  each request goes through the ring with a ticket; the reply waits until the loop has
-  carried it out;
+- serves services (services.py, simulation.py, controller_manager.py) and actions: each
+  request goes through the ring with a ticket; the reply waits for the loop's answer;
 - now and then: re-reads subscriber counts (lazy publishing), scans the graph (topics
   created on request, commands to unknown actuators), publishes /diagnostics for its worlds.
 
@@ -53,6 +52,7 @@ from ros_bridge.interfaces import available
 from ros_bridge.naming import topic_name
 from ros_bridge.options import Reliability
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
+from ros_bridge.snapshot import Snapshot, read_snapshot
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.worker.conflicts import check_conflicts
 from ros_bridge.worker.diagnostics import Diagnostics
@@ -65,7 +65,7 @@ from ros_bridge.worker.messages import (
 )
 from ros_bridge.worker.sensors import SensorPublishers
 from ros_bridge.worker.services import LoopRequests, create_loop_services
-from ros_bridge.worker.snapshot import Output, Snapshot, read_snapshot
+from ros_bridge.worker.snapshot import Output
 from ros_bridge.worker.trajectories import FLUSH_AFTER, TrajectoryIntake
 
 SUBSCRIBER_REFRESH = 0.5  # s: subscriber counts re-read (lazy publishing)
@@ -137,6 +137,8 @@ class Worker:
         self.type_check: Any = None  # remote endpoints of another definition (ros_bridge/worker/type_check.py)
         self.manager: Any = None  # controller_manager services (ros_bridge/worker/controller_manager.py)
         self.tf: Any = None  # tf, tf_static, robot_description (ros_bridge/worker/tf.py)
+        self.simulation: Any = None  # mujoco_ros2_control's services (ros_bridge/worker/simulation.py)
+        self._served: list[Any] = []
 
     # --- start ---
     def check_conflicts(self) -> tuple[str, str] | None:
@@ -209,10 +211,15 @@ class Worker:
             self.manager = ControllerManagerServices(
                 node, plan.manager, self.memory, self.requests, self.namespaces, self.lo
             )
+        if available()["mujoco_ros2_control_msgs"]:
+            from ros_bridge.worker.simulation import SimulationServices
+
+            self.simulation = SimulationServices(node, self.requests, self.namespaces, self.lo, fleet=self.index == 0)
+        # per-world services and action servers created when a client appears (on_request.py)
+        self._served = [s for s in (self.manager, self.actions, self.simulation) if s is not None]
         if plan.all_topics:
-            for served in (self.manager, self.actions):
-                if served is not None:
-                    served.create_all()
+            for served in self._served:
+                served.create_all()
         if any(available().values()):  # the types batchsim builds: a client of another definition is named
             from ros_bridge.worker.type_check import TypeCheck
 
@@ -237,10 +244,10 @@ class Worker:
         self.requests.running = False
         if running and self._thread is not None:
             self._thread.join(timeout=2.0)
-        try:
+        if self.simulation is not None:
+            self.simulation.close()
+        with contextlib.suppress(Exception):
             self.node.destroy_node()
-        except Exception:
-            pass
         rclpy.try_shutdown(context=self.context)
 
     # --- the loop's side: once per period ---
@@ -382,11 +389,9 @@ class Worker:
                         Problem.UNKNOWN_ACTUATOR,
                         f"no actuator named {match.group(2)!r} in this model (actuators: {self._actuator_list})",
                     )
-        if self.manager is not None or self.actions is not None:  # their services appear with a client
+        if self._served:  # their services appear with a client
             for name, _types in node.get_service_names_and_types():
-                if (self.manager is not None and self.manager.requested(name)) or (
-                    self.actions is not None and self.actions.requested(name)
-                ):
+                if any(served.requested(name) for served in self._served):
                     self._due["refresh"] = 0.0
         if self.type_check is not None:
             self.type_check.scan(topics)
@@ -403,10 +408,8 @@ class Worker:
                 timeout = 0.1
             try:
                 self.executor.spin_once(timeout_sec=timeout)
-                if actions is not None:
-                    actions.drain()
-                if self.manager is not None:
-                    self.manager.drain()
+                for served in self._served:
+                    served.drain()
             except (ExternalShutdownException, ShutdownException):
                 break
             except Exception as e:  # a failing callback must not end the worker
@@ -420,12 +423,10 @@ class Worker:
         self._subscriptions.append(self.node.create_subscription(msg_type, topic, callback, self.qos))
 
     def _nudge(self) -> None:
-        """Lockstep: tell the loop a command arrived."""
+        """Lockstep: tell the loop a command arrived (a full pipe: it has been told already)."""
         if self.notify_fd is not None:
-            try:
+            with contextlib.suppress(BlockingIOError, OSError):
                 os.write(self.notify_fd, b"c")
-            except (BlockingIOError, OSError):
-                pass  # the pipe is full: the loop has been told already
 
     def _reject(self, world: int, topic: str, problem: Problem, reason: str) -> None:
         self.diagnostics.reject(world, self.snapshot.period, topic, problem, reason)
@@ -481,7 +482,6 @@ class Worker:
             self.trajectories.submit(i, w, parsed)
 
         return callback
-
 
 
 @contextlib.contextmanager

@@ -1,14 +1,14 @@
 """Requests a worker hands the loop through its ring, and the services that wait for them.
 
-A request carries a ticket; the loop carries it out between two periods and writes the
-last ticket it finished (`svc.done`), whether it succeeded (`svc.ok`) and the sim time
-(`svc.time`) back to shared memory; the service answers then, or says the loop did not
-answer within SERVICE_WAIT. Services: per world `<ns>/reset`; on worker 0
-`/batchsim/{reset,pause,step}`.
+A request carries a ticket; the loop carries it out between two periods and writes its
+answer (whether it succeeded, a message, the sim time) into the ticket's slot of shared
+memory (`svc.*`, plan.py); the service answers then, or says the loop did not answer within
+its wait. Services: per world `<ns>/reset`; on worker 0 `/batchsim/{reset,pause,step}`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time as wallclock
 from collections.abc import Callable
@@ -19,9 +19,19 @@ from std_srvs.srv import SetBool, Trigger
 
 from batchsim.memory import Memory, Ring
 from ros_bridge.naming import topic_name
+from ros_bridge.plan import SERVICE_SLOTS
 from ros_bridge.requests import Kind, encode_reset, encode_ticket
 
 SERVICE_WAIT = 2.0  # s a service waits for the loop to carry out its request
+
+
+@dataclasses.dataclass(frozen=True)
+class Answer:
+    """The loop's answer to one request."""
+
+    ok: bool
+    message: str
+    time: float  # the sim time at which the loop carried it out
 
 
 class LoopRequests:
@@ -50,31 +60,22 @@ class LoopRequests:
         self.nudge()
         return ticket
 
-    def wait(self, ticket: int | None, timeout: float = SERVICE_WAIT) -> bool:
-        """Whether the loop carried out `ticket` within `timeout` s."""
+    def wait(self, ticket: int | None, timeout: float = SERVICE_WAIT) -> Answer | None:
+        """The loop's answer to `ticket`, or None if it gave none within `timeout` s."""
         if ticket is None:
-            return False
-        done = self.memory["svc.done"]
+            return None
+        slot = ticket % SERVICE_SLOTS
+        answered = self.memory["svc.ticket"][self.index]
         deadline = wallclock.monotonic() + timeout
         with self._cond:
-            while int(done[self.index]) < ticket:
+            while int(answered[slot]) != ticket:
                 left = deadline - wallclock.monotonic()
                 if left <= 0 or not self.running:
-                    return False
+                    return None
                 self._cond.wait(min(left, 0.05))
-        return True
-
-    def ok(self) -> bool:
-        """Whether the last request the loop carried out succeeded."""
-        return bool(self.memory["svc.ok"][self.index])
-
-    def message(self) -> str:
-        """The message the loop gave with its answer to the last request."""
-        return self.memory["svc.msg"][self.index].tobytes().rstrip(b"\0").decode(errors="replace")
-
-    def time(self) -> float:
-        """The sim time at which the loop carried out the last request."""
-        return float(self.memory["svc.time"][self.index])
+        m = self.memory
+        message = m["svc.msg"][self.index, slot].tobytes().rstrip(b"\0").decode(errors="replace")
+        return Answer(bool(m["svc.ok"][self.index, slot]), message, float(m["svc.time"][self.index, slot]))
 
     def notify(self) -> None:
         with self._cond:
@@ -90,21 +91,20 @@ def create_loop_services(node: Node, requests: LoopRequests, namespaces: list[st
     node.create_service(Trigger, "/batchsim/reset", _reset_service(requests, None, "all worlds"))
 
     def pause(request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
-        done = requests.wait(requests.put(Kind.PAUSE, lambda t: encode_ticket(t, int(bool(request.data)))))
-        response.success = done
-        response.message = ("paused" if request.data else "running") if done else "the loop did not answer in time"
+        answer = requests.wait(requests.put(Kind.PAUSE, lambda t: encode_ticket(t, int(bool(request.data)))))
+        response.success = answer is not None
+        response.message = ("paused" if request.data else "running") if answer else "the loop did not answer in time"
         return response
 
     def step(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        done = requests.wait(requests.put(Kind.STEP, lambda t: encode_ticket(t)))
-        ok = done and requests.ok()
-        response.success = ok
-        if not done:
+        answer = requests.wait(requests.put(Kind.STEP, lambda t: encode_ticket(t)))
+        response.success = answer is not None and answer.ok
+        if answer is None:
             response.message = "the loop did not step in time"
-        elif not ok:
+        elif not answer.ok:
             response.message = "not paused: /batchsim/step advances one control period while paused"
         else:
-            response.message = f"stepped to sim time {requests.time():.6f} s"
+            response.message = f"stepped to sim time {answer.time:.6f} s"
         return response
 
     node.create_service(SetBool, "/batchsim/pause", pause)
@@ -113,7 +113,7 @@ def create_loop_services(node: Node, requests: LoopRequests, namespaces: list[st
 
 def _reset_service(requests: LoopRequests, worlds: list[int] | None, target: str) -> Callable[[Any, Any], Any]:
     def reset(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        done = requests.wait(requests.put(Kind.RESET, lambda t: encode_reset(t, worlds)))
+        done = requests.wait(requests.put(Kind.RESET, lambda t: encode_reset(t, worlds))) is not None
         response.success = True
         response.message = f"reset {target}" if done else f"reset of {target} queued (the loop is busy)"
         return response

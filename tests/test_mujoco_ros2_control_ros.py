@@ -1,0 +1,295 @@
+"""mujoco_ros2_control's own launch tests (tests/upstream/mujoco_ros2_control_tests/test/
+robot_launch_test.py), translated: its demo robot, with its files unchanged, run by
+`batchsim` in a subprocess over real DDS, and every assertion of that test checked with rclpy.
+Domains 84-89 belong to this file.
+
+The launch file becomes `batchsim --ros2-control test_robot.urdf --controllers controllers.yaml
+--sensors mujoco_ros2_control_plugins.yaml` (the model is the URDF's `mujoco_model` param).
+One world in the root namespace gives upstream's exact names (`/joint_states`,
+`/mujoco_ros2_control_node/...`); a second fleet of two worlds checks the same under
+`/world_1/...`. What is not translated: `check_node_running(robot_state_publisher)` (batchsim
+publishes `/robot_description` itself, tests/test_ros_stack.py) and the exact settled pose of
+`test_pose_interfaces_transform` (its figures are per libmujoco build; here the pose is
+checked against MuJoCo's own site pose).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ros_fleet import Fleet, domain_id
+
+pytestmark = pytest.mark.ros
+
+DEMOS = Path(__file__).parent / "upstream" / "mujoco_ros2_control_demos"
+UPSTREAM = [
+    "--ros2-control", str(DEMOS / "demo_resources" / "robot" / "test_robot.urdf"),
+    "--controllers", str(DEMOS / "config" / "controllers.yaml"),
+    "--sensors", str(DEMOS / "config" / "mujoco_ros2_control_plugins.yaml"),
+    "--backend", "cpu", "--camera-resolution", "64x48",
+]  # fmt: skip
+CONTROLLERS = ["gripper_controller", "position_controller", "joint_state_broadcaster"]
+NODE = "/mujoco_ros2_control_node"
+
+
+@pytest.fixture(scope="module")
+def ros():
+    """The message modules, imported here: a missing package fails these tests, never skips them."""
+    import controller_manager_msgs.srv as cm
+    import mujoco_ros2_control_msgs.msg as mm
+    import mujoco_ros2_control_msgs.srv as ms
+    from geometry_msgs.msg import PoseStamped
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import CameraInfo, Image, JointState
+    from std_msgs.msg import Float64MultiArray
+
+    return dict(
+        cm=cm, mm=mm, ms=ms, PoseStamped=PoseStamped, Clock=Clock, CameraInfo=CameraInfo, Image=Image,
+        JointState=JointState, Float64MultiArray=Float64MultiArray,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory, ros):
+    log = tmp_path_factory.mktemp("mrc") / "batchsim.log"
+    with Fleet(domain_id(84), ["--worlds", "1", "--namespace", "", *UPSTREAM], log) as fleet:
+        fleet.js = fleet.latest(ros["JointState"], "/joint_states")
+        fleet.actuators = fleet.latest(ros["JointState"], "/mujoco_actuators_states")
+        fleet.pose = fleet.latest(ros["PoseStamped"], "/pose_broadcaster/pose")
+        fleet.wait(lambda: fleet.js.count > 0, 40, "/joint_states")
+        yield fleet
+
+
+def _positions(msg, names):
+    return {n: msg.position[list(msg.name).index(n)] for n in names} if msg is not None else {}
+
+
+def _near(sink, expected, delta):
+    got = _positions(sink.msg, expected)
+    return bool(got) and all(abs(got[n] - v) <= delta for n, v in expected.items())
+
+
+def _controllers_running(fleet, ros, base=""):
+    def running():
+        reply = fleet.call(ros["cm"].ListControllers, f"{base}/controller_manager/list_controllers", ros["cm"].ListControllers.Request())
+        return {c.name for c in reply.controller if c.state == "active"} >= set(CONTROLLERS)
+
+    fleet.wait(running, 30, "the controllers active")
+
+
+def _command(fleet, ros, topic, data, expected, sink, delta=0.05, timeout=15.0):
+    msg = ros["Float64MultiArray"](data=[float(v) for v in data])
+    fleet.publish_until(ros["Float64MultiArray"], topic, msg, lambda: _near(sink, expected, delta), timeout, topic)
+
+
+def test_clock_and_joint_states(robot, ros):
+    clock = robot.latest(ros["Clock"], "/clock")
+    robot.wait(lambda: clock.count > 0, 10, "/clock")
+    names = ["joint1", "joint2", "gripper_left_finger_joint", "gripper_right_finger_joint"]
+    assert set(names) <= set(robot.js.msg.name)
+
+
+def test_mujoco_actuators_states_published(robot):
+    robot.wait(lambda: robot.actuators.count > 0, 20, "/mujoco_actuators_states")
+    assert list(robot.actuators.msg.name) == ["joint1", "joint2", "gripper_left_finger_joint", "gripper_right_finger_joint"]
+
+
+def test_available_hardware_interfaces(robot, ros):
+    reply = robot.call(
+        ros["cm"].ListHardwareInterfaces, "/controller_manager/list_hardware_interfaces", ros["cm"].ListHardwareInterfaces.Request()
+    )
+    state = [i.name for i in reply.state_interfaces]
+    expected_state = [
+        *(f"gripper_{side}_finger_joint/{k}" for side in ("left", "right") for k in ("position", "velocity", "effort", "force")),
+        *(f"joint{j}/{k}" for j in (1, 2) for k in ("position", "velocity", "effort", "torque")),
+        *(f"pose/orientation.{c}" for c in "wxyz"), *(f"pose/position.{c}" for c in "xyz"),
+        *(f"magnetometer/magnetic_field.{c}" for c in "xyz"),
+    ]  # fmt: skip
+    assert len(state) == len(expected_state) and set(state) == set(expected_state), state
+    command = [i.name for i in reply.command_interfaces]
+    assert sorted(command) == sorted(["joint1/position", "joint2/position", "gripper_left_finger_joint/position"])
+
+
+def test_pose_interfaces_transform(robot):
+    robot.wait(lambda: robot.pose.count > 0, 20, "/pose_broadcaster/pose")
+    msg = robot.pose.msg
+    assert msg.header.frame_id == "ee_link"
+    p, q = msg.pose.position, msg.pose.orientation
+    assert np.isfinite([p.x, p.y, p.z, q.w, q.x, q.y, q.z]).all()
+    assert abs(np.linalg.norm([q.w, q.x, q.y, q.z]) - 1.0) < 1e-6 and abs(p.y) < 1e-6  # the arm moves in x-z
+
+
+def test_arm(robot, ros):
+    _controllers_running(robot, ros)
+    _command(robot, ros, "/position_controller/commands", [0.5, -0.5], {"joint1": 0.5, "joint2": -0.5}, robot.js)
+    assert any(abs(e) > 1e-6 for e in robot.js.msg.effort), "Effort field is zero"
+    robot.wait(lambda: _near(robot.actuators, {"joint1": 0.5, "joint2": -0.5}, 0.05), 15, "actuator states at the target")
+    assert any(abs(e) > 1e-6 for e in robot.actuators.msg.effort)
+
+
+def test_gripper(robot, ros):
+    _controllers_running(robot, ros)
+    target = {"gripper_left_finger_joint": -0.04, "gripper_right_finger_joint": 0.04}
+    _command(robot, ros, "/gripper_controller/commands", [-0.04], target, robot.js, delta=0.005)
+    robot.wait(lambda: _near(robot.actuators, target, 0.005), 15, "actuator states of the gripper")
+
+
+def test_camera_topics(robot, ros):
+    sinks = {
+        "/camera/color/image_raw": robot.latest(ros["Image"], "/camera/color/image_raw"),
+        "/camera/color/camera_info": robot.latest(ros["CameraInfo"], "/camera/color/camera_info"),
+        "/camera/aligned_depth_to_color/image_raw": robot.latest(ros["Image"], "/camera/aligned_depth_to_color/image_raw"),
+    }
+    robot.wait(lambda: all(s.count > 0 for s in sinks.values()), 30, "every camera topic")
+    assert sinks["/camera/color/image_raw"].msg.header.frame_id == "camera_color_optical_frame"  # the plugin YAML's
+
+
+def _switch(fleet, ros, activate=(), deactivate=(), base=""):
+    request = ros["cm"].SwitchController.Request(
+        activate_controllers=list(activate), deactivate_controllers=list(deactivate),
+        strictness=ros["cm"].SwitchController.Request.BEST_EFFORT,
+    )  # fmt: skip
+    assert fleet.call(ros["cm"].SwitchController, f"{base}/controller_manager/switch_controller", request).ok
+
+
+def test_reset_world_service(robot, ros):
+    _controllers_running(robot, ros)
+    _command(robot, ros, "/position_controller/commands", [-0.5, 0.5], {"joint1": -0.5, "joint2": 0.5}, robot.js, 0.075)
+    _switch(robot, ros, deactivate=["position_controller"])
+    reply = robot.call(ros["ms"].ResetWorld, f"{NODE}/reset_world", ros["ms"].ResetWorld.Request())
+    assert reply.success, reply.message
+    assert reply.message == "Successfully reset the MuJoCo world to the initial state."
+    time.sleep(1.0)
+    robot.wait(lambda: _near(robot.js, {"joint1": 0.0, "joint2": 0.0}, 0.05), 15, "the joints back at zero")
+    _switch(robot, ros, activate=["position_controller"])
+    _command(robot, ros, "/position_controller/commands", [-0.5, 0.5], {"joint1": -0.5, "joint2": 0.5}, robot.js, 0.075)
+
+
+def _pause(fleet, ros, paused: bool):
+    reply = fleet.call(ros["ms"].SetPause, f"{NODE}/set_pause", ros["ms"].SetPause.Request(paused=paused))
+    assert reply.success, reply.message
+    return reply
+
+
+def test_step_simulation_zero_steps_rejected(robot, ros):
+    _pause(robot, ros, True)
+    try:
+        reply = robot.call(ros["ms"].StepSimulation, f"{NODE}/step_simulation", ros["ms"].StepSimulation.Request(steps=0))
+        assert not reply.success and reply.message == "Number of steps must be positive, got: 0"
+    finally:
+        _pause(robot, ros, False)
+
+
+def test_step_simulation_steps_exactly_n_physics_steps(robot, ros):
+    clock = robot.latest(ros["Clock"], "/clock")
+    assert "already running" in _pause(robot, ros, False).message
+    _pause(robot, ros, True)
+    try:
+        robot.wait(lambda: clock.count > 0, 10, "/clock")
+        before = clock.msg.clock.sec + clock.msg.clock.nanosec * 1e-9
+        reply = robot.call(ros["ms"].StepSimulation, f"{NODE}/step_simulation", ros["ms"].StepSimulation.Request(steps=7))
+        assert reply.success and reply.message == "Completed 7 simulation step(s).", reply.message
+        # 7 steps of 2 ms: a whole 10 ms control period and a shorter one of 4 ms
+        robot.wait(lambda: abs(clock.msg.clock.sec + clock.msg.clock.nanosec * 1e-9 - before - 0.014) < 1e-9, 5, "/clock 14 ms on")
+    finally:
+        _pause(robot, ros, False)
+
+
+def test_step_simulation_refused_while_running(robot, ros):
+    reply = robot.call(ros["ms"].StepSimulation, f"{NODE}/step_simulation", ros["ms"].StepSimulation.Request(steps=5))
+    assert not reply.success and reply.message == "Cannot step simulation: simulation is not paused."
+
+
+def test_step_simulation_interrupted_by_resume(robot, ros):
+    _pause(robot, ros, True)
+    client = robot.node.create_client(ros["ms"].StepSimulation, f"{NODE}/step_simulation")
+    try:
+        assert client.wait_for_service(timeout_sec=10)
+        future = client.call_async(ros["ms"].StepSimulation.Request(steps=50000))  # 100 s of sim time
+        time.sleep(0.2)
+        _pause(robot, ros, False)
+        robot.wait(future.done, 5, "the step_simulation answer")
+        result = future.result()
+        assert not result.success and "resumed" in result.message, result.message
+    finally:
+        robot.node.destroy_client(client)
+        _pause(robot, ros, False)
+
+
+def _free(ros, name, xyz, frame=""):
+    entry = ros["mm"].FreeJointState(name=name)
+    entry.pose.pose.position.x, entry.pose.pose.position.y, entry.pose.pose.position.z = xyz
+    entry.pose.pose.orientation.w = 1.0
+    entry.pose.header.frame_id = frame
+    return entry
+
+
+def test_reset_free_body_poses(robot, ros):
+    request = ros["ms"].SetFreeJointState.Request(
+        free_joints=[_free(ros, "cube1", (1.0, 1.0, 1.0)), _free(ros, "cube2", (-1.0, 1.0, 1.0))]
+    )
+    reply = robot.call(ros["ms"].SetFreeJointState, f"{NODE}/set_free_joint_state", request)
+    assert reply.success, reply.message
+
+
+def test_bad_requests_change_nothing(robot, ros):
+    ms = ros["ms"]
+    request = ms.SetFreeJointState.Request(free_joints=[_free(ros, "cube1", (0, 0, 1)), _free(ros, "cube9", (0, 0, 1))])
+    reply = robot.call(ms.SetFreeJointState, f"{NODE}/set_free_joint_state", request)
+    assert not reply.success and reply.message == "Entry 1 ('cube9'): Unknown body name."
+    request = ms.SetFreeJointState.Request(free_joints=[_free(ros, "upperarm", (0, 0, 1))])
+    assert "Body is not driven by a free joint" in robot.call(ms.SetFreeJointState, f"{NODE}/set_free_joint_state", request).message
+    reset = ms.ResetWorld.Request(keyframe="nowhere")
+    reply = robot.call(ms.ResetWorld, f"{NODE}/reset_world", reset)
+    assert not reply.success and reply.message.startswith("Failed to apply keyframe: 'nowhere'") and "Not resetting" in reply.message
+    reset = ms.ResetWorld.Request()
+    reset.state_overrides.joint_states.name = ["joint1", "cube1_freejoint"]
+    reply = robot.call(ms.ResetWorld, f"{NODE}/reset_world", reset)
+    assert not reply.success and "Entry 1 ('cube1_freejoint'): Not a single-DOF (hinge or slide) joint." in reply.message
+
+
+def test_reset_to_a_keyframe_with_overrides(robot, ros):
+    ms = ros["ms"]
+    _switch(robot, ros, deactivate=["position_controller"])
+    try:
+        reset = ms.ResetWorld.Request(keyframe="start_90")
+        reset.state_overrides.joint_states.name = ["joint2"]
+        reset.state_overrides.joint_states.position = [-1.0]
+        reset.state_overrides.free_joints = [_free(ros, "cube1", (0.0, 0.0, 0.5), frame="forearm")]
+        reply = robot.call(ms.ResetWorld, f"{NODE}/reset_world", reset)
+        assert reply.success, reply.message
+        assert reply.message == "Successfully reset the MuJoCo world to the 'start_90' state. Applied 1 joint and 1 free-joint override(s)."
+        # the keyframe's joint1 (1.57), joint2 overridden; the inactive controller commands nothing, so
+        # gravity moves the arm from there: the first message after the reset shows where it started
+        robot.wait(lambda: _near(robot.js, {"joint1": 1.57, "joint2": -1.0}, 0.1), 10, "the keyframe's pose")
+    finally:
+        _switch(robot, ros, activate=["position_controller"])
+        robot.call(ms.ResetWorld, f"{NODE}/reset_world", ms.ResetWorld.Request())
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory, ros):
+    log = tmp_path_factory.mktemp("mrc2") / "batchsim.log"
+    with Fleet(domain_id(86), ["--worlds", "2", *UPSTREAM], log) as fleet:
+        fleet.js = [fleet.latest(ros["JointState"], f"/world_{w}/joint_states") for w in range(2)]
+        fleet.wait(lambda: all(s.count > 0 for s in fleet.js), 40, "joint_states")
+        yield fleet
+
+
+def test_a_fleet_serves_each_world_under_its_namespace(fleet, ros):
+    _controllers_running(fleet, ros, "/world_1")
+    _command(fleet, ros, "/world_1/position_controller/commands", [0.5, -0.5], {"joint1": 0.5, "joint2": -0.5}, fleet.js[1])
+    assert _near(fleet.js[0], {"joint1": 0.0, "joint2": 0.0}, 0.05)  # world 0 unmoved
+    reply = fleet.call(ros["ms"].ResetWorld, f"/world_1{NODE}/reset_world", ros["ms"].ResetWorld.Request())
+    assert reply.success, reply.message
+    reply = fleet.call(
+        ros["ms"].SetFreeJointState, f"/world_0{NODE}/set_free_joint_state",
+        ros["ms"].SetFreeJointState.Request(free_joints=[_free(ros, "cube1", (1.0, 1.0, 1.0))]),
+    )  # fmt: skip
+    assert reply.success, reply.message
+    # the fleet's own: pausing pauses every world (they run in lockstep)
+    assert fleet.call(ros["ms"].SetPause, f"{NODE}/set_pause", ros["ms"].SetPause.Request(paused=True)).success
+    assert fleet.call(ros["ms"].SetPause, f"{NODE}/set_pause", ros["ms"].SetPause.Request(paused=False)).success
