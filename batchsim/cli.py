@@ -36,6 +36,7 @@ from batchsim.hardware import BatchedSystem, ConfigurationError, LifecycleError
 from batchsim.loop import LoopStats, OptionError, RateError, SimLoop, format_stats, whole_ratio
 from batchsim.model import ModelError, model_names
 from batchsim.model.description import model_file, read_description
+from batchsim.model.from_urdf import is_urdf
 from batchsim.sensors import SensorConfig, SensorSuite
 
 EXIT_USAGE = 2
@@ -88,6 +89,7 @@ def run_parser() -> argparse.ArgumentParser:
         help="mjx/warp on a GPU: bitwise-repeatable runs, slower (cpu always is)",
     )
     p.add_argument("--ros2-control", default=None, help="URDF/XML file with a <ros2_control> block")
+    _urdf_flags(p)
     p.add_argument(
         "--keyframe", default=None, help="keyframe (name or index) to start in (default: home, if the model has one)"
     )
@@ -169,15 +171,34 @@ def info_parser() -> argparse.ArgumentParser:
     p.add_argument("--backend", default="auto")
     p.add_argument("--ros2-control", default=None)
     p.add_argument("--keyframe", default=None)
+    _urdf_flags(p)
+    p.add_argument("--mjcf", action="store_true", help="print the MJCF batchsim compiles (for a URDF: the one it generates)")
     p.add_argument("--sensors", action="append", metavar="FILE", help="as batchsim's --sensors: what it makes of them")
     return p
+
+
+def _urdf_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--mujoco-inputs", default=None, metavar="FILE",
+        help="URDF model: a <mujoco_inputs> file (actuators, sensors, cameras, lidars), as mujoco_ros2_control's --m",
+    )  # fmt: skip
+    p.add_argument("--scene", default=None, metavar="FILE", help="URDF model: an MJCF scene file to add (lights, floor)")
+
+
+def _load(args: argparse.Namespace) -> batchsim.RobotSpec:
+    return batchsim.load(
+        args.model, ros2_control=args.ros2_control, keyframe=args.keyframe, mujoco_inputs=args.mujoco_inputs, scene=args.scene
+    )
 
 
 def info(argv: Sequence[str]) -> int:
     args = info_parser().parse_args(argv)
     args.model = default_model(args.model, args.ros2_control)
     sensors = SensorConfig.from_flags(args.sensors)
-    spec = batchsim.load(args.model, ros2_control=args.ros2_control, keyframe=args.keyframe)
+    spec = _load(args)
+    if args.mjcf:
+        print(spec.xml)
+        return 0
     chosen, reason = resolve(args.backend, spec, args.worlds)
     m = spec.mjmodel
     keys = ", ".join(repr(k) if k else f"#{i}" for i, k in enumerate(spec.keyframes)) or "none"
@@ -295,13 +316,16 @@ def check_args(args: argparse.Namespace) -> None:
 
 def default_model(model: str | None, ros2_control: str | None) -> str:
     """`--model`, else the --ros2-control file's `mujoco_model` param (as mujoco_ros2_control
-    finds its simulation), else the shipped arm."""
+    finds its simulation), else that file itself if it is a URDF (compiled to MJCF, as
+    mujoco_ros2_control does without one), else the shipped arm."""
     if model is not None:
         return model
     if ros2_control is not None:
         found = model_file(read_description(ros2_control))
         if found is not None:
             return found
+        if is_urdf(ros2_control):
+            return ros2_control
     return "arm"
 
 
@@ -328,7 +352,7 @@ def build(args: argparse.Namespace, progress: startup.Progress | None = None) ->
         seed=args.noise_seed,
     )
     with progress.stage(f"loading {args.model}"):
-        spec = batchsim.load(args.model, ros2_control=args.ros2_control, keyframe=args.keyframe)
+        spec = _load(args)
     chosen, _ = resolve(args.backend, spec, args.worlds)
     if not args.skip_memory_check:
         check_memory(args, spec, chosen)

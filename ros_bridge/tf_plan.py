@@ -35,6 +35,8 @@ class TfSpec:
       fleet_frame: the frame every world's root hangs from in the fleet's tree.
       description: the robot's URDF (robot_description).
       every: control periods between two tf messages.
+      mjcf: the MJCF the simulation compiled (mujoco_robot_description, as mujoco_ros2_control
+        publishes the one it generates from a URDF).
     """
 
     moving: tuple[tuple[str, str], ...]
@@ -45,6 +47,7 @@ class TfSpec:
     fleet_frame: str
     description: str
     every: int = 1
+    mjcf: str = ""
 
 
 
@@ -86,6 +89,7 @@ def tf_spec(
         fleet_frame=FLEET_FRAME,
         description=description,
         every=every,
+        mjcf=sim.spec.xml,
     )
 
 

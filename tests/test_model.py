@@ -193,7 +193,7 @@ def test_unknown_joint_in_ros2_control_fails_at_configure():
     [
         ("<mujoco><worldbody><body></worldbody></mujoco>", r"bad.xml:1:\d+: malformed XML: mismatched tag"),
         ("<mujoco><worldbody><bogus/></worldbody></mujoco>", r"bad.xml: XML Error: .*'bogus', line 1"),
-        ("<robot/>", r"not an MJCF file \(root element <robot>"),
+        ("<robot/>", r"a URDF: give it as a .urdf or .xacro file, which batchsim compiles to MJCF"),
     ],
 )
 def test_bad_mjcf_is_one_clear_line(tmp_path, text, message):

@@ -6,6 +6,7 @@ behaviour over ROS is tests/test_mujoco_ros2_control_ros.py's.
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -125,3 +126,77 @@ def test_the_model_comes_from_the_mujoco_model_param():
     assert out.stdout.startswith(f"model      scene  ({SCENE})")
     assert "-> /camera/color/image_raw" in out.stdout and "range 0.05..10 m -> /scan" in out.stdout
     assert "HeartbeatPublisherPlugin is not run by batchsim" in out.stdout
+
+
+# --- a robot described only by a URDF, compiled as mujoco_ros2_control's generation tool does ---
+RESOURCES = DEMOS / "demo_resources"
+
+
+def _kinematics(m):
+    import mujoco
+
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    mujoco.mj_camlight(m, d)
+    return d
+
+
+def test_a_urdf_compiles_to_the_mjcf_upstreams_tool_generates():
+    """test_robot.urdf + mjcf_generation/test_inputs.xml against robot/test_robot.xml, which is
+    upstream's tool's output for them (plus two free cubes added by hand): the same links, sites,
+    masses, camera pose and lidar rays."""
+    import mujoco
+    import numpy as np
+
+    spec = batchsim.load(f"{URDF} use_mjcf_from_topic:=true", mujoco_inputs=RESOURCES / "mjcf_generation" / "test_inputs.xml")
+    mine, theirs = spec.mjmodel, mujoco.MjModel.from_xml_path(str(RESOURCES / "robot" / "test_robot.xml"))
+    dm, dt = _kinematics(mine), _kinematics(theirs)
+    assert [mine.joint(j).name for j in range(mine.njnt)] == [theirs.joint(j).name for j in range(4)]
+    for k in range(theirs.nsite):
+        name = theirs.site(k).name
+        s = mujoco.mj_name2id(mine, mujoco.mjtObj.mjOBJ_SITE, name)
+        assert s >= 0, f"site {name} missing"
+        np.testing.assert_allclose(dm.site_xpos[s], dt.site_xpos[k], atol=1e-6, err_msg=name)
+        np.testing.assert_allclose(dm.site_xmat[s], dt.site_xmat[k], atol=1e-5, err_msg=name)
+    for b in ("upperarm", "forearm", "gripper_left_finger"):
+        assert mine.body(b).mass[0] == pytest.approx(theirs.body(b).mass[0])
+    np.testing.assert_allclose(dm.cam_xpos, dt.cam_xpos, atol=1e-6)
+    np.testing.assert_allclose(dm.cam_xmat, dt.cam_xmat, atol=1e-5)
+    assert mine.opt.integrator == theirs.opt.integrator and mine.nu == theirs.nu == 3
+    assert spec.command_interfaces == ["joint1/position", "joint2/position", "gripper_left_finger_joint/position"]
+    assert not spec.problems
+    assert list(SensorSuite.build(spec, 1).lidars) == ["lidar"]  # the URDF's <lidar>, as replicated rangefinders
+
+
+def test_a_urdfs_own_mujoco_inputs_and_the_cli(tmp_path):
+    source = f"{URDF} use_pid:=true use_mjcf_from_topic:=true"
+    spec = batchsim.load(source)  # the inputs inside the URDF (raw, processed, scene)
+    assert spec.mjmodel.nu == 3 and spec.mjmodel.ncam == 1 and spec.path == URDF
+    out = _cli("info", "--ros2-control", f"{URDF} use_mjcf_from_topic:=true", "--mujoco-inputs",
+               str(RESOURCES / "mjcf_generation" / "test_inputs.xml"), "--scene", str(RESOURCES / "scenes" / "scene_info.xml"))  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith(f"model      two_dof_robot  ({URDF})")
+    mjcf = _cli("info", str(URDF), "--mujoco-inputs", str(RESOURCES / "mjcf_generation" / "test_inputs.xml"), "--mjcf")
+    assert mjcf.returncode == 0 and mjcf.stdout.startswith('<mujoco model="two_dof_robot">')
+    assert '<site name="ee_link"' in mjcf.stdout
+
+
+@pytest.mark.parametrize(
+    "urdf, message",
+    [
+        ('<robot name="r"><link name="a"><visual><geometry><mesh filename="a.dae"/></geometry></visual></link></robot>',
+         "mesh 'a.dae': MuJoCo reads STL, OBJ and MSH meshes, not .dae"),
+        ('<robot name="r"><link name="a"/><joint name="j" type="revolute"><parent link="a"/><child link="b"/></joint></robot>',
+         "MuJoCo cannot compile this URDF"),
+        ('<robot name="r"><link name="a"/><mujoco_inputs><processed_inputs><camera site="nowhere" name="c"/>'
+         '</processed_inputs></mujoco_inputs></robot>', "<camera name='c'>: no link (site) named 'nowhere' in the URDF"),
+    ],
+)  # fmt: skip
+def test_a_bad_urdf_is_one_line_and_exit_2(tmp_path, urdf, message):
+    path = tmp_path / "robot.urdf"
+    path.write_text(urdf)
+    with pytest.raises(batchsim.ModelError, match=re.escape(message)) as e:
+        batchsim.load(str(path))
+    assert "\n" not in str(e.value) and str(path) in str(e.value)
+    out = _cli("info", str(path))
+    assert out.returncode == 2 and out.stderr.count("\n") == 1 and message.split(":")[0] in out.stderr

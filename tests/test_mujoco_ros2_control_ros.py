@@ -293,3 +293,29 @@ def test_a_fleet_serves_each_world_under_its_namespace(fleet, ros):
     # the fleet's own: pausing pauses every world (they run in lockstep)
     assert fleet.call(ros["ms"].SetPause, f"{NODE}/set_pause", ros["ms"].SetPause.Request(paused=True)).success
     assert fleet.call(ros["ms"].SetPause, f"{NODE}/set_pause", ros["ms"].SetPause.Request(paused=False)).success
+
+
+def test_mjcf_generation_from_the_urdf(tmp_path, ros):
+    """robot_launch_mjcf_generation_test.py: the demo robot described only by its URDF (demo 02:
+    --m test_inputs.xml, --scene scene_info.xml), its generated MJCF on /mujoco_robot_description,
+    the arm driven through it."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from std_msgs.msg import String
+
+    resources = DEMOS / "demo_resources"
+    args = [
+        "--worlds", "1", "--namespace", "", "--backend", "cpu",
+        "--ros2-control", f"{DEMOS / 'demo_resources' / 'robot' / 'test_robot.urdf'} use_mjcf_from_topic:=true",
+        "--mujoco-inputs", str(resources / "mjcf_generation" / "test_inputs.xml"),
+        "--scene", str(resources / "scenes" / "scene_info.xml"),
+        "--controllers", str(DEMOS / "config" / "controllers.yaml"),
+    ]  # fmt: skip
+    with Fleet(domain_id(88), args, tmp_path / "generated.log") as robot:
+        latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        description = robot.latest(String, "/mujoco_robot_description", qos=latched)
+        robot.wait(lambda: description.count > 0, 40, "/mujoco_robot_description")
+        assert "<mujoco" in description.msg.data and '<site name="ee_link"' in description.msg.data
+        js = robot.latest(ros["JointState"], "/joint_states")
+        robot.wait(lambda: js.count > 0, 20, "/joint_states")
+        _controllers_running(robot, ros)
+        _command(robot, ros, "/position_controller/commands", [0.5, -0.5], {"joint1": 0.5, "joint2": -0.5}, js)

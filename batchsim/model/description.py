@@ -19,7 +19,7 @@ import dataclasses
 import re
 import shlex
 import xml.etree.ElementTree as ET
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from batchsim.model.spec import ModelError
@@ -311,29 +311,35 @@ def expand_xacro(path: Path, args: dict[str, str]) -> str:
     return doc.toxml()
 
 
+def resolve_package(pkg: str, directory: Path, ament: Callable[[str], str] | None = None) -> str:
+    """A ROS package's folder, as `$(find pkg)` and `package://pkg/` name it: ament's index
+    (a sourced ROS), else a folder named `pkg` at or above `directory` (or beside one)."""
+    if ament is None:
+        from xacro import substitution_args
+
+        ament = substitution_args._eval_find
+    try:
+        return ament(pkg)
+    except Exception:
+        pass
+    for d in (directory, *directory.parents):
+        if d.name == pkg:
+            return str(d)
+        if (d / pkg).is_dir():
+            return str(d / pkg)
+    raise ModelError(
+        f"$(find {pkg}): no package {pkg!r}: not in ament's index (AMENT_PREFIX_PATH) and no "
+        f"folder named {pkg} at or above {directory}"
+    )
+
+
 @contextlib.contextmanager
 def _find_resolver(directory: Path) -> Iterator[None]:
     """While expanding, `$(find pkg)` falls back to a folder named `pkg` at or above `directory`."""
     from xacro import substitution_args
 
     original = substitution_args._eval_find
-
-    def find(pkg: str) -> str:
-        try:
-            return original(pkg)
-        except Exception:
-            pass
-        for d in (directory, *directory.parents):
-            if d.name == pkg:
-                return str(d)
-            if (d / pkg).is_dir():
-                return str(d / pkg)
-        raise ModelError(
-            f"$(find {pkg}): no package {pkg!r}: not in ament's index (AMENT_PREFIX_PATH) and no "
-            f"folder named {pkg} at or above {directory}"
-        )
-
-    substitution_args._eval_find = find  # xacro offers no hook for it; restored below
+    substitution_args._eval_find = lambda pkg: resolve_package(pkg, directory, original)  # no hook: restored below
     try:
         yield
     finally:

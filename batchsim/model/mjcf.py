@@ -18,6 +18,7 @@ from pathlib import Path
 import mujoco
 
 from batchsim.model.description import Description, from_elements, parse_xml, read_description
+from batchsim.model.from_urdf import is_urdf, mjcf_from_urdf
 from batchsim.model.interfaces import discover
 from batchsim.model.spec import ROS2_PLUGIN, ROS2_PLUGIN_KEYS, ModelError, RobotSpec, RosPluginConfig
 from batchsim.sensors.mjcf import DeclarationError, SensorDeclarations, lidar_elements_of, take_declarations
@@ -58,22 +59,40 @@ def load(
     *,
     ros2_control: str | Path | None = None,
     keyframe: str | int | None = None,
+    mujoco_inputs: str | Path | None = None,
+    scene: str | Path | None = None,
 ) -> RobotSpec:
-    """Load a shipped model by name or an MJCF file by path into a RobotSpec.
+    """Load a shipped model by name, an MJCF file, or a URDF/xacro file into a RobotSpec.
 
     Args:
-      model: a name from `models/` ("arm", "car", "quadruped") or a path to an MJCF file.
+      model: a name from `models/` ("arm", "car", "quadruped"), a path to an MJCF file, or a
+        URDF or xacro file (optionally followed by xacro `key:=value` arguments), compiled as
+        mujoco_ros2_control's generation tool does (batchsim.model.from_urdf); its own
+        `<ros2_control>` blocks then configure the interfaces unless `ros2_control` is given.
       ros2_control: the robot description whose `<ros2_control>` blocks narrow the exposed
         interfaces: a URDF/xacro/XML file (a xacro file may be followed by `key:=value`
         arguments: "robot.urdf.xacro use_pid:=true"), or the XML text itself. The MJCF's own
         inline `<ros2_control>` blocks are used when this is None.
       keyframe: the keyframe worlds start in and reset to, by name or index. None: the
         ros2_control block's `initial_keyframe`, else `home` if the model has one, else qpos0.
+      mujoco_inputs, scene: for a URDF: a file of `<mujoco_inputs>` and an MJCF scene file,
+        as the generation tool's `--m` and `--scene` take them.
 
     Raises:
       ModelError: a missing file, malformed XML, a model MuJoCo rejects, an unknown
         keyframe; one line.
     """
+    if is_urdf(model):
+        generated = mjcf_from_urdf(model, inputs=mujoco_inputs, scene=scene)
+        spec = load_string(
+            generated.mjcf, name=generated.where, ros2_control=str(model) if ros2_control is None else ros2_control,
+            keyframe=keyframe, generated=True,
+        )  # fmt: skip
+        spec.warnings += generated.warnings
+        spec.path = Path(generated.where)  # the URDF it was made from (spec.xml holds the MJCF)
+        return spec
+    if mujoco_inputs is not None or scene is not None:
+        raise ModelError(f"{model}: mujoco inputs and a scene are for a URDF model, not an MJCF")
     path = model_path(str(model))
     try:
         text = path.read_text()
@@ -88,11 +107,16 @@ def load_string(
     path: Path | None = None,
     ros2_control: str | Path | None = None,
     keyframe: str | int | None = None,
+    name: str | None = None,
+    generated: bool = False,
 ) -> RobotSpec:
     """Load an MJCF given as text; `path`, if given, names it and anchors relative files
-    (meshes, includes) as if MuJoCo had loaded the file itself."""
-    where = str(path) if path else "<string>"
+    (meshes, includes) as if MuJoCo had loaded the file itself; else `name` names it.
+    `generated`: made from the URDF `ros2_control` names, whose `<lidar>`s it already holds."""
+    where = str(path) if path else (name or "<string>")
     root = parse_xml(text, where)
+    if root.tag == "robot":
+        raise ModelError(f"{where}: a URDF: give it as a .urdf or .xacro file, which batchsim compiles to MJCF")
     if root.tag != "mujoco":
         raise ModelError(f"{where}: not an MJCF file (root element <{root.tag}>, expected <mujoco>)")
 
@@ -135,7 +159,7 @@ def load_string(
     elif blocks:
         description = from_elements(blocks, where, path.parent if path else None)
     if description is not None:
-        declarations = declarations.merged(_declared(description))
+        declarations = declarations.merged(_declared(description, lidars=not generated))
     name = root.get("model") or (path.stem if path else "model")
     key_ctrl = [len(k.ctrl) > 0 for k in mjspec.keys]
     try:
@@ -146,14 +170,14 @@ def load_string(
     return spec
 
 
-def _declared(description: Description) -> SensorDeclarations:
+def _declared(description: Description, lidars: bool = True) -> SensorDeclarations:
     """What a ros2_control file declares for the bridge's cameras and lidars: its `<lidar>`
     elements (of the expanded document), the params of its sensors without a mujoco_type,
     and the camera/lidar publish rates among its hardware params."""
-    lidars: tuple = ()
-    if description.document is not None:
+    elements: tuple = ()
+    if lidars and description.document is not None:
         try:
-            lidars = lidar_elements_of(description.document, description.where)
+            elements = lidar_elements_of(description.document, description.where)
         except DeclarationError as e:
             raise ModelError(str(e)) from None
     params = tuple(
@@ -162,7 +186,7 @@ def _declared(description: Description) -> SensorDeclarations:
     rates = tuple(
         (key, found[0]) for key in ("camera_publish_rate", "lidar_publish_rate") if (found := description.param(key))
     )
-    return SensorDeclarations(lidars, (), params, rates, description.where)
+    return SensorDeclarations(elements, (), params, rates, description.where)
 
 
 def _one_line(message: str) -> str:

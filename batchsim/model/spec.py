@@ -198,7 +198,7 @@ class RobotSpec:
 
     Attributes:
       name: the model's name (the MJCF's `model` attribute, else the file stem).
-      path: the MJCF file, or None for a model given as an XML string.
+      path: the MJCF file (or the URDF an MJCF was generated from), or None for a model given as an XML string.
       mjmodel: the compiled model.
       xml: the MJCF that was compiled, with the extension and ros2_control blocks removed.
       joints: the exposed 1-DOF joints, in model order.

@@ -10,7 +10,9 @@ transform, so one tf tree holds every world and RViz shows them all in `world`:
 - `/<ns>/tf` and `/<ns>/tf_static`: the same transforms of one world alone, for a robot
   stack that listens to its own namespace (nav2's multi-robot setups remap tf so);
 - `/<ns>/robot_description` (std_msgs/String, transient local): the URDF, whose link
-  names are the frames without their prefix (RViz's RobotModel takes `<ns>` as TF Prefix).
+  names are the frames without their prefix (RViz's RobotModel takes `<ns>` as TF Prefix);
+- `/<ns>/mujoco_robot_description` (likewise): the MJCF the simulation compiled, as
+  mujoco_ros2_control publishes the one it generates from a URDF.
 
 Per-world topics exist only once somebody subscribes (found by the worker's graph scan);
 the fleet-wide ones from the start. Moving transforms are filled from one snapshot
@@ -109,7 +111,8 @@ class TfPublishers:
         self._on_request: dict[str, tuple[str, int]] = {}
         for row, ns in enumerate(namespaces):
             # a root-namespace world's /tf and /tf_static are the fleet's own
-            for kind in ("tf", "tf_static", "robot_description") if ns else ("robot_description",):
+            kinds = ("robot_description", "mujoco_robot_description")
+            for kind in ("tf", "tf_static", *kinds) if ns else kinds:
                 self._on_request[topic_name(ns, kind)] = (kind, row)
         self._keep: list[Any] = []  # publishers of latched messages
         if all_topics:
@@ -141,7 +144,7 @@ class TfPublishers:
             self._keep.append(pub)
         else:
             pub = self.node.create_publisher(String, topic, STATIC_QOS)
-            pub.publish(String(data=self.spec.description))
+            pub.publish(String(data=self.spec.description if kind == "robot_description" else self.spec.mjcf))
             self._keep.append(pub)
 
     def refresh(self) -> None:
