@@ -83,6 +83,7 @@ def check(scene: Path, backend: str, seconds: float, nworld: int) -> tuple[bool,
     nstep = max(1, round(0.01 / sim.dt))  # 100 Hz control
     periods = max(1, round(seconds / (nstep * sim.dt)))
     sim.read()
+    pose0 = _pose(sim)
     start = time.perf_counter()
     for _ in range(periods):
         sim.write()
@@ -91,14 +92,51 @@ def check(scene: Path, backend: str, seconds: float, nworld: int) -> tuple[bool,
     wall = time.perf_counter() - start
     finite = bool(np.isfinite(sim.state).all()) and bool(np.isfinite(sim.device_arrays()["qpos"]).all())
     frozen = int(np.count_nonzero(sim.frozen))
-    ok = finite and frozen == 0
+    collapse = _collapse(sim, pose0) if finite and not frozen else None
+    ok = finite and frozen == 0 and collapse is None
     rate = nworld * nstep * periods / wall
     sim.shutdown()
+    held = "holds its start pose" if collapse is None else f"COLLAPSES: {collapse}"
     line = (
         f"starts in {spec.initial.source}; {sim.time[0]:.2f} s: "
-        f"{'finite' if finite else 'NOT FINITE'}, {frozen}/{nworld} frozen; {rate / 1e3:.1f}k steps/s"
+        f"{'finite' if finite else 'NOT FINITE'}, {frozen}/{nworld} frozen, {held}; {rate / 1e3:.1f}k steps/s"
     )
     return ok, line
+
+
+JOINT_DRIFT = 0.35  # rad (or m): a joint this far from its start pose with its command held has fallen
+BASE_DROP = 0.3  # of the start height: a floating base this much lower has fallen
+
+
+def _pose(sim: batchsim.BatchedSystem) -> tuple[np.ndarray, np.ndarray | None]:
+    """(joint positions (nworld, njoint), base height (nworld,) or None)."""
+    names = sim.export_state_interfaces()
+    cols = [names.index(f"{j.name}/position") for j in sim.spec.joints if f"{j.name}/position" in names]
+    base = None if sim.base_state is None else sim.base_state[:, 2].copy()
+    return sim.state[:, cols].copy(), base
+
+
+def _collapse(sim: batchsim.BatchedSystem, pose0: tuple[np.ndarray, np.ndarray | None]) -> str | None:
+    """Why the robot did not hold its start pose with its initial command, or None if it did."""
+    q0, z0 = pose0
+    q, z = _pose(sim)
+    what = None
+    if z0 is not None and (z0 - z).max() > BASE_DROP * max(float(z0.max()), 0.1):
+        w = int(np.argmax(z0 - z))
+        what = f"its base fell from {z0[w]:.2f} m to {z[w]:.2f} m"
+    elif q0.size and np.abs(q - q0).max() > JOINT_DRIFT:
+        w, j = np.unravel_index(np.argmax(np.abs(q - q0)), q.shape)
+        joint = [jt.name for jt in sim.spec.joints][j]
+        what = f"joint {joint} moved {q[w, j] - q0[w, j]:+.2f} from its start"
+    if what is None:
+        return None
+    kinds = {c.kind.value for c in sim.spec.commands if c.pid is None}
+    if kinds == {"effort"}:
+        why = "its actuators are torque motors and the held command is a torque (0 unless the keyframe gives ctrl)"
+        if sim.spec.initial.ctrl_given:
+            why = "its actuators are torque motors and the keyframe's ctrl is held as a torque"
+        return f"{what}: {why}; give it a controller (or PIDs in a ros2_control block)"
+    return f"{what} with its initial command held"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -51,11 +51,18 @@ def test_every_robot_runs_two_seconds_on_cpu_from_its_keyframe(robots, capsys):
     ]
     rc = main([*map(str, dirs), "--backends", "cpu", "--seconds", "2", "--worlds", "2"])
     out = capsys.readouterr().out
-    assert rc == 0, out
     lines = {line.split()[1]: line for line in out.splitlines()}
     assert "starts in keyframe 'home'" in lines["unitree_go2/scene.xml"]
     assert "starts in keyframe 'home'" in lines["universal_robots_ur5e/scene.xml"]
     assert "aloha_pot/scene.xml" in lines and "shadow_hand/scene_right.xml" in lines
+    # finite is not enough: the Go2's torque motors hold its keyframe's ctrl as torques, and it
+    # folds to the floor; that is a failure, named with its reason (a controller holds it up:
+    # test_robots' PID test below)
+    failed = sorted(name for name, line in lines.items() if line.startswith("FAIL"))
+    assert rc == 1 and failed == ["unitree_go2/scene.xml"], out
+    assert "COLLAPSES: its base fell from 0.27 m" in lines["unitree_go2/scene.xml"]
+    assert "torque motors" in lines["unitree_go2/scene.xml"]
+    assert "holds its start pose" in lines["universal_robots_ur5e/scene.xml"]
 
 
 def test_home_keyframe_and_the_robots_own_base(robots):
