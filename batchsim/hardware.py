@@ -1,10 +1,5 @@
 """The contract: a batched mirror of ros2_control's `hardware_interface::SystemInterface`.
 
-`SystemInterface` is the lifecycle alone, transition for transition as ros2_control's
-`hardware_interface::System` drives it (UNKNOWN -> UNCONFIGURED -> INACTIVE -> ACTIVE,
-FINALIZED; `on_init` ... `on_error` returning SUCCESS / FAILURE / ERROR). The table is
-enforced here, once; an illegal transition raises `LifecycleError` naming the state.
-
 `BatchedSystem` is the contract every backend honours, for `nworld` copies of one robot:
 
 - `export_state_interfaces()` / `export_command_interfaces()`: ros2_control names.
@@ -27,284 +22,44 @@ with no fresh sensor noise, and the failure is logged once, naming the world and
 
 A backend subclasses `BatchedSystem` and implements the engine hooks (`_open`, `_close`,
 `_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, `_body_poses`, `_qstate`, `_set_qstate`,
-and `_park` where the engine cannot skip a world); everything a user sees, checks and bookkeeping included, lives here
-so that every backend behaves the same.
+and `_park` where the engine cannot skip a world); everything a user sees, checks and
+bookkeeping included, lives here so that every backend behaves the same.
+
+Beside it: batchsim.lifecycle (ros2_control's lifecycle table, `SystemInterface`) and
+batchsim.types (the enums, constants and shaped records of the contract), whose names are
+re-exported here.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import enum
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Future
 from pathlib import Path
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar
 
 import mujoco
 import numpy as np
 
 from batchsim.actuation import Actuation
 from batchsim.failures import FailureLog, ensure_log_dir
+from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState, SystemInterface
 from batchsim.model import RobotSpec, StateColumn, initial_command
 from batchsim.sensors import Camera, Lidar, LidarKind, SensorConfig, SensorSuite
-
-
-class LifecycleState(enum.IntEnum):
-    """Primary lifecycle states, with the ids of lifecycle_msgs/msg/State."""
-
-    UNKNOWN = 0
-    UNCONFIGURED = 1
-    INACTIVE = 2
-    ACTIVE = 3
-    FINALIZED = 4
-
-
-class CallbackReturn(enum.Enum):
-    """What a lifecycle callback returns (rclcpp_lifecycle's CallbackReturn)."""
-
-    SUCCESS = "success"
-    FAILURE = "failure"
-    ERROR = "error"
-
-
-class ReturnType(enum.Enum):
-    """What read() and write() return (hardware_interface::return_type)."""
-
-    OK = 0
-    ERROR = 1
-    DEACTIVATE = 2
-
-
-class Status(enum.IntFlag):
-    """Per-world status bits. One bad world never stops the others."""
-
-    OK = 0
-    DIVERGED = 1  # NaN/inf or a MuJoCo instability warning: frozen until reset
-    OVERFLOW = 2  # contact or constraint buffer overflow: frozen until reset
-    BAD_COMMAND = 4  # the last write's command for this world was rejected, not applied
-
-
-FROZEN = Status.DIVERGED | Status.OVERFLOW
-_FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
-MAX_COMMAND = 1e10  # MuJoCo's mjMAXVAL: a ctrl beyond it trips mjWARN_BADCTRL
-#: the engine fields read() gathers state interfaces from (`StateColumn.source`), in this order
-READ_FIELDS = ("qpos", "qvel", "qfrc_actuator", "sensordata")
-
-
-class LifecycleError(RuntimeError):
-    """A lifecycle transition or call that the current state does not allow."""
-
+from batchsim.types import (
+    FROZEN,
+    MAX_COMMAND,
+    READ_FIELDS,
+    ConfigurationError,
+    Frames,
+    PendingFrames,
+    ReturnType,
+    SensorData,
+    Status,
+    StepFailures,
+)
 
 S = LifecycleState
-R = CallbackReturn
-
-# transition -> (states it starts from, callback, outcome -> next state).
-# An outcome missing from the table (ERROR, and FAILURE where ros2_control says so) goes
-# through error(), as in hardware_interface::System.
-_TABLE: dict[str, tuple[frozenset[LifecycleState], str, dict[CallbackReturn, LifecycleState]]] = {
-    "configure": (frozenset({S.UNCONFIGURED}), "on_configure", {R.SUCCESS: S.INACTIVE, R.FAILURE: S.UNCONFIGURED}),
-    "cleanup": (frozenset({S.INACTIVE}), "on_cleanup", {R.SUCCESS: S.UNCONFIGURED}),
-    "activate": (frozenset({S.INACTIVE}), "on_activate", {R.SUCCESS: S.ACTIVE, R.FAILURE: S.INACTIVE}),
-    "deactivate": (frozenset({S.ACTIVE}), "on_deactivate", {R.SUCCESS: S.INACTIVE, R.FAILURE: S.ACTIVE}),
-    "shutdown": (
-        frozenset({S.UNCONFIGURED, S.INACTIVE, S.ACTIVE}),
-        "on_shutdown",
-        {R.SUCCESS: S.FINALIZED},
-    ),
-}
-
-
-class SystemInterface:
-    """ros2_control's hardware lifecycle. Subclasses override the `on_*` callbacks.
-
-    Call the transitions (`initialize`, `configure`, `activate`, `deactivate`, `cleanup`,
-    `shutdown`, `error`); each runs its callback and moves to the state the callback's
-    result selects, and returns that state. A callback that raises counts as ERROR: the
-    system goes through `on_error`, then the exception propagates.
-    """
-
-    def __init__(self) -> None:
-        self._lifecycle = LifecycleState.UNKNOWN
-
-    @property
-    def lifecycle_state(self) -> LifecycleState:
-        return self._lifecycle
-
-    # --- callbacks (override) ---
-    def on_init(self) -> CallbackReturn:
-        return CallbackReturn.SUCCESS
-
-    def on_configure(self, previous_state: LifecycleState) -> CallbackReturn:
-        return CallbackReturn.SUCCESS
-
-    def on_cleanup(self, previous_state: LifecycleState) -> CallbackReturn:
-        return CallbackReturn.SUCCESS
-
-    def on_activate(self, previous_state: LifecycleState) -> CallbackReturn:
-        return CallbackReturn.SUCCESS
-
-    def on_deactivate(self, previous_state: LifecycleState) -> CallbackReturn:
-        return CallbackReturn.SUCCESS
-
-    def on_shutdown(self, previous_state: LifecycleState) -> CallbackReturn:
-        return CallbackReturn.SUCCESS
-
-    def on_error(self, previous_state: LifecycleState) -> CallbackReturn:
-        return CallbackReturn.SUCCESS
-
-    # --- transitions ---
-    def initialize(self) -> LifecycleState:
-        """UNKNOWN -> UNCONFIGURED through on_init; FINALIZED if it fails."""
-        self._require("initialize", frozenset({S.UNKNOWN}))
-        try:
-            result = self.on_init()
-        except BaseException:
-            self._lifecycle = S.FINALIZED
-            raise
-        self._lifecycle = S.UNCONFIGURED if result is R.SUCCESS else S.FINALIZED
-        return self._lifecycle
-
-    def configure(self) -> LifecycleState:
-        return self._transition("configure")
-
-    def cleanup(self) -> LifecycleState:
-        return self._transition("cleanup")
-
-    def activate(self) -> LifecycleState:
-        return self._transition("activate")
-
-    def deactivate(self) -> LifecycleState:
-        return self._transition("deactivate")
-
-    def shutdown(self) -> LifecycleState:
-        return self._transition("shutdown")
-
-    def error(self) -> LifecycleState:
-        """Run on_error: UNCONFIGURED if it handles the error, else FINALIZED."""
-        self._require("error", frozenset(set(S) - {S.UNKNOWN, S.FINALIZED}))
-        try:
-            result = self.on_error(self._lifecycle)
-        except BaseException:
-            self._lifecycle = S.FINALIZED
-            raise
-        self._lifecycle = S.UNCONFIGURED if result is R.SUCCESS else S.FINALIZED
-        return self._lifecycle
-
-    def _transition(self, name: str) -> LifecycleState:
-        allowed, callback, outcomes = _TABLE[name]
-        self._require(name, allowed)
-        previous = self._lifecycle
-        try:
-            result = getattr(self, callback)(previous)
-        except BaseException:
-            self.error()
-            raise
-        if result in outcomes:
-            self._lifecycle = outcomes[result]
-        else:
-            self.error()
-        return self._lifecycle
-
-    def _require(self, what: str, allowed: frozenset[LifecycleState]) -> None:
-        if self._lifecycle not in allowed:
-            names = " or ".join(sorted(s.name for s in allowed))
-            raise LifecycleError(
-                f"cannot {what}: the system is {self._lifecycle.name}, and {what} needs {names}"
-            )
-
-
-class SensorData(Mapping[str, np.ndarray]):
-    """Every MJCF sensor by name: `sim.sensordata["wrist_force"]` is `(nworld, dim)`.
-
-    Attributes:
-      array: (nworld, nsensordata) float64, every sensor's values in MuJoCo's sensordata
-        order; the named arrays are views of it.
-    """
-
-    def __init__(self, array: np.ndarray, sensors: Sequence[Any]):
-        self.array = array
-        self._views = {s.name: array[:, s.adr : s.adr + s.dim] for s in sensors}
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        try:
-            return self._views[name]
-        except KeyError:
-            raise KeyError(f"no sensor named {name!r}; sensors: {', '.join(self._views)}") from None
-
-    def __iter__(self):
-        return iter(self._views)
-
-    def __len__(self) -> int:
-        return len(self._views)
-
-
-@dataclasses.dataclass
-class StepFailures:
-    """The worlds that failed during one `_step(nstep)` call, as a backend reports them.
-
-    Attributes:
-      worlds: (k,) int64, the worlds; none of them was frozen before the call.
-      status: (k,) uint8, their Status bits: DIVERGED and/or OVERFLOW.
-      reasons: k strings, why each failed (MuJoCo's warning text where there is one).
-      readings: (k, ncolumn) float64, their read() columns (`state`, then `base_state`) as
-        they were at the start of the call.
-      sensordata: (k, nsensordata) float64, likewise.
-      time: (k,) float64, likewise.
-    """
-
-    worlds: np.ndarray
-    status: np.ndarray
-    reasons: list[str]
-    readings: np.ndarray
-    sensordata: np.ndarray
-    time: np.ndarray
-
-
-class Frames(NamedTuple):
-    """What `render` returns: RGB (n, H, W, 3) uint8 and depth (n, H, W) float32, metres."""
-
-    rgb: Any
-    depth: Any
-
-
-class PendingFrames:
-    """Frames being rendered (`BatchedSystem.render_async`): `result()` waits for them.
-
-    Attributes:
-      camera: the camera's name.
-      worlds: (n,) the worlds, in the order asked for, as `render` orders them.
-    """
-
-    def __init__(
-        self,
-        future: Future,
-        camera: str,
-        worlds: np.ndarray,
-        suite: SensorSuite,
-        order: np.ndarray | None = None,
-    ):
-        self.camera = camera
-        self.worlds = worlds
-        self._future = future
-        self._suite = suite
-        self._order = order  # the future's rows (ascending worlds) -> the worlds' order; None: already
-        self._frames: Frames | None = None
-
-    def done(self) -> bool:
-        """True once `result()` would not wait."""
-        return self._frames is not None or self._future.done()
-
-    def result(self) -> Frames:
-        """Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32), the caller's own arrays, as
-        `render(camera, worlds)` returned at the call; depth noise is drawn here, the first time.
-        Re-raises what the render raised."""
-        if self._frames is None:
-            rgb, depth = self._future.result()
-            if self._order is not None:
-                rgb, depth = rgb[self._order], depth[self._order]
-            self._suite.add_noise(self.camera, depth, self.worlds)
-            self._frames = Frames(rgb, depth)
-        return self._frames
+_FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
 
 
 class BatchedSystem(SystemInterface):
@@ -978,7 +733,3 @@ def _as_slice(index: list[int]) -> slice | np.ndarray:
     if step > 0 and all(b - a == step for a, b in zip(index, index[1:], strict=False)):
         return slice(index[0], index[-1] + 1, step)
     return np.array(index, dtype=np.intp)
-
-
-class ConfigurationError(ValueError):
-    """The model or its ros2_control block asks for something the simulation cannot serve."""

@@ -12,7 +12,7 @@ from typing import Any
 import warp as wp
 
 from batchsim.backends.device import FIELD_SHIFT, INDEX_SHIFT, MAX_INDEX
-from batchsim.hardware import Status
+from batchsim.types import Status
 
 # Warp captures and replays graphs on its CPU device through process-wide state: two systems
 # doing so from two threads at once (the shards of one fleet on CPU devices) crash the process

@@ -37,8 +37,8 @@ from batchsim.backends.warp.kernels import (
     set_rows,
 )
 from batchsim.backends.warp.sensors import WarpSensors
-from batchsim.hardware import MAX_COMMAND, READ_FIELDS, Status, StepFailures
 from batchsim.model import RobotSpec
+from batchsim.types import MAX_COMMAND, READ_FIELDS, Status, StepFailures
 
 log = logging.getLogger("batchsim.warp")
 

@@ -1,0 +1,150 @@
+"""The contract's shared types: return codes and status bits, the failure report a backend
+gives, the sensor mapping and frames a user gets, and the limits read() and write() use.
+
+Every batched array leads with the world: `nworld`, or `n`/`k` for the worlds a call lists;
+each field's docstring gives its shape and dtype.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from collections.abc import Mapping, Sequence
+from concurrent.futures import Future
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from batchsim.sensors import SensorSuite
+
+
+class ReturnType(enum.Enum):
+    """What read() and write() return (hardware_interface::return_type)."""
+
+    OK = 0
+    ERROR = 1
+    DEACTIVATE = 2
+
+
+class Status(enum.IntFlag):
+    """Per-world status bits (`BatchedSystem.status`: (nworld,) uint8). One bad world never stops
+    the others."""
+
+    OK = 0
+    DIVERGED = 1  # NaN/inf or a MuJoCo instability warning: frozen until reset
+    OVERFLOW = 2  # contact or constraint buffer overflow: frozen until reset
+    BAD_COMMAND = 4  # the last write's command for this world was rejected, not applied
+
+
+#: the status bits that freeze a world until reset
+FROZEN = Status.DIVERGED | Status.OVERFLOW
+#: MuJoCo's mjMAXVAL: a ctrl beyond it trips mjWARN_BADCTRL; write() rejects a command beyond it
+MAX_COMMAND = 1e10
+#: the engine fields read() gathers state interfaces from (`StateColumn.source`), in this order
+READ_FIELDS = ("qpos", "qvel", "qfrc_actuator", "sensordata")
+
+
+class ConfigurationError(ValueError):
+    """The model or its ros2_control block asks for something the simulation cannot serve."""
+
+
+class SensorData(Mapping[str, np.ndarray]):
+    """Every MJCF sensor by name: `sim.sensordata["wrist_force"]` is `(nworld, dim)`.
+
+    Attributes:
+      array: (nworld, nsensordata) float64, every sensor's values in MuJoCo's sensordata
+        order; the named arrays are views of it.
+    """
+
+    def __init__(self, array: np.ndarray, sensors: Sequence[Any]):
+        self.array = array
+        self._views = {s.name: array[:, s.adr : s.adr + s.dim] for s in sensors}
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        try:
+            return self._views[name]
+        except KeyError:
+            raise KeyError(f"no sensor named {name!r}; sensors: {', '.join(self._views)}") from None
+
+    def __iter__(self):
+        return iter(self._views)
+
+    def __len__(self) -> int:
+        return len(self._views)
+
+
+@dataclasses.dataclass
+class StepFailures:
+    """The worlds that failed during one `_step(nstep)` call, as a backend reports them.
+
+    Attributes:
+      worlds: (k,) int64, the worlds; none of them was frozen before the call.
+      status: (k,) uint8, their Status bits: DIVERGED and/or OVERFLOW.
+      reasons: k strings, why each failed (MuJoCo's warning text where there is one).
+      readings: (k, ncolumn) float64, their read() columns (`state`, then `base_state`) as
+        they were at the start of the call.
+      sensordata: (k, nsensordata) float64, likewise.
+      time: (k,) float64, likewise.
+    """
+
+    worlds: np.ndarray
+    status: np.ndarray
+    reasons: list[str]
+    readings: np.ndarray
+    sensordata: np.ndarray
+    time: np.ndarray
+
+
+class Frames(NamedTuple):
+    """What `render` returns, row i for the i-th world asked for.
+
+    Attributes:
+      rgb: (n, H, W, 3) uint8, top row first; with `device=True` (nworld, H, W, 3), the
+        backend's own array type.
+      depth: (n, H, W) float32, metres along the optical axis; +inf where nothing was hit, NaN
+        where noise dropped a pixel.
+    """
+
+    rgb: Any
+    depth: Any
+
+
+class PendingFrames:
+    """Frames being rendered (`BatchedSystem.render_async`): `result()` waits for them.
+
+    Attributes:
+      camera: the camera's name.
+      worlds: (n,) the worlds, in the order asked for, as `render` orders them.
+    """
+
+    def __init__(
+        self,
+        future: Future,
+        camera: str,
+        worlds: np.ndarray,
+        suite: SensorSuite,
+        order: np.ndarray | None = None,
+    ):
+        self.camera = camera
+        self.worlds = worlds
+        self._future = future
+        self._suite = suite
+        self._order = order  # the future's rows (ascending worlds) -> the worlds' order; None: already
+        self._frames: Frames | None = None
+
+    def done(self) -> bool:
+        """True once `result()` would not wait."""
+        return self._frames is not None or self._future.done()
+
+    def result(self) -> Frames:
+        """Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32), the caller's own arrays, as
+        `render(camera, worlds)` returned at the call; depth noise is drawn here, the first time.
+        Re-raises what the render raised."""
+        if self._frames is None:
+            rgb, depth = self._future.result()
+            if self._order is not None:
+                rgb, depth = rgb[self._order], depth[self._order]
+            self._suite.add_noise(self.camera, depth, self.worlds)
+            self._frames = Frames(rgb, depth)
+        return self._frames
