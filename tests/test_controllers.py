@@ -438,6 +438,28 @@ def test_a_new_trajectory_replaces_the_old_one_from_its_start_time():
     np.testing.assert_array_equal(jtc.reference_position[0], held)
 
 
+def test_a_single_point_at_time_zero_is_applied_at_once():
+    """ros2_controllers samples past a trajectory's end at its last point: one point with
+    time_from_start 0 and a zero stamp is the new reference at once, as is a trajectory
+    stamped now. Before: neither applied, nor refused, nor counted."""
+    sim, manager, loop = running("arm", 2)
+    jtc = manager["joint_trajectory_controller"]
+    loop.run_period()
+    target = np.array([0.3, -0.2, 0.1, 0.0, 0.2, -0.1])
+    jtc.set_trajectory(1, ARM_JOINTS, [0.0], [target])
+    loop.run_period()
+    np.testing.assert_allclose(jtc.reference_position[1], target)
+    np.testing.assert_array_equal(jtc.reference_position[0], 0.0)
+    run_until(loop, 1.0)
+    sim.read()
+    names = sim.export_state_interfaces()
+    assert abs(sim.state[1, names.index("joint1/position")] - 0.3) < 0.03
+    # stamped now, with its only point at time 0: the same
+    jtc.set_trajectory(0, ARM_JOINTS, [0.0], [-target], start_time=loop.sim_time)
+    loop.run_period()
+    np.testing.assert_allclose(jtc.reference_position[0], -target)
+
+
 class ResetSpy(Controller):
     """A controller that only records the resets it hears of."""
 

@@ -83,6 +83,14 @@ def test_trajectory_over_ros_to_world_5_of_8(arms):
     assert list(arms.js[5].msg.name) == ARM_JOINTS
 
 
+def test_a_single_point_at_time_zero_is_applied_over_ros(arms):
+    """One point, time_from_start 0, zero stamp: ros2_controllers applies it at once (issue 23:
+    it was neither applied nor refused)."""
+    goal = [0.3, -0.2, 0.2, 0.1, -0.1, 0.2]
+    send(arms, 7, JointTrajectory(joint_names=ARM_JOINTS, points=[point(goal, 0.0)]))
+    arms.wait(lambda: np.abs(np.array(arms.js[7].msg.position) - goal).max() < 0.04, 20, "world 7 at the point")
+
+
 def test_rejected_trajectories_are_logged_and_counted_in_diagnostics(arms):
     bad_name = JointTrajectory(joint_names=["elbow"], points=[point([0.1], 1.0)])
     backwards = JointTrajectory(joint_names=ARM_JOINTS, points=[point([0.1] * 6, 1.0), point([0.2] * 6, 0.5)])

@@ -143,12 +143,21 @@ class Timeline:
         end[filled] += pool.times[off[filled] + npoint[filled]]
         stop = skip >= npoint
         stopped = due[stop]
+        # every point already passed (a single point at time 0, stamped now, as ros2_controllers
+        # applies at once; or the last point's time gone by before the loop took it): the
+        # reference is past the end, so it holds the last point; an empty trajectory holds here
+        hold = here[stop].copy()
+        ended = npoint[stop] > 0
+        if ended.any():
+            last = pool.coefficients[off[stop][ended] + npoint[stop][ended]][:, 0]
+            mask = self.pending_mask[stopped[ended]]
+            hold[ended] = np.where(mask, last, hold[ended])
         pool.release(RUNNING, stopped)
         pool.release(PENDING, stopped)
         pool.trim(stopped)
         self.running[stopped] = False
         self.on_trajectory[stopped] = False
-        self.hold[stopped] = here[stop]
+        self.hold[stopped] = hold
 
         go = ~stop
         worlds = due[go]
