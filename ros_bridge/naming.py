@@ -43,6 +43,12 @@ def topic_name(namespace: str, name: str) -> str:
     return f"/{namespace}/{name}" if namespace else f"/{name}"
 
 
+def worlds_label(namespaces: list[str], lo: int = 0, hi: int | None = None) -> str:
+    """Worlds lo..hi-1 as the log names them: `/world_0 .. /world_63`, or `/world_5` (`/` at the root)."""
+    hi = len(namespaces) if hi is None else hi
+    return f"/{namespaces[lo]}" if hi - lo == 1 else f"/{namespaces[lo]} .. /{namespaces[hi - 1]}"
+
+
 def frame(namespace: str, name: str) -> str:
     """A world's tf frame: `<ns>/<name>`, or `<name>` at the root."""
     return f"{namespace}/{name}" if namespace else name

@@ -34,7 +34,7 @@ from ros_bridge.action_plan import (
 from ros_bridge.commands import rejection_arrays, slot_arrays
 from ros_bridge.interfaces import available
 from ros_bridge.manager_link import ManagerSpec, manager_spec
-from ros_bridge.naming import ros_names, world_namespaces
+from ros_bridge.naming import ros_names, world_namespaces, worlds_label
 from ros_bridge.options import BridgeOptions, Reliability
 from ros_bridge.outputs import ChannelFill, Field, OutputSpec, robot_outputs
 from ros_bridge.requests import trajectory_bytes
@@ -151,6 +151,7 @@ class FleetPlan:
             ("svc.ok", (nw, SERVICE_SLOTS), "i8"),  # 1 when it succeeded
             ("svc.msg", (nw, SERVICE_SLOTS, SERVICE_MESSAGE), "u1"),  # the answer's message, utf-8, NUL-padded
             ("beat", (nw,), "i8"),  # per worker: ticks served
+            ("worker.hung", (nw,), "f8"),  # per worker: since when (epoch s) it has not ticked; 0: it does
         ]
         for c, ch in enumerate(self.channels):
             arrays.append((f"ch{c}", (2, n, ch.width), "f8"))
@@ -342,7 +343,7 @@ def _controller_output(out: Output, nworld: int, every: int, channel: Callable[[
 def describe(plan: FleetPlan, publish_every: int | None = None) -> str:
     """`/world_0 .. /world_15 (publish 100 Hz, QoS reliable depth 10, 2 bridge workers)`."""
     ns = plan.namespaces
-    where = f"/{ns[0]}" if len(ns) == 1 else f"/{ns[0]} .. /{ns[-1]}"
+    where = worlds_label(ns)
     every = publish_every or next((o.every for o in plan.outputs if o.topic == "joint_states"), 1)
     parts = [f"publish {plan.control_rate / every:g} Hz", f"QoS {plan.reliability.value} depth {plan.qos_depth}"]
     if plan.lockstep:

@@ -4,7 +4,11 @@ mode; with `--bridge-workers 0` the one worker runs in this process).
 Worker 0 starts first: it checks the ROS graph for another fleet serving these worlds or
 /clock. A worker that dies is noticed within SUPERVISE seconds, the log names its worlds,
 and it is restarted on the same shared memory (its counters continue, so nothing is
-replayed); one that dies again soon after is restarted with a back-off.
+replayed); one that dies again soon after is restarted with a back-off. A worker that
+stops answering (its tick counter `beat` stands still: stopped, deadlocked) is noticed
+after HUNG_AFTER seconds, logged naming its worlds and shown in the other workers'
+/diagnostics (`worker.hung`), and killed and restarted if it has not come back after
+HUNG_RESTART seconds. A worker that is merely slow still ticks, and is left alone.
 """
 
 from __future__ import annotations
@@ -19,12 +23,15 @@ from pathlib import Path
 from typing import Any
 
 from batchsim.memory import Memory
+from ros_bridge.naming import worlds_label
 from ros_bridge.plan import FleetPlan
 from ros_bridge.registry import Registry
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.transport import PROFILES_FILE, TransportProfile
 
 SUPERVISE = 0.25  # s of wall time between two looks at the workers
+HUNG_AFTER = 1.0  # s without a tick before a worker is reported as not answering (it ticks every 0.1 s at least)
+HUNG_RESTART = 5.0  # s without a tick before it is killed and restarted
 START_TIMEOUT = 120.0  # s a worker may take to come up (imports, endpoints, the start-up check)
 STOP_TIMEOUT = 1.5  # s workers get to leave the ROS graph before they are killed
 
@@ -56,6 +63,9 @@ class _Process:
         self.ready = False
         self.restarts = 0
         self.died_at = 0.0
+        self.beat = -1  # its tick counter at the last look, and when it last moved
+        self.beat_at = wallclock.monotonic()
+        self.hung_since = 0.0
 
     def close_pipes(self) -> None:
         for fd in (self.wake, self.status):
@@ -244,6 +254,8 @@ class Supervisor:
                     self.throttle.warn(("worker", j, "back"), f"bridge worker {j} is back: {self._worlds(lo, hi)} are served again")
             code = p.popen.poll()
             if code is None:
+                if p.ready:
+                    self._watch(j, p, now)
                 continue
             lo, hi = self.plan.ranges[j]
             if p.died_at == 0.0:
@@ -261,9 +273,34 @@ class Supervisor:
             p.close_pipes()
             self._procs[j] = replacement
 
+    def _watch(self, j: int, p: _Process, now: float) -> None:
+        """A live worker that stopped ticking: reported, then killed (and restarted as one that died)."""
+        beat = int(self.memory["beat"][j])
+        if beat != p.beat:
+            p.beat, p.beat_at = beat, now
+            if p.hung_since:
+                p.hung_since = 0.0
+                self.memory["worker.hung"][j] = 0.0
+                self.throttle.warn(("worker", j, "answers"), f"bridge worker {j} answers again")
+            return
+        silent = now - p.beat_at
+        lo, hi = self.plan.ranges[j]
+        if silent >= HUNG_AFTER and not p.hung_since:
+            p.hung_since = now
+            self.memory["worker.hung"][j] = wallclock.time() - silent
+            self.throttle.warn(
+                ("worker", j, "hung"),
+                f"bridge worker {j} (pid {p.popen.pid}) has not answered for {silent:.1f} s: {self._worlds(lo, hi)} "
+                f"are not served; restarting it unless it answers within {HUNG_RESTART - silent:.0f} s",
+            )
+        elif silent >= HUNG_RESTART:
+            self.throttle.warn(("worker", j, "killed"), f"bridge worker {j} did not answer for {silent:.0f} s: killed")
+            p.popen.kill()  # the next look restarts it, as one that died
+            self.memory["worker.hung"][j] = 0.0
+            p.beat_at = now
+
     def _worlds(self, lo: int, hi: int) -> str:
-        ns = self.plan.namespaces
-        return f"/{ns[lo]}" if hi - lo == 1 else f"/{ns[lo]} .. /{ns[hi - 1]}"  # "/" at the root
+        return worlds_label(self.plan.namespaces, lo, hi)
 
     def wake(self, worker: int) -> None:
         """Worker `worker`'s tick: a new snapshot or an answered request."""

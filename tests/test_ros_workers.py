@@ -8,6 +8,7 @@ trajectory controller holds joints 1-3; joints 4-6 take raw commands.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -161,6 +162,28 @@ def test_reset_pause_and_step_across_workers(fleet):
         assert sim_time(fleet.js[w].msg.header.stamp) == pytest.approx(frozen + 0.01, abs=1e-9)
     assert fleet.call(SetBool, "/batchsim/pause", SetBool.Request(data=False)).success
     settle(fleet, 0.1)
+
+
+def test_a_stopped_worker_is_reported_then_restarted(fleet):
+    """kill -STOP on a worker (issue 23: its worlds went quiet and nobody said so): noticed
+    within 2 s naming its worlds, shown in the other workers' /diagnostics, restarted when it
+    does not come back, and its worlds served again."""
+    workers = bridge_workers(fleet.proc.pid)
+    diag = fleet.diagnostics()
+    before = fleet.js[63].count
+    os.kill(workers[2], signal.SIGSTOP)
+    try:
+        fleet.wait(lambda: "bridge worker 2 (pid" in fleet.log() and "has not answered" in fleet.log(), 2.5, "the hang noticed")
+        assert "/world_43 .. /world_63 are not served" in fleet.log()
+        fleet.wait(lambda: diag.world("bridge_worker_2") is not None, 5, "the hang in /diagnostics")
+        status = diag.world("bridge_worker_2")
+        assert status.level == status.ERROR and "/world_43 .. /world_63 are not served" in status.message
+        fleet.wait(lambda: "bridge worker 2 did not answer" in fleet.log(), 10, "the hung worker killed")
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(workers[2], signal.SIGCONT)
+    fleet.wait(lambda: "bridge worker 2 is back" in fleet.log(), 60, "the worker back")
+    fleet.wait(lambda: fleet.js[63].count > before + 5, 30, "world_63's joint_states again")
 
 
 def test_a_killed_worker_is_restarted_and_its_worlds_come_back(fleet):

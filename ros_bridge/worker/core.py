@@ -49,7 +49,7 @@ from batchsim.controllers.topics import MessageKind
 from batchsim.memory import Memory, Ring
 from ros_bridge.commands import Problem, SlotWriter, check_single, check_vector
 from ros_bridge.interfaces import available
-from ros_bridge.naming import topic_name
+from ros_bridge.naming import topic_name, worlds_label
 from ros_bridge.options import Reliability
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.snapshot import Snapshot, read_snapshot
@@ -150,7 +150,8 @@ class Worker:
         plan, node, qos = self.plan, self.node, self.qos
         if plan.clock and self.index == 0:
             self._clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
-        self.diagnostics = Diagnostics(node, self.memory, self.lo, self.hi, self.namespaces)
+        workers = [worlds_label(plan.namespaces, lo, hi) for lo, hi in plan.ranges]
+        self.diagnostics = Diagnostics(node, self.memory, self.lo, self.hi, self.namespaces, workers)
         self._on_request: dict[str, tuple[Output, int]] = {}
         for spec in plan.outputs:
             out = Output(spec, self.namespaces)

@@ -4,12 +4,15 @@ Every rejection is written to shared memory (count, period and last reason per w
 the physics process's status line) and counted per world, topic and reason here; the
 controllers' own rejections in the loop arrive through the `hrej` block. /diagnostics
 (diagnostic_msgs/DiagnosticArray) carries one status per world: its status bits, whether
-it is frozen or its commands timed out, and its rejection counts.
+it is frozen or its commands timed out, and its rejection counts; and one ERROR status per
+other bridge worker that has stopped answering (the supervisor's `worker.hung`), naming
+the worlds nobody serves meanwhile.
 """
 
 from __future__ import annotations
 
 import threading
+import time as wallclock
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -26,8 +29,13 @@ from ros_bridge.worker.messages import stamp_of
 class Diagnostics:
     """Rejections and /diagnostics for worlds [lo, hi) named `namespaces`."""
 
-    def __init__(self, node: Node, memory: Memory, lo: int, hi: int, namespaces: list[str]):
+    def __init__(
+        self, node: Node, memory: Memory, lo: int, hi: int, namespaces: list[str], workers: list[str] | None = None
+    ):
+        """`workers`: every worker's worlds, as the log names them (`/world_0 .. /world_63`)."""
         self.lo, self.hi = lo, hi
+        self.workers = workers or []
+        self.hung = memory["worker.hung"]
         self.namespaces = namespaces
         self.rejections = RejectionWriter(memory, "rej")
         self.host_rejections = RejectionWriter(memory, "hrej")
@@ -100,5 +108,17 @@ class Diagnostics:
                     + [KeyValue(key=f"rejected {topic} {reason}", value=str(n)) for (topic, reason), n in rejected[row]],
                 )
             )
+        now = wallclock.time()
+        for j, since in enumerate(self.hung.tolist()):
+            if since and j < len(self.workers):
+                out.status.append(
+                    DiagnosticStatus(
+                        level=DiagnosticStatus.ERROR,
+                        name=f"batchsim: bridge worker {j}",
+                        message=f"not answering for {now - since:.1f} s: {self.workers[j]} are not served",
+                        hardware_id=f"bridge_worker_{j}",
+                        values=[KeyValue(key="worlds", value=self.workers[j])],
+                    )
+                )
         self._pub.publish(out)
 
