@@ -18,6 +18,7 @@ import argparse
 import dataclasses
 import importlib.metadata
 import math
+import os
 import platform
 import signal
 import sys
@@ -281,6 +282,7 @@ _POSITIVE = {  # flag: what its number is, for the message; each must be finite 
     "command_timeout": "a finite number of seconds",
 }
 _AT_LEAST_ONE = ("worlds", "threads", "nconmax", "njmax", "qos_depth")
+MAX_DOMAIN_ID = 232  # ROS 2's limit: DDS computes UDP ports from the domain id
 
 
 def check_args(args: argparse.Namespace) -> None:
@@ -303,8 +305,20 @@ def check_args(args: argparse.Namespace) -> None:
     model = Path(args.model).expanduser()
     if str(args.model) not in model_names() and model.is_dir():
         raise UsageError(f"--model {args.model}: is a directory, not an MJCF file")
+    if args.log_dir is not None:
+        try:
+            batchsim.set_log_dir(args.log_dir)
+        except ValueError as e:
+            raise UsageError(f"--log-dir: {e}") from None
     if not args.no_ros:
         from ros_bridge.naming import DEFAULT_TEMPLATE, world_namespaces  # no rclpy: the rules only
+
+        domain = os.environ.get("ROS_DOMAIN_ID", "").strip()
+        if domain and not (domain.isdigit() and int(domain) <= MAX_DOMAIN_ID):
+            raise UsageError(
+                f"ROS_DOMAIN_ID={domain}: must be an integer in 0..{MAX_DOMAIN_ID} (DDS's ports run out above it; "
+                "0..101 keeps clear of Linux's ephemeral ports), or unset (0)"
+            )
 
         if args.namespace != DEFAULT_TEMPLATE:
             try:

@@ -59,6 +59,11 @@ def set_log_dir(directory: str | Path | None = None) -> Path:
     path = folder.resolve() / MUJOCO_LOG_NAME
     if len(os.fsencode(str(path))) >= 1024:
         raise ValueError(f"log directory {str(folder)!r}: the path is too long for MuJoCo (1023 bytes at most)")
+    try:  # a folder the log can never be written to is refused now, not named in a line later
+        with open(path, "a"):
+            pass
+    except OSError as e:
+        raise ValueError(f"log directory {str(folder)!r}: cannot write {path.name} there: {e.strerror or e}") from None
     config = mujoco.MjLogConfig.get()
     config.logto_console = False  # batchsim logs its own line per failed world instead
     config.logto_file = True

@@ -62,6 +62,25 @@ def test_bad_flag_values_are_one_line_and_exit_2(args, message, tmp_path):
     assert message in line
 
 
+@pytest.mark.parametrize(
+    "env, args, message",
+    [
+        ({"ROS_DOMAIN_ID": "abc"}, [], "ROS_DOMAIN_ID=abc: must be an integer in 0..232"),
+        ({"ROS_DOMAIN_ID": "240"}, [], "ROS_DOMAIN_ID=240: must be an integer in 0..232"),
+        ({}, ["--model", "{tmp}/binary.xml", "--no-ros"], "binary.xml: not a text file (byte 0x91 at offset 1 is not UTF-8)"),
+        ({}, ["--log-dir", "/sys/kernel", "--no-ros"], "--log-dir: log directory '/sys/kernel': cannot write MUJOCO_LOG.TXT there"),
+    ],
+)
+def test_what_a_new_user_gets_wrong_is_one_line_naming_the_cause(env, args, message, tmp_path, monkeypatch):
+    """Issue 23: a 15-line traceback (ROS_DOMAIN_ID=abc), Fast DDS port errors (240), a decode error
+    naming no file, a log directory that can never be written accepted."""
+    (tmp_path / "binary.xml").write_bytes(b"<\x91\x00\xff")
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    line = one_error_line(batchsim_cli(*(a.replace("{tmp}", str(tmp_path)) for a in args), "--duration", "0.1"))
+    assert message in line, line
+
+
 def test_namespace_templates_take_format_specs():
     assert world_namespaces(3, "w_{i:03d}") == ["w_000", "w_001", "w_002"]
     assert world_namespaces(2, "fleet/w{i:02d}/arm") == ["fleet/w00/arm", "fleet/w01/arm"]

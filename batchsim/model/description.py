@@ -130,6 +130,11 @@ def model_file(description: Description) -> str | None:
     return str(path)
 
 
+def not_text(e: UnicodeDecodeError) -> str:
+    """Why a file that should be XML text is not: the byte, where."""
+    return f"not a text file (byte 0x{e.object[e.start]:02x} at offset {e.start} is not UTF-8): a robot description is XML text"
+
+
 def split_source(source: str) -> tuple[str, dict[str, str]]:
     """`"robot.urdf.xacro use_pid:=true name:=x"` -> the path and the xacro arguments."""
     parts = shlex.split(source)
@@ -165,6 +170,8 @@ def read_source(
         text = path.read_text()
     except OSError as e:
         raise ModelError(f"{path}: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise ModelError(f"{path}: {not_text(e)}") from None
     if path.name.endswith(".xacro") or XACRO_NS in text or xacro_args:
         text = expand_xacro(path, xacro_args)
     return text, str(path), path

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import mujoco
 
-from batchsim.model.description import Description, from_elements, parse_xml, read_description
+from batchsim.model.description import Description, from_elements, not_text, parse_xml, read_description
 from batchsim.model.from_urdf import is_urdf, mjcf_from_urdf
 from batchsim.model.interfaces import discover
 from batchsim.model.spec import ROS2_PLUGIN, ROS2_PLUGIN_KEYS, ModelError, RobotSpec, RosPluginConfig
@@ -98,6 +98,8 @@ def load(
         text = path.read_text()
     except OSError as e:
         raise ModelError(f"{path}: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise ModelError(f"{path}: {not_text(e)}") from None
     return load_string(text, path=path, ros2_control=ros2_control, keyframe=keyframe)
 
 
