@@ -46,6 +46,7 @@ class Actuation:
             if c.actuator_id in seen:
                 self.active[k] = False
             seen.add(c.actuator_id)
+        self._default_active = self.active.copy()
         shared = len(seen) < len(cmds)
         plain = bool((self._scale == 1.0).all() and (self._offset == 0.0).all())
         self.trivial = plain and not shared and not self._pid.any() and not spec.mimics
@@ -128,7 +129,15 @@ class Actuation:
     def reset(self, worlds: np.ndarray, ctrl: np.ndarray, command: np.ndarray) -> None:
         """The listed worlds were reset: their PIDs start afresh, and the direct interfaces'
         ctrl holds their (initial) command; PID-driven actuators keep the initial ctrl until
-        the next write."""
+        the next write. A reset of every world also gives an actuator whose every interface a
+        switch stopped its first one (position) again, as mujoco_ros2_control's reset does, so
+        the reset pose is held; an actuator another interface drives keeps it."""
+        if len(worlds) == self.nworld:
+            driven = np.unique(self._actuator[self.active])
+            idle = self._default_active & ~np.isin(self._actuator, driven)
+            if idle.any():
+                self.active |= idle
+                self._index()
         if self._bank is not None:
             self._bank.reset(worlds)
             self._last_time[worlds] = np.nan

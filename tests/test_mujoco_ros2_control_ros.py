@@ -52,10 +52,16 @@ def ros():
     )  # fmt: skip
 
 
-@pytest.fixture(scope="module")
-def robot(tmp_path_factory, ros):
+@pytest.fixture(scope="module", params=["position", "pid"])
+def robot(request, tmp_path_factory, ros):
+    """The demo robot as robot_launch_test.py runs it (use_pid:=false), and as
+    robot_launch_pid_test.py does (use_pid:=true: motors under mujoco_pid.yaml's PIDs)."""
     log = tmp_path_factory.mktemp("mrc") / "batchsim.log"
-    with Fleet(domain_id(84), ["--worlds", "1", "--namespace", "", *UPSTREAM], log) as fleet:
+    args = [*UPSTREAM]
+    if request.param == "pid":
+        args[1] += " use_pid:=true"
+    with Fleet(domain_id(84), ["--worlds", "1", "--namespace", "", *args], log) as fleet:
+        fleet.pid = request.param == "pid"
         fleet.js = fleet.latest(ros["JointState"], "/joint_states")
         fleet.actuators = fleet.latest(ros["JointState"], "/mujoco_actuators_states")
         fleet.pose = fleet.latest(ros["PoseStamped"], "/pose_broadcaster/pose")
@@ -110,7 +116,10 @@ def test_available_hardware_interfaces(robot, ros):
     ]  # fmt: skip
     assert len(state) == len(expected_state) and set(state) == set(expected_state), state
     command = [i.name for i in reply.command_interfaces]
-    assert sorted(command) == sorted(["joint1/position", "joint2/position", "gripper_left_finger_joint/position"])
+    expected = ["joint1/position", "joint2/position", "gripper_left_finger_joint/position"]
+    if robot.pid:  # robot_launch_pid_test.py: the PIDs serve velocity too
+        expected += ["joint1/velocity", "joint2/velocity"]
+    assert sorted(command) == sorted(expected)
 
 
 def test_pose_interfaces_transform(robot):
@@ -227,7 +236,13 @@ def _free(ros, name, xyz, frame=""):
     return entry
 
 
+def _default_scene_only(robot):
+    if robot.pid:  # as upstream skips them: the PID scene has no free cubes and no keyframes
+        pytest.skip("cube1/cube2 and the start_90 keyframe are only in the default test_robot.xml scene")
+
+
 def test_reset_free_body_poses(robot, ros):
+    _default_scene_only(robot)
     request = ros["ms"].SetFreeJointState.Request(
         free_joints=[_free(ros, "cube1", (1.0, 1.0, 1.0)), _free(ros, "cube2", (-1.0, 1.0, 1.0))]
     )
@@ -236,6 +251,7 @@ def test_reset_free_body_poses(robot, ros):
 
 
 def test_bad_requests_change_nothing(robot, ros):
+    _default_scene_only(robot)
     ms = ros["ms"]
     request = ms.SetFreeJointState.Request(free_joints=[_free(ros, "cube1", (0, 0, 1)), _free(ros, "cube9", (0, 0, 1))])
     reply = robot.call(ms.SetFreeJointState, f"{NODE}/set_free_joint_state", request)
@@ -252,6 +268,7 @@ def test_bad_requests_change_nothing(robot, ros):
 
 
 def test_reset_to_a_keyframe_with_overrides(robot, ros):
+    _default_scene_only(robot)
     ms = ros["ms"]
     _switch(robot, ros, deactivate=["position_controller"])
     try:
