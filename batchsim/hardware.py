@@ -20,49 +20,49 @@ shown just before the `step()` call in which it failed (state, base_state, senso
 with no fresh sensor noise, and the failure is logged once, naming the world and the reason
 (`batchsim.failures`).
 
-A backend subclasses `BatchedSystem` and implements the engine hooks (`_open`, `_close`,
-`_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, `_body_poses`, `_qstate`, `_set_qstate`,
-and `_park` where the engine cannot skip a world); everything a user sees, checks and
-bookkeeping included, lives here so that every backend behaves the same.
+A backend subclasses `BatchedSystem` and implements the engine hooks (batchsim.engine: `_open`,
+`_close`, `_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, `_body_poses`, `_qstate`,
+`_set_qstate`, and `_park` where the engine cannot skip a world); everything a user sees,
+checks and bookkeeping included, lives here so that every backend behaves the same.
 
-Beside it: batchsim.lifecycle (ros2_control's lifecycle table, `SystemInterface`) and
-batchsim.types (the enums, constants and shaped records of the contract), whose names are
-re-exported here.
+Beside it: batchsim.lifecycle (ros2_control's lifecycle table, `SystemInterface`),
+batchsim.types (the enums, constants and shaped records of the contract), batchsim.sensing
+(cameras, lidars and sensor noise), batchsim.engine (the hooks). Their names are re-exported here.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from concurrent.futures import Future
-from pathlib import Path
 from typing import Any, ClassVar
 
 import mujoco
 import numpy as np
 
 from batchsim.actuation import Actuation
+from batchsim.engine import EngineHooks
 from batchsim.failures import FailureLog, ensure_log_dir
 from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState, SystemInterface
 from batchsim.model import RobotSpec, StateColumn, initial_command
-from batchsim.sensors import Camera, Lidar, LidarKind, SensorConfig, SensorSuite
+from batchsim.sensing import Sensing
+from batchsim.sensors import SensorConfig, SensorSuite
 from batchsim.types import (
     FROZEN,
     MAX_COMMAND,
     READ_FIELDS,
     ConfigurationError,
-    Frames,
-    PendingFrames,
     ReturnType,
     SensorData,
     Status,
     StepFailures,
 )
+from batchsim.types import Frames as Frames  # re-exported: importers take them from batchsim.hardware
+from batchsim.types import PendingFrames as PendingFrames
 
 S = LifecycleState
 _FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
 
 
-class BatchedSystem(SystemInterface):
+class BatchedSystem(Sensing, EngineHooks, SystemInterface):
     """`nworld` copies of one robot behind ros2_control's SystemInterface.
 
     Attributes (valid from on_configure on):
@@ -402,168 +402,7 @@ class BatchedSystem(SystemInterface):
         self._refresh()
         self._add_noise()
 
-    # --- cameras, lidars and sensor noise (batchsim.sensors) ---
-    @property
-    def sensors(self) -> SensorSuite:
-        """The cameras, lidars and sensor noise of every world, and which worlds want each."""
-        if self._sensors is None:
-            self._sensors = SensorSuite.build(self.spec, self.nworld, self._sensor_config)
-        return self._sensors
-
-    def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
-        """Configure cameras, lidars and noise (batchsim.sensors.config: a SensorConfig, YAML file or
-        mapping), before configure(). Raises SensorConfigError naming the file and key at fault."""
-        self._require("set the sensor configuration", frozenset({S.UNKNOWN, S.UNCONFIGURED}))
-        if not isinstance(config, SensorConfig):
-            config = SensorConfig.load(config)
-        self._sensors = SensorSuite.build(self.spec, self.nworld, config)
-        self._sensor_config = config
-
-    @property
-    def true_state(self) -> np.ndarray:
-        """(nworld, nstate) float64: `state` without sensor noise; `state` itself when there is none."""
-        truth = self._truth()
-        return self.state if truth is None else truth[0][:, : len(self.spec.state)]
-
-    @property
-    def true_sensordata(self) -> SensorData:
-        """Every MJCF sensor by name without noise, (nworld, dim); `sensordata` when there is none."""
-        truth = self._truth()
-        if truth is None:
-            return self.sensordata
-        return SensorData(truth[1], self.spec.sensors)
-
-    def _truth(self) -> tuple[np.ndarray, np.ndarray] | None:
-        noise = self.sensors.reading_noise
-        return None if noise is None else noise.truth
-
-    def render(
-        self, camera: str, worlds: Sequence[int] | np.ndarray | None = None, *, device: bool = False, copy: bool = True
-    ) -> Frames:
-        """Render `camera` in all or the listed worlds (indices or a bool mask), at the current state.
-
-        Returns Frames(rgb (n, H, W, 3) uint8, depth (n, H, W) float32), row i for world
-        `worlds[i]` in the order given (a bool mask lists worlds in order): top row first, depth
-        in metres along the optical axis, +inf where nothing was hit, NaN where noise dropped a
-        pixel. `device=True` returns the backend's own arrays for every world without a host
-        copy or noise (Warp arrays on warp, JAX on mjx, NumPy on cpu); `copy=False` may return
-        buffers the next render overwrites.
-        """
-        self._require("render", frozenset({S.INACTIVE, S.ACTIVE}))
-        cam = self.sensors.camera(camera)
-        if device:
-            if worlds is not None:
-                raise ValueError("render(device=True) renders every world: leave worlds=None and index on the device")
-            return Frames(*self._device_frames(cam))
-        rows = self._worlds(worlds)
-        sel = np.arange(self.nworld) if rows is None else rows
-        ascending, order = _ascending(sel)
-        rgb, depth = self._render_frames(cam, ascending, copy)
-        if order is not None:
-            rgb, depth = rgb[order], depth[order]
-        self.sensors.add_noise(cam.name, depth, sel)  # after the reordering: world w's noise on world w's row
-        return Frames(rgb, depth)
-
-    def render_async(self, camera: str, worlds: Sequence[int] | np.ndarray | None = None) -> PendingFrames:
-        """Start rendering `camera` in all or the listed worlds at the current state; return at once.
-
-        `result()` of the PendingFrames gives what `render(camera, worlds)` would have given
-        now (host arrays of the caller's own, noise included), waiting if need be. cpu and mjx
-        draw them on a background thread with its own OpenGL context, from a copy of the
-        worlds' poses taken now, so the caller can step on meanwhile (SensorSampler does:
-        the physics and the rendering then use two cores); the others render before
-        returning. Renders run in the order they were asked for.
-        """
-        self._require("render", frozenset({S.INACTIVE, S.ACTIVE}))
-        cam = self.sensors.camera(camera)
-        rows = self._worlds(worlds)
-        sel = np.arange(self.nworld) if rows is None else rows
-        ascending, order = _ascending(sel)
-        return PendingFrames(self._render_frames_later(cam, ascending), cam.name, sel, self.sensors, order)
-
-    def prepare_rendering(self) -> None:
-        """Set up now what the first `render_async` would otherwise set up inside the loop: on cpu
-        and mjx the render thread and its OpenGL context (making one holds Python's GIL for
-        ~0.2 s, a stalled control period if the loop runs). Nothing on warp, whose render
-        context, holding every world's frames, is made on a camera's first render.
-        SensorSampler calls it when it is made."""
-        self._require("prepare rendering", frozenset({S.INACTIVE, S.ACTIVE}))
-        if self.sensors.cameras:
-            self._prepare_rendering(list(self.sensors.cameras.values()))
-
-    def scan(
-        self, lidar: str, worlds: Sequence[int] | np.ndarray | None = None, *, device: bool = False, copy: bool = True
-    ) -> np.ndarray:
-        """One scan of `lidar` in all or the listed worlds: (n, nray) float32 ranges in metres, REP 117
-        (+inf: no hit within range_max, -inf: closer than range_min, NaN: dropped by noise), row i
-        for world `worlds[i]` in the order given (a bool mask lists worlds in order).
-
-        Rangefinder lidars read the MJCF rangefinders (as of the last step, like every
-        sensor); the others cast their rays now, at the current state. `device=True` returns
-        the backend's own (nworld, nray) array of every world without a host copy or noise
-        (a Warp array on warp, JAX on mjx, NumPy on cpu), as `render(device=True)`;
-        `copy=False` may return a buffer the next scan of this lidar overwrites.
-        """
-        self._require("scan", frozenset({S.INACTIVE, S.ACTIVE}))
-        ld = self.sensors.lidar(lidar)
-        if device:
-            if worlds is not None:
-                raise ValueError("scan(device=True) scans every world: leave worlds=None and index on the device")
-            return self._device_ranges(ld)
-        rows = self._worlds(worlds)
-        sel = np.arange(self.nworld) if rows is None else rows
-        ascending, order = _ascending(sel)
-        ranges = self._ranges(ld, ascending, copy)
-        if order is not None:
-            ranges = ranges[order]
-        self.sensors.add_noise(ld.name, ranges, sel)  # after the reordering: world w's noise on world w's row
-        return ranges
-
-    def _ranges(self, ld: Lidar, worlds: np.ndarray, copy: bool = True) -> np.ndarray:
-        """Noise-free REP 117 ranges (n, nray) float32 of `ld` in `worlds` (a buffer if not `copy`)."""
-        if ld.kind is LidarKind.RANGEFINDER:
-            truth = self._truth()
-            return ld.ranges((self._sensor_host if truth is None else truth[1])[np.ix_(worlds, ld.sensor_adr)])
-        return self._cast_ranges(ld, worlds, copy)
-
-    # sensor hooks, one set per backend; the `worlds` they get are ascending and unique (the
-    # callers put the rows back in the order asked for), as mujoco.batch's ids must be
-    def _render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds`: with `copy`
-        arrays of the caller's own (rendered into, not copied: a frame's bytes are written once),
-        else possibly buffers the next render overwrites."""
-        raise NotImplementedError(f"the {self.name} backend cannot render cameras")
-
-    def _device_frames(self, camera: Camera) -> tuple[Any, Any]:
-        """The backend's own (nworld, H, W, 3) uint8 and (nworld, H, W) float32 arrays of `camera`."""
-        return self._render_frames(camera, np.arange(self.nworld), False)
-
-    def _prepare_rendering(self, cameras: list[Camera]) -> None:
-        """Make ready what `_render_frames_later` needs for `cameras` (nothing by default)."""
-
-    def _render_frames_later(self, camera: Camera, worlds: np.ndarray) -> Future:
-        """A future of host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds`
-        at the current state, arrays of the caller's own; by default rendered now."""
-        future: Future = Future()
-        future.set_result(self._render_frames(camera, worlds, True))
-        return future
-
-    def _cast_ranges(self, lidar: Lidar, worlds: np.ndarray, copy: bool) -> np.ndarray:
-        """(n, nray) float32 REP 117 ranges of `lidar`'s rays in `worlds` at the current state, noise-free;
-        with `copy` False it may be a buffer the next cast overwrites."""
-        return lidar.ranges(self._cast_rays(lidar, worlds))
-
-    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
-        """(n, nray) distances along `lidar`'s rays in `worlds` at the current state; < 0: no hit."""
-        raise NotImplementedError(f"the {self.name} backend cannot cast lidar rays")
-
-    def _device_ranges(self, lidar: Lidar) -> Any:
-        """The backend's own (nworld, nray) float32 REP 117 ranges of every world, noise-free."""
-        return self._ranges(lidar, np.arange(self.nworld))
-
-    def _close_sensors(self) -> None:
-        """Free renderers and ray-casting buffers (before _close)."""
-
+    # --- bookkeeping: frozen worlds, world lists, the host arrays ---
     @property
     def frozen(self) -> np.ndarray:
         """(nworld,) bool: the worlds step() leaves alone until they are reset."""
@@ -620,27 +459,6 @@ class BatchedSystem(SystemInterface):
             self._sensor_host[frozen] = self._held_sensordata[frozen]
             self.time[frozen] = self._held_time[frozen]
 
-    def _add_noise(self) -> None:
-        """Sensor noise on the refreshed host readings (read() and reset(), after `_refresh`),
-        the truth kept for `true_state`; a frozen world keeps its noise-free held readings
-        rather than fresh noise on every read."""
-        noise = self.sensors.reading_noise
-        if noise is None:
-            return
-        self.sensors.add_reading_noise(self._readings, self._sensor_host)
-        if self.status.any():
-            frozen = self.frozen
-            if frozen.any():
-                truth_readings, truth_sensordata = noise.truth
-                self._readings[frozen] = truth_readings[frozen]
-                self._sensor_host[frozen] = truth_sensordata[frozen]
-
-    def _noise_free(self) -> tuple[np.ndarray, np.ndarray]:
-        """The last read()'s readings `(nworld, ncolumn)` and sensordata `(nworld, nsensordata)`
-        without sensor noise: the truth buffers, or the host arrays where there is no noise."""
-        truth = self._truth()
-        return (self._readings, self._sensor_host) if truth is None else truth
-
     def _gather_fields(
         self,
         fields: Mapping[str, np.ndarray],
@@ -654,65 +472,6 @@ class BatchedSystem(SystemInterface):
             readings[:, cols] = fields[source][:, idx]
         sensordata[:] = fields["sensordata"]
         time[:] = fields["time"]
-
-    # --- engine hooks, one set per backend ---
-    def _open(self) -> None:
-        """Allocate the engine and its buffers (on_configure)."""
-        raise NotImplementedError
-
-    def _close(self) -> None:
-        """Free the engine (on_cleanup, on_shutdown, on_error)."""
-
-    def _ctrl_host(self) -> np.ndarray:
-        """The host (nworld, nu) float64 ctrl array that write() fills."""
-        raise NotImplementedError
-
-    def _upload_ctrl(self) -> None:
-        """Make the host ctrl the engine's ctrl (a no-op where they are the same memory)."""
-
-    def _read(self) -> None:
-        """Every world's current values into `_readings` `(nworld, ncolumn)` (the columns of
-        `_columns`), `_sensor_host` `(nworld, nsensordata)` and `time` `(nworld,)`, float64.
-        Frozen worlds' rows are overwritten afterwards with what they hold."""
-        raise NotImplementedError
-
-    def _step(self, nstep: int) -> StepFailures | None:
-        """Advance the unfrozen worlds nstep steps; report the worlds that failed in this call
-        (None or an empty StepFailures: none). The base class then freezes them."""
-        raise NotImplementedError
-
-    def _reset(self, worlds: np.ndarray | None) -> None:
-        """Reset the listed worlds (None: all) to `spec.initial`. Their status is already clear."""
-        raise NotImplementedError
-
-    def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The engine's `xpos` `(n, nbody, 3)` and `xquat` `(n, nbody, 4)` of `worlds` `(n,)`, any
-        float dtype, arrays the caller may keep and change; frozen worlds' rows are replaced."""
-        raise NotImplementedError(f"the {self.name} backend cannot report body poses")
-
-    def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The engine's `qpos` `(n, nq)` and `qvel` `(n, nv)` of `worlds`, any float dtype, copies."""
-        raise NotImplementedError(f"the {self.name} backend cannot read the joint state")
-
-    def _set_qstate(self, worlds: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
-        """Write `qpos` `(n, nq)` and `qvel` `(n, nv)` float64 rows into the engine's `worlds` (live ones)."""
-        raise NotImplementedError(f"the {self.name} backend cannot write the joint state")
-
-    def _park(self, worlds: np.ndarray) -> None:
-        """Worlds just frozen: for an engine that steps every world whatever happens, keep them
-        from costing the others anything (the GPU backends reset them and hold ctrl at zero).
-        An engine that skips frozen worlds (cpu) has nothing to do."""
-
-
-def _ascending(worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """`worlds` (unique) sorted, and the index that puts rows of the sorted worlds back in the
-    order of `worlds` (None where they are sorted already: the usual case, no copy)."""
-    if worlds.size < 2 or bool((worlds[1:] > worlds[:-1]).all()):
-        return worlds, None
-    by_world = np.argsort(worlds, kind="stable")
-    order = np.empty_like(by_world)
-    order[by_world] = np.arange(worlds.size)
-    return worlds[by_world], order
 
 
 def _base_columns(spec: RobotSpec) -> list[StateColumn]:
