@@ -31,6 +31,7 @@ from batchsim.hardware import (
     Status,
     SystemInterface,
 )
+from batchsim.loop import OptionError
 from batchsim.model import ModelError, RobotSpec, load, model_names
 from batchsim.sensors import SensorConfig, SensorConfigError
 
@@ -129,7 +130,7 @@ def make(
             return sim
         options = {**options, "device": chosen_devices[0]}
     elif processes:
-        raise ValueError("processes=True is for a fleet over several devices: give devices= too")
+        raise OptionError("", "processes=True is for a fleet over several devices: give devices= too")
     sim = cls(spec, nworld, **options)
     sim.reason = reason
     sim.initialize()
@@ -143,22 +144,22 @@ def _devices(cls: type[BatchedSystem], devices: Sequence[int | str] | str) -> li
     picks from them; a name is the backend's own."""
     available = getattr(cls, "available_devices", None)
     if available is None:
-        raise ValueError(f"the {cls.name} backend runs on the host's cores: devices= is for mjx and warp")
+        raise OptionError("", f"the {cls.name} backend runs on the host's cores: devices= is for mjx and warp")
     have = available()
     if isinstance(devices, str):
         if devices.lower() != "all":
-            raise ValueError(f"devices must be 'all' or a list of device indices or names, got {devices!r}")
+            raise OptionError("", f"devices must be 'all' or a list of device indices or names, got {devices!r}")
         return list(have)
     chosen: list[Any] = []
     for d in devices:
         if isinstance(d, int | np.integer) and not isinstance(d, bool):
             if not 0 <= d < len(have):
-                raise ValueError(f"device {d} does not exist: the {cls.name} backend has {', '.join(have)}")
+                raise OptionError("", f"device {d} does not exist: the {cls.name} backend has {', '.join(have)}")
             chosen.append(have[int(d)])
         elif str(d) in have or str(d).partition(":")[0] == "cpu":  # the host's CPU is a device too
             chosen.append(d)
         else:
-            raise ValueError(f"device {d!r} does not exist: the {cls.name} backend has {', '.join(have)}")
+            raise OptionError("", f"device {d!r} does not exist: the {cls.name} backend has {', '.join(have)}")
     if not chosen:
-        raise ValueError("devices is empty: name at least one device")
+        raise OptionError("", "devices is empty: name at least one device")
     return chosen

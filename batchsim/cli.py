@@ -38,7 +38,9 @@ from batchsim.loop import LoopStats, OptionError, RateError, SimLoop, format_sta
 from batchsim.model import ModelError, model_names
 from batchsim.model.description import model_file, read_description
 from batchsim.model.from_urdf import is_urdf
-from batchsim.sensors import SensorConfig, SensorSuite
+from batchsim.model.params import ParamsError
+from batchsim.sensors import DeclarationError, SensorConfig, SensorConfigError, SensorSuite
+from batchsim.startup import MemoryCheckError
 
 EXIT_USAGE = 2
 
@@ -615,13 +617,20 @@ def run(argv: Sequence[str]) -> int:
     return 0
 
 
+#: the errors a command line, a file or the machine causes (each one line naming its cause)
+USER_ERRORS = (
+    UsageError, ModelError, ConfigurationError, BackendUnavailable, LifecycleError, ParamsError, MemoryCheckError,
+    OptionError, RateError, SensorConfigError, DeclarationError,
+)  # fmt: skip
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if argv and argv[0] == "info":
             return info(argv[1:])
         return run(argv)
-    except (UsageError, ModelError, ConfigurationError, BackendUnavailable, LifecycleError, ValueError) as e:
+    except USER_ERRORS as e:  # what the user can fix, as one line; an internal bug keeps its traceback
         print(f"batchsim: error: {e}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

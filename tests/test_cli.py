@@ -19,7 +19,7 @@ import pytest
 
 import batchsim
 from batchsim import startup
-from batchsim.loop import LoopStats, SimLoop, format_stats
+from batchsim.loop import LoopStats, OptionError, SimLoop, format_stats
 from ros_bridge.naming import NamingError, world_namespaces
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -316,3 +316,22 @@ def test_throughput_plot_keeps_the_auto_column_each_row_was_recorded_with(tmp_pa
     assert out.returncode == 0, out.stderr
     picks = [line.split() for line in out.stdout.splitlines() if line.strip().startswith("1024 ")]
     assert picks and picks[-1][1] == "cpu", out.stdout  # today's rule (warp from 512) would say warp
+
+
+def test_an_internal_bug_is_not_passed_off_as_a_usage_error(monkeypatch, capsys):
+    """Issue 22: main() caught every ValueError, so a bug exited 2 as a one-line usage error."""
+    from batchsim import cli
+
+    def broken(argv):
+        raise ValueError("an index went wrong somewhere")
+
+    monkeypatch.setattr(cli, "run", broken)
+    with pytest.raises(ValueError, match="an index went wrong"):
+        cli.main(["--no-ros"])
+
+    def user_error(argv):
+        raise OptionError("", "unknown backend 'foo' (choose from auto, cpu, mjx, warp)")
+
+    monkeypatch.setattr(cli, "run", user_error)
+    assert cli.main(["--backend", "foo"]) == 2
+    assert capsys.readouterr().err.strip() == "batchsim: error: unknown backend 'foo' (choose from auto, cpu, mjx, warp)"

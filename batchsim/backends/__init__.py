@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 
 from batchsim.hardware import BatchedSystem, ConfigurationError
+from batchsim.loop import OptionError
 from batchsim.model import RobotSpec
 from batchsim.startup import install_command
 
@@ -32,7 +33,7 @@ class Backend(enum.Enum):
             return cls(str(value).lower())
         except ValueError:
             names = ", ".join(b.value for b in cls)
-            raise ValueError(f"unknown backend {value!r} (choose from {names})") from None
+            raise OptionError("", f"unknown backend {value!r} (choose from {names})") from None
 
 
 # backend -> (module, class, the pip extra that brings its packages)
@@ -56,7 +57,7 @@ class BackendUnavailable(ImportError):
 def backend_class(backend: Backend) -> type[BatchedSystem]:
     """The class of a concrete backend, importing its heavy packages only now."""
     if backend not in _REGISTRY:
-        raise ValueError(f"backend {backend.value!r} is not available in this version of batchsim")
+        raise OptionError("", f"backend {backend.value!r} is not available in this version of batchsim")
     module, cls, extra = _REGISTRY[backend]
     try:
         return getattr(importlib.import_module(module), cls)

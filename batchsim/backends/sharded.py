@@ -44,6 +44,7 @@ import numpy as np
 
 from batchsim.backends.shards import FleetRows, LocalShard, ProcessShard, fleet_layout, spin_budget
 from batchsim.hardware import BatchedSystem, CallbackReturn, LifecycleState, ReturnType
+from batchsim.loop import OptionError
 from batchsim.memory import Memory
 from batchsim.model import RobotSpec
 from batchsim.sensors import Camera, Lidar, SensorConfig
@@ -52,7 +53,7 @@ from batchsim.sensors import Camera, Lidar, SensorConfig
 def split(nworld: int, nshard: int) -> list[range]:
     """Contiguous world ranges, as even as possible, the larger ones first."""
     if not 1 <= nshard <= nworld:
-        raise ValueError(f"{nworld} worlds cannot be split over {nshard} devices")
+        raise OptionError("", f"{nworld} worlds cannot be split over {nshard} devices")
     base, extra = divmod(nworld, nshard)
     ranges, start = [], 0
     for i in range(nshard):
@@ -116,7 +117,7 @@ class ShardedSystem(BatchedSystem):
     ):
         super().__init__(spec, nworld)
         if "device" not in backend.OPTIONS:
-            raise ValueError(f"the {backend.name} backend does not run on devices; it cannot be sharded")
+            raise OptionError("", f"the {backend.name} backend does not run on devices; it cannot be sharded")
         self.name = backend.name
         self.devices = list(devices)
         self.processes = bool(processes)
