@@ -146,6 +146,32 @@ def test_rows_and_noise_follow_the_order_the_worlds_are_listed_in(backend):
     whole.shutdown()
 
 
+def test_the_cpu_ray_caster_takes_the_worlds_in_any_order():
+    """HostSensors.cast on a permutation of every world ([1, 0] of two) cast world 0's rays for
+    row 0 (it passed ids=None whenever the count matched); each row is now the world named."""
+    from mujoco import batch as mjbatch
+
+    from batchsim.sensors.host import HostSensors
+
+    sim = batchsim.make(str(SCENE), 2, "cpu")
+    sim.configure()
+    sim.activate()
+    sim.command[1, 0] = SHIFT
+    for _ in range(10):
+        sim.write()
+        sim.step(10)
+    m = sim.model
+    batch = mjbatch.Batch(m, 2, nthread=1)
+    batch.bind("qpos")[:] = sim.qstate()[0]
+    batch.forward()
+    host = HostSensors(m, batch)
+    lidar = sim.sensors.lidar("scan")
+    straight, swapped = host.cast(lidar, np.array([0, 1])), host.cast(lidar, np.array([1, 0]))
+    assert np.nanmean(straight[1]) < np.nanmean(straight[0]) - SHIFT / 2
+    np.testing.assert_array_equal(swapped, straight[[1, 0]])
+    sim.shutdown()
+
+
 def test_device_frames(box):
     frames = box.render("front", device=True)
     rgb, depth = host(frames.rgb), host(frames.depth)

@@ -244,8 +244,16 @@ class HostSensors:
         n = len(worlds)
         origin, rotation = self.site_poses(lidar.site_id, worlds)
         vec = np.einsum("nij,rj->nri", rotation, lidar.directions)
-        ids = None if n == self.batch.nsim else np.asarray(worlds, np.int32)
+        every = n == self.batch.nsim and bool((np.asarray(worlds) == np.arange(n)).all())
+        if every:
+            ids = None
+        else:  # the batch takes ids sorted: cast in ascending order, give rows back in the order asked
+            order = np.argsort(worlds, kind="stable")
+            ids = np.asarray(worlds, np.int32)[order]
+            origin, vec = origin[order], vec[order]
         dist, _ = self.batch.ray(origin[:, None, :], vec, bodyexclude=lidar.body_id, ids=ids)
+        if not every:
+            dist[order] = dist.copy()
         return dist
 
 
