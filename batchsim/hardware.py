@@ -54,6 +54,7 @@ from batchsim.types import (
     SensorData,
     Status,
     StepFailures,
+    check_nstep,
 )
 from batchsim.types import Frames as Frames  # re-exported: importers take them from batchsim.hardware
 from batchsim.types import PendingFrames as PendingFrames
@@ -291,8 +292,7 @@ class BatchedSystem(Sensing, EngineHooks, SystemInterface):
         until `reset` lists it.
         """
         self._require("step", frozenset({S.INACTIVE, S.ACTIVE}))
-        if nstep < 1:
-            raise ValueError(f"nstep must be >= 1, got {nstep}")
+        check_nstep(nstep)
         self._failure_log.flush()
         failures = self._step(int(nstep))
         self._readings_current = False

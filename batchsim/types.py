@@ -148,3 +148,9 @@ class PendingFrames:
             self._suite.add_noise(self.camera, depth, self.worlds)
             self._frames = Frames(rgb, depth)
         return self._frames
+
+
+def check_nstep(nstep: Any) -> None:
+    """A step count: a whole number >= 1 (`step(2.5)` once ran 2 steps). ValueError otherwise."""
+    if isinstance(nstep, bool) or not isinstance(nstep, int | np.integer) or nstep < 1:
+        raise ValueError(f"nstep must be a whole number of physics steps >= 1, got {nstep!r}")

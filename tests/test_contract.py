@@ -264,6 +264,21 @@ def test_step_needs_a_configured_system(backend):
         sim.step(1)
 
 
+@pytest.mark.parametrize("nstep", [2.5, 0, -1, True, "3"])
+def test_step_takes_a_whole_number_of_steps(arm, nstep):
+    """Issue 23: step(2.5) ran 2 steps; every backend refuses what is not a whole count >= 1."""
+    with pytest.raises(ValueError, match="nstep must be a whole number of physics steps >= 1"):
+        arm.step(nstep)
+    arm.step(np.int64(1))  # NumPy's integers are whole numbers too
+
+
+def test_write_while_unconfigured_does_nothing_as_ros2_control_does():
+    """ros2_control (jazzy's hardware_interface/system.cpp) skips read() and write() with OK in
+    UNKNOWN, UNCONFIGURED and FINALIZED (lifecycleStateThatRequiresNoAction); so does the contract."""
+    sim = batchsim.make("arm", 1, "cpu")
+    assert sim.write() is ReturnType.OK and sim.read() is ReturnType.OK
+
+
 # ---------------------------------------------------------------- reset
 
 

@@ -48,6 +48,7 @@ from batchsim.loop import OptionError
 from batchsim.memory import Memory
 from batchsim.model import RobotSpec
 from batchsim.sensors import Camera, Lidar, SensorConfig
+from batchsim.types import check_nstep
 
 
 def split(nworld: int, nshard: int) -> list[range]:
@@ -227,8 +228,7 @@ class ShardedSystem(BatchedSystem):
     def step(self, nstep: int = 1) -> None:
         """Advance every world `nstep` steps, every device at once; returns when all are done."""
         self._require("step", frozenset({LifecycleState.INACTIVE, LifecycleState.ACTIVE}))
-        if nstep < 1:
-            raise ValueError(f"nstep must be >= 1, got {nstep}")
+        check_nstep(nstep)
         # the first period of a length compiles or captures it: one device at a time
         self._each("step", int(nstep), parallel=nstep in self._stepped)
         self._stepped.add(nstep)
