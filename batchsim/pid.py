@@ -9,7 +9,8 @@ control_toolbox's `Pid::compute_command(error, dt)`:
     p_term = p * error
     i_term += i * error * dt                        (skipped while dt <= 0)
     i_term  clamped to [i_clamp_min, i_clamp_max]   (the `legacy` anti-windup; infinite by default)
-    d_term = d * (error - previous error) / dt      (0 on the first update after a reset)
+    d_term = d * (error - previous error) / dt      (0 on the first update after a reset;
+                                                     d * error_dot where the caller knows it)
     u      = p_term + i_term + d_term, clamped to [u_clamp_min, u_clamp_max]
 
 `conditional_integration` skips the integration while `u` is saturated and the error would
@@ -135,12 +136,23 @@ class PidBank:
         self.i_term[:, columns] = 0.0
         self.last_error[:, columns] = np.nan
 
-    def update(self, error: np.ndarray, dt: np.ndarray, worlds: np.ndarray | slice = slice(None)) -> np.ndarray:
+    def update(
+        self,
+        error: np.ndarray,
+        dt: np.ndarray | float,
+        worlds: np.ndarray | slice = slice(None),
+        *,
+        error_dot: np.ndarray | None = None,
+    ) -> np.ndarray:
         """One update of the listed worlds' loops.
 
         Args:
           error: (len(worlds), npid) command minus measurement.
-          dt: (len(worlds), 1) or (len(worlds),) seconds since each world's last update.
+          dt: (len(worlds), 1) or (len(worlds),) seconds since each world's last update, or
+            one number for every world.
+          error_dot: (len(worlds), npid) the error's derivative where the caller knows it (a
+            velocity error), as control_toolbox's `compute_command(error, error_dot, dt)`;
+            None: the difference quotient of successive errors.
         Returns:
           (len(worlds), npid) the controller outputs u.
         """
@@ -149,15 +161,19 @@ class PidBank:
         last = self.last_error[worlds]
         p_term = self.p * error
         if (dt > 0).all():  # every world stepped since its last update: the usual period
-            d_term = self.d * np.nan_to_num((error - last) / dt, nan=0.0)  # NaN last: a first update
+            if error_dot is None:
+                d_term = self.d * np.nan_to_num((error - last) / dt, nan=0.0)  # NaN last: a first update
             integrate = self.i * error * dt
             elapsed = dt
         else:
             stepped = dt > 0
             elapsed = np.where(stepped, dt, 0.0)
-            safe_dt = np.where(stepped, dt, 1.0)
-            d_term = np.where(np.isnan(last) | ~stepped, 0.0, self.d * (error - last) / safe_dt)
+            if error_dot is None:
+                safe_dt = np.where(stepped, dt, 1.0)
+                d_term = np.where(np.isnan(last) | ~stepped, 0.0, self.d * (error - last) / safe_dt)
             integrate = self.i * error * elapsed
+        if error_dot is not None:
+            d_term = self.d * error_dot
         if self._any_conditional:
             trial = p_term + i_term + d_term
             saturated = ((trial > self.u_max) & (error > 0)) | ((trial < self.u_min) & (error < 0))

@@ -794,6 +794,120 @@ def test_forward_command_batched_and_validated():
     assert not np.delete(sim.command, 2, axis=0).any()
 
 
+# ---------------------------------------------------------------- the trajectory controller's PID
+
+QUADRUPED_JOINTS = [
+    f"{leg}_{part}" for leg in ("FL", "FR", "HL", "HR") for part in ("hip_abduction", "hip_flexion", "knee")
+]
+
+
+def effort_jtc_yaml(gains: str) -> str:
+    """A trajectory controller on the quadruped's effort interfaces, with a `gains:` block."""
+    return (
+        "controller_manager:\n  ros__parameters:\n    update_rate: 100\n"
+        "    t:\n      type: joint_trajectory_controller/JointTrajectoryController\n"
+        "t:\n  ros__parameters:\n"
+        f"    joints: [{', '.join(QUADRUPED_JOINTS)}]\n"
+        "    command_interfaces: [effort]\n    state_interfaces: [position, velocity]\n"
+        "    gains:\n" + textwrap.indent(textwrap.dedent(gains), " " * 6)
+    )
+
+
+def test_trajectory_pid_is_ros2_controllers_formula_per_joint_and_world():
+    """effort = ff_velocity_scale * v_ref + p e + sum(i e dt) clamped to +-i_clamp + d de, with
+    de the velocity error (not a difference quotient); the integral restarts with each trajectory."""
+    rng = np.random.default_rng(3)
+    nj = len(QUADRUPED_JOINTS)
+    p, i, d = rng.uniform(1, 50, nj), rng.uniform(0, 20, nj), rng.uniform(0, 2, nj)
+    ff = np.where(np.arange(nj) % 3 == 0, 0.0, rng.uniform(0.5, 1.5, nj))
+    clamp = np.where(np.arange(nj) % 2 == 0, np.inf, rng.uniform(0.01, 0.05, nj))
+    gains = ""
+    for k, j in enumerate(QUADRUPED_JOINTS):  # float() for repr: a YAML number, all its digits
+        gains += f"{j}: {{p: {float(p[k])!r}, i: {float(i[k])!r}, d: {float(d[k])!r}"
+        gains += f", ff_velocity_scale: {float(ff[k])!r}" if ff[k] else ""
+        gains += f", i_clamp: {float(clamp[k])!r}}}\n" if np.isfinite(clamp[k]) else "}\n"
+    spec = batchsim.load("quadruped")
+    manager = load_controllers(effort_jtc_yaml(gains), spec, 3)
+    assert manager.warnings == []
+    jtc = manager["t"]
+    sim = FakeSim(spec, 3, rng)
+    pos = [spec.state_interfaces.index(f"{j}/position") for j in QUADRUPED_JOINTS]
+    vel = [spec.state_interfaces.index(f"{j}/velocity") for j in QUADRUPED_JOINTS]
+    cols = [spec.command_interfaces.index(f"{j}/effort") for j in QUADRUPED_JOINTS]
+    period = 0.01
+    integral = np.zeros((3, nj))
+    starts = {0: [0, 1], 40: [1], 70: [0]}  # update -> the worlds whose new trajectory starts there
+    for step in range(100):
+        for w in starts.get(step, []):
+            target = rng.normal(scale=0.3, size=nj)
+            jtc.set_trajectory(w, QUADRUPED_JOINTS, [0.2, 0.5], [target / 2, target], [target, np.zeros(nj)])
+            integral[w] = 0.0
+        if step == 55:  # a reset world forgets its integral
+            manager.on_reset(sim, [2])
+            integral[2] = 0.0
+        manager.update(sim, step * period, period)
+        e = jtc.reference_position - sim.state[:, pos]
+        de = jtc.reference_velocity - sim.state[:, vel]
+        integral = np.clip(integral + i * e * period, -clamp, clamp)
+        expected = ff * jtc.reference_velocity + p * e + integral + d * de
+        np.testing.assert_allclose(
+            sim.command[:, cols], expected, rtol=1e-12, atol=1e-12, err_msg=f"step {step}"
+        )
+        np.testing.assert_allclose(jtc.output, expected, rtol=1e-12, atol=1e-12)
+        sim.advance(period)
+    assert np.abs(jtc.reference_velocity[[0, 1]]).max() > 0 and (np.abs(integral) == clamp).any()
+
+
+def test_trajectory_gains_are_control_toolbox_pid_parameters_and_a_typo_warns():
+    """gains.<joint> takes control_toolbox's PID parameters (clamps, anti-windup) besides
+    ff_velocity_scale and i_clamp, as the ros2_control PID path does; any other key is a
+    warning naming the controller, the joint and the key, not silence."""
+    spec = batchsim.load("quadruped")
+    others = "".join(f"{j}: {{p: 10.0}}\n" for j in QUADRUPED_JOINTS[1:])
+    manager = load_controllers(
+        effort_jtc_yaml(
+            f"""\
+            {QUADRUPED_JOINTS[0]}:
+              p: 1000.0
+              i_clamp_min: -1.0
+              u_clamp_max: 2.0
+              u_clamp_min: -3.0
+              antiwindup_strategy: conditional_integration
+              antiwindup_stratgy: back_calculation
+              ff_velocity_scale: 0.0
+              dd: 1.0
+            """
+        )
+        + textwrap.indent(others, " " * 6),
+        spec,
+        2,
+    )
+    bad = sorted(w for w in manager.warnings if "gains" in w)
+    assert len(bad) == 2, manager.warnings
+    for w, key in zip(bad, ("antiwindup_stratgy", "dd"), strict=True):
+        assert "controller 't'" in w and f"gains.{QUADRUPED_JOINTS[0]}.{key}: ignored" in w, w
+    jtc = manager["t"]
+    sim = FakeSim(spec, 2, np.random.default_rng(0))
+    col = spec.command_interfaces.index(f"{QUADRUPED_JOINTS[0]}/effort")
+    manager.update(sim, 0.0, 0.01)
+    target = np.zeros(len(QUADRUPED_JOINTS))
+    for w, sign in ((0, 1.0), (1, -1.0)):
+        target[0] = sim.state[w, spec.state_interfaces.index(f"{QUADRUPED_JOINTS[0]}/position")] + sign
+        jtc.set_trajectory(w, QUADRUPED_JOINTS, [0.0], [target])  # applied at once
+    manager.update(sim, 0.01, 0.01)
+    np.testing.assert_allclose(sim.command[:, col], [2.0, -3.0])  # p * error (+-1000) clamped to u_clamp
+
+    for gains, message in (
+        ("{p: 1.0, antiwindup_strategy: sideways}", ".antiwindup_strategy: unknown strategy 'sideways'"),
+        ("{p: fast}", ".p: must be a number, got 'fast'"),
+        ("{p: 1.0, u_clamp_min: 2.0, u_clamp_max: 1.0}", ": a clamp's min is above its max"),
+    ):
+        gains, message = f"{QUADRUPED_JOINTS[0]}: {gains}", f"gains.{QUADRUPED_JOINTS[0]}{message}"
+        with pytest.raises(ConfigurationError) as info:
+            load_controllers(effort_jtc_yaml(gains + "\n" + others), spec, 1)
+        assert "controller 't'" in str(info.value) and message in str(info.value), str(info.value)
+
+
 # ---------------------------------------------------------------- fleet scale: buffers, the door, batches
 
 LINEAR_JTC = arm_yaml(

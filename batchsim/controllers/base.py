@@ -25,13 +25,16 @@ class Params:
     """A controller's `ros__parameters`, flattened to dotted keys (`linear.x.max_velocity`).
 
     Every getter names the file, the controller and the key in the ConfigurationError it
-    raises; `unused()` lists the keys nobody asked for, so that typos can be reported.
+    raises; `unused()` lists the keys nobody asked for, so that typos can be reported, and
+    `warnings` holds the lines a controller writes about keys it read and ignores (a typo
+    inside a block it reads whole), reported beside them.
     """
 
     def __init__(self, values: Mapping[str, Any], *, where: str, controller: str):
         self.values = dict(values)
         self.where = where
         self.controller = controller
+        self.warnings: list[str] = []
         self._read: set[str] = set()
 
     def error(self, key: str, message: str) -> ConfigurationError:

@@ -3,7 +3,8 @@
 Modules: `controller` (the controller), `timeline` (each world's queued and running
 trajectory, and the reference sampled from it), `pool` (the segment pool), `splines`
 (segment polynomials and their sampling), `validation` (batch unpacking and checks,
-command bounds), `goals` (action goals: tolerances and outcomes).
+command bounds), `goals` (action goals: tolerances and outcomes), `gains` (the
+`gains.<joint>` blocks, read into `batchsim.pid`'s PidGains).
 
 Semantics follow ros2_control's controller:
 
@@ -43,8 +44,10 @@ advances as time does, so sampling costs O(worlds), not O(points).
 
 Commands: a `position` interface gets the reference position (and `velocity`, when
 claimed alongside it, the reference velocity); a lone `velocity` or `effort` interface
-gets `ff_velocity_scale * v_ref + PID(error)` with `gains.<joint>.p/i/d/i_clamp/
-ff_velocity_scale`, as the stock controller computes it.
+gets `ff_velocity_scale * v_ref + PID(error, velocity error)`, as the stock controller
+computes it: `batchsim.pid.PidBank` with the velocity error as the error's derivative, and
+`gains.<joint>` holding control_toolbox's PID parameters (`p`, `i`, `d`, the clamps,
+`antiwindup_strategy`), the symmetric `i_clamp` and `ff_velocity_scale`.
 
 Action goals (control_msgs/FollowJointTrajectory, served by the ROS bridge) arrive as
 trajectories of a TrajectoryBatch with a tag (`goals`) and tolerances; the controller

@@ -21,11 +21,13 @@ from batchsim.controllers.topics import (
     Output,
     TrajectoryBatch,
 )
+from batchsim.controllers.trajectory.gains import read_gains
 from batchsim.controllers.trajectory.goals import Constraints, GoalTracker
 from batchsim.controllers.trajectory.splines import Interpolation, point_rows
 from batchsim.controllers.trajectory.timeline import Timeline
 from batchsim.controllers.trajectory.validation import CommandBound, check, one_trajectory, unpack
 from batchsim.model import RobotSpec
+from batchsim.pid import PidBank
 
 # the combinations of command interfaces the stock controller accepts
 COMMAND_COMBINATIONS = (
@@ -44,8 +46,8 @@ class JointTrajectoryController(Controller):
 
     Parameters (stock): `joints`, `command_joints`, `command_interfaces`,
     `state_interfaces`, `allow_partial_joints_goal`, `open_loop_control`,
-    `interpolation_method` (splines, none), `gains.<joint>.{p, i, d, i_clamp,
-    ff_velocity_scale}`, `constraints.{stopped_velocity_tolerance, goal_time,
+    `interpolation_method` (splines, none), `gains.<joint>` (control_toolbox's PID parameters,
+    `ff_velocity_scale` and `i_clamp`: gains.py), `constraints.{stopped_velocity_tolerance, goal_time,
     <joint>.trajectory, <joint>.goal}` (goals.py; `decelerate_on_cancel` and
     `<joint>.max_deceleration_on_cancel` are read and not acted on); `action_monitor_rate`,
     `state_publish_rate` and the rest are accepted and not acted on. batchsim's own:
@@ -131,34 +133,14 @@ class JointTrajectoryController(Controller):
             )
 
         # PID for a lone velocity or effort interface (ros2_control: required for effort)
-        self._pid = self.command_kinds in (("velocity",), ("effort",))
-        self.kp, self.ki, self.kd = np.zeros(nj), np.zeros(nj), np.zeros(nj)
-        self.i_clamp = np.full(nj, np.inf)
-        self.ff_velocity_scale = np.zeros(nj) if self.command_kinds == ("effort",) else np.ones(nj)
-        for k, j in enumerate(self.joints):
-            params.keys_under(f"gains.{j}")
-            if params.has(f"gains.{j}.p") or params.has(f"gains.{j}.d") or params.has(f"gains.{j}.i"):
-                self.kp[k] = params.number(f"gains.{j}.p", 0.0)
-                self.ki[k] = params.number(f"gains.{j}.i", 0.0)
-                self.kd[k] = params.number(f"gains.{j}.d", 0.0)
-                self.i_clamp[k] = (
-                    params.number(f"gains.{j}.i_clamp", np.inf)
-                    if params.has(f"gains.{j}.i_clamp")
-                    else np.inf
-                )
-                if params.has(f"gains.{j}.i_clamp_max"):
-                    self.i_clamp[k] = params.number(f"gains.{j}.i_clamp_max")
-                self.ff_velocity_scale[k] = params.number(
-                    f"gains.{j}.ff_velocity_scale", float(self.ff_velocity_scale[k])
-                )
-            elif self.command_kinds == ("effort",):
-                raise params.error(
-                    f"gains.{j}",
-                    "missing: an effort command interface needs PID gains (gains.<joint>.p, .i, .d)",
-                )
-
+        pid = self.command_kinds in (("velocity",), ("effort",))
+        gains, self.ff_velocity_scale = read_gains(
+            params, self.joints, effort=self.command_kinds == ("effort",)
+        )
+        self._pids = PidBank(gains, self.nworld) if pid else None
+        p, d = (np.array([getattr(g, name) for g in gains]) for name in ("p", "d"))
         self._bound = CommandBound(
-            self.command_kinds, self._pid, np.abs(self.ff_velocity_scale) + np.abs(self.kd), np.abs(self.kp)
+            self.command_kinds, pid, np.abs(self.ff_velocity_scale) + np.abs(d), np.abs(p)
         )
         self.constraints = Constraints.read(params, self.joints)
         self._goals = GoalTracker(self.nworld, self.constraints)
@@ -188,7 +170,6 @@ class JointTrajectoryController(Controller):
         self.error_position = np.zeros((W, nj))
         self.error_velocity = np.zeros((W, nj))
         self.output = np.zeros((W, sum(len(c) for _, c in self._cmd)))
-        self._i_term = np.zeros((W, nj))
 
     # --- what the buffers hold ---
     @property
@@ -362,7 +343,8 @@ class JointTrajectoryController(Controller):
         self._goals.abort(worlds)
         self._stop(worlds)
         self._timeline.pool.shrink()
-        self._i_term[worlds] = 0.0
+        if self._pids is not None:
+            self._pids.reset(worlds)
 
     def _stop(self, worlds: np.ndarray) -> None:
         """Drop the worlds' trajectories, running and queued, and hold them where they were
@@ -412,14 +394,13 @@ class JointTrajectoryController(Controller):
             here_v = np.zeros((len(due), len(self.joints)))
         end, started = self._timeline.start(due, time, here, here_v)
         self._goals.start(due, end)
-        self._i_term[started] = 0.0
+        if self._pids is not None:  # each trajectory integrates its own error
+            self._pids.reset(started)
 
     def _command(self, sim: Any, period: float) -> None:
-        if self._pid:
-            e, de = self.error_position, self.error_velocity
-            self._i_term += self.ki * e * period
-            np.clip(self._i_term, -self.i_clamp, self.i_clamp, out=self._i_term)
-            u = self.ff_velocity_scale * self.reference_velocity + self.kp * e + self._i_term + self.kd * de
+        if self._pids is not None:  # the velocity error is the error's derivative, as upstream's
+            pid = self._pids.update(self.error_position, period, error_dot=self.error_velocity)
+            u = self.ff_velocity_scale * self.reference_velocity + pid
             kind, cols = self._cmd[0]
             self.output[:] = u
             sim.command[:, cols] = u
