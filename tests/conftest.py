@@ -8,7 +8,8 @@ BATCHSIM_SHARD_PROCESSES=1 to run the suite on it too (a process fleet costs sec
 start on 2 cores, so CI runs tests/test_devices.py's process tests instead).
 
 A backend whose optional packages are missing is skipped, unless
-BATCHSIM_FORCE_BACKENDS=1 (CI sets it, so a broken install fails instead of skipping).
+BATCHSIM_FORCE_BACKENDS=1 (CI sets it, so a broken install fails instead of skipping);
+`need(module)` does the same for any optional package a test imports (rclpy, jax, ...).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import functools
 import importlib.util
 import os
 import tempfile
+import types
 
 # before JAX is imported anywhere: two CPU devices, for the multi-device tests
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
@@ -70,3 +72,17 @@ def _backend(name: str):
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(batchsim, "make", make_on_two_devices)
         yield base
+
+
+def need(module: str, hint: str = "") -> types.ModuleType:
+    """Import an optional package's `module` for a test, or at the top of a test file: where it
+    does not import, skip, unless BATCHSIM_FORCE_BACKENDS=1 (CI), where the ImportError fails
+    the test (or the whole file) instead. In place of `pytest.importorskip`, which never fails:
+    tests/test_ci.py allows no other."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as error:
+        if os.environ.get("BATCHSIM_FORCE_BACKENDS") == "1":
+            raise
+        why = f"{module} is not importable ({error})" + (f"; {hint}" if hint else "")
+        pytest.skip(why, allow_module_level=True)

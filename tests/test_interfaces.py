@@ -25,6 +25,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from conftest import need
 
 from ros_bridge import interfaces
 from ros_bridge.interfaces import build
@@ -81,12 +82,7 @@ TYPES = [
 
 def _need(module: str):
     """Import `module`; skip if it is missing, fail instead under BATCHSIM_FORCE_BACKENDS=1."""
-    try:
-        return importlib.import_module(module)
-    except ImportError as error:
-        if os.environ.get("BATCHSIM_FORCE_BACKENDS") == "1":
-            raise
-        pytest.skip(f"{module} is not importable ({error}); run `python -m ros_bridge.interfaces`")
+    return need(module, "run `python -m ros_bridge.interfaces`")
 
 
 # --- the type hash that rmw gives DDS, read from the C type support the Python class wraps

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import need
 
 import batchsim
 from batchsim import ConfigurationError, LifecycleState, ModelError
@@ -774,7 +775,7 @@ def test_odom_free_joint_name_picks_the_floating_base(tmp_path):
 
 def test_auto_picks_warp_from_the_measured_crossover_on_a_gpu(monkeypatch):
     """The held-out run on an H200 (RESULTS.md): warp beats cpu at 256 humanoids, cpu wins at 128."""
-    pytest.importorskip("mujoco_warp")
+    need("mujoco_warp")
     monkeypatch.setattr(batchsim.backends, "cuda_gpu", lambda: True)
     spec = batchsim.load("humanoid")
     assert batchsim.backends.resolve("auto", spec, 128)[0] is batchsim.Backend.CPU

@@ -11,9 +11,11 @@ import importlib.util
 import sys
 import tarfile
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from conftest import need
 
 import batchsim
 from batchsim.loop import SimLoop
@@ -82,11 +84,11 @@ def test_home_keyframe_and_the_robots_own_base(robots):
 def test_warp_runs_a_menagerie_arm_and_mjx_names_what_it_cannot_simulate(robots, capsys):
     from benchmarks.robots import main
 
-    pytest.importorskip("mujoco_warp")
+    need("mujoco_warp")
     scene = robots / "universal_robots_ur5e" / "scene.xml"
     assert main([str(scene), "--backends", "warp", "--seconds", "0.2", "--worlds", "2"]) == 0
     assert "ok   universal_robots_ur5e/scene.xml" in capsys.readouterr().out
-    pytest.importorskip("jax")
+    need("jax")
     with pytest.raises(batchsim.backends.UnsupportedModel, match=r"mjx backend cannot simulate .*backends that can: cpu, warp"):
         batchsim.make(robots / "unitree_go2" / "scene.xml", 2, "mjx")
 
@@ -136,13 +138,25 @@ def test_a_quadruped_is_held_standing_by_position_commands_through_pids(robots, 
 
 # --- over ROS 2 ---
 
-rclpy = pytest.importorskip("rclpy")
 
-from geometry_msgs.msg import PoseStamped  # noqa: E402
-from ros_fleet import Fleet, domain_id  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
+@pytest.fixture(scope="module")
+def ros() -> SimpleNamespace:
+    """The test fleet and the messages the tests over ROS 2 use, imported for those tests only,
+    so that the plain tests of this file run where ROS is absent: a missing rclpy skips them,
+    or fails them under BATCHSIM_FORCE_BACKENDS=1 (CI)."""
+    fleet = need("ros_fleet")
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.duration import Duration
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    return SimpleNamespace(
+        Fleet=fleet.Fleet, domain_id=fleet.domain_id, Duration=Duration, PoseStamped=PoseStamped,
+        JointState=JointState, Float64MultiArray=Float64MultiArray, JointTrajectory=JointTrajectory,
+        JointTrajectoryPoint=JointTrajectoryPoint,
+    )  # fmt: skip
+
 
 UR5E_JOINTS = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
 
@@ -163,23 +177,23 @@ scaled_joint_trajectory_controller:
 
 
 @pytest.mark.ros
-def test_a_menagerie_arm_follows_a_joint_trajectory_over_ros(robots, tmp_path):
+def test_a_menagerie_arm_follows_a_joint_trajectory_over_ros(robots, tmp_path, ros):
     yaml = tmp_path / "ur5e_controllers.yaml"
     yaml.write_text(UR5E_YAML)
     args = ["--worlds", "2", "--model", str(robots / "universal_robots_ur5e" / "scene.xml"), "--controllers", str(yaml)]
-    with Fleet(domain_id(80), args, tmp_path / "ur5e.log") as fleet:
-        js = [fleet.latest(JointState, f"/world_{w}/joint_states") for w in range(2)]
+    with ros.Fleet(ros.domain_id(80), args, tmp_path / "ur5e.log") as fleet:
+        js = [fleet.latest(ros.JointState, f"/world_{w}/joint_states") for w in range(2)]
         fleet.wait(lambda: all(s.count > 2 for s in js), 30, "joint_states from both worlds")
         home = list(js[1].msg.position)
         assert home[1] == pytest.approx(-1.5708, abs=0.02)  # it starts in its home keyframe
         goal = list(home)
         goal[0] = home[0] + 0.5
-        msg = JointTrajectory(joint_names=UR5E_JOINTS)
-        msg.points = [JointTrajectoryPoint(positions=goal, time_from_start=rclpy.duration.Duration(seconds=1.0).to_msg())]
+        msg = ros.JointTrajectory(joint_names=UR5E_JOINTS)
+        msg.points = [ros.JointTrajectoryPoint(positions=goal, time_from_start=ros.Duration(seconds=1.0).to_msg())]
         topic = "/world_1/scaled_joint_trajectory_controller/joint_trajectory"
-        fleet.publish(JointTrajectory, topic, msg)
+        fleet.publish(ros.JointTrajectory, topic, msg)
         fleet.wait_subscribed(topic)
-        fleet.publish(JointTrajectory, topic, msg)
+        fleet.publish(ros.JointTrajectory, topic, msg)
         fleet.wait(lambda: abs(js[1].msg.position[0] - goal[0]) < 0.02, 30, f"world 1 at its goal\n{js[1].msg}")
         assert js[0].msg.position[0] == pytest.approx(home[0], abs=0.01)  # world 0 holds home
         assert fleet.close() == 0, fleet.log()
@@ -363,7 +377,7 @@ def test_pose_broadcaster_and_gripper_controller(tmp_path):
 
 
 def test_pids_scaled_commands_and_negated_sensors_agree_on_cpu_and_warp(tmp_path):
-    pytest.importorskip("mujoco_warp")
+    need("mujoco_warp")
     spec = _demo_spec(tmp_path)
     runs = {}
     for backend in ("cpu", "warp"):
@@ -385,29 +399,29 @@ def test_pids_scaled_commands_and_negated_sensors_agree_on_cpu_and_warp(tmp_path
 
 
 @pytest.mark.ros
-def test_mujoco_ros2_control_style_configuration_drives_the_robot_over_ros(tmp_path):
+def test_mujoco_ros2_control_style_configuration_drives_the_robot_over_ros(tmp_path, ros):
     pkg = _demo(tmp_path)
     args = [
         "--worlds", "2", "--model", str(pkg / "robot.xml"),
         "--ros2-control", f"{pkg / 'robot.urdf'} use_pid:=true", "--controllers", str(pkg / "controllers.yaml"),
     ]
-    with Fleet(domain_id(80), args, tmp_path / "demo.log") as fleet:
-        js = [fleet.latest(JointState, f"/world_{w}/joint_states") for w in range(2)]
-        pose = fleet.latest(PoseStamped, "/world_1/pose_broadcaster/pose")
+    with ros.Fleet(ros.domain_id(80), args, tmp_path / "demo.log") as fleet:
+        js = [fleet.latest(ros.JointState, f"/world_{w}/joint_states") for w in range(2)]
+        pose = fleet.latest(ros.PoseStamped, "/world_1/pose_broadcaster/pose")
         fleet.wait(lambda: all(s.count > 2 for s in js) and pose.count > 0, 30, "joint_states and the pose")
         names = list(js[1].msg.name)
         assert pose.msg.header.frame_id == "base" and pose.msg.pose.position.x == pytest.approx(0.9, abs=0.01)
-        target = Float64MultiArray(data=[0.6, -0.5])
+        target = ros.Float64MultiArray(data=[0.6, -0.5])
         j1, j2 = names.index("joint1"), names.index("joint2")
         fleet.publish_until(
-            Float64MultiArray, "/world_1/position_controller/commands", target,
+            ros.Float64MultiArray, "/world_1/position_controller/commands", target,
             lambda: abs(js[1].msg.position[j1] - 0.6) < 0.02 and abs(js[1].msg.position[j2] + 0.5) < 0.03,
             30, "world 1's arm at its target (joint2 through the PID)",
         )
-        grip = Float64MultiArray(data=[-0.02, 5.0])
+        grip = ros.Float64MultiArray(data=[-0.02, 5.0])
         left, right = names.index("gripper_left_finger_joint"), names.index("gripper_right_finger_joint")
         fleet.publish_until(
-            Float64MultiArray, "/world_1/gripper_controller/gripper_cmd", grip,
+            ros.Float64MultiArray, "/world_1/gripper_controller/gripper_cmd", grip,
             lambda: abs(js[1].msg.position[left] + 0.02) < 0.005, 30, "world 1's gripper closed",
         )
         assert js[1].msg.position[right] == pytest.approx(0.02, abs=0.005)  # the coupled finger follows

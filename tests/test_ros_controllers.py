@@ -12,8 +12,9 @@ import time
 
 import numpy as np
 import pytest
+from conftest import need
 
-rclpy = pytest.importorskip("rclpy")
+rclpy = need("rclpy")  # skips where ROS is absent, fails instead under BATCHSIM_FORCE_BACKENDS=1
 
 from builtin_interfaces.msg import Duration  # noqa: E402
 from geometry_msgs.msg import TwistStamped  # noqa: E402

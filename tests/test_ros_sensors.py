@@ -22,8 +22,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import need
 
-rclpy = pytest.importorskip("rclpy")
+rclpy = need("rclpy")  # skips where ROS is absent, fails instead under BATCHSIM_FORCE_BACKENDS=1
 
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
