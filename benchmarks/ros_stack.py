@@ -64,9 +64,17 @@ def _init(domain: int, name: str):
     return context, Node(name, context=context)
 
 
-def _until_stdin_closes() -> threading.Event:
+def _until_stdin_closes(go: list[float] | None = None) -> threading.Event:
+    """An event set when the parent closes stdin; a `go <wall time>` line on it sets go[0]."""
     stop = threading.Event()
-    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+
+    def watch() -> None:
+        for line in sys.stdin:
+            if line.startswith("go ") and go is not None:
+                go[0] = float(line.split()[1])
+        stop.set()
+
+    threading.Thread(target=watch, daemon=True).start()
     return stop
 
 
@@ -103,8 +111,9 @@ def subscriber(domain: int, lo: int, hi: int, fleet_tf: bool) -> None:
 
 
 def goal_client(domain: int, lo: int, hi: int, mode: str, rate: float, start: float) -> None:
-    """FollowJointTrajectory goals to worlds lo..hi-1 from wall time `start`: `sent <wall> <n>`,
-    `result <wall> <status> <error_code>` per result."""
+    """FollowJointTrajectory goals to worlds lo..hi-1: `ready <wall> <servers found>` once every
+    action server is discovered, then, from the wall time of the parent's `go` line (or `start`
+    if it is > 0), `sent <wall> <n>` and `result <wall> <status> <error_code>` per result."""
     from builtin_interfaces.msg import Duration
     from control_msgs.action import FollowJointTrajectory
     from rclpy.action import ActionClient
@@ -116,8 +125,10 @@ def goal_client(domain: int, lo: int, hi: int, mode: str, rate: float, start: fl
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     threading.Thread(target=executor.spin, daemon=True).start()
-    for c in clients:
-        c.wait_for_server(timeout_sec=60)
+    go = [start if start > 0 else float("inf")]
+    stop = _until_stdin_closes(go)
+    found = sum(bool(c.wait_for_server(timeout_sec=120)) for c in clients)
+    print(f"ready {time.time():.3f} {found}", flush=True)
     lock = threading.Lock()
 
     def done(future) -> None:
@@ -140,9 +151,8 @@ def goal_client(domain: int, lo: int, hi: int, mode: str, rate: float, start: fl
         for c in clients:
             c.send_goal_async(goal).add_done_callback(accepted)
 
-    stop = _until_stdin_closes()
-    while time.time() < start and not stop.is_set():
-        time.sleep(0.005)
+    while time.time() < go[0] and not stop.is_set():
+        time.sleep(0.002)
     k = 0
     while not stop.is_set():
         send(k)
@@ -203,6 +213,11 @@ class Children:
         for line in self.procs[i].stdout:
             self.lines[i].append(line.split())
 
+    def tell(self, line: str) -> None:
+        for p in self.procs:
+            p.stdin.write(line + "\n")
+            p.stdin.flush()
+
     def close(self, timeout: float = 10.0) -> None:
         for p in self.procs:
             try:
@@ -247,12 +262,14 @@ def run(opts: argparse.Namespace) -> None:
     loop = SimLoop(sim, control_rate=opts.control_rate, rtf=1.0, participants=[manager])
     host = start_bridge(sim, loop, BridgeOptions(workers=opts.bridge_workers), manager)
     nworker = host.plan.nworker
+    for pid in host.worker_pids if opts.worker_nice else ():  # the workers yield the cores to the loop
+        os.setpriority(os.PRIO_PROCESS, pid, opts.worker_nice)
     periods: list[tuple[float, float]] = []  # (wall time at the start, the period's own seconds)
     run_period = loop.run_period
 
-    def timed() -> None:
+    def timed(nstep: int | None = None) -> None:
         t = time.perf_counter()
-        run_period()
+        run_period(nstep)
         periods.append((time.time(), time.perf_counter() - t))
 
     loop.run_period = timed
@@ -267,15 +284,28 @@ def run(opts: argparse.Namespace) -> None:
     began = time.time()
     while time.time() - began < opts.warmup:
         time.sleep(0.1)
-    start = time.time() + 3.0 if opts.goals != "none" else 0.0
+    start = 0.0
     goals = (
         Children(
-            [["--goals", str(opts.domain), str(lo), str(hi), opts.goals, str(opts.goal_rate), f"{start:.3f}"] for lo, hi in _shares(opts.worlds, opts.goal_clients)]
+            [["--goals", str(opts.domain), str(lo), str(hi), opts.goals, str(opts.goal_rate), "0"] for lo, hi in _shares(opts.worlds, opts.goal_clients)]
         )
         if opts.goals != "none"
         else None
     )
-    t0 = max(time.time(), start) + 0.5
+    if goals is not None:  # discovery first (clients and the servers they call into being), then one start for all
+        asked = time.time()
+        while time.time() - asked < 180 and sum(1 for lines in goals.lines for line in list(lines) if line[0] == "ready") < len(goals.procs):
+            time.sleep(0.1)
+        ready = [line for lines in goals.lines for line in list(lines) if line[0] == "ready"]
+        found = sum(int(line[2]) for line in ready)
+        discovery = [p for t, p in periods if asked <= t]
+        d = np.array(discovery or [float("nan")]) * 1e3
+        print(f"discovery: {len(ready)} of {len(goals.procs)} goal clients ready, {found} of {opts.worlds} action servers "
+              f"found, in {time.time() - asked:.1f} s; loop period meanwhile {np.median(d):.2f} ms median, "
+              f"{d.max():.2f} ms worst")  # fmt: skip
+        start = time.time() + 1.0
+        goals.tell(f"go {start:.3f}")
+    t0 = max(time.time(), start) + (0.0 if goals is not None else 0.5)
     t1 = t0 + opts.seconds
     sim0 = None
     while time.time() < t1:
@@ -378,6 +408,7 @@ def main() -> None:
     p.add_argument("--capacity", action="store_true", help="also measure plain rclpy's capacity on this host")
     p.add_argument("--domain", type=int, default=88)
     p.add_argument("--verbose", action="store_true", help="every goal's result")
+    p.add_argument("--worker-nice", type=int, default=0, help="renice the bridge workers by this much (they yield to the loop)")
     opts = p.parse_args()
     if opts.preset:
         preset = PRESETS[opts.preset]
