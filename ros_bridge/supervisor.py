@@ -31,7 +31,9 @@ from ros_bridge.transport import PROFILES_FILE, TransportProfile
 
 SUPERVISE = 0.25  # s of wall time between two looks at the workers
 HUNG_AFTER = 1.0  # s without a tick before a worker is reported as not answering (it ticks every 0.1 s at least)
-HUNG_RESTART = 5.0  # s without a tick before it is killed and restarted
+# s without a tick before it is killed and restarted: long, since a worker can be busy for seconds
+# without being hung (a graph scan while thousands of endpoints are discovered, on a GPU host)
+HUNG_RESTART = 30.0
 START_TIMEOUT = 120.0  # s a worker may take to come up (imports, endpoints, the start-up check)
 STOP_TIMEOUT = 1.5  # s workers get to leave the ROS graph before they are killed
 
@@ -290,8 +292,8 @@ class Supervisor:
             self.memory["worker.hung"][j] = wallclock.time() - silent
             self.throttle.warn(
                 ("worker", j, "hung"),
-                f"bridge worker {j} (pid {p.popen.pid}) has not answered for {silent:.1f} s: {self._worlds(lo, hi)} "
-                f"are not served; restarting it unless it answers within {HUNG_RESTART - silent:.0f} s",
+                f"bridge worker {j} (pid {p.popen.pid}) has not answered for {silent:.1f} s (busy or hung): "
+                f"{self._worlds(lo, hi)} are not served; restarting it unless it answers within {HUNG_RESTART - silent:.0f} s",
             )
         elif silent >= HUNG_RESTART:
             self.throttle.warn(("worker", j, "killed"), f"bridge worker {j} did not answer for {silent:.0f} s: killed")

@@ -314,3 +314,43 @@ def test_a_remote_endpoint_with_another_definition_is_named_once():
     graph.subs["/tf"].append(info("late", 4, "RIHS01_aa"))
     check.scan(topics)
     assert len(graph.errors) == 1
+
+
+def test_a_hung_worker_is_killed_and_restarted(monkeypatch):
+    """The supervisor's watch over a live worker's tick counter: silent HUNG_AFTER s -> reported
+    (and `worker.hung` set for the others' /diagnostics); silent HUNG_RESTART s -> killed, so the
+    next look restarts it as one that died; ticking again -> said so, the flag cleared."""
+    import ros_bridge.supervisor as sv
+    from batchsim.memory import Layout, Memory
+
+    class FakePopen:
+        pid, killed = 4242, False
+
+        def kill(self):
+            self.killed = True
+
+    lines: list[str] = []
+
+    class Throttle:
+        def warn(self, key, line):
+            lines.append(line)
+
+    memory = Memory.create(Layout([("beat", (2,), "i8"), ("worker.hung", (2,), "f8")]), shared=False)
+    supervisor = sv.Supervisor.__new__(sv.Supervisor)
+    supervisor.memory, supervisor.throttle = memory, Throttle()
+    supervisor.plan = type("Plan", (), {"ranges": [(0, 2), (2, 4)], "namespaces": [f"world_{i}" for i in range(4)]})()
+    p = sv._Process.__new__(sv._Process)
+    p.popen, p.beat, p.beat_at, p.hung_since = FakePopen(), 7, 100.0, 0.0
+    memory["beat"][1] = 7
+    supervisor._watch(1, p, 100.5)
+    assert not lines
+    supervisor._watch(1, p, 100.0 + sv.HUNG_AFTER)
+    assert "bridge worker 1 (pid 4242) has not answered for 1.0 s (busy or hung): /world_2 .. /world_3" in lines[-1]
+    assert memory["worker.hung"][1] > 0 and not p.popen.killed
+    memory["beat"][1] = 8  # it ticks again
+    supervisor._watch(1, p, 102.0)
+    assert lines[-1] == "bridge worker 1 answers again" and memory["worker.hung"][1] == 0
+    supervisor._watch(1, p, 102.0 + sv.HUNG_AFTER)
+    supervisor._watch(1, p, 102.0 + sv.HUNG_RESTART)
+    assert p.popen.killed and "did not answer for 30 s: killed" in lines[-1]
+    memory.close()

@@ -165,13 +165,13 @@ def test_reset_pause_and_step_across_workers(fleet):
     settle(fleet, 0.1)
 
 
-def test_a_stopped_worker_is_reported_then_restarted(fleet):
+def test_a_stopped_worker_is_reported_and_said_to_answer_again(fleet):
     """kill -STOP on a worker (issue 23: its worlds went quiet and nobody said so): noticed
-    within 2 s naming its worlds, shown in the other workers' /diagnostics, restarted when it
-    does not come back, and its worlds served again."""
+    within 2 s naming its worlds, shown in the other workers' /diagnostics; SIGCONT: said to
+    answer again, and its worlds publish again (the restart of one that never comes back:
+    test_a_hung_worker_is_killed_and_restarted)."""
     workers = bridge_workers(fleet.proc.pid)
     diag = fleet.diagnostics()
-    before = fleet.js[63].count
     os.kill(workers[2], signal.SIGSTOP)
     try:
         fleet.wait(lambda: "bridge worker 2 (pid" in fleet.log() and "has not answered" in fleet.log(), 2.5, "the hang noticed")
@@ -179,11 +179,11 @@ def test_a_stopped_worker_is_reported_then_restarted(fleet):
         fleet.wait(lambda: diag.world("bridge_worker_2") is not None, 5, "the hang in /diagnostics")
         status = diag.world("bridge_worker_2")
         assert status.level == status.ERROR and "/world_43 .. /world_63 are not served" in status.message
-        fleet.wait(lambda: "bridge worker 2 did not answer" in fleet.log(), 10, "the hung worker killed")
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.kill(workers[2], signal.SIGCONT)
-    fleet.wait(lambda: "bridge worker 2 is back" in fleet.log(), 60, "the worker back")
+    before = fleet.js[63].count
+    fleet.wait(lambda: "bridge worker 2 answers again" in fleet.log(), 5, "the worker answering again")
     fleet.wait(lambda: fleet.js[63].count > before + 5, 30, "world_63's joint_states again")
 
 
