@@ -64,6 +64,10 @@ def main(argv: list[str] | None = None) -> int:
         if conflict is not None:
             status.write(f"conflict {conflict[0]} {conflict[1]}\n")
             return 0
+        if os.environ.get("BATCHSIM_WORKER_STACKS"):  # a developer's view of where the time goes
+            from ros_bridge.worker import stacks
+
+            stacks.start(os.environ["BATCHSIM_WORKER_STACKS"], index)
         worker.build()
         worker.start()
         status.write("ready\n")
