@@ -314,6 +314,19 @@ def test_a_remote_endpoint_with_another_definition_is_named_once():
     graph.subs["/tf"].append(info("late", 4, "RIHS01_aa"))
     check.scan(topics)
     assert len(graph.errors) == 1
+    # a worker looks only at its own topics, a bounded number per scan (thousands of action
+    # servers' topics counted every second kept an H100 host's workers from publishing)
+    import ros_bridge.worker.type_check as tc
+
+    counted: list[str] = []
+    graph.count_publishers = lambda topic: counted.append(topic) or 0
+    many = [(f"/world_{w}/tf", ["tf2_msgs/msg/TFMessage"]) for w in range(100)]
+    mine = TypeCheck(graph, ("/world_1/", "/world_2/", "/tf"))
+    mine.scan(many + topics)
+    assert sorted(counted) == ["/tf", "/world_1/tf", "/world_2/tf"]
+    counted.clear()
+    TypeCheck(graph).scan(many)
+    assert len(counted) == tc.PER_SCAN
 
 
 def test_a_hung_worker_is_killed_and_restarted(monkeypatch):

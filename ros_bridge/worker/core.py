@@ -224,7 +224,7 @@ class Worker:
         if any(available().values()):  # the types batchsim builds: a client of another definition is named
             from ros_bridge.worker.type_check import TypeCheck
 
-            self.type_check = TypeCheck(node)
+            self.type_check = TypeCheck(node, (*(topic_name(ns, "") for ns in self.namespaces), "/tf"))
 
     def start(self) -> None:
         """Spin the executor on its own thread."""

@@ -4,11 +4,13 @@ batchsim builds tf2_msgs, control_msgs, controller_manager_msgs and
 mujoco_ros2_control_msgs itself (ros_bridge/interfaces/). Fast DDS matches endpoints by
 the type's name alone, so a node built from another release's definition of, say,
 JointTrajectoryControllerState connects and then receives messages it decodes wrong or
-not at all. Every endpoint carries its type's RIHS01 hash in the graph, though: once a
-second (the worker's graph scan), each topic of one of those packages whose endpoint
-count changed is looked at, and a remote endpoint whose hash differs from this node's
-own for the same type gets one error line naming the topic, the node, the type and both
-hashes. Services (controller_manager's) carry no hash that rclpy shows; their types'
+not at all. Every endpoint carries its type's RIHS01 hash in the graph, though: at each
+graph scan (every second) the worker looks at up to PER_SCAN of its own topics of those
+packages (its worlds' and the fleet's /tf, in turn), each one whose endpoint count changed,
+and a remote endpoint whose hash differs from this node's own for the same type gets one
+error line naming the topic, the node, the type and both hashes. Only its own topics, and
+a bounded number per scan: with thousands of action servers in the graph, counting every
+topic's endpoints each second kept an H100 host's workers from publishing at all. Services (controller_manager's) carry no hash that rclpy shows; their types'
 definitions are the ones `tests/test_interfaces.py` checks against upstream.
 """
 
@@ -18,13 +20,17 @@ from rclpy.node import Node
 
 #: the packages whose types batchsim builds itself
 CHECKED = ("tf2_msgs/", "control_msgs/", "controller_manager_msgs/", "mujoco_ros2_control_msgs/")
+PER_SCAN = 32  # topics looked at per graph scan
 
 
 class TypeCheck:
     """Checks the endpoints of `node`'s topics of CHECKED packages against its own."""
 
-    def __init__(self, node: Node):
+    def __init__(self, node: Node, prefixes: tuple[str, ...] = ("/",)):
+        """`prefixes`: the beginnings of this worker's topic names (`/world_3/`, ..., `/tf`)."""
         self.node = node
+        self.prefixes = prefixes
+        self._cursor = 0
         self.logger = node.get_logger()
         self._counts: dict[str, int] = {}  # topic -> endpoints when last looked at
         self._seen: set[bytes] = set()  # remote endpoints looked at
@@ -33,9 +39,13 @@ class TypeCheck:
     def scan(self, topics: list[tuple[str, list[str]]]) -> None:
         """`topics`: the graph's (name, types), as Node.get_topic_names_and_types gives them."""
         node = self.node
-        for name, types in topics:
-            if not any(t.startswith(CHECKED) for t in types):
-                continue
+        mine = [name for name, types in topics if name.startswith(self.prefixes) and any(t.startswith(CHECKED) for t in types)]
+        if not mine:
+            return
+        start = self._cursor % len(mine)
+        turn = (mine[start:] + mine[:start])[:PER_SCAN]
+        self._cursor = start + len(turn)
+        for name in turn:
             count = node.count_publishers(name) + node.count_subscribers(name)
             if self._counts.get(name) == count:
                 continue
