@@ -265,12 +265,37 @@ def run(opts: argparse.Namespace) -> None:
     for pid in host.worker_pids if opts.worker_nice else ():  # the workers yield the cores to the loop
         os.setpriority(os.PRIO_PROCESS, pid, opts.worker_nice)
     periods: list[tuple[float, float]] = []  # (wall time at the start, the period's own seconds)
+    phases: list[dict[str, float]] = []  # per period: seconds in each part (read, step, each participant's hooks)
+    current: dict[str, float] = {}
     run_period = loop.run_period
 
+    def clocked(name: str, fn):
+        def call(*args, **kwargs):
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                current[name] = current.get(name, 0.0) + time.perf_counter() - t
+
+        return call
+
+    for name in ("read", "write", "step"):
+        setattr(sim, name, clocked(name, getattr(sim, name)))
+    for part in loop.participants:
+        for hook in ("update", "after_write"):
+            if hasattr(part, hook):
+                setattr(part, hook, clocked(f"{type(part).__name__}.{hook}", getattr(part, hook)))
+    if opts.gc_freeze:
+        import gc
+
+        gc.freeze()  # what start-up made is never scanned again: no long collections in the loop
+
     def timed(nstep: int | None = None) -> None:
+        current.clear()
         t = time.perf_counter()
         run_period(nstep)
         periods.append((time.time(), time.perf_counter() - t))
+        phases.append(dict(current))
 
     loop.run_period = timed
     stop = threading.Event()
@@ -336,6 +361,10 @@ def run(opts: argparse.Namespace) -> None:
           f"{opts.backend} {opts.model}, {opts.worlds} worlds, control {opts.control_rate:g} Hz, {nworker} bridge workers, "
           f"{opts.subscribers} subscriber processes, load {os.getloadavg()[0]:.1f}, {time.strftime('%Y-%m-%d')}")  # fmt: skip
     p = np.array(window or [float("nan")]) * 1e3  # no period in the window: say so with NaN
+    over = [(d, ph) for (t, d), ph in zip(periods, phases, strict=False) if t0 <= t <= t1 and d > 1.0 / opts.control_rate]
+    for d, ph in sorted(over, key=lambda x: -x[0])[:5]:  # where the worst periods' time went
+        print(f"  over budget: {d * 1e3:.1f} ms = " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in sorted(ph.items(), key=lambda x: -x[1])))
+    print(f"  periods over budget: {len(over)} of {len(window)}")
     print(f"RTF held {rtf:.3f} over {wall:.1f} s; loop period {np.median(p):.2f} ms median, {p.max():.2f} ms worst, "
           f"{np.percentile(p, 99):.2f} ms p99 (budget {budget * 1e3:.1f} ms, {len(p)} periods)")  # fmt: skip
     print(f"joint_states received {counted[0] / wall:,.0f}/s of {expected:,.0f}/s expected ({counted[0] / wall / expected:.3f})")
@@ -409,6 +438,7 @@ def main() -> None:
     p.add_argument("--domain", type=int, default=88)
     p.add_argument("--verbose", action="store_true", help="every goal's result")
     p.add_argument("--worker-nice", type=int, default=0, help="renice the bridge workers by this much (they yield to the loop)")
+    p.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once started (no long collections in the loop)")
     opts = p.parse_args()
     if opts.preset:
         preset = PRESETS[opts.preset]

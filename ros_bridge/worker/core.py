@@ -13,8 +13,7 @@ plan (ros_bridge/plan.py) once, attaches the shared memory, and then:
   each command and writes it into its world's slots in shared memory; trajectories are
   batched and handed over through its ring; rejections are counted per world, logged at
   most once per topic and reason every 2 s;
-- serves services (services.py, simulation.py, controller_manager.py) and actions: each
-  request goes through the ring with a ticket; the reply waits for the loop's answer;
+- serves services and actions: a request goes through the ring, the reply waits for the loop;
 - now and then: re-reads subscriber counts (lazy publishing), scans the graph (topics
   created on request, commands to unknown actuators), publishes /diagnostics for its worlds.
 
@@ -401,7 +400,9 @@ class Worker:
     def _spin(self) -> None:
         actions = self.actions
         while self._running:
-            if self.trajectories.pending:
+            if any(served.pending for served in self._served):
+                timeout = 0.0  # more to create: drain again at once
+            elif self.trajectories.pending:
                 timeout = FLUSH_AFTER
             elif actions is not None and actions.busy:
                 timeout = ACTION_POLL  # feedback and results the loop thread queued

@@ -5,13 +5,18 @@ start (each is several DDS endpoints that discovery must match). A served kind l
 entities by base name; the worker's graph scan (every second) hands it every name it sees
 (`requested`), and the entities whose base a client named are created on the executor
 thread (`drain`), where rclpy's entities are safe to create; `--all-topics` creates them
-all at start (`create_all`).
+all at start (`create_all`). A drain creates at most PER_DRAIN of them: creating an action
+server takes milliseconds (five DDS endpoints), and a worker's 128 at once held its other
+thread off for over a second (its publishing stalled); the executor loop drains again at
+once while some are `pending`.
 """
 
 from __future__ import annotations
 
 import collections
 from typing import Any
+
+PER_DRAIN = 8  # entities created per drain, between which the worker's other thread runs
 
 
 class OnRequest:
@@ -37,9 +42,14 @@ class OnRequest:
         self._to_create.append((base, self._pending.pop(base)))  # on the executor thread (drain)
         return True
 
+    @property
+    def pending(self) -> bool:
+        """Entities asked for and not created yet."""
+        return bool(self._to_create)
+
     def drain(self) -> None:
-        """The executor thread: create what the graph scan asked for."""
-        while self._to_create:
+        """The executor thread: create (up to PER_DRAIN of) what the graph scan asked for."""
+        for _ in range(min(PER_DRAIN, len(self._to_create))):
             self._create(*self._to_create.popleft())
 
     def create_all(self) -> None:
