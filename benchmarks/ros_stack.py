@@ -328,7 +328,10 @@ def run(opts: argparse.Namespace) -> None:
         print(f"discovery: {len(ready)} of {len(goals.procs)} goal clients ready, {found} of {opts.worlds} action servers "
               f"found, in {time.time() - asked:.1f} s; loop period meanwhile {np.median(d):.2f} ms median, "
               f"{d.max():.2f} ms worst")  # fmt: skip
-        start = time.time() + 1.0
+        # a client that found its server may not be matched by it yet (the server's response
+        # writer waits for the client's reader, then drops the answer: rmw_fastrtps's "failed
+        # to send response (timeout)"): let discovery settle both ways before the burst
+        start = time.time() + opts.settle
         goals.tell(f"go {start:.3f}")
     t0 = max(time.time(), start) + (0.0 if goals is not None else 0.5)
     t1 = t0 + opts.seconds
@@ -439,6 +442,7 @@ def main() -> None:
     p.add_argument("--verbose", action="store_true", help="every goal's result")
     p.add_argument("--worker-nice", type=int, default=0, help="renice the bridge workers by this much (they yield to the loop)")
     p.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once started (no long collections in the loop)")
+    p.add_argument("--settle", type=float, default=5.0, help="s between every goal client's ready and the burst")
     opts = p.parse_args()
     if opts.preset:
         preset = PRESETS[opts.preset]
