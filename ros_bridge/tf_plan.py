@@ -68,12 +68,14 @@ def tf_spec(
     t0, r0 = initial_transforms(tree, sim.spec)
     nworld = sim.nworld
 
+    moving_tree = dataclasses.replace(tree, body=tree.body[moving], parent_body=tree.parent_body[moving])
+
     def fill_tf(out: np.ndarray) -> None:
         xpos, xquat = sim.body_poses()
-        t, r = relative_transforms(tree, xpos, xquat)
+        t, r = relative_transforms(moving_tree, xpos, xquat)  # the moving frames' only
         v = out.reshape(nworld, len(moving), 7)
-        v[:, :, :3] = t[:, moving]
-        v[:, :, 3:] = r[:, moving]
+        v[:, :, :3] = t
+        v[:, :, 3:] = r
 
     pairs = list(zip(tree.parents, tree.names, strict=True))
     description, extra = _description(sim, tree, source)

@@ -9,6 +9,7 @@ in file order.
 from __future__ import annotations
 
 import math
+import time
 import xml.etree.ElementTree as ET
 
 import mujoco
@@ -78,6 +79,11 @@ def _send(fleet, ros, world: int, goal, feedback=None):
         client = ros["ActionClient"](fleet.node, ros["FJT"], f"/world_{world}/{JTC}/follow_joint_trajectory")
         fleet.__dict__.setdefault("_fjt", {})[world] = client
         assert client.wait_for_server(timeout_sec=40), fleet.log()
+        # the server is created when the client appears, and a client that sees the server may
+        # not be seen by it yet: an answer it sends before it has matched the client's reader is
+        # dropped by rmw_fastrtps ("failed to send response (timeout)"; benchmarks/RESULTS.md,
+        # the H100 goal bursts). Discovery settles both ways within a second on one host.
+        time.sleep(1.0)
     sent = client.send_goal_async(goal, feedback_callback=feedback)
     fleet.wait(sent.done, 40, "the goal's acceptance")
     handle = sent.result()

@@ -105,12 +105,28 @@ def relative_transforms(
       float64, as tf2 takes them (geometry_msgs/Transform).
     """
     xpos, xquat = np.asarray(xpos, np.float64), np.asarray(xquat, np.float64)
-    p_parent, q_parent = xpos[..., tree.parent_body, :], xquat[..., tree.parent_body, :]
-    p_child, q_child = xpos[..., tree.body, :], xquat[..., tree.body, :]
-    inverse = q_parent * np.array([1.0, -1.0, -1.0, -1.0])
-    translation = _rotate(inverse, p_child - p_parent)
-    rotation = _multiply(inverse, q_child)
-    return translation, rotation[..., [1, 2, 3, 0]]
+    # component planes (..., nframe) of parent and child: explicit products, no np.cross or
+    # stacking temporaries (4096 worlds' tf each period is the bridge's largest fill)
+    pw, px, py, pz = (xquat[..., tree.parent_body, k] for k in range(4))
+    cw, cx, cy, cz = (xquat[..., tree.body, k] for k in range(4))
+    d = xpos[..., tree.body, :] - xpos[..., tree.parent_body, :]
+    dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
+    translation = np.empty(d.shape)
+    rotation = np.empty(d.shape[:-1] + (4,))
+    # the parent's inverse rotation (conjugate: w, -x, -y, -z) applied to d: d + 2 u x (u x d + w d)
+    ux, uy, uz = -px, -py, -pz
+    tx = uy * dz - uz * dy + pw * dx
+    ty = uz * dx - ux * dz + pw * dy
+    tz = ux * dy - uy * dx + pw * dz
+    translation[..., 0] = dx + 2.0 * (uy * tz - uz * ty)
+    translation[..., 1] = dy + 2.0 * (uz * tx - ux * tz)
+    translation[..., 2] = dz + 2.0 * (ux * ty - uy * tx)
+    # conj(parent) * child, written in ROS order (x, y, z, w)
+    rotation[..., 3] = pw * cw + px * cx + py * cy + pz * cz
+    rotation[..., 0] = pw * cx - px * cw - py * cz + pz * cy
+    rotation[..., 1] = pw * cy + px * cz - py * cw - pz * cx
+    rotation[..., 2] = pw * cz - px * cy + py * cx - pz * cw
+    return translation, rotation
 
 
 def initial_transforms(tree: FrameTree, model: RobotSpec | mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
