@@ -1,0 +1,245 @@
+"""The command line's flags: the two parsers, every value checked before anything starts, and
+the model the flags name (a --ros2-control file's `mujoco_model`, a URDF)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import math
+import os
+import platform
+from pathlib import Path
+
+import mujoco
+
+import batchsim
+from batchsim.model import model_names
+from batchsim.model.description import model_file, read_description
+from batchsim.model.from_urdf import is_urdf
+
+EXIT_USAGE = 2
+
+
+class UsageError(Exception):
+    """A problem the user can fix; printed as one line, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2, no usage dump
+        raise UsageError(message)
+
+
+def run_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="batchsim",
+        description="Run N copies of one MuJoCo robot, each on its own ROS 2 namespace.",
+        epilog="`batchsim info MODEL` lists a model's interfaces and sensors.",
+    )
+    p.add_argument("--worlds", type=int, default=16, help="number of worlds (default 16)")
+    p.add_argument(
+        "--model",
+        default=None,
+        help="shipped model name or MJCF path (default: the --ros2-control file's mujoco_model param, else arm)",
+    )
+    p.add_argument(
+        "--backend", default="auto", help="cpu, mjx, warp or auto (default auto: picked for the hardware)"
+    )
+    p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds")
+    p.add_argument("--rtf", type=float, default=1.0, help="real-time factor; 0 runs as fast as possible")
+    p.add_argument("--control-rate", type=float, default=None, help="Hz: commands applied, state read")
+    p.add_argument("--threads", type=int, default=None, help="cpu backend: worker threads (default: all cores)")
+    p.add_argument(
+        "--devices",
+        default=None,
+        help="mjx/warp: spread the worlds over several GPUs: all, or indices 0,1,... (default: one device)",
+    )
+    p.add_argument(
+        "--shards",
+        choices=("processes", "threads"),
+        default="processes",
+        help="with --devices: one process per device (default), or one thread per device in this process",
+    )
+    p.add_argument("--nconmax", type=int, default=None, help="warp backend: contacts per world to start with (default: sized from a CPU rollout; grows when it overflows)")
+    p.add_argument("--njmax", type=int, default=None, help="warp backend: constraint rows per world to start with (default: sized likewise; grows likewise)")
+    p.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="mjx/warp on a GPU: bitwise-repeatable runs, slower (cpu always is)",
+    )
+    p.add_argument("--ros2-control", default=None, help="URDF/XML file with a <ros2_control> block")
+    _urdf_flags(p)
+    p.add_argument(
+        "--keyframe", default=None, help="keyframe (name or index) to start in (default: home, if the model has one)"
+    )
+    p.add_argument("--no-ros", action="store_true", help="run without the ROS 2 bridge")
+    p.add_argument("--quiet", action="store_true", help="no live status line")
+    p.add_argument(
+        "--skip-memory-check",
+        action="store_true",
+        help="start even where the memory estimate says the fleet will not fit",
+    )
+    p.add_argument(
+        "--log-dir",
+        default=None,
+        help="where MuJoCo's own log (MUJOCO_LOG.TXT) goes (default: $XDG_STATE_HOME/batchsim, "
+        "never the working directory)",
+    )
+    p.add_argument("--version", action="version", version=version_line())
+    ros = p.add_argument_group("ROS 2 bridge")
+    ros.add_argument("--namespace", default="world_{i}", help="per-world namespace template (default world_{i})")
+    ros.add_argument("--publish-rate", type=float, default=None, help="Hz for topics (default: the control rate)")
+    ros.add_argument("--sensor-rate", type=float, default=None, help="Hz for sensors/<sensor> topics (default: the publish rate)")
+    ros.add_argument("--lockstep", action="store_true", help="each period waits for every world's command")
+    ros.add_argument("--lockstep-timeout", type=float, default=1.0, help="seconds a lockstep period waits")
+    ros.add_argument("--qos-depth", type=int, default=None, help="queue depth (default 10, or the MJCF's)")
+    ros.add_argument("--reliability", choices=("reliable", "best_effort"), default=None)
+    ros.add_argument("--command-timeout", type=float, default=None, help="seconds without commands before a world goes safe")
+    ros.add_argument(
+        "--bridge-workers",
+        type=int,
+        default=None,
+        help="processes serving ROS (default: 1 on 2 cores; else 0 up to 64 worlds, then one per 128 worlds, "
+        "at most half the cores); 0: in the physics process",
+    )
+    ros.add_argument(
+        "--world-offset", type=int, default=0, help="number of the first world, for a fleet over several processes or hosts"
+    )
+    ros.add_argument("--no-clock", action="store_true", help="do not publish /clock (another process of the fleet does)")
+    ros.add_argument(
+        "--all-topics",
+        action="store_true",
+        help="create every per-world topic at start (default: sensor, actuator and controller_state topics "
+        "appear when someone subscribes or publishes)",
+    )
+    ros.add_argument(
+        "--no-tf", action="store_true", help="publish no tf, tf_static or robot_description (default: every world's)"
+    )
+    sens = p.add_argument_group("cameras, lidars and sensor noise")
+    sens.add_argument(
+        "--sensors",
+        action="append",
+        metavar="FILE",
+        help="mujoco_ros2_control plugin YAML and/or batchsim's `sensors:` block (noise, dense lidars); may repeat",
+    )
+    sens.add_argument("--camera-rate", type=float, default=None, help="Hz for camera images (default: the YAML's, else 5)")
+    sens.add_argument("--lidar-rate", type=float, default=None, help="Hz for lidar scans (default: the YAML's, else 10)")
+    sens.add_argument("--camera-resolution", default=None, metavar="WxH", help="every camera's image size (default: the MJCF's)")
+    sens.add_argument("--noise-seed", type=int, default=None, help="sensor noise seed (default: the YAML's, else 0)")
+    p.add_argument(
+        "--controllers",
+        default=None,
+        help="ros2_control controller_manager YAML; none: no controllers (default: the shipped model's own)",
+    )
+    return p
+
+
+def version_line() -> str:
+    """`batchsim --version`: batchsim's and the engines' versions."""
+    try:
+        version = importlib.metadata.version("batchsim")
+    except importlib.metadata.PackageNotFoundError:
+        version = "unknown (not installed)"
+    return f"batchsim {version} (mujoco {mujoco.__version__}, python {platform.python_version()})"
+
+
+def info_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="batchsim info", description="List a model's interfaces and sensors.")
+    p.add_argument("model", nargs="?", help="shipped model name or MJCF path (default: as batchsim's --model)")
+    p.add_argument("--worlds", type=int, default=16, help="world count the backend choice is for")
+    p.add_argument("--backend", default="auto")
+    p.add_argument("--ros2-control", default=None)
+    p.add_argument("--keyframe", default=None)
+    _urdf_flags(p)
+    p.add_argument("--mjcf", action="store_true", help="print the MJCF batchsim compiles (for a URDF: the one it generates)")
+    p.add_argument("--sensors", action="append", metavar="FILE", help="as batchsim's --sensors: what it makes of them")
+    return p
+
+
+def _urdf_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--mujoco-inputs", default=None, metavar="FILE",
+        help="URDF model: a <mujoco_inputs> file (actuators, sensors, cameras, lidars), as mujoco_ros2_control's --m",
+    )  # fmt: skip
+    p.add_argument("--scene", default=None, metavar="FILE", help="URDF model: an MJCF scene file to add (lights, floor)")
+
+
+def _load(args: argparse.Namespace) -> batchsim.RobotSpec:
+    return batchsim.load(
+        args.model, ros2_control=args.ros2_control, keyframe=args.keyframe, mujoco_inputs=args.mujoco_inputs, scene=args.scene
+    )
+
+
+_POSITIVE = {  # flag: what its number is, for the message; each must be finite and > 0
+    "duration": "a finite number of simulated seconds",
+    "control_rate": "a finite number",
+    "publish_rate": "a finite number",
+    "sensor_rate": "a finite number",
+    "camera_rate": "a finite number",
+    "lidar_rate": "a finite number",
+    "lockstep_timeout": "a finite number of seconds",
+    "command_timeout": "a finite number of seconds",
+}
+
+
+_AT_LEAST_ONE = ("worlds", "threads", "nconmax", "njmax", "qos_depth")
+
+
+MAX_DOMAIN_ID = 232  # ROS 2's limit: DDS computes UDP ports from the domain id
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Every flag value the run will use, checked before anything starts.
+
+    Raises:
+      UsageError: the first bad value, as one line naming the flag and the value.
+    """
+    for name, what in _POSITIVE.items():
+        value = getattr(args, name)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise UsageError(f"--{name.replace('_', '-')} must be {what} > 0, got {value}")
+    if not (math.isfinite(args.rtf) and args.rtf >= 0):
+        raise UsageError(f"--rtf must be a finite number >= 0 (0: as fast as possible), got {args.rtf}")
+    for name in _AT_LEAST_ONE:
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    args.model = default_model(args.model, args.ros2_control)
+    model = Path(args.model).expanduser()
+    if str(args.model) not in model_names() and model.is_dir():
+        raise UsageError(f"--model {args.model}: is a directory, not an MJCF file")
+    if args.log_dir is not None:
+        try:
+            batchsim.set_log_dir(args.log_dir)
+        except ValueError as e:
+            raise UsageError(f"--log-dir: {e}") from None
+    if not args.no_ros:
+        from ros_bridge.naming import DEFAULT_TEMPLATE, world_namespaces  # no rclpy: the rules only
+
+        domain = os.environ.get("ROS_DOMAIN_ID", "").strip()
+        if domain and not (domain.isdigit() and int(domain) <= MAX_DOMAIN_ID):
+            raise UsageError(
+                f"ROS_DOMAIN_ID={domain}: must be an integer in 0..{MAX_DOMAIN_ID} (DDS's ports run out above it; "
+                "0..101 keeps clear of Linux's ephemeral ports), or unset (0)"
+            )
+
+        if args.namespace != DEFAULT_TEMPLATE:
+            try:
+                world_namespaces(args.worlds, args.namespace)
+            except ValueError as e:  # NamingError; an OptionError names its flag through named()
+                named = getattr(e, "named", None)
+                raise UsageError(named("--namespace") if named else str(e)) from None
+
+
+def default_model(model: str | None, ros2_control: str | None) -> str:
+    """`--model`, else the --ros2-control file's `mujoco_model` param (as mujoco_ros2_control
+    finds its simulation), else that file itself if it is a URDF (compiled to MJCF, as
+    mujoco_ros2_control does without one), else the shipped arm."""
+    if model is not None:
+        return model
+    if ros2_control is not None:
+        found = model_file(read_description(ros2_control))
+        if found is not None:
+            return found
+        if is_urdf(ros2_control):
+            return ros2_control
+    return "arm"

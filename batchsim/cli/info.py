@@ -1,0 +1,93 @@
+"""`batchsim info`: a model's interfaces, sensors, cameras, lidars and warnings, or its MJCF."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from batchsim.backends import resolve
+from batchsim.cli.args import (
+    _load,
+    default_model,
+    info_parser,
+)  # fmt: skip
+from batchsim.sensors import SensorConfig, SensorSuite
+
+
+def info(argv: Sequence[str]) -> int:
+    args = info_parser().parse_args(argv)
+    args.model = default_model(args.model, args.ros2_control)
+    sensors = SensorConfig.from_flags(args.sensors)
+    spec = _load(args)
+    if args.mjcf:
+        print(spec.xml)
+        return 0
+    chosen, reason = resolve(args.backend, spec, args.worlds)
+    m = spec.mjmodel
+    keys = ", ".join(repr(k) if k else f"#{i}" for i, k in enumerate(spec.keyframes)) or "none"
+    base = spec.floating_base
+    out = [
+        f"model      {spec.name}  ({spec.path or 'string'})",
+        f"timestep   {m.opt.timestep:g} s   nq {m.nq}  nv {m.nv}  nu {m.nu}",
+        f"backend    {chosen.value} for {args.worlds} worlds ({reason})",
+        f"starts in  {spec.initial.source}   (keyframes: {keys})",
+        f"base       {f'free joint {base.joint!r} of body {base.body!r}' if base else 'fixed (no floating base)'}",
+    ]
+    if spec.ros is not None:
+        r = spec.ros
+        out.append(
+            f"mujoco.ros2 ros_namespace={r.ros_namespace!r} topic_queue_size={r.topic_queue_size} "
+            f"topic_reliability={r.topic_reliability}"
+        )
+    out.append(f"\nstate interfaces ({len(spec.state)})")
+    out += [f"  {i:3d}  {c.name}" for i, c in enumerate(spec.state)]
+    out.append(f"\ncommand interfaces ({len(spec.commands)})")
+    out += [f"  {i:3d}  {c.name:32s} actuator {c.actuator}{_how(c)}" for i, c in enumerate(spec.commands)]
+    out += [
+        f"       {mc.joint} mimics {mc.source} (x {mc.multiplier:g} + {mc.offset:g}) on actuator {mc.actuator}"
+        for mc in spec.mimics
+    ]
+    out.append(f"\nsensors ({len(spec.sensors)})")
+    out += [
+        f"  {s.name:24s} {s.type:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors
+    ]
+    suite = SensorSuite.build(spec, args.worlds, sensors)
+    out += sensor_lines(suite)
+    warnings = spec.warnings + suite.config.warnings
+    if warnings:
+        out.append("\nwarnings (not acted on)")
+        out += [f"  {w}" for w in warnings]
+    if spec.problems:
+        out.append("\nproblems (configure will fail)")
+        out += [f"  {p}" for p in spec.problems]
+    print("\n".join(out))
+    return 0
+
+
+def sensor_lines(suite: SensorSuite) -> list[str]:
+    """`batchsim info`'s cameras and lidars."""
+    out = []
+    if suite.cameras:
+        out.append(f"\ncameras ({len(suite.cameras)})")
+        out += [
+            f"  {c.name:24s} {c.width}x{c.height}  fx {c.info.fx:.1f} fy {c.info.fy:.1f}  "
+            f"-> {c.image_topic}, {c.depth_topic}, {c.info_topic}"
+            for c in suite.cameras.values()
+        ]
+    if suite.lidars:
+        out.append(f"\nlidars ({len(suite.lidars)})")
+        out += [
+            f"  {ld.name:24s} {ld.kind.value:11s} {ld.nrow}x{ld.ncol} rays from site {ld.site}, azimuth "
+            f"{ld.angle_min:+.3f}..{ld.angle_max:+.3f} rad, range {ld.range_min:g}..{ld.range_max:g} m -> {ld.topic}"
+            for ld in suite.lidars.values()
+        ]
+    return out
+
+
+def _how(c: Any) -> str:
+    """How a command interface reaches ctrl, where it is not a plain copy."""
+    if c.pid is not None:
+        return f"  (PID p={c.pid.p:g} i={c.pid.i:g} d={c.pid.d:g})"
+    if c.scale != 1.0 or c.offset != 0.0:
+        return f"  (ctrl = {c.scale:g} x command + {c.offset:g})"
+    return ""

@@ -1,0 +1,303 @@
+"""`batchsim`: build the fleet, its controllers and bridge, run the loop with a status line."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from typing import Any, TextIO
+
+import batchsim
+from batchsim import startup
+from batchsim.backends import Backend, backend_class, resolve
+from batchsim.cli.args import (
+    UsageError,
+    _load,
+    check_args,
+    run_parser,
+)  # fmt: skip
+from batchsim.controllers import ControllerManager, default_controllers, load_controllers
+from batchsim.hardware import BatchedSystem, ConfigurationError
+from batchsim.loop import LoopStats, OptionError, RateError, SimLoop, format_stats, whole_ratio
+from batchsim.model import model_names
+from batchsim.sensors import SensorConfig
+
+
+def build(args: argparse.Namespace, progress: startup.Progress | None = None) -> BatchedSystem:
+    """The configured, active system: the model loaded, the memory checked, the worlds made."""
+    progress = progress if progress is not None else startup.Progress()
+    options: dict[str, Any] = {}
+    for flag, option in (("threads", "nthread"), ("nconmax", "nconmax"), ("njmax", "njmax")):
+        if getattr(args, flag) is not None:
+            options[option] = getattr(args, flag)
+    if args.deterministic:
+        options["deterministic"] = True
+    if args.log_dir is not None:  # else make() places it, away from the working directory
+        batchsim.set_log_dir(args.log_dir)
+    if args.devices is not None:
+        names = [d.strip() for d in args.devices.split(",") if d.strip()]
+        options["devices"] = "all" if names == ["all"] else [int(d) if d.isdigit() else d for d in names]
+        options["processes"] = args.shards == "processes"
+    sensors = SensorConfig.from_flags(
+        args.sensors,
+        camera_rate=args.camera_rate,
+        lidar_rate=args.lidar_rate,
+        camera_resolution=args.camera_resolution,
+        seed=args.noise_seed,
+    )
+    with progress.stage(f"loading {args.model}"):
+        spec = _load(args)
+    chosen, _ = resolve(args.backend, spec, args.worlds)
+    if not args.skip_memory_check:
+        check_memory(args, spec, chosen)
+    with progress.stage(f"allocating {args.worlds} worlds on {chosen.value}"):
+        sim = batchsim.make(spec, args.worlds, args.backend, sensors=sensors, **options)
+        sim.configure()
+        sim.activate()
+    for warning in sim.sensors.config.warnings:  # plugins not run, params not taken: never dropped silently
+        print(f"batchsim: warning: {warning}", file=sys.stderr, flush=True)
+    return sim
+
+
+def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Backend) -> None:
+    """Refuse (MemoryCheckError, one line) a fleet the estimate says will not fit; warn near the edge."""
+    cls = backend_class(backend)
+    on_device, device_memory = False, None
+    if backend is not Backend.CPU:
+        on_device = not str(cls.available_devices()[0]).startswith("cpu")
+        if on_device and args.devices is None:  # several devices: each holds a share, not checked
+            device_memory = startup.device_memory(cls)
+    estimate = startup.estimate_memory(
+        spec,
+        backend.value,
+        args.worlds,
+        ros=not args.no_ros,
+        nthread=args.threads,
+        on_device=on_device,
+        nconmax=args.nconmax,
+        njmax=args.njmax,
+        controllers=(args.controllers or "").lower() != "none",
+    )
+    for warning in (startup.check_host_memory(estimate), startup.check_device_memory(estimate, device_memory)):
+        if warning:
+            print(f"batchsim: warning: {warning}", file=sys.stderr, flush=True)
+
+
+def compile_programs(sim: BatchedSystem, loop: SimLoop, progress: startup.Progress) -> None:
+    """mjx compiles, and warp captures, its program on the first control period: run one
+    now, under a progress stage, and reset, so the run starts compiled and at its start."""
+    if sim.name not in (Backend.MJX.value, Backend.WARP.value):
+        return
+    with progress.stage(f"compiling {sim.name}'s program for {sim.nworld} worlds"):
+        sim.read(0.0, loop.period)
+        sim.write(0.0, loop.period)
+        sim.step(loop.substeps)
+        sim.reset()
+
+
+def setup_controllers(sim: BatchedSystem, args: argparse.Namespace) -> tuple[ControllerManager | None, float | None]:
+    """The run's controllers and the control rate their YAML's update_rate asks for.
+
+    --controllers names a controller_manager YAML; without it a shipped model gets its
+    default (models/<name>.yaml), any other model none; `--controllers none` runs none.
+    Every configuration error is raised here, before the loop starts.
+    """
+    source = args.controllers
+    if source is not None and source.lower() == "none":
+        return None, None
+    if source is None:
+        if str(args.model) not in model_names():
+            return None, None
+        source = default_controllers(str(args.model))
+        if source is None:
+            return None, None
+    manager = load_controllers(source, sim.spec, sim.nworld)
+    rate = manager.update_rate
+    if rate is not None and args.control_rate is None:
+        try:
+            whole_ratio(1.0 / sim.dt, rate)
+        except RateError as e:
+            raise ConfigurationError(
+                f"{manager.source}: controller_manager: update_rate: {rate:g} Hz is not a whole number of "
+                f"physics steps of {sim.dt:g} s (the model's timestep): {e.hint}"
+            ) from None
+    return manager, rate
+
+
+#: library option names whose flag is not `--<option with dashes>`
+
+
+_FLAGS = {"workers": "--bridge-workers"}
+
+
+def _flag(option: str) -> str:
+    return _FLAGS.get(option, "--" + option.replace("_", "-"))
+
+
+def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manager: ControllerManager | None = None):
+    """The ROS 2 bridge for this run, serving `manager`'s controllers too.
+
+    Errors name the flags; another process already serving these worlds or /clock is a
+    UsageError (exit 2) naming that process's node."""
+    try:
+        from ros_bridge.bridge import BridgeOptions, FleetConflict, Reliability, WorkerError, start_bridge
+    except ModuleNotFoundError as e:
+        raise UsageError(
+            f"ROS 2 is not installed ({e.name} is missing): {startup.install_command('ros')}, or pass --no-ros"
+        ) from None
+    options = BridgeOptions(
+        namespace=args.namespace,
+        publish_rate=args.publish_rate,
+        sensor_rate=args.sensor_rate,
+        qos_depth=args.qos_depth,
+        reliability=Reliability(args.reliability) if args.reliability else None,
+        command_timeout=args.command_timeout,
+        lockstep=args.lockstep,
+        lockstep_timeout=args.lockstep_timeout,
+        workers=args.bridge_workers,
+        world_offset=args.world_offset,
+        clock=not args.no_clock,
+        all_topics=args.all_topics,
+        tf=not args.no_tf,
+        description=args.ros2_control,
+    )
+    from ros_bridge.interfaces import missing_line
+
+    missing = missing_line()
+    if missing:
+        print(f"batchsim: {missing}", file=sys.stderr)
+    try:
+        return start_bridge(sim, loop, options, manager)
+    except OptionError as e:
+        raise UsageError(e.named(_flag(e.option))) from None
+    except FleetConflict as e:
+        hint = (
+            "--world-offset, --namespace or another ROS_DOMAIN_ID" if e.kind == "namespace" else "--no-clock on all but one"
+        )
+        raise UsageError(f"{e} ({hint})") from None
+    except WorkerError as e:
+        raise UsageError(str(e)) from None
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+class StatusLine:
+    """The live status line of a run: redrawn in place on a terminal (the rest of the line
+    cleared), one line per report in a log. A paused loop reports nothing, so while it is
+    paused a watcher thread draws `paused` once a second (once per pause in a log).
+
+    Use as a context manager around `loop.run(status.report)`.
+    """
+
+    def __init__(
+        self, loop: SimLoop, nworld: int, backend: str, *, stream: TextIO | None = None, quiet: bool = False
+    ):
+        self.loop = loop
+        self.nworld = nworld
+        self.backend = backend
+        self.stream = stream if stream is not None else sys.stderr
+        self.quiet = quiet
+        self.tty = self.stream.isatty()
+        self._lock = threading.Lock()
+        self._drawn = False
+        self._stop = threading.Event()
+        self._watcher = threading.Thread(target=self._watch, name="batchsim-status", daemon=True)
+
+    def report(self, stats: LoopStats) -> None:
+        self._draw(format_stats(stats, self.nworld, self.backend))
+
+    def _draw(self, line: str) -> None:
+        if self.quiet:
+            return
+        with self._lock:
+            self.stream.write(f"\r{line}\x1b[K" if self.tty else line + "\n")
+            self.stream.flush()
+            self._drawn = True
+
+    def _watch(self) -> None:
+        shown = False
+        while not self._stop.wait(1.0):
+            if not self.loop.paused:
+                shown = False
+            elif self.tty or not shown:
+                stats = dataclasses.replace(self.loop.stats, sim_time=self.loop.sim_time, paused=True)
+                self._draw(format_stats(stats, self.nworld, self.backend))
+                shown = True
+
+    def __enter__(self) -> StatusLine:
+        if not self.quiet:
+            self._watcher.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        if self._watcher.is_alive():
+            self._watcher.join()
+        with self._lock:
+            if self.tty and self._drawn:
+                self.stream.write("\n")  # the next line starts below the status line
+                self.stream.flush()
+
+
+def run(argv: Sequence[str]) -> int:
+    # until the loop runs, SIGTERM ends the start as Ctrl-C does: what was started (bridge
+    # workers, shared memory) is stopped and removed on the way out
+    signal.signal(signal.SIGTERM, _interrupt)
+    args = run_parser().parse_args(argv)
+    check_args(args)
+    progress = startup.Progress(sys.stderr)
+    with startup.StartupGuard(progress):
+        sim = build(args, progress)
+        manager, update_rate = setup_controllers(sim, args)
+        control_rate = args.control_rate if args.control_rate is not None else update_rate
+        try:
+            loop = SimLoop(sim, control_rate=control_rate, rtf=args.rtf, duration=args.duration)
+        except OptionError as e:
+            raise UsageError(e.named(_flag(e.option))) from None
+        if manager is not None:
+            for warning in manager.warnings:
+                print(f"batchsim: warning: {warning}", file=sys.stderr)
+        compile_programs(sim, loop, progress)
+        bridge = None
+        if not args.no_ros:
+            with progress.stage(f"creating ROS 2 endpoints for {sim.nworld} worlds"):
+                bridge = start_ros(sim, loop, args, manager)
+        if manager is not None and manager not in loop.participants:
+            loop.participants.append(manager)
+
+    def on_signal(signum: int, frame: Any) -> None:
+        loop.stop()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+
+    backend = f"{sim.name} ({sim.reason})"
+    print(
+        f"batchsim: {sim.nworld} x {sim.spec.name} on {backend}, control {loop.control_rate:g} Hz "
+        f"({loop.substeps} x {sim.dt:g} s), rtf {'max' if args.rtf == 0 else f'{args.rtf:g}'}"
+        + ("" if bridge is None else f", ROS 2 namespaces {bridge.describe()}")
+        + ("" if manager is None else f", controllers {', '.join(manager.controllers) or 'none'}"),
+        file=sys.stderr,
+        flush=True,
+    )
+    try:
+        with StatusLine(loop, sim.nworld, backend, quiet=args.quiet) as status:
+            stats = loop.run(status.report)
+    finally:
+        if bridge is not None:
+            bridge.close()
+        sim.shutdown()
+    print(
+        f"batchsim: stopped at sim time {loop.sim_time:.3f} s; last: {format_stats(stats, sim.nworld, backend)}",
+        file=sys.stderr,
+        flush=True,
+    )
+    return 0
+
+
+#: the errors a command line, a file or the machine causes (each one line naming its cause)
