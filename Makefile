@@ -27,7 +27,7 @@ test: $(STAMP)
 
 # the newcomer's subset: the cpu backend and the ROS stack, no mjx or warp compiles
 quick: $(STAMP)
-	@$(PY) -m pytest -q -n 2 -k "not mjx and not warp and not devices" $(PYTEST_ARGS)
+	@$(PY) -m pytest -q -n 2 -m "not ros" -k "not mjx and not warp and not devices" $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check batchsim ros_bridge benchmarks tests examples
