@@ -87,6 +87,9 @@ class BatchedSystem(Sensing, EngineHooks, SystemInterface):
     OPTIONS: ClassVar[dict[str, Any]] = {}
     #: whether one render or scan covers every world at the cost of any subset (one GPU launch)
     sensors_batched: ClassVar[bool] = False
+    #: whether the first control period compiles (mjx) or captures (warp) the step's program:
+    #: the command line runs one under a progress line before the run starts
+    compiles_first_period: ClassVar[bool] = False
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__()

@@ -258,6 +258,13 @@ def test_write_is_ignored_unless_active(backend):
     sim.shutdown()
 
 
+def test_a_backend_says_whether_its_first_period_compiles(backend):
+    """A capability of the class, not a name the command line checks (issue 22): mjx compiles
+    and warp captures on the first period, sharded fleets as their shards do; cpu does not."""
+    sim = batchsim.make("arm", 2, backend)
+    assert sim.compiles_first_period is (sim.name != "cpu")
+
+
 def test_step_needs_a_configured_system(backend):
     sim = batchsim.make("arm", 1, backend)
     with pytest.raises(LifecycleError, match="UNCONFIGURED"):

@@ -66,6 +66,8 @@ class DeviceSystem(BatchedSystem):
       device: the engine's device (a JAX or Warp device object).
     """
 
+    compiles_first_period = True  # jax.jit compiles, Warp captures its graph, on the first period
+
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__(spec, nworld, **options)
         self.device = self._resolve_device(self.options.get("device"))

@@ -120,6 +120,7 @@ class ShardedSystem(BatchedSystem):
         if "device" not in backend.OPTIONS:
             raise OptionError("", f"the {backend.name} backend does not run on devices; it cannot be sharded")
         self.name = backend.name
+        self.compiles_first_period = backend.compiles_first_period  # type: ignore[misc]
         self.devices = list(devices)
         self.processes = bool(processes)
         self.world_ranges = split(self.nworld, len(self.devices))

@@ -89,7 +89,7 @@ def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Ba
 def compile_programs(sim: BatchedSystem, loop: SimLoop, progress: startup.Progress) -> None:
     """mjx compiles, and warp captures, its program on the first control period: run one
     now, under a progress stage, and reset, so the run starts compiled and at its start."""
-    if sim.name not in (Backend.MJX.value, Backend.WARP.value):
+    if not sim.compiles_first_period:
         return
     with progress.stage(f"compiling {sim.name}'s program for {sim.nworld} worlds"):
         sim.read(0.0, loop.period)
