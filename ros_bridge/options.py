@@ -63,6 +63,8 @@ class BridgeOptions:
       tf: publish tf, tf_static and robot_description (ros_bridge/worker/tf.py).
       description: the user's robot description (`--ros2-control`, xacro arguments after
         the path): robot_description publishes it where it is a URDF.
+      ros_args: ROS arguments for every worker's node, as after `--ros-args` on a ROS
+        executable's command line (`-p use_sim_time:=true`, `-r from:=to`, `--log-level warn`).
     """
 
     namespace: str = DEFAULT_TEMPLATE
@@ -80,6 +82,7 @@ class BridgeOptions:
     all_topics: bool = False
     tf: bool = True
     description: str | None = None
+    ros_args: tuple[str, ...] = ()
 
     def check(self) -> None:
         """OptionError for a value no fleet can run with (rates are checked against the loop later)."""

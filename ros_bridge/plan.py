@@ -125,6 +125,7 @@ class FleetPlan:
     clock: bool
     startup_check: float
     all_topics: bool = False
+    ros_args: tuple[str, ...] = ()  # after --ros-args, for every worker's rclpy.init
     sensors: SensorPlan | None = None
     tf: TfSpec | None = None
     manager: ManagerSpec | None = None
@@ -293,6 +294,7 @@ def build_plan(
         clock=options.clock,
         startup_check=options.startup_check,
         all_topics=options.all_topics,
+        ros_args=tuple(options.ros_args),
         sensors=sensor_plan(sim),
         tf=tf,
         actions=actions,

@@ -335,3 +335,13 @@ def test_an_internal_bug_is_not_passed_off_as_a_usage_error(monkeypatch, capsys)
     monkeypatch.setattr(cli, "run", user_error)
     assert cli.main(["--backend", "foo"]) == 2
     assert capsys.readouterr().err.strip() == "batchsim: error: unknown backend 'foo' (choose from auto, cpu, mjx, warp)"
+
+
+def test_ros_args_are_split_off_as_ros_executables_do():
+    from batchsim.cli.args import split_ros_args
+
+    ours, ros = split_ros_args(["--worlds", "2", "--ros-args", "-p", "use_sim_time:=true", "--", "--no-tf",
+                                "--ros-args", "--log-level", "warn"])  # fmt: skip
+    assert ours == ["--worlds", "2", "--no-tf"]
+    assert ros == ["-p", "use_sim_time:=true", "--log-level", "warn"]
+    assert split_ros_args(["--worlds", "2", "--", "x"]) == (["--worlds", "2", "--", "x"], [])

@@ -406,3 +406,18 @@ def test_a_frozen_world_stops_its_state_and_says_so(tmp_path):
         f.wait(lambda: js[1].count > count and sim_time(js[1].msg.header.stamp) > stamp, 10, "world_1 back after reset")
         f.wait(lambda: diag.value("world_1", "frozen") == "false", 10, "world_1 no longer frozen")
         assert f.close() == 0
+
+
+def test_ros_args_reach_the_workers_nodes(tmp_path):
+    """`--ros-args` (issue 23: every ROS executable takes them): remaps, parameters and the log
+    level go to every bridge worker's node; batchsim's own flags around them are still read."""
+    args = ["--worlds", "2", "--model", "arm", "--backend", "cpu", "--bridge-workers", "1",
+            "--ros-args", "-r", "/world_1/joint_states:=/arm_b/joint_states", "-p", "use_sim_time:=true",
+            "--log-level", "warn", "--", "--publish-rate", "50"]  # fmt: skip
+    with Fleet(domain_id(25), args, tmp_path / "ros_args.log") as f:
+        remapped = f.latest(JointState, "/arm_b/joint_states")
+        untouched = f.latest(JointState, "/world_0/joint_states")
+        f.wait(lambda: remapped.count > 0 and untouched.count > 0, 30, "joint_states on the remapped name")
+        names = [n for n, _ in f.node.get_topic_names_and_types()]
+        assert "/world_1/joint_states" not in names
+        assert "publish 50 Hz" in f.log()  # the flag after `--`

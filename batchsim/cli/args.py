@@ -8,6 +8,7 @@ import importlib.metadata
 import math
 import os
 import platform
+from collections.abc import Sequence
 from pathlib import Path
 
 import mujoco
@@ -228,6 +229,23 @@ def check_args(args: argparse.Namespace) -> None:
             except ValueError as e:  # NamingError; an OptionError names its flag through named()
                 named = getattr(e, "named", None)
                 raise UsageError(named("--namespace") if named else str(e)) from None
+
+
+def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
+    """(batchsim's arguments, the ROS arguments): what follows `--ros-args` up to a `--` (or the
+    end), as every ROS executable takes it (rclpy.utilities.remove_ros_args), possibly
+    several times. The ROS arguments go to every bridge worker's node."""
+    ours: list[str] = []
+    ros: list[str] = []
+    inside = False
+    for arg in argv:
+        if arg == "--ros-args":
+            inside = True
+        elif arg == "--" and inside:
+            inside = False
+        else:
+            (ros if inside else ours).append(arg)
+    return ours, ros
 
 
 def default_model(model: str | None, ros2_control: str | None) -> str:

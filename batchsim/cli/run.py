@@ -18,6 +18,7 @@ from batchsim.cli.args import (
     _load,
     check_args,
     run_parser,
+    split_ros_args,
 )  # fmt: skip
 from batchsim.controllers import ControllerManager, default_controllers, load_controllers
 from batchsim.hardware import BatchedSystem, ConfigurationError
@@ -163,6 +164,7 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
         all_topics=args.all_topics,
         tf=not args.no_tf,
         description=args.ros2_control,
+        ros_args=tuple(args.ros_args),
     )
     from ros_bridge.interfaces import missing_line
 
@@ -248,7 +250,9 @@ def run(argv: Sequence[str]) -> int:
     # until the loop runs, SIGTERM ends the start as Ctrl-C does: what was started (bridge
     # workers, shared memory) is stopped and removed on the way out
     signal.signal(signal.SIGTERM, _interrupt)
+    argv, ros_args = split_ros_args(argv)
     args = run_parser().parse_args(argv)
+    args.ros_args = ros_args
     check_args(args)
     progress = startup.Progress(sys.stderr)
     with startup.StartupGuard(progress):

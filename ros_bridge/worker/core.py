@@ -92,10 +92,10 @@ class Worker:
         self.namespaces = plan.namespaces[self.lo : self.hi]
         self.memory = memory
         self.notify_fd = notify_fd
-        # log lines go out as they are written, also when stderr is a file or a pipe
-        os.environ.setdefault("RCUTILS_LOGGING_BUFFERED_STREAM", "0")
+        os.environ.setdefault("RCUTILS_LOGGING_BUFFERED_STREAM", "0")  # log lines out as written, to files too
         self.context = Context()
-        rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
+        args = ["batchsim", "--ros-args", *plan.ros_args] if plan.ros_args else None  # the user's --ros-args
+        rclpy.init(args=args, context=self.context, signal_handler_options=SignalHandlerOptions.NO)
         try:
             self.node = Node(plan.node_names[index], context=self.context)
         except BaseException:
