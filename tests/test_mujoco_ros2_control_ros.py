@@ -271,6 +271,7 @@ def test_reset_to_a_keyframe_with_overrides(robot, ros):
     _default_scene_only(robot)
     ms = ros["ms"]
     _switch(robot, ros, deactivate=["position_controller"])
+    _pause(robot, ros, True)  # the pose is checked where the reset put it, before gravity moves the arm
     try:
         reset = ms.ResetWorld.Request(keyframe="start_90")
         reset.state_overrides.joint_states.name = ["joint2"]
@@ -279,10 +280,10 @@ def test_reset_to_a_keyframe_with_overrides(robot, ros):
         reply = robot.call(ms.ResetWorld, f"{NODE}/reset_world", reset)
         assert reply.success, reply.message
         assert reply.message == "Successfully reset the MuJoCo world to the 'start_90' state. Applied 1 joint and 1 free-joint override(s)."
-        # the keyframe's joint1 (1.57), joint2 overridden; the inactive controller commands nothing, so
-        # gravity moves the arm from there: the first message after the reset shows where it started
-        robot.wait(lambda: _near(robot.js, {"joint1": 1.57, "joint2": -1.0}, 0.1), 10, "the keyframe's pose")
+        # the keyframe's joint1 (1.57), joint2 overridden: published at once while paused
+        robot.wait(lambda: _near(robot.js, {"joint1": 1.57, "joint2": -1.0}, 1e-3), 10, "the keyframe's pose")
     finally:
+        _pause(robot, ros, False)
         _switch(robot, ros, activate=["position_controller"])
         robot.call(ms.ResetWorld, f"{NODE}/reset_world", ms.ResetWorld.Request())
 
