@@ -165,9 +165,9 @@ def _joint_overrides(m: mujoco.MjModel, js: dict) -> list[tuple[int, int, float 
     return out
 
 
-def _free_joints(m: mujoco.MjModel, entries: list[dict]) -> list[tuple[int, int, int, np.ndarray, np.ndarray, int, int]]:
-    """Per entry: (body, qpos address, dof address, pose (7,), twist (6,), pose frame body, twist
-    frame body); a frame body of -1 is the world frame."""
+def _free_joints(m: mujoco.MjModel, entries: list[dict]) -> list[tuple[int, int, np.ndarray, np.ndarray, int, int]]:
+    """Per entry: (qpos address, dof address, pose (7,), twist (6,), pose frame body, twist frame
+    body); a frame body of -1 is the world frame."""
     out = []
     for i, e in enumerate(entries):
         name = e.get("name", "")
@@ -192,7 +192,7 @@ def _free_joints(m: mujoco.MjModel, entries: list[dict]) -> list[tuple[int, int,
                 label = field.replace("_frame", "")
                 raise RequestError(f"Entry {i} ('{name}'): Unknown {label} frame_id body name: '{frame}'.")
             frames.append(fb)
-        out.append((body, int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j]), pose, twist, *frames))
+        out.append((int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j]), pose, twist, *frames))
     return out
 
 
@@ -205,7 +205,7 @@ def _apply_free(m: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, free: lis
         if d is not None:
             d.qpos[:] = qpos[k]
             mujoco.mj_kinematics(m, d)
-        for _body, adr, dof, pose, twist, pose_frame, twist_frame in free:
+        for adr, dof, pose, twist, pose_frame, twist_frame in free:
             if pose_frame < 0:
                 qpos[k, adr : adr + 7] = pose
             else:

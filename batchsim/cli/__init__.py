@@ -1,4 +1,4 @@
-"""The `batchsim` command (args.py: flags and their checks; info.py: `batchsim info`; run.py: the run).
+"""The `batchsim` command (args.py: flags and their checks; info.py: `batchsim info`; runner.py: the run).
 
     batchsim --worlds 16                     16 arms, over ROS 2, in real time
     batchsim --worlds 64 --model quadruped --rtf 0 --no-ros
@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from batchsim.backends import BackendUnavailable
 from batchsim.cli.args import EXIT_USAGE, UsageError, check_args, default_model, run_parser, version_line
 from batchsim.cli.info import info, sensor_lines
-from batchsim.cli.run import StatusLine, build, run, setup_controllers, start_ros
+from batchsim.cli.runner import StatusLine, build, run, setup_controllers, start_ros
 from batchsim.hardware import ConfigurationError, LifecycleError
 from batchsim.loop import OptionError, RateError
 from batchsim.model import ModelError

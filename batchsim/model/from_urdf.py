@@ -52,13 +52,11 @@ class Generated:
 
     Attributes:
       mjcf: the MJCF text (what `batchsim info --mjcf` prints and `/mujoco_robot_description` carries).
-      urdf: the expanded URDF text (its `<ros2_control>` blocks configure the interfaces).
       where: the URDF file, for messages.
       warnings: what was read and not done.
     """
 
     mjcf: str
-    urdf: str
     where: str
     warnings: list[str]
 
@@ -90,7 +88,6 @@ def mjcf_from_urdf(source: str | Path, *, inputs: str | Path | None = None, scen
     blocks = [el for el in root.findall("mujoco_inputs")]
     if inputs is not None:
         blocks.append(_inputs_file(inputs))
-    urdf_text = ET.tostring(root, encoding="unicode")
     for tag in _DROPPED:
         for el in root.findall(tag):
             root.remove(el)
@@ -116,7 +113,7 @@ def mjcf_from_urdf(source: str | Path, *, inputs: str | Path | None = None, scen
         _apply_inputs(mjcf, block, where, warnings)
     if scene is not None:
         _copy_children(_read_root(scene, "scene"), mjcf)
-    return Generated(ET.tostring(mjcf, encoding="unicode"), urdf_text, where, warnings)
+    return Generated(ET.tostring(mjcf, encoding="unicode"), where, warnings)
 
 
 # --- inputs ---
