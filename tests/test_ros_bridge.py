@@ -146,6 +146,9 @@ def test_bad_commands_are_rejected_and_the_sim_goes_on(arms):
 
     arms.wait(lambda: all(bad_count(w) > before[w] for w in range(NWORLD)), 15, "every world's bad command counted")
     for w, topic in ((0, bogus), (1, "/world_1/commands"), (2, "/world_2/commands"), (3, nan_topic)):
+        # a worker counts a rejection at once; the BAD_COMMAND bit comes with the loop's next
+        # snapshot, so the /diagnostics that first shows the count may not show the bit yet
+        arms.wait(lambda w=w: "bad_command" in world_diag(w).message, 5, f"world_{w}'s BAD_COMMAND in /diagnostics")
         d = world_diag(w)
         assert "bad_command" in d.message and topic in d.message, d.message
     log = arms.log()
