@@ -372,12 +372,18 @@ class StartupGuard:
         self.progress = progress
         self._left = threading.Event()
         self._reported = threading.Lock()
+        self._swallowed: StartupInterrupted | None = None
 
     def __enter__(self) -> StartupGuard:
         self._reader, self._writer = socket.socketpair()
         self._writer.setblocking(False)
         self._old_fd = signal.set_wakeup_fd(self._writer.fileno(), warn_on_full_buffer=False)
         self._old = {s: signal.signal(s, self._raise) for s in self.SIGNALS}
+        # a signal that lands inside a callback Python cannot raise out of (a gc callback,
+        # as jax's is, a __del__) is swallowed there: the watcher ends the process instead,
+        # and the usual "Exception ignored in" traceback would be a second, misleading line
+        self._old_hook = sys.unraisablehook
+        sys.unraisablehook = self._unraisable
         self._watcher = threading.Thread(target=self._watch, name="batchsim-startup-guard", daemon=True)
         self._watcher.start()
         return self
@@ -385,6 +391,12 @@ class StartupGuard:
     @staticmethod
     def _raise(signum: int, frame: Any) -> None:
         raise StartupInterrupted(signum)
+
+    def _unraisable(self, unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, StartupInterrupted):
+            self._swallowed = unraisable.exc_value
+        else:
+            self._old_hook(unraisable)
 
     def _watch(self) -> None:
         while True:
@@ -406,6 +418,7 @@ class StartupGuard:
         for s, handler in self._old.items():
             signal.signal(s, handler)
         signal.set_wakeup_fd(self._old_fd)
+        sys.unraisablehook = self._old_hook
         self._left.set()
         try:
             self._writer.send(b"\0")  # wakes the watcher, which sees the block is left
@@ -414,6 +427,8 @@ class StartupGuard:
         self._watcher.join(timeout=1.0)
         self._writer.close()
         self._reader.close()
+        if exc is None:
+            exc = self._swallowed  # the block ended before the watcher's grace did
         if isinstance(exc, StartupInterrupted):
             if self._reported.acquire(blocking=False):
                 self.progress.interrupted(exc.signum)

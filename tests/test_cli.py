@@ -218,6 +218,36 @@ def test_a_signal_inside_a_long_library_call_exits_promptly():
     assert elapsed < 10, elapsed  # the grace is 0.5 s; minutes if the guard waited for the call
 
 
+SIGNAL_IN_GC_CALLBACK = """
+import gc, os, signal, sys, time
+from batchsim.startup import Progress, StartupGuard
+def callback(phase, info):  # as jax's _xla_gc_callback: Python cannot raise out of it
+    if phase == "start":
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.01)  # the handler runs here, inside the callback
+progress = Progress(sys.stderr, after=0.0)
+with StartupGuard(progress):
+    with progress.stage("compiling"):
+        gc.callbacks.append(callback)
+        gc.collect()
+        gc.callbacks.remove(callback)
+        time.sleep(float(sys.argv[1]))
+print("not interrupted")
+"""
+
+
+@pytest.mark.parametrize("after", [0.0, 5.0], ids=["block-ends-first", "grace-ends-first"])
+def test_a_signal_swallowed_by_a_gc_callback_still_exits_with_one_line(after):
+    proc = subprocess.run(
+        [sys.executable, "-c", SIGNAL_IN_GC_CALLBACK, str(after)], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 143, proc.stderr
+    assert "not interrupted" not in proc.stdout
+    lines = [line for line in proc.stderr.strip().splitlines() if "interrupted" in line or "Exception" in line]
+    where = "" if after == 0.0 else " (compiling)"  # a stage that ended is not named
+    assert lines == [f"batchsim: interrupted by SIGTERM during start-up{where}; nothing ran"], proc.stderr
+
+
 @pytest.mark.skipif(importlib.util.find_spec("jax") is None, reason="mjx needs jax")
 def test_sigterm_while_mjx_compiles_exits_promptly_with_one_line():
     proc = subprocess.Popen(
