@@ -10,7 +10,9 @@ the RobotSpec (`CommandInterface.mode`, `scale`, `offset`, `RobotSpec.mimics`):
   time since the world's previous write (`batchsim.pid`);
 - a mimic joint's actuator: ctrl = multiplier * the mimicked joint's command + offset;
 - several interfaces on one actuator (position and velocity PIDs on one motor): one is
-  active at a time, as in ros2_control's `perform_command_mode_switch`; position first.
+  active at a time, as in ros2_control's `perform_command_mode_switch`; position first;
+- a joint behind a transmission: its commands become its actuators' first
+  (`batchsim.transmissions.CommandMap`), and those go through the rules above.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 
 from batchsim.model import CommandMode, RobotSpec, StateColumn
 from batchsim.pid import PidBank
+from batchsim.transmissions import CommandMap
 
 
 class Actuation:
@@ -33,8 +36,9 @@ class Actuation:
     """
 
     def __init__(self, spec: RobotSpec, nworld: int):
-        cmds = spec.commands
-        self.names = [c.name for c in cmds]
+        self._map = CommandMap(spec)
+        cmds = self._map.inner
+        self.names = [c.name for c in spec.commands]
         self.nworld = nworld
         self._actuator = np.array([c.actuator_id for c in cmds], dtype=np.intp)
         self._scale = np.array([c.scale for c in cmds])
@@ -49,7 +53,7 @@ class Actuation:
         self._default_active = self.active.copy()
         shared = len(seen) < len(cmds)
         plain = bool((self._scale == 1.0).all() and (self._offset == 0.0).all())
-        self.trivial = plain and not shared and not self._pid.any() and not spec.mimics
+        self.trivial = plain and not shared and not self._pid.any() and not spec.mimics and self._map.identity
         pid_cols = np.flatnonzero(self._pid)
         self._pid_cols = pid_cols
         self.feedback_columns = [
@@ -62,7 +66,7 @@ class Actuation:
         ]
         self._bank = PidBank([cmds[k].pid for k in pid_cols], nworld) if len(pid_cols) else None
         self._last_time = np.full(nworld, np.nan)
-        index = {name: k for k, name in enumerate(self.names)}
+        index = {name: k for k, name in enumerate(self.names)}  # mimics follow the commands themselves
         self._mimic_src = np.array([index[mc.source] for mc in spec.mimics], dtype=np.intp)
         self._mimic_act = np.array([mc.actuator_id for mc in spec.mimics], dtype=np.intp)
         self._mimic_mul = np.array([mc.multiplier for mc in spec.mimics])
@@ -80,19 +84,18 @@ class Actuation:
         """Make the `start` interfaces the ones that drive their actuators (ros2_control's
         perform_command_mode_switch); `stop` ones stop driving theirs. Unknown names raise
         ValueError naming them."""
-        index = {name: k for k, name in enumerate(self.names)}
         start, stop = list(start), list(stop)
-        unknown = [n for n in (*start, *stop) if n not in index]
+        unknown = [n for n in (*start, *stop) if n not in self.names]
         if unknown:
             raise ValueError(f"no command interface {unknown[0]!r}; interfaces: {', '.join(self.names)}")
         for name in stop:
-            self.active[index[name]] = False
+            self.active[self._map.stands_for(name)] = False
         for name in start:
-            k = index[name]
-            self.active[self._actuator == self._actuator[k]] = False
-            self.active[k] = True
-            if self._bank is not None and self._pid[k]:
-                self._bank.reset_columns(np.flatnonzero(self._pid_cols == k))
+            for k in self._map.stands_for(name):
+                self.active[self._actuator == self._actuator[k]] = False
+                self.active[k] = True
+                if self._bank is not None and self._pid[k]:
+                    self._bank.reset_columns(np.flatnonzero(self._pid_cols == k))
         self._index()
 
     def apply(
@@ -112,7 +115,8 @@ class Actuation:
           time: (nworld,) each world's simulation time at the last read().
         """
         r = slice(None) if rows is None else rows
-        cmd = command[r]
+        given = command[r]
+        cmd = self._map.apply(given)
         if len(self._direct):
             values = cmd[:, self._direct] * self._scale[self._direct] + self._offset[self._direct]
             _put(ctrl, rows, self._direct_act, values)
@@ -124,7 +128,7 @@ class Actuation:
             if self._pid_active.any():
                 _put(ctrl, rows, self._pid_act, u[:, self._pid_active])
         if len(self._mimic_src):
-            _put(ctrl, rows, self._mimic_act, cmd[:, self._mimic_src] * self._mimic_mul + self._mimic_off)
+            _put(ctrl, rows, self._mimic_act, given[:, self._mimic_src] * self._mimic_mul + self._mimic_off)
 
     def reset(self, worlds: np.ndarray, ctrl: np.ndarray, command: np.ndarray) -> None:
         """The listed worlds were reset: their PIDs start afresh, and the direct interfaces'
@@ -142,12 +146,12 @@ class Actuation:
             self._bank.reset(worlds)
             self._last_time[worlds] = np.nan
         if len(self._direct):
-            cmd = command[worlds]
+            cmd = self._map.apply(command[worlds])
             values = cmd[:, self._direct] * self._scale[self._direct] + self._offset[self._direct]
             _put(ctrl, worlds, self._direct_act, values)
         if len(self._mimic_src):
-            cmd = command[worlds]
-            _put(ctrl, worlds, self._mimic_act, cmd[:, self._mimic_src] * self._mimic_mul + self._mimic_off)
+            given = command[worlds]
+            _put(ctrl, worlds, self._mimic_act, given[:, self._mimic_src] * self._mimic_mul + self._mimic_off)
 
 
 def _put(ctrl: np.ndarray, rows: np.ndarray | None, cols: np.ndarray, values: np.ndarray) -> None:

@@ -42,7 +42,8 @@ from batchsim.actuation import Actuation
 from batchsim.engine import EngineHooks
 from batchsim.failures import FailureLog, ensure_log_dir
 from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState, SystemInterface
-from batchsim.model import RobotSpec, StateColumn, initial_command
+from batchsim.model import RobotSpec, initial_command
+from batchsim.readings import Finish, actuator_columns, as_slice, base_columns
 from batchsim.sensing import Sensing
 from batchsim.sensors import SensorConfig, SensorSuite
 from batchsim.types import (
@@ -112,7 +113,9 @@ class BatchedSystem(Sensing, EngineHooks, SystemInterface):
         self._actuation = Actuation(spec, self.nworld)
         # what read() gathers: the state interfaces, the floating base's pose and twist, and
         # the joint positions/velocities the PIDs measure
-        self._columns = list(spec.state) + _base_columns(spec) + self._actuation.feedback_columns
+        self._columns = (
+            list(spec.state) + base_columns(spec) + actuator_columns(spec) + self._actuation.feedback_columns
+        )
         self._bind_readings(np.zeros((self.nworld, len(self._columns))))
         self._command = np.zeros((self.nworld, ncommand))
         self.status = np.zeros(self.nworld, np.uint8)
@@ -126,10 +129,10 @@ class BatchedSystem(Sensing, EngineHooks, SystemInterface):
             cols = [i for i, c in enumerate(self._columns) if c.source == source]
             if cols:
                 idx = [self._columns[i].index for i in cols]
-                self._gather.append((source, _as_slice(cols), _as_slice(idx)))
-        self._negated = np.array([i for i, c in enumerate(self._columns) if c.sign < 0], dtype=np.intp)
+                self._gather.append((source, as_slice(cols), as_slice(idx)))
+        self._finish = Finish(spec, self._columns)
         self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
-        self._ctrl_cols = _as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster
+        self._ctrl_cols = as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster
         self._opened = False
         # what frozen worlds show until reset: their readings from the start of the failing step()
         self._held_readings = np.zeros_like(self._readings)
@@ -147,20 +150,27 @@ class BatchedSystem(Sensing, EngineHooks, SystemInterface):
 
     @property
     def readings(self) -> np.ndarray:
-        """(nworld, ncolumn) float64: all that read() fills, in one block: the columns of
-        `state`, then of `base_state`, then the joint positions and velocities the actuation
-        reads (PID feedback). For copying a fleet's readings whole; edit nothing in it."""
+        """(nworld, ncolumn) float64: all that read() fills, in one block laid out as
+        batchsim.readings says. For copying a fleet's readings whole; edit nothing in it."""
         return self._readings
 
+    @property
+    def actuator_states(self) -> np.ndarray:
+        """(nworld, 3 * n) float64 view: position, velocity and effort blocks of the n
+        `spec.actuator_joints` with an address (mujoco_actuators_states), refreshed by read()."""
+        return self._actuator_states
+
     def _bind_readings(self, readings: np.ndarray) -> None:
-        """Make `readings` (nworld, len(_columns)) the array read() fills; `state` and
-        `base_state` are views of its columns."""
+        """Make `readings` (nworld, len(_columns)) the array read() fills; `state`,
+        `base_state` and `actuator_states` are views of its columns."""
         nstate = len(self.spec.state)
         nbase = 13 if self.spec.floating_base is not None else 0
+        nact = nstate + nbase + len(actuator_columns(self.spec))
         self._readings = readings
         self.state = readings[:, :nstate]
         self.base_state = readings[:, nstate : nstate + nbase] if nbase else None
-        self._feedback = readings[:, nstate + nbase :]
+        self._actuator_states = readings[:, nstate + nbase : nact]
+        self._feedback = readings[:, nact:]
 
     def _bind_sensordata(self, sensordata: np.ndarray) -> None:
         """Make `sensordata` (nworld, nsensordata) the array read() fills; `self.sensordata`
@@ -437,18 +447,16 @@ class BatchedSystem(Sensing, EngineHooks, SystemInterface):
             raise ValueError(f"world {unique[counts > 1][0]} is listed more than once")
         return rows
 
-    def _apply_signs(self, readings: np.ndarray | None = None) -> None:
-        """Negate the columns read negated (mujoco_ros2_control's force/torque sensors) in
-        readings gathered from the engine: `readings` (k, ncolumn), or None: `_readings`
-        right after `_read()`. Called once per gather, never on rows already signed."""
-        if self._negated.size:
-            target = self._readings if readings is None else readings
-            target[:, self._negated] *= -1.0
+    def _finish_gather(self, readings: np.ndarray | None = None) -> None:
+        """Finish readings gathered from the engine (batchsim.readings.Finish: the columns
+        read negated, transmissions' joints): `readings` (k, ncolumn), or None: `_readings`
+        right after `_read()`. Called once per gather, never on rows already finished."""
+        self._finish(self._readings if readings is None else readings)
 
     def _refresh(self) -> None:
         """The engine's current readings into the host arrays, signed, then frozen worlds' held ones."""
         self._read()
-        self._apply_signs()
+        self._finish_gather()
         self._readings_current = True
         self._show_held()
 
@@ -476,22 +484,3 @@ class BatchedSystem(Sensing, EngineHooks, SystemInterface):
         sensordata[:] = fields["sensordata"]
         time[:] = fields["time"]
 
-
-def _base_columns(spec: RobotSpec) -> list[StateColumn]:
-    """The floating base's 7 qpos and 6 qvel entries as read columns (none without a base)."""
-    base = spec.floating_base
-    if base is None:
-        return []
-    pose = [StateColumn(f"{base.joint}/qpos{k}", "qpos", base.qposadr + k) for k in range(7)]
-    twist = [StateColumn(f"{base.joint}/qvel{k}", "qvel", base.dofadr + k) for k in range(6)]
-    return pose + twist
-
-
-def _as_slice(index: list[int]) -> slice | np.ndarray:
-    """An index list as a slice when it is an arithmetic progression (a view, not a gather)."""
-    if not index:
-        return np.array(index, dtype=np.intp)
-    step = index[1] - index[0] if len(index) > 1 else 1
-    if step > 0 and all(b - a == step for a, b in zip(index, index[1:], strict=False)):
-        return slice(index[0], index[-1] + 1, step)
-    return np.array(index, dtype=np.intp)

@@ -72,10 +72,9 @@ def robot_outputs(
     default joint_states (False where a broadcaster does)."""
     spec = sim.spec
     outputs: list[OutputSpec] = []
-    # <ns>/joint_states, unless a joint state broadcaster publishes it; the same values on
-    # <ns>/mujoco_actuators_states (mujoco_ros2_control's: its joints' qpos, qvel, qfrc_actuator), on request
+    # <ns>/joint_states, unless a joint state broadcaster publishes it
     joints = [j.name for j in spec.joints]
-    if joints:
+    if joints and joint_states:
         column = {name: i for i, name in enumerate(spec.state_interfaces)}
         gather = np.array(
             [column.get(f"{j}/{kind}", -1) for kind in ("position", "velocity", "effort") for j in joints], dtype=np.intp
@@ -95,11 +94,29 @@ def robot_outputs(
             for k, kind in enumerate(("position", "velocity", "effort"))
             if not missing[k * nj : (k + 1) * nj].all()
         )
-        for name, wanted in (("joint_states", joint_states), ("mujoco_actuators_states", True)):
-            if wanted:
-                outputs.append(
-                    OutputSpec(name, JOINT_STATE, fields, names=tuple(joints), every=publish_every, on_request=name != "joint_states")
-                )
+        outputs.append(OutputSpec("joint_states", JOINT_STATE, fields, names=tuple(joints), every=publish_every))
+    # <ns>/mujoco_actuators_states: mujoco_ros2_control's, every actuator's joint and every
+    # joint no actuator drives, on the MuJoCo side of any transmission; on request
+    actuated = [name for name, _, _ in spec.actuator_joints]
+    if actuated:
+        found = [q >= 0 for _, q, _ in spec.actuator_joints]
+        nfound, na = sum(found), len(actuated)
+        # output column k*na + i <- actuator_states column k*nfound + rank of i among those found
+        rank = np.cumsum(found) - 1
+        src = np.array([k * nfound + rank[i] if found[i] else -1 for k in range(3) for i in range(na)], dtype=np.intp)
+        absent = src < 0
+        src = np.maximum(src, 0)
+
+        def fill_actuators(out: np.ndarray) -> None:
+            np.take(sim.actuator_states, src, axis=1, out=out)
+            if absent.any():
+                out[:, absent] = np.nan
+
+        ch = channel("mujoco_actuators_states", 3 * na, fill_actuators)
+        fields = tuple(Field(kind, ch, tuple(range(k * na, (k + 1) * na))) for k, kind in enumerate(("position", "velocity", "effort")))
+        outputs.append(
+            OutputSpec("mujoco_actuators_states", JOINT_STATE, fields, names=tuple(actuated), every=publish_every, on_request=True)
+        )
 
     # sensors/<sensor>, and typed sensors per site: created on request
     if spec.sensors:

@@ -523,7 +523,9 @@ def test_what_is_not_understood_is_named_in_a_warning(tmp_path):
     spec = batchsim.load(_robot(tmp_path, block))
     text = "\n".join(spec.warnings)
     assert "hardware param 'frobnicate': ignored" in text and "sim_speed_factor" not in text
-    assert "transmission 't': ignored" in text and "gpio 'io': ignored" in text
+    assert "gpio 'io': ignored" in text
+    # a transmission is run now; one with no plugin is a problem, named
+    assert any("transmission 't': plugin '' is not one batchsim runs" in p for p in spec.problems)
 
 
 def test_several_blocks_are_one_description(tmp_path):

@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import batchsim
@@ -200,3 +201,128 @@ def test_a_bad_urdf_is_one_line_and_exit_2(tmp_path, urdf, message):
     assert "\n" not in str(e.value) and str(path) in str(e.value)
     out = _cli("info", str(path))
     assert out.returncode == 2 and out.stderr.count("\n") == 1 and message.split(":")[0] in out.stderr
+
+
+# --- transmissions: robot_launch_transmission(_pid)_test.py's setup, as 04_transmissions.launch.py makes it ---
+
+
+def transmission_robot(tmp_path: Path, use_pid: bool = False) -> Path:
+    """test_robot.urdf with use_transmissions:=true, its MJCF's joint1/joint2 renamed
+    actuator1/actuator2 and the URDF pointed at it: what upstream's launch file
+    (process_transmission_files) hands its node as robot_description. Returns the URDF; the
+    model is its `mujoco_model` (tmp_path / "scene.xml")."""
+    from batchsim.model.description import expand_xacro
+
+    text = expand_xacro(URDF, {"use_transmissions": "true", "use_pid": "true" if use_pid else "false"})
+    model = Path(text.split('mujoco_model">')[1].split("</param>")[0].strip())
+    scene = model.read_text()
+    include = scene.split('<include file="')[1].split('"/>')[0].strip()
+    robot = (model.parent / include).read_text().replace('"joint1"', '"actuator1"').replace('"joint2"', '"actuator2"')
+    (tmp_path / "robot.xml").write_text(robot)
+    (tmp_path / "scene.xml").write_text(scene.replace(include, str(tmp_path / "robot.xml")))
+    urdf = tmp_path / "test_robot.urdf"
+    urdf.write_text(text.replace(str(model), str(tmp_path / "scene.xml")))
+    return urdf
+
+
+@pytest.mark.parametrize("use_pid", [False, True], ids=["position", "pid"])
+def test_a_differential_transmission_drives_joints_through_two_actuators(tmp_path, use_pid):
+    """robot_launch_transmission_test.py's test_arm and hardware interfaces, through the Python API:
+    joint targets 0.5/-0.5 reached, the actuators where the differential puts them
+    (reductions 2.0/0.5: 0.5*2 - 0.5*0.5 = 0.75 and 0.5*2 + 0.5*0.5 = 1.25), efforts reported."""
+    urdf = transmission_robot(tmp_path, use_pid)
+    spec = batchsim.load(str(tmp_path / "scene.xml"), ros2_control=str(urdf))
+    assert not spec.problems
+    joints = [f"joint{j}/{k}" for j in (1, 2) for k in (("position", "velocity") if use_pid else ("position",))]
+    assert spec.command_interfaces == [*joints, "gripper_left_finger_joint/position"]
+    if use_pid:  # the PIDs are the actuators' (pid_gains.position.actuator1 ...), as upstream's
+        modes = {c.name: c.mode.value for c in spec.actuator_commands}
+        assert modes["actuator1/position"] == modes["actuator2/position"] == "position_pid"
+    assert [n for n, _, _ in spec.actuator_joints] == ["actuator1", "actuator2", "gripper_left_finger_joint",
+                                                      "gripper_right_finger_joint"]  # fmt: skip
+    sim = batchsim.make(spec, 2, "cpu")
+    sim.configure()
+    sim.activate()
+    names, state = sim.export_command_interfaces(), sim.export_state_interfaces()
+    sim.command[0, names.index("joint1/position")] = 0.5
+    sim.command[0, names.index("joint2/position")] = -0.5
+    for _ in range(400):
+        sim.read()
+        sim.write()
+        sim.step(10)
+    sim.read()
+    joint = {n: sim.state[:, state.index(n)] for n in ("joint1/position", "joint2/position", "joint1/effort", "joint1/torque")}
+    assert joint["joint1/position"][0] == pytest.approx(0.5, abs=0.05)
+    assert joint["joint2/position"][0] == pytest.approx(-0.5, abs=0.05)
+    # world 1 holds its start (a P-only PID sags a little under gravity: upstream's gains)
+    assert abs(joint["joint1/position"][1]) < 0.15 and abs(joint["joint2/position"][1]) < 0.15
+    assert joint["joint1/effort"][0] == joint["joint1/torque"][0] != 0.0
+    na = len(spec.actuator_joints)
+    positions, efforts = sim.actuator_states[0, :na], sim.actuator_states[0, 2 * na :]
+    assert positions[:2] == pytest.approx([0.75, 1.25], abs=0.05)
+    assert np.abs(efforts).max() > 1e-6
+
+
+def test_the_maps_are_transmission_interfaces():
+    """ros2_control's formulas (differential_transmission.hpp, simple_transmission.hpp), with
+    offsets and actuator reductions: a joint command read back through the state map is itself,
+    and the power through the transmission is conserved (joint effort . velocity = actuator's)."""
+    from batchsim.model import InterfaceKind as K
+    from batchsim.model import Transmission, TransmissionKind
+
+    jr, ar, off = (2.0, 0.5), (1.5, -3.0), (0.1, -0.2)
+    diff = Transmission("d", TransmissionKind.DIFFERENTIAL, ("j1", "j2"), ("a1", "a2"),
+                        ((jr[0] * ar[0], jr[1] * ar[0]), (jr[0] * ar[1], -jr[1] * ar[1])), off)  # fmt: skip
+    j = np.array([0.3, -0.7])
+    a_of, a_b = diff.actuator_from_joint(K.POSITION)
+    a = a_of @ j + a_b
+    jj = j - off  # upstream: act[0] = (j0 jr0 + j1 jr1) ar0, act[1] = (j0 jr0 - j1 jr1) ar1, offsets removed first
+    assert a == pytest.approx([(jj[0] * jr[0] + jj[1] * jr[1]) * ar[0], (jj[0] * jr[0] - jj[1] * jr[1]) * ar[1]])
+    j_of, j_b = diff.joint_from_actuator(K.POSITION)
+    assert j_of @ a + j_b == pytest.approx(j)
+    v = np.array([1.1, 0.4])
+    av = diff.actuator_from_joint(K.VELOCITY)[0] @ v
+    ae = np.array([2.0, -5.0])
+    je = diff.joint_from_actuator(K.EFFORT)[0] @ ae
+    assert je == pytest.approx([jr[0] * (ae[0] * ar[0] + ae[1] * ar[1]), jr[1] * (ae[0] * ar[0] - ae[1] * ar[1])])
+    assert je @ v == pytest.approx(ae @ av)
+    assert diff.actuator_from_joint(K.EFFORT)[0] @ je == pytest.approx(ae)
+    simple = Transmission("s", TransmissionKind.SIMPLE, ("j",), ("a",), ((4.0,),), (0.5,))
+    a_of, a_b = simple.actuator_from_joint(K.POSITION)
+    assert a_of @ [1.0] + a_b == pytest.approx([(1.0 - 0.5) * 4.0])  # (joint - offset) * reduction
+    assert simple.joint_from_actuator(K.EFFORT)[0] @ [3.0] == pytest.approx([12.0])  # effort * reduction
+
+
+def _one_transmission(tmp_path: Path, body: str) -> Path:
+    path = transmission_robot(tmp_path)
+    text = path.read_text()
+    start, end = text.index("<transmission"), text.index("</transmission>") + len("</transmission>")
+    path.write_text(text[:start] + body + text[end:])
+    return path
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ('<transmission name="t"><plugin>transmission_interface/FourBarLinkageTransmission</plugin>'
+         '<joint name="joint1"/><joint name="joint2"/><actuator name="actuator1"/><actuator name="actuator2"/></transmission>',
+         "transmission 't': plugin 'transmission_interface/FourBarLinkageTransmission' is not one batchsim runs"),
+        ('<transmission name="t"><plugin>transmission_interface/SimpleTransmission</plugin>'
+         '<joint name="joint1"><mechanical_reduction>0</mechanical_reduction></joint><actuator name="actuator1"/></transmission>',
+         "transmission 't': 'joint1': mechanical_reduction cannot be zero"),
+        ('<transmission name="t"><plugin>transmission_interface/DifferentialTransmission</plugin>'
+         '<joint name="joint1"/><joint name="joint2"/><actuator name="actuator1"/><actuator name="motor9"/></transmission>',
+         "transmission 't': actuator 'motor9': the model has no actuator, and no actuated joint, of that name"),
+        ('<transmission name="t"><plugin>transmission_interface/DifferentialTransmission</plugin>'
+         '<joint name="joint1"/><actuator name="actuator1"/></transmission>',
+         "transmission 't': a DifferentialTransmission takes 2 joint(s) and 2 actuator(s), got 1 and 1"),
+    ],
+)  # fmt: skip
+def test_a_transmission_that_cannot_be_built_is_one_line_and_exit_2(tmp_path, body, message):
+    urdf = _one_transmission(tmp_path, body)
+    spec = batchsim.load(str(tmp_path / "scene.xml"), ros2_control=str(urdf))
+    assert any(message in p for p in spec.problems), spec.problems
+    out = _cli("--worlds", "1", "--no-ros", "--duration", "0.1", "--ros2-control", str(urdf))
+    assert out.returncode == 2, out.stderr
+    errors = [line for line in out.stderr.splitlines() if "warning" not in line]
+    assert len(errors) == 1 and message in errors[0], out.stderr

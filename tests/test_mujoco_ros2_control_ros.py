@@ -52,16 +52,23 @@ def ros():
     )  # fmt: skip
 
 
-@pytest.fixture(scope="module", params=["position", "pid"])
+@pytest.fixture(scope="module", params=["position", "pid", "transmission", "transmission_pid"])
 def robot(request, tmp_path_factory, ros):
-    """The demo robot as robot_launch_test.py runs it (use_pid:=false), and as
-    robot_launch_pid_test.py does (use_pid:=true: motors under mujoco_pid.yaml's PIDs)."""
-    log = tmp_path_factory.mktemp("mrc") / "batchsim.log"
+    """The demo robot as robot_launch_test.py runs it (use_pid:=false), as
+    robot_launch_pid_test.py does (use_pid:=true: motors under mujoco_pid.yaml's PIDs), and as
+    robot_launch_transmission(_pid)_test.py do (use_transmissions:=true: joint1/joint2 through a
+    differential onto MJCF joints renamed actuator1/actuator2, as 04_transmissions.launch.py)."""
+    from test_mujoco_ros2_control import transmission_robot
+
+    folder = tmp_path_factory.mktemp("mrc")
     args = [*UPSTREAM]
-    if request.param == "pid":
+    if request.param.endswith("pid"):
         args[1] += " use_pid:=true"
-    with Fleet(domain_id(84), ["--worlds", "1", "--namespace", "", *args], log) as fleet:
-        fleet.pid = request.param == "pid"
+    if request.param.startswith("transmission"):
+        args[1] = str(transmission_robot(folder, use_pid=request.param.endswith("pid")))
+    with Fleet(domain_id(84), ["--worlds", "1", "--namespace", "", *args], folder / "batchsim.log") as fleet:
+        fleet.pid = request.param.endswith("pid")
+        fleet.transmission = request.param.startswith("transmission")
         fleet.js = fleet.latest(ros["JointState"], "/joint_states")
         fleet.actuators = fleet.latest(ros["JointState"], "/mujoco_actuators_states")
         fleet.pose = fleet.latest(ros["PoseStamped"], "/pose_broadcaster/pose")
@@ -100,7 +107,8 @@ def test_clock_and_joint_states(robot, ros):
 
 def test_mujoco_actuators_states_published(robot):
     robot.wait(lambda: robot.actuators.count > 0, 20, "/mujoco_actuators_states")
-    assert list(robot.actuators.msg.name) == ["joint1", "joint2", "gripper_left_finger_joint", "gripper_right_finger_joint"]
+    arm = ["actuator1", "actuator2"] if robot.transmission else ["joint1", "joint2"]  # the MuJoCo side
+    assert list(robot.actuators.msg.name) == [*arm, "gripper_left_finger_joint", "gripper_right_finger_joint"]
 
 
 def test_available_hardware_interfaces(robot, ros):
@@ -135,7 +143,10 @@ def test_arm(robot, ros):
     _controllers_running(robot, ros)
     _command(robot, ros, "/position_controller/commands", [0.5, -0.5], {"joint1": 0.5, "joint2": -0.5}, robot.js)
     assert any(abs(e) > 1e-6 for e in robot.js.msg.effort), "Effort field is zero"
-    robot.wait(lambda: _near(robot.actuators, {"joint1": 0.5, "joint2": -0.5}, 0.05), 15, "actuator states at the target")
+    expected = {"joint1": 0.5, "joint2": -0.5}
+    if robot.transmission:  # the differential (joint reductions 2.0/0.5): sum and difference
+        expected = {"actuator1": 0.5 * 2.0 + -0.5 * 0.5, "actuator2": 0.5 * 2.0 - -0.5 * 0.5}
+    robot.wait(lambda: _near(robot.actuators, expected, 0.05), 15, "actuator states at the target")
     assert any(abs(e) > 1e-6 for e in robot.actuators.msg.effort)
 
 
@@ -237,7 +248,7 @@ def _free(ros, name, xyz, frame=""):
 
 
 def _default_scene_only(robot):
-    if robot.pid:  # as upstream skips them: the PID scene has no free cubes and no keyframes
+    if robot.pid or robot.transmission:  # as upstream skips them: not in the PID or transmission scenes
         pytest.skip("cube1/cube2 and the start_90 keyframe are only in the default test_robot.xml scene")
 
 

@@ -133,7 +133,7 @@ class CpuSystem(BatchedSystem):
         readings, sensordata, time = start
         held = readings[worlds]
         if readings is self._start[0]:
-            self._apply_signs(held)  # an engine gather, unsigned like _read()'s; read()'s rows are signed
+            self._finish_gather(held)  # an engine gather, unsigned like _read()'s; read()'s rows are signed
         return StepFailures(worlds, status, reasons, held, sensordata[worlds], time[worlds])
 
     def device_arrays(self) -> dict[str, np.ndarray]:

@@ -284,7 +284,7 @@ class MjxSystem(DeviceSystem):
                 # the program returned these worlds' readings from before the period
                 nread = self._readings.shape[1]
                 readings = self._packed[worlds, :nread].astype(np.float64)
-                self._apply_signs(readings)  # an engine gather, unsigned like _read()'s
+                self._finish_gather(readings)  # an engine gather, unsigned like _read()'s
                 failures = StepFailures(
                     worlds=worlds,
                     status=code_status(codes[worlds]),

@@ -11,6 +11,7 @@ from batchsim.cli.args import (
     default_model,
     info_parser,
 )  # fmt: skip
+from batchsim.model import CommandMode
 from batchsim.sensors import SensorConfig, SensorSuite
 
 
@@ -42,11 +43,20 @@ def info(argv: Sequence[str]) -> int:
     out.append(f"\nstate interfaces ({len(spec.state)})")
     out += [f"  {i:3d}  {c.name}" for i, c in enumerate(spec.state)]
     out.append(f"\ncommand interfaces ({len(spec.commands)})")
-    out += [f"  {i:3d}  {c.name:32s} actuator {c.actuator}{_how(c)}" for i, c in enumerate(spec.commands)]
+    out += [
+        f"  {i:3d}  {c.name:32s} "
+        + (f"transmission {c.actuator}" if c.mode is CommandMode.TRANSMITTED else f"actuator {c.actuator}{_how(c)}")
+        for i, c in enumerate(spec.commands)
+    ]
     out += [
         f"       {mc.joint} mimics {mc.source} (x {mc.multiplier:g} + {mc.offset:g}) on actuator {mc.actuator}"
         for mc in spec.mimics
     ]
+    for t in spec.transmissions:
+        out.append(f"       transmission {t.name}: {t.kind.value.rsplit('/', 1)[1]} {', '.join(t.joints)} -> "
+                   f"{', '.join(t.actuators)} (actuator position = {[list(r) for r in t.matrix]} x joint)")
+        out += [f"         {c.name:30s} actuator {c.actuator}{_how(c)}"
+                for c in spec.actuator_commands or () if c.name.rsplit("/", 1)[0] in t.actuators]
     out.append(f"\nsensors ({len(spec.sensors)})")
     out += [
         f"  {s.name:24s} {s.type:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors

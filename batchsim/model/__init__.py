@@ -31,6 +31,8 @@ from batchsim.model.spec import (
     RosPluginConfig,
     Sensor,
     StateColumn,
+    Transmission,
+    TransmissionKind,
 )
 
 __all__ = [
@@ -49,6 +51,8 @@ __all__ = [
     "RosPluginConfig",
     "Sensor",
     "StateColumn",
+    "Transmission",
+    "TransmissionKind",
     "floating_base",
     "initial_command",
     "load",

@@ -71,6 +71,30 @@ class ComponentInfo:
 
 
 @dataclasses.dataclass(frozen=True)
+class TransmissionEnd:
+    """A `<joint>` or `<actuator>` of a `<transmission>`: its `<mechanical_reduction>` and
+    `<offset>` (1 and 0 when not given, as ros2_control's parser defaults them); the text of
+    either when it is not a number, for the problem it makes."""
+
+    name: str
+    role: str
+    mechanical_reduction: float = 1.0
+    offset: float = 0.0
+    bad: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class TransmissionInfo:
+    """A `<transmission>` of a block (hardware_interface::TransmissionInfo)."""
+
+    name: str
+    plugin: str
+    joints: tuple[TransmissionEnd, ...]
+    actuators: tuple[TransmissionEnd, ...]
+    params: dict[str, str]
+
+
+@dataclasses.dataclass(frozen=True)
 class HardwareInfo:
     """One `<ros2_control>` block (hardware_interface::HardwareInfo)."""
 
@@ -81,6 +105,7 @@ class HardwareInfo:
     joints: tuple[ComponentInfo, ...]
     sensors: tuple[ComponentInfo, ...]
     gpios: tuple[ComponentInfo, ...]
+    transmissions: tuple[TransmissionInfo, ...] = ()
 
 
 @dataclasses.dataclass
@@ -109,6 +134,10 @@ class Description:
     @property
     def sensors(self) -> list[ComponentInfo]:
         return [s for hw in self.hardware for s in hw.sensors]
+
+    @property
+    def transmissions(self) -> list[TransmissionInfo]:
+        return [t for hw in self.hardware for t in hw.transmissions]
 
     def param(self, name: str) -> tuple[str, HardwareInfo] | None:
         """A hardware param, from the first block that sets it."""
@@ -254,7 +283,7 @@ def _block(
         for key in params:
             if key not in HARDWARE_PARAMS and key not in HARDWARE_PARAMS_UNUSED:
                 warnings.append(f"{label}: hardware param {key!r}: ignored: batchsim does not know it")
-    joints, sensors, gpios = [], [], []
+    joints, sensors, gpios, transmissions = [], [], [], []
     for el in block:
         tag = el.tag if isinstance(el.tag, str) else ""
         if tag == "hardware":
@@ -268,15 +297,35 @@ def _block(
                                        _interfaces(el, "state_interface")))
             warnings.append(f"{label}: gpio {el.get('name', '')!r}: ignored: batchsim has no GPIO interfaces")
         elif tag == "transmission":
-            warnings.append(
-                f"{label}: transmission {el.get('name', '')!r}: ignored: batchsim maps joints to actuators "
-                "one to one (name the MuJoCo actuator after the joint)"
-            )
+            transmissions.append(_transmission(el))
         elif tag.startswith("{"):
             warnings.append(f"{label}: <{tag}>: ignored: an unexpanded xacro element (give the file, not its text)")
         else:
             warnings.append(f"{label}: <{tag}>: ignored: not a ros2_control element")
-    return HardwareInfo(name, block.get("type", "system"), plugin, params, tuple(joints), tuple(sensors), tuple(gpios))
+    return HardwareInfo(
+        name, block.get("type", "system"), plugin, params, tuple(joints), tuple(sensors), tuple(gpios),
+        tuple(transmissions),
+    )
+
+
+def _transmission(el: ET.Element) -> TransmissionInfo:
+    def end(e: ET.Element) -> TransmissionEnd:
+        values, bad = {}, ""
+        for key, default in (("mechanical_reduction", 1.0), ("offset", 0.0)):
+            text = (e.findtext(key) or "").strip()
+            try:
+                values[key] = float(text) if text else default
+            except ValueError:
+                values[key], bad = default, f"<{key}> {text!r} is not a number"
+        return TransmissionEnd(e.get("name", ""), e.get("role", ""), bad=bad, **values)
+
+    return TransmissionInfo(
+        el.get("name", ""),
+        (el.findtext("plugin") or el.findtext("type") or "").strip(),
+        tuple(end(j) for j in el.findall("joint")),
+        tuple(end(a) for a in el.findall("actuator")),
+        _params(el),
+    )
 
 
 def _joint(el: ET.Element, label: str, warnings: list[str], urdf_mimics: dict[str, MimicInfo]) -> ComponentInfo:

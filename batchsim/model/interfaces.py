@@ -176,12 +176,16 @@ def discover(
     sensor_columns: list[StateColumn] = []
     mimics: list[MimicCommand] = []
     block_keyframe = odom_joint = None
+    transmissions, actuator_commands, actuator_space = [], None, []
     if description is not None:
         n = narrow(description, m, joints, actuators, sensors)
         joints, joint_states, commands, sensors = n.joints, n.joint_states, n.commands, n.sensors
         sensor_columns, initial_values, mimics = n.sensor_columns, n.initial_values, n.mimics
         problems, warnings, block_keyframe, odom_joint = n.problems, n.warnings, n.keyframe, n.odom_joint
-    start = initial_state(m, keyframe, block_keyframe, key_ctrl_given, initial_values, joints, problems, warnings)
+        transmissions, actuator_commands, actuator_space = n.transmissions, n.actuator_commands, n.actuator_space
+    start = initial_state(
+        m, keyframe, block_keyframe, key_ctrl_given, initial_values, joints + actuator_space, problems, warnings
+    )
 
     state: list[StateColumn] = []
     for j in joints:
@@ -223,7 +227,26 @@ def discover(
         mimics=mimics,
         problems=problems,
         warnings=warnings,
+        transmissions=transmissions,
+        actuator_commands=actuator_commands,
+        actuator_joints=_actuator_joints(m, actuators, one_dof),
     )
+
+
+def _actuator_joints(m: mujoco.MjModel, actuators: list[Actuator], one_dof: tuple[int, int]) -> list[tuple[str, int, int]]:
+    """What mujoco_ros2_control reports on mujoco_actuators_states: each actuator under its
+    joint's name (its own for a tendon or site), then every hinge/slide joint none drives."""
+    out: dict[str, tuple[str, int, int]] = {}
+    for a in actuators:
+        name = a.joint or a.name
+        j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
+        found = j >= 0 and int(m.jnt_type[j]) in one_dof
+        out.setdefault(name, (name, int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j])) if found else (name, -1, -1))
+    driven = {adr for _, adr, _ in out.values()}
+    for j in range(m.njnt):
+        if int(m.jnt_type[j]) in one_dof and m.joint(j).name and int(m.jnt_qposadr[j]) not in driven:
+            out.setdefault(m.joint(j).name, (m.joint(j).name, int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j])))
+    return list(out.values())
 
 
 def initial_state(
@@ -350,8 +373,9 @@ def initial_command(spec: RobotSpec) -> np.ndarray:
     m = spec.mjmodel
     d = mujoco.MjData(m)
     spec.initial.apply(m, d)
-    out = np.zeros(len(spec.commands))
-    for c, cmd in enumerate(spec.commands):
+    commands = spec.commands if spec.actuator_commands is None else spec.actuator_commands
+    out = np.zeros(len(commands))
+    for c, cmd in enumerate(commands):
         if cmd.mode is CommandMode.POSITION_PID:
             out[c] = spec.initial.qpos[cmd.qposadr]
         elif cmd.mode is not CommandMode.DIRECT:
@@ -364,4 +388,18 @@ def initial_command(spec: RobotSpec) -> np.ndarray:
             gain, bias = float(m.actuator_gainprm[a, 0]), float(m.actuator_biasprm[a, 1])
             ctrl = -bias * float(d.actuator_length[a]) / gain if gain else 0.0
             out[c] = (ctrl - cmd.offset) / cmd.scale
-    return out
+    if spec.actuator_commands is None:
+        return out
+    # through the transmissions: a joint's position holds its actuators', the rest start at 0
+    inner = {cmd.name: out[c] for c, cmd in enumerate(commands)}
+    joint_side = np.zeros(len(spec.commands))
+    by_joint = {j: (t, k) for t in spec.transmissions for k, j in enumerate(t.joints)}
+    for c, cmd in enumerate(spec.commands):
+        if cmd.mode is not CommandMode.TRANSMITTED:
+            joint_side[c] = inner[cmd.name]
+        elif cmd.kind is InterfaceKind.POSITION:
+            t, k = by_joint[cmd.joint]
+            iname = cmd.name.rsplit("/", 1)[1]
+            a, b = t.joint_from_actuator(cmd.kind)
+            joint_side[c] = (a @ np.array([inner[f"{x}/{iname}"] for x in t.actuators]) + b)[k]
+    return joint_side

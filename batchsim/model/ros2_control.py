@@ -42,7 +42,9 @@ from batchsim.model.spec import (
     MimicCommand,
     Sensor,
     StateColumn,
+    Transmission,
 )
+from batchsim.model.transmissions import Transmitted, transmissions
 from batchsim.pid import PidGains
 from batchsim.sensors.lidar import rangefinder_groups
 
@@ -89,6 +91,9 @@ class Narrowed:
     odom_joint: str | None  # the odom_free_joint_name param
     problems: list[str]
     warnings: list[str]
+    transmissions: list[Transmission] = dataclasses.field(default_factory=list)
+    actuator_commands: list[CommandInterface] | None = None  # with transmissions: what drives ctrl
+    actuator_space: list[Joint] = dataclasses.field(default_factory=list)  # transmissions' actuators' joints
 
 
 def narrow(
@@ -108,8 +113,12 @@ def narrow(
         if found is not None:
             setattr(out, name, found[0])
 
+    components = {el.name: el for el in description.joints}
+    actuated = {a.joint for a in actuators if a.joint} | {a.name for a in actuators}
+    tr = transmissions(description.transmissions, components, by_joint, actuated, problems)
     seen: set[str] = set()
     commands: list[CommandInterface] = []
+    inner: dict[str, CommandInterface | None] = {}  # the transmissions' actuators' interfaces (None: cannot be)
     mimic_joints: list[ComponentInfo] = []
     for el in description.joints:
         jname = el.name
@@ -117,6 +126,9 @@ def narrow(
             problems.append(f"ros2_control joint {jname!r}: listed in two blocks")
             continue
         seen.add(jname)
+        if jname in tr.by_joint:
+            _transmitted(el, tr, by_joint, actuators, pids, m, commands, inner, out)
+            continue
         serving = [a for a in actuators if a.joint == jname] or [a for a in actuators if a.name == jname]
         joint = by_joint.get(jname)
         if joint is None and not serving:
@@ -145,13 +157,80 @@ def narrow(
             if cmd is not None:
                 commands.append(cmd)
     order = {a.id: k for k, a in enumerate(actuators)}
-    commands.sort(key=lambda c: (order[c.actuator_id], _KIND_ORDER[c.kind]))
+
+    def key(c: CommandInterface) -> tuple[int, int]:
+        if c.mode is CommandMode.TRANSMITTED:  # where its paired actuator's interface sorts
+            t, k = tr.by_joint[c.joint]
+            c = inner[f"{t.actuators[k]}/{c.name.rsplit('/', 1)[1]}"]
+        return order[c.actuator_id], _KIND_ORDER[c.kind]
+
+    commands.sort(key=key)
     out.commands = commands
+    if tr.transmissions:
+        out.transmissions, out.actuator_space = tr.transmissions, list(tr.actuator_joints.values())
+        out.actuator_commands = sorted(
+            [c for c in commands if c.mode is not CommandMode.TRANSMITTED] + [c for c in inner.values() if c], key=key
+        )
+        _transmit_initial_values(tr, out)
     out.joints.sort(key=lambda j: j.id)
     for el in mimic_joints:
         _mimic(el, actuators, commands, out)
     _sensors(description, m, sensors, out)
     return out
+
+
+def _transmitted(
+    el: ComponentInfo,
+    tr: Transmitted,
+    by_joint: dict[str, Joint],
+    actuators: list[Actuator],
+    pids: dict[tuple[str, str], PidGains],
+    m: mujoco.MjModel,
+    commands: list[CommandInterface],
+    inner: dict[str, CommandInterface | None],
+    out: Narrowed,
+) -> None:
+    """A joint behind a transmission: state read at its paired actuator and mapped; each
+    command interface TRANSMITTED onto the same interface of every actuator of its transmission."""
+    jname = el.name
+    t, _ = tr.by_joint[jname]
+    out.joints.append(tr.paired(jname))
+    out.joint_states[jname] = _joint_states(el, jname, out)
+    if el.mimic is not None:
+        out.warnings.append(f"ros2_control joint {jname!r}: a transmission's joint: its mimic is ignored")
+    for ci in el.command_interfaces:
+        kind = InterfaceKind.of_name(ci.name)
+        if kind is None:
+            out.problems.append(f"ros2_control joint {jname!r}: unknown command interface {ci.name!r}")
+            continue
+        for a in t.actuators:
+            name = f"{a}/{ci.name}"
+            if name not in inner:  # once per actuator: the transmission's other joint shares it
+                serving = [x for x in actuators if x.joint == a] or [x for x in actuators if x.name == a]
+                component = ComponentInfo(a, {}, (), ())
+                inner[name] = _command(component, ci.name, ci.params, by_joint[a], serving, pids, m, out)
+        if any(inner[f"{a}/{ci.name}"] is None for a in t.actuators):
+            continue
+        commands.append(
+            CommandInterface(f"{jname}/{ci.name}", kind, t.name, -1, jname, mode=CommandMode.TRANSMITTED)
+        )
+
+
+def _transmit_initial_values(tr: Transmitted, out: Narrowed) -> None:
+    """initial_value of a transmission's joints -> its actuators' joints' (all of them, or none)."""
+    for t in tr.transmissions:
+        given = [j for j in t.joints if j in out.initial_values]
+        values = [out.initial_values.pop(j) for j in given]
+        if not given:
+            continue
+        if len(given) < len(t.joints):
+            out.warnings.append(
+                f"ros2_control transmission {t.name!r}: initial_value of {', '.join(given)} ignored: "
+                "give one to every joint of the transmission"
+            )
+            continue
+        for row, a in zip(t.matrix, t.actuators, strict=True):
+            out.initial_values[a] = sum(c * (v - o) for c, v, o in zip(row, values, t.offset, strict=True))
 
 
 def _joint_states(el: ComponentInfo, jname: str, out: Narrowed) -> list[str]:

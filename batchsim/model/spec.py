@@ -44,6 +44,50 @@ class CommandMode(enum.Enum):
     DIRECT = "direct"  # ctrl = scale * command + offset (scale 1, offset 0 unless a gripper is scaled)
     POSITION_PID = "position_pid"  # ctrl = PID(command - qpos of the joint)
     VELOCITY_PID = "velocity_pid"  # ctrl = PID(command - qvel of the joint)
+    TRANSMITTED = "transmitted"  # through a transmission onto `RobotSpec.actuator_commands`
+
+
+class TransmissionKind(enum.Enum):
+    """The transmissions of ros2_control's transmission_interface batchsim runs."""
+
+    SIMPLE = "transmission_interface/SimpleTransmission"
+    DIFFERENTIAL = "transmission_interface/DifferentialTransmission"
+
+
+@dataclasses.dataclass(frozen=True)
+class Transmission:
+    """A ros2_control transmission: joints on one side, actuators on the other, related
+    linearly as transmission_interface relates them:
+
+        actuator position = matrix @ (joint position - offset)
+        actuator velocity = matrix @ joint velocity
+        joint effort      = matrix.T @ actuator effort
+
+    An actuator is named as mujoco_ros2_control names them: a MuJoCo joint driven by an
+    actuator, or an actuator's own name. `joints[k]` and `actuators[k]` are paired: a
+    joint's state is gathered where its actuator's is, then mapped (batchsim.transmissions).
+    """
+
+    name: str
+    kind: TransmissionKind
+    joints: tuple[str, ...]
+    actuators: tuple[str, ...]
+    matrix: tuple[tuple[float, ...], ...]  # (nactuator, njoint)
+    offset: tuple[float, ...]  # per joint
+
+    def actuator_from_joint(self, kind: InterfaceKind) -> tuple[np.ndarray, np.ndarray]:
+        """(A, b) with actuator values = A @ joint values + b, for commands of `kind`."""
+        m = np.array(self.matrix)
+        if kind is InterfaceKind.EFFORT:
+            return np.linalg.inv(m).T, np.zeros(len(m))
+        return m, (-m @ np.array(self.offset) if kind is InterfaceKind.POSITION else np.zeros(len(m)))
+
+    def joint_from_actuator(self, kind: InterfaceKind) -> tuple[np.ndarray, np.ndarray]:
+        """(A, b) with joint values = A @ actuator values + b, for states of `kind`."""
+        m = np.array(self.matrix)
+        if kind is InterfaceKind.EFFORT:
+            return m.T, np.zeros(len(m))
+        return np.linalg.inv(m), (np.array(self.offset) if kind is InterfaceKind.POSITION else np.zeros(len(m)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -213,7 +257,15 @@ class RobotSpec:
       problems: configuration errors found in a ros2_control block; `on_configure` reports them.
       sensor_declarations: lidars the MJCF and ros2_control file declare outside MuJoCo's own
         sensors (`<lidar>` elements, mujoco.plugin.lidar sensors; see batchsim.sensors.mjcf).
-      warnings: what batchsim does not act on (an unknown param, a transmission): one line each.
+      warnings: what batchsim does not act on (an unknown param, a plugin): one line each.
+      transmissions: ros2_control transmissions; their joints' commands are TRANSMITTED.
+      actuator_commands: what drives ctrl where transmissions stand between: `commands`
+        with each TRANSMITTED interface replaced by its actuators' (`<actuator>/<interface>`);
+        None without transmissions (then `commands` drive ctrl).
+      actuator_joints: the joints mujoco_ros2_control reports on `mujoco_actuators_states`:
+        each actuator's (under its joint's name, or its own for a tendon or site), then the
+        hinge and slide joints no actuator drives, as (name, qposadr, dofadr); an actuator
+        with no joint of its name has addresses -1.
     """
 
     name: str
@@ -232,6 +284,9 @@ class RobotSpec:
     problems: list[str] = dataclasses.field(default_factory=list)
     sensor_declarations: SensorDeclarations = dataclasses.field(default_factory=SensorDeclarations)
     warnings: list[str] = dataclasses.field(default_factory=list)
+    transmissions: list[Transmission] = dataclasses.field(default_factory=list)
+    actuator_commands: list[CommandInterface] | None = None
+    actuator_joints: list[tuple[str, int, int]] = dataclasses.field(default_factory=list)
 
     @property
     def state_interfaces(self) -> list[str]:

@@ -346,7 +346,7 @@ class WarpSystem(WarpSensors, DeviceSystem):
             self._restore_start(self._mask_dev)  # they are parked right after: no harm done
             self._gather_on_device(*self._failed_readings)
             state, sensordata, time = (a.numpy()[worlds] for a in self._failed_readings)
-        self._apply_signs(state)  # an engine gather, unsigned like _read()'s
+        self._finish_gather(state)  # an engine gather, unsigned like _read()'s
         return StepFailures(
             worlds=worlds,
             status=code_status(codes[worlds]),

@@ -1,0 +1,64 @@
+"""What read() gathers beyond the state interfaces, and how it is laid out.
+
+One block per fleet, `BatchedSystem.readings` `(nworld, ncolumn)`, in this order:
+
+- the state interfaces (`RobotSpec.state`);
+- the floating base's 7 qpos and 6 qvel entries (`base_columns`; none without a base);
+- mujoco_ros2_control's actuator states: position, velocity and effort of each joint on
+  `RobotSpec.actuator_joints` that has an address (`actuator_columns`);
+- the joint positions and velocities the PIDs measure (`Actuation.feedback_columns`).
+
+After each gather, `finish` negates the columns read negated and maps transmissions' joints.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from batchsim.model import RobotSpec, StateColumn
+from batchsim.transmissions import StateMap
+
+
+def base_columns(spec: RobotSpec) -> list[StateColumn]:
+    """The floating base's 7 qpos and 6 qvel entries as read columns (none without a base)."""
+    base = spec.floating_base
+    if base is None:
+        return []
+    pose = [StateColumn(f"{base.joint}/qpos{k}", "qpos", base.qposadr + k) for k in range(7)]
+    twist = [StateColumn(f"{base.joint}/qvel{k}", "qvel", base.dofadr + k) for k in range(6)]
+    return pose + twist
+
+
+def actuator_columns(spec: RobotSpec) -> list[StateColumn]:
+    """Position, velocity, effort (qfrc_actuator) of each actuator joint with an address,
+    as blocks of positions, then velocities, then efforts."""
+    found = [(name, q, v) for name, q, v in spec.actuator_joints if q >= 0]
+    return (
+        [StateColumn(f"{n}/actuator_position", "qpos", q) for n, q, _ in found]
+        + [StateColumn(f"{n}/actuator_velocity", "qvel", v) for n, _, v in found]
+        + [StateColumn(f"{n}/actuator_effort", "qfrc_actuator", v) for n, _, v in found]
+    )
+
+
+def as_slice(index: list[int]) -> slice | np.ndarray:
+    """An index list as a slice when it is an arithmetic progression (a view, not a gather)."""
+    if not index:
+        return np.array(index, dtype=np.intp)
+    step = index[1] - index[0] if len(index) > 1 else 1
+    if step > 0 and all(b - a == step for a, b in zip(index, index[1:], strict=False)):
+        return slice(index[0], index[-1] + 1, step)
+    return np.array(index, dtype=np.intp)
+
+
+class Finish:
+    """What every gather from the engine needs before it is shown: signs, then transmissions."""
+
+    def __init__(self, spec: RobotSpec, columns: list[StateColumn]):
+        self._negated = np.array([i for i, c in enumerate(columns) if c.sign < 0], dtype=np.intp)
+        self._transmissions = StateMap(spec, columns)
+
+    def __call__(self, readings: np.ndarray) -> None:
+        if self._negated.size:
+            readings[:, self._negated] *= -1.0
+        if self._transmissions:
+            self._transmissions.apply(readings)
