@@ -66,6 +66,14 @@ class EngineHooks:
         """Write `qpos` `(n, nq)` and `qvel` `(n, nv)` float64 rows into the engine's `worlds` (live ones)."""
         raise NotImplementedError(f"the {self.name} backend cannot write the joint state")
 
+    def _stage_base_velocity(self, target: np.ndarray) -> None:
+        """Hold the base's planar velocity (batchsim.base_velocity) in the step() calls from now on:
+        `target` `(nworld, 3)` float64, each world's body-frame vx, vy, wz, a NaN row where the
+        physics is left alone. Before every physics substep, the free joint's qvel at dofadr +
+        HELD_DOFS gets vx, vy rotated into the world by the base's orientation at the start of
+        the step() call, and wz. The array is the caller's: copy what is kept."""
+        raise NotImplementedError(f"the {self.name} backend cannot hold a base's velocity")
+
     def _park(self, worlds: np.ndarray) -> None:
         """Worlds just frozen: for an engine that steps every world whatever happens, keep them
         from costing the others anything (the GPU backends reset them and hold ctrl at zero).

@@ -13,6 +13,8 @@
   lidars and sensor noise; `true_state` / `true_sensordata` without the noise.
 - `body_poses(worlds=None)` -> `(xpos (n, nbody, 3), xquat (n, nbody, 4) w, x, y, z)` float64,
   on demand only: the links' poses for tf (batchsim.model.frames).
+- `set_base_velocity(command, worlds=None)`, `base_velocity`: mujoco_ros2_control's
+  BaseVelocityPlugin, a free base held at a commanded planar velocity (batchsim.base_velocity).
 
 A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule
 on every backend: until `reset` lists it, it reads the noise-free values `read()` would have
@@ -39,6 +41,7 @@ import mujoco
 import numpy as np
 
 from batchsim.actuation import Actuation
+from batchsim.base_velocity import BaseDriving
 from batchsim.engine import EngineHooks
 from batchsim.failures import FailureLog, ensure_log_dir
 from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState, SystemInterface
@@ -64,7 +67,7 @@ S = LifecycleState
 _FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
 
 
-class BatchedSystem(Sensing, EngineHooks, SystemInterface):
+class BatchedSystem(BaseDriving, Sensing, EngineHooks, SystemInterface):
     """`nworld` copies of one robot behind ros2_control's SystemInterface.
 
     Attributes (valid from on_configure on):
@@ -255,6 +258,7 @@ class BatchedSystem(Sensing, EngineHooks, SystemInterface):
             self.status[good] &= ~np.uint8(Status.BAD_COMMAND)
             self.status[~good] |= np.uint8(Status.BAD_COMMAND)
         self._upload_ctrl()
+        self._drive_base()  # the BaseVelocityPlugin's target, if any: held from the next step()
         return ReturnType.OK
 
     def _actuate(self, ctrl: np.ndarray, rows: np.ndarray | None) -> None:
@@ -349,6 +353,7 @@ class BatchedSystem(Sensing, EngineHooks, SystemInterface):
         else:
             self._actuation.reset(sel, ctrl, self._command)
         self._upload_ctrl()
+        self._reset_base(sel)
         self._refresh()
         self._add_noise()
 

@@ -19,10 +19,12 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from batchsim.base_velocity import HELD_DOFS, command_problem
 from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import OUTPUT_FIELDS, ActionKind, Input, MessageKind, Output
 from batchsim.controllers.trajectory import DEFAULT_MAX_POINTS
 from batchsim.hardware import BatchedSystem
+from batchsim.loop import OptionError
 from batchsim.memory import Layout, ring_arrays
 from ros_bridge.action_plan import (
     ACTION_MONITOR_RATE,
@@ -261,6 +263,17 @@ def build_plan(
                 InputSpec(inp.topic, inp.kind, slots, width, tuple(inp.joints), inp.max_points, t.controller)
             )
 
+    if sim.base_velocity is not None:  # mujoco_ros2_control's BaseVelocityPlugin: <ns>/cmd_vel
+        inp = _base_velocity_input(sim)
+        config = sim.base_velocity.config
+        clash = next((s for s in input_specs if s.topic.strip("/") == inp.topic.strip("/")), None)
+        if clash is not None:
+            raise OptionError(
+                "", f"{config.where}.cmd_vel_topic: {inp.topic} is {clash.controller}'s input too: give one another topic"
+            )
+        inputs.append(inp)
+        input_specs.append(InputSpec(inp.topic, inp.kind, f"in{len(inputs) - 1}", inp.row_width(), controller=config.name))
+
     tf = tf_spec(sim, publish_every, channel, options.description) if options.tf and available()["tf2_msgs"] else None
     actions: list[TrajectoryActionSpec | GripperActionSpec] = []
     if manager is not None and available()["control_msgs"]:
@@ -301,6 +314,25 @@ def build_plan(
         manager=manager_spec(sim, manager, control_rate) if manager is not None else None,
     )
     return plan, fills, inputs
+
+
+def _base_velocity_input(sim: BatchedSystem) -> Input:
+    """The BaseVelocityPlugin's cmd_vel (batchsim.base_velocity) as an input: a Twist's (or
+    TwistStamped's) linear.x, linear.y and angular.z become the world's command, stamped with
+    its sim time when the loop takes it (the plugin ignores a TwistStamped's own stamp too)."""
+    config = sim.base_velocity.config
+    columns = np.array(HELD_DOFS)  # linear x, y and angular z of the input's row
+
+    def apply(worlds: np.ndarray, rows: np.ndarray) -> list[tuple[int, str]]:
+        command = rows[:, columns]
+        problems = [command_problem(command[k : k + 1]) for k in range(len(worlds))]
+        good = np.array([p is None for p in problems], dtype=bool)
+        if good.any():
+            sim.set_base_velocity(command[good], worlds[good])
+        return [(k, p) for k, p in enumerate(problems) if p is not None]
+
+    kind = MessageKind.TWIST_STAMPED if config.use_stamped_twist else MessageKind.TWIST
+    return Input(config.cmd_vel_topic, kind, apply)
 
 
 def _controller_output(out: Output, nworld: int, every: int, channel: Callable[[str, int, ChannelFill], int]) -> OutputSpec:

@@ -49,9 +49,30 @@ def test_the_demos_plugin_yaml_loads_unchanged():
     assert "free_joint_state_publisher: mujoco_ros2_control_plugins/FreeJointStatePublisherPlugin is not run" in warned
 
 
-def test_the_base_velocity_plugin_is_named_not_dropped():
+def test_the_base_velocity_plugin_is_run_not_warned_of():
+    # before: "BaseVelocityPlugin is not run by batchsim: /cmd_vel does not move the base"
     config = SensorConfig.load(DEMOS / "config" / "mujoco_ros2_control_plugins_base_velocity.yaml")
-    assert len(config.warnings) == 1 and "BaseVelocityPlugin is not run by batchsim: /cmd_vel" in config.warnings[0]
+    assert config.warnings == [] and config.base_velocity.body == "base_link"  # tests/test_base_velocity.py
+
+
+def test_demo_05_starts_and_a_bad_base_velocity_param_stops_it_in_one_line(tmp_path):
+    resources = DEMOS / "demo_resources"
+    args = [
+        "--model", str(resources / "scenes" / "scene_mobile_base.xml"),
+        "--ros2-control", str(resources / "mobile_base" / "mobile_base.urdf"),
+        "--controllers", str(DEMOS / "config" / "controllers_base_velocity.yaml"),
+        "--worlds", "2", "--backend", "cpu", "--no-ros", "--quiet", "--duration", "0.1",
+    ]  # fmt: skip
+    plugins = DEMOS / "config" / "mujoco_ros2_control_plugins_base_velocity.yaml"
+    done = _cli(*args, "--sensors", str(plugins))
+    assert done.returncode == 0 and "warning" not in done.stderr, done.stderr
+    done = _cli("info", args[1], "--ros2-control", args[3], "--sensors", str(plugins))
+    assert "base velocity plugin base_velocity_plugin: body 'base_link' held at <ns>/cmd_vel (Twist)" in done.stdout
+    bad = tmp_path / "plugins.yaml"
+    bad.write_text(plugins.read_text().replace("body: base_link", "body: chassis"))
+    done = _cli(*args, "--sensors", str(bad))
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert done.stderr.startswith(f"batchsim: error: {bad}: /**.ros__parameters.mujoco_plugins.base_velocity_plugin.body: no body 'chassis'")
 
 
 def test_the_urdfs_camera_and_lidar_params_are_honoured():

@@ -27,6 +27,7 @@ import mujoco
 import numpy as np
 from mujoco import batch as mjbatch
 
+from batchsim.base_velocity import HELD_DOFS, world_velocity
 from batchsim.failures import warning_text
 from batchsim.hardware import BatchedSystem, Status, StepFailures
 from batchsim.sensors import Camera, Lidar
@@ -66,6 +67,7 @@ class CpuSystem(BatchedSystem):
         self.nthread = b.nthread
         # readings at the start of a step() that follows another without a read() in between
         self._start = (np.empty_like(self._readings), np.empty_like(self._sensor_host), np.empty_like(self.time))
+        self._held: np.ndarray | None = None  # the base velocity's target (batchsim.base_velocity)
 
     def _close(self) -> None:
         del self._batch, self._fields, self._ctrl, self._warnings, self._warning_count, self._start
@@ -87,15 +89,40 @@ class CpuSystem(BatchedSystem):
         errors: dict[int, str] = {}
         if self._unfilled is not None:  # the stepped worlds' bound poses get filled by this call
             self._unfilled &= frozen
-        try:
-            if not frozen.any():
-                self._batch.step(nstep=nstep)
-            elif not frozen.all():
-                self._batch.step(ids=np.flatnonzero(~frozen).astype(np.int32), nstep=nstep)
-        except mjbatch.SimulationError as e:
-            # mju_error in some worlds: they kept their state from before the call, the others ran
-            errors = {int(w): self._batch.error(int(w)) for w in e.ids}
+        ids = np.flatnonzero(~frozen).astype(np.int32) if frozen.any() else None
+        if self._held is not None:
+            errors = self._step_held(ids, nstep)
+        elif ids is None or ids.size:
+            try:
+                self._batch.step(ids=ids, nstep=nstep)
+            except mjbatch.SimulationError as e:
+                # mju_error in some worlds: they kept their state from before the call, the others ran
+                errors = {int(w): self._batch.error(int(w)) for w in e.ids}
         return self._failures(frozen, errors, start)
+
+    def _stage_base_velocity(self, target: np.ndarray) -> None:
+        self._held = target.copy()
+
+    def _step_held(self, ids: np.ndarray | None, nstep: int) -> dict[int, str]:
+        """`nstep` substeps of the worlds `ids` (None: all), one batch call each, the base's planar
+        velocity written into qvel before each (batchsim.base_velocity); the worlds that raised."""
+        drive = self.base_velocity
+        qpos, qvel = self._fields["qpos"], self._fields["qvel"]
+        held = world_velocity(qpos[:, drive.qposadr + 3 : drive.qposadr + 7], self._held)
+        rows = np.flatnonzero(~np.isnan(held[:, 0]))
+        at, held = np.ix_(rows, drive.dofadr + np.array(HELD_DOFS)), held[rows]
+        errors: dict[int, str] = {}
+        for _ in range(nstep):
+            if ids is not None and not ids.size:
+                break
+            qvel[at] = held
+            try:
+                self._batch.step(ids=ids, nstep=1)
+            except mjbatch.SimulationError as e:
+                # mju_error in some worlds: they kept their state from before this substep, the others go on
+                errors.update({int(w): self._batch.error(int(w)) for w in e.ids})
+                ids = np.setdiff1d(np.arange(self.nworld) if ids is None else ids, e.ids).astype(np.int32)
+        return errors
 
     def _failures(
         self,

@@ -56,6 +56,7 @@ from batchsim.backends.device import (
     DeviceSystem,
     code_status,
 )
+from batchsim.base_velocity import HELD_DOFS
 from batchsim.hardware import MAX_COMMAND, READ_FIELDS, Status, StepFailures
 from batchsim.model import RobotSpec, StateColumn
 from batchsim.sensors import Camera, Lidar
@@ -67,8 +68,9 @@ _CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device
 class _Programs(NamedTuple):
     """The jitted programs of one (model, nworld, device, determinism)."""
 
-    # (d, nstep: int) -> (d, (nworld, ncolumn + nsensordata + 1) float32): one control period;
-    # the readings after the period (before it, for a world that failed), then its failure code
+    # (d, nstep: int[, held (nworld, 3)]) -> (d, (nworld, ncolumn + nsensordata + 1) float32): one
+    # control period, `held` the base velocity's target with one (batchsim.base_velocity); the
+    # readings after the period (before it, for a world that failed), then its failure code
     period: Callable[..., Any]
     reset: Callable[..., Any]  # (d, d0, mask) -> d
     read: Callable[..., Any]  # (qpos, qvel, qfrc_actuator, sensordata) -> (nworld, ncolumn + nsensordata)
@@ -91,6 +93,7 @@ def _programs(
     nworld: int,
     device: jax.Device,
     deterministic: bool,
+    held: tuple[int, int] | None = None,
 ) -> _Programs:
     """Compile (once per key) what one system runs.
 
@@ -102,7 +105,7 @@ def _programs(
     rather than passed to the program, which measured ~1.6 ms a period slower on an H200
     (benchmarks/mjx_period.py, "raw+ctrl").
     """
-    key = (_fingerprint(spec.mjmodel), tuple(c.name for c in columns), nworld, device, deterministic)
+    key = (_fingerprint(spec.mjmodel), tuple(c.name for c in columns), nworld, device, deterministic, held)
     if key in _PROGRAMS:
         _PROGRAMS.move_to_end(key)
         return _PROGRAMS[key]
@@ -127,12 +130,13 @@ def _programs(
             code = jnp.where(bad.any(axis=1), here, code)
         return code.astype(jnp.float32)  # exact: codes stay below 2**24
 
-    def period(d: mjx.Data, nstep: Any) -> tuple[mjx.Data, jax.Array]:
+    def period(d: mjx.Data, nstep: Any, target: jax.Array | None = None) -> tuple[mjx.Data, jax.Array]:
         start = read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata)
+        substep = (lambda d: step(mx, d)) if target is None else _holding(step, mx, held, d.qpos, target)
         if isinstance(nstep, int):  # a static trip count: XLA runs the loop without asking the host
-            d = jax.lax.scan(lambda d, _: (step(mx, d), None), d, None, length=nstep)[0]
+            d = jax.lax.scan(lambda d, _: (substep(d), None), d, None, length=nstep)[0]
         else:
-            d = jax.lax.fori_loop(0, nstep, lambda _, d: step(mx, d), d)
+            d = jax.lax.fori_loop(0, nstep, lambda _, d: substep(d), d)
         code = check(d)
         # a world that failed reads as it did before this period (the contract's rule)
         readings = jnp.where((code != 0)[:, None], start, read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata))
@@ -151,8 +155,8 @@ def _programs(
         # XLA:CPU runs loops on the host anyway: nstep as data, one program for every nstep
         jitted = _float32(jax.jit(period, donate_argnums=0))
 
-        def run(d: mjx.Data, nstep: int) -> tuple[mjx.Data, jax.Array]:
-            return jitted(d, np.int32(nstep))
+        def run(d: mjx.Data, nstep: int, *target: jax.Array) -> tuple[mjx.Data, jax.Array]:
+            return jitted(d, np.int32(nstep), *target)
     else:
         # on an accelerator a data-dependent trip count costs a device-to-host sync per
         # substep; a static one does not, so nstep is compiled in (once per control rate)
@@ -167,6 +171,33 @@ def _programs(
     while len(_PROGRAMS) > _CACHE_SIZE:
         _PROGRAMS.popitem(last=False)
     return programs
+
+
+def _holding(
+    step: Callable[..., Any], mx: mjx.Model, held: Any, qpos: jax.Array, target: jax.Array
+) -> Callable[..., Any]:
+    """A substep that first writes the held base velocity into qvel (batchsim.base_velocity's
+    world_velocity, inlined): `target` (nworld, 3) body-frame vx, vy, wz, rotated by the base's
+    orientation in `qpos` (the period's start); NaN rows leave the physics alone."""
+    qposadr, dofadr = held
+    w, x, y, z = (qpos[:, qposadr + 3 + k] for k in range(4))
+    s = 2.0 / (w * w + x * x + y * y + z * z)
+    vx, vy, wz = target[:, 0], target[:, 1], target[:, 2]
+    value = jnp.stack(
+        [
+            (1.0 - s * (y * y + z * z)) * vx + s * (x * y - w * z) * vy,
+            s * (x * y + w * z) * vx + (1.0 - s * (x * x + z * z)) * vy,
+            wz,
+        ],
+        axis=1,
+    )
+    dofs = dofadr + np.array(HELD_DOFS)
+    free = jnp.isnan(value)
+
+    def substep(d: mjx.Data) -> mjx.Data:
+        return step(mx, d.replace(qvel=d.qvel.at[:, dofs].set(jnp.where(free, d.qvel[:, dofs], value))))
+
+    return substep
 
 
 def _float32(program: Callable[..., Any]) -> Callable[..., Any]:
@@ -230,6 +261,7 @@ class MjxSystem(DeviceSystem):
             self.nworld,
             self.device,
             bool(self.options["deterministic"]),
+            None if self.base_velocity is None else (self.base_velocity.qposadr, self.base_velocity.dofadr),
         )
         self._d = jax.tree.map(lambda x: jnp.repeat(x[None], self.nworld, axis=0), self._d0)
         self._ctrl = np.zeros((self.nworld, m.nu))
@@ -237,6 +269,9 @@ class MjxSystem(DeviceSystem):
         self._ctrl_on_device = True  # whether self._d.ctrl holds self._ctrl32
         self._clock = np.full(self.nworld, self.spec.initial.time)  # float64: the worlds' time
         self._packed: np.ndarray | None = None  # what the last period downloaded, while current
+        # the base velocity's target (batchsim.base_velocity), NaN until write() stages one
+        self._held32 = None if self.base_velocity is None else np.full((self.nworld, 3), np.nan, np.float32)
+        self._held_on_device, self._held_dev = False, None
 
     def _close(self) -> None:
         del self._d, self._d0, self._programs
@@ -253,14 +288,21 @@ class MjxSystem(DeviceSystem):
         self._ctrl_on_device = False
 
     def _sync_inputs(self) -> None:
-        """ctrl (if write() changed it) and the float32 image of the float64 clock, up in one call."""
-        time32 = self._clock.astype(np.float32)
-        if self._ctrl_on_device:
-            self._d = self._d.replace(time=jax.device_put(time32, self.device))
-        else:
-            ctrl, time = jax.device_put((self._ctrl32, time32), self.device)
-            self._d = self._d.replace(ctrl=ctrl, time=time)
-            self._ctrl_on_device = True
+        """ctrl and the base velocity's target (if write() changed them) and the float32 image of
+        the float64 clock, up in one call."""
+        inputs = {"time": self._clock.astype(np.float32)}
+        if not self._ctrl_on_device:
+            inputs["ctrl"] = self._ctrl32
+        if self._held32 is not None and not self._held_on_device:
+            inputs["held"] = self._held32
+        inputs = jax.device_put(inputs, self.device)
+        self._held_dev = inputs.pop("held", self._held_dev)
+        self._d = self._d.replace(**inputs)
+        self._ctrl_on_device = self._held_on_device = True
+
+    def _stage_base_velocity(self, target: np.ndarray) -> None:
+        np.copyto(self._held32, target, casting="same_kind")  # up with the next step(), as ctrl
+        self._held_on_device = False
 
     def _read(self) -> None:
         packed = self._packed  # the last period's download, unless a reset has since changed the worlds
@@ -274,7 +316,8 @@ class MjxSystem(DeviceSystem):
 
     def _step(self, nstep: int) -> StepFailures | None:
         self._sync_inputs()
-        self._d, out = self._programs.period(self._d, nstep)
+        held = () if self._held_dev is None else (self._held_dev,)
+        self._d, out = self._programs.period(self._d, nstep, *held)
         out = np.asarray(out)  # one download: readings, then the failure codes
         self._packed, codes = out[:, :-1], out[:, -1]
         failures = None

@@ -104,6 +104,7 @@ class ShardedSystem(BatchedSystem):
     """
 
     OPTIONS: ClassVar[dict[str, Any]] = {}
+    drives_base = False  # the BaseVelocityPlugin's commands do not reach the shards: refused, named
 
     def __init__(
         self,

@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from batchsim.backends import resolve
+from batchsim.base_velocity import BaseVelocity
 from batchsim.cli.args import (
     _load,
     default_model,
@@ -63,6 +64,15 @@ def info(argv: Sequence[str]) -> int:
     ]
     suite = SensorSuite.build(spec, args.worlds, sensors)
     out += sensor_lines(suite)
+    plugin = suite.config.base_velocity
+    if plugin is not None:
+        BaseVelocity(plugin, m, 1)  # its body checked: ConfigurationError names it
+        kind = "TwistStamped" if plugin.use_stamped_twist else "Twist"
+        out.append(
+            f"\nbase velocity plugin {plugin.name}: body {plugin.body!r} held at <ns>/{plugin.cmd_vel_topic.lstrip('/')} "
+            f"({kind}), at most {plugin.max_linear_velocity:g} m/s and {plugin.max_yaw_rate:g} rad/s, "
+            f"stopped {plugin.cmd_timeout:g} s after the last"
+        )
     warnings = spec.warnings + suite.config.warnings
     if warnings:
         out.append("\nwarnings (not acted on)")

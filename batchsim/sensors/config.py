@@ -13,10 +13,11 @@ mujoco_ros2_control's plugin parameters (under any node's `ros__parameters.mujoc
       <sensor>: {frame_name, topic}
 
 as upstream's plugins read them (mujoco_ros2_control_plugins/src/*.cpp); older spellings are
-read too (`camera_type` for `policy`, `publish_rate` and `topic` for the lidar's). Plugins
-batchsim does not run (the base velocity, heartbeat, free-joint state and external wrench
-plugins, or any other type) are named in `warnings`, which `batchsim` and `batchsim info`
-print, with what to use instead. The same camera and lidar params given as `<param>`s of a
+read too (`camera_type` for `policy`, `publish_rate` and `topic` for the lidar's). The base
+velocity plugin's params (`body`, `cmd_vel_topic`, ...) become `base_velocity`
+(batchsim.base_velocity, which the system runs). Plugins batchsim does not run (the
+heartbeat, free-joint state and external wrench plugins, or any other type) are named in
+`warnings`, which `batchsim` and `batchsim info` print, with what to use instead. The same camera and lidar params given as `<param>`s of a
 ros2_control `<sensor>` of the camera's (or the lidar's) name are read too, as upstream's
 legacy path does; the YAML wins where both set a key (`with_defaults`).
 
@@ -51,19 +52,19 @@ from typing import Any
 
 import yaml
 
+from batchsim.base_velocity import PLUGIN_TYPE as BASE_VELOCITY_PLUGIN
+from batchsim.base_velocity import BaseVelocityConfig
 from batchsim.sensors.noise import Noise
 
 CAMERA_PLUGIN = "mujoco_ros2_control_plugins/CameraPlugin"
 RANGEFINDER_PLUGIN = "mujoco_ros2_control_plugins/RangefinderLidarPlugin"
 LIDAR3D_PLUGIN = "mujoco_ros2_control_plugins/Mujoco3dLidarPlugin"
 
-BASE_VELOCITY_PLUGIN = "mujoco_ros2_control_plugins/BaseVelocityPlugin"
 HEARTBEAT_PLUGIN = "mujoco_ros2_control_plugins/HeartbeatPublisherPlugin"
 FREE_JOINT_STATE_PLUGIN = "mujoco_ros2_control_plugins/FreeJointStatePublisherPlugin"
 EXTERNAL_WRENCH_PLUGIN = "mujoco_ros2_control_plugins/ExternalWrenchPlugin"
 #: plugins batchsim does not run, and what a user has instead
 NOT_RUN = {
-    BASE_VELOCITY_PLUGIN: "/cmd_vel does not move the base: drive it with its actuators (diff_drive_controller)",
     HEARTBEAT_PLUGIN: "no mujoco_heartbeat topic: /clock and /diagnostics show the simulation is alive",
     FREE_JOINT_STATE_PLUGIN: "no free_joint_states topic: free bodies' poses are on /tf (and odom for the robot's base)",
     EXTERNAL_WRENCH_PLUGIN: "no external wrench service from this plugin",
@@ -153,6 +154,7 @@ class SensorConfig:
       plugin_lidars: per-sensor overrides of mujoco.plugin.lidar sensors, by sensor name.
       dense_lidars: lidars cast in bulk from sites, batchsim's own.
       noise: noise by name pattern (state interfaces, MJCF sensors, cameras, lidars).
+      base_velocity: the BaseVelocityPlugin's params, or None (batchsim.base_velocity).
       warnings: what was read and ignored (plugins of other types).
     """
 
@@ -166,6 +168,7 @@ class SensorConfig:
     plugin_lidars: dict[str, LidarSettings] = dataclasses.field(default_factory=dict)
     dense_lidars: list[DenseLidarSpec] = dataclasses.field(default_factory=list)
     noise: dict[str, Noise] = dataclasses.field(default_factory=dict)
+    base_velocity: BaseVelocityConfig | None = None
     warnings: list[str] = dataclasses.field(default_factory=list)
 
     @classmethod
@@ -306,10 +309,21 @@ class SensorConfig:
             elif kind == LIDAR3D_PLUGIN:
                 for key, value in rest.items():
                     self.plugin_lidars[str(key)] = _settings(LidarSettings, _LIDAR3D_KEYS, value, f"{at}.{key}")
+            elif kind == BASE_VELOCITY_PLUGIN:
+                self._read_base_velocity(str(name), rest, at)
             elif kind in NOT_RUN:
                 self.warnings.append(f"{at}: {kind} is not run by batchsim: {NOT_RUN[kind]}")
             else:
                 self.warnings.append(f"{at}: plugin type {kind!r} is unknown to batchsim: not run")
+
+    def _read_base_velocity(self, name: str, params: Mapping[str, Any], at: str) -> None:
+        given = self.base_velocity
+        if given is not None and given.name != name:  # the same instance in a later file replaces it
+            raise SensorConfigError(f"{at}: a second BaseVelocityPlugin ({given.where} is one): batchsim runs one")
+        try:
+            self.base_velocity = BaseVelocityConfig.parse(name, params, at)
+        except ValueError as e:
+            raise SensorConfigError(str(e)) from None
 
     def _read_block(self, block: Any, where: str) -> None:
         if not isinstance(block, Mapping):

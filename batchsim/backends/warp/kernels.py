@@ -1,5 +1,6 @@
 """The Warp kernels of a control period: the per-world check, ctrl narrowed to float32, the
-read() gather, the float64 clock, and the row copies that resets and restores make.
+held base velocity, the read() gather, the float64 clock, and the row copies that resets and
+restores make.
 
 Every array leads with `nworld` (one thread per world, or per world and column).
 """
@@ -69,6 +70,39 @@ def narrow_ctrl(
         ctrl[w, j] = wp.float32(0.0)
     else:
         ctrl[w, j] = wp.float32(ctrl64[w, j])
+
+
+@wp.kernel
+def rotate_base_velocity(
+    qpos: wp.array2d(dtype=wp.float32),
+    target: wp.array2d(dtype=wp.float32),
+    qposadr: wp.int32,
+    held_out: wp.array2d(dtype=wp.float32),
+):
+    """held_out[w]: the base velocity's target (batchsim.base_velocity's world_velocity, inlined):
+    body-frame vx, vy rotated into the world by the base's quaternion at qpos[w, qposadr + 3:7],
+    then wz; a NaN row stays NaN."""
+    w = wp.tid()
+    qw = qpos[w, qposadr + 3]
+    qx = qpos[w, qposadr + 4]
+    qy = qpos[w, qposadr + 5]
+    qz = qpos[w, qposadr + 6]
+    s = wp.float32(2.0) / (qw * qw + qx * qx + qy * qy + qz * qz)
+    vx = target[w, 0]
+    vy = target[w, 1]
+    held_out[w, 0] = (wp.float32(1.0) - s * (qy * qy + qz * qz)) * vx + s * (qx * qy - qw * qz) * vy
+    held_out[w, 1] = s * (qx * qy + qw * qz) * vx + (wp.float32(1.0) - s * (qx * qx + qz * qz)) * vy
+    held_out[w, 2] = target[w, 2]
+
+
+@wp.kernel
+def hold_base_velocity(held: wp.array2d(dtype=wp.float32), dofadr: wp.int32, qvel: wp.array2d(dtype=wp.float32)):
+    """Before a substep: the free joint's qvel at dofadr + HELD_DOFS (0, 1, 5) = held[w], unless NaN."""
+    w = wp.tid()
+    if not wp.isnan(held[w, 0]):
+        qvel[w, dofadr + 0] = held[w, 0]
+        qvel[w, dofadr + 1] = held[w, 1]
+        qvel[w, dofadr + 5] = held[w, 2]
 
 
 @wp.kernel

@@ -32,7 +32,9 @@ from batchsim.backends.warp.kernels import (
     copy_rows,
     gather_poses,
     gather_state,
+    hold_base_velocity,
     narrow_ctrl,
+    rotate_base_velocity,
     set_clock,
     set_rows,
 )
@@ -199,6 +201,15 @@ class WarpSystem(WarpSensors, DeviceSystem):
                     self._time_wp,
                 )
                 self._ctrl_dev, self._flags_dev = self._ctrl_wp, self._flags_wp
+            # the base velocity's target (batchsim.base_velocity): staged on the host, copied to the
+            # device, rotated into the world at each period's start; NaN until write() stages one
+            self._held_host = self._held_dev = self._held_world = None
+            if self.base_velocity is not None:
+                self._held_wp = self._host_array((n, 3), wp.float32)
+                self._held_host = self._held_wp.numpy()
+                self._held_host[:] = np.nan
+                self._held_dev = wp.array(self._held_host, dtype=wp.float32) if self._cuda else self._held_wp
+                self._held_world = wp.zeros((n, 3), dtype=wp.float32)
             self._keep_start()  # compile its kernels now rather than inside a capture
         self._graphs: dict[int, Any] = {}
         self._ncols = self._readings.shape[1] + self._sensor_host.shape[1] + 1
@@ -217,6 +228,8 @@ class WarpSystem(WarpSensors, DeviceSystem):
             "_index",
             "_start",
             "_failed_readings",
+            "_held_dev",
+            "_held_world",
         ):
             self.__dict__.pop(name, None)
 
@@ -234,6 +247,12 @@ class WarpSystem(WarpSensors, DeviceSystem):
                 outputs=[self._d.ctrl],
                 device=self.device,
             )
+
+    def _stage_base_velocity(self, target: np.ndarray) -> None:
+        np.copyto(self._held_host, target, casting="same_kind")
+        if self._cuda:  # pinned memory: the copy is queued ahead of the next period's graph
+            with wp.ScopedDevice(self.device):
+                wp.copy(self._held_dev, self._held_wp)
 
     def _read(self) -> None:
         with wp.ScopedDevice(self.device):
@@ -294,7 +313,13 @@ class WarpSystem(WarpSensors, DeviceSystem):
     def _period(self, nstep: int) -> None:
         m, d = self._m, self._d
         self._keep_start()
+        drive = self.base_velocity
+        if drive is not None:
+            inputs = [d.qpos, self._held_dev, drive.qposadr]
+            wp.launch(rotate_base_velocity, dim=self.nworld, inputs=inputs, outputs=[self._held_world])
         for _ in range(nstep):
+            if drive is not None:  # before every substep, as upstream's simulation applies it
+                wp.launch(hold_base_velocity, dim=self.nworld, inputs=[self._held_world, drive.dofadr], outputs=[d.qvel])
             mjw.step(m, d)
         wp.launch(advance_clock, dim=self.nworld, inputs=[self.dt, nstep], outputs=[self._clock, d.time])
         wp.launch(
