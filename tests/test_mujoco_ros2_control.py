@@ -194,6 +194,9 @@ def test_a_urdfs_own_mujoco_inputs_and_the_cli(tmp_path):
     source = f"{URDF} use_pid:=true use_mjcf_from_topic:=true"
     spec = batchsim.load(source)  # the inputs inside the URDF (raw, processed, scene)
     assert spec.mjmodel.nu == 3 and spec.mjmodel.ncam == 1 and spec.path == URDF
+    # use_pid's velocity interfaces on the inputs' position servos: listed, as upstream lists them
+    assert not spec.problems and {"joint1/velocity", "joint2/velocity"} <= set(spec.command_interfaces)
+    assert any("joint1/velocity on position actuator 'joint1'" in w for w in spec.warnings)
     out = _cli("info", "--ros2-control", f"{URDF} use_mjcf_from_topic:=true", "--mujoco-inputs",
                str(RESOURCES / "mjcf_generation" / "test_inputs.xml"), "--scene", str(RESOURCES / "scenes" / "scene_info.xml"))  # fmt: skip
     assert out.returncode == 0, out.stderr

@@ -348,3 +348,62 @@ def test_mjcf_generation_from_the_urdf(tmp_path, ros):
         robot.wait(lambda: js.count > 0, 20, "/joint_states")
         _controllers_running(robot, ros)
         _command(robot, ros, "/position_controller/commands", [0.5, -0.5], {"joint1": 0.5, "joint2": -0.5}, js)
+
+
+def test_mjcf_generation_from_the_robot_description_topic(tmp_path, ros):
+    """robot_launch_mjcf_generation_from_robot_description_test.py (use_pid:=true
+    use_mjcf_from_topic:=true): the URDF published latched on /robot_description, as
+    robot_state_publisher does, and taken from there (--robot-description-topic): compiled to
+    MJCF, the PID configuration's interfaces, the arm driven."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from std_msgs.msg import String
+
+    from batchsim.model.description import expand_xacro
+
+    urdf = expand_xacro(DEMOS / "demo_resources" / "robot" / "test_robot.urdf", {"use_pid": "true", "use_mjcf_from_topic": "true"})
+    args = [
+        "--worlds", "1", "--namespace", "", "--backend", "cpu", "--robot-description-topic", "/robot_description",
+        "--controllers", str(DEMOS / "config" / "controllers.yaml"),
+    ]  # fmt: skip
+    latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    with Fleet(domain_id(89), args, tmp_path / "from_topic.log") as robot:
+        publisher = robot.node.create_publisher(String, "/robot_description", latched)
+        publisher.publish(String(data=urdf))
+        description = robot.latest(String, "/mujoco_robot_description", qos=latched)
+        robot.wait(lambda: description.count > 0, 60, "/mujoco_robot_description")
+        assert "<mujoco" in description.msg.data and '<site name="ee_link"' in description.msg.data
+        reply = robot.call(
+            ros["cm"].ListHardwareInterfaces, "/controller_manager/list_hardware_interfaces", ros["cm"].ListHardwareInterfaces.Request()
+        )
+        command = sorted(i.name for i in reply.command_interfaces)
+        assert command == sorted(["joint1/position", "joint2/position", "gripper_left_finger_joint/position",
+                                  "joint1/velocity", "joint2/velocity"])  # fmt: skip
+        js = robot.latest(ros["JointState"], "/joint_states")
+        robot.wait(lambda: js.count > 0, 20, "/joint_states")
+        _controllers_running(robot, ros)
+        _command(robot, ros, "/position_controller/commands", [0.5, -0.5], {"joint1": 0.5, "joint2": -0.5}, js)
+        robot.node.destroy_publisher(publisher)
+
+
+def test_no_robot_description_on_the_topic_is_one_line_and_exit_2(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from ros_fleet import LOCALHOST, release_domain
+
+    domain = domain_id(87)
+    try:
+        env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain)}
+        done = subprocess.run(
+            [sys.executable, "-m", "batchsim.cli", "--robot-description-topic", "/robot_description",
+             "--robot-description-timeout", "1", "--quiet"],
+            capture_output=True, text=True, timeout=60, env=env,
+        )  # fmt: skip
+        lines = [line for line in done.stderr.splitlines() if "waiting for" not in line]
+        assert done.returncode == 2 and len(lines) == 1, done.stderr
+        assert lines[0].startswith(
+            "batchsim: error: --robot-description-topic /robot_description: no std_msgs/String on /robot_description within 1 s"
+        ), lines
+    finally:
+        release_domain(domain)

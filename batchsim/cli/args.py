@@ -68,6 +68,15 @@ def run_parser() -> argparse.ArgumentParser:
         help="mjx/warp on a GPU: bitwise-repeatable runs, slower (cpu always is)",
     )
     p.add_argument("--ros2-control", default=None, help="URDF/XML file with a <ros2_control> block")
+    p.add_argument(
+        "--robot-description-topic",
+        default=None,
+        metavar="TOPIC",
+        help="take the robot description (URDF, as --ros2-control) from this topic, as robot_state_publisher latches it",
+    )
+    p.add_argument(
+        "--robot-description-timeout", type=float, default=30.0, help="seconds to wait for it (default 30)"
+    )
     _urdf_flags(p)
     p.add_argument(
         "--keyframe", default=None, help="keyframe (name or index) to start in (default: home, if the model has one)"
@@ -171,6 +180,7 @@ def _load(args: argparse.Namespace) -> batchsim.RobotSpec:
 
 
 _POSITIVE = {  # flag: what its number is, for the message; each must be finite and > 0
+    "robot_description_timeout": "a finite number of seconds",
     "duration": "a finite number of simulated seconds",
     "control_rate": "a finite number",
     "publish_rate": "a finite number",

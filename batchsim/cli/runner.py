@@ -13,6 +13,7 @@ from typing import Any, TextIO
 import batchsim
 from batchsim import startup
 from batchsim.backends import Backend, backend_class, resolve
+from batchsim.cli import description_topic
 from batchsim.cli.args import (
     UsageError,
     _load,
@@ -253,8 +254,10 @@ def run(argv: Sequence[str]) -> int:
     argv, ros_args = split_ros_args(argv)
     args = run_parser().parse_args(argv)
     args.ros_args = ros_args
-    check_args(args)
     progress = startup.Progress(sys.stderr)
+    with startup.StartupGuard(progress):
+        description_topic.fetch(args, progress)
+    check_args(args)
     with startup.StartupGuard(progress):
         sim = build(args, progress)
         manager, update_rate = setup_controllers(sim, args)

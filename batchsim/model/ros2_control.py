@@ -306,6 +306,17 @@ def _command(
             name, kind, a.name, a.id, a.joint, mode=mode[kind], pid=gains,
             qposadr=joint.qposadr, dofadr=joint.dofadr,
         )
+    position = next((a for a in serving if a.kind is InterfaceKind.POSITION), None)
+    beside = any(ci.name == "position" for ci in el.command_interfaces)
+    if kind is InterfaceKind.VELOCITY and position is not None and beside:
+        # beside the servo's own position interface (which stays the active one), as
+        # mujoco_ros2_control exports it: its PID configuration with a URDF-generated MJCF lists
+        # it; made active, the velocity goes to the servo's ctrl as is. Alone, it is a problem.
+        out.warnings.append(
+            f"ros2_control joint {jname!r}: {name} on position actuator {position.name!r}: served as "
+            "mujoco_ros2_control serves it, the value written to the servo's ctrl as a position target"
+        )
+        return CommandInterface(name, kind, position.name, position.id, position.joint)
     out.problems.append(
         f"ros2_control joint {jname!r}: no actuator serves command interface {name} "
         f"(actuators on this joint serve: {served})"
