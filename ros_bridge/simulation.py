@@ -35,7 +35,8 @@ class SimulationRequests:
         self.sim = sim
         self.loop = loop
         self.answer = answer
-        self._stepping: list[tuple[int, int, int, bool]] = []  # (worker, ticket, steps, strict)
+        # (worker, ticket, steps, strict), in order: the first is running, the others wait for it
+        self._stepping: list[tuple[int, int, int, bool]] = []
 
     # --- pause and steps ---
     def pause(self, worker: int, ticket: int, paused: bool) -> None:
@@ -65,18 +66,21 @@ class SimulationRequests:
             self.answer(worker, ticket, loop.sim_time, False, f"Number of steps must be positive, got: {nstep}")
             return
         steps = loop.substeps if nstep is None else nstep
-        loop.step_physics(steps)
         self._stepping.append((worker, ticket, steps, nstep is not None))
+        if len(self._stepping) == 1:
+            loop.step_physics(steps)
 
     def poll(self) -> None:
-        """Answer the steps once the loop ran them all (every period, and while paused)."""
-        if not self._stepping or self.loop.pending_steps:
-            return
-        time = self.loop.sim_time
-        for w, t, steps, strict in self._stepping:
+        """Answer the running step request once the loop ran its steps, then start the next:
+        one at a time, exactly its steps each, as upstream's serialized service (every period,
+        and while paused)."""
+        while self._stepping and not self.loop.pending_steps:
+            w, t, steps, strict = self._stepping.pop(0)
+            time = self.loop.sim_time
             message = f"Completed {steps} simulation step(s)." if strict else f"stepped to sim time {time:.6f} s"
             self.answer(w, t, time, True, message)
-        self._stepping = []
+            if self._stepping:
+                self.loop.step_physics(self._stepping[0][2])
 
     # --- state writes ---
     def reset_world(self, worker: int, ticket: int, world: int, request: dict) -> None:

@@ -4,6 +4,7 @@ shared memory and its rings, request records, options and the plan."""
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -367,3 +368,45 @@ def test_a_hung_worker_is_killed_and_restarted(monkeypatch):
     supervisor._watch(1, p, 102.0 + sv.HUNG_RESTART)
     assert p.popen.killed and "did not answer for 30 s: killed" in lines[-1]
     memory.close()
+
+
+def test_a_second_step_simulation_waits_for_the_first_and_each_is_answered_when_its_steps_ran():
+    """mujoco_ros2_control serializes step_simulation (a mutually exclusive callback group): a
+    second request runs after the first, and the first is answered when its own steps ran."""
+    import threading
+
+    from ros_bridge.simulation import SimulationRequests
+
+    sim = batchsim.make("arm", 1, "cpu")
+    sim.configure()
+    sim.activate()
+    loop = SimLoop(sim, control_rate=100.0, rtf=0.0)
+    answers: list[tuple[int, float, bool, str]] = []
+    requests = SimulationRequests(sim, loop, lambda w, t, time, ok, msg: answers.append((t, time, ok, msg)))
+
+    class Poll:  # as the bridge host polls: every period and while paused
+        def update(self, sim, t, period):
+            requests.poll()
+
+        def idle(self, sim, t):
+            requests.poll()
+
+    loop.participants.append(Poll())
+    loop.pause(True)
+    requests.step(0, 1, 7)
+    requests.step(0, 2, 25)
+    runner = threading.Thread(target=loop.run)
+    runner.start()
+    try:
+        deadline = time.monotonic() + 30
+        while len(answers) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        loop.stop()
+        runner.join()
+        sim.shutdown()
+    dt = sim.dt
+    assert [(t, ok, msg) for t, _, ok, msg in answers] == [
+        (1, True, "Completed 7 simulation step(s)."), (2, True, "Completed 25 simulation step(s)."),
+    ]  # fmt: skip
+    assert answers[0][1] == pytest.approx(7 * dt) and answers[1][1] == pytest.approx(32 * dt)
