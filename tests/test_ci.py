@@ -81,3 +81,14 @@ def test_a_broken_ros_install_fails_the_ros_tests_under_the_force_flag(tmp_path)
     for f in ROS_FILES:
         assert f"ERROR collecting tests/{f}" in forced.stdout, (f, forced.stdout)
     assert f"ERROR tests/test_robots.py::{ROBOTS_OVER_ROS}" in forced.stdout
+
+
+def test_the_code_passes_ruff_check():
+    """`make lint` as part of the suite, so CI runs it (ruff comes with the dev extra)."""
+    ruff = Path(sys.executable).parent / "ruff"
+    assert ruff.exists(), "ruff is not installed beside this interpreter (pip install -e '.[dev]')"
+    out = subprocess.run(
+        [str(ruff), "check", "batchsim", "ros_bridge", "benchmarks", "tests", "examples"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
