@@ -80,14 +80,7 @@ def robot_outputs(
             [column.get(f"{j}/{kind}", -1) for kind in ("position", "velocity", "effort") for j in joints], dtype=np.intp
         )
         missing = gather < 0
-        src = np.maximum(gather, 0)
-
-        def fill_joint_states(out: np.ndarray) -> None:
-            np.take(sim.state, src, axis=1, out=out)
-            if missing.any():
-                out[:, missing] = np.nan
-
-        ch = channel("joint_states", len(gather), fill_joint_states)
+        ch = channel("joint_states", len(gather), _columns_of(lambda: sim.state, gather))
         nj = len(joints)
         fields = tuple(
             Field(kind, ch, tuple(range(k * nj, (k + 1) * nj)))
@@ -103,16 +96,8 @@ def robot_outputs(
         nfound, na = sum(found), len(actuated)
         # output column k*na + i <- actuator_states column k*nfound + rank of i among those found
         rank = np.cumsum(found) - 1
-        src = np.array([k * nfound + rank[i] if found[i] else -1 for k in range(3) for i in range(na)], dtype=np.intp)
-        absent = src < 0
-        src = np.maximum(src, 0)
-
-        def fill_actuators(out: np.ndarray) -> None:
-            np.take(sim.actuator_states, src, axis=1, out=out)
-            if absent.any():
-                out[:, absent] = np.nan
-
-        ch = channel("mujoco_actuators_states", 3 * na, fill_actuators)
+        gather = np.array([k * nfound + rank[i] if found[i] else -1 for k in range(3) for i in range(na)], dtype=np.intp)
+        ch = channel("mujoco_actuators_states", 3 * na, _columns_of(lambda: sim.actuator_states, gather))
         fields = tuple(Field(kind, ch, tuple(range(k * na, (k + 1) * na))) for k, kind in enumerate(("position", "velocity", "effort")))
         outputs.append(
             OutputSpec("mujoco_actuators_states", JOINT_STATE, fields, names=tuple(actuated), every=publish_every, on_request=True)
@@ -198,6 +183,20 @@ def robot_outputs(
             )
         )  # fmt: skip
     return outputs
+
+
+def _columns_of(source: Callable[[], np.ndarray], gather: np.ndarray) -> Callable[[np.ndarray], None]:
+    """A channel's fill: columns `gather` of `source()` (nworld, n); -1 fills NaN. A function
+    of its own, so each fill keeps its own indices (closures in one scope share names)."""
+    missing = gather < 0
+    src = np.maximum(gather, 0)
+
+    def fill(out: np.ndarray) -> None:
+        np.take(source(), src, axis=1, out=out)
+        if missing.any():
+            out[:, missing] = np.nan
+
+    return fill
 
 
 def rotate_inverse(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
