@@ -228,6 +228,21 @@ class Fleet:
                 self.wait(predicate, 0.0, what or f"the effect of {topic}")
             time.sleep(0.05)
 
+    def send_goal(self, client: Any, goal: Any, feedback: Callable[[Any], None] | None = None, timeout: float = 40.0) -> Any:
+        """An action goal's handle, once the server answered. A goal answered before the
+        server had matched this client's reader is dropped by rmw_fastrtps ("failed to send
+        response"), more often on a loaded machine: a goal with no answer in 10 s is sent
+        again (a newer goal preempts a lost one that was accepted), up to `timeout`."""
+        deadline = time.monotonic() + timeout
+        while True:
+            sent = client.send_goal_async(goal, feedback_callback=feedback)
+            try:
+                self.wait(sent.done, min(10.0, max(0.0, deadline - time.monotonic())), "the goal's acceptance")
+                return sent.result()
+            except TimeoutError:
+                if time.monotonic() >= deadline:
+                    raise
+
     def wait_subscribed(self, topic: str, timeout: float = 20.0) -> None:
         """Wait until the fleet subscribes to `topic` (our publisher matched it)."""
         self.wait(lambda: self._publishers[topic].get_subscription_count() > 0, timeout, f"{topic} matched")

@@ -209,7 +209,17 @@ def test_step_simulation_steps_exactly_n_physics_steps(robot, ros):
     _pause(robot, ros, True)
     try:
         robot.wait(lambda: clock.count > 0, 10, "/clock")
-        before = clock.msg.clock.sec + clock.msg.clock.nanosec * 1e-9
+        # the clock of the period that ran as the pause came may still be on its way: read it still
+        seen = [-1.0]
+
+        def still() -> bool:
+            now = clock.msg.clock.sec + clock.msg.clock.nanosec * 1e-9
+            same, seen[0] = now == seen[0], now
+            time.sleep(0.2)
+            return same
+
+        robot.wait(still, 10, "/clock to stand still while paused")
+        before = seen[0]
         reply = robot.call(ros["ms"].StepSimulation, f"{NODE}/step_simulation", ros["ms"].StepSimulation.Request(steps=7))
         assert reply.success and reply.message == "Completed 7 simulation step(s).", reply.message
         # 7 steps of 2 ms: a whole 10 ms control period and a shorter one of 4 ms

@@ -84,9 +84,7 @@ def _send(fleet, ros, world: int, goal, feedback=None):
         # dropped by rmw_fastrtps ("failed to send response (timeout)"; benchmarks/RESULTS.md,
         # the H100 goal bursts). Discovery settles both ways within a second on one host.
         time.sleep(1.0)
-    sent = client.send_goal_async(goal, feedback_callback=feedback)
-    fleet.wait(sent.done, 40, "the goal's acceptance")
-    handle = sent.result()
+    handle = fleet.send_goal(client, goal, feedback)
     return handle, (handle.get_result_async() if handle.accepted else None)
 
 
@@ -290,9 +288,7 @@ def test_gripper_command_closes_one_worlds_gripper_and_a_blocked_one_stalls(tmp_
         def command(position: float, max_effort: float = 5.0):
             goal = GripperCommand.Goal()
             goal.command.position, goal.command.max_effort = position, max_effort
-            sent = client.send_goal_async(goal)
-            fleet.wait(sent.done, 40, "the goal's acceptance")
-            future = sent.result().get_result_async()
+            future = fleet.send_goal(client, goal).get_result_async()
             fleet.wait(future.done, 40, "the goal's result")
             return future.result()
 
