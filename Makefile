@@ -4,9 +4,11 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test quick lint bench
+.PHONY: install install-cpu run test quick lint bench
 
 $(STAMP): pyproject.toml
+	@echo "make: installing batchsim with every extra into $(VENV): MuJoCo, ROS 2 from PyPI, JAX (mjx, ~380 MB)"
+	@echo "      and Warp (warp, ~410 MB), pytest; a few minutes. CPU and ROS only: make install-cpu"
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[all]'
@@ -14,6 +16,14 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# the cpu backend and ROS 2, without JAX and Warp (about 800 MB less); `make quick` runs on it
+install-cpu:
+	@echo "make: installing batchsim with the cpu backend, ROS 2 from PyPI and pytest into $(VENV)"
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[ros,dev]'
+	$(PY) -m ros_bridge.interfaces --require
 
 run: $(STAMP)
 	$(VENV)/bin/batchsim --worlds 16
@@ -26,7 +36,8 @@ test: $(STAMP)
 	if [ $$rc -eq 5 ]; then echo "no test was collected; that is a failure" >&2; fi; exit $$rc
 
 # the newcomer's subset: the cpu backend and the ROS stack, no mjx or warp compiles
-quick: $(STAMP)
+quick:
+	@test -x $(VENV)/bin/pytest || $(MAKE) install
 	@$(PY) -m pytest -q -n 2 -m "not ros" -k "not mjx and not warp and not devices" $(PYTEST_ARGS)
 
 lint: $(STAMP)

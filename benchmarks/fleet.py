@@ -161,7 +161,7 @@ class Batchsim:
         if domain is not None:
             env["ROS_DOMAIN_ID"] = str(domain)
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "batchsim.cli", *args], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
+            [sys.executable, "-m", "batchsim.cli", "--status-every", "1", *args], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env
         )
         self.lines: list[tuple[float, str]] = []
         self.started: float | None = None

@@ -37,6 +37,10 @@ HUNG_RESTART = 30.0
 START_TIMEOUT = 120.0  # s a worker may take to come up (imports, endpoints, the start-up check)
 STOP_TIMEOUT = 1.5  # s workers get to leave the ROS graph before they are killed
 
+# the workers' rclpy log lines (`batchsim: WARN [batchsim_0_1]: ...`), beside batchsim's
+# `batchsim: warning: ...`; a RCUTILS_CONSOLE_OUTPUT_FORMAT of the user's own wins
+LOG_FORMAT = "batchsim: {severity} [{name}]: {message}"
+
 
 class FleetConflict(ValueError):
     """Another process on the ROS domain already serves these worlds, or /clock.
@@ -182,6 +186,7 @@ class Supervisor:
         env = dict(os.environ)
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         self.transport.apply(env)
+        env.setdefault("RCUTILS_CONSOLE_OUTPUT_FORMAT", LOG_FORMAT)  # one log format with batchsim's own lines
         argv = [sys.executable, "-m", "ros_bridge.worker", str(index), str(wake_r), str(status_w), str(self.notify_w)]
         popen = subprocess.Popen(
             argv + (["--check"] if check else []),

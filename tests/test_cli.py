@@ -375,3 +375,24 @@ def test_ros_args_are_split_off_as_ros_executables_do():
     assert ours == ["--worlds", "2", "--no-tf"]
     assert ros == ["-p", "use_sim_time:=true", "--log-level", "warn"]
     assert split_ros_args(["--worlds", "2", "--", "x"]) == (["--worlds", "2", "--", "x"], [])
+
+
+def test_the_status_line_in_a_log_comes_every_10_s_unless_told():
+    """Issue 23: in a log (stderr not a terminal) a status line a second is noise."""
+    import io
+
+    from batchsim.cli import StatusLine
+
+    sim = batchsim.make("arm", 1, "cpu")
+    loop = SimLoop(sim, rtf=1.0)
+    stats = LoopStats(sim_time=1.0)
+    for every, expected in ((None, 1), (0.1, 3)):
+        stream = io.StringIO()
+        status = StatusLine(loop, 1, "cpu", stream=stream, every=every)
+        assert status.every == (10.0 if every is None else every)
+        for _ in range(3):
+            status.report(stats)
+            time.sleep(0.12)
+        assert len(stream.getvalue().splitlines()) == expected, stream.getvalue()
+    out = batchsim_cli("--worlds", "1", "--no-ros", "--duration", "0.1", "--status-every", "0")
+    assert out.returncode == 2 and "--status-every must be a finite number of seconds > 0" in out.stderr

@@ -6,6 +6,7 @@ with discovery limited to localhost; tests that share a fleet reset it between t
 from __future__ import annotations
 
 import math
+import re
 import time
 
 import pytest
@@ -40,6 +41,7 @@ def fleet(request, tmp_path_factory):
         f.js = [f.latest(JointState, f"/world_{w}/joint_states") for w in range(NWORLD)]
         f.clock = f.latest(Clock, "/clock", keep=50)
         f.diag = f.diagnostics()
+        f.workers = request.param
         f.wait(lambda: all(s.count > 2 for s in f.js), 30, "joint_states from every world")
         yield f
         assert f.close() == 0, f.log()
@@ -155,6 +157,8 @@ def test_bad_commands_are_rejected_and_the_sim_goes_on(arms):
     assert "/world_1/commands: 2 values, expected 6" in log or "on /world_1/commands: 2 values, expected 6" in log, log
     assert f"rejected command on {nan_topic}: value nan is not finite" in log, log
     assert f"rejected command on {bogus}: no actuator named 'gripper'" in log, log
+    if arms.workers:  # a worker process's rclpy lines in batchsim's log format (issue 23: one log format)
+        assert re.search(r"^batchsim: WARN \[batchsim_\d+_\d+\]: rejected command on ", log, re.M), log
 
     # nothing moved, and the simulation went on
     for w in range(NWORLD):

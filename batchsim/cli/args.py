@@ -84,6 +84,13 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-ros", action="store_true", help="run without the ROS 2 bridge")
     p.add_argument("--quiet", action="store_true", help="no live status line")
     p.add_argument(
+        "--status-every",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="status line period (default: 1 s on a terminal, 10 s when stderr is a file or pipe)",
+    )
+    p.add_argument(
         "--skip-memory-check",
         action="store_true",
         help="start even where the memory estimate says the fleet will not fit",
@@ -181,6 +188,7 @@ def _load(args: argparse.Namespace) -> batchsim.RobotSpec:
 
 _POSITIVE = {  # flag: what its number is, for the message; each must be finite and > 0
     "robot_description_timeout": "a finite number of seconds",
+    "status_every": "a finite number of seconds",
     "duration": "a finite number of simulated seconds",
     "control_rate": "a finite number",
     "publish_rate": "a finite number",

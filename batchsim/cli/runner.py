@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import signal
 import sys
 import threading
+import time
 from collections.abc import Sequence
 from typing import Any, TextIO
 
@@ -191,14 +193,24 @@ def _interrupt(signum: int, frame: Any) -> None:
 
 class StatusLine:
     """The live status line of a run: redrawn in place on a terminal (the rest of the line
-    cleared), one line per report in a log. A paused loop reports nothing, so while it is
-    paused a watcher thread draws `paused` once a second (once per pause in a log).
+    cleared), one line per report in a log: every second on a terminal, every LOG_EVERY
+    seconds in a log (a file or pipe), or `every` seconds. A paused loop reports nothing, so
+    while it is paused a watcher thread draws `paused` once a second (once per pause in a log).
 
     Use as a context manager around `loop.run(status.report)`.
     """
 
+    LOG_EVERY = 10.0
+
     def __init__(
-        self, loop: SimLoop, nworld: int, backend: str, *, stream: TextIO | None = None, quiet: bool = False
+        self,
+        loop: SimLoop,
+        nworld: int,
+        backend: str,
+        *,
+        stream: TextIO | None = None,
+        quiet: bool = False,
+        every: float | None = None,
     ):
         self.loop = loop
         self.nworld = nworld
@@ -206,12 +218,18 @@ class StatusLine:
         self.stream = stream if stream is not None else sys.stderr
         self.quiet = quiet
         self.tty = self.stream.isatty()
+        self.every = every if every is not None else (1.0 if self.tty else self.LOG_EVERY)
+        self._last = -math.inf
         self._lock = threading.Lock()
         self._drawn = False
         self._stop = threading.Event()
         self._watcher = threading.Thread(target=self._watch, name="batchsim-status", daemon=True)
 
     def report(self, stats: LoopStats) -> None:
+        now = time.monotonic()
+        if now - self._last < self.every - 0.05:  # the loop reports about every second
+            return
+        self._last = now
         self._draw(format_stats(stats, self.nworld, self.backend))
 
     def _draw(self, line: str) -> None:
@@ -293,7 +311,7 @@ def run(argv: Sequence[str]) -> int:
         flush=True,
     )
     try:
-        with StatusLine(loop, sim.nworld, backend, quiet=args.quiet) as status:
+        with StatusLine(loop, sim.nworld, backend, quiet=args.quiet, every=args.status_every) as status:
             stats = loop.run(status.report)
     finally:
         if bridge is not None:
