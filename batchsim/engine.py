@@ -74,6 +74,13 @@ class EngineHooks:
         the step() call, and wz. The array is the caller's: copy what is kept."""
         raise NotImplementedError(f"the {self.name} backend cannot hold a base's velocity")
 
+    def _stage_xfrc(self, worlds: np.ndarray, xfrc: np.ndarray) -> None:
+        """Set MuJoCo's `xfrc_applied` of `worlds` `(k,)` (ascending, unique) to `xfrc` `(k, nbody,
+        6)` float64 (world-frame force, then torque about each body's CoM; batchsim.external_wrench),
+        held through the step() calls from now on until staged again; the other worlds' stay as
+        they are. The array is the caller's: copy what is kept."""
+        raise NotImplementedError(f"the {self.name} backend cannot apply external wrenches")
+
     def _park(self, worlds: np.ndarray) -> None:
         """Worlds just frozen: for an engine that steps every world whatever happens, keep them
         from costing the others anything (the GPU backends reset them and hold ctrl at zero).

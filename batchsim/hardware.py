@@ -15,6 +15,7 @@
   on demand only: the links' poses for tf (batchsim.model.frames).
 - `set_base_velocity(command, worlds=None)`, `base_velocity`: mujoco_ros2_control's
   BaseVelocityPlugin, a free base held at a commanded planar velocity (batchsim.base_velocity).
+- `apply_wrench(wrenches, worlds=None)`: the ExternalWrenchPlugin's wrenches (batchsim.external_wrench).
 
 A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule
 on every backend: until `reset` lists it, it reads the noise-free values `read()` would have
@@ -43,6 +44,7 @@ import numpy as np
 from batchsim.actuation import Actuation
 from batchsim.base_velocity import BaseDriving
 from batchsim.engine import EngineHooks
+from batchsim.external_wrench import Wrenching
 from batchsim.failures import FailureLog, ensure_log_dir
 from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState, SystemInterface
 from batchsim.model import RobotSpec, initial_command
@@ -67,7 +69,7 @@ S = LifecycleState
 _FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
 
 
-class BatchedSystem(BaseDriving, Sensing, EngineHooks, SystemInterface):
+class BatchedSystem(BaseDriving, Wrenching, Sensing, EngineHooks, SystemInterface):
     """`nworld` copies of one robot behind ros2_control's SystemInterface.
 
     Attributes (valid from on_configure on):
@@ -259,6 +261,7 @@ class BatchedSystem(BaseDriving, Sensing, EngineHooks, SystemInterface):
             self.status[~good] |= np.uint8(Status.BAD_COMMAND)
         self._upload_ctrl()
         self._drive_base()  # the BaseVelocityPlugin's target, if any: held from the next step()
+        self._apply_wrenches()  # the ExternalWrenchPlugin's xfrc_applied, if any wrench runs
         return ReturnType.OK
 
     def _actuate(self, ctrl: np.ndarray, rows: np.ndarray | None) -> None:
@@ -354,6 +357,7 @@ class BatchedSystem(BaseDriving, Sensing, EngineHooks, SystemInterface):
             self._actuation.reset(sel, ctrl, self._command)
         self._upload_ctrl()
         self._reset_base(sel)
+        self._reset_wrenches(sel)
         self._refresh()
         self._add_noise()
 

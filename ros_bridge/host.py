@@ -152,7 +152,8 @@ class BridgeHost:
         self._published_time: float | None = None
         self._force = False
         self._gate_since: float | None = None
-        self.simulation = SimulationRequests(sim, loop, self._done)  # pause, steps, state writes
+        # pause, steps, state writes, wrenches (their done marks wake a worker)
+        self.simulation = SimulationRequests(sim, loop, self._done, m, lambda worker: self.workers.wake(worker))
         self._next_idle_tick = 0.0
         self._closed = False
         # the workers: started, woken, watched and restarted (ros_bridge/supervisor.py)
@@ -345,6 +346,8 @@ class BridgeHost:
                 elif kind == Kind.SET_FREE_JOINTS:
                     self.simulation.set_free_joints(j, *decode_document(payload))
                     self._force = True  # published at once, paused or not
+                elif kind == Kind.APPLY_WRENCH:
+                    self.simulation.apply_wrench(j, *decode_document(payload))
                 elif kind == Kind.CANCEL and self.manager_link is not None:
                     index, world, goal = decode_cancel(payload)
                     controller = self.manager_link.manager[self.plan.actions[index].controller]

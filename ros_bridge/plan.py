@@ -39,7 +39,7 @@ from ros_bridge.manager_link import ManagerSpec, manager_spec
 from ros_bridge.naming import ros_names, world_namespaces, worlds_label
 from ros_bridge.options import BridgeOptions, Reliability
 from ros_bridge.outputs import ChannelFill, Field, OutputSpec, robot_outputs
-from ros_bridge.requests import trajectory_bytes
+from ros_bridge.requests import trajectory_bytes, wrench_arrays
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan
 from ros_bridge.tf_plan import TfSpec, tf_spec
 
@@ -106,6 +106,8 @@ class FleetPlan:
       tf: the tf tree and robot description, or None.
       manager: the controller_manager services' data, or None without controllers.
       actions: the FollowJointTrajectory and GripperCommand actions (ros_bridge/action_plan.py).
+      wrench_service: the ExternalWrenchPlugin's service under each world's namespace
+        (`external_wrench/apply_wrench`, batchsim.external_wrench), or "" without the plugin.
       layout, memory_name: the shared arrays.
     """
 
@@ -132,6 +134,7 @@ class FleetPlan:
     tf: TfSpec | None = None
     manager: ManagerSpec | None = None
     actions: list[TrajectoryActionSpec | GripperActionSpec] = dataclasses.field(default_factory=list)
+    wrench_service: str = ""
     layout: Layout = dataclasses.field(init=False)
     memory_name: str | None = None
 
@@ -171,6 +174,8 @@ class FleetPlan:
             arrays.append(("cm.active", (n, max(1, len(self.manager.controllers))), "u1"))
         if self.actions:  # per world: the last goal tag a controller refused (its reason in hrej)
             arrays.append(("goal.refused", (n,), "i8"))
+        if self.wrench_service:
+            arrays += wrench_arrays(nw)
         # room for two of the largest trajectories an input takes (a record may take at most
         # half the ring): a 10,000-point trajectory of 6 joints is 1.5 MB
         largest = max(
@@ -285,6 +290,7 @@ def build_plan(
                 i = next(i for i, spec in enumerate(input_specs) if spec.controller == c.name and spec.joints)
                 actions.append(trajectory_action(c, k, i, monitor_every, input_specs[i].max_points, channel))
 
+    wrench = sim.sensors.config.external_wrench  # mujoco_ros2_control's ExternalWrenchPlugin
     nworker = max(1, nworker)
     ranges = split(nworld, nworker)
     offset = options.world_offset
@@ -312,6 +318,7 @@ def build_plan(
         tf=tf,
         actions=actions,
         manager=manager_spec(sim, manager, control_rate) if manager is not None else None,
+        wrench_service=wrench.service if wrench is not None and available()["mujoco_ros2_control_msgs"] else "",
     )
     return plan, fills, inputs
 

@@ -16,6 +16,7 @@ import struct
 import numpy as np
 
 from batchsim.controllers.topics import TrajectoryBatch
+from batchsim.memory import Memory
 
 
 class Kind(enum.IntEnum):
@@ -31,6 +32,7 @@ class Kind(enum.IntEnum):
     STEP_N = 8  # mujoco_ros2_control's step_simulation: N physics steps, aborted by a resume
     RESET_WORLD = 9  # mujoco_ros2_control's reset_world: a keyframe, joint and free-joint overrides
     SET_FREE_JOINTS = 10  # mujoco_ros2_control's set_free_joint_state
+    APPLY_WRENCH = 11  # the ExternalWrenchPlugin's apply_wrench: answered at once, marked done when run
 
 
 _TRAJ = struct.Struct("<iiiiiiii")  # input, trajectories, points, joints, has velocities, accelerations, goals, 0
@@ -225,7 +227,7 @@ _DOC = struct.Struct("<qq")  # ticket, world (-1: every world)
 
 
 def encode_document(ticket: int, world: int, document: dict) -> bytes:
-    """A request whose arguments are a small JSON document (RESET_WORLD, SET_FREE_JOINTS)."""
+    """A request whose arguments are a small JSON document (RESET_WORLD, SET_FREE_JOINTS, APPLY_WRENCH)."""
     return _DOC.pack(ticket, world) + json.dumps(document).encode()
 
 
@@ -233,6 +235,29 @@ def decode_document(payload: np.ndarray) -> tuple[int, int, dict]:
     """(ticket, world or -1, the document)."""
     ticket, world = _DOC.unpack_from(payload, 0)
     return ticket, world, json.loads(payload[_DOC.size :].tobytes().rstrip(b"\0").decode())
+
+
+# An apply_wrench request is answered like any other (accepted, or why not) as soon as the loop
+# takes it, and marked done once its wrenches have run: the host writes its ticket into the
+# worker's slot ticket % WRENCH_SLOTS of `wrench.done`, never lowering it (a later ticket sharing
+# the slot may land first); the worker's service answers when the slot holds its ticket or more.
+WRENCH_SLOTS = 1024  # per worker: a request's slot is reused only WRENCH_SLOTS tickets later
+
+
+def wrench_arrays(nworker: int) -> list[tuple[str, tuple[int, ...], str]]:
+    """The shared arrays of the done marks (plan.py adds them where the plugin runs)."""
+    return [("wrench.done", (nworker, WRENCH_SLOTS), "i8")]
+
+
+def mark_wrench_done(memory: Memory, worker: int, ticket: int) -> None:
+    """The host: worker `worker`'s apply_wrench request `ticket` has run."""
+    done = memory["wrench.done"][worker]
+    done[ticket % WRENCH_SLOTS] = max(int(done[ticket % WRENCH_SLOTS]), ticket)
+
+
+def wrench_done(memory: Memory, worker: int, ticket: int) -> bool:
+    """The worker: whether the host marked its request `ticket` done."""
+    return int(memory["wrench.done"][worker, ticket % WRENCH_SLOTS]) >= ticket
 
 
 def trajectory_bytes(points: int, joints: int) -> int:

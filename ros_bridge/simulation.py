@@ -1,6 +1,7 @@
 """The loop's side of the simulation services: pause, step, reset to a keyframe with state
-overrides, set free joints (mujoco_ros2_control's `reset_world`, `set_pause`,
-`step_simulation`, `set_free_joint_state`; batchsim's `/batchsim/pause` and `step`). No rclpy.
+overrides, set free joints, apply wrenches (mujoco_ros2_control's `reset_world`, `set_pause`,
+`step_simulation`, `set_free_joint_state`, the ExternalWrenchPlugin's `apply_wrench`;
+batchsim's `/batchsim/pause` and `step`). No rclpy.
 
 Everything runs in the loop thread (the bridge host's update and idle), between two periods.
 A request is validated whole before anything changes, so a bad entry leaves every world as
@@ -16,9 +17,12 @@ from collections.abc import Callable
 import mujoco
 import numpy as np
 
+from batchsim.external_wrench import ExternalWrench
 from batchsim.hardware import BatchedSystem
 from batchsim.loop import SimLoop
+from batchsim.memory import Memory
 from batchsim.model import InitialState, initial_command
+from ros_bridge.requests import mark_wrench_done
 
 #: answer(worker, ticket, sim time, ok, message)
 Answer = Callable[[int, int, float, bool, str], None]
@@ -29,12 +33,23 @@ class RequestError(ValueError):
 
 
 class SimulationRequests:
-    """Pause, steps and state writes for the bridge host."""
+    """Pause, steps, state writes and wrenches for the bridge host. An apply_wrench request is
+    marked done in `memory` (the bridge's, with the plugin's arrays), then `wake(worker)`."""
 
-    def __init__(self, sim: BatchedSystem, loop: SimLoop, answer: Answer):
+    def __init__(
+        self,
+        sim: BatchedSystem,
+        loop: SimLoop,
+        answer: Answer,
+        memory: Memory | None = None,
+        wake: Callable[[int], None] | None = None,
+    ):
         self.sim = sim
         self.loop = loop
         self.answer = answer
+        self.memory = memory
+        self.wake = wake
+        self._wrenching: list[tuple[int, int, int]] = []  # (worker, ticket, apply_wrench()'s request)
         # (worker, ticket, steps, strict), in order: the first is running, the others wait for it
         self._stepping: list[tuple[int, int, int, bool]] = []
 
@@ -72,8 +87,16 @@ class SimulationRequests:
 
     def poll(self) -> None:
         """Answer the running step request once the loop ran its steps, then start the next:
-        one at a time, exactly its steps each, as upstream's serialized service (every period,
-        and while paused)."""
+        one at a time, exactly its steps each, as upstream's serialized service; mark the
+        apply_wrench requests whose wrenches have all run done (every period, and while paused)."""
+        if self._wrenching:
+            running = self.sim.wrench_running([request for *_, request in self._wrenching])
+            for (worker, ticket, _), run in zip(self._wrenching, running, strict=True):
+                if not run and self.memory is not None:
+                    mark_wrench_done(self.memory, worker, ticket)
+                    if self.wake is not None:
+                        self.wake(worker)
+            self._wrenching = [w for w, run in zip(self._wrenching, running, strict=True) if run]
         while self._stepping and not self.loop.pending_steps:
             w, t, steps, strict = self._stepping.pop(0)
             time = self.loop.sim_time
@@ -130,6 +153,21 @@ class SimulationRequests:
         _apply_free(sim.model, qpos, qvel, free)
         sim.set_qstate(rows, qpos, qvel)
         self.answer(worker, ticket, self.loop.sim_time, True, f"Set {len(free)} free joint state(s).")
+
+    def apply_wrench(self, worker: int, ticket: int, world: int, request: dict) -> None:
+        """apply_wrench: the request's wrenches in the world from this period on (checked whole
+        by the system); answered now, marked done by poll() once the last of them has run."""
+        try:
+            wrenches = [
+                ExternalWrench(e["body"], e["force"], e["torque"], e["point"], e["duration"], e["ramp_down"])
+                for e in request["wrenches"]
+            ]
+            handle = self.sim.apply_wrench(wrenches, [world])
+        except ValueError as e:
+            self.answer(worker, ticket, self.loop.sim_time, False, str(e))
+            return
+        self.answer(worker, ticket, self.loop.sim_time, True, f"Applied {len(wrenches)} wrench(es) successfully.")
+        self._wrenching.append((worker, ticket, handle))
 
 
 # --- validation, all of it before anything is written ---

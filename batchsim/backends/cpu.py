@@ -103,6 +103,9 @@ class CpuSystem(BatchedSystem):
     def _stage_base_velocity(self, target: np.ndarray) -> None:
         self._held = target.copy()
 
+    def _stage_xfrc(self, worlds: np.ndarray, xfrc: np.ndarray) -> None:
+        self._batch.bind("xfrc_applied")[worlds] = xfrc  # a state field: the rows themselves, bound once
+
     def _step_held(self, ids: np.ndarray | None, nstep: int) -> dict[int, str]:
         """`nstep` substeps of the worlds `ids` (None: all), one batch call each, the base's planar
         velocity written into qvel before each (batchsim.base_velocity); the worlds that raised."""

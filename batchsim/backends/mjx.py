@@ -272,6 +272,8 @@ class MjxSystem(DeviceSystem):
         # the base velocity's target (batchsim.base_velocity), NaN until write() stages one
         self._held32 = None if self.base_velocity is None else np.full((self.nworld, 3), np.nan, np.float32)
         self._held_on_device, self._held_dev = False, None
+        self._xfrc32: np.ndarray | None = None  # external wrenches' xfrc_applied, from the first one on
+        self._xfrc_on_device = True
 
     def _close(self) -> None:
         del self._d, self._d0, self._programs
@@ -288,21 +290,29 @@ class MjxSystem(DeviceSystem):
         self._ctrl_on_device = False
 
     def _sync_inputs(self) -> None:
-        """ctrl and the base velocity's target (if write() changed them) and the float32 image of
-        the float64 clock, up in one call."""
+        """ctrl, the base velocity's target and xfrc_applied (if write() changed them) and the
+        float32 image of the float64 clock, up in one call."""
         inputs = {"time": self._clock.astype(np.float32)}
         if not self._ctrl_on_device:
             inputs["ctrl"] = self._ctrl32
+        if not self._xfrc_on_device:
+            inputs["xfrc_applied"] = self._xfrc32
         if self._held32 is not None and not self._held_on_device:
             inputs["held"] = self._held32
         inputs = jax.device_put(inputs, self.device)
         self._held_dev = inputs.pop("held", self._held_dev)
         self._d = self._d.replace(**inputs)
-        self._ctrl_on_device = self._held_on_device = True
+        self._ctrl_on_device = self._held_on_device = self._xfrc_on_device = True
 
     def _stage_base_velocity(self, target: np.ndarray) -> None:
         np.copyto(self._held32, target, casting="same_kind")  # up with the next step(), as ctrl
         self._held_on_device = False
+
+    def _stage_xfrc(self, worlds: np.ndarray, xfrc: np.ndarray) -> None:
+        if self._xfrc32 is None:
+            self._xfrc32 = np.zeros((self.nworld, self.model.nbody, 6), np.float32)
+        self._xfrc32[worlds] = xfrc  # the whole array up with the next step(), as ctrl
+        self._xfrc_on_device = False
 
     def _read(self) -> None:
         packed = self._packed  # the last period's download, unless a reset has since changed the worlds

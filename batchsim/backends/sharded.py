@@ -105,6 +105,7 @@ class ShardedSystem(BatchedSystem):
 
     OPTIONS: ClassVar[dict[str, Any]] = {}
     drives_base = False  # the BaseVelocityPlugin's commands do not reach the shards: refused, named
+    applies_wrenches = False  # nor do external wrenches
 
     def __init__(
         self,

@@ -73,6 +73,13 @@ def info(argv: Sequence[str]) -> int:
             f"({kind}), at most {plugin.max_linear_velocity:g} m/s and {plugin.max_yaw_rate:g} rad/s, "
             f"stopped {plugin.cmd_timeout:g} s after the last"
         )
+    wrench = suite.config.external_wrench
+    if wrench is not None:
+        out.append(
+            f"\nexternal wrench plugin {wrench.name}: service <ns>/{wrench.service} "
+            "(mujoco_ros2_control_msgs/ApplyExternalWrench), answered once the wrenches ran in sim time; "
+            "no ~/wrench_markers"
+        )
     warnings = spec.warnings + suite.config.warnings
     if warnings:
         out.append("\nwarnings (not acted on)")

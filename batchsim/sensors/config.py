@@ -15,9 +15,11 @@ mujoco_ros2_control's plugin parameters (under any node's `ros__parameters.mujoc
 as upstream's plugins read them (mujoco_ros2_control_plugins/src/*.cpp); older spellings are
 read too (`camera_type` for `policy`, `publish_rate` and `topic` for the lidar's). The base
 velocity plugin's params (`body`, `cmd_vel_topic`, ...) become `base_velocity`
-(batchsim.base_velocity, which the system runs). Plugins batchsim does not run (the
-heartbeat, free-joint state and external wrench plugins, or any other type) are named in
-`warnings`, which `batchsim` and `batchsim info` print, with what to use instead. The same camera and lidar params given as `<param>`s of a
+(batchsim.base_velocity), the external wrench plugin's (`force_arrow_scale`,
+`torque_arrow_scale`) `external_wrench` (batchsim.external_wrench): the system runs both.
+Plugins batchsim does not run (the heartbeat and free-joint state plugins, or any other type)
+are named in `warnings`, which `batchsim` and `batchsim info` print, with what to use instead.
+The same camera and lidar params given as `<param>`s of a
 ros2_control `<sensor>` of the camera's (or the lidar's) name are read too, as upstream's
 legacy path does; the YAML wins where both set a key (`with_defaults`).
 
@@ -39,7 +41,7 @@ batchsim's block (top level):
         base_scan: {stddev: 0.02, dropout: 0.01}        # ranges
 
 Everything unknown is an error naming the file and the key; plugins of other types
-(the heartbeat, external wrench, ...) are listed in `warnings`.
+(the heartbeat, free-joint state, ...) are listed in `warnings`.
 """
 
 from __future__ import annotations
@@ -54,6 +56,8 @@ import yaml
 
 from batchsim.base_velocity import PLUGIN_TYPE as BASE_VELOCITY_PLUGIN
 from batchsim.base_velocity import BaseVelocityConfig
+from batchsim.external_wrench import PLUGIN_TYPE as EXTERNAL_WRENCH_PLUGIN
+from batchsim.external_wrench import ExternalWrenchConfig
 from batchsim.sensors.noise import Noise
 
 CAMERA_PLUGIN = "mujoco_ros2_control_plugins/CameraPlugin"
@@ -62,12 +66,10 @@ LIDAR3D_PLUGIN = "mujoco_ros2_control_plugins/Mujoco3dLidarPlugin"
 
 HEARTBEAT_PLUGIN = "mujoco_ros2_control_plugins/HeartbeatPublisherPlugin"
 FREE_JOINT_STATE_PLUGIN = "mujoco_ros2_control_plugins/FreeJointStatePublisherPlugin"
-EXTERNAL_WRENCH_PLUGIN = "mujoco_ros2_control_plugins/ExternalWrenchPlugin"
 #: plugins batchsim does not run, and what a user has instead
 NOT_RUN = {
     HEARTBEAT_PLUGIN: "no mujoco_heartbeat topic: /clock and /diagnostics show the simulation is alive",
     FREE_JOINT_STATE_PLUGIN: "no free_joint_states topic: free bodies' poses are on /tf (and odom for the robot's base)",
-    EXTERNAL_WRENCH_PLUGIN: "no external wrench service from this plugin",
 }
 
 _CAMERA_KEYS = (
@@ -155,6 +157,7 @@ class SensorConfig:
       dense_lidars: lidars cast in bulk from sites, batchsim's own.
       noise: noise by name pattern (state interfaces, MJCF sensors, cameras, lidars).
       base_velocity: the BaseVelocityPlugin's params, or None (batchsim.base_velocity).
+      external_wrench: the ExternalWrenchPlugin's params, or None (batchsim.external_wrench).
       warnings: what was read and ignored (plugins of other types).
     """
 
@@ -169,6 +172,7 @@ class SensorConfig:
     dense_lidars: list[DenseLidarSpec] = dataclasses.field(default_factory=list)
     noise: dict[str, Noise] = dataclasses.field(default_factory=dict)
     base_velocity: BaseVelocityConfig | None = None
+    external_wrench: ExternalWrenchConfig | None = None
     warnings: list[str] = dataclasses.field(default_factory=list)
 
     @classmethod
@@ -310,18 +314,21 @@ class SensorConfig:
                 for key, value in rest.items():
                     self.plugin_lidars[str(key)] = _settings(LidarSettings, _LIDAR3D_KEYS, value, f"{at}.{key}")
             elif kind == BASE_VELOCITY_PLUGIN:
-                self._read_base_velocity(str(name), rest, at)
+                self._read_once("base_velocity", BaseVelocityConfig, kind, str(name), rest, at)
+            elif kind == EXTERNAL_WRENCH_PLUGIN:
+                self._read_once("external_wrench", ExternalWrenchConfig, kind, str(name), rest, at)
             elif kind in NOT_RUN:
                 self.warnings.append(f"{at}: {kind} is not run by batchsim: {NOT_RUN[kind]}")
             else:
                 self.warnings.append(f"{at}: plugin type {kind!r} is unknown to batchsim: not run")
 
-    def _read_base_velocity(self, name: str, params: Mapping[str, Any], at: str) -> None:
-        given = self.base_velocity
+    def _read_once(self, field: str, config: Any, kind: str, name: str, params: Mapping[str, Any], at: str) -> None:
+        """A plugin of type `kind` the system runs one instance of: its params into `field` (`config.parse`)."""
+        given = getattr(self, field)
         if given is not None and given.name != name:  # the same instance in a later file replaces it
-            raise SensorConfigError(f"{at}: a second BaseVelocityPlugin ({given.where} is one): batchsim runs one")
+            raise SensorConfigError(f"{at}: a second {kind.rpartition('/')[2]} ({given.where} is one): batchsim runs one")
         try:
-            self.base_velocity = BaseVelocityConfig.parse(name, params, at)
+            setattr(self, field, config.parse(name, params, at))
         except ValueError as e:
             raise SensorConfigError(str(e)) from None
 

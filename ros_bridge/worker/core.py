@@ -214,7 +214,7 @@ class Worker:
         if available()["mujoco_ros2_control_msgs"]:
             from ros_bridge.worker.simulation import SimulationServices
 
-            self.simulation = SimulationServices(node, self.requests, self.namespaces, self.lo, fleet=self.index == 0)
+            self.simulation = SimulationServices(node, self.requests, plan, self.index)
         # per-world services and action servers created when a client appears (on_request.py)
         self._served = [s for s in (self.manager, self.actions, self.simulation) if s is not None]
         if plan.all_topics:

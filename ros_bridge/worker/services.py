@@ -64,16 +64,20 @@ class LoopRequests:
         """The loop's answer to `ticket`, or None if it gave none within `timeout` s."""
         if ticket is None:
             return None
-        slot = ticket % SERVICE_SLOTS
-        answered = self.memory["svc.ticket"][self.index]
         deadline = wallclock.monotonic() + timeout
         with self._cond:
-            while int(answered[slot]) != ticket:
+            while (answer := self.answer(ticket)) is None:
                 left = deadline - wallclock.monotonic()
                 if left <= 0 or not self.running:
                     return None
                 self._cond.wait(min(left, 0.05))
-        m = self.memory
+        return answer
+
+    def answer(self, ticket: int) -> Answer | None:
+        """The loop's answer to `ticket` if it has given it, without waiting."""
+        m, slot = self.memory, ticket % SERVICE_SLOTS
+        if int(m["svc.ticket"][self.index, slot]) != ticket:
+            return None
         message = m["svc.msg"][self.index, slot].tobytes().rstrip(b"\0").decode(errors="replace")
         return Answer(bool(m["svc.ok"][self.index, slot]), message, float(m["svc.time"][self.index, slot]))
 

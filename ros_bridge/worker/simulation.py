@@ -10,7 +10,9 @@ start), as mujoco_ros2_control serves its `~/...` services:
 
 Per world, created when a client appears (on_request.py):
 `/<ns>/mujoco_ros2_control_node/{reset_world, set_free_joint_state}`. With one world in the
-root namespace both sets are one.
+root namespace both sets are one. With the ExternalWrenchPlugin, `/<ns>/<plugin>/apply_wrench`
+too (ros_bridge/worker/wrench.py), on the fleet node (worker 0) or on a node of the worker's
+own, `/<worker's node>/mujoco_ros2_control_node`, spun the same way.
 
 The fleet node spins its own multi-threaded executor: a step_simulation waits for the loop
 (up to max(30 s, 10 ms per step), as upstream) while a set_pause must still be answered,
@@ -29,6 +31,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 
 from ros_bridge.naming import topic_name
+from ros_bridge.plan import FleetPlan
 from ros_bridge.requests import Kind, encode_document, encode_ticket
 from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import SERVICE_WAIT, LoopRequests
@@ -59,26 +62,41 @@ def free_joints(entries: Any) -> list[dict]:
 
 
 class SimulationServices(OnRequest):
-    """The services of worlds [lo, lo + len(namespaces)); worker 0 also serves the fleet's."""
+    """The services of worker `index`'s worlds; worker 0 also serves the fleet's."""
 
-    def __init__(self, node: Node, requests: LoopRequests, namespaces: list[str], lo: int, fleet: bool):
+    def __init__(self, node: Node, requests: LoopRequests, plan: FleetPlan, index: int):
         super().__init__()
         self.node = node
         self.requests = requests
         self._entities: list[Any] = []
-        self._fleet_node: Node | None = None
+        self._side_node: Node | None = None  # the fleet node, or the wrench services' node
         self._executor: MultiThreadedExecutor | None = None
         self._thread: threading.Thread | None = None
+        self.wrench: Any = None  # the ExternalWrenchPlugin's apply_wrench (ros_bridge/worker/wrench.py)
+        lo, hi = plan.ranges[index]
+        fleet = index == 0
         root = topic_name("", NODE)
-        for row, ns in enumerate(namespaces):
+        for row, ns in enumerate(plan.namespaces[lo:hi]):
             base = topic_name(ns, NODE)
             if base == root:  # the root-namespace world: its services are the fleet node's
                 if fleet:
                     self._world_services(node, base, lo + row, reset=False)
             else:
                 self.offer(base, lo + row)
-        if fleet:
-            self._start_fleet_node(node)
+        if fleet or plan.wrench_service:
+            self._start_side_node(node, fleet, "" if fleet else f"/{plan.node_names[index]}")
+        if plan.wrench_service:
+            from ros_bridge.worker.wrench import WrenchServices
+
+            self.wrench = WrenchServices(self._side_node, requests, plan.namespaces[lo:hi], lo, plan.wrench_service)
+
+    def requested(self, name: str) -> bool:
+        return super().requested(name) or (self.wrench is not None and self.wrench.requested(name))
+
+    def create_all(self) -> None:
+        super().create_all()
+        if self.wrench is not None:
+            self.wrench.create_all()
 
     def _create(self, base: str, world: int) -> None:
         self._world_services(self.node, base, world, reset=True)
@@ -88,27 +106,34 @@ class SimulationServices(OnRequest):
             self._entities.append(node.create_service(ResetWorld, f"{base}/reset_world", self._reset(world)))
         self._entities.append(node.create_service(SetFreeJointState, f"{base}/set_free_joint_state", self._set_free(world)))
 
-    def _start_fleet_node(self, node: Node) -> None:
-        fleet = Node(NODE, context=node.context)
-        group = ReentrantCallbackGroup()
-        base = topic_name("", NODE)
-        for srv, name, handler in (
-            (ResetWorld, "reset_world", self._reset(-1)),
-            (SetPause, "set_pause", self._set_pause),
-            (StepSimulation, "step_simulation", self._step),
-        ):
-            self._entities.append(fleet.create_service(srv, f"{base}/{name}", handler, callback_group=group))
-        self._fleet_node = fleet
+    def _start_side_node(self, node: Node, fleet: bool, namespace: str) -> None:
+        """A `mujoco_ros2_control_node` on its own multi-threaded executor: the fleet's services
+        (worker 0's, at the root), and the wrench services (another worker's, in `namespace`)."""
+        side = Node(NODE, namespace=namespace, context=node.context)
+        if fleet:
+            group = ReentrantCallbackGroup()
+            base = topic_name("", NODE)
+            for srv, name, handler in (
+                (ResetWorld, "reset_world", self._reset(-1)),
+                (SetPause, "set_pause", self._set_pause),
+                (StepSimulation, "step_simulation", self._step),
+            ):
+                self._entities.append(side.create_service(srv, f"{base}/{name}", handler, callback_group=group))
+        self._side_node = side
         self._executor = MultiThreadedExecutor(num_threads=4, context=node.context)
-        self._executor.add_node(fleet)
+        self._executor.add_node(side)
         self._thread = threading.Thread(target=self._spin, name="mujoco_ros2_control_node", daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
         executor = self._executor
         while executor is not None and self.requests.running and self.node.context.ok():
+            wrench = self.wrench
             try:
-                executor.spin_once(timeout_sec=0.1)
+                # a waiting apply_wrench is resumed every cycle: cycles of 20 ms while one waits
+                executor.spin_once(timeout_sec=0.02 if wrench is not None and wrench.busy else 0.1)
+                if wrench is not None:
+                    wrench.drain()  # its services are created on this node's thread
             except Exception:  # shutting down
                 if not self.requests.running or not self.node.context.ok():
                     break
@@ -118,8 +143,8 @@ class SimulationServices(OnRequest):
             self._executor.shutdown(timeout_sec=1.0)
         if self._thread is not None:
             self._thread.join(timeout=2.0)
-        if self._fleet_node is not None:
-            self._fleet_node.destroy_node()
+        if self._side_node is not None:
+            self._side_node.destroy_node()
 
     # --- handlers ---
     def _answer(self, response: Any, ticket: int | None, timeout: float = SERVICE_WAIT) -> Any:

@@ -39,6 +39,7 @@ from batchsim.backends.warp.kernels import (
     set_rows,
 )
 from batchsim.backends.warp.sensors import WarpSensors
+from batchsim.backends.warp.wrench import WarpWrenches
 from batchsim.model import RobotSpec
 from batchsim.types import MAX_COMMAND, READ_FIELDS, Status, StepFailures
 
@@ -50,7 +51,7 @@ _CHANGED = int(mjw.State.PHYSICS | mjw.State.WARMSTART)
 _INTEGRATION = int(mjw.State.PHYSICS | mjw.State.USER | mjw.State.WARMSTART)  # no PLUGIN in Warp
 
 
-class WarpSystem(WarpSensors, DeviceSystem):
+class WarpSystem(WarpWrenches, WarpSensors, DeviceSystem):
     """`nworld` worlds on MuJoCo Warp, one captured graph per control period.
 
     Options:
