@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from batchsim import controllers  # batchsim.controllers.load_controllers after `import batchsim`
+from batchsim import backends, controllers  # batchsim.controllers.load_controllers after `import batchsim`
 from batchsim.backends import Backend, BackendUnavailable, backend_class, resolve
 from batchsim.backends.sharded import ShardedSystem
 from batchsim.failures import set_log_dir
@@ -61,7 +61,7 @@ __all__ = [
 def make(
     model: str | Path | RobotSpec,
     nworld: int = 1,
-    backend: str | Backend = "auto",
+    backend: str | Backend | backends.Registered = "auto",
     *,
     ros2_control: str | Path | None = None,
     devices: Sequence[int | str] | str | None = None,
@@ -76,7 +76,8 @@ def make(
       model: a shipped model's name ("arm", "car", "quadruped"), a path to an MJCF file,
         or a RobotSpec from `batchsim.load`.
       nworld: number of worlds.
-      backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware).
+      backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware), or a
+        name given to `batchsim.backends.register`.
       ros2_control: a robot description whose ros2_control blocks narrow the interfaces: a
         URDF/xacro/XML file path (xacro arguments may follow: "robot.urdf.xacro use_pid:=true")
         or XML text.
@@ -112,7 +113,7 @@ def make(
         logging.getLogger("batchsim").warning("batchsim: warning: %s", warning)
     chosen, reason = resolve(backend, spec, nworld)
     cls = backend_class(chosen)
-    if Backend.parse(backend) is Backend.AUTO:
+    if backends.parse(backend) is Backend.AUTO:
         # options meant for a backend auto did not pick (nconmax for warp) are dropped, and said so
         ignored = sorted(set(options) - set(cls.OPTIONS))
         options = {k: v for k, v in options.items() if k in cls.OPTIONS}

@@ -1,8 +1,9 @@
 """Start-up of a fleet: will it fit in memory, what is it doing, and a prompt exit on Ctrl-C.
 
-- `estimate_memory` adds up what a world costs (physics per backend, the ROS 2 bridge's
-  endpoints) from measured constants; `check_host_memory` / `check_device_memory` refuse
-  a fleet that will not fit with one line, before anything is allocated.
+- `fleet_memory` adds up what a world costs (the physics its backend's class states, the
+  contract's host arrays, the ROS 2 bridge's endpoints) from measured constants;
+  `check_host_memory` / `check_device_memory` refuse a fleet that will not fit with one line,
+  before anything is allocated.
 - `Progress` shows each start-up stage that takes longer than a second: a live line on a
   terminal, one line when it starts and one when it ends in a log.
 - `StartupGuard` makes SIGINT/SIGTERM during start-up end the process promptly with one
@@ -40,9 +41,10 @@ from batchsim.model import RobotSpec
 # re-measure it the same way when the bridge changes.
 ROS_BRIDGE_BYTES_PER_WORLD = 1_600_000
 
-# cpu (mujoco.batch): state rows plus the contract's host arrays, per world, in float64s of
-# (mjSTATE_FULLPHYSICS + nq + nv + nu + nsensordata): 3.2x for arm (1260 B), 3.0x for
-# quadruped (2440 B), 2.6x for humanoid (2780 B), make() at 2000 vs 22000 worlds; the whole
+# the contract's host arrays (readings, command, ctrl: what read() and write() fill), per world,
+# in float64s of (mjSTATE_FULLPHYSICS + nq + nv + nu + nsensordata). Measured on cpu, whose
+# mujoco.batch rows are those arrays: 3.2x for arm (1260 B), 3.0x for quadruped (2440 B),
+# 2.6x for humanoid (2780 B), make() at 2000 vs 22000 worlds; the whole
 # `batchsim --no-ros --controllers none` run takes 1470 B a world for the arm (peak RSS at
 # 30000 vs 300000 worlds: 3.75x); 4x covers them.
 HOST_ROW_FACTOR = 4.0
@@ -50,19 +52,8 @@ HOST_ROW_FACTOR = 4.0
 # a wrist broadcaster) added 700 B a world over its 6 command interfaces (peak RSS of the
 # run above with and without them): ~120 B per command interface, rounded up.
 CONTROLLER_BYTES_PER_COMMAND = 160
-# mujoco.batch's per-thread MjData: 0.25 MB per thread measured for the humanoid (256
-# worlds, 16 threads vs 1) of its 14.7 MB arena; narena / 32 covers it.
-THREAD_ARENA_FRACTION = 1 / 32
-
-# warp: MuJoCo Warp's Data per world, summed over its arrays (put_data at 100 vs 200
-# worlds, the rollout-sized nconmax/njmax): 0.52x (arm), 0.58x (quadruped), 0.60x
-# (humanoid) of MjData's own arrays; doubling nconmax and njmax added ~12 B per row.
-WARP_DATA_FACTOR = 0.65
-WARP_BYTES_PER_ROW = 12  # per contact (nconmax) and per constraint row (njmax), per world
-# mjx: MJX's Data per world (mjx.put_data's leaves): 0.46x (arm), 4.35x (quadruped: a
-# contact slot for every candidate geom pair), 1.97x (humanoid) of MjData's arrays.
-# XLA's temporaries while stepping are not included.
-MJX_DATA_FACTOR = 4.4
+# what each backend's physics takes beside these: its class's `physics_memory`
+# (batchsim.backends.footprint holds the shipped backends' measurements)
 
 # the process itself: 64 MB peak RSS for 16 arms without ROS, 123 MB with it (imports,
 # the model, DDS); jax and warp add their runtimes: rounded up.
@@ -113,7 +104,21 @@ class MemoryEstimate:
         return ", ".join(parts)
 
 
-def _mjdata_bytes(m: mujoco.MjModel) -> int:
+@dataclasses.dataclass(frozen=True)
+class PhysicsMemory:
+    """What a backend's physics takes beside the contract's host arrays, in bytes, as its class
+    states it (`physics_memory`, batchsim.backends):
+
+    per_world: each world's engine state, on the backend's device or, where it runs on the
+      host, in RAM (0 where the engine's rows are the host arrays themselves: cpu's batch);
+    fixed: once per process, in RAM (cpu: its threads' scratch MjData).
+    """
+
+    per_world: int
+    fixed: int = 0
+
+
+def mjdata_bytes(m: mujoco.MjModel) -> int:
     """Bytes in one MjData's arrays (not its arena): the size of a world's state and outputs."""
     d = mujoco.MjData(m)
     total = 0
@@ -125,54 +130,39 @@ def _mjdata_bytes(m: mujoco.MjModel) -> int:
     return total
 
 
-def estimate_memory(
+def fleet_memory(
     spec: RobotSpec,
     backend: str,
     nworld: int,
+    physics: PhysicsMemory,
     *,
     ros: bool,
-    nthread: int | None = None,
     on_device: bool = False,
-    nconmax: int | None = None,
-    njmax: int | None = None,
     controllers: bool = False,
 ) -> MemoryEstimate:
-    """What `nworld` worlds of `spec` on `backend` ("cpu", "mjx", "warp") will take.
+    """What `nworld` worlds of `spec` on `backend` (its name, for messages) will take, the
+    backend's physics as its class states it (batchsim.backends.estimate_memory asks it).
 
     Args:
       ros: the ROS 2 bridge runs (ROS_BRIDGE_BYTES_PER_WORLD a world).
-      nthread: cpu: worker threads (None: every core).
-      on_device: mjx/warp run on a GPU: their physics counts against device memory.
-      nconmax, njmax: warp's contacts and constraint rows per world (None: 4 and 64 a world
-        where the rollout-sized values are not known yet).
+      on_device: the backend runs on a GPU: its physics counts against device memory.
       controllers: ros2_control-style controllers run in every world.
     """
     m = spec.mjmodel
     row = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS) + m.nq + m.nv + m.nu + m.nsensordata
     host_arrays = int(HOST_ROW_FACTOR * 8 * row)
-    fixed = FIXED_HOST_BYTES
-    if backend == "cpu":
-        physics = host_arrays
-        fixed += int((nthread or os.cpu_count() or 1) * m.narena * THREAD_ARENA_FRACTION)
-    elif backend == "warp":
-        rows = (nconmax if nconmax is not None else 4) + (njmax if njmax is not None else 64)
-        physics = int(WARP_DATA_FACTOR * _mjdata_bytes(m)) + WARP_BYTES_PER_ROW * rows
-    elif backend == "mjx":
-        physics = int(MJX_DATA_FACTOR * _mjdata_bytes(m))
-    else:
-        raise ValueError(f"no memory estimate for backend {backend!r}")
+    fixed = FIXED_HOST_BYTES + physics.fixed
     ros_per_world = ROS_BRIDGE_BYTES_PER_WORLD if ros else 0
     controllers_per_world = CONTROLLER_BYTES_PER_COMMAND * len(spec.commands) if controllers else 0
-    if backend != "cpu" and on_device:
+    if on_device:
         host = fixed + nworld * (host_arrays + ros_per_world + controllers_per_world)
-        device = nworld * physics
+        device = nworld * physics.per_world
+        per_world = physics.per_world
     else:
-        physics_on_host = physics if backend == "cpu" else host_arrays + physics
-        host = fixed + nworld * (physics_on_host + ros_per_world + controllers_per_world)
+        per_world = host_arrays + physics.per_world
+        host = fixed + nworld * (per_world + ros_per_world + controllers_per_world)
         device = 0
-        if backend != "cpu":
-            physics += host_arrays
-    return MemoryEstimate(nworld, backend, host, device, physics, ros_per_world, fixed, controllers_per_world)
+    return MemoryEstimate(nworld, backend, host, device, per_world, ros_per_world, fixed, controllers_per_world)
 
 
 def available_host_memory() -> int | None:

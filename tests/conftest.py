@@ -1,4 +1,7 @@
-"""Shared fixtures: the contract suite runs once per backend in BACKENDS.
+"""Shared fixtures: the contract suite runs once per backend in CONTRACT_BACKENDS: the shipped
+ones of BACKENDS, and `ref`, a test-only backend (tests/reference_backend.py: each world's own
+MjData and mj_step) registered here as any backend outside batchsim would be, the proof that a
+backend is one class and one registry line (issue 22).
 
 `mjx-2dev` and `warp-2dev` are the multi-device path: every `batchsim.make(..., "mjx")`
 (or "warp") of the module spreads its worlds over two CPU devices (JAX's, made two by
@@ -27,35 +30,46 @@ os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), f"batchsim-jax-cache-{os.getuid()}"))
 
 import pytest  # noqa: E402
+from reference_backend import ReferenceSystem  # noqa: E402
 
 import batchsim  # noqa: E402
+
+batchsim.backends.register("ref", ReferenceSystem)  # a backend from outside batchsim: this one line
 
 # backend -> the module its optional packages provide
 BACKENDS = {"cpu": "mujoco", "mjx": "jax", "warp": "mujoco_warp", "mjx-2dev": "jax", "warp-2dev": "mujoco_warp"}
 if os.environ.get("BATCHSIM_SHARD_PROCESSES") == "1":  # 5 minutes more on 2 cores: not in CI's run
     BACKENDS["warp-2proc"] = "mujoco_warp"
+CONTRACT_BACKENDS = {**BACKENDS, "ref": "mujoco"}
 TWO_DEVICES = {"mjx": ["cpu:0", "cpu:1"], "warp": ["cpu", "cpu"]}
 
 
 def _available(backend: str) -> bool:
-    return importlib.util.find_spec(BACKENDS[backend]) is not None
+    return importlib.util.find_spec(CONTRACT_BACKENDS[backend]) is not None
+
+
+@pytest.fixture(params=list(CONTRACT_BACKENDS), scope="module")
+def backend(request) -> str:
+    """Every backend, the multi-device path of mjx and warp, and `ref`: for the contract suite."""
+    yield from _backend(request.param)
 
 
 @pytest.fixture(params=list(BACKENDS), scope="module")
-def backend(request) -> str:
-    """Every backend, and the multi-device path of mjx and warp: for the contract suite."""
+def shipped_backend(request) -> str:
+    """The shipped backends and the multi-device path of mjx and warp: for the suites of what the
+    contract leaves to a backend to offer, which `ref` does not (cameras and lidars)."""
     yield from _backend(request.param)
 
 
 @pytest.fixture(params=[b for b in BACKENDS if "-" not in b], scope="module")
 def one_device_backend(request) -> str:
-    """Every backend on one device: for tests where the device count changes nothing."""
+    """Every shipped backend on one device: for tests where the device count changes nothing."""
     yield from _backend(request.param)
 
 
 def _backend(name: str):
     if not _available(name) and os.environ.get("BATCHSIM_FORCE_BACKENDS") != "1":
-        pytest.skip(f"backend {name} needs {BACKENDS[name]}, which is not installed")
+        pytest.skip(f"backend {name} needs {CONTRACT_BACKENDS[name]}, which is not installed")
     base, _, sharded = name.partition("-")
     if not sharded:
         yield name

@@ -112,19 +112,19 @@ def test_a_fleet_that_cannot_fit_is_refused_before_anything_is_allocated():
 
 def test_memory_estimate_splits_host_and_device_and_checks_both():
     spec = batchsim.load("arm")
-    host = startup.estimate_memory(spec, "cpu", 1000, ros=True, nthread=2)
+    host = batchsim.backends.estimate_memory(spec, "cpu", 1000, ros=True, nthread=2)
     assert host.device == 0
     assert host.ros_per_world == startup.ROS_BRIDGE_BYTES_PER_WORLD
     assert host.host >= 1000 * (host.physics_per_world + host.ros_per_world)
-    more = startup.estimate_memory(spec, "cpu", 2000, ros=True, nthread=2)
+    more = batchsim.backends.estimate_memory(spec, "cpu", 2000, ros=True, nthread=2)
     assert more.host - host.host == 1000 * (host.physics_per_world + host.ros_per_world)
 
-    gpu = startup.estimate_memory(spec, "warp", 1000, ros=False, on_device=True, nconmax=8, njmax=40)
+    gpu = batchsim.backends.estimate_memory(spec, "warp", 1000, ros=False, on_device=True, nconmax=8, njmax=40)
     assert gpu.device == 1000 * gpu.physics_per_world
-    on_host = startup.estimate_memory(spec, "warp", 1000, ros=False, nconmax=8, njmax=40)  # Warp's CPU device
+    on_host = batchsim.backends.estimate_memory(spec, "warp", 1000, ros=False, nconmax=8, njmax=40)  # Warp's CPU device
     assert on_host.device == 0 and on_host.host > gpu.host
 
-    with_controllers = startup.estimate_memory(spec, "cpu", 1000, ros=True, nthread=2, controllers=True)
+    with_controllers = batchsim.backends.estimate_memory(spec, "cpu", 1000, ros=True, nthread=2, controllers=True)
     assert with_controllers.host - host.host == 1000 * with_controllers.controllers_per_world > 0
 
     assert startup.check_host_memory(host, available=100 * host.host) is None

@@ -42,9 +42,8 @@ def run_parser() -> argparse.ArgumentParser:
         default=None,
         help="shipped model name or MJCF path (default: the --ros2-control file's mujoco_model param, else arm)",
     )
-    p.add_argument(
-        "--backend", default="auto", help="cpu, mjx, warp or auto (default auto: picked for the hardware)"
-    )
+    concrete = ", ".join(b for b in batchsim.backends.names() if b != "auto")  # registered ones too
+    p.add_argument("--backend", default="auto", help=f"{concrete} or auto (default auto: picked for the hardware)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds")
     p.add_argument("--rtf", type=float, default=1.0, help="real-time factor; 0 runs as fast as possible")
     p.add_argument("--control-rate", type=float, default=None, help="Hz: commands applied, state read")

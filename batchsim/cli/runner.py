@@ -14,7 +14,7 @@ from typing import Any, TextIO
 
 import batchsim
 from batchsim import startup
-from batchsim.backends import Backend, backend_class, resolve
+from batchsim.backends import Choice, backend_class, estimate_memory, resolve
 from batchsim.cli import description_topic
 from batchsim.cli.args import (
     UsageError,
@@ -66,17 +66,18 @@ def build(args: argparse.Namespace, progress: startup.Progress | None = None) ->
     return sim
 
 
-def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Backend) -> None:
+def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Choice) -> None:
     """Refuse (MemoryCheckError, one line) a fleet the estimate says will not fit; warn near the edge."""
     cls = backend_class(backend)
     on_device, device_memory = False, None
-    if backend is not Backend.CPU:
-        on_device = not str(cls.available_devices()[0]).startswith("cpu")
+    devices = getattr(cls, "available_devices", None)  # a backend that runs on devices says which
+    if devices is not None:
+        on_device = not str(devices()[0]).startswith("cpu")
         if on_device and args.devices is None:  # several devices: each holds a share, not checked
             device_memory = startup.device_memory(cls)
-    estimate = startup.estimate_memory(
+    estimate = estimate_memory(
         spec,
-        backend.value,
+        backend,
         args.worlds,
         ros=not args.no_ros,
         nthread=args.threads,
@@ -85,6 +86,10 @@ def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Ba
         njmax=args.njmax,
         controllers=(args.controllers or "").lower() != "none",
     )
+    if estimate is None:
+        unchecked = f"the {backend.value} backend states no memory estimate: not checked"
+        print(f"batchsim: warning: {unchecked}", file=sys.stderr, flush=True)
+        return
     for warning in (startup.check_host_memory(estimate), startup.check_device_memory(estimate, device_memory)):
         if warning:
             print(f"batchsim: warning: {warning}", file=sys.stderr, flush=True)
