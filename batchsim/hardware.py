@@ -96,6 +96,8 @@ class BatchedSystem(BaseDriving, Wrenching, Sensing, EngineHooks, SystemInterfac
     #: whether the first control period compiles (mjx) or captures (warp) the step's program:
     #: the command line runs one under a progress line before the run starts
     compiles_first_period: ClassVar[bool] = False
+    #: whether the engine logs a world's failure itself (C MuJoCo's MUJOCO_LOG.TXT): the first line names it
+    logs_failures: ClassVar[bool] = False
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__()
@@ -147,7 +149,7 @@ class BatchedSystem(BaseDriving, Wrenching, Sensing, EngineHooks, SystemInterfac
         self._none_frozen.setflags(write=False)
         # whether the host readings are the engine's current values (read() since the last step())
         self._readings_current = False
-        self._failure_log = FailureLog(self.name, self.nworld, mujoco_logs=self.name == "cpu")
+        self._failure_log = FailureLog(self.name, self.nworld, mujoco_logs=self.logs_failures)
         ensure_log_dir()  # MuJoCo's own log out of the working directory, unless placed already
         self._sensor_config: SensorConfig | None = None
         self._shown_poses: tuple[np.ndarray, np.ndarray] | None = None  # body_poses()' last, per world

@@ -19,9 +19,8 @@ import mujoco
 import numpy as np
 
 from batchsim.base_velocity import HELD_DOFS, world_velocity
-from batchsim.failures import FailureLog, warning_text
+from batchsim.failures import warning_text
 from batchsim.hardware import BatchedSystem, Status, StepFailures
-from batchsim.model import RobotSpec
 from batchsim.startup import PhysicsMemory, mjdata_bytes
 from batchsim.types import READ_FIELDS
 
@@ -41,10 +40,7 @@ class ReferenceSystem(BatchedSystem):
     name: ClassVar[str] = "ref"
     OPTIONS: ClassVar[dict[str, Any]] = {"deterministic": True}
 
-    def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
-        super().__init__(spec, nworld, **options)
-        # C MuJoCo logs a world's failure itself: the first line names where that log went
-        self._failure_log = FailureLog(self.name, self.nworld, mujoco_logs=True)
+    logs_failures: ClassVar[bool] = True  # C MuJoCo logs a world's failure itself
 
     @staticmethod
     def physics_memory(m: mujoco.MjModel, **_: int | None) -> PhysicsMemory:

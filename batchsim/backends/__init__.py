@@ -18,12 +18,10 @@ import dataclasses
 import enum
 import importlib
 import os
-from collections.abc import Callable
 from pathlib import Path
 
 import mujoco
 
-from batchsim.backends import footprint
 from batchsim.hardware import BatchedSystem, ConfigurationError
 from batchsim.loop import OptionError
 from batchsim.model import RobotSpec
@@ -178,16 +176,6 @@ def _supports(backend: Choice, spec: RobotSpec) -> bool:
 
 # --- what a backend's worlds take (batchsim.startup does the sums) ---
 
-# the physics_memory of the shipped backends, until their classes state it themselves as the
-# registered ones do (`physics_memory = staticmethod(footprint.cpu)` in CpuSystem, and so on; then
-# this table goes): cpu.py, mjx.py and warp/ were being edited elsewhere when it moved (issue 22)
-_SHIPPED_MEMORY: dict[Backend, Callable[..., PhysicsMemory]] = {
-    Backend.CPU: footprint.cpu,
-    Backend.MJX: footprint.mjx,
-    Backend.WARP: footprint.warp,
-}
-
-
 def physics_memory(
     backend: Choice,
     m: mujoco.MjModel,
@@ -198,9 +186,7 @@ def physics_memory(
 ) -> PhysicsMemory | None:
     """What a world of `m` takes on `backend`, as its class states it (`physics_memory`); None
     where it states nothing (the memory check is then skipped, and said so)."""
-    state = _SHIPPED_MEMORY.get(backend) if isinstance(backend, Backend) else None
-    if state is None:
-        state = getattr(backend_class(backend), "physics_memory", None)
+    state = getattr(backend_class(backend), "physics_memory", None)
     return None if state is None else state(m, nthread=nthread, nconmax=nconmax, njmax=njmax)
 
 

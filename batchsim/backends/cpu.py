@@ -27,6 +27,7 @@ import mujoco
 import numpy as np
 from mujoco import batch as mjbatch
 
+from batchsim.backends import footprint
 from batchsim.base_velocity import HELD_DOFS, world_velocity
 from batchsim.failures import warning_text
 from batchsim.hardware import BatchedSystem, Status, StepFailures
@@ -55,6 +56,8 @@ class CpuSystem(BatchedSystem):
 
     name: ClassVar[str] = "cpu"
     OPTIONS: ClassVar[dict[str, Any]] = {"nthread": 0, "deterministic": True}
+    physics_memory = staticmethod(footprint.cpu)
+    logs_failures: ClassVar[bool] = True  # C MuJoCo logs a world's failure itself (MUJOCO_LOG.TXT)
 
     def _open(self) -> None:
         nthread = int(self.options["nthread"]) or min(self.nworld, os.cpu_count() or 1)

@@ -48,6 +48,7 @@ import numpy as np
 from mujoco import batch as mjbatch
 from mujoco import mjx
 
+from batchsim.backends import footprint
 from batchsim.backends.device import (
     DEVICE_ARRAYS,
     FIELD_SHIFT,
@@ -228,6 +229,7 @@ class MjxSystem(DeviceSystem):
 
     name: ClassVar[str] = "mjx"
     OPTIONS: ClassVar[dict[str, Any]] = {"device": None, "deterministic": False}
+    physics_memory = staticmethod(footprint.mjx)
 
     @staticmethod
     def _resolve_device(option: Any) -> jax.Device:

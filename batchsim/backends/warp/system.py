@@ -14,6 +14,7 @@ import mujoco_warp as mjw
 import numpy as np
 import warp as wp
 
+from batchsim.backends import footprint
 from batchsim.backends.device import DEVICE_ARRAYS, DeviceSystem, code_status
 from batchsim.backends.warp.buffers import (
     BUFFER_OVERFLOWS,
@@ -75,6 +76,7 @@ class WarpSystem(WarpWrenches, WarpSensors, DeviceSystem):
     """
 
     name: ClassVar[str] = "warp"
+    physics_memory = staticmethod(footprint.warp)
     OPTIONS: ClassVar[dict[str, Any]] = {
         "nconmax": None,
         "njmax": None,
