@@ -40,6 +40,15 @@ def actuator_columns(spec: RobotSpec) -> list[StateColumn]:
     )
 
 
+def actuator_state_index(spec: RobotSpec) -> np.ndarray:
+    """(3 * n,) per kind (position, velocity, effort) and entry of `spec.actuator_joints`,
+    its column in `BatchedSystem.actuator_states`, or -1 for an entry with no address."""
+    found = np.array([q >= 0 for _, q, _ in spec.actuator_joints], dtype=bool)
+    rank = np.cumsum(found) - 1
+    nfound = int(found.sum())
+    return np.concatenate([np.where(found, k * nfound + rank, -1) for k in range(3)]).astype(np.intp)
+
+
 def as_slice(index: list[int]) -> slice | np.ndarray:
     """An index list as a slice when it is an arithmetic progression (a view, not a gather)."""
     if not index:

@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from batchsim.hardware import BatchedSystem
+from batchsim.readings import actuator_state_index
 from ros_bridge.naming import ros_names
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
@@ -92,11 +93,8 @@ def robot_outputs(
     # joint no actuator drives, on the MuJoCo side of any transmission; on request
     actuated = [name for name, _, _ in spec.actuator_joints]
     if actuated:
-        found = [q >= 0 for _, q, _ in spec.actuator_joints]
-        nfound, na = sum(found), len(actuated)
-        # output column k*na + i <- actuator_states column k*nfound + rank of i among those found
-        rank = np.cumsum(found) - 1
-        gather = np.array([k * nfound + rank[i] if found[i] else -1 for k in range(3) for i in range(na)], dtype=np.intp)
+        na = len(actuated)
+        gather = actuator_state_index(spec)
         ch = channel("mujoco_actuators_states", 3 * na, _columns_of(lambda: sim.actuator_states, gather))
         fields = tuple(Field(kind, ch, tuple(range(k * na, (k + 1) * na))) for k, kind in enumerate(("position", "velocity", "effort")))
         outputs.append(
