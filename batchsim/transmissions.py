@@ -50,11 +50,10 @@ class CommandMap:
     """
 
     def __init__(self, spec: RobotSpec):
-        self.names = [c.name for c in spec.commands]
         self.identity = spec.actuator_commands is None
         self.inner = list(spec.commands if self.identity else spec.actuator_commands)
         inner = {c.name: k for k, c in enumerate(self.inner)}
-        self.matrix = np.zeros((len(self.names), len(self.inner)))
+        self.matrix = np.zeros((len(spec.commands), len(self.inner)))
         self.bias = np.zeros(len(self.inner))
         self._stands_for: dict[str, list[int]] = {}
         by_joint = {j: (t, k) for t in spec.transmissions for k, j in enumerate(t.joints)}
