@@ -5,6 +5,7 @@ interrupts, the status line, --version, install hints. Command tests run
 
 from __future__ import annotations
 
+import importlib.metadata
 import importlib.util
 import os
 import pty
@@ -13,12 +14,14 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 from pathlib import Path
 
 import pytest
 
 import batchsim
 from batchsim import startup
+from batchsim.cli.args import batchsim_version
 from batchsim.loop import LoopStats, OptionError, SimLoop, format_stats
 from ros_bridge.naming import NamingError, world_namespaces
 
@@ -315,6 +318,38 @@ def test_version():
     out = batchsim_cli("--version")
     assert out.returncode == 0
     assert out.stdout.startswith("batchsim ") and "mujoco" in out.stdout
+
+
+def _not_installed(dist: str) -> str:
+    raise importlib.metadata.PackageNotFoundError(dist)
+
+
+def test_version_from_a_source_checkout_is_pyprojects():
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    assert batchsim_version(_not_installed) == f"{declared} (source checkout)"
+    assert batchsim_version(lambda dist: "9.9.9") == "9.9.9"
+
+
+def test_version_command_without_distribution_metadata(tmp_path):
+    """`python -m batchsim.cli --version` with the checkout on PYTHONPATH, run elsewhere, and no batchsim
+    distribution found (as when nothing was pip-installed)."""
+    code = (
+        "import importlib.metadata as m, runpy, sys\n"
+        "found = m.version\n"
+        "def version(dist):\n"
+        "    if dist == 'batchsim':\n"
+        "        raise m.PackageNotFoundError(dist)\n"
+        "    return found(dist)\n"
+        "m.version = version\n"
+        "sys.argv = ['batchsim', '--version']\n"
+        "runpy.run_module('batchsim.cli', run_name='__main__', alter_sys=True)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=60)
+    assert out.returncode == 0, out.stderr
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    assert out.stdout.startswith(f"batchsim {declared} (source checkout) (mujoco "), out.stdout
+    assert "unknown" not in out.stdout
 
 
 def test_controllers_are_reachable_after_import_batchsim():

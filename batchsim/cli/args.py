@@ -8,7 +8,8 @@ import importlib.metadata
 import math
 import os
 import platform
-from collections.abc import Sequence
+import tomllib
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import mujoco
@@ -151,11 +152,24 @@ def run_parser() -> argparse.ArgumentParser:
 
 def version_line() -> str:
     """`batchsim --version`: batchsim's and the engines' versions."""
+    return f"batchsim {batchsim_version()} (mujoco {mujoco.__version__}, python {platform.python_version()})"
+
+
+def batchsim_version(installed_version: Callable[[str], str] = importlib.metadata.version) -> str:
+    """The installed distribution's version; for a source checkout on PYTHONPATH (no distribution metadata),
+    the checkout's pyproject.toml's, marked as such."""
     try:
-        version = importlib.metadata.version("batchsim")
+        return installed_version("batchsim")
     except importlib.metadata.PackageNotFoundError:
-        version = "unknown (not installed)"
-    return f"batchsim {version} (mujoco {mujoco.__version__}, python {platform.python_version()})"
+        pass
+    pyproject = Path(batchsim.__file__).resolve().parents[1] / "pyproject.toml"
+    try:
+        project = tomllib.loads(pyproject.read_text())["project"]
+    except (OSError, tomllib.TOMLDecodeError, KeyError):
+        return "unknown (not installed)"
+    if project.get("name") != "batchsim" or "version" not in project:
+        return "unknown (not installed)"
+    return f"{project['version']} (source checkout)"
 
 
 def info_parser() -> argparse.ArgumentParser:
