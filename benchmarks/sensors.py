@@ -794,10 +794,28 @@ def main(argv: list[str] | None = None) -> int:
                 f"cores used: {cores}",
                 flush=True,
             )
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"header": header, "rows": rows}, indent=1))
+    write_json(Path(args.json), {"header": header, "rows": rows})
     return 0
+
+
+def json_value(value):
+    """`value` as strict JSON takes it: NaN and infinities (no value: a column a backend lacks, a
+    window /proc could not measure) become null, numpy scalars Python ones, containers recursively."""
+    if isinstance(value, dict):
+        return {str(k): json_value(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | np.ndarray):
+        return [json_value(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path: Path, document: dict) -> None:
+    """Write `document` to `path` as valid JSON (no NaN or Infinity tokens)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(json_value(document), indent=1, allow_nan=False))
 
 
 if __name__ == "__main__":
