@@ -62,6 +62,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
@@ -69,6 +70,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # a source checkout, uninstalled
 
+from fleet import Batchsim, _pythonpath  # noqa: E402 (its process handling and status parsing)
 from throughput import device_name, versions  # noqa: E402
 
 import batchsim  # noqa: E402
@@ -554,16 +556,66 @@ def children(pid: int) -> list[int]:
     return out
 
 
+class HelperDied(RuntimeError):
+    """A process the ROS stage needs (a subscriber, batchsim) exited before the stage was done."""
+
+
+class Helper:
+    """A subscriber process of the ROS stage, its stdout for the caller to read and the last
+    lines of its stderr, kept to say why it died."""
+
+    def __init__(self, name: str, argv: list[str], env: dict[str, str]):
+        self.name = name
+        self.proc = subprocess.Popen(
+            argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+        )
+        self.stderr: deque[str] = deque(maxlen=20)
+        self._stderr = threading.Thread(target=self._read_stderr, daemon=True)
+        self._stderr.start()
+
+    def _read_stderr(self) -> None:
+        for line in self.proc.stderr:
+            if line.strip():
+                self.stderr.append(line.rstrip())
+
+    def check(self) -> None:
+        """Raise HelperDied, one line naming it and its last stderr line, if it exited."""
+        if self.proc.poll() is None:
+            return
+        self._stderr.join(timeout=2.0)  # what it wrote before exiting
+        last = self.stderr[-1] if self.stderr else "(nothing on stderr)"
+        raise HelperDied(f"{self.name} (pid {self.proc.pid}) exited with status {self.proc.returncode}: {last}")
+
+
+def subscriber_env() -> dict[str, str]:
+    """The subscribers' environment: the checkout first on PYTHONPATH, the caller's kept after it
+    (where MuJoCo or ROS is found through PYTHONPATH), as fleet.py's processes."""
+    return {**os.environ, **LOCALHOST, "PYTHONPATH": _pythonpath()}
+
+
+def subscriber_command(domain: int, lo: int, hi: int) -> list[str]:
+    return [sys.executable, __file__, "--subscriber", str(domain), str(lo), str(hi)]
+
+
+def check_batchsim(b: Batchsim) -> None:
+    """Raise HelperDied if the `batchsim` process (fleet.Batchsim) exited before it was stopped."""
+    if b.proc.poll() is None:
+        return
+    b._thread.join(timeout=2.0)
+    last = next((line for _, line in reversed(b.lines) if line.strip()), "(nothing on stderr)")
+    raise HelperDied(f"batchsim (pid {b.proc.pid}) exited with status {b.proc.returncode}: {last}")
+
+
 def ros_row(
     backend: str, nworld: int, size: tuple[int, int], seconds: float, control: float, camera: float, lidar: float,
     workers: int | None, subscribers: int, domain: int, warmup: float | None = None, rtf: float = 0.0,
-    extra: list[str] | None = None,
+    extra: list[str] | None = None, ready_timeout: float = 300.0,
 ) -> dict:  # fmt: skip
     """`batchsim --rtf <rtf>` (0: flat out) with the bridge while `subscribers` processes take
     every world's image, depth and scan: the RTF it holds, what reaches the subscribers per
-    wall second, and the cores each kind of process used meanwhile."""
-    from fleet import Batchsim  # noqa: PLC0415 (its process handling and status parsing)
-
+    wall second, and the cores each kind of process used meanwhile. A subscriber or batchsim that
+    exits before the end raises HelperDied (its name and last stderr line), so no figure is made
+    of what a dead process did not receive."""
     args = [
         "--model", MODEL, "--worlds", str(nworld), "--backend", backend, "--controllers", "none", "--rtf", f"{rtf:g}",
         "--control-rate", f"{control:g}", "--camera-rate", f"{camera:g}", "--lidar-rate", f"{lidar:g}",
@@ -574,14 +626,12 @@ def ros_row(
     args += extra or []
     k = max(1, min(subscribers, nworld))
     edges = [round(i * nworld / k) for i in range(k + 1)]
-    env = {**os.environ, **LOCALHOST, "PYTHONPATH": str(ROOT)}
-    procs = [
-        subprocess.Popen(
-            [sys.executable, __file__, "--subscriber", str(domain), str(a), str(b)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
-        )  # fmt: skip
-        for a, b in zip(edges[:-1], edges[1:], strict=True)
+    env = subscriber_env()
+    helpers = [
+        Helper(f"subscriber {i} (worlds {a}..{b - 1})", subscriber_command(domain, a, b), env)
+        for i, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True))
     ]
+    procs = [h.proc for h in helpers]
     samples: list[list[tuple[float, tuple[int, ...]]]] = [[] for _ in procs]
 
     def read(i: int) -> None:
@@ -593,6 +643,10 @@ def ros_row(
     for i in range(len(procs)):
         threading.Thread(target=read, args=(i,), daemon=True).start()
 
+    def check() -> None:
+        for h in helpers:
+            h.check()
+
     def total(at: float) -> np.ndarray:
         out = np.zeros(3)
         for s in samples:
@@ -601,11 +655,24 @@ def ros_row(
         return out
 
     try:
+        deadline = time.time() + ready_timeout
+        while not all(samples):  # each subscriber's first count line: its subscriptions made
+            check()
+            if time.time() > deadline:
+                waiting = ", ".join(h.name for h, s in zip(helpers, samples, strict=True) if not s)
+                raise HelperDied(f"{waiting}: not subscribed after {ready_timeout:g} s")
+            time.sleep(0.05)
         b = Batchsim(args, domain)
         try:
-            b.wait_started(300.0)
+            try:
+                b.wait_started(300.0)
+            except RuntimeError:
+                check_batchsim(b)  # exited: say so in one line
+                raise
             # discovery, publishers created on request, the first subscriber refresh, rendering under way
             time.sleep(warmup if warmup is not None else max(3.0, nworld / 100))
+            check()
+            check_batchsim(b)
             groups = {"physics": [b.proc.pid], "workers": children(b.proc.pid), "subscribers": [p.pid for p in procs]}
             cpu0 = {k: sum(cpu_seconds(pid) for pid in v) for k, v in groups.items()}
             t0 = time.time()
@@ -616,6 +683,8 @@ def ros_row(
             t1 = time.time() - 0.3  # the subscribers' last reports lag a little
             c1 = total(t1)
             status = b.status(t0, t1 + 0.8)
+            check()  # a subscriber that died in the window received nothing: no figure
+            check_batchsim(b)
         finally:
             b.stop()
     finally:
@@ -778,11 +847,15 @@ def main(argv: list[str] | None = None) -> int:
     for backend in backends:
         for n in [int(x) for x in args.ros.split(",") if x]:
             size = size_arg(args.loop_size)
-            row = ros_row(
-                backend, n, size, args.ros_seconds, args.control_rate, args.camera_rate, args.lidar_rate,
-                args.bridge_workers, args.subscriber_processes, args.domain, warmup=args.ros_warmup, rtf=args.ros_rtf,
-                extra=args.ros_args.split(),
-            )  # fmt: skip
+            try:
+                row = ros_row(
+                    backend, n, size, args.ros_seconds, args.control_rate, args.camera_rate, args.lidar_rate,
+                    args.bridge_workers, args.subscriber_processes, args.domain, warmup=args.ros_warmup, rtf=args.ros_rtf,
+                    extra=args.ros_args.split(),
+                )  # fmt: skip
+            except HelperDied as e:
+                print(f"sensors.py: ROS stage, {backend}, {n} worlds: {e}", file=sys.stderr, flush=True)
+                return 1
             rows.append(row)
             paced = "flat out" if not row["paced"] else f"paced at rtf {row['paced']:g}"
             cores = ", ".join(f"{k} {v:.2f}" for k, v in row["cores"].items())

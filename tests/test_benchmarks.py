@@ -5,6 +5,8 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import os
+import re
 import sys
 from pathlib import Path
 
@@ -44,3 +46,47 @@ def test_sensors_json_has_null_for_no_value(sensors, tmp_path):
     assert back["rows"][0] == {"kind": "lidar", "contract_fps": None, "raw_fps": 12.5, "ratio": None}
     assert back["rows"][1] == {"rtf_windows": [1.0, None, 2.0], "cores": {"physics": None}, "n": 3}
     assert not any(isinstance(v, float) and math.isnan(v) for v in back["rows"][0].values())
+
+
+DIES = (
+    "import sys; print('count 0.0 0 0 0', flush=True); "
+    "sys.stderr.write('Traceback (most recent call last):\\n  ...\\nModuleNotFoundError: No module named \\'mujoco\\'\\n'); "
+    "sys.exit(1)"
+)
+
+
+def test_sensors_subscribers_keep_the_callers_pythonpath(sensors, monkeypatch):
+    """Where MuJoCo is found through PYTHONPATH, a subscriber started with the checkout alone dies."""
+    monkeypatch.setenv("PYTHONPATH", "/opt/wheels")
+    assert sensors.subscriber_env()["PYTHONPATH"].split(os.pathsep) == [str(ROOT), "/opt/wheels"]
+    monkeypatch.delenv("PYTHONPATH")
+    assert sensors.subscriber_env()["PYTHONPATH"] == str(ROOT)
+
+
+def test_a_dead_helper_is_named_with_its_last_stderr_line(sensors):
+    helper = sensors.Helper("subscriber 3 (worlds 6..7)", [sys.executable, "-c", DIES], dict(os.environ))
+    assert helper.proc.stdout.readline().startswith("count ")
+    helper.proc.wait(timeout=30)
+    with pytest.raises(sensors.HelperDied) as e:
+        helper.check()
+    assert str(e.value) == (
+        f"subscriber 3 (worlds 6..7) (pid {helper.proc.pid}) exited with status 1: "
+        "ModuleNotFoundError: No module named 'mujoco'"
+    )
+
+
+def test_sensors_ros_stage_fails_loudly_when_its_subscribers_die(sensors, monkeypatch, capsys, tmp_path):
+    """Before: `received 0 frames/s` and status 0. Now: status 1 and one line saying which died and why.
+    The subscribers here die at once, so no batchsim is started."""
+    dies = "import sys; sys.stderr.write(\"ModuleNotFoundError: No module named 'mujoco'\\n\"); sys.exit(1)"
+    monkeypatch.setattr(sensors, "subscriber_command", lambda domain, lo, hi: [sys.executable, "-c", dies])
+    argv = ["--backends", "cpu", "--no-camera", "--no-lidar", "--ros", "2", "--subscriber-processes", "2"]
+    assert sensors.main(argv + ["--json", str(tmp_path / "sensors.json")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert re.fullmatch(
+        r"sensors\.py: ROS stage, cpu, 2 worlds: subscriber [01] \(worlds (0\.\.0|1\.\.1)\) \(pid \d+\) "
+        r"exited with status 1: ModuleNotFoundError: No module named 'mujoco'",
+        err[0],
+    ), err[0]
+    assert not (tmp_path / "sensors.json").exists()
