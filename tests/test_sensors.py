@@ -12,6 +12,7 @@ centroid within half a pixel of where the intrinsics project it (pixel quantizat
 from __future__ import annotations
 
 import importlib.util
+import re
 import subprocess
 import sys
 import time
@@ -577,6 +578,28 @@ def test_mujoco_ros2_control_plugin_yaml_reads_unchanged(tmp_path):
     ranges = sim.scan("fan")[0]  # the outer rays (2.17 m) lie beyond range_max: +inf (REP 117)
     assert np.isposinf(ranges[[0, 4]]).all() and np.isfinite(ranges[1:4]).all()
     sim.shutdown()
+
+
+def test_plugin_yaml_is_read_as_rcl_reads_a_parameter_file(tmp_path):
+    """One YAML loader (batchsim.model.params, issue 22): a node key given twice is merged, not
+    replaced by the second, and a dotted parameter name is the nested one, as rcl reads them."""
+    path = tmp_path / "plugins.yaml"
+    path.write_text(
+        "/**:\n  ros__parameters:\n    mujoco_plugins:\n      cameras:\n"
+        '        type: "mujoco_ros2_control_plugins/CameraPlugin"\n        camera_publish_rate: 6.0\n'
+        "/**:\n  ros__parameters:\n"
+        '    mujoco_plugins.lidars.type: "mujoco_ros2_control_plugins/RangefinderLidarPlugin"\n'
+        "    mujoco_plugins.lidars.lidar_publish_rate: 12.0\n"
+        "    mujoco_plugins.lidars.fan.topic: /scan\n"
+        "/**:\n  ros__parameters: {mujoco_plugins: {cameras: {front: {frame_name: optical}}}}\n"
+    )
+    config = SensorConfig.load(path)
+    assert (config.camera_rate, config.lidar_rate) == (6.0, 12.0)
+    assert config.cameras["front"].frame_name == "optical" and config.rangefinder_lidars["fan"].topic == "/scan"
+    assert config.warnings == []
+    path.write_text("/**:\n  ros__parameters:\n    mujoco_plugins: [\n")
+    with pytest.raises(SensorConfigError, match=rf"^{re.escape(str(path))}:4:1: malformed YAML: "):
+        SensorConfig.load(path)
 
 
 @pytest.mark.parametrize(

@@ -40,6 +40,8 @@ batchsim's block (top level):
         front_camera: {stddev: 0.01, dropout: 0.01}     # depth
         base_scan: {stddev: 0.02, dropout: 0.01}        # ranges
 
+Files are read as rcl reads parameter files (batchsim.model.params): a key given twice (two
+`/**:` blocks, say) is merged, and `mujoco_plugins.<plugin>.<key>: value` is the nested form.
 Everything unknown is an error naming the file and the key; plugins of other types
 (the heartbeat, free-joint state, ...) are listed in `warnings`.
 """
@@ -52,12 +54,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from batchsim.base_velocity import PLUGIN_TYPE as BASE_VELOCITY_PLUGIN
 from batchsim.base_velocity import BaseVelocityConfig
 from batchsim.external_wrench import PLUGIN_TYPE as EXTERNAL_WRENCH_PLUGIN
 from batchsim.external_wrench import ExternalWrenchConfig
+from batchsim.model.params import ParamsError, load_yaml, nest_dotted
 from batchsim.sensors.noise import Noise
 
 CAMERA_PLUGIN = "mujoco_ros2_control_plugins/CameraPlugin"
@@ -186,14 +187,11 @@ class SensorConfig:
             else:
                 where = str(source)
                 try:
-                    document = yaml.safe_load(Path(source).expanduser().read_text())
+                    document = load_yaml(Path(source).expanduser().read_text(), where)
                 except OSError as e:
                     raise SensorConfigError(f"{where}: {e.strerror}") from None
-                except yaml.YAMLError as e:
-                    mark = getattr(e, "problem_mark", None)
-                    at = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
-                    problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-                    raise SensorConfigError(f"{where}{at}: malformed YAML: {problem}") from None
+                except ParamsError as e:
+                    raise SensorConfigError(str(e)) from None
             names.append(where)
             config._read(document if document is not None else {}, where)
         if names:
@@ -275,7 +273,7 @@ class SensorConfig:
                 self._read_block(value, f"{where}: sensors")
                 found = True
             elif isinstance(value, Mapping) and isinstance(value.get("ros__parameters"), Mapping):
-                plugins = value["ros__parameters"].get("mujoco_plugins")
+                plugins = nest_dotted(value["ros__parameters"]).get("mujoco_plugins")
                 if plugins is not None:
                     self._read_plugins(plugins, f"{where}: {key}.ros__parameters.mujoco_plugins")
                     found = True
