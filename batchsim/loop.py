@@ -9,6 +9,8 @@ controllers. Nothing here imports rclpy: the bridge is one participant among oth
 from __future__ import annotations
 
 import dataclasses
+import logging
+import os
 import threading
 import time as wallclock
 from collections.abc import Callable, Sequence
@@ -16,9 +18,11 @@ from typing import Protocol
 
 import numpy as np
 
+from batchsim import realtime
 from batchsim.hardware import BatchedSystem, ReturnType, Status
 
 DEFAULT_CONTROL_RATE = 100.0  # Hz
+log = logging.getLogger("batchsim")
 
 
 class OptionError(ValueError):
@@ -99,6 +103,12 @@ class SimLoop:
       rtf: real-time factor to hold; 0 runs as fast as possible.
       duration: stop after this much simulated time (seconds); None runs until stop().
       participants: called every period between read() and write().
+      thread_priority: while it paces a real-time factor, the thread running the loop asks
+        for SCHED_FIFO at this priority (1-99) from its second period on, as ros2_control's
+        controller_manager does (batchsim/realtime.py); 0 (the default here; the command's
+        is 50) leaves its scheduling alone. A loop that falls half a second behind gives it
+        up (a thread of that policy running flat out would starve its core).
+      cpu_affinity: likewise, the cores the loop's thread is pinned to (none: any).
     """
 
     def __init__(
@@ -109,9 +119,17 @@ class SimLoop:
         rtf: float = 1.0,
         duration: float | None = None,
         participants: Sequence[Participant] = (),
+        thread_priority: int = 0,
+        cpu_affinity: Sequence[int] = (),
     ):
         if not rtf >= 0:
             raise OptionError("rtf", f"must be >= 0, got {rtf:g}")
+        if not 0 <= thread_priority <= 99:
+            raise OptionError("thread_priority", f"must be 0-99 (0: the normal policy), got {thread_priority}")
+        ncpu = os.cpu_count() or 1
+        bad = [c for c in cpu_affinity if not 0 <= c < ncpu]
+        if bad:
+            raise OptionError("cpu_affinity", f"names no core of this machine (0-{ncpu - 1}): {bad[0]}")
         self.sim = sim
         dt = sim.dt
         if control_rate is None:
@@ -132,6 +150,8 @@ class SimLoop:
         self.rtf = float(rtf)
         self.duration = duration
         self.participants = list(participants)
+        self.thread_priority = int(thread_priority)
+        self.cpu_affinity = tuple(int(c) for c in cpu_affinity)
         self.sim_time = 0.0
         self.stats = LoopStats()
         self._stop = threading.Event()
@@ -217,6 +237,14 @@ class SimLoop:
 
     def run(self, report: Callable[[LoopStats], None] | None = None, report_every: float = 1.0) -> LoopStats:
         """Run until stop() or `duration`; call `report` about every `report_every` wall seconds."""
+        scheduling = _Scheduling(self) if self.rtf > 0 and (self.thread_priority or self.cpu_affinity) else None
+        try:
+            return self._run(report, report_every, scheduling)
+        finally:
+            if scheduling is not None:
+                scheduling.drop()
+
+    def _run(self, report: Callable[[LoopStats], None] | None, report_every: float, scheduling: _Scheduling | None) -> LoopStats:
         start = wallclock.perf_counter()
         anchor_wall, anchor_sim = start, self.sim_time
         window_wall, window_sim, window_steps = start, self.sim_time, 0
@@ -237,6 +265,9 @@ class SimLoop:
             if self.gate is not None and not self.gate(self.sim_time):
                 continue
             self.run_period(nstep)
+            if scheduling is not None and not scheduling.asked:  # after the first period, which may compile
+                scheduling.elevate()
+                anchor_wall, anchor_sim = wallclock.perf_counter(), self.sim_time
             if nstep is not None:  # counted down once they ran (a resume may have dropped them meanwhile)
                 with self._lock:
                     self._pending_steps = max(0, self._pending_steps - nstep)
@@ -248,6 +279,8 @@ class SimLoop:
                     wallclock.sleep(target - now)
                 elif now - target > 0.5:  # fell behind: hold the rate from here, don't sprint
                     anchor_wall, anchor_sim = now, self.sim_time
+                    if scheduling is not None and scheduling.elevated:
+                        scheduling.drop(f"the loop fell {now - target:.1f} s behind rtf {self.rtf:g}")
             now = wallclock.perf_counter()
             if now - window_wall >= report_every:
                 self._update_stats(now - window_wall, self.sim_time - window_sim, window_steps)
@@ -274,6 +307,34 @@ class SimLoop:
         s.diverged = int(np.count_nonzero(status & np.uint8(Status.DIVERGED)))
         s.overflow = int(np.count_nonzero(status & np.uint8(Status.OVERFLOW)))
         s.bad_command = int(np.count_nonzero(status & np.uint8(Status.BAD_COMMAND)))
+
+
+class _Scheduling:
+    """The loop thread's real-time scheduling (batchsim/realtime.py) over one run()."""
+
+    def __init__(self, loop: SimLoop):
+        self.loop = loop
+        self.asked = False
+        self.saved: realtime.Saved | None = None
+
+    @property
+    def elevated(self) -> bool:
+        return self.saved is not None
+
+    def elevate(self) -> None:
+        self.asked = True
+        self.saved, problems = realtime.elevate(self.loop.thread_priority, self.loop.cpu_affinity)
+        for line in problems:
+            log.warning("batchsim: warning: the loop thread runs without %s (its periods may run late under load)", line)
+
+    def drop(self, why: str = "") -> None:
+        """Back to the scheduling it had; `why`: said once, as a warning."""
+        if self.saved is None:
+            return
+        realtime.restore(self.saved)
+        self.saved = None
+        if why:
+            log.warning("batchsim: warning: %s: its thread gives up SCHED_FIFO for the rest of the run", why)
 
 
 def format_stats(stats: LoopStats, nworld: int, backend: str) -> str:

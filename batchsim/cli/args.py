@@ -18,6 +18,7 @@ import batchsim
 from batchsim.model import model_names
 from batchsim.model.description import model_file, read_description
 from batchsim.model.from_urdf import is_urdf
+from batchsim.realtime import DEFAULT_THREAD_PRIORITY
 
 EXIT_USAGE = 2
 
@@ -49,6 +50,21 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--rtf", type=float, default=1.0, help="real-time factor; 0 runs as fast as possible")
     p.add_argument("--control-rate", type=float, default=None, help="Hz: commands applied, state read")
     p.add_argument("--threads", type=int, default=None, help="cpu backend: worker threads (default: all cores)")
+    p.add_argument(
+        "--thread-priority",
+        type=int,
+        default=DEFAULT_THREAD_PRIORITY,
+        metavar="N",
+        help=f"the loop thread's SCHED_FIFO priority while it paces --rtf, as controller_manager's thread_priority "
+        f"(default {DEFAULT_THREAD_PRIORITY}; 0: the normal policy)",
+    )
+    p.add_argument(
+        "--cpu-affinity",
+        type=_cores,
+        default=(),
+        metavar="I,J,...",
+        help="pin the loop thread to these cores, as controller_manager's cpu_affinity (default: any)",
+    )
     p.add_argument(
         "--devices",
         default=None,
@@ -217,6 +233,14 @@ _AT_LEAST_ONE = ("worlds", "threads", "nconmax", "njmax", "qos_depth")
 
 
 MAX_DOMAIN_ID = 232  # ROS 2's limit: DDS computes UDP ports from the domain id
+
+
+def _cores(text: str) -> tuple[int, ...]:
+    """`0,2,3` -> (0, 2, 3); argparse names the flag when this raises."""
+    try:
+        return tuple(int(c) for c in text.split(",") if c.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"cores are whole numbers separated by commas, got {text!r}") from None
 
 
 def check_args(args: argparse.Namespace) -> None:

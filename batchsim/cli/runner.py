@@ -286,7 +286,14 @@ def run(argv: Sequence[str]) -> int:
         manager, update_rate = setup_controllers(sim, args)
         control_rate = args.control_rate if args.control_rate is not None else update_rate
         try:
-            loop = SimLoop(sim, control_rate=control_rate, rtf=args.rtf, duration=args.duration)
+            loop = SimLoop(
+                sim,
+                control_rate=control_rate,
+                rtf=args.rtf,
+                duration=args.duration,
+                thread_priority=args.thread_priority,
+                cpu_affinity=args.cpu_affinity,
+            )
         except OptionError as e:
             raise UsageError(e.named(_flag(e.option))) from None
         if manager is not None:

@@ -1,0 +1,79 @@
+"""The loop thread's scheduling, as ros2_control's controller_manager sets its own.
+
+controller_manager's main thread asks for `SCHED_FIFO` at priority 50 whatever the kernel
+(its `thread_priority` parameter) and may be pinned to cores (`cpu_affinity`): on a loaded
+host a thread of the normal policy shares its core with every other runnable one, and a
+control period then waits for the scheduler, not for its own work. SimLoop does the same
+for the thread that runs it, while it paces a real-time factor (a loop run flat out has no
+deadline to protect), and only for that thread: `SCHED_RESET_ON_FORK` keeps every thread
+and process it starts (a restarted bridge worker, a render thread) at the normal policy.
+
+Without the permission (`rtprio` in limits.conf, or `--cap-add=sys_nice --ulimit
+rtprio=99` for a container) the loop runs as before and says so once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+
+#: controller_manager's default (ros2_control_node's kSchedPriority)
+DEFAULT_THREAD_PRIORITY = 50
+HOW_TO = (
+    "give the user rtprio (limits.conf: '@realtime hard rtprio 99', as ros2_control's docs say) or run the "
+    "container with --cap-add=sys_nice --ulimit rtprio=99"
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Saved:
+    """A thread's scheduling before `elevate`, for `restore`."""
+
+    policy: int
+    priority: int
+    cpus: frozenset[int] | None  # None: not changed
+
+
+def elevate(priority: int, cpus: Sequence[int] = ()) -> tuple[Saved | None, list[str]]:
+    """The calling thread to SCHED_FIFO at `priority` (1-99) and onto `cpus` (none: any).
+
+    Returns what to restore (None: nothing changed) and a line per part that could not be
+    done, naming why."""
+    problems: list[str] = []
+    if not hasattr(os, "sched_setscheduler"):  # not Linux
+        return None, [f"SCHED_FIFO priority {priority}: not available on this system"]
+    policy, old_priority = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+    old_cpus = None
+    if cpus:
+        try:
+            old_cpus = frozenset(os.sched_getaffinity(0))
+            os.sched_setaffinity(0, set(cpus))
+        except OSError as e:
+            old_cpus = None
+            problems.append(f"cpu_affinity {','.join(map(str, cpus))}: {e.strerror}")
+    changed = old_cpus is not None
+    if priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+            changed = True
+        except OSError as e:
+            problems.append(f"SCHED_FIFO priority {priority}: {e.strerror}; {HOW_TO}")
+    return (Saved(policy, old_priority, old_cpus) if changed else None), problems
+
+
+def restore(saved: Saved | None) -> None:
+    """The calling thread's scheduling as before `elevate`."""
+    if saved is None:
+        return
+    try:
+        os.sched_setscheduler(0, saved.policy, os.sched_param(saved.priority))
+    except OSError:  # clearing SCHED_RESET_ON_FORK needs CAP_SYS_NICE (rtprio alone allowed the rest)
+        os.sched_setscheduler(0, saved.policy | os.SCHED_RESET_ON_FORK, os.sched_param(saved.priority))
+    if saved.cpus is not None:
+        os.sched_setaffinity(0, saved.cpus)
+
+
+def current() -> tuple[int, int]:
+    """The calling thread's (policy, priority)."""
+    return os.sched_getscheduler(0), os.sched_getparam(0).sched_priority

@@ -1,0 +1,117 @@
+"""The loop thread's real-time scheduling (batchsim/realtime.py), as controller_manager sets its own:
+SCHED_FIFO while it paces a real-time factor, from its second period on, never for the threads
+it starts, given up when it falls behind, and back to what it was when run() returns."""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+
+import pytest
+
+import batchsim
+from batchsim import realtime
+from batchsim.loop import SimLoop
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="Linux scheduling")
+
+
+def _can_elevate() -> bool:
+    """Whether this user may ask for SCHED_FIFO (root, CAP_SYS_NICE or an rtprio limit)."""
+    result = []
+
+    def probe() -> None:
+        saved, problems = realtime.elevate(1)
+        result.append(not problems)
+        realtime.restore(saved)
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    return result[0]
+
+
+class Recorder:
+    """A participant that notes the loop thread's scheduling each period, and can stall."""
+
+    def __init__(self, stall_at: int = -1, stall: float = 0.0, spawn_at: int = -1):
+        self.seen: list[tuple[int, int]] = []
+        self.stall_at, self.stall, self.spawn_at = stall_at, stall, spawn_at
+        self.spawned: list[tuple[int, int]] = []
+
+    def update(self, sim, time_, period) -> None:
+        k = len(self.seen)
+        self.seen.append(realtime.current())
+        if k == self.spawn_at:  # a thread the loop thread starts keeps the normal policy
+            t = threading.Thread(target=lambda: self.spawned.append(realtime.current()))
+            t.start()
+            t.join()
+        if k == self.stall_at:
+            time.sleep(self.stall)
+
+
+def run_loop(rtf: float, priority: int, periods: int, recorder: Recorder, affinity=()) -> tuple[SimLoop, list]:
+    sim = batchsim.make("arm", 2, "cpu")
+    sim.configure()
+    sim.activate()
+    loop = SimLoop(sim, rtf=rtf, duration=periods * 0.01, participants=[recorder], thread_priority=priority, cpu_affinity=affinity)
+    after: list = []
+
+    def body() -> None:  # a thread of its own, so the test's thread is never touched
+        loop.run()
+        after.append((realtime.current(), os.sched_getaffinity(0)))
+
+    t = threading.Thread(target=body)
+    t.start()
+    t.join(timeout=60)
+    sim.shutdown()
+    return loop, after
+
+
+NORMAL = (os.SCHED_OTHER, 0)
+
+
+@pytest.mark.skipif(not _can_elevate(), reason="this user may not ask for SCHED_FIFO (see the warning test)")
+def test_a_paced_loop_runs_sched_fifo_from_its_second_period_and_restores_it():
+    rec = Recorder(spawn_at=5)
+    _, after = run_loop(rtf=1.0, priority=50, periods=10, recorder=rec, affinity=(0,))
+    assert rec.seen[0] == NORMAL  # the first period may compile: it runs as before
+    fifo = [policy & ~os.SCHED_RESET_ON_FORK for policy, _ in rec.seen[1:]]
+    assert fifo == [os.SCHED_FIFO] * 9 and {p for _, p in rec.seen[1:]} == {50}
+    assert rec.spawned == [NORMAL]  # SCHED_RESET_ON_FORK: its threads and processes don't inherit it
+    (policy, affinity) = after[0]
+    assert policy == NORMAL and affinity == set(range(os.cpu_count()))
+
+
+@pytest.mark.skipif(not _can_elevate(), reason="this user may not ask for SCHED_FIFO")
+def test_a_loop_that_falls_behind_gives_sched_fifo_up_and_says_so(caplog):
+    rec = Recorder(stall_at=3, stall=0.7)
+    with caplog.at_level(logging.WARNING, logger="batchsim"):
+        run_loop(rtf=1.0, priority=50, periods=8, recorder=rec)
+    assert rec.seen[3][0] & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO
+    assert rec.seen[5] == NORMAL
+    lines = [r.getMessage() for r in caplog.records if "gives up SCHED_FIFO" in r.getMessage()]
+    assert len(lines) == 1 and "fell 0." in lines[0] and "behind rtf 1" in lines[0], lines
+
+
+def test_a_loop_run_flat_out_or_asked_for_nothing_keeps_the_normal_policy():
+    for rtf, priority in ((0.0, 50), (1.0, 0)):
+        rec = Recorder()
+        run_loop(rtf=rtf, priority=priority, periods=4, recorder=rec)
+        assert set(rec.seen) == {NORMAL}, (rtf, priority)
+
+
+def test_without_permission_the_loop_runs_and_says_why_once(monkeypatch, caplog):
+    def refuse(*args):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    rec = Recorder()
+    with caplog.at_level(logging.WARNING, logger="batchsim"):
+        loop, _ = run_loop(rtf=1.0, priority=50, periods=5, recorder=rec)
+    assert loop.sim_time == pytest.approx(0.05)
+    lines = [r.getMessage() for r in caplog.records if "SCHED_FIFO" in r.getMessage()]
+    assert len(lines) == 1, lines
+    assert "without SCHED_FIFO priority 50: Operation not permitted" in lines[0] and "rtprio" in lines[0]
