@@ -81,6 +81,22 @@ def test_joint_states_arrive_for_every_world(arms):
     assert all(sim_time(s.msg.header.stamp) > t for s, t in zip(arms.js, stamps, strict=True))
 
 
+def test_diagnostics_count_the_joint_states_each_world_published(arms):
+    """`published joint_states` per world in /diagnostics: counted where the worker publishes
+    (benchmarks/fleet.py sets it against what its subscribers received), never below what
+    this subscriber received."""
+
+    def published(w: int) -> int:
+        return int(arms.diag.value(f"world_{w}", "published joint_states", "0"))
+
+    received = [s.count for s in arms.js]
+    assert all(received)
+    arms.wait(lambda: all(published(w) >= received[w] for w in range(NWORLD)), 10, "published counts in /diagnostics")
+    before = [published(w) for w in range(NWORLD)]
+    settle(arms, 0.3)  # 100 Hz: 30 more each
+    arms.wait(lambda: all(published(w) >= before[w] + 20 for w in range(NWORLD)), 10, "the counts growing")
+
+
 def test_clock_advances_with_sim_time(arms):
     first = sim_time(arms.clock.msg.clock)
     settle(arms, 0.3)

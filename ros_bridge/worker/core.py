@@ -314,6 +314,7 @@ class Worker:
         for r in rows:
             pubs[r].publish(payload(r))
         self.published += len(rows)
+        self.diagnostics.published(spec.topic, rows)
 
     def _refresh(self) -> None:
         """Lazy publishing: which rows have subscribers; which channels this worker needs.

@@ -4,7 +4,9 @@ Every rejection is written to shared memory (count, period and last reason per w
 the physics process's status line) and counted per world, topic and reason here; the
 controllers' own rejections in the loop arrive through the `hrej` block. /diagnostics
 (diagnostic_msgs/DiagnosticArray) carries one status per world: its status bits, whether
-it is frozen or its commands timed out, and its rejection counts; and one ERROR status per
+it is frozen or its commands timed out, its rejection counts, and the messages published per
+state topic (`published joint_states`: how many went out, counted where they are published,
+for benchmarks/fleet.py to set against what subscribers received); and one ERROR status per
 other bridge worker that has stopped answering (the supervisor's `worker.hung`), naming
 the worlds nobody serves meanwhile.
 """
@@ -43,6 +45,8 @@ class Diagnostics:
         self._rejected: list[dict[tuple[str, str], int]] = [{} for _ in namespaces]
         self._lock = threading.Lock()
         self._host_seen = self.host_rejections.count[lo:hi].copy()
+        # per state topic (joint_states, ...): messages published per world (row), since start
+        self._published: dict[str, np.ndarray] = {}
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
 
     def reject(self, world: int, period: int, topic: str, problem: Problem, reason: str) -> None:
@@ -54,6 +58,13 @@ class Diagnostics:
         with self._lock:
             counts = self._rejected[row]
             counts[topic, problem.value] = counts.get((topic, problem.value), 0) + count
+
+    def published(self, topic: str, rows: list[int]) -> None:
+        """One message on `topic` went out to each of `rows` (the worker's publishing thread)."""
+        counts = self._published.get(topic)
+        if counts is None:
+            counts = self._published[topic] = np.zeros(len(self.namespaces), dtype=np.int64)
+        counts[rows] += 1
 
     def publish(self, snap) -> None:
         """One DiagnosticArray for this worker's worlds, from snapshot `snap`, if someone listens."""
@@ -71,6 +82,7 @@ class Diagnostics:
         self._host_seen = host_counts
         with self._lock:
             rejected = [sorted(c.items()) for c in self._rejected]
+        published = [(topic, counts.tolist()) for topic, counts in sorted(self._published.items())]
         for row, ns in enumerate(self.namespaces):
             w = self.lo + row
             bits = int(snap.status[row])
@@ -105,7 +117,8 @@ class Diagnostics:
                         KeyValue(key="command_timeout", value=str(bool(flags & FLAG_TIMED_OUT)).lower()),
                         KeyValue(key="last_problem", value=last),
                     ]
-                    + [KeyValue(key=f"rejected {topic} {reason}", value=str(n)) for (topic, reason), n in rejected[row]],
+                    + [KeyValue(key=f"rejected {topic} {reason}", value=str(n)) for (topic, reason), n in rejected[row]]
+                    + [KeyValue(key=f"published {topic}", value=str(counts[row])) for topic, counts in published],
                 )
             )
         now = wallclock.time()
