@@ -90,3 +90,13 @@ def test_sensors_ros_stage_fails_loudly_when_its_subscribers_die(sensors, monkey
         err[0],
     ), err[0]
     assert not (tmp_path / "sensors.json").exists()
+
+
+def test_fleet_published_is_the_workers_count_interpolated_between_their_diagnostics():
+    fleet = benchmark("fleet")
+    assert fleet.at([(0.0, 0.0), (1.0, 100.0)], 0.25) == 25.0
+    assert fleet.at([(0.0, 0.0), (1.0, 100.0)], 1.5) is None
+    published = fleet.Published.__new__(fleet.Published)  # its counts without its process
+    published.samples = {"world_0": [(0.0, 0.0), (1.0, 100.0)], "world_8": [(0.5, 10.0), (1.5, 30.0)]}
+    assert published.total(0.75) == 75.0 + 15.0
+    assert math.isnan(published.total(0.25))  # world_8's worker had not reported yet: no figure
