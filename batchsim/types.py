@@ -1,5 +1,6 @@
 """The contract's shared types: return codes and status bits, the failure report a backend
-gives, the sensor mapping and frames a user gets, and the limits read() and write() use.
+gives, the sensor mapping and frames a user gets, the limits read() and write() use, and the
+split of the worlds into contiguous ranges (over devices and over bridge workers alike).
 
 Every batched array leads with the world: `nworld`, or `n`/`k` for the worlds a call lists;
 each field's docstring gives its shape and dtype.
@@ -154,3 +155,13 @@ def check_nstep(nstep: Any) -> None:
     """A step count: a whole number >= 1 (`step(2.5)` once ran 2 steps). ValueError otherwise."""
     if isinstance(nstep, bool) or not isinstance(nstep, int | np.integer) or nstep < 1:
         raise ValueError(f"nstep must be a whole number of physics steps >= 1, got {nstep!r}")
+
+
+def split_worlds(nworld: int, parts: int) -> list[range]:
+    """`parts` contiguous ranges of `nworld` worlds, as even as can be (sizes differ by one at
+    most): range i ends at world round(nworld * (i + 1) / parts), halves rounded up.
+    ValueError unless 1 <= parts <= nworld."""
+    if not 1 <= parts <= nworld:
+        raise ValueError(f"{nworld} worlds cannot be split into {parts} ranges")
+    edges = [(2 * i * nworld + parts) // (2 * parts) for i in range(parts + 1)]
+    return [range(lo, hi) for lo, hi in zip(edges[:-1], edges[1:], strict=True)]

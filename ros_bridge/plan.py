@@ -26,6 +26,7 @@ from batchsim.controllers.trajectory import DEFAULT_MAX_POINTS
 from batchsim.hardware import BatchedSystem
 from batchsim.loop import OptionError
 from batchsim.memory import Layout, ring_arrays
+from batchsim.types import split_worlds
 from ros_bridge.action_plan import (
     ACTION_MONITOR_RATE,
     GripperActionSpec,
@@ -201,13 +202,6 @@ FLAG_FROZEN = 4  # diverged or overflowed: frozen until reset
 
 
 
-def split(nworld: int, parts: int) -> list[tuple[int, int]]:
-    """`parts` contiguous ranges of worlds, as even as can be."""
-    parts = max(1, min(parts, nworld))
-    edges = np.linspace(0, nworld, parts + 1).round().astype(int)
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
-
-
 def build_plan(
     sim: BatchedSystem,
     control_rate: float,
@@ -291,8 +285,7 @@ def build_plan(
                 actions.append(trajectory_action(c, k, i, monitor_every, input_specs[i].max_points, channel))
 
     wrench = sim.sensors.config.external_wrench  # mujoco_ros2_control's ExternalWrenchPlugin
-    nworker = max(1, nworker)
-    ranges = split(nworld, nworker)
+    ranges = [(r.start, r.stop) for r in split_worlds(nworld, max(1, min(nworker, nworld)))]
     offset = options.world_offset
     plan = FleetPlan(
         nworld=nworld,

@@ -14,6 +14,7 @@ from batchsim.controllers import default_controllers, load_controllers
 from batchsim.controllers.topics import TrajectoryBatch
 from batchsim.loop import OptionError, RateError, SimLoop, whole_ratio
 from batchsim.memory import Layout, Memory, Ring, ring_arrays
+from batchsim.types import split_worlds
 from ros_bridge.commands import (
     Problem,
     RejectionWriter,
@@ -25,7 +26,7 @@ from ros_bridge.commands import (
 )
 from ros_bridge.naming import NamingError, ros_name, ros_names, world_namespaces
 from ros_bridge.options import BridgeOptions, default_workers
-from ros_bridge.plan import build_plan, split
+from ros_bridge.plan import build_plan
 from ros_bridge.requests import (
     Kind,
     concatenate,
@@ -237,7 +238,11 @@ def test_default_workers_grow_with_the_fleet_and_the_cores():
     assert default_workers(256, cores=16) == 2
     assert default_workers(1024, cores=16) == 8
     assert default_workers(8192, cores=16) == 8
-    assert split(10, 3) == [(0, 3), (3, 7), (7, 10)] and split(2, 5) == [(0, 1), (1, 2)]
+    assert split_worlds(10, 3) == [range(0, 3), range(3, 7), range(7, 10)]
+    sim = batchsim.make("arm", 2, "cpu")  # more workers than worlds: one world each
+    sim.configure()
+    assert build_plan(sim, 100.0, BridgeOptions(), None, 5)[0].ranges == [(0, 1), (1, 2)]
+    sim.shutdown()
 
 
 def test_plan_of_the_arm_with_its_controllers():

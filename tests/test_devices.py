@@ -18,17 +18,23 @@ import numpy as np
 import pytest
 
 import batchsim
-from batchsim.backends.sharded import split
 from batchsim.backends.shards import ShardProcessError
+from batchsim.loop import OptionError
+from batchsim.types import split_worlds
 
 SHARDS = pytest.mark.parametrize("processes", [False, True], ids=["threads", "processes"])
 
 
-def test_worlds_split_into_contiguous_ranges_larger_first():
-    assert split(7, 3) == [range(0, 3), range(3, 5), range(5, 7)]
-    assert split(4, 4) == [range(i, i + 1) for i in range(4)]
-    with pytest.raises(ValueError, match="3 worlds cannot be split over 4 devices"):
-        split(3, 4)
+def test_worlds_split_into_contiguous_ranges_as_even_as_can_be():
+    """One split for devices and bridge workers alike (issue 22): range i ends at world
+    round(nworld * (i + 1) / parts), halves up (7 over 3 was 3, 2, 2 here, 2, 3, 2 for workers)."""
+    assert split_worlds(7, 3) == [range(0, 2), range(2, 5), range(5, 7)]
+    assert split_worlds(5, 2) == [range(0, 3), range(3, 5)]
+    assert split_worlds(4, 4) == [range(i, i + 1) for i in range(4)]
+    with pytest.raises(ValueError, match="3 worlds cannot be split into 4 ranges"):
+        split_worlds(3, 4)
+    with pytest.raises(OptionError, match="3 worlds cannot be split over 4 devices"):
+        batchsim.make("arm", 3, "warp", devices=["cpu"] * 4)
 
 
 @SHARDS

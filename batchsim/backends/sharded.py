@@ -48,20 +48,7 @@ from batchsim.loop import OptionError
 from batchsim.memory import Memory
 from batchsim.model import RobotSpec
 from batchsim.sensors import Camera, Lidar, SensorConfig
-from batchsim.types import check_nstep
-
-
-def split(nworld: int, nshard: int) -> list[range]:
-    """Contiguous world ranges, as even as possible, the larger ones first."""
-    if not 1 <= nshard <= nworld:
-        raise OptionError("", f"{nworld} worlds cannot be split over {nshard} devices")
-    base, extra = divmod(nworld, nshard)
-    ranges, start = [], 0
-    for i in range(nshard):
-        size = base + (i < extra)
-        ranges.append(range(start, start + size))
-        start += size
-    return ranges
+from batchsim.types import check_nstep, split_worlds
 
 
 class PerDevice(Sequence[Any]):
@@ -125,7 +112,9 @@ class ShardedSystem(BatchedSystem):
         self.compiles_first_period = backend.compiles_first_period  # type: ignore[misc]
         self.devices = list(devices)
         self.processes = bool(processes)
-        self.world_ranges = split(self.nworld, len(self.devices))
+        if not 1 <= len(self.devices) <= self.nworld:
+            raise OptionError("", f"{self.nworld} worlds cannot be split over {len(self.devices)} devices")
+        self.world_ranges = split_worlds(self.nworld, len(self.devices))
         self.sensors_batched = backend.sensors_batched
         # the fleet's arrays, in one block that every shard reads its commands from and
         # writes its readings to (shared memory when the shards are processes)
