@@ -13,7 +13,7 @@ from collections.abc import Callable
 import numpy as np
 
 from batchsim.hardware import BatchedSystem
-from batchsim.model.frames import frame_tree, initial_transforms, relative_transforms
+from batchsim.model.frames import FrameTree, frame_tree, initial_transforms, relative_transforms
 from batchsim.model.urdf import generate_urdf, robot_description
 
 FLEET_FRAME = "world"  # the fixed frame every world's tf tree hangs from
@@ -30,7 +30,13 @@ class TfSpec:
       moving: (parent, child) of each transform that moves, in channel order.
       static: (parent, child) of each fixed transform.
       static_values: (nstatic, 7) translation xyz and rotation xyzw of the fixed ones.
-      channel: the snapshot channel of the moving ones, (nworld, 7 * nmoving).
+      channel: the snapshot channel the moving ones are computed from, (nworld, 7 * nbody):
+        the world poses of the bodies they join (position xyz, MuJoCo's quaternion wxyz),
+        copied as the engine gives them; each worker computes its own worlds' parent-relative
+        transforms from them (`moving_transforms`), so the loop's period pays a copy, not
+        the math for every world.
+      joins: the moving transforms' (child, parent) body rows in that channel, as a FrameTree
+        whose `body` and `parent_body` index the channel's bodies.
       root: each world's root frame (`world`, or `odom` for a floating base).
       fleet_frame: the frame every world's root hangs from in the fleet's tree.
       description: the robot's URDF (robot_description).
@@ -43,12 +49,19 @@ class TfSpec:
     static: tuple[tuple[str, str], ...]
     static_values: np.ndarray
     channel: int
+    joins: FrameTree
     root: str
     fleet_frame: str
     description: str
     every: int = 1
     mjcf: str = ""
 
+    def moving_transforms(self, poses: np.ndarray) -> np.ndarray:
+        """(n, 7 * nmoving) parent->child transforms (translation xyz, rotation xyzw) of the
+        moving frames from `poses`, rows of the channel (n, 7 * nbody)."""
+        p = np.asarray(poses).reshape(len(poses), -1, 7)
+        t, r = relative_transforms(self.joins, p[..., :3], p[..., 3:])
+        return np.concatenate([t, r], axis=2).reshape(len(poses), -1)
 
 
 def tf_spec(
@@ -68,14 +81,18 @@ def tf_spec(
     t0, r0 = initial_transforms(tree, sim.spec)
     nworld = sim.nworld
 
-    moving_tree = dataclasses.replace(tree, body=tree.body[moving], parent_body=tree.parent_body[moving])
+    bodies = np.union1d(tree.body[moving], tree.parent_body[moving])  # the moving frames' ends only
+    joins = dataclasses.replace(
+        tree,
+        body=np.searchsorted(bodies, tree.body[moving]),
+        parent_body=np.searchsorted(bodies, tree.parent_body[moving]),
+    )
 
     def fill_tf(out: np.ndarray) -> None:
         xpos, xquat = sim.body_poses()
-        t, r = relative_transforms(moving_tree, xpos, xquat)  # the moving frames' only
-        v = out.reshape(nworld, len(moving), 7)
-        v[:, :, :3] = t
-        v[:, :, 3:] = r
+        v = out.reshape(nworld, len(bodies), 7)
+        v[:, :, :3] = xpos[:, bodies]
+        v[:, :, 3:] = xquat[:, bodies]
 
     pairs = list(zip(tree.parents, tree.names, strict=True))
     description, extra = _description(sim, tree, source)
@@ -86,7 +103,8 @@ def tf_spec(
         moving=tuple(pairs[k] for k in moving),
         static=tuple(static),
         static_values=np.concatenate(values, axis=0),
-        channel=channel("tf", 7 * len(moving), fill_tf),
+        channel=channel("tf", 7 * len(bodies), fill_tf),
+        joins=joins,
         root=tree.root,
         fleet_frame=FLEET_FRAME,
         description=description,

@@ -15,9 +15,9 @@ transform, so one tf tree holds every world and RViz shows them all in `world`:
   mujoco_ros2_control publishes the one it generates from a URDF.
 
 Per-world topics exist only once somebody subscribes (found by the worker's graph scan);
-the fleet-wide ones from the start. Moving transforms are filled from one snapshot
-channel ((nworld, 7 * nmoving): translation xyz, rotation xyzw per frame) into serialized
-templates, as ros_bridge/worker/messages.py does for every other message.
+the fleet-wide ones from the start. Moving transforms are computed here, for this worker's
+worlds, from one snapshot channel of body poses (TfSpec.moving_transforms), and filled into
+serialized templates, as ros_bridge/worker/messages.py does for every other message.
 """
 
 from __future__ import annotations
@@ -152,14 +152,18 @@ class TfPublishers:
         self._fleet_wanted = self.fleet is not None and self._fleet_pub.get_subscription_count() > 0
         self._wanted = [r for r, w in enumerate(self._world) if w is not None and w[1].get_subscription_count() > 0]
 
-    def publish(self, values: np.ndarray, sec: int, nanosec: int) -> int:
-        """values: (nworld of this worker, 7 * nmoving). Returns the messages published."""
+    def publish(self, poses: np.ndarray, sec: int, nanosec: int) -> int:
+        """poses: this worker's rows of the tf channel (TfSpec.channel). Returns the messages published."""
         n = 0
-        if self._fleet_wanted:
+        if self._fleet_wanted:  # every world's transforms; else those of the worlds listened to
+            values = self.spec.moving_transforms(poses)
             self._fleet_pub.publish(self.fleet.fill(values, sec, nanosec))
             n += 1
-        for r in self._wanted:
+            per_world = values[self._wanted]
+        else:
+            per_world = self.spec.moving_transforms(poses[self._wanted])
+        for k, r in enumerate(self._wanted):
             template, pub = self._world[r]
-            pub.publish(template.fill(values[r : r + 1], sec, nanosec))
+            pub.publish(template.fill(per_world[k : k + 1], sec, nanosec))
             n += 1
         return n
