@@ -255,11 +255,12 @@ def run(opts: argparse.Namespace) -> None:
     from batchsim.loop import SimLoop
     from ros_bridge.bridge import BridgeOptions, start_bridge
 
-    sim = batchsim.make(opts.model, opts.worlds, opts.backend)
+    options = {"nthread": opts.threads} if opts.threads else {}
+    sim = batchsim.make(opts.model, opts.worlds, opts.backend, **options)
     sim.configure()
     sim.activate()
     manager = load_controllers(default_controllers(opts.model), sim.spec, opts.worlds)
-    loop = SimLoop(sim, control_rate=opts.control_rate, rtf=1.0, participants=[manager])
+    loop = SimLoop(sim, control_rate=opts.control_rate, rtf=1.0, participants=[manager], thread_priority=opts.thread_priority)
     host = start_bridge(sim, loop, BridgeOptions(workers=opts.bridge_workers), manager)
     nworker = host.plan.nworker
     for pid in host.worker_pids if opts.worker_nice else ():  # the workers yield the cores to the loop
@@ -362,7 +363,8 @@ def run(opts: argparse.Namespace) -> None:
     expected = opts.worlds * opts.control_rate * rtf
     print(f"# {platform.node() or 'host'}, {os.cpu_count()} cores, Python {platform.python_version()}, {_versions()}, "
           f"{opts.backend} {opts.model}, {opts.worlds} worlds, control {opts.control_rate:g} Hz, {nworker} bridge workers, "
-          f"{opts.subscribers} subscriber processes, load {os.getloadavg()[0]:.1f}, {time.strftime('%Y-%m-%d')}")  # fmt: skip
+          f"{opts.subscribers} subscriber processes, loop thread {_policy(opts.thread_priority)}, "
+          f"load {os.getloadavg()[0]:.1f}, {time.strftime('%Y-%m-%d')}")  # fmt: skip
     p = np.array(window or [float("nan")]) * 1e3  # no period in the window: say so with NaN
     over = [(d, ph) for (t, d), ph in zip(periods, phases, strict=False) if t0 <= t <= t1 and d > 1.0 / opts.control_rate]
     for d, ph in sorted(over, key=lambda x: -x[0])[:5]:  # where the worst periods' time went
@@ -394,6 +396,11 @@ def run(opts: argparse.Namespace) -> None:
     sim.shutdown()
     if opts.capacity:
         capacity(opts)
+
+
+def _policy(priority: int) -> str:
+    """What the loop thread asked for, for the header."""
+    return f"SCHED_FIFO {priority}" if priority else "normal policy"
 
 
 def capacity(opts: argparse.Namespace) -> None:
@@ -441,6 +448,8 @@ def main() -> None:
     p.add_argument("--domain", type=int, default=88)
     p.add_argument("--verbose", action="store_true", help="every goal's result")
     p.add_argument("--worker-nice", type=int, default=0, help="renice the bridge workers by this much (they yield to the loop)")
+    p.add_argument("--threads", type=int, default=None, help="cpu backend: step threads, the loop's included (default: every core)")
+    p.add_argument("--thread-priority", type=int, default=50, help="the loop thread's SCHED_FIFO priority, as the command's (0: normal policy)")
     p.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once started (no long collections in the loop)")
     p.add_argument("--settle", type=float, default=5.0, help="s between every goal client's ready and the burst")
     opts = p.parse_args()
