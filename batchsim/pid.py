@@ -28,22 +28,16 @@ from typing import Any
 
 import numpy as np
 
+from batchsim.types import AnyCase
 
-class AntiWindup(enum.Enum):
-    """control_toolbox's anti-windup strategies (`antiwindup_strategy`)."""
+
+class AntiWindup(AnyCase, enum.Enum):
+    """control_toolbox's anti-windup strategies (`antiwindup_strategy`, any case)."""
 
     NONE = "none"
     LEGACY = "legacy"
     BACK_CALCULATION = "back_calculation"
     CONDITIONAL_INTEGRATION = "conditional_integration"
-
-    @classmethod
-    def _missing_(cls, value: object) -> AntiWindup | None:
-        if isinstance(value, str):
-            for member in cls:
-                if member.value == value.lower():
-                    return member
-        return None
 
 
 # control_toolbox parameter names that change nothing in simulation (accepted, not warned about)

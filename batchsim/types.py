@@ -20,6 +20,21 @@ if TYPE_CHECKING:
     from batchsim.sensors import SensorSuite
 
 
+class AnyCase:
+    """Mixed into an Enum before its base (`class Mode(AnyCase, enum.Enum)`): a string names a
+    member in any case, by its value or its name, as MJX's `Impl` does; strings come in at the
+    edges (YAML, flags, ROS requests) and become members at once."""
+
+    @classmethod
+    def _missing_(cls, value: object) -> Any:
+        if isinstance(value, str):
+            key = value.lower()
+            for member in cls:  # type: ignore[attr-defined]
+                if member.name.lower() == key or (isinstance(member.value, str) and member.value.lower() == key):
+                    return member
+        return None
+
+
 class ReturnType(enum.Enum):
     """What read() and write() return (hardware_interface::return_type)."""
 

@@ -12,6 +12,7 @@ import math
 import os
 
 from batchsim.loop import OptionError, RateError, whole_ratio
+from batchsim.types import AnyCase
 from ros_bridge.naming import DEFAULT_TEMPLATE
 
 #: worlds up to which the bridge runs inside the physics process by default
@@ -20,19 +21,11 @@ INPROCESS_WORLDS = 64
 WORLDS_PER_WORKER = 128
 
 
-class Reliability(enum.Enum):
-    """QoS reliability of every topic."""
+class Reliability(AnyCase, enum.Enum):
+    """QoS reliability of every topic (`--reliability`, the MJCF plugin's topic_reliability: any case)."""
 
     RELIABLE = "reliable"
     BEST_EFFORT = "best_effort"
-
-    @classmethod
-    def _missing_(cls, value: object) -> Reliability | None:
-        if isinstance(value, str):
-            for member in cls:
-                if member.value == value.lower():
-                    return member
-        return None
 
 
 @dataclasses.dataclass(frozen=True)

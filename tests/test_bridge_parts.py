@@ -245,6 +245,22 @@ def test_default_workers_grow_with_the_fleet_and_the_cores():
     sim.shutdown()
 
 
+def test_every_enum_taken_from_a_string_takes_any_case():
+    """One lookup (batchsim.types.AnyCase, issue 22), by value or name, in every enum a string
+    names at an edge; unknown strings and numbers are still refused."""
+    from batchsim.backends import Backend
+    from batchsim.controllers.manager import Strictness
+    from batchsim.pid import AntiWindup
+    from ros_bridge.options import Reliability
+
+    assert AntiWindup("Back_Calculation") is AntiWindup.BACK_CALCULATION
+    assert Reliability("BEST_EFFORT") is Reliability.BEST_EFFORT and Backend("Warp") is Backend.WARP
+    assert Strictness("strict") is Strictness.STRICT and Strictness(4) is Strictness.BEST_EFFORT
+    for enum_type, value in ((AntiWindup, "backcalc"), (Reliability, 1), (Strictness, "auto"), (Strictness, 7)):
+        with pytest.raises(ValueError):
+            enum_type(value)
+
+
 def test_plan_of_the_arm_with_its_controllers():
     sim = batchsim.make("arm", 8, "cpu")
     sim.configure()

@@ -26,11 +26,11 @@ from batchsim.hardware import BatchedSystem, ConfigurationError
 from batchsim.loop import OptionError
 from batchsim.model import RobotSpec
 from batchsim.startup import MemoryEstimate, PhysicsMemory, fleet_memory, install_command
+from batchsim.types import AnyCase
 
 
-class Backend(enum.Enum):
-    """The shipped backends. Strings are accepted case-insensitively at the edges; `parse` also
-    takes the names given to `register`."""
+class Backend(AnyCase, enum.Enum):
+    """The shipped backends, by name in any case; `parse` also takes the names given to `register`."""
 
     AUTO = "auto"
     CPU = "cpu"
@@ -122,11 +122,11 @@ def parse(value: str | Choice) -> Choice:
     choices otherwise."""
     if isinstance(value, Backend | Registered):
         return value
-    key = str(value).lower()
     try:
-        return Backend(key)
+        return Backend(str(value))
     except ValueError:
         pass
+    key = str(value).lower()  # register() keeps names in lower case
     if key in _REGISTERED:
         return _REGISTERED[key]
     raise OptionError("", f"unknown backend {value!r} (choose from {', '.join(names())})") from None

@@ -22,24 +22,24 @@ import numpy as np
 
 from batchsim.controllers.base import Controller
 from batchsim.model import RobotSpec
+from batchsim.types import AnyCase
 
 #: every batchsim controller is a plain (not chainable) ros2_control controller
 CONTROLLER_BASE_CLASS = "controller_interface::ControllerInterface"
 
 
-class Strictness(enum.IntEnum):
-    """SwitchController's strictness; jazzy treats AUTO and FORCE_AUTO (and 0) as BEST_EFFORT."""
+class Strictness(AnyCase, enum.IntEnum):
+    """SwitchController's strictness, by number or name (any case); jazzy treats AUTO and
+    FORCE_AUTO (and 0) as BEST_EFFORT."""
 
     BEST_EFFORT = 1
     STRICT = 2
 
     @classmethod
     def _missing_(cls, value: object) -> Strictness | None:
-        if isinstance(value, str):
-            return cls.__members__.get(value.upper())
         if value in (0, 3, 4):  # unset (the default parameter is best_effort), AUTO, FORCE_AUTO
             return cls.BEST_EFFORT
-        return None
+        return super()._missing_(value)
 
 
 @dataclasses.dataclass(frozen=True)
