@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import mujoco
 import numpy as np
 
-from batchsim.types import MAX_COMMAND, ConfigurationError
+from batchsim.types import MAX_COMMAND, ConfigurationError, check_plugin_runs
 
 if TYPE_CHECKING:  # batchsim.sensors imports this module: no import cycle at run time
     from batchsim.sensors import SensorConfig
@@ -207,10 +207,7 @@ class BaseDriving:
     def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
         super().set_sensor_config(config)  # type: ignore[misc]
         plugin = self._sensor_config.base_velocity  # type: ignore[attr-defined]
-        if plugin is not None and not self.drives_base:
-            raise ConfigurationError(
-                f"{plugin.where}: the BaseVelocityPlugin is not run on a fleet spread over several devices: use one"
-            )
+        check_plugin_runs(plugin, self.drives_base, "BaseVelocityPlugin")
         self._staged = None
         self._base_velocity = None if plugin is None else BaseVelocity(plugin, self.model, self.nworld)  # type: ignore[attr-defined]
 

@@ -48,7 +48,7 @@ import mujoco
 import numpy as np
 
 from batchsim.lifecycle import LifecycleState
-from batchsim.types import MAX_COMMAND, ConfigurationError
+from batchsim.types import MAX_COMMAND, check_plugin_runs
 
 if TYPE_CHECKING:  # batchsim.sensors imports this module: no import cycle at run time
     from batchsim.sensors import SensorConfig
@@ -225,10 +225,7 @@ class Wrenching:
     def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
         super().set_sensor_config(config)  # type: ignore[misc]
         plugin = self._sensor_config.external_wrench  # type: ignore[attr-defined]
-        if plugin is not None and not self.applies_wrenches:
-            raise ConfigurationError(
-                f"{plugin.where}: the ExternalWrenchPlugin is not run on a fleet spread over several devices: use one"
-            )
+        check_plugin_runs(plugin, self.applies_wrenches, "ExternalWrenchPlugin")
 
     def apply_wrench(
         self, wrenches: ExternalWrench | Sequence[ExternalWrench], worlds: Sequence[int] | np.ndarray | None = None

@@ -65,6 +65,14 @@ class ConfigurationError(ValueError):
     """The model or its ros2_control block asks for something the simulation cannot serve."""
 
 
+def check_plugin_runs(plugin: Any, runs: bool, kind: str) -> None:
+    """ConfigurationError naming the file and key of a mujoco_ros2_control plugin's params
+    (`plugin.where`; None: not configured) that a system cannot run (`runs` False: a fleet
+    spread over several devices, whose shards the plugin's per-world state does not reach)."""
+    if plugin is not None and not runs:
+        raise ConfigurationError(f"{plugin.where}: the {kind} is not run on a fleet spread over several devices: use one")
+
+
 class SensorData(Mapping[str, np.ndarray]):
     """Every MJCF sensor by name: `sim.sensordata["wrist_force"]` is `(nworld, dim)`.
 
