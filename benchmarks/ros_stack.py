@@ -200,11 +200,13 @@ def capacity_subscriber(domain: int, index: int, seconds: float) -> None:
 class Children:
     """Child processes of this script, their output lines with the wall time they came."""
 
-    def __init__(self, argvs: list[list[str]]):
+    def __init__(self, argvs: list[list[str]], avoid_cpus: frozenset[int] = frozenset()):
         self.procs = [
             subprocess.Popen([sys.executable, __file__, *a], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=_env())
             for a in argvs
         ]
+        for p in self.procs if avoid_cpus else ():  # as a user's `taskset -c` keeps their nodes off the loop's core
+            os.sched_setaffinity(p.pid, os.sched_getaffinity(0) - avoid_cpus)
         self.lines: list[list[str]] = [[] for _ in self.procs]
         for i in range(len(self.procs)):
             threading.Thread(target=self._read, args=(i,), daemon=True).start()
@@ -260,7 +262,15 @@ def run(opts: argparse.Namespace) -> None:
     sim.configure()
     sim.activate()
     manager = load_controllers(default_controllers(opts.model), sim.spec, opts.worlds)
-    loop = SimLoop(sim, control_rate=opts.control_rate, rtf=1.0, participants=[manager], thread_priority=opts.thread_priority)
+    loop = SimLoop(
+        sim,
+        control_rate=opts.control_rate,
+        rtf=1.0,
+        participants=[manager],
+        thread_priority=opts.thread_priority,
+        cpu_affinity=opts.cpu_affinity,
+    )
+    reserved = frozenset(opts.cpu_affinity) if opts.reserve_loop_cores else frozenset()
     host = start_bridge(sim, loop, BridgeOptions(workers=opts.bridge_workers), manager)
     nworker = host.plan.nworker
     for pid in host.worker_pids if opts.worker_nice else ():  # the workers yield the cores to the loop
@@ -303,7 +313,8 @@ def run(opts: argparse.Namespace) -> None:
     runner = threading.Thread(target=lambda: loop.run(), daemon=True)
     runner.start()
     subs = Children(
-        [["--subscriber", str(opts.domain), str(lo), str(hi), str(int(k == 0))] for k, (lo, hi) in enumerate(_shares(opts.worlds, opts.subscribers))]
+        [["--subscriber", str(opts.domain), str(lo), str(hi), str(int(k == 0))] for k, (lo, hi) in enumerate(_shares(opts.worlds, opts.subscribers))],
+        reserved,
     )
     while not periods:  # warp compiles its kernels in the first period: warm up after it
         time.sleep(0.1)
@@ -313,7 +324,8 @@ def run(opts: argparse.Namespace) -> None:
     start = 0.0
     goals = (
         Children(
-            [["--goals", str(opts.domain), str(lo), str(hi), opts.goals, str(opts.goal_rate), "0"] for lo, hi in _shares(opts.worlds, opts.goal_clients)]
+            [["--goals", str(opts.domain), str(lo), str(hi), opts.goals, str(opts.goal_rate), "0"] for lo, hi in _shares(opts.worlds, opts.goal_clients)],
+            reserved,
         )
         if opts.goals != "none"
         else None
@@ -363,7 +375,7 @@ def run(opts: argparse.Namespace) -> None:
     expected = opts.worlds * opts.control_rate * rtf
     print(f"# {platform.node() or 'host'}, {os.cpu_count()} cores, Python {platform.python_version()}, {_versions()}, "
           f"{opts.backend} {opts.model}, {opts.worlds} worlds, control {opts.control_rate:g} Hz, {nworker} bridge workers, "
-          f"{opts.subscribers} subscriber processes, loop thread {_policy(opts.thread_priority)}, "
+          f"{opts.subscribers} subscriber processes, loop thread {_policy(opts.thread_priority, opts)}, "
           f"load {os.getloadavg()[0]:.1f}, {time.strftime('%Y-%m-%d')}")  # fmt: skip
     p = np.array(window or [float("nan")]) * 1e3  # no period in the window: say so with NaN
     over = [(d, ph) for (t, d), ph in zip(periods, phases, strict=False) if t0 <= t <= t1 and d > 1.0 / opts.control_rate]
@@ -398,9 +410,12 @@ def run(opts: argparse.Namespace) -> None:
         capacity(opts)
 
 
-def _policy(priority: int) -> str:
-    """What the loop thread asked for, for the header."""
-    return f"SCHED_FIFO {priority}" if priority else "normal policy"
+def _policy(priority: int, opts: argparse.Namespace) -> str:
+    """What the loop thread asked for (granted or not: the loop warns when not), for the header."""
+    text = f"asked SCHED_FIFO {priority}" if priority else "normal policy"
+    if opts.cpu_affinity:
+        text += f", on cores {','.join(map(str, opts.cpu_affinity))}" + (" (reserved)" if opts.reserve_loop_cores else "")
+    return text
 
 
 def capacity(opts: argparse.Namespace) -> None:
@@ -450,6 +465,8 @@ def main() -> None:
     p.add_argument("--worker-nice", type=int, default=0, help="renice the bridge workers by this much (they yield to the loop)")
     p.add_argument("--threads", type=int, default=None, help="cpu backend: step threads, the loop's included (default: every core)")
     p.add_argument("--thread-priority", type=int, default=50, help="the loop thread's SCHED_FIFO priority, as the command's (0: normal policy)")
+    p.add_argument("--cpu-affinity", type=lambda t: tuple(int(c) for c in t.split(",")), default=(), help="the loop thread's cores (the bridge workers then keep off them)")
+    p.add_argument("--reserve-loop-cores", action="store_true", help="this script's subscribers and goal clients keep off the loop's cores too, as a user's taskset would")
     p.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once started (no long collections in the loop)")
     p.add_argument("--settle", type=float, default=5.0, help="s between every goal client's ready and the burst")
     opts = p.parse_args()

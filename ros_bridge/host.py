@@ -157,7 +157,9 @@ class BridgeHost:
         self._next_idle_tick = 0.0
         self._closed = False
         # the workers: started, woken, watched and restarted (ros_bridge/supervisor.py)
-        self.workers = Supervisor(plan, m, processes=processes, throttle=self.throttle, command_timeout=command_timeout)
+        # ... off the loop thread's cores (SimLoop.cpu_affinity): a woken worker would take its core
+        avoid = frozenset(loop.cpu_affinity)
+        self.workers = Supervisor(plan, m, processes=processes, throttle=self.throttle, command_timeout=command_timeout, avoid_cpus=avoid)
 
     # --- start and stop ---
     def start(self) -> None:

@@ -90,8 +90,19 @@ class Supervisor:
       notify_r, notify_w: the pipe workers write a byte to when a command arrives (lockstep).
     """
 
-    def __init__(self, plan: FleetPlan, memory: Memory, *, processes: bool, throttle: LogThrottle, command_timeout: float | None):
+    def __init__(
+        self,
+        plan: FleetPlan,
+        memory: Memory,
+        *,
+        processes: bool,
+        throttle: LogThrottle,
+        command_timeout: float | None,
+        avoid_cpus: frozenset[int] = frozenset(),
+    ):
         self.plan = plan
+        # the workers' cores, taken now: a worker restarted from the (pinned) loop thread would inherit its
+        self._cpus = frozenset(os.sched_getaffinity(0)) - avoid_cpus if avoid_cpus else frozenset()
         self.memory = memory
         self.processes = processes
         self.throttle = throttle
@@ -197,6 +208,7 @@ class Supervisor:
         )
         os.close(wake_r)
         os.close(status_w)
+        self._keep_off_avoided_cpus(popen.pid)
         try:
             popen.stdin.write(pickle.dumps(self.plan))
             popen.stdin.close()
@@ -211,6 +223,15 @@ class Supervisor:
         os.set_blocking(wake_w, False)
         os.set_blocking(status_r, False)
         return _Process(index, popen, wake_w, status_r)
+
+    def _keep_off_avoided_cpus(self, pid: int) -> None:
+        """The worker's cores: this process's, less the loop thread's (`avoid_cpus`), set
+        before it starts a thread of its own (it is still importing)."""
+        if self._cpus:  # never none: a loop pinned to every core leaves the workers where they are
+            try:
+                os.sched_setaffinity(pid, self._cpus)
+            except OSError:  # gone already: supervise() says so
+                pass
 
     def _await_ready(self, procs: list[_Process]) -> None:
         deadline = wallclock.monotonic() + START_TIMEOUT

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import threading
 import time
 
@@ -115,3 +116,42 @@ def test_without_permission_the_loop_runs_and_says_why_once(monkeypatch, caplog)
     lines = [r.getMessage() for r in caplog.records if "SCHED_FIFO" in r.getMessage()]
     assert len(lines) == 1, lines
     assert "without SCHED_FIFO priority 50: Operation not permitted" in lines[0] and "rtprio" in lines[0]
+
+
+@pytest.mark.ros
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="needs a core to keep free")
+def test_a_pinned_loop_keeps_its_bridge_workers_off_its_core(tmp_path):
+    """--cpu-affinity 0: the loop thread runs on core 0 and no bridge worker does (a woken
+    worker would take the loop's core), as the command line a user types starts it."""
+    from conftest import need
+
+    need("rclpy")
+    import subprocess
+    import sys
+
+    from ros_fleet import LOCALHOST, bridge_workers, domain_id, release_domain
+
+    domain = domain_id(60)
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain), "PYTHONUNBUFFERED": "1"}
+    argv = [sys.executable, "-m", "batchsim.cli", "--worlds", "4", "--bridge-workers", "2", "--cpu-affinity", "0", "--quiet"]
+    proc = subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in proc.stderr:  # the start line comes once every worker serves
+            if " x arm on " in line:
+                break
+        time.sleep(0.5)  # the loop's second period pins it
+        workers = bridge_workers(proc.pid)
+        assert len(workers) == 2
+        for pid in workers.values():
+            assert 0 not in os.sched_getaffinity(pid)
+        assert os.sched_getaffinity(proc.pid) == {0}  # the loop runs in the main thread
+        os.kill(workers[1], signal.SIGKILL)  # restarted from the loop's (pinned) thread: still off it
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and bridge_workers(proc.pid).get(1, workers[1]) == workers[1]:
+            time.sleep(0.1)
+        restarted = bridge_workers(proc.pid)[1]
+        assert restarted != workers[1] and 0 not in os.sched_getaffinity(restarted)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+        release_domain(domain)
