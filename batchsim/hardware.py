@@ -98,6 +98,8 @@ class BatchedSystem(BaseDriving, Wrenching, Sensing, EngineHooks, SystemInterfac
     compiles_first_period: ClassVar[bool] = False
     #: whether the engine logs a world's failure itself (C MuJoCo's MUJOCO_LOG.TXT): the first line names it
     logs_failures: ClassVar[bool] = False
+    #: whether MJCF torque sensors read what C MuJoCo's do (MJX's cfrc_int: 0 where C reads a motor's torque)
+    reads_torque_sensors: ClassVar[bool] = True
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__()

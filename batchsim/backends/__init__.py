@@ -5,8 +5,9 @@ A new backend is one module here with a `BatchedSystem` subclass, plus one line 
 that lives outside batchsim is one class and one `register("name", TheClass)` call.
 
 The class states what it can do; nothing outside this package asks for a backend by name:
-`compiles_first_period`, `sensors_batched`, `OPTIONS` (batchsim.hardware), `available_devices()`
-and `device_memory(device)` (static methods, where it runs on devices: mjx, warp),
+`compiles_first_period`, `sensors_batched`, `reads_torque_sensors`, `OPTIONS`
+(batchsim.hardware), `available_devices()` and `device_memory(device)` (static methods,
+where it runs on devices: mjx, warp),
 `unsupported(spec)` (a classmethod: why it cannot simulate a model, or None) and
 `physics_memory(m, nthread=, nconmax=, njmax=)` (a static method: what its physics takes,
 batchsim.startup.PhysicsMemory; `physics_memory` below).

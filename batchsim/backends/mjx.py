@@ -230,6 +230,7 @@ class MjxSystem(DeviceSystem):
     name: ClassVar[str] = "mjx"
     OPTIONS: ClassVar[dict[str, Any]] = {"device": None, "deterministic": False}
     physics_memory = staticmethod(footprint.mjx)
+    reads_torque_sensors: ClassVar[bool] = False  # its cfrc_int leaves out what C MuJoCo's torque sensors read
 
     @staticmethod
     def _resolve_device(option: Any) -> jax.Device:

@@ -116,6 +116,7 @@ class ShardedSystem(BatchedSystem):
             raise OptionError("", f"{self.nworld} worlds cannot be split over {len(self.devices)} devices")
         self.world_ranges = split_worlds(self.nworld, len(self.devices))
         self.sensors_batched = backend.sensors_batched
+        self.reads_torque_sensors = backend.reads_torque_sensors  # type: ignore[misc]
         # the fleet's arrays, in one block that every shard reads its commands from and
         # writes its readings to (shared memory when the shards are processes)
         layout = fleet_layout(
