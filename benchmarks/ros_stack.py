@@ -29,6 +29,7 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -198,23 +199,29 @@ def capacity_subscriber(domain: int, index: int, seconds: float) -> None:
 
 # --- the parent ---
 class Children:
-    """Child processes of this script, their output lines with the wall time they came."""
+    """Child processes of this script and their output lines (`lines[i]`: each line's words).
+
+    Their output goes to files, read when asked: no reader thread in the loop's process,
+    where it would hold the GIL the loop needs (the command's process has none either)."""
 
     def __init__(self, argvs: list[list[str]], avoid_cpus: frozenset[int] = frozenset()):
+        self._files = [tempfile.TemporaryFile("w+") for _ in argvs]
         self.procs = [
-            subprocess.Popen([sys.executable, __file__, *a], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=_env())
-            for a in argvs
+            subprocess.Popen([sys.executable, __file__, *a], stdin=subprocess.PIPE, stdout=f, text=True, env=_env())
+            for a, f in zip(argvs, self._files, strict=True)
         ]
         for p in self.procs if avoid_cpus else ():  # as a user's `taskset -c` keeps their nodes off the loop's core
             os.sched_setaffinity(p.pid, os.sched_getaffinity(0) - avoid_cpus)
-        self.lines: list[list[str]] = [[] for _ in self.procs]
-        for i in range(len(self.procs)):
-            threading.Thread(target=self._read, args=(i,), daemon=True).start()
 
-    def _read(self, i: int) -> None:
-        for line in self.procs[i].stdout:
-            self.lines[i].append(line.split())
-
+    @property
+    def lines(self) -> list[list[list[str]]]:
+        out = []
+        for f in self._files:
+            f.seek(0)
+            text = f.read()
+            whole = text[: text.rfind("\n") + 1]  # a line being written is not read yet
+            out.append([line.split() for line in whole.splitlines()])
+        return out
     def tell(self, line: str) -> None:
         for p in self.procs:
             p.stdin.write(line + "\n")
@@ -296,8 +303,19 @@ def run(opts: argparse.Namespace) -> None:
         for hook in ("update", "after_write"):
             if hasattr(part, hook):
                 setattr(part, hook, clocked(f"{type(part).__name__}.{hook}", getattr(part, hook)))
+    import gc
+
+    collections: list[tuple[int, float, float]] = []  # (generation, wall time at its start, seconds)
+    gc_started = [0.0]
+
+    def on_gc(phase: str, info: dict) -> None:
+        if phase == "start":
+            gc_started[0] = time.perf_counter()
+        else:
+            collections.append((info["generation"], time.time(), time.perf_counter() - gc_started[0]))
+
+    gc.callbacks.append(on_gc)
     if opts.gc_freeze:
-        import gc
 
         gc.freeze()  # what start-up made is never scanned again: no long collections in the loop
 
@@ -336,8 +354,11 @@ def run(opts: argparse.Namespace) -> None:
             time.sleep(0.1)
         ready = [line for lines in goals.lines for line in list(lines) if line[0] == "ready"]
         found = sum(int(line[2]) for line in ready)
-        discovery = [p for t, p in periods if asked <= t]
-        d = np.array(discovery or [float("nan")]) * 1e3
+        discovery = [(p, ph) for (t, p), ph in zip(periods, phases, strict=False) if asked <= t]
+        d = np.array([p for p, _ in discovery] or [float("nan")]) * 1e3
+        if discovery:  # where the worst period of discovery went
+            p, ph = max(discovery, key=lambda x: x[0])
+            print(f"  discovery's worst: {p * 1e3:.1f} ms = " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in sorted(ph.items(), key=lambda x: -x[1])))
         print(f"discovery: {len(ready)} of {len(goals.procs)} goal clients ready, {found} of {opts.worlds} action servers "
               f"found, in {time.time() - asked:.1f} s; loop period meanwhile {np.median(d):.2f} ms median, "
               f"{d.max():.2f} ms worst")  # fmt: skip
@@ -382,6 +403,13 @@ def run(opts: argparse.Namespace) -> None:
     for d, ph in sorted(over, key=lambda x: -x[0])[:5]:  # where the worst periods' time went
         print(f"  over budget: {d * 1e3:.1f} ms = " + ", ".join(f"{k} {v * 1e3:.1f}" for k, v in sorted(ph.items(), key=lambda x: -x[1])))
     print(f"  periods over budget: {len(over)} of {len(window)}")
+    full = [d * 1e3 for g, t, d in collections if g == 2]
+    print(f"  gc generation 2 over the whole run: {len(full)} collections" + (f", longest {max(full):.1f} ms" if full else ""))
+    in_window = [(g, d) for g, t, d in collections if t0 <= t <= t1]
+    for g in range(3):
+        ds = [d * 1e3 for gen, d in in_window if gen == g]
+        if ds:
+            print(f"  gc generation {g}: {len(ds)} collections in the window, longest {max(ds):.1f} ms")
     print(f"RTF held {rtf:.3f} over {wall:.1f} s; loop period {np.median(p):.2f} ms median, {p.max():.2f} ms worst, "
           f"{np.percentile(p, 99):.2f} ms p99 (budget {budget * 1e3:.1f} ms, {len(p)} periods)")  # fmt: skip
     print(f"joint_states received {counted[0] / wall:,.0f}/s of {expected:,.0f}/s expected ({counted[0] / wall / expected:.3f})")
