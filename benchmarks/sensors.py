@@ -74,7 +74,7 @@ from fleet import Batchsim, _pythonpath  # noqa: E402 (its process handling and 
 from throughput import device_name, versions  # noqa: E402
 
 import batchsim  # noqa: E402
-from batchsim.sensors import SensorSampler  # noqa: E402
+from batchsim.sampler import SensorSampler  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
@@ -148,7 +148,7 @@ def raw_render_cpu(sim: batchsim.BatchedSystem, qpos_source: Callable[[], np.nda
     import mujoco
     from mujoco import batch as mjbatch
 
-    from batchsim.sensors.host import gl_context_class
+    from batchsim.backends.host_sensors import gl_context_class
 
     cam = sim.sensors.camera(CAMERA)
     m = copy.copy(sim.model)

@@ -38,7 +38,8 @@ import dataclasses
 import numpy as np
 
 from batchsim.hardware import BatchedSystem
-from batchsim.sensors import Camera, CameraMode, Lidar, Sample, SensorSampler
+from batchsim.sampler import Sample, SensorSampler
+from batchsim.sensors import Camera, CameraMode, Lidar
 
 WANT_RGB = 1  # <camera>/image_raw, or a lidar's topic
 WANT_DEPTH = 2  # <camera>/depth/image_raw

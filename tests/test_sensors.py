@@ -24,7 +24,8 @@ from arrays import host
 
 import batchsim
 from batchsim import ModelError, SensorConfigError
-from batchsim.sensors import LidarKind, SensorConfig, SensorSampler
+from batchsim.sampler import SensorSampler
+from batchsim.sensors import LidarKind, SensorConfig
 from batchsim.sensors.camera import project
 
 SCENE = Path(__file__).parent / "scenes" / "sensor_box.xml"
@@ -152,7 +153,7 @@ def test_the_cpu_ray_caster_takes_the_worlds_in_any_order():
     row 0 (it passed ids=None whenever the count matched); each row is now the world named."""
     from mujoco import batch as mjbatch
 
-    from batchsim.sensors.host import HostSensors
+    from batchsim.backends.host_sensors import HostSensors
 
     sim = batchsim.make(str(SCENE), 2, "cpu")
     sim.configure()
@@ -710,7 +711,7 @@ def test_host_site_poses_are_each_worlds_kinematics_at_its_current_state():
     import mujoco
     from mujoco import batch as mjbatch
 
-    from batchsim.sensors.host import HostSensors
+    from batchsim.backends.host_sensors import HostSensors
 
     sim = batchsim.make(str(SCENE), 1, "cpu")  # the scene's <lidar> elements: not plain MJCF
     m = sim.model

@@ -28,11 +28,11 @@ import numpy as np
 from mujoco import batch as mjbatch
 
 from batchsim.backends import footprint
+from batchsim.backends.host_sensors import HostSensors
 from batchsim.base_velocity import HELD_DOFS, world_velocity
 from batchsim.failures import warning_text
 from batchsim.hardware import BatchedSystem, Status, StepFailures
 from batchsim.sensors import Camera, Lidar
-from batchsim.sensors.host import HostSensors
 
 _W = mujoco.mjtWarning
 # MuJoCo warnings that mean a world's numbers can no longer be trusted (mjWARN_INERTIA is

@@ -57,11 +57,11 @@ from batchsim.backends.device import (
     DeviceSystem,
     code_status,
 )
+from batchsim.backends.host_sensors import HostSensors
 from batchsim.base_velocity import HELD_DOFS
 from batchsim.hardware import MAX_COMMAND, READ_FIELDS, Status, StepFailures
 from batchsim.model import RobotSpec, StateColumn
 from batchsim.sensors import Camera, Lidar
-from batchsim.sensors.host import HostSensors
 
 _CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device)
 

@@ -6,10 +6,10 @@
     mjcf.py     `<lidar>` elements and mujoco.plugin.lidar sensors, read out of the XML
     config.py   SensorConfig: mujoco_ros2_control's plugin YAML and batchsim's `sensors:` block
     suite.py    SensorSuite: all of it resolved against a model, and which worlds want what
-    sampler.py  SensorSampler: the loop participant producing what is wanted, at its rate
-    host.py     HostSensors: MuJoCo's renderer and mujoco.batch ray casting (cpu, mjx)
 
-The system's side is `BatchedSystem.render`, `.scan` and `.sensors` (batchsim.hardware).
+The system's side is `BatchedSystem.render`, `.scan` and `.sensors` (batchsim.hardware); the loop
+participant that produces what is wanted is batchsim/sampler.py, beside loop.py; rendering and
+ray casting on the host (cpu, mjx) is batchsim/backends/host_sensors.py.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from batchsim.sensors.config import SensorConfig, SensorConfigError
 from batchsim.sensors.lidar import Lidar, LidarKind
 from batchsim.sensors.mjcf import DeclarationError, SensorDeclarations
 from batchsim.sensors.noise import Noise
-from batchsim.sensors.sampler import Sample, SensorSampler
 from batchsim.sensors.suite import SensorSuite
 
 __all__ = [
@@ -30,10 +29,8 @@ __all__ = [
     "Lidar",
     "LidarKind",
     "Noise",
-    "Sample",
     "SensorConfig",
     "SensorConfigError",
     "SensorDeclarations",
-    "SensorSampler",
     "SensorSuite",
 ]
