@@ -36,6 +36,7 @@ class Problem(enum.Enum):
     MALFORMED = "malformed"  # a controller input that does not parse
     INVALID = "invalid"  # a controller input its controller refused
     BACKLOG = "backlog"  # the loop is too far behind to take more
+    FLOOD = "flood"  # more messages on one world's topic than the worker takes (ros_bridge/worker/intake.py)
 
 
 def check_vector(row: np.ndarray, interfaces: Sequence[str], owners: Sequence[str]) -> tuple[Problem, str] | None:

@@ -9,8 +9,8 @@ plan (ros_bridge/plan.py) once, attaches the shared memory, and then:
   physics process): copies its worlds' rows of the newest snapshot (seqlocked, so never a
   torn row), and publishes what is due to the worlds that have subscribers, built in bulk
   (ros_bridge/worker/messages.py); `/clock` from worker 0;
-- on its executor thread (rclpy's EventsExecutor: per message, not per entity): checks
-  each command and writes it into its world's slots in shared memory; trajectories are
+- on its executor thread (rclpy's EventsExecutor: per message, not per entity; intake.py bounds
+  each world's topic): checks each command and writes it into its world's slots; trajectories are
   batched and handed over through its ring; rejections are counted per world, logged at
   most once per topic and reason every 2 s;
 - serves services and actions: a request goes through the ring, the reply waits for the loop;
@@ -55,6 +55,7 @@ from ros_bridge.snapshot import Snapshot, read_snapshot
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.worker.conflicts import check_conflicts
 from ros_bridge.worker.diagnostics import Diagnostics
+from ros_bridge.worker.intake import Intake
 from ros_bridge.worker.messages import (
     MESSAGE_TYPES,
     clock_payload,
@@ -121,7 +122,6 @@ class Worker:
         self._active: list[Output] = []  # outputs with a subscriber on some world
         self._beat = memory["beat"]
         self._svc_done = memory["svc.done"]
-        self._subscriptions: list[Any] = []
         self._running = False
         self._thread: threading.Thread | None = None
         self._due = {"refresh": 0.0, "scan": 0.0, "diag": 0.0}
@@ -151,6 +151,7 @@ class Worker:
             self._clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
         workers = [worlds_label(plan.namespaces, lo, hi) for lo, hi in plan.ranges]
         self.diagnostics = Diagnostics(node, self.memory, self.lo, self.hi, self.namespaces, workers)
+        self.intake = Intake(node, qos, lambda: self.snapshot.period, self.diagnostics, self.throttle)
         self._on_request: dict[str, tuple[Output, int]] = {}
         for spec in plan.outputs:
             out = Output(spec, self.namespaces)
@@ -168,11 +169,11 @@ class Worker:
         for row, ns in enumerate(self.namespaces):
             w = self.lo + row
             topic = topic_name(ns, "commands")
-            self._subscribe(Float64MultiArray, topic, self._vector_callback(w, topic, interfaces, owners))
+            self.intake.subscribe(w, Float64MultiArray, topic, self._vector_callback(w, topic, interfaces, owners))
             for c, token in enumerate(plan.actuator_topics):
                 topic = topic_name(ns, f"actuators/{token}/command")
                 if plan.all_topics:
-                    self._subscribe(Float64, topic, self._single_callback(w, c, topic, interfaces, owners))
+                    self.intake.subscribe(w, Float64, topic, self._single_callback(w, c, topic, interfaces, owners))
                 self._actuators[topic] = (w, -1 if plan.all_topics else c)
         self._actuator_list = ", ".join(plan.actuator_topics) or "none"
 
@@ -187,7 +188,7 @@ class Worker:
                     callback = self._trajectory_callback(i, w, topic)
                 else:
                     callback = self._input_callback(spec, slots, counter, w, topic)
-                self._subscribe(msg_type, topic, callback)
+                self.intake.subscribe(w, msg_type, topic, callback)
 
         if plan.tf is not None:  # the plan has one only where tf2_msgs is there
             from ros_bridge.worker.tf import TfPublishers
@@ -377,7 +378,7 @@ class Worker:
                 w, c = act
                 if c >= 0 and node.count_publishers(name) > 0:
                     callback = self._single_callback(w, c, name, self.plan.interfaces, self.plan.owners)
-                    self._subscribe(Float64, name, callback)
+                    self.intake.subscribe(w, Float64, name, callback)
                     self._actuators[name] = (w, -1)  # subscribed
                 continue
             match = _ACTUATOR_TOPIC.match(name) if "/actuators/" in name else None
@@ -421,9 +422,7 @@ class Worker:
                 self.throttle.warn(("callback", type(e).__name__), f"ROS callback failed: {type(e).__name__}: {e}")
             if self.trajectories.due():
                 self.trajectories.flush()
-
-    def _subscribe(self, msg_type: type, topic: str, callback: Callable[[Any], None]) -> None:
-        self._subscriptions.append(self.node.create_subscription(msg_type, topic, callback, self.qos))
+            self.intake.service()
 
     def _nudge(self) -> None:
         """Lockstep: tell the loop a command arrived (a full pipe: it has been told already)."""

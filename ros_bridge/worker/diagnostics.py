@@ -54,6 +54,12 @@ class Diagnostics:
         self.rejections.put(world, period, f"{topic}: {reason}")
         self.count(world - self.lo, topic, problem, 1)
 
+    def dropped(self, world: int, period: int, topic: str, count: int, reason: str) -> None:
+        """`count` messages for `world` on `topic` were dropped unread (a flood)."""
+        self.rejections.put(world, period, f"{topic}: {reason}")
+        self.rejections.count[world] += count - 1
+        self.count(world - self.lo, topic, Problem.FLOOD, count)
+
     def count(self, row: int, topic: str, problem: Problem, count: int) -> None:
         with self._lock:
             counts = self._rejected[row]
