@@ -3,6 +3,8 @@ and clock."""
 
 from __future__ import annotations
 
+import pytest
+
 from ros_bridge.commands import Problem
 from ros_bridge.worker.intake import FLOOR, PAUSE, PER_PERIOD, WINDOW, Intake
 
@@ -87,3 +89,21 @@ def test_a_lockstep_commander_that_starts_flat_out_after_a_quiet_window_is_not_c
         period[0] += 1
     intake.service()
     assert rec.dropped == [] and intake.paused == []
+
+
+def test_a_flood_that_goes_on_is_listened_to_less_and_less_often():
+    node, rec, now, period, intake = make()
+    intake.subscribe(3, object, "/world_3/commands", lambda m: None)
+    pauses = []
+    for _ in range(5):
+        intake.service()
+        for _ in range(FLOOR + 1):
+            node.live["/world_3/commands"]("m")
+        start = now[0]
+        intake.service()
+        while "/world_3/commands" not in node.live:
+            now[0] += WINDOW
+            intake.service()
+        pauses.append(round(now[0] - start, 1))
+    # resumed at the window's end after the pause ran out
+    assert pauses == pytest.approx([PAUSE, 2 * PAUSE, 4 * PAUSE, 8 * PAUSE, 8 * PAUSE], abs=1.5 * WINDOW)

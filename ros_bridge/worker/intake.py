@@ -9,8 +9,10 @@ each input subscription (one world's topic) takes at most `limit` messages per W
 wall time, FLOOR plus PER_PERIOD per control period the loop advanced in the window before
 and in this one so far, up to CAP (a lockstep commander flat out sends one per period, and
 passes); the rest of the window's messages are dropped unread, and a topic that went over
-is not listened to for PAUSE s: its subscription is destroyed (DDS then drops the flood
-before the worker sees it) and created again after. The dropped messages are counted per world in
+is not listened to for PAUSE s, twice as long each time it goes over again at once (up to 8
+PAUSE): its subscription is destroyed (DDS then drops the flood before the worker sees it)
+and created again after. Each time it comes back costs the worker a burst (the flood's
+first window), so a flood that goes on is heard less and less often. The dropped messages are counted per world in
 /diagnostics (`rejected <topic> flood`), and one log line per topic every 2 s says so.
 
 Runs on the executor thread: `service()` after every spin, the callbacks during it.
@@ -64,6 +66,8 @@ class Intake:
         self._counts: list[int] = []  # messages this window, per subscription
         self._paused: dict[int, float] = {}  # subscription -> when it listens again
         self._over: list[int] = []  # subscriptions over their limit, not paused yet
+        self._strikes: dict[int, int] = {}  # subscription -> pauses in a row
+        self._calm: dict[int, float] = {}  # subscription -> when its strikes are forgotten
         self._next = 0.0
         self._last_period: int | None = None  # the period when this window began
         self._before = 0  # periods the loop advanced in the window before
@@ -105,10 +109,13 @@ class Intake:
         now = self.clock()
         while self._over:
             k = self._over.pop()
-            if k not in self._paused and self._subs[k] is not None:
+            if k in self._paused:
+                continue
+            if self._subs[k] is not None:
                 self.node.destroy_subscription(self._subs[k])
                 self._subs[k] = None
-            self._paused[k] = now + PAUSE
+            self._strikes[k] = strikes = self._strikes.get(k, 0) + 1
+            self._paused[k] = now + PAUSE * 2 ** min(strikes - 1, 3)  # 1, 2, 4, 8 s while it goes on
         if now < self._next:
             return
         self._next = now + WINDOW
@@ -123,6 +130,13 @@ class Intake:
             if now >= until:
                 del self._paused[k]
                 self._create(k)
+                self._calm[k] = now + PAUSE  # within its limit this long after: its strikes are forgotten
+        for k, until in list(self._calm.items()):
+            if k in self._paused:
+                del self._calm[k]
+            elif now >= until:
+                del self._calm[k]
+                self._strikes.pop(k, None)
         period = self.period()
         self._before = 0 if self._last_period is None else max(0, period - self._last_period)
         self._last_period = period
