@@ -34,12 +34,13 @@ from batchsim.model import RobotSpec
 # --- what a world costs, measured (2026-11-21, this 2-core machine, MuJoCo 4, RSS deltas
 # between two fleet sizes of one process unless said otherwise) ---
 
-# The ROS 2 bridge's publishers, subscriptions, services and message buffers per world:
-# 1.54 MB measured (`batchsim --worlds 16` vs `--worlds 256`, arm with its default
-# controllers, --rtf 0 --duration 2, peak RSS 123 MB vs 492 MB), rounded up. It depends on
-# the bridge's design (one process now; worker processes on the `bridge` branch):
-# re-measure it the same way when the bridge changes.
-ROS_BRIDGE_BYTES_PER_WORLD = 1_600_000
+# The ROS 2 bridge, measured 2026-11-26 (arm, default controllers, one bridge worker, PSS of
+# the worker and the loop's process at 16, 256 and 1024 worlds: 101/188/479 MB and 54/55/61 MB):
+# each world's endpoints and message buffers 0.36-0.38 MB in its worker plus ~8 kB in the loop's
+# process, rounded up; each worker process (a Python with rclpy and Fast DDS) ~95 MB before any
+# world. Re-measure it so when the bridge changes (benchmarks/RESULTS.md, "The bridge's memory").
+ROS_BRIDGE_BYTES_PER_WORLD = 400_000
+ROS_BRIDGE_BYTES_PER_WORKER = 100_000_000
 
 # the contract's host arrays (readings, command, ctrl: what read() and write() fill), per world,
 # in float64s of (mjSTATE_FULLPHYSICS + nq + nv + nu + nsensordata). Measured on cpu, whose
@@ -92,6 +93,7 @@ class MemoryEstimate:
     ros_per_world: int
     fixed: int
     controllers_per_world: int = 0
+    ros_fixed: int = 0  # the bridge's worker processes, before any world (in `fixed`)
 
     def breakdown(self) -> str:
         parts = [f"physics {_size(self.nworld * self.physics_per_world)}"]
@@ -100,7 +102,7 @@ class MemoryEstimate:
         if self.controllers_per_world:
             parts.append(f"controllers {_size(self.nworld * self.controllers_per_world)}")
         if self.ros_per_world:
-            parts.append(f"ROS 2 bridge {_size(self.nworld * self.ros_per_world)}")
+            parts.append(f"ROS 2 bridge {_size(self.nworld * self.ros_per_world + self.ros_fixed)}")
         return ", ".join(parts)
 
 
@@ -139,19 +141,22 @@ def fleet_memory(
     ros: bool,
     on_device: bool = False,
     controllers: bool = False,
+    ros_workers: int = 1,
 ) -> MemoryEstimate:
     """What `nworld` worlds of `spec` on `backend` (its name, for messages) will take, the
     backend's physics as its class states it (batchsim.backends.estimate_memory asks it).
 
     Args:
-      ros: the ROS 2 bridge runs (ROS_BRIDGE_BYTES_PER_WORLD a world).
+      ros: the ROS 2 bridge runs (ROS_BRIDGE_BYTES_PER_WORLD a world, ROS_BRIDGE_BYTES_PER_WORKER
+        for each of its `ros_workers` processes; 0 workers, in-process, cost one's baseline).
       on_device: the backend runs on a GPU: its physics counts against device memory.
       controllers: ros2_control-style controllers run in every world.
     """
     m = spec.mjmodel
     row = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS) + m.nq + m.nv + m.nu + m.nsensordata
     host_arrays = int(HOST_ROW_FACTOR * 8 * row)
-    fixed = FIXED_HOST_BYTES + physics.fixed
+    ros_fixed = ROS_BRIDGE_BYTES_PER_WORKER * max(1, ros_workers) if ros else 0
+    fixed = FIXED_HOST_BYTES + physics.fixed + ros_fixed
     ros_per_world = ROS_BRIDGE_BYTES_PER_WORLD if ros else 0
     controllers_per_world = CONTROLLER_BYTES_PER_COMMAND * len(spec.commands) if controllers else 0
     if on_device:
@@ -162,7 +167,7 @@ def fleet_memory(
         per_world = host_arrays + physics.per_world
         host = fixed + nworld * (per_world + ros_per_world + controllers_per_world)
         device = 0
-    return MemoryEstimate(nworld, backend, host, device, per_world, ros_per_world, fixed, controllers_per_world)
+    return MemoryEstimate(nworld, backend, host, device, per_world, ros_per_world, fixed, controllers_per_world, ros_fixed)
 
 
 def available_host_memory() -> int | None:

@@ -121,6 +121,10 @@ def test_memory_estimate_splits_host_and_device_and_checks_both():
     host = batchsim.backends.estimate_memory(spec, "cpu", 1000, ros=True, nthread=2)
     assert host.device == 0
     assert host.ros_per_world == startup.ROS_BRIDGE_BYTES_PER_WORLD
+    assert host.ros_fixed == startup.ROS_BRIDGE_BYTES_PER_WORKER  # one worker by default
+    eight = batchsim.backends.estimate_memory(spec, "cpu", 1000, ros=True, nthread=2, ros_workers=8)
+    assert eight.host - host.host == 7 * startup.ROS_BRIDGE_BYTES_PER_WORKER
+    assert "ROS 2 bridge 1.2 GB" in eight.breakdown()  # 1000 x 0.4 MB + 8 x 100 MB
     assert host.host >= 1000 * (host.physics_per_world + host.ros_per_world)
     more = batchsim.backends.estimate_memory(spec, "cpu", 2000, ros=True, nthread=2)
     assert more.host - host.host == 1000 * (host.physics_per_world + host.ros_per_world)

@@ -202,12 +202,13 @@ def estimate_memory(
     nconmax: int | None = None,
     njmax: int | None = None,
     controllers: bool = False,
+    ros_workers: int = 1,
 ) -> MemoryEstimate | None:
     """What `nworld` worlds of `spec` on `backend` will take (batchsim.startup.fleet_memory);
     None for a backend that states no `physics_memory`.
 
     Args:
-      ros: the ROS 2 bridge runs.
+      ros: the ROS 2 bridge runs, in `ros_workers` worker processes.
       nthread: cpu: worker threads (None: every core).
       on_device: the backend runs on a GPU: its physics counts against device memory.
       nconmax, njmax: warp's contacts and constraint rows per world (None: not known yet).
@@ -217,7 +218,9 @@ def estimate_memory(
     physics = physics_memory(choice, spec.mjmodel, nthread=nthread, nconmax=nconmax, njmax=njmax)
     if physics is None:
         return None
-    return fleet_memory(spec, choice.value, nworld, physics, ros=ros, on_device=on_device, controllers=controllers)
+    return fleet_memory(
+        spec, choice.value, nworld, physics, ros=ros, on_device=on_device, controllers=controllers, ros_workers=ros_workers
+    )
 
 
 # --- auto ---

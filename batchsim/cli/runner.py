@@ -28,6 +28,7 @@ from batchsim.hardware import BatchedSystem, ConfigurationError
 from batchsim.loop import LoopStats, OptionError, RateError, SimLoop, format_stats, whole_ratio
 from batchsim.model import model_names
 from batchsim.sensors import SensorConfig
+from ros_bridge.options import default_workers
 
 
 def build(args: argparse.Namespace, progress: startup.Progress | None = None) -> BatchedSystem:
@@ -80,6 +81,7 @@ def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Ch
         backend,
         args.worlds,
         ros=not args.no_ros,
+        ros_workers=args.bridge_workers if args.bridge_workers is not None else default_workers(args.worlds),
         nthread=args.threads,
         on_device=on_device,
         nconmax=args.nconmax,
