@@ -5,6 +5,7 @@ interrupts, the status line, --version, install hints. Command tests run
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
 import importlib.util
 import os
@@ -438,3 +439,39 @@ def test_the_status_line_in_a_log_comes_every_10_s_unless_told():
         assert len(stream.getvalue().splitlines()) == expected, stream.getvalue()
     out = batchsim_cli("--worlds", "1", "--no-ros", "--duration", "0.1", "--status-every", "0")
     assert out.returncode == 2 and "--status-every must be a finite number of seconds > 0" in out.stderr
+
+
+@pytest.mark.parametrize("backend, batched", [("warp", True), ("cpu", False)])
+def test_start_up_compiles_the_cameras_and_lidars_drawn_in_batched_kernels(backend, batched):
+    """Issue 24: a warp rover fleet with cameras and lidars stalled 26 s at their first request
+    (render and ray kernels compiled on first use): the compile stage renders and scans once,
+    on the device and without noise (the noise streams stay at their start); the host
+    renderer (cpu, mjx) has nothing to compile and is not asked."""
+    from conftest import need
+
+    if backend == "warp":
+        need("warp")
+    from batchsim.cli import runner
+
+    sim = batchsim.make("rover", 2, backend)
+    sim.configure()
+    sim.activate()
+    loop = SimLoop(sim, rtf=0)
+    calls = []
+    render, scan = sim.render, sim.scan
+    sim.render = lambda name, *a, **k: calls.append(("render", name, k)) or render(name, *a, **k)
+    sim.scan = lambda name, *a, **k: calls.append(("scan", name, k)) or scan(name, *a, **k)
+    lines = []
+    progress = startup.Progress()
+    progress.stage = lambda text: (lines.append(text), contextlib.nullcontext())[1]
+    sim.compiles_first_period = True  # the cpu row: the stage runs, its sensors are not drawn
+    runner.compile_programs(sim, loop, progress)
+    cameras, lidars = list(sim.sensors.cameras), list(sim.sensors.lidars)
+    assert cameras and lidars
+    if batched:
+        assert calls == [("render", c, {"device": True}) for c in cameras] + [("scan", name, {"device": True}) for name in lidars]
+        assert lines == ["compiling warp's program for 2 worlds and its 1 camera, 1 lidar"]
+    else:
+        assert calls == [] and lines == ["compiling cpu's program for 2 worlds"]
+    assert sim.time[0] == 0.0  # reset after
+    sim.shutdown()

@@ -98,14 +98,24 @@ def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Ch
 
 
 def compile_programs(sim: BatchedSystem, loop: SimLoop, progress: startup.Progress) -> None:
-    """mjx compiles, and warp captures, its program on the first control period: run one
-    now, under a progress stage, and reset, so the run starts compiled and at its start."""
+    """mjx compiles, and warp captures, its program on the first control period, and its
+    render and ray programs on the first image and scan: run one of each now, under a
+    progress stage, and reset, so the first status line means the fleet runs (a rover
+    fleet's cameras and lidars once stalled 26 s at their first request on a GPU)."""
     if not sim.compiles_first_period:
         return
-    with progress.stage(f"compiling {sim.name}'s program for {sim.nworld} worlds"):
+    # sensors drawn in one batched launch (sensors_batched: warp's kernels) compile on first use;
+    # the others (the host renderer) have nothing to compile, and every world would cost a render
+    cameras, lidars = (list(sim.sensors.cameras), list(sim.sensors.lidars)) if sim.sensors_batched else ([], [])
+    sensors = ", ".join(f"{len(v)} {k}{'s' if len(v) > 1 else ''}" for k, v in (("camera", cameras), ("lidar", lidars)) if v)
+    with progress.stage(f"compiling {sim.name}'s program for {sim.nworld} worlds" + (f" and its {sensors}" if sensors else "")):
         sim.read(0.0, loop.period)
         sim.write(0.0, loop.period)
         sim.step(loop.substeps)
+        for camera in cameras:  # on the device, every world, no noise drawn: the sensors' streams stay at their start
+            sim.render(camera, device=True)
+        for lidar in lidars:
+            sim.scan(lidar, device=True)
         sim.reset()
 
 
