@@ -22,7 +22,7 @@ from collections.abc import Sequence
 DEFAULT_THREAD_PRIORITY = 50
 HOW_TO = (
     "give the user rtprio (limits.conf: '@realtime hard rtprio 99', as ros2_control's docs say) or run the "
-    "container with --cap-add=sys_nice --ulimit rtprio=99"
+    "container with --cap-add=sys_nice --ulimit rtprio=99; --thread-priority 0 does not ask"
 )
 
 
