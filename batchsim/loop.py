@@ -282,8 +282,8 @@ class SimLoop:
                     wallclock.sleep(target - now)
                 elif now - target > 0.5:  # fell behind: hold the rate from here, don't sprint
                     anchor_wall, anchor_sim = now, self.sim_time
-                    if scheduling is not None and scheduling.elevated:
-                        scheduling.drop(f"the loop fell {now - target:.1f} s behind rtf {self.rtf:g}")
+                    if scheduling is not None:
+                        scheduling.fell_behind(now - target)
             now = wallclock.perf_counter()
             if now - window_wall >= report_every:
                 self._update_stats(now - window_wall, self.sim_time - window_sim, window_steps)
@@ -320,10 +320,6 @@ class _Scheduling:
         self.asked = False
         self.saved: realtime.Saved | None = None
 
-    @property
-    def elevated(self) -> bool:
-        return self.saved is not None
-
     def elevate(self) -> None:
         self.asked = True
         # what start-up made is never scanned again: a full collection of a large fleet's
@@ -334,20 +330,25 @@ class _Scheduling:
         for line in problems:
             log.warning("batchsim: warning: the loop thread runs without %s (its periods may run late under load)", line)
 
+    def fell_behind(self, seconds: float) -> None:
+        """A thread of SCHED_FIFO running flat out would starve its core: give it up, once,
+        and say so (its cores stay)."""
+        if self.saved is None or not self.saved.fifo:
+            return
+        realtime.lower(self.saved)
+        self.saved = dataclasses.replace(self.saved, fifo=False)
+        log.warning(
+            "batchsim: warning: the loop fell %.1f s behind rtf %g: its thread gives up SCHED_FIFO for the rest of the run",
+            seconds,
+            self.loop.rtf,
+        )
+
     def finish(self) -> None:
         """run() is over: scheduling and the collector as they were."""
-        self.drop()
-        if self.asked:
-            gc.unfreeze()
-
-    def drop(self, why: str = "") -> None:
-        """Back to the scheduling it had; `why`: said once, as a warning."""
-        if self.saved is None:
-            return
         realtime.restore(self.saved)
         self.saved = None
-        if why:
-            log.warning("batchsim: warning: %s: its thread gives up SCHED_FIFO for the rest of the run", why)
+        if self.asked:
+            gc.unfreeze()
 
 
 def format_stats(stats: LoopStats, nworld: int, backend: str) -> str:

@@ -33,6 +33,7 @@ class Saved:
     policy: int
     priority: int
     cpus: frozenset[int] | None  # None: not changed
+    fifo: bool  # SCHED_FIFO granted
 
 
 def elevate(priority: int, cpus: Sequence[int] = ()) -> tuple[Saved | None, list[str]]:
@@ -52,24 +53,32 @@ def elevate(priority: int, cpus: Sequence[int] = ()) -> tuple[Saved | None, list
         except OSError as e:
             old_cpus = None
             problems.append(f"cpu_affinity {','.join(map(str, cpus))}: {e.strerror}")
-    changed = old_cpus is not None
+    fifo = False
     if priority > 0:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
-            changed = True
+            fifo = True
         except OSError as e:
             problems.append(f"SCHED_FIFO priority {priority}: {e.strerror}; {HOW_TO}")
-    return (Saved(policy, old_priority, old_cpus) if changed else None), problems
+    changed = fifo or old_cpus is not None
+    return (Saved(policy, old_priority, old_cpus, fifo) if changed else None), problems
 
 
-def restore(saved: Saved | None) -> None:
-    """The calling thread's scheduling as before `elevate`."""
-    if saved is None:
+def lower(saved: Saved) -> None:
+    """The calling thread's policy and priority as before `elevate` (its cores stay)."""
+    if not saved.fifo:
         return
     try:
         os.sched_setscheduler(0, saved.policy, os.sched_param(saved.priority))
     except OSError:  # clearing SCHED_RESET_ON_FORK needs CAP_SYS_NICE (rtprio alone allowed the rest)
         os.sched_setscheduler(0, saved.policy | os.SCHED_RESET_ON_FORK, os.sched_param(saved.priority))
+
+
+def restore(saved: Saved | None) -> None:
+    """The calling thread's scheduling as before `elevate`: policy, priority and cores."""
+    if saved is None:
+        return
+    lower(saved)
     if saved.cpus is not None:
         os.sched_setaffinity(0, saved.cpus)
 
