@@ -25,6 +25,7 @@ same run, to show where Python subscribers are the ceiling. Nothing is asserted.
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import platform
 import subprocess
@@ -222,6 +223,7 @@ class Children:
             whole = text[: text.rfind("\n") + 1]  # a line being written is not read yet
             out.append([line.split() for line in whole.splitlines()])
         return out
+
     def tell(self, line: str) -> None:
         for p in self.procs:
             p.stdin.write(line + "\n")
@@ -303,8 +305,6 @@ def run(opts: argparse.Namespace) -> None:
         for hook in ("update", "after_write"):
             if hasattr(part, hook):
                 setattr(part, hook, clocked(f"{type(part).__name__}.{hook}", getattr(part, hook)))
-    import gc
-
     collections: list[tuple[int, float, float]] = []  # (generation, wall time at its start, seconds)
     gc_started = [0.0]
 
@@ -316,7 +316,6 @@ def run(opts: argparse.Namespace) -> None:
 
     gc.callbacks.append(on_gc)
     if opts.gc_freeze:
-
         gc.freeze()  # what start-up made is never scanned again: no long collections in the loop
 
     def timed(nstep: int | None = None) -> None:
@@ -495,7 +494,7 @@ def main() -> None:
     p.add_argument("--thread-priority", type=int, default=50, help="the loop thread's SCHED_FIFO priority, as the command's (0: normal policy)")
     p.add_argument("--cpu-affinity", type=lambda t: tuple(int(c) for c in t.split(",")), default=(), help="the loop thread's cores (the bridge workers then keep off them)")
     p.add_argument("--reserve-loop-cores", action="store_true", help="this script's subscribers and goal clients keep off the loop's cores too, as a user's taskset would")
-    p.add_argument("--gc-freeze", action="store_true", help="gc.freeze() once started (no long collections in the loop)")
+    p.add_argument("--gc-freeze", action="store_true", help="gc.freeze() before the loop starts (a paced loop with a thread priority or cores does it itself from its second period)")
     p.add_argument("--settle", type=float, default=5.0, help="s between every goal client's ready and the burst")
     opts = p.parse_args()
     if opts.preset:
