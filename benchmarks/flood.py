@@ -68,12 +68,19 @@ def counter(domain: int, nworld: int, out: str) -> None:
     stop = threading.Event()
     threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
     print("ready", flush=True)
+    heard, deadline = False, time.monotonic() + 60
     while not stop.is_set():
         executor.spin_once(timeout_sec=0.05)
+        if not heard and len({int(r[0]) for r in rows[-20 * nworld :]}) == nworld:
+            heard = True
+            print("heard", flush=True)  # every world
+        elif not heard and time.monotonic() > deadline:
+            heard = True
+            print("not every world heard in 60 s", flush=True)
     np.save(out, np.array(rows, dtype=np.float64).reshape(-1, 3))
 
 
-def flooder(domain: int, world: int, kind: str, seconds: float) -> None:
+def flooder(domain: int, world: int, kind: str, seconds: float, points: int = 1) -> None:
     """Publish to `world` as fast as one Python process can for `seconds`; print how many."""
     from builtin_interfaces.msg import Duration
     from std_msgs.msg import Float64MultiArray
@@ -82,8 +89,9 @@ def flooder(domain: int, world: int, kind: str, seconds: float) -> None:
     _context, node = _init(domain, "flooder")
     topic = f"/world_{world}/{TOPICS[kind]}"
     if kind == "trajectory":
-        point = JointTrajectoryPoint(positions=[0.1] * 6, time_from_start=Duration(sec=0, nanosec=200_000_000))
-        msg, msg_type = JointTrajectory(joint_names=JOINTS, points=[point]), JointTrajectory
+        step = 200_000_000 // points
+        pts = [JointTrajectoryPoint(positions=[0.1] * 6, time_from_start=Duration(nanosec=step * (i + 1))) for i in range(points)]
+        msg, msg_type = JointTrajectory(joint_names=JOINTS, points=pts), JointTrajectory
     else:
         msg, msg_type = Float64MultiArray(data=[0.1] * 6), Float64MultiArray
     pub = node.create_publisher(msg_type, topic, 10)
@@ -138,7 +146,7 @@ def window(rows: np.ndarray, w: int, t0: float, t1: float, rate: float) -> tuple
 
 
 def run(domain: int, worlds: int = 16, world: int = 3, topic: str = "trajectory", seconds: float = 5.0,
-        rate: float = 100.0, log: str = "/tmp/flood_batchsim.log", settle: float = 3.0) -> dict:
+        rate: float = 100.0, log: str = "/tmp/flood_batchsim.log", settle: float = 3.0, points: int = 1) -> dict:
     """One fleet, a quiet window and a flooded one of `seconds` each. Returns per world
     (world -> (quiet, flood), each (joint_states/s, share of sim periods heard, longest gap s)),
     the messages sent, the flood's wall seconds, and the flooded world's last /diagnostics values."""
@@ -150,11 +158,12 @@ def run(domain: int, worlds: int = 16, world: int = 3, topic: str = "trajectory"
         fleet = subprocess.Popen(cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT)
         count = _child("--child", "counter", str(domain), str(worlds), out)
         diag = _child("--child", "diagnostics", str(domain), str(world))
-        flood = _child("--child", "flooder", str(domain), str(world), topic, str(seconds))
+        flood = _child("--child", "flooder", str(domain), str(world), topic, str(seconds), str(points))
         try:
-            if count.stdout.readline().strip() != "ready" or flood.stdout.readline().strip() != "matched":
-                raise RuntimeError(f"the counter or the flooder did not start; see {log}")
-            time.sleep(settle)  # every world heard, discovery settled
+            started = [count.stdout.readline().strip(), flood.stdout.readline().strip(), count.stdout.readline().strip()]
+            if started != ["ready", "matched", "heard"]:
+                raise RuntimeError(f"the counter or the flooder did not start ({started}); see {log}")
+            time.sleep(settle)  # discovery settled
             t0 = time.monotonic()
             time.sleep(seconds)
             t1 = time.monotonic()
@@ -184,6 +193,7 @@ def main() -> None:
     ap.add_argument("--topic", choices=sorted(TOPICS), default="trajectory")
     ap.add_argument("--seconds", type=float, default=5.0, help="each window")
     ap.add_argument("--rate", type=float, default=100.0, help="publish rate asked, Hz")
+    ap.add_argument("--points", type=int, default=1, help="points per flooding trajectory")
     ap.add_argument("--domain", type=int, default=57)
     ap.add_argument("--log", default="/tmp/flood_batchsim.log", help="batchsim's output")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
@@ -191,10 +201,10 @@ def main() -> None:
     if a.child:
         kind, *rest = a.child
         {"counter": lambda: counter(int(rest[0]), int(rest[1]), rest[2]),
-         "flooder": lambda: flooder(int(rest[0]), int(rest[1]), rest[2], float(rest[3])),
+         "flooder": lambda: flooder(int(rest[0]), int(rest[1]), rest[2], float(rest[3]), int(rest[4])),
          "diagnostics": lambda: diagnostics(int(rest[0]), int(rest[1]))}[kind]()  # fmt: skip
         return
-    r = run(a.domain, a.worlds, a.world, a.topic, a.seconds, a.rate, a.log)
+    r = run(a.domain, a.worlds, a.world, a.topic, a.seconds, a.rate, a.log, points=a.points)
     print(f"# {platform.node()} | {os.cpu_count()} cores | load {os.getloadavg()[0]:.2f} | {a.worlds} worlds, 1 bridge worker, "
           f"publish {a.rate:g} Hz | flood: {r['sent']} messages in {r['seconds']:.1f} s on /world_{a.world}/{TOPICS[a.topic]}")  # fmt: skip
     print(f"{'world':>5} | {'quiet /s':>8} {'heard':>5} {'gap s':>5} | {'flood /s':>8} {'heard':>5} {'gap s':>5}")
