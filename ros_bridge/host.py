@@ -36,7 +36,6 @@ from batchsim.loop import SimLoop
 from batchsim.memory import Memory, Ring
 from batchsim.model import InterfaceKind
 from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
-from ros_bridge.commands import RejectionWriter, SlotReader
 from ros_bridge.manager_link import ManagerLink
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import (
@@ -48,7 +47,8 @@ from ros_bridge.plan import (
     FleetPlan,
     describe,
 )
-from ros_bridge.requests import (
+from ros_bridge.protocol.commands import RejectionWriter, SlotReader
+from ros_bridge.protocol.requests import (
     Kind,
     concatenate,
     decode_document,
@@ -56,8 +56,8 @@ from ros_bridge.requests import (
     decode_ticket,
     decode_trajectories,
 )
+from ros_bridge.protocol.snapshot import write_snapshot
 from ros_bridge.simulation import SimulationRequests
-from ros_bridge.snapshot import write_snapshot
 from ros_bridge.supervisor import Supervisor
 from ros_bridge.throttle import LogThrottle
 
@@ -424,7 +424,7 @@ class BridgeHost:
 
     # --- publishing ---
     def _snapshot(self, time: float, force: bool, every_channel: bool = False) -> None:
-        """Copy what is due into the next snapshot (ros_bridge/snapshot.py) and wake the workers.
+        """Copy what is due into the next snapshot (ros_bridge/protocol/snapshot.py) and wake the workers.
         `every_channel`: every channel, wanted or not (the state lockstep waits in, which a
         subscriber that comes during the wait gets at once)."""
         flags = np.zeros(self.nworld, np.uint8)

@@ -16,7 +16,7 @@ import numpy as np
 from batchsim.controllers import ControllerManager
 from batchsim.hardware import BatchedSystem
 from batchsim.memory import Memory
-from ros_bridge.requests import decode_switch
+from ros_bridge.protocol.requests import decode_switch
 
 
 @dataclasses.dataclass(frozen=True)

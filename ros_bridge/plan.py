@@ -34,13 +34,13 @@ from ros_bridge.action_plan import (
     gripper_action,
     trajectory_action,
 )
-from ros_bridge.commands import rejection_arrays, slot_arrays
 from ros_bridge.interfaces import available
 from ros_bridge.manager_link import ManagerSpec, manager_spec
 from ros_bridge.naming import ros_names, world_namespaces, worlds_label
 from ros_bridge.options import BridgeOptions, Reliability
 from ros_bridge.outputs import ChannelFill, Field, OutputSpec, robot_outputs
-from ros_bridge.requests import trajectory_bytes, wrench_arrays
+from ros_bridge.protocol.commands import rejection_arrays, slot_arrays
+from ros_bridge.protocol.requests import trajectory_bytes, wrench_arrays
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan
 from ros_bridge.tf_plan import TfSpec, tf_spec
 

@@ -22,7 +22,7 @@ from batchsim.hardware import BatchedSystem
 from batchsim.loop import SimLoop
 from batchsim.memory import Memory
 from batchsim.model import InitialState, initial_command
-from ros_bridge.requests import mark_wrench_done
+from ros_bridge.protocol.requests import mark_wrench_done
 
 #: answer(worker, ticket, sim time, ok, message)
 Answer = Callable[[int, int, float, bool, str], None]

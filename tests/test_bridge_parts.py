@@ -15,7 +15,10 @@ from batchsim.controllers.topics import TrajectoryBatch
 from batchsim.loop import OptionError, RateError, SimLoop, whole_ratio
 from batchsim.memory import Layout, Memory, Ring, ring_arrays
 from batchsim.types import split_worlds
-from ros_bridge.commands import (
+from ros_bridge.naming import NamingError, ros_name, ros_names, world_namespaces
+from ros_bridge.options import BridgeOptions, default_workers
+from ros_bridge.plan import build_plan
+from ros_bridge.protocol.commands import (
     Problem,
     RejectionWriter,
     SlotReader,
@@ -24,10 +27,7 @@ from ros_bridge.commands import (
     check_vector,
     slot_arrays,
 )
-from ros_bridge.naming import NamingError, ros_name, ros_names, world_namespaces
-from ros_bridge.options import BridgeOptions, default_workers
-from ros_bridge.plan import build_plan
-from ros_bridge.requests import (
+from ros_bridge.protocol.requests import (
     Kind,
     concatenate,
     decode_reset,

@@ -228,7 +228,7 @@ def test_a_request_is_checked_whole_before_anything_is_applied(model):
 def test_the_loop_answers_at_once_and_marks_the_request_done_after_its_wrenches_ran(model):
     """ros_bridge/simulation.py: the host's side of apply_wrench, the shared marks in a dict."""
     from batchsim.loop import SimLoop
-    from ros_bridge.requests import WRENCH_SLOTS, wrench_done
+    from ros_bridge.protocol.requests import WRENCH_SLOTS, wrench_done
     from ros_bridge.simulation import SimulationRequests
 
     sim = batchsim.make(model, 2, "cpu")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from ros_bridge.commands import Problem
+from ros_bridge.protocol.commands import Problem
 from ros_bridge.worker.intake import FLOOR, PAUSE, PER_PERIOD, WINDOW, Intake
 
 

@@ -55,9 +55,9 @@ from ros_bridge.action_plan import (
     encode_cancel,
     encode_gripper_goal,
 )
-from ros_bridge.commands import RejectionWriter
 from ros_bridge.naming import topic_name
-from ros_bridge.requests import Kind
+from ros_bridge.protocol.commands import RejectionWriter
+from ros_bridge.protocol.requests import Kind
 from ros_bridge.worker.messages import parse_trajectory, seconds, stamp_of
 from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import LoopRequests

@@ -40,7 +40,7 @@ from rclpy.node import Node
 from batchsim.memory import Memory
 from ros_bridge.manager_link import ManagerSpec
 from ros_bridge.naming import topic_name
-from ros_bridge.requests import Kind, encode_switch
+from ros_bridge.protocol.requests import Kind, encode_switch
 from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import LoopRequests
 

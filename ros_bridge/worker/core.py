@@ -46,12 +46,12 @@ from std_msgs.msg import Float64, Float64MultiArray
 
 from batchsim.controllers.topics import MessageKind
 from batchsim.memory import Memory, Ring
-from ros_bridge.commands import Problem, SlotWriter, check_single, check_vector
 from ros_bridge.interfaces import available
 from ros_bridge.naming import topic_name, worlds_label
 from ros_bridge.options import Reliability
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
-from ros_bridge.snapshot import Snapshot, read_snapshot
+from ros_bridge.protocol.commands import Problem, SlotWriter, check_single, check_vector
+from ros_bridge.protocol.snapshot import Snapshot, read_snapshot
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.worker.conflicts import check_conflicts
 from ros_bridge.worker.diagnostics import Diagnostics

@@ -23,8 +23,8 @@ from rclpy.qos import QoSProfile
 
 from batchsim.hardware import Status
 from batchsim.memory import Memory
-from ros_bridge.commands import Problem, RejectionWriter
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT
+from ros_bridge.protocol.commands import Problem, RejectionWriter
 from ros_bridge.worker.messages import stamp_of
 
 

@@ -24,7 +24,7 @@ import time as wallclock
 from collections.abc import Callable
 from typing import Any
 
-from ros_bridge.commands import Problem
+from ros_bridge.protocol.commands import Problem
 
 WINDOW = 0.1  # s of wall time
 FLOOR = 20  # messages per topic and window, whatever the loop does (paused: only these)

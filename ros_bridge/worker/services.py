@@ -20,7 +20,7 @@ from std_srvs.srv import SetBool, Trigger
 from batchsim.memory import Memory, Ring
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import SERVICE_SLOTS
-from ros_bridge.requests import Kind, encode_reset, encode_ticket
+from ros_bridge.protocol.requests import Kind, encode_reset, encode_ticket
 
 SERVICE_WAIT = 2.0  # s a service waits for the loop to carry out its request
 

@@ -32,7 +32,7 @@ from rclpy.node import Node
 
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import FleetPlan
-from ros_bridge.requests import Kind, encode_document, encode_ticket
+from ros_bridge.protocol.requests import Kind, encode_document, encode_ticket
 from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import SERVICE_WAIT, LoopRequests
 

@@ -1,4 +1,4 @@
-"""A worker's per-world outputs over its rows of the loop's snapshot (ros_bridge/snapshot.py).
+"""A worker's per-world outputs over its rows of the loop's snapshot (ros_bridge/protocol/snapshot.py).
 
 An `Output` is one OutputSpec over the worker's worlds: its publishers (created at start or
 on request) and its messages as bulk CDR bytes.

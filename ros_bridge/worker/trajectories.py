@@ -13,10 +13,10 @@ import numpy as np
 
 from batchsim.controllers.topics import trajectory_batch
 from batchsim.memory import Memory, Ring
-from ros_bridge.commands import Problem
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import FleetPlan
-from ros_bridge.requests import Kind, encode_trajectories
+from ros_bridge.protocol.commands import Problem
+from ros_bridge.protocol.requests import Kind, encode_trajectories
 
 FLUSH_AFTER = 0.001  # s: trajectories reach the loop this long after they arrive, at most
 

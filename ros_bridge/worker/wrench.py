@@ -11,7 +11,7 @@ A request is checked whole by the loop (ros_bridge/simulation.py, batchsim.exter
 answered at once when it is refused (upstream's words: "Body 'x' not found in MuJoCo model."),
 and otherwise when its longest wrench has run: upstream's callback sleeps that long in wall
 time; here the wait is in sim time, whatever the real-time factor, until the loop marks the
-request done (ros_bridge/requests.py). An empty request is answered at once, as upstream's.
+request done (ros_bridge/protocol/requests.py). An empty request is answered at once, as upstream's.
 Upstream's `~/wrench_markers` (visualization_msgs/MarkerArray) is not published.
 
 The handlers are coroutines on a node spun by rclpy's standard executor (the worker's own node
@@ -30,7 +30,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
 from ros_bridge.naming import topic_name
-from ros_bridge.requests import Kind, encode_document, wrench_done
+from ros_bridge.protocol.requests import Kind, encode_document, wrench_done
 from ros_bridge.worker.messages import seconds
 from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import SERVICE_WAIT, LoopRequests
