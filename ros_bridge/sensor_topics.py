@@ -21,6 +21,7 @@ Shared memory, per camera k and lidar k (`SensorPlan.arrays`):
                                      a worker publishes a world's sample once, when its seq moved
     {cam,lid}{k}.time (nworld,) f8   per world: the sim time of its sample (the stamp)
     {cam,lid}{k}.parts (nworld,) u1  per world: which arrays its last sample wrote (PART_BITS)
+    (the blocks' writer and reader, and the WANT_* bits: ros_bridge/protocol/sensor_blocks.py)
     sensors.want (nworld, nsensor) u1  per world and sensor (cameras, then lidars): WANT_* bits of
                                      the topics with a subscriber; each worker writes its worlds'
 
@@ -40,11 +41,7 @@ import numpy as np
 from batchsim.hardware import BatchedSystem
 from batchsim.sampler import Sample, SensorSampler
 from batchsim.sensors import Camera, CameraMode, Lidar
-
-WANT_RGB = 1  # <camera>/image_raw, or a lidar's topic
-WANT_DEPTH = 2  # <camera>/depth/image_raw
-WANT_INFO = 4  # <camera>/camera_info (renders too: its stamps are the frames')
-PART_BITS = {"rgb": WANT_RGB, "depth": WANT_DEPTH, "ranges": WANT_RGB}  # which rows a sample wrote
+from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_RGB, SensorBlock
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,53 +108,6 @@ def sensor_plan(sim: BatchedSystem) -> SensorPlan | None:
     if not cameras and not lidars:
         return None
     return SensorPlan(cameras, lidars, batched=sim.sensors_batched)
-
-
-class SensorBlock:
-    """One camera's or lidar's arrays in shared memory, and its per-world seqlock.
-
-    Args:
-      memory: the shared arrays (batchsim.memory.Memory, or anything indexable by name).
-      prefix: "cam{k}" or "lid{k}".
-      parts: the data arrays' names after the prefix ("rgb", "depth" or "ranges").
-    """
-
-    def __init__(self, memory, prefix: str, parts: tuple[str, ...]):
-        self.data = {p: memory[f"{prefix}.{p}"] for p in parts}
-        self.seq = memory[f"{prefix}.seq"]
-        self.time = memory[f"{prefix}.time"]
-        self.parts = memory[f"{prefix}.parts"]
-
-    def write(self, worlds: np.ndarray, time: float, rows: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
-        """Write a sample of `worlds` (n,): per part, (the worlds it is written for, their
-        rows); seq goes odd, then even, so a reader never takes a torn row for whole."""
-        self.seq[worlds] += 1
-        self.parts[worlds] = 0
-        for part, (where, values) in rows.items():
-            if len(where):
-                self.data[part][where] = values
-                self.parts[where] |= PART_BITS[part]
-        self.time[worlds] = time
-        self.seq[worlds] += 1
-
-    def read(self, lo: int, hi: int, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-        """The rows of worlds [lo, hi) written since `seen` ((hi - lo,) seq values, updated):
-        (local rows (n,), which parts each holds (n,) PART_BITS, stamps (n,) f8 sim seconds,
-        per part (n, ...) copies)."""
-        before = self.seq[lo:hi].copy()
-        rows = np.flatnonzero((before != seen) & (before % 2 == 0))
-        if not rows.size:
-            return rows, np.zeros(0, np.uint8), np.zeros(0), {}
-        worlds = rows + lo
-        time = self.time[worlds]
-        parts = self.parts[worlds]
-        data = {p: a[worlds] for p, a in self.data.items()}  # fancy indexing: copies
-        whole = self.seq[worlds] == before[rows]  # not rewritten while we copied
-        if not whole.all():  # those come again, newer, next time
-            rows, time, parts = rows[whole], time[whole], parts[whole]
-            data = {p: a[whole] for p, a in data.items()}
-        seen[rows] = before[rows]
-        return rows, parts, time, data
 
 
 class SensorFeed:

@@ -269,7 +269,8 @@ def test_camera_blocks_take_memory_only_where_written(shared):
     """The humanoid's three 320x240 cameras for 2048 worlds lay out 3.3 GB of image blocks;
     only the rows a sample writes may take memory."""
     from batchsim.memory import Layout, Memory
-    from ros_bridge.sensor_topics import SensorBlock, sensor_plan
+    from ros_bridge.protocol.sensor_blocks import SensorBlock
+    from ros_bridge.sensor_topics import sensor_plan
 
     sim = batchsim.make("humanoid", 1, "cpu")
     plan = sensor_plan(sim)

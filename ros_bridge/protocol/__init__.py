@@ -6,6 +6,8 @@
                   loop's rejection marks (writer and reader)
     requests.py   what a worker hands the loop through its ring: trajectory batches and
                   service requests, encoded and decoded
+    sensor_blocks.py  cameras' images and lidars' scans per world, seqlocked per world
+                  (writer and reader), and the workers' want bits
 
 The arrays themselves are batchsim.memory's (named arrays and byte rings in shared memory).
 """

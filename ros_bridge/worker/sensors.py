@@ -22,7 +22,8 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2
 
 from ros_bridge.naming import topic_name
-from ros_bridge.sensor_topics import WANT_DEPTH, WANT_INFO, WANT_RGB, SensorBlock, SensorPlan
+from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_INFO, WANT_RGB, SensorBlock
+from ros_bridge.sensor_topics import SensorPlan
 from ros_bridge.worker.messages import stamp_of
 from ros_bridge.worker.sensor_messages import (
     Framing,

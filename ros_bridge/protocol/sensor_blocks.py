@@ -1,0 +1,61 @@
+"""The sensor blocks: one camera's or lidar's images or scans of every world in shared
+memory, seqlocked per world (the writer in the loop's process, the reader in a worker),
+and the want bits the workers set per world and sensor. No rclpy here. The layout of
+the arrays is ros_bridge/sensor_topics.py's (`SensorPlan.arrays`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+WANT_RGB = 1  # <camera>/image_raw, or a lidar's topic
+WANT_DEPTH = 2  # <camera>/depth/image_raw
+WANT_INFO = 4  # <camera>/camera_info (renders too: its stamps are the frames')
+PART_BITS = {"rgb": WANT_RGB, "depth": WANT_DEPTH, "ranges": WANT_RGB}  # which rows a sample wrote
+
+
+class SensorBlock:
+    """One camera's or lidar's arrays in shared memory, and its per-world seqlock.
+
+    Args:
+      memory: the shared arrays (batchsim.memory.Memory, or anything indexable by name).
+      prefix: "cam{k}" or "lid{k}".
+      parts: the data arrays' names after the prefix ("rgb", "depth" or "ranges").
+    """
+
+    def __init__(self, memory, prefix: str, parts: tuple[str, ...]):
+        self.data = {p: memory[f"{prefix}.{p}"] for p in parts}
+        self.seq = memory[f"{prefix}.seq"]
+        self.time = memory[f"{prefix}.time"]
+        self.parts = memory[f"{prefix}.parts"]
+
+    def write(self, worlds: np.ndarray, time: float, rows: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+        """Write a sample of `worlds` (n,): per part, (the worlds it is written for, their
+        rows); seq goes odd, then even, so a reader never takes a torn row for whole."""
+        self.seq[worlds] += 1
+        self.parts[worlds] = 0
+        for part, (where, values) in rows.items():
+            if len(where):
+                self.data[part][where] = values
+                self.parts[where] |= PART_BITS[part]
+        self.time[worlds] = time
+        self.seq[worlds] += 1
+
+    def read(self, lo: int, hi: int, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """The rows of worlds [lo, hi) written since `seen` ((hi - lo,) seq values, updated):
+        (local rows (n,), which parts each holds (n,) PART_BITS, stamps (n,) f8 sim seconds,
+        per part (n, ...) copies)."""
+        before = self.seq[lo:hi].copy()
+        rows = np.flatnonzero((before != seen) & (before % 2 == 0))
+        if not rows.size:
+            return rows, np.zeros(0, np.uint8), np.zeros(0), {}
+        worlds = rows + lo
+        time = self.time[worlds]
+        parts = self.parts[worlds]
+        data = {p: a[worlds] for p, a in self.data.items()}  # fancy indexing: copies
+        whole = self.seq[worlds] == before[rows]  # not rewritten while we copied
+        if not whole.all():  # those come again, newer, next time
+            rows, time, parts = rows[whole], time[whole], parts[whole]
+            data = {p: a[whole] for p, a in data.items()}
+        seen[rows] = before[rows]
+        return rows, parts, time, data
