@@ -268,7 +268,7 @@ def stamp_of(time: float) -> tuple[int, int]:
     return sec, nanosec
 
 
-def _markers(n: int) -> np.ndarray:
+def value_markers(n: int) -> np.ndarray:
     """n distinct finite doubles that no message of ours holds by chance (~1e300, tagged)."""
     bits = np.uint64(0x7E3A_5C00_0000_00A5) | (np.arange(n, dtype=np.uint64) << np.uint64(8))
     return bits.view(np.float64)
@@ -307,7 +307,7 @@ class BulkMessages:
         paths = FIELD_PATHS[spec.msg_type]
         cov_paths = COVARIANCE_PATHS.get(spec.msg_type, {})
         self.nvalue = sum(len(f.columns) for f in spec.fields)
-        markers = _markers(self.nvalue)
+        markers = value_markers(self.nvalue)
         marker_bytes = [m.tobytes() for m in markers]
         by_layout: dict[tuple, tuple[list[int], list[bytes], list[int], int]] = {}
         self.stamped = False
@@ -338,8 +338,8 @@ class BulkMessages:
                         _set(msg, p, float(m))
                 k += n
             data = bytes(serialize_message(msg))
-            value_at = [_find_once(data, m, spec.topic) for m in marker_bytes]
-            stamp_at = _find_once(data, struct.pack("<iI", _STAMP_SEC, _STAMP_NANOSEC), spec.topic) if self.stamped else -1
+            value_at = [find_once(data, m, spec.topic) for m in marker_bytes]
+            stamp_at = find_once(data, struct.pack("<iI", _STAMP_SEC, _STAMP_NANOSEC), spec.topic) if self.stamped else -1
             key = (len(data), stamp_at, tuple(value_at))
             group = by_layout.setdefault(key, ([], [], value_at, stamp_at))
             group[0].append(row)
@@ -368,7 +368,7 @@ class BulkMessages:
 
 
 def locate_markers(data: bytes, n: int, what: str) -> np.ndarray:
-    """(n,) byte offsets of the float64 markers `_markers(n)` in a serialized message: each
+    """(n,) byte offsets of the float64 markers `value_markers(n)` in a serialized message: each
     must lie exactly once (CDR aligns a float64 to 8 bytes past the 4-byte header)."""
     body = np.frombuffer(data, np.uint8, count=(len(data) - 4) // 8 * 8, offset=4).view("<u8")
     tagged = np.flatnonzero((body & np.uint64(0xFFFF_FF00_0000_00FF)) == np.uint64(0x7E3A_5C00_0000_00A5))
@@ -400,7 +400,8 @@ def stamp_bytes(sec: int, nanosec: int) -> np.ndarray:
     return np.frombuffer(struct.pack("<iI", sec, nanosec), np.uint8)
 
 
-def _find_once(data: bytes, pattern: bytes, topic: str) -> int:
+def find_once(data: bytes, pattern: bytes, topic: str) -> int:
+    """Where `pattern` lies in a serialized message; it must lie there exactly once."""
     at = data.find(pattern)
     if at < 0 or data.find(pattern, at + 1) >= 0:
         raise RuntimeError(f"{topic}: cannot lay out the serialized message (marker found {'twice' if at >= 0 else 'nowhere'})")

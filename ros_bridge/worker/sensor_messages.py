@@ -24,9 +24,9 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2, PointField
 
 from batchsim.sensors import Camera, Lidar
+from ros_bridge.worker.messages import find_once, locate_stamps, set_stamp_marker
 
 _STAMP = struct.Struct("<iI")
-_MARK_SEC, _MARK_NANOSEC = 0x5A3C5A3C, 0x2A5C2A5C
 STAMP_AT = 4  # bytes: the header's stamp, after the 4-byte CDR encapsulation header
 
 
@@ -43,20 +43,17 @@ class Framing:
 
     def __init__(self, messages: Sequence[Any], fill: Callable[[Any, bytes], None] | None, nbytes: int, topic: str):
         marker = ((np.arange(nbytes, dtype=np.uint32) * 7 + 13) % 251 + 3).astype(np.uint8).tobytes()
-        stamp = _STAMP.pack(_MARK_SEC, _MARK_NANOSEC)
         self.nbytes = nbytes
         self.prefixes: list[bytearray] = []
         self.suffixes: list[bytes] = []
         for msg in messages:
-            msg.header.stamp.sec, msg.header.stamp.nanosec = _MARK_SEC, _MARK_NANOSEC
+            set_stamp_marker(msg.header.stamp)  # messages.py's markers: one way to find a stamp
             if fill is not None:
                 fill(msg, marker)
             data = bytes(serialize_message(msg))
-            if data[STAMP_AT : STAMP_AT + 8] != stamp:
+            if locate_stamps(data).tolist() != [STAMP_AT]:
                 raise RuntimeError(f"{topic}: the header's stamp is not where CDR puts it")
-            at = data.find(marker, STAMP_AT + 8) if nbytes else len(data)
-            if at < 0 or (nbytes and data.find(marker, at + 1) >= 0):
-                raise RuntimeError(f"{topic}: cannot lay out the serialized message (payload marker not found once)")
+            at = find_once(data, marker, topic) if nbytes else len(data)
             self.prefixes.append(bytearray(data[:at]))
             self.suffixes.append(data[at + nbytes :])
 

@@ -34,7 +34,13 @@ from tf2_msgs.msg import TFMessage
 
 from ros_bridge.naming import frame, topic_name
 from ros_bridge.tf_plan import TfSpec
-from ros_bridge.worker.messages import _markers, locate_markers, locate_stamps, set_stamp_marker, stamp_bytes
+from ros_bridge.worker.messages import (
+    locate_markers,
+    locate_stamps,
+    set_stamp_marker,
+    stamp_bytes,
+    value_markers,
+)
 
 #: tf2_ros's DynamicBroadcasterQoS and StaticBroadcasterQoS
 DYNAMIC_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
@@ -60,7 +66,7 @@ class TfTemplate:
 
     def __init__(self, spec: TfSpec, namespaces: list[str]):
         nmoving = len(spec.moving)
-        markers = _markers(7 * nmoving * len(namespaces)).reshape(len(namespaces), nmoving, 7)
+        markers = value_markers(7 * nmoving * len(namespaces)).reshape(len(namespaces), nmoving, 7)
         msg = TFMessage()
         for w, ns in enumerate(namespaces):
             for k, (parent, child) in enumerate(spec.moving):
