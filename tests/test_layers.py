@@ -92,6 +92,20 @@ def test_the_core_never_imports_the_bridge():
     assert offenders == []
 
 
+def test_the_model_is_a_floor_below_sensors_backends_and_the_loop():
+    """batchsim.model (MJCF, descriptions, the lidars an MJCF declares) needs nothing above it:
+    sensors, the contract, the backends and the loop all read the model, never the reverse."""
+    below = ("batchsim.model", "batchsim.pid", "batchsim.types")
+    offenders = [
+        f"{MODULES[name].relative_to(ROOT)} imports {imp}"
+        for name in MODULES
+        if name.startswith("batchsim.model")
+        for imp in _imports(name, MODULES[name], at_import_time=False)
+        if imp.startswith("batchsim") and not imp.startswith(below)
+    ]
+    assert offenders == []
+
+
 def test_no_import_cycle():
     """Tarjan's strongly connected components over what each module's import runs."""
     graph = {

@@ -4,7 +4,7 @@ XML blocks that MuJoCo itself does not know are read and removed before compilin
 `<extension><plugin plugin="mujoco.ros2">` (its config keys are kept in `RobotSpec.ros`),
 every `<ros2_control>` (handed to `batchsim.model.ros2_control`), in the file itself or in
 a file it includes, and mujoco_ros2_control's lidar declarations, `<lidar>` and
-`mujoco.plugin.lidar` (kept in `RobotSpec.sensor_declarations`, see `batchsim.sensors.mjcf`).
+`mujoco.plugin.lidar` (kept in `RobotSpec.sensor_declarations`, see `batchsim.model.lidars`).
 MuJoCo then compiles the file with the stripped text standing in for it, so meshes,
 textures and includes resolve from the file's own folder whatever the working directory.
 """
@@ -20,8 +20,8 @@ import mujoco
 from batchsim.model.description import Description, from_elements, not_text, parse_xml, read_description
 from batchsim.model.from_urdf import is_urdf, mjcf_from_urdf
 from batchsim.model.interfaces import discover
+from batchsim.model.lidars import DeclarationError, SensorDeclarations, lidar_elements_of, take_declarations
 from batchsim.model.spec import ROS2_PLUGIN, ROS2_PLUGIN_KEYS, ModelError, RobotSpec, RosPluginConfig
-from batchsim.sensors.mjcf import DeclarationError, SensorDeclarations, lidar_elements_of, take_declarations
 
 
 def _models_root():

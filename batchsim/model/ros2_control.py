@@ -33,6 +33,7 @@ from pathlib import Path
 import mujoco
 
 from batchsim.model.description import ComponentInfo, Description
+from batchsim.model.lidars import rangefinder_groups
 from batchsim.model.params import ParamsError, nest_dotted, node_parameters, read_yaml
 from batchsim.model.spec import (
     CommandInterface,
@@ -46,7 +47,6 @@ from batchsim.model.spec import (
 )
 from batchsim.model.transmissions import Transmitted, transmissions
 from batchsim.pid import PidGains
-from batchsim.sensors.lidar import rangefinder_groups
 
 # mujoco_type -> {state interface field: (MJCF sensor suffix param, default suffix, component)}
 _XYZ = ("x", "y", "z")

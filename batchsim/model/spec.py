@@ -9,8 +9,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from batchsim.model.lidars import SensorDeclarations
 from batchsim.pid import PidGains
-from batchsim.sensors.mjcf import SensorDeclarations
 
 ROS2_PLUGIN = "mujoco.ros2"
 ROS2_PLUGIN_KEYS = ("ros_namespace", "topic_queue_size", "topic_reliability")
@@ -256,7 +256,7 @@ class RobotSpec:
       mimics: mimic joints driven from the joint they mimic.
       problems: configuration errors found in a ros2_control block; `on_configure` reports them.
       sensor_declarations: lidars the MJCF and ros2_control file declare outside MuJoCo's own
-        sensors (`<lidar>` elements, mujoco.plugin.lidar sensors; see batchsim.sensors.mjcf).
+        sensors (`<lidar>` elements, mujoco.plugin.lidar sensors; see batchsim.model.lidars).
       warnings: what batchsim does not act on (an unknown param, a plugin): one line each.
       transmissions: ros2_control transmissions; their joints' commands are TRANSMITTED.
       actuator_commands: what drives ctrl where transmissions stand between: `commands`

@@ -23,11 +23,11 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
-import re
 
 import mujoco
 import numpy as np
 
+from batchsim.model.lidars import RangefinderGroup
 from batchsim.sensors.config import SensorConfigError
 
 DEFAULT_RANGE_MAX = 1000.0  # mujoco_ros2_control's default
@@ -118,41 +118,6 @@ def element_angles(min_angle: float, max_angle: float, angle_increment: float) -
 def linspace(lower: float, upper: float, n: int) -> np.ndarray:
     """n angles from lower to upper inclusive (n == 1: lower), as mujoco.plugin.lidar spaces them."""
     return np.linspace(lower, upper, n) if n > 1 else np.array([lower], np.float64)
-
-
-_GROUP = re.compile(r"^(.*)-(\d+)$")
-
-
-@dataclasses.dataclass(frozen=True)
-class RangefinderGroup:
-    """MJCF rangefinders `<name>-<index>`: one lidar of mujoco_ros2_control's arrangement."""
-
-    name: str
-    sensors: tuple[int, ...]  # sensor ids, by index
-    sites: tuple[int, ...]  # their sites
-
-
-def rangefinder_groups(m: mujoco.MjModel) -> list[RangefinderGroup]:
-    """Rangefinder sensors named `<name>-<index>` on sites, grouped by name and ordered by index.
-
-    This is how mujoco_ros2_control's RangefinderLidarPlugin finds its lidars, and how
-    MuJoCo names the rangefinders of a `<replicate>` (`lidar-00`, `lidar-01`, ...).
-    """
-    found: dict[str, list[tuple[int, int, int]]] = {}
-    for s in range(m.nsensor):
-        if int(m.sensor_type[s]) != int(mujoco.mjtSensor.mjSENS_RANGEFINDER):
-            continue
-        if int(m.sensor_objtype[s]) != int(mujoco.mjtObj.mjOBJ_SITE):
-            continue
-        match = _GROUP.match(m.sensor(s).name or "")
-        if match is None:
-            continue
-        found.setdefault(match.group(1), []).append((int(match.group(2)), s, int(m.sensor_objid[s])))
-    groups = []
-    for name, members in found.items():
-        members.sort()
-        groups.append(RangefinderGroup(name, tuple(s for _, s, _ in members), tuple(site for _, _, site in members)))
-    return groups
 
 
 def group_geometry(

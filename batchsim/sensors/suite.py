@@ -1,7 +1,7 @@
 """A system's cameras, lidars and noise, resolved against its model, and who wants which.
 
 `SensorSuite.build(spec, nworld, config)` turns the MJCF's cameras and rangefinder groups,
-the lidars declared in XML (`batchsim.sensors.mjcf`) and the YAML configuration
+the lidars declared in XML (`batchsim.model.lidars`) and the YAML configuration
 (`batchsim.sensors.config`) into `Camera` and `Lidar` data, and the noise patterns into
 per-column noise streams. Every name in the configuration must match something in the
 model: a typo is an error naming the file, the key and what the model has.
@@ -22,10 +22,10 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
+from batchsim.model.lidars import SensorDeclarations, rangefinder_groups
 from batchsim.sensors import lidar as lid
 from batchsim.sensors.camera import DEFAULT_RESOLUTION, Camera, CameraMode, intrinsics, resolution_of
 from batchsim.sensors.config import LidarSettings, SensorConfig, SensorConfigError
-from batchsim.sensors.mjcf import SensorDeclarations
 from batchsim.sensors.noise import Noise, NoiseStream
 
 if TYPE_CHECKING:  # batchsim.model imports this package: no import cycle at run time
@@ -204,7 +204,7 @@ class SensorSuite:
 def _with_ros2_control(config: SensorConfig, m: mujoco.MjModel, declared: SensorDeclarations) -> SensorConfig:
     """`config` over the ros2_control file's settings for the model's cameras and rangefinder lidars."""
     cameras = {m.camera(c).name for c in range(m.ncam)}
-    groups = {g.name for g in lid.rangefinder_groups(m)}
+    groups = {g.name for g in rangefinder_groups(m)}
     params = {name: dict(p) for name, p in declared.sensor_params}
     return config.with_defaults(
         {n: p for n, p in params.items() if n in cameras},
@@ -275,7 +275,7 @@ def _lidars(m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, w
         lidars[ld.name] = ld
 
     # MJCF rangefinders in mujoco_ros2_control's arrangement, read from sensordata
-    groups = {g.name: g for g in lid.rangefinder_groups(m)}
+    groups = {g.name: g for g in rangefinder_groups(m)}
     unknown = sorted(set(config.rangefinder_lidars) - set(groups))
     if unknown:
         raise SensorConfigError(

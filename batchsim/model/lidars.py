@@ -9,6 +9,9 @@
   plugin library batchsim does not load), config keys `resolution`, `azimuth_range`,
   `elevation_range`, `max_range`, `min_range`, `update_rate`, `async`.
 
+- Rangefinder sensors named `<name>-<index>` on sites (`rangefinder_groups`): the lidars of
+  mujoco_ros2_control's RangefinderLidarPlugin, found in the compiled model.
+
 This module only parses; `batchsim.sensors.suite` resolves the sites against the model.
 """
 
@@ -16,7 +19,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import xml.etree.ElementTree as ET
+
+import mujoco
 
 LIDAR_PLUGIN = "mujoco.plugin.lidar"
 LIDAR_PLUGIN_KEYS = ("resolution", "azimuth_range", "elevation_range", "max_range", "min_range", "update_rate", "async")
@@ -217,3 +223,38 @@ def _plugin_lidar(el: ET.Element, instance: str, keys: dict[str, str], where: st
         update_rate=rate[0],
         where=where,
     )
+
+
+_GROUP = re.compile(r"^(.*)-(\d+)$")
+
+
+@dataclasses.dataclass(frozen=True)
+class RangefinderGroup:
+    """MJCF rangefinders `<name>-<index>`: one lidar of mujoco_ros2_control's arrangement."""
+
+    name: str
+    sensors: tuple[int, ...]  # sensor ids, by index
+    sites: tuple[int, ...]  # their sites
+
+
+def rangefinder_groups(m: mujoco.MjModel) -> list[RangefinderGroup]:
+    """Rangefinder sensors named `<name>-<index>` on sites, grouped by name and ordered by index.
+
+    This is how mujoco_ros2_control's RangefinderLidarPlugin finds its lidars, and how
+    MuJoCo names the rangefinders of a `<replicate>` (`lidar-00`, `lidar-01`, ...).
+    """
+    found: dict[str, list[tuple[int, int, int]]] = {}
+    for s in range(m.nsensor):
+        if int(m.sensor_type[s]) != int(mujoco.mjtSensor.mjSENS_RANGEFINDER):
+            continue
+        if int(m.sensor_objtype[s]) != int(mujoco.mjtObj.mjOBJ_SITE):
+            continue
+        match = _GROUP.match(m.sensor(s).name or "")
+        if match is None:
+            continue
+        found.setdefault(match.group(1), []).append((int(match.group(2)), s, int(m.sensor_objid[s])))
+    groups = []
+    for name, members in found.items():
+        members.sort()
+        groups.append(RangefinderGroup(name, tuple(s for _, s, _ in members), tuple(site for _, _, site in members)))
+    return groups
