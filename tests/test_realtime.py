@@ -44,10 +44,12 @@ class Recorder:
         self.stall_at, self.stall, self.spawn_at = stall_at, stall, spawn_at
         self.spawned: list[tuple[int, int]] = []
         self.frozen: list[int] = []  # gc.get_freeze_count() each period
+        self.cpus: list[set[int]] = []  # the loop thread's cores each period
 
     def update(self, sim, time_, period) -> None:
         k = len(self.seen)
         self.seen.append(realtime.current())
+        self.cpus.append(os.sched_getaffinity(0))
         self.frozen.append(gc.get_freeze_count())
         if k == self.spawn_at:  # a thread the loop thread starts keeps the normal policy
             t = threading.Thread(target=lambda: self.spawned.append(realtime.current()))
@@ -79,15 +81,22 @@ NORMAL = (os.SCHED_OTHER, 0)
 
 
 @pytest.mark.skipif(not _can_elevate(), reason="this user may not ask for SCHED_FIFO (see the warning test)")
-def test_a_paced_loop_runs_sched_fifo_from_its_second_period_and_restores_it():
-    rec = Recorder(spawn_at=5)  # rtf 0.2: 50 ms a period, so a loaded machine never puts it 0.5 s behind
-    _, after = run_loop(rtf=0.2, priority=50, periods=10, recorder=rec, affinity=(0,))
-    assert rec.seen[0] == NORMAL  # the first period may compile: it runs as before
-    fifo = [policy & ~os.SCHED_RESET_ON_FORK for policy, _ in rec.seen[1:]]
-    assert fifo == [os.SCHED_FIFO] * 9 and {p for _, p in rec.seen[1:]} == {50}
-    assert rec.spawned == [NORMAL]  # SCHED_RESET_ON_FORK: its threads and processes don't inherit it
+def test_a_paced_loop_runs_sched_fifo_on_its_cores_from_its_second_period_and_restores_them():
+    rec = Recorder()  # rtf 0.05: 200 ms a period, so a loaded machine never puts it 0.5 s behind
+    _, after = run_loop(rtf=0.05, priority=50, periods=6, recorder=rec, affinity=(0,))
+    assert rec.seen[0] == NORMAL and rec.cpus[0] == set(range(os.cpu_count()))  # the first period may compile
+    assert [policy & ~os.SCHED_RESET_ON_FORK for policy, _ in rec.seen[1:]] == [os.SCHED_FIFO] * 5
+    assert {p for _, p in rec.seen[1:]} == {50} and all(c == {0} for c in rec.cpus[1:])
     (policy, affinity) = after[0]
     assert policy == NORMAL and affinity == set(range(os.cpu_count()))
+
+
+@pytest.mark.skipif(not _can_elevate(), reason="this user may not ask for SCHED_FIFO")
+def test_the_threads_a_sched_fifo_loop_starts_keep_the_normal_policy():
+    rec = Recorder(spawn_at=2)
+    run_loop(rtf=0.05, priority=50, periods=4, recorder=rec)
+    assert rec.seen[2][0] & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO
+    assert rec.spawned == [NORMAL]  # SCHED_RESET_ON_FORK: its threads and processes don't inherit it
 
 
 def test_a_paced_loop_freezes_start_up_out_of_the_collector_and_thaws_it_after():
@@ -102,13 +111,13 @@ def test_a_paced_loop_freezes_start_up_out_of_the_collector_and_thaws_it_after()
 
 @pytest.mark.skipif(not _can_elevate(), reason="this user may not ask for SCHED_FIFO")
 def test_a_loop_that_falls_behind_gives_sched_fifo_up_and_says_so(caplog):
-    rec = Recorder(stall_at=3, stall=0.9)  # rtf 0.2: only the stall puts it 0.5 s behind
+    rec = Recorder(stall_at=3, stall=1.2)  # rtf 0.05: only the stall puts it 0.5 s behind
     with caplog.at_level(logging.WARNING, logger="batchsim"):
-        run_loop(rtf=0.2, priority=50, periods=8, recorder=rec)
+        run_loop(rtf=0.05, priority=50, periods=6, recorder=rec)
     assert rec.seen[3][0] & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO
     assert rec.seen[5] == NORMAL
     lines = [r.getMessage() for r in caplog.records if "gives up SCHED_FIFO" in r.getMessage()]
-    assert len(lines) == 1 and re.search(r"the loop fell \d+\.\d s behind rtf 0.2: its thread gives up", lines[0]), lines
+    assert len(lines) == 1 and re.search(r"the loop fell \d+\.\d s behind rtf 0.05: its thread gives up", lines[0]), lines
 
 
 def test_a_loop_run_flat_out_or_asked_for_nothing_keeps_the_normal_policy():
