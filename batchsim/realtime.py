@@ -7,6 +7,8 @@ control period then waits for the scheduler, not for its own work. SimLoop does 
 for the thread that runs it, while it paces a real-time factor (a loop run flat out has no
 deadline to protect), and only for that thread: `SCHED_RESET_ON_FORK` keeps every thread
 and process it starts (a restarted bridge worker, a render thread) at the normal policy.
+Cores are inherited, though: a thread the pinned loop starts shares its core (the bridge
+workers are placed off it, batchsim's render threads start before the loop does).
 
 Without the permission (`rtprio` in limits.conf, or `--cap-add=sys_nice --ulimit
 rtprio=99` for a container) the loop runs as before and says so once.
