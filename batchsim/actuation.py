@@ -24,6 +24,7 @@ import numpy as np
 from batchsim.model import CommandMode, RobotSpec, StateColumn
 from batchsim.pid import PidBank
 from batchsim.transmissions import CommandMap
+from batchsim.types import StateSource
 
 
 class Actuation:
@@ -59,7 +60,7 @@ class Actuation:
         self.feedback_columns = [
             StateColumn(
                 f"{cmds[k].name}/measured",
-                "qpos" if cmds[k].mode is CommandMode.POSITION_PID else "qvel",
+                StateSource.QPOS if cmds[k].mode is CommandMode.POSITION_PID else StateSource.QVEL,
                 cmds[k].qposadr if cmds[k].mode is CommandMode.POSITION_PID else cmds[k].dofadr,
             )
             for k in pid_cols

@@ -54,10 +54,10 @@ from batchsim.sensors import SensorConfig, SensorSuite
 from batchsim.types import (
     FROZEN,
     MAX_COMMAND,
-    READ_FIELDS,
     ConfigurationError,
     ReturnType,
     SensorData,
+    StateSource,
     Status,
     StepFailures,
     check_nstep,
@@ -134,11 +134,11 @@ class BatchedSystem(BaseDriving, Wrenching, Sensing, EngineHooks, SystemInterfac
         self._bind_sensordata(np.zeros((self.nworld, m.nsensordata)))
         # state columns gathered per source field: (state columns, field indices)
         self._gather: list[tuple[str, np.ndarray, np.ndarray]] = []
-        for source in READ_FIELDS:
-            cols = [i for i, c in enumerate(self._columns) if c.source == source]
+        for source in StateSource:
+            cols = [i for i, c in enumerate(self._columns) if c.source is source]
             if cols:
                 idx = [self._columns[i].index for i in cols]
-                self._gather.append((source, as_slice(cols), as_slice(idx)))
+                self._gather.append((source.value, as_slice(cols), as_slice(idx)))
         self._finish = Finish(spec, self._columns)
         self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
         self._ctrl_cols = as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster

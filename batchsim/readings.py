@@ -17,6 +17,7 @@ import numpy as np
 
 from batchsim.model import RobotSpec, StateColumn
 from batchsim.transmissions import StateMap
+from batchsim.types import StateSource
 
 
 def base_columns(spec: RobotSpec) -> list[StateColumn]:
@@ -24,8 +25,8 @@ def base_columns(spec: RobotSpec) -> list[StateColumn]:
     base = spec.floating_base
     if base is None:
         return []
-    pose = [StateColumn(f"{base.joint}/qpos{k}", "qpos", base.qposadr + k) for k in range(7)]
-    twist = [StateColumn(f"{base.joint}/qvel{k}", "qvel", base.dofadr + k) for k in range(6)]
+    pose = [StateColumn(f"{base.joint}/qpos{k}", StateSource.QPOS, base.qposadr + k) for k in range(7)]
+    twist = [StateColumn(f"{base.joint}/qvel{k}", StateSource.QVEL, base.dofadr + k) for k in range(6)]
     return pose + twist
 
 
@@ -34,9 +35,9 @@ def actuator_columns(spec: RobotSpec) -> list[StateColumn]:
     as blocks of positions, then velocities, then efforts."""
     found = [(name, q, v) for name, q, v in spec.actuator_joints if q >= 0]
     return (
-        [StateColumn(f"{n}/actuator_position", "qpos", q) for n, q, _ in found]
-        + [StateColumn(f"{n}/actuator_velocity", "qvel", v) for n, _, v in found]
-        + [StateColumn(f"{n}/actuator_effort", "qfrc_actuator", v) for n, _, v in found]
+        [StateColumn(f"{n}/actuator_position", StateSource.QPOS, q) for n, q, _ in found]
+        + [StateColumn(f"{n}/actuator_velocity", StateSource.QVEL, v) for n, _, v in found]
+        + [StateColumn(f"{n}/actuator_effort", StateSource.QFRC_ACTUATOR, v) for n, _, v in found]
     )
 
 

@@ -57,8 +57,20 @@ class Status(enum.IntFlag):
 FROZEN = Status.DIVERGED | Status.OVERFLOW
 #: MuJoCo's mjMAXVAL: a ctrl beyond it trips mjWARN_BADCTRL; write() rejects a command beyond it
 MAX_COMMAND = 1e10
-#: the engine fields read() gathers state interfaces from (`StateColumn.source`), in this order
-READ_FIELDS = ("qpos", "qvel", "qfrc_actuator", "sensordata")
+
+
+class StateSource(enum.Enum):
+    """The engine field a state interface is read from (`StateColumn.source`): the value is the
+    MjData field's name; read() gathers them in the members' order."""
+
+    QPOS = "qpos"
+    QVEL = "qvel"
+    QFRC_ACTUATOR = "qfrc_actuator"
+    SENSORDATA = "sensordata"
+
+
+#: the engine fields read() gathers state interfaces from, in StateSource's order
+READ_FIELDS = tuple(s.value for s in StateSource)
 
 
 class ConfigurationError(ValueError):

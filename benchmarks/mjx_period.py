@@ -190,7 +190,7 @@ def _read_columns(sim: batchsim.BatchedSystem) -> np.ndarray:
     concatenation qpos | qvel | qfrc_actuator | sensordata, from the public spec."""
     m = sim.model
     offset = {"qpos": 0, "qvel": m.nq, "qfrc_actuator": m.nq + m.nv, "sensordata": m.nq + 2 * m.nv}
-    columns = [offset[c.source] + c.index for c in sim.spec.state]
+    columns = [offset[c.source.value] + c.index for c in sim.spec.state]
     base = sim.spec.floating_base
     if base is not None:
         columns += [base.qposadr + k for k in range(7)] + [m.nq + base.dofadr + k for k in range(6)]

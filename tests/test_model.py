@@ -7,12 +7,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 from conftest import need
 
 import batchsim
 from batchsim import ConfigurationError, LifecycleState, ModelError
+from batchsim.types import READ_FIELDS, StateSource
 
 S = LifecycleState
 
@@ -469,7 +471,19 @@ def test_torque_and_force_name_the_effort_interface(tmp_path):
     spec = batchsim.load(_robot(tmp_path, BLOCK.format(hw="", extra="")))
     assert spec.command_interfaces == ["j1/position", "j2/torque"]
     assert [c.name for c in spec.state][:4] == ["j1/position", "j1/velocity", "j1/torque", "j2/position"]
-    assert spec.state[2].source == "qfrc_actuator"
+    assert spec.state[2].source is StateSource.QFRC_ACTUATOR
+
+
+def test_state_sources_name_the_mjdata_fields_read_gathers(tmp_path):
+    """A state column's source is a StateSource whose value names the MjData field read() takes
+    it from, in READ_FIELDS' order."""
+    assert READ_FIELDS == ("qpos", "qvel", "qfrc_actuator", "sensordata")
+    assert [StateSource(f) for f in READ_FIELDS] == list(StateSource)
+    spec = batchsim.load(_robot(tmp_path, BLOCK.format(hw="", extra="")))
+    d = mujoco.MjData(spec.mjmodel)
+    assert {c.source for c in spec.state} >= {StateSource.QPOS, StateSource.QVEL, StateSource.QFRC_ACTUATOR}
+    for c in spec.state:
+        assert isinstance(c.source, StateSource) and 0 <= c.index < getattr(d, c.source.value).size, c
 
 
 def test_tendon_and_site_actuators_match_by_their_name(tmp_path):

@@ -59,9 +59,10 @@ from batchsim.backends.device import (
 )
 from batchsim.backends.host_sensors import HostSensors
 from batchsim.base_velocity import HELD_DOFS
-from batchsim.hardware import MAX_COMMAND, READ_FIELDS, Status, StepFailures
+from batchsim.hardware import MAX_COMMAND, Status, StepFailures
 from batchsim.model import RobotSpec, StateColumn
 from batchsim.sensors import Camera, Lidar
+from batchsim.types import StateSource
 
 _CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device)
 
@@ -112,7 +113,7 @@ def _programs(
         return _PROGRAMS[key]
     step = jax.vmap(mjx.step, in_axes=(None, 0))
     m = spec.mjmodel
-    offset = dict(zip(READ_FIELDS, np.cumsum([0, m.nq, m.nv, m.nv]), strict=True))
+    offset = dict(zip(StateSource, np.cumsum([0, m.nq, m.nv, m.nv]), strict=True))
     take = np.array([offset[c.source] + c.index for c in columns], dtype=np.int32)
 
     def read(qpos: jax.Array, qvel: jax.Array, qfrc: jax.Array, sensordata: jax.Array):

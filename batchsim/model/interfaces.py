@@ -35,6 +35,7 @@ from batchsim.model.spec import (
     Sensor,
     StateColumn,
 )
+from batchsim.types import StateSource
 
 # Field names of each MuJoCo sensor type's components, ros2_control style.
 _XYZ = ("x", "y", "z")
@@ -191,14 +192,14 @@ def discover(
     for j in joints:
         for iname in joint_states[j.name]:
             source, index = {
-                InterfaceKind.POSITION: ("qpos", j.qposadr),
-                InterfaceKind.VELOCITY: ("qvel", j.dofadr),
-                InterfaceKind.EFFORT: ("qfrc_actuator", j.dofadr),
+                InterfaceKind.POSITION: (StateSource.QPOS, j.qposadr),
+                InterfaceKind.VELOCITY: (StateSource.QVEL, j.dofadr),
+                InterfaceKind.EFFORT: (StateSource.QFRC_ACTUATOR, j.dofadr),
             }[InterfaceKind.of_name(iname)]
             state.append(StateColumn(f"{j.name}/{iname}", source, index))
     for s in sensors:
         for k, field in enumerate(s.fields):
-            state.append(StateColumn(f"{s.name}/{field}", "sensordata", s.adr + k))
+            state.append(StateColumn(f"{s.name}/{field}", StateSource.SENSORDATA, s.adr + k))
     state += sensor_columns
 
     base = floating_base(m)

@@ -47,6 +47,7 @@ from batchsim.model.spec import (
 )
 from batchsim.model.transmissions import Transmitted, transmissions
 from batchsim.pid import PidGains
+from batchsim.types import StateSource
 
 # mujoco_type -> {state interface field: (MJCF sensor suffix param, default suffix, component)}
 _XYZ = ("x", "y", "z")
@@ -417,7 +418,7 @@ def _sensors(description: Description, m: mujoco.MjModel, sensors: list[Sensor],
                 name = f"{field}.{component}"
                 if wanted and name not in wanted:
                     continue
-                out.sensor_columns.append(StateColumn(f"{el.name}/{name}", "sensordata", adr + k, sign))
+                out.sensor_columns.append(StateColumn(f"{el.name}/{name}", StateSource.SENSORDATA, adr + k, sign))
         known = {c.name.split("/", 1)[1] for c in out.sensor_columns if c.name.startswith(el.name + "/")}
         for name in sorted(wanted - known):
             if not name.endswith("covariance") and not any(name.startswith(p[0]) for p in parts):

@@ -11,6 +11,7 @@ import numpy as np
 
 from batchsim.model.lidars import SensorDeclarations
 from batchsim.pid import PidGains
+from batchsim.types import StateSource
 
 ROS2_PLUGIN = "mujoco.ros2"
 ROS2_PLUGIN_KEYS = ("ros_namespace", "topic_queue_size", "topic_reliability")
@@ -167,7 +168,7 @@ class StateColumn:
     """Where one state interface's value comes from: a field and an index into it."""
 
     name: str
-    source: str  # "qpos", "qvel", "qfrc_actuator" or "sensordata"
+    source: StateSource
     index: int
     sign: float = 1.0  # -1: read negated (mujoco_ros2_control's force/torque sensors)
 

@@ -27,6 +27,7 @@ from batchsim.sensors import lidar as lid
 from batchsim.sensors.camera import DEFAULT_RESOLUTION, Camera, CameraMode, intrinsics, resolution_of
 from batchsim.sensors.config import LidarSettings, SensorConfig, SensorConfigError
 from batchsim.sensors.noise import Noise, NoiseStream
+from batchsim.types import StateSource
 
 if TYPE_CHECKING:  # batchsim.model imports this package: no import cycle at run time
     from batchsim.model import RobotSpec
@@ -441,11 +442,11 @@ def _reading_noise(spec: RobotSpec, config: SensorConfig, used: set[str], where:
     for pattern, nz in config.noise.items():
         sensors = [s for s in spec.sensors if fnmatch.fnmatchcase(s.name, pattern)]
         columns = [
-            i for i, c in enumerate(spec.state) if c.source != "sensordata" and fnmatch.fnmatchcase(c.name, pattern)
+            i for i, c in enumerate(spec.state) if c.source is not StateSource.SENSORDATA and fnmatch.fnmatchcase(c.name, pattern)
         ]
         # a sensor by name, or one of its state interfaces ("wrist_force/force.x"), names sensordata elements
         matched = {s.adr + k for s in sensors for k in range(s.dim)} | {
-            c.index for c in spec.state if c.source == "sensordata" and fnmatch.fnmatchcase(c.name, pattern)
+            c.index for c in spec.state if c.source is StateSource.SENSORDATA and fnmatch.fnmatchcase(c.name, pattern)
         }
         if not columns and not matched:
             if pattern in used:
@@ -465,7 +466,7 @@ def _reading_noise(spec: RobotSpec, config: SensorConfig, used: set[str], where:
     if not state and not elements:
         return None
     per_value = [*state.values(), *elements.values()]
-    readings = [i for i, c in enumerate(spec.state) if c.source == "sensordata"]
+    readings = [i for i, c in enumerate(spec.state) if c.source is StateSource.SENSORDATA]
     return ReadingNoise(
         NoiseStream(per_value, config.seed, "readings", len(per_value)),
         np.array(list(state), np.intp),

@@ -175,7 +175,7 @@ class WarpSystem(WarpWrenches, WarpSensors, DeviceSystem):
             source = np.zeros(nread, np.int32)
             index = np.zeros(nread, np.int32)
             for c, col in enumerate(self._columns):
-                source[c], index[c] = READ_FIELDS.index(col.source), col.index
+                source[c], index[c] = READ_FIELDS.index(col.source.value), col.index
             self._source = wp.array(source, dtype=wp.int32)
             self._index = wp.array(index, dtype=wp.int32)
             # the period's start, kept on the device: to repeat it, or to read a failed world
