@@ -46,10 +46,11 @@ from batchsim.loop import SimLoop
 from ros_bridge.host import BridgeHost
 from ros_bridge.options import BridgeOptions, Reliability, default_workers
 from ros_bridge.plan import build_plan
+from ros_bridge.registry import ConflictKind
 from ros_bridge.sensor_topics import SensorFeed
 from ros_bridge.supervisor import FleetConflict, WorkerError
 
-__all__ = ["BridgeHost", "BridgeOptions", "FleetConflict", "Reliability", "WorkerError", "start_bridge"]
+__all__ = ["BridgeHost", "BridgeOptions", "ConflictKind", "FleetConflict", "Reliability", "WorkerError", "start_bridge"]
 
 
 def start_bridge(

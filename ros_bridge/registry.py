@@ -7,20 +7,31 @@ started on the same domain on the same machine) certain to be caught, whatever D
 discovery takes; fleets on other hosts are found in the ROS graph (worker.check_conflicts).
 
     registry = Registry.for_domain()
-    registry.claim("batchsim_0_15", namespaces, clock=True)   # FleetConflict-style (kind, message)
+    registry.claim("batchsim_0_15", namespaces, clock=True)   # None, or (ConflictKind, message)
     ...
     registry.release()
 """
 
 from __future__ import annotations
 
+import enum
 import fcntl
 import json
 import os
 import tempfile
 from pathlib import Path
 
+from batchsim.types import AnyCase
+
 ROOT = Path(tempfile.gettempdir()) / "batchsim-fleets"
+
+
+class ConflictKind(AnyCase, enum.Enum):
+    """What another live fleet already serves (`FleetConflict.kind`); the worker process
+    reports it by value on its status pipe (`conflict namespace ...`)."""
+
+    NAMESPACE = "namespace"  # one of this fleet's world namespaces
+    CLOCK = "clock"  # /clock, which one process of a fleet may publish
 
 
 class Registry:
@@ -41,9 +52,9 @@ class Registry:
         domain = domain if domain is not None else os.environ.get("ROS_DOMAIN_ID", "0") or "0"
         return cls(root / f"domain_{domain}")
 
-    def claim(self, node: str, namespaces: list[str], clock: bool) -> tuple[str, str] | None:
+    def claim(self, node: str, namespaces: list[str], clock: bool) -> tuple[ConflictKind, str] | None:
         """Register; or return (kind, message) naming the live process this one would clash
-        with ("namespace": it serves one of `namespaces`; "clock": it publishes /clock too)."""
+        with (NAMESPACE: it serves one of `namespaces`; CLOCK: it publishes /clock too)."""
         self.directory.mkdir(parents=True, exist_ok=True, mode=0o777)
         guard = os.open(self.directory / ".lock", os.O_CREAT | os.O_RDWR, 0o666)
         try:
@@ -57,14 +68,14 @@ class Registry:
                 if clash:
                     more = f" and {len(clash) - 1} more" if len(clash) > 1 else ""
                     return (
-                        "namespace",
+                        ConflictKind.NAMESPACE,
                         f"another batchsim process already serves /{clash[0]}{more} (node /{other['node']}, "
                         f"pid {other['pid']}): give this one other worlds (a world offset or another namespace "
                         "template) or another ROS domain",
                     )
                 if clock and other["clock"]:
                     return (
-                        "clock",
+                        ConflictKind.CLOCK,
                         f"another process already publishes /clock (node /{other['node']}, pid {other['pid']}): "
                         "only one process of a fleet may",
                     )

@@ -25,7 +25,7 @@ from typing import Any
 from batchsim.memory import Memory
 from ros_bridge.naming import worlds_label
 from ros_bridge.plan import FleetPlan
-from ros_bridge.registry import Registry
+from ros_bridge.registry import ConflictKind, Registry
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.transport import PROFILES_FILE, TransportProfile
 
@@ -46,12 +46,12 @@ class FleetConflict(ValueError):
     """Another process on the ROS domain already serves these worlds, or /clock.
 
     Attributes:
-      kind: "namespace" or "clock".
+      kind: what it already serves; given as a string where a worker reported it.
     """
 
-    def __init__(self, kind: str, message: str):
+    def __init__(self, kind: ConflictKind | str, message: str):
         super().__init__(message)
-        self.kind = kind
+        self.kind = ConflictKind(kind)
 
 
 class WorkerError(RuntimeError):

@@ -261,6 +261,27 @@ def test_every_enum_taken_from_a_string_takes_any_case():
             enum_type(value)
 
 
+def test_fleet_conflicts_carry_a_kind_from_the_registry_or_a_workers_status_line(tmp_path):
+    """The registry names what another live fleet serves as a ConflictKind; a worker's status
+    line (`conflict clock ...`) gives it by value, and FleetConflict turns it into the member."""
+    from ros_bridge.registry import ConflictKind, Registry
+    from ros_bridge.supervisor import FleetConflict
+
+    first, second = Registry(tmp_path / "domain_0"), Registry(tmp_path / "domain_0")
+    assert first.claim("batchsim_0_1", ["world_0", "world_1"], clock=True) is None
+    try:
+        kind, message = second.claim("batchsim_1_2", ["world_1", "world_2"], clock=False)
+        assert kind is ConflictKind.NAMESPACE and "already serves /world_1 " in message
+        kind, message = second.claim("batchsim_2_3", ["world_2"], clock=True)
+        assert kind is ConflictKind.CLOCK and "already publishes /clock" in message
+    finally:
+        first.release()
+    assert FleetConflict(ConflictKind.NAMESPACE, "m").kind is ConflictKind.NAMESPACE
+    assert FleetConflict("clock", "m").kind is ConflictKind.CLOCK and str(FleetConflict("clock", "m")) == "m"
+    with pytest.raises(ValueError):
+        FleetConflict("topics", "m")
+
+
 def test_plan_of_the_arm_with_its_controllers():
     sim = batchsim.make("arm", 8, "cpu")
     sim.configure()

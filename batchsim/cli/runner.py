@@ -164,7 +164,14 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
     Errors name the flags; another process already serving these worlds or /clock is a
     UsageError (exit 2) naming that process's node."""
     try:
-        from ros_bridge.bridge import BridgeOptions, FleetConflict, Reliability, WorkerError, start_bridge
+        from ros_bridge.bridge import (
+            BridgeOptions,
+            ConflictKind,
+            FleetConflict,
+            Reliability,
+            WorkerError,
+            start_bridge,
+        )
     except ModuleNotFoundError as e:
         raise UsageError(
             f"ROS 2 is not installed ({e.name} is missing): {startup.install_command('ros')}, or pass --no-ros"
@@ -196,9 +203,8 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
     except OptionError as e:
         raise UsageError(e.named(_flag(e.option))) from None
     except FleetConflict as e:
-        hint = (
-            "--world-offset, --namespace or another ROS_DOMAIN_ID" if e.kind == "namespace" else "--no-clock on all but one"
-        )
+        namespace = e.kind is ConflictKind.NAMESPACE
+        hint = "--world-offset, --namespace or another ROS_DOMAIN_ID" if namespace else "--no-clock on all but one"
         raise UsageError(f"{e} ({hint})") from None
     except WorkerError as e:
         raise UsageError(str(e)) from None
