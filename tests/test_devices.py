@@ -10,6 +10,7 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import pickle
 import signal
 import time
 from pathlib import Path
@@ -18,7 +19,8 @@ import numpy as np
 import pytest
 
 import batchsim
-from batchsim.backends.shards import ShardProcessError
+from batchsim.backends.shards import CALLS, ShardOp, ShardProcessError, serve
+from batchsim.hardware import BatchedSystem
 from batchsim.loop import OptionError
 from batchsim.types import split_worlds
 
@@ -35,6 +37,16 @@ def test_worlds_split_into_contiguous_ranges_as_even_as_can_be():
         split_worlds(3, 4)
     with pytest.raises(OptionError, match="3 worlds cannot be split over 4 devices"):
         batchsim.make("arm", 3, "warp", devices=["cpu"] * 4)
+
+
+def test_shard_operations_are_enum_members_that_survive_the_socket():
+    """What the fleet asks of a shard is a ShardOp (issue 22), pickled as it is to a shard
+    process; those run as calls name a system's method; a string is no operation."""
+    assert all(pickle.loads(pickle.dumps(op)) is op for op in ShardOp)
+    assert all(callable(getattr(BatchedSystem, op.value)) for op in CALLS)
+    assert ShardOp.STEP not in CALLS and ShardOp.DEVICE_ARRAYS not in CALLS
+    with pytest.raises(ValueError, match="a shard serves no operation 'step'"):
+        serve(None, None, "step", (), {})
 
 
 @SHARDS

@@ -42,7 +42,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from batchsim.backends.shards import FleetRows, LocalShard, ProcessShard, fleet_layout, spin_budget
+from batchsim.backends.shards import FleetRows, LocalShard, ProcessShard, ShardOp, fleet_layout, spin_budget
 from batchsim.hardware import BatchedSystem, CallbackReturn, LifecycleState, ReturnType
 from batchsim.loop import OptionError
 from batchsim.memory import Memory
@@ -164,32 +164,32 @@ class ShardedSystem(BatchedSystem):
 
     # --- lifecycle: every shard follows the fleet ---
     def on_init(self) -> CallbackReturn:
-        self._each("initialize", parallel=self.processes)
+        self._each(ShardOp.INITIALIZE, parallel=self.processes)
         return CallbackReturn.SUCCESS
 
     def on_configure(self, previous_state: LifecycleState) -> CallbackReturn:
         # the first shard alone: it compiles the kernels the others then load from the cache
         # (and in one process, loading kernels and models is not thread-safe)
-        self.shards[0].call("configure")
-        self._each("configure", shards=self.shards[1:], parallel=self.processes)
+        self.shards[0].call(ShardOp.CONFIGURE)
+        self._each(ShardOp.CONFIGURE, shards=self.shards[1:], parallel=self.processes)
         return CallbackReturn.SUCCESS
 
     def on_activate(self, previous_state: LifecycleState) -> CallbackReturn:
-        self._each("activate", parallel=self.processes)
+        self._each(ShardOp.ACTIVATE, parallel=self.processes)
         return CallbackReturn.SUCCESS
 
     def on_deactivate(self, previous_state: LifecycleState) -> CallbackReturn:
-        self._each("deactivate", parallel=self.processes)
+        self._each(ShardOp.DEACTIVATE, parallel=self.processes)
         return CallbackReturn.SUCCESS
 
     def on_cleanup(self, previous_state: LifecycleState) -> CallbackReturn:
-        self._each("cleanup", parallel=self.processes)
+        self._each(ShardOp.CLEANUP, parallel=self.processes)
         return CallbackReturn.SUCCESS
 
     def on_shutdown(self, previous_state: LifecycleState) -> CallbackReturn:
         live = [s for s in self.shards if s.lifecycle_state is not LifecycleState.FINALIZED]
         try:
-            self._each("shutdown", shards=live, parallel=self.processes)
+            self._each(ShardOp.SHUTDOWN, shards=live, parallel=self.processes)
         finally:
             self._finalizer()
         return CallbackReturn.SUCCESS
@@ -200,7 +200,7 @@ class ShardedSystem(BatchedSystem):
             for s in self.shards
             if s.lifecycle_state not in (LifecycleState.UNKNOWN, LifecycleState.FINALIZED)
         ]
-        self._each("error", shards=live, parallel=False)
+        self._each(ShardOp.ERROR, shards=live, parallel=False)
         return CallbackReturn.SUCCESS
 
     # --- the contract, over the shards ---
@@ -208,14 +208,14 @@ class ShardedSystem(BatchedSystem):
         if self.lifecycle_state not in (LifecycleState.INACTIVE, LifecycleState.ACTIVE):
             return ReturnType.OK
         # every device's download at once; each shard writes its rows of the fleet's arrays
-        self._each("read", time, period)
+        self._each(ShardOp.READ, time, period)
         self._add_noise()  # frozen worlds keep their held, noise-free readings
         return ReturnType.OK
 
     def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
         if self.lifecycle_state is not LifecycleState.ACTIVE:
             return ReturnType.OK
-        self._each("write", time, period)  # each shard takes its rows of `command`; uploads at once
+        self._each(ShardOp.WRITE, time, period)  # each shard takes its rows of `command`; uploads at once
         return ReturnType.OK
 
     def step(self, nstep: int = 1) -> None:
@@ -223,7 +223,7 @@ class ShardedSystem(BatchedSystem):
         self._require("step", frozenset({LifecycleState.INACTIVE, LifecycleState.ACTIVE}))
         check_nstep(nstep)
         # the first period of a length compiles or captures it: one device at a time
-        self._each("step", int(nstep), parallel=nstep in self._stepped)
+        self._each(ShardOp.STEP, int(nstep), parallel=nstep in self._stepped)
         self._stepped.add(nstep)
 
     def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
@@ -236,13 +236,13 @@ class ShardedSystem(BatchedSystem):
         for shard, r in zip(self.shards, self.world_ranges, strict=True):
             local = None if rows is None else rows[(rows >= r.start) & (rows < r.stop)] - r.start
             # reset refreshes every world's readings, as on one device
-            calls.append((shard, "reset", (local,)) if local is None or local.size else (shard, "read", ()))
+            calls.append((shard, ShardOp.RESET, (local,)) if local is None or local.size else (shard, ShardOp.READ, ()))
         self._run(calls, self.processes)
         self._add_noise()  # frozen worlds keep their held, noise-free readings
 
     def perform_command_mode_switch(self, start: Sequence[str], stop: Sequence[str] = ()) -> None:
         super().perform_command_mode_switch(start, stop)  # checks the names
-        self._each("perform_command_mode_switch", list(start), list(stop), parallel=self.processes)
+        self._each(ShardOp.PERFORM_COMMAND_MODE_SWITCH, list(start), list(stop), parallel=self.processes)
 
     def device_arrays(self) -> dict[str, PerDevice]:
         """The live device arrays of every shard (see the backend's device_arrays), field by
@@ -251,7 +251,7 @@ class ShardedSystem(BatchedSystem):
         each device's arrays live in its shard process: these are host copies of them,
         taken now (writing them changes nothing)."""
         if self.processes:
-            parts = self._each("device_arrays")
+            parts = self._each(ShardOp.DEVICE_ARRAYS)
         else:
             parts = [shard.system.device_arrays() for shard in self.shards]  # type: ignore[union-attr]
         return {field: PerDevice([p[field] for p in parts]) for field in parts[0]}
@@ -260,35 +260,35 @@ class ShardedSystem(BatchedSystem):
     def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
         super().set_sensor_config(config)
         quiet = dataclasses.replace(self._sensor_config, noise={})  # the fleet adds the noise
-        self._each("set_sensor_config", quiet, parallel=self.processes)
+        self._each(ShardOp.SET_SENSOR_CONFIG, quiet, parallel=self.processes)
 
     def _render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
         # the shards' parts concatenated: arrays of the caller's own whatever `copy` says
         parts = self._run(
-            [(s, "render", (camera.name, local)) for s, local in self._split(worlds)], self.processes
+            [(s, ShardOp.RENDER, (camera.name, local)) for s, local in self._split(worlds)], self.processes
         )
         return np.concatenate([p.rgb for p in parts]), np.concatenate([p.depth for p in parts])
 
     def _device_frames(self, camera: Camera) -> tuple[PerDevice, PerDevice]:
         if self.processes:  # host copies, from each shard process (see device_arrays)
-            parts = self._each("device_frames", camera.name)
+            parts = self._each(ShardOp.DEVICE_FRAMES, camera.name)
         else:
             parts = [shard.system.render(camera.name, device=True) for shard in self.shards]  # type: ignore[union-attr]
         return PerDevice([p.rgb for p in parts]), PerDevice([p.depth for p in parts])
 
     def _cast_ranges(self, lidar: Lidar, worlds: np.ndarray, copy: bool) -> np.ndarray:
-        calls = [(s, "scan", (lidar.name, local)) for s, local in self._split(worlds)]
+        calls = [(s, ShardOp.SCAN, (lidar.name, local)) for s, local in self._split(worlds)]
         return np.concatenate(self._run(calls, self.processes))
 
     def _device_ranges(self, lidar: Lidar) -> PerDevice:
         if self.processes:  # host copies, from each shard process (see device_arrays)
-            return PerDevice(self._each("device_ranges", lidar.name))
+            return PerDevice(self._each(ShardOp.DEVICE_RANGES, lidar.name))
         return PerDevice([shard.system.scan(lidar.name, device=True) for shard in self.shards])  # type: ignore[union-attr]
 
     def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # each shard's worlds in ascending order, then put back in the order asked for
         order = np.argsort(worlds, kind="stable")
-        parts = self._run([(s, "body_poses", (local,)) for s, local in self._split(worlds[order])], self.processes)
+        parts = self._run([(s, ShardOp.BODY_POSES, (local,)) for s, local in self._split(worlds[order])], self.processes)
         xpos, xquat = np.empty((len(worlds), self.model.nbody, 3)), np.empty((len(worlds), self.model.nbody, 4))
         if parts:
             xpos[order], xquat[order] = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
@@ -296,21 +296,21 @@ class ShardedSystem(BatchedSystem):
 
     def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         order = np.argsort(worlds, kind="stable")
-        parts = self._run([(s, "qstate", (local,)) for s, local in self._split(worlds[order])], self.processes)
+        parts = self._run([(s, ShardOp.QSTATE, (local,)) for s, local in self._split(worlds[order])], self.processes)
         qpos, qvel = np.empty((len(worlds), self.model.nq)), np.empty((len(worlds), self.model.nv))
         if parts:
             qpos[order], qvel[order] = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
         return qpos, qvel
 
     def _refresh(self) -> None:
-        self._each("read", None, None)  # each shard writes its rows of the fleet's arrays
+        self._each(ShardOp.READ, None, None)  # each shard writes its rows of the fleet's arrays
 
     def _set_qstate(self, worlds: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
         order = np.argsort(worlds, kind="stable")
         qpos, qvel = qpos[order], qvel[order]
         calls, at = [], 0
         for s, local in self._split(worlds[order]):
-            calls.append((s, "set_qstate", (local, qpos[at : at + len(local)], qvel[at : at + len(local)])))
+            calls.append((s, ShardOp.SET_QSTATE, (local, qpos[at : at + len(local)], qvel[at : at + len(local)])))
             at += len(local)
         self._run(calls, self.processes)
 
@@ -326,7 +326,7 @@ class ShardedSystem(BatchedSystem):
     # --- helpers ---
     def _each(
         self,
-        op: str,
+        op: ShardOp,
         *args: Any,
         shards: Sequence[LocalShard | ProcessShard] | None = None,
         parallel: bool = True,
@@ -336,7 +336,7 @@ class ShardedSystem(BatchedSystem):
         return self._run([(shard, op, args) for shard in shards], parallel)
 
     @staticmethod
-    def _run(calls: list[tuple[Any, str, tuple]], parallel: bool) -> list[Any]:
+    def _run(calls: list[tuple[Any, ShardOp, tuple]], parallel: bool) -> list[Any]:
         """Run (shard, op, args) calls, at once or in turn; their results in order. Every
         call is answered before the first failure is raised (a shard process then still
         takes requests)."""

@@ -10,7 +10,7 @@ its readings where the fleet's arrays already are, and the fleet copies nothing.
 
     shard = ProcessShard(backend, spec, rows, device, options, memory, fleet_size)
     shard.started()                      # after starting every shard: they start at once
-    shard.submit("step", 10).result()    # every shard's submit first, then every result
+    shard.submit(ShardOp.STEP, 10).result()  # every shard's submit first, then every result
 
 A process shard runs `main(FD)` of this module in a new Python and talks over a socket pair:
 one request, one reply, pickled. The reply carries the shard's log records, which the
@@ -20,6 +20,7 @@ shard's kind. A shard process exits when the fleet's process closes the socket o
 
 from __future__ import annotations
 
+import enum
 import logging
 import os
 import socket
@@ -38,26 +39,40 @@ from batchsim.hardware import BatchedSystem, Frames, LifecycleState
 from batchsim.memory import Layout, Memory
 from batchsim.model import RobotSpec
 
-# what a shard serves besides write/step/read/reset: the lifecycle, the sensors and the body
-# poses (an answer of host arrays, as a render's)
-CALLS = frozenset(
-    {
-        "initialize",
-        "configure",
-        "activate",
-        "deactivate",
-        "cleanup",
-        "shutdown",
-        "error",
-        "set_sensor_config",
-        "perform_command_mode_switch",
-        "render",
-        "scan",
-        "body_poses",
-        "qstate",
-        "set_qstate",
-    }
-)
+
+class ShardOp(enum.Enum):
+    """An operation the fleet asks of a shard (`serve`), pickled as it is to a shard process."""
+
+    WRITE = "write"
+    STEP = "step"
+    READ = "read"
+    RESET = "reset"
+    CONFIGURE = "configure"
+    INITIALIZE = "initialize"
+    ACTIVATE = "activate"
+    DEACTIVATE = "deactivate"
+    CLEANUP = "cleanup"
+    SHUTDOWN = "shutdown"
+    ERROR = "error"
+    SET_SENSOR_CONFIG = "set_sensor_config"
+    PERFORM_COMMAND_MODE_SWITCH = "perform_command_mode_switch"
+    RENDER = "render"
+    SCAN = "scan"
+    BODY_POSES = "body_poses"
+    QSTATE = "qstate"
+    SET_QSTATE = "set_qstate"
+    # a shard process's device arrays cannot leave it: it answers these with host copies
+    DEVICE_ARRAYS = "device_arrays"
+    DEVICE_FRAMES = "device_frames"
+    DEVICE_RANGES = "device_ranges"
+
+
+# the operations a shard runs as its system's method of the member's value, as they come: the
+# rest of the lifecycle, the sensors and the body poses (an answer of host arrays, as a render's)
+CALLS = frozenset(ShardOp) - {
+    ShardOp.WRITE, ShardOp.STEP, ShardOp.READ, ShardOp.RESET, ShardOp.CONFIGURE,
+    ShardOp.DEVICE_ARRAYS, ShardOp.DEVICE_FRAMES, ShardOp.DEVICE_RANGES,
+}  # fmt: skip
 START_TIMEOUT = 300.0  # s: a shard process importing its backend and building its model
 POLL = 1.0  # s: how often a waiting fleet checks that its shard process is still alive
 # s: how long a waiting side (the fleet for a reply, a shard for its next request) polls
@@ -132,36 +147,35 @@ class FleetRows:
         self.command[:] = system.command
 
 
-def serve(system: BatchedSystem, rows: FleetRows, op: str, args: tuple, kwargs: dict) -> Any:
+def serve(system: BatchedSystem, rows: FleetRows, op: ShardOp, args: tuple, kwargs: dict) -> Any:
     """Run one operation of a shard on its system, moving what it needs through `rows`."""
-    if op == "write":
+    if op is ShardOp.WRITE:
         rows.take_command(system)
         system.write(*args)
         rows.give_status(system)
-    elif op == "step":
+    elif op is ShardOp.STEP:
         system.step(*args)
         rows.give_status(system)
-    elif op == "read":
+    elif op is ShardOp.READ:
         system.read(*args)
         rows.give_readings(system)
-    elif op == "reset":
+    elif op is ShardOp.RESET:
         system.reset(*args)
         rows.give_readings(system)
         rows.give_command(system)  # the reset worlds' commands are their initial ones again
-    elif op == "configure":  # which resets every world
+    elif op is ShardOp.CONFIGURE:  # which resets every world
         value = system.configure()
         rows.give_readings(system)
         rows.give_command(system)
         return value
     elif op in CALLS:
-        return getattr(system, op)(*args, **kwargs)
-    # a shard process's device arrays cannot leave it: it answers with host copies
-    elif op == "device_arrays":
+        return getattr(system, op.value)(*args, **kwargs)
+    elif op is ShardOp.DEVICE_ARRAYS:
         return {field: _host(array) for field, array in system.device_arrays().items()}
-    elif op == "device_frames":
+    elif op is ShardOp.DEVICE_FRAMES:
         frames = system.render(*args, device=True)
         return Frames(_host(frames.rgb), _host(frames.depth))
-    elif op == "device_ranges":
+    elif op is ShardOp.DEVICE_RANGES:
         return _host(system.scan(*args, device=True))
     else:
         raise ValueError(f"a shard serves no operation {op!r}")
@@ -193,10 +207,10 @@ class LocalShard:
     def options(self) -> dict[str, Any]:
         return self.system.options
 
-    def submit(self, op: str, *args: Any, **kwargs: Any) -> Future:
+    def submit(self, op: ShardOp, *args: Any, **kwargs: Any) -> Future:
         return self._pool.submit(serve, self.system, self.rows, op, args, kwargs)
 
-    def call(self, op: str, *args: Any, **kwargs: Any) -> Any:
+    def call(self, op: ShardOp, *args: Any, **kwargs: Any) -> Any:
         """Run `op` on this thread (lifecycle transitions: one shard at a time)."""
         return serve(self.system, self.rows, op, args, kwargs)
 
@@ -307,7 +321,7 @@ class ProcessShard:
     def pid(self) -> int:
         return self._popen.pid
 
-    def submit(self, op: str, *args: Any, **kwargs: Any) -> _Reply:
+    def submit(self, op: ShardOp, *args: Any, **kwargs: Any) -> _Reply:
         """Send one request; its `result()` waits for the reply (one request at a time)."""
         if self._pending:
             raise RuntimeError(f"{self!r}: a request is already waiting for its reply")
@@ -318,7 +332,7 @@ class ProcessShard:
         self._pending = True
         return _Reply(self)
 
-    def call(self, op: str, *args: Any, **kwargs: Any) -> Any:
+    def call(self, op: ShardOp, *args: Any, **kwargs: Any) -> Any:
         return self.submit(op, *args, **kwargs).result()
 
     def _receive(self, timeout: float | None = None) -> Any:
