@@ -428,7 +428,7 @@ def test_a_keyframe_is_chosen_by_name_or_index_and_an_unknown_one_is_named(tmp_p
     with pytest.raises(ModelError, match=r"robot.xml: no keyframe 'nope' \(keyframes: 'up', 'home'\)"):
         batchsim.load(path, keyframe="nope")
     plain = batchsim.model.load_string(ROBOT.replace('name="home"', 'name="other"'))
-    assert plain.initial.source == "qpos0"
+    assert plain.initial.source == "qpos0" and plain.initial.is_qpos0
     assert any("no keyframe 'home'; its keyframes: 'up', 'other' (choose one with --keyframe" in w for w in plain.warnings)
 
 
@@ -457,7 +457,7 @@ BLOCK = """<ros2_control name="arm" type="system">
 def test_initial_value_sets_a_joint_over_home_but_not_over_a_named_keyframe(tmp_path):
     spec = batchsim.load(_robot(tmp_path, BLOCK.format(hw="", extra="")))
     assert spec.initial.qpos[0] == pytest.approx(0.2) and spec.initial.qpos[1] == pytest.approx(-1.0)
-    assert spec.initial.source == "keyframe 'home' with ros2_control initial_value"
+    assert spec.initial.source == "keyframe 'home' with ros2_control initial_value" and not spec.initial.is_qpos0
     named = batchsim.load(
         _robot(tmp_path, BLOCK.format(hw='<param name="initial_keyframe">up</param>', extra=""))
     )
@@ -465,6 +465,26 @@ def test_initial_value_sets_a_joint_over_home_but_not_over_a_named_keyframe(tmp_
     assert any("initial_value of j1: ignored: keyframe 'up'" in w for w in named.warnings)
     bad = batchsim.load(_robot(tmp_path, BLOCK.format(hw='<param name="initial_keyframe">nope</param>', extra="")))
     assert any("initial_keyframe: no keyframe 'nope'" in p for p in bad.problems)
+
+
+def test_initial_value_over_qpos0_is_where_worlds_start_and_reset_to(tmp_path):
+    """Without a keyframe the label says qpos0, but the state is not the model's defaults: the
+    start's typed fields (not its label) tell a backend to write it (issue 22)."""
+    text = ROBOT.replace('name="home"', 'name="other"')
+    spec = batchsim.load(_robot(tmp_path, BLOCK.format(hw="", extra=""), text=text))
+    assert spec.initial.source == "qpos0 with ros2_control initial_value"
+    assert spec.initial.keyframe is None and spec.initial.initial_values and not spec.initial.is_qpos0
+    sim = batchsim.make(spec, 2, "cpu")
+    sim.configure()
+    sim.activate()
+    column = sim.export_state_interfaces().index("j1/position")
+    assert sim.state[:, column] == pytest.approx([0.2, 0.2])
+    sim.command[:, 0] = 1.5
+    sim.write()
+    sim.step(200)
+    sim.reset(worlds=[1])
+    sim.read()
+    assert sim.state[1, column] == pytest.approx(0.2) and sim.state[0, column] != pytest.approx(0.2, abs=0.05)
 
 
 def test_torque_and_force_name_the_effort_interface(tmp_path):

@@ -182,7 +182,7 @@ class CpuSystem(BatchedSystem):
         if self._unfilled is not None:
             self._unfilled[slice(None) if worlds is None else worlds] = False
         initial = self.spec.initial
-        if initial.source == "qpos0" and initial.time == 0.0:
+        if initial.is_qpos0 and initial.time == 0.0:
             self._batch.reset(ids=ids)
             return
         # a keyframe, initial values or a start time: the model's defaults, overwritten, then mj_forward

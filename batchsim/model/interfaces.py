@@ -302,7 +302,7 @@ def initial_state(
                 if j.name in initial_values:
                     start.qpos[j.qposadr] = initial_values[j.name]
                     _hold(m, start, j)
-            start.source += " with ros2_control initial_value"
+            start.initial_values = True
     return start
 
 

@@ -191,28 +191,40 @@ class InitialState:
     ctrl: np.ndarray  # (nu,)
     mocap_pos: np.ndarray  # (nmocap, 3)
     mocap_quat: np.ndarray  # (nmocap, 4)
-    source: str = "qpos0"  # what it was taken from, for `batchsim info` and messages
-    keyframe: str | None = None  # the keyframe's name (or "#<index>" for an unnamed one)
+    keyframe: str | None = None  # the keyframe's name (or "#<index>" for an unnamed one); None: qpos0
     ctrl_given: bool = False  # the keyframe gives ctrl: the initial command holds it
+    initial_values: bool = False  # ros2_control initial_value set some joints' qpos
+
+    @property
+    def is_qpos0(self) -> bool:
+        """The model's own defaults, as mj_resetData leaves an MjData: no keyframe, no initial_value."""
+        return self.keyframe is None and not self.initial_values
+
+    @property
+    def source(self) -> str:
+        """What it was taken from, for `batchsim info` and messages: `qpos0` or `keyframe 'home'`,
+        then ` with ros2_control initial_value` where those were applied."""
+        taken = "qpos0" if self.keyframe is None else f"keyframe {self.keyframe}"
+        return taken + (" with ros2_control initial_value" if self.initial_values else "")
 
     @classmethod
     def of_model(cls, m: mujoco.MjModel) -> InitialState:
         """The model's defaults, as mj_resetData leaves an MjData."""
         d = mujoco.MjData(m)
-        return cls.of_data(d, "qpos0")
+        return cls.of_data(d)
 
     @classmethod
     def of_keyframe(cls, m: mujoco.MjModel, key: int, label: str, ctrl_given: bool) -> InitialState:
         """Keyframe `key`, as mj_resetDataKeyframe leaves an MjData."""
         d = mujoco.MjData(m)
         mujoco.mj_resetDataKeyframe(m, d, key)
-        state = cls.of_data(d, f"keyframe {label}")
+        state = cls.of_data(d)
         state.keyframe = label
         state.ctrl_given = ctrl_given
         return state
 
     @classmethod
-    def of_data(cls, d: mujoco.MjData, source: str) -> InitialState:
+    def of_data(cls, d: mujoco.MjData) -> InitialState:
         return cls(
             time=float(d.time),
             qpos=d.qpos.copy(),
@@ -221,7 +233,6 @@ class InitialState:
             ctrl=d.ctrl.copy(),
             mocap_pos=d.mocap_pos.copy(),
             mocap_quat=d.mocap_quat.copy(),
-            source=source,
         )
 
     def apply(self, m: mujoco.MjModel, d: mujoco.MjData) -> None:
