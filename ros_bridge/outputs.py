@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 
+import mujoco
 import numpy as np
 
 from batchsim.hardware import BatchedSystem
@@ -119,9 +120,11 @@ def robot_outputs(
             outputs.append(
                 OutputSpec(f"sensors/{token}", kind, (Field("data", ch, cols),), every=sensor_every, on_request=True)
             )
-        by_site: dict[str, dict[str, str]] = {}
+        T = mujoco.mjtSensor
+        parts = (T.mjSENS_FRAMEQUAT, T.mjSENS_GYRO, T.mjSENS_ACCELEROMETER, T.mjSENS_FORCE, T.mjSENS_TORQUE)
+        by_site: dict[str, dict[mujoco.mjtSensor, str]] = {}  # a site's IMU and wrench are made of these
         for s in sensors:
-            if s.objname and s.type in ("framequat", "gyro", "accelerometer", "force", "torque"):
+            if s.objname and s.type in parts:
                 by_site.setdefault(s.objname, {}).setdefault(s.type, s.name)
         for site, kinds in by_site.items():
             token = ros_names([site])[0]
@@ -130,14 +133,14 @@ def robot_outputs(
                 return tuple(at[name] + k for k in order)
 
             frame = f"{{ns}}/{site}"
-            if "gyro" in kinds and "accelerometer" in kinds:
+            if T.mjSENS_GYRO in kinds and T.mjSENS_ACCELEROMETER in kinds:
                 fields = [
-                    Field("angular_velocity", ch, cols(kinds["gyro"], (0, 1, 2))),
-                    Field("linear_acceleration", ch, cols(kinds["accelerometer"], (0, 1, 2))),
+                    Field("angular_velocity", ch, cols(kinds[T.mjSENS_GYRO], (0, 1, 2))),
+                    Field("linear_acceleration", ch, cols(kinds[T.mjSENS_ACCELEROMETER], (0, 1, 2))),
                 ]
                 covariance: tuple[tuple[str, tuple[float, ...]], ...] = ()
-                if "framequat" in kinds:  # MuJoCo (w, x, y, z) -> ROS (x, y, z, w)
-                    fields.insert(0, Field("orientation", ch, cols(kinds["framequat"], (1, 2, 3, 0))))
+                if T.mjSENS_FRAMEQUAT in kinds:  # MuJoCo (w, x, y, z) -> ROS (x, y, z, w)
+                    fields.insert(0, Field("orientation", ch, cols(kinds[T.mjSENS_FRAMEQUAT], (1, 2, 3, 0))))
                 else:  # REP 145: no orientation estimate
                     covariance = (("orientation", (-1.0,) + (0.0,) * 8),)
                 outputs.append(
@@ -146,10 +149,10 @@ def robot_outputs(
                         covariance=covariance, every=publish_every, on_request=True,
                     )
                 )  # fmt: skip
-            if "force" in kinds and "torque" in kinds:
+            if T.mjSENS_FORCE in kinds and T.mjSENS_TORQUE in kinds:
                 fields = [
-                    Field("force", ch, cols(kinds["force"], (0, 1, 2))),
-                    Field("torque", ch, cols(kinds["torque"], (0, 1, 2))),
+                    Field("force", ch, cols(kinds[T.mjSENS_FORCE], (0, 1, 2))),
+                    Field("torque", ch, cols(kinds[T.mjSENS_TORQUE], (0, 1, 2))),
                 ]
                 outputs.append(
                     OutputSpec(

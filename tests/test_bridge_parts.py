@@ -295,6 +295,8 @@ def test_plan_of_the_arm_with_its_controllers():
     assert topics["sensors/wrist_force"].on_request and topics["sensors/wrist_force"].msg_type == "std_msgs/msg/Float64MultiArray"
     assert topics["joint_trajectory_controller/controller_state/error"].on_request
     assert not topics["wrist_ft_broadcaster/wrench"].on_request
+    # a site with force and torque sensors (Sensor.type, mujoco.mjtSensor) publishes a wrench
+    assert [f.name for f in topics["sensors/wrist/wrench"].fields] == ["force", "torque"]
     assert set(plan.owners) == {"joint_trajectory_controller"}
     assert [i.topic for i in plan.inputs] == ["joint_trajectory_controller/joint_trajectory"]
     assert len(inputs) == 1 and len(fills) == len(plan.channels)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import pickle
 import subprocess
 import sys
 from pathlib import Path
@@ -485,6 +486,17 @@ def test_initial_value_over_qpos0_is_where_worlds_start_and_reset_to(tmp_path):
     sim.reset(worlds=[1])
     sim.read()
     assert sim.state[1, column] == pytest.approx(0.2) and sim.state[0, column] != pytest.approx(0.2, abs=0.05)
+
+
+def test_a_sensors_type_is_mujocos_enum_and_its_name_is_for_display(tmp_path):
+    """Sensor.type is mujoco.mjtSensor (issue 22); type_name is what `batchsim info` prints. The
+    enum survives pickling (a fleet's shard processes and bridge workers get the spec) equal."""
+    spec = batchsim.load(_robot(tmp_path))
+    quat = spec.sensor("tool_quat")
+    assert quat.type == mujoco.mjtSensor.mjSENS_FRAMEQUAT and quat.type_name == "framequat"
+    assert quat.fields == ("orientation.w", "orientation.x", "orientation.y", "orientation.z")
+    assert [s.type_name for s in spec.sensors] == ["force", "torque", "framequat", "framepos", "gyro", "accelerometer"]
+    assert pickle.loads(pickle.dumps(quat)) == quat
 
 
 def test_torque_and_force_name_the_effort_interface(tmp_path):

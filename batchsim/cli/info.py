@@ -60,7 +60,7 @@ def info(argv: Sequence[str]) -> int:
                 for c in spec.actuator_commands or () if c.name.rsplit("/", 1)[0] in t.actuators]
     out.append(f"\nsensors ({len(spec.sensors)})")
     out += [
-        f"  {s.name:24s} {s.type:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors
+        f"  {s.name:24s} {s.type_name:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors
     ]
     suite = SensorSuite.build(spec, args.worlds, sensors)
     out += sensor_lines(suite)

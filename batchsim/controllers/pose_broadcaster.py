@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
+import mujoco
 import numpy as np
 
 from batchsim.controllers.base import Controller, Params
@@ -42,8 +43,9 @@ class PoseBroadcaster(Controller):
 
     def _frame_sensor_columns(self) -> list[str]:
         """The columns of MJCF framepos/framequat sensors on the site or body `pose_name`."""
-        pos = next((s for s in self.spec.sensors if s.type == "framepos" and s.objname == self.pose_name), None)
-        quat = next((s for s in self.spec.sensors if s.type == "framequat" and s.objname == self.pose_name), None)
+        on_pose = [s for s in self.spec.sensors if s.objname == self.pose_name]
+        pos = next((s for s in on_pose if s.type == mujoco.mjtSensor.mjSENS_FRAMEPOS), None)
+        quat = next((s for s in on_pose if s.type == mujoco.mjtSensor.mjSENS_FRAMEQUAT), None)
         if pos is None or quat is None:
             raise self.params.error(
                 "pose_name",

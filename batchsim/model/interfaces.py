@@ -40,39 +40,39 @@ from batchsim.types import StateSource
 # Field names of each MuJoCo sensor type's components, ros2_control style.
 _XYZ = ("x", "y", "z")
 _WXYZ = ("w", "x", "y", "z")
-_SENSOR_FIELDS: dict[str, tuple[str, tuple[str, ...]]] = {
-    "touch": ("force", ()),
-    "accelerometer": ("linear_acceleration", _XYZ),
-    "velocimeter": ("linear_velocity", _XYZ),
-    "gyro": ("angular_velocity", _XYZ),
-    "force": ("force", _XYZ),
-    "torque": ("torque", _XYZ),
-    "magnetometer": ("magnetic_field", _XYZ),
-    "rangefinder": ("range", ()),
-    "jointpos": ("position", ()),
-    "jointvel": ("velocity", ()),
-    "tendonpos": ("position", ()),
-    "tendonvel": ("velocity", ()),
-    "actuatorpos": ("position", ()),
-    "actuatorvel": ("velocity", ()),
-    "actuatorfrc": ("effort", ()),
-    "jointactfrc": ("effort", ()),
-    "tendonactfrc": ("effort", ()),
-    "ballquat": ("orientation", _WXYZ),
-    "ballangvel": ("angular_velocity", _XYZ),
-    "framepos": ("position", _XYZ),
-    "framequat": ("orientation", _WXYZ),
-    "framexaxis": ("x_axis", _XYZ),
-    "frameyaxis": ("y_axis", _XYZ),
-    "framezaxis": ("z_axis", _XYZ),
-    "framelinvel": ("linear_velocity", _XYZ),
-    "frameangvel": ("angular_velocity", _XYZ),
-    "framelinacc": ("linear_acceleration", _XYZ),
-    "frameangacc": ("angular_acceleration", _XYZ),
-    "subtreecom": ("position", _XYZ),
-    "subtreelinvel": ("linear_velocity", _XYZ),
-    "subtreeangmom": ("angular_momentum", _XYZ),
-    "clock": ("time", ()),
+_SENSOR_FIELDS: dict[mujoco.mjtSensor, tuple[str, tuple[str, ...]]] = {
+    mujoco.mjtSensor.mjSENS_TOUCH: ("force", ()),
+    mujoco.mjtSensor.mjSENS_ACCELEROMETER: ("linear_acceleration", _XYZ),
+    mujoco.mjtSensor.mjSENS_VELOCIMETER: ("linear_velocity", _XYZ),
+    mujoco.mjtSensor.mjSENS_GYRO: ("angular_velocity", _XYZ),
+    mujoco.mjtSensor.mjSENS_FORCE: ("force", _XYZ),
+    mujoco.mjtSensor.mjSENS_TORQUE: ("torque", _XYZ),
+    mujoco.mjtSensor.mjSENS_MAGNETOMETER: ("magnetic_field", _XYZ),
+    mujoco.mjtSensor.mjSENS_RANGEFINDER: ("range", ()),
+    mujoco.mjtSensor.mjSENS_JOINTPOS: ("position", ()),
+    mujoco.mjtSensor.mjSENS_JOINTVEL: ("velocity", ()),
+    mujoco.mjtSensor.mjSENS_TENDONPOS: ("position", ()),
+    mujoco.mjtSensor.mjSENS_TENDONVEL: ("velocity", ()),
+    mujoco.mjtSensor.mjSENS_ACTUATORPOS: ("position", ()),
+    mujoco.mjtSensor.mjSENS_ACTUATORVEL: ("velocity", ()),
+    mujoco.mjtSensor.mjSENS_ACTUATORFRC: ("effort", ()),
+    mujoco.mjtSensor.mjSENS_JOINTACTFRC: ("effort", ()),
+    mujoco.mjtSensor.mjSENS_TENDONACTFRC: ("effort", ()),
+    mujoco.mjtSensor.mjSENS_BALLQUAT: ("orientation", _WXYZ),
+    mujoco.mjtSensor.mjSENS_BALLANGVEL: ("angular_velocity", _XYZ),
+    mujoco.mjtSensor.mjSENS_FRAMEPOS: ("position", _XYZ),
+    mujoco.mjtSensor.mjSENS_FRAMEQUAT: ("orientation", _WXYZ),
+    mujoco.mjtSensor.mjSENS_FRAMEXAXIS: ("x_axis", _XYZ),
+    mujoco.mjtSensor.mjSENS_FRAMEYAXIS: ("y_axis", _XYZ),
+    mujoco.mjtSensor.mjSENS_FRAMEZAXIS: ("z_axis", _XYZ),
+    mujoco.mjtSensor.mjSENS_FRAMELINVEL: ("linear_velocity", _XYZ),
+    mujoco.mjtSensor.mjSENS_FRAMEANGVEL: ("angular_velocity", _XYZ),
+    mujoco.mjtSensor.mjSENS_FRAMELINACC: ("linear_acceleration", _XYZ),
+    mujoco.mjtSensor.mjSENS_FRAMEANGACC: ("angular_acceleration", _XYZ),
+    mujoco.mjtSensor.mjSENS_SUBTREECOM: ("position", _XYZ),
+    mujoco.mjtSensor.mjSENS_SUBTREELINVEL: ("linear_velocity", _XYZ),
+    mujoco.mjtSensor.mjSENS_SUBTREEANGMOM: ("angular_momentum", _XYZ),
+    mujoco.mjtSensor.mjSENS_CLOCK: ("time", ()),
 }
 
 
@@ -115,8 +115,8 @@ def _actuators(m: mujoco.MjModel, one_dof: tuple[int, int]) -> list[Actuator]:
     return out
 
 
-def _sensor_fields(type_name: str, dim: int) -> tuple[str, ...]:
-    field, components = _SENSOR_FIELDS.get(type_name, ("value", ()))
+def _sensor_fields(sensor_type: mujoco.mjtSensor, dim: int) -> tuple[str, ...]:
+    field, components = _SENSOR_FIELDS.get(sensor_type, ("value", ()))
     if components and len(components) == dim:
         return tuple(f"{field}.{c}" for c in components)
     if dim == 1:
@@ -156,16 +156,16 @@ def discover(
 
     sensors = []
     for s in range(m.nsensor):
-        type_name = mujoco.mjtSensor(m.sensor_type[s]).name.removeprefix("mjSENS_").lower()
+        sensor_type = mujoco.mjtSensor(m.sensor_type[s])
         dim = int(m.sensor_dim[s])
         objname = mujoco.mj_id2name(m, int(m.sensor_objtype[s]), int(m.sensor_objid[s]))
         sensors.append(
             Sensor(
                 name=m.sensor(s).name or f"sensor{s}",
-                type=type_name,
+                type=sensor_type,
                 adr=int(m.sensor_adr[s]),
                 dim=dim,
-                fields=_sensor_fields(type_name, dim),
+                fields=_sensor_fields(sensor_type, dim),
                 objname=objname,
             )
         )

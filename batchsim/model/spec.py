@@ -136,11 +136,16 @@ class Sensor:
     """An MJCF sensor: its slice of `sensordata` and its field names."""
 
     name: str
-    type: str  # MuJoCo's sensor type, lower case without prefix: "force", "framequat"
+    type: mujoco.mjtSensor  # compare with ==: a pybind11 enum, a new object once unpickled
     adr: int
     dim: int
     fields: tuple[str, ...]
     objname: str | None  # the site, joint, actuator or frame object it is attached to
+
+    @property
+    def type_name(self) -> str:
+        """The type as `batchsim info` shows it: lower case without prefix ("force", "framequat")."""
+        return self.type.name.removeprefix("mjSENS_").lower()
 
 
 @dataclasses.dataclass(frozen=True)
