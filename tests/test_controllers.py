@@ -25,6 +25,7 @@ from batchsim.controllers import (
 )
 from batchsim.hardware import ConfigurationError
 from batchsim.loop import SimLoop
+from batchsim.model import InterfaceKind
 
 ARM_JOINTS = [f"joint{i}" for i in range(1, 7)]
 
@@ -724,6 +725,7 @@ def test_batched_diff_drive_matches_a_per_world_reference():
     sim = FakeSim(spec, nworld, rng)
     manager = load_controllers(default_controllers("car"), spec, nworld)
     dd = manager["diff_drive_controller"]
+    assert dd.wheel_command_interface is InterfaceKind.EFFORT  # the car's wheels: its wheel PID runs
     names = spec.state_interfaces
     lp, rp = names.index("left_wheel_joint/position"), names.index("right_wheel_joint/position")
     lv, rv = names.index("left_wheel_joint/velocity"), names.index("right_wheel_joint/velocity")

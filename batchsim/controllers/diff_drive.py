@@ -34,7 +34,7 @@ import numpy as np
 from batchsim.controllers.base import Controller, Params, last_per_world
 from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output
 from batchsim.hardware import MAX_COMMAND
-from batchsim.model import RobotSpec
+from batchsim.model import InterfaceKind, RobotSpec
 
 
 class _Limiter:
@@ -143,10 +143,10 @@ class DiffDriveController(Controller):
             ("velocity", "effort"),
             "velocity" if "velocity" in served or "effort" not in served else "effort",
         )
-        self.wheel_command_interface = kind
+        self.wheel_command_interface = InterfaceKind(kind)
         self._left_cols = self.claim("left_wheel_names", [f"{j}/{kind}" for j in self.left])
         self._right_cols = self.claim("right_wheel_names", [f"{j}/{kind}" for j in self.right])
-        self._pid = kind == "effort"
+        self._pid = self.wheel_command_interface is InterfaceKind.EFFORT
         self.kp = params.number("wheel_velocity_pid.p", 0.1, minimum=0.0)
         self.ki = params.number("wheel_velocity_pid.i", 1.0, minimum=0.0)
         self.i_clamp = params.number("wheel_velocity_pid.i_clamp", 2.0, minimum=0.0)
