@@ -59,7 +59,6 @@ def subscriber(domain: int, lo: int, hi: int, template: str) -> None:
     os.environ.update(LOCALHOST)
     import rclpy
     from rclpy.context import Context
-    from rclpy.experimental import EventsExecutor
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import JointState
@@ -78,10 +77,7 @@ def subscriber(domain: int, lo: int, hi: int, template: str) -> None:
     for w in range(lo, hi):
         topic = "/" + template.format(i=w).strip("/") + "/joint_states"
         node.create_subscription(JointState, topic, counter(w - lo), 10, raw=True)
-    executor = EventsExecutor(context=context)
-    executor.add_node(node)
-    stop = threading.Event()
-    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    executor, stop = executor_until_stdin_closes(context, node)
     heard = False
     next_report = time.time()
     while not stop.is_set():
@@ -106,7 +102,6 @@ def published_listener(domain: int) -> None:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.context import Context
-    from rclpy.experimental import EventsExecutor
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
 
@@ -126,15 +121,24 @@ def published_listener(domain: int) -> None:
             print(f"published {now:.3f} {worker} {total}", flush=True)
 
     node.create_subscription(DiagnosticArray, "/diagnostics", callback, 100)
-    executor = EventsExecutor(context=context)
-    executor.add_node(node)
-    stop = threading.Event()
-    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    executor, stop = executor_until_stdin_closes(context, node)
     while not stop.is_set():
         executor.spin_once(timeout_sec=0.05)
     executor.shutdown()
     node.destroy_node()
     rclpy.try_shutdown(context=context)
+
+
+def executor_until_stdin_closes(context, node):
+    """A child process's EventsExecutor for `node`, and an event set once the parent closes
+    the child's stdin (how these benchmarks stop their helper processes)."""
+    from rclpy.experimental import EventsExecutor
+
+    executor = EventsExecutor(context=context)
+    executor.add_node(node)
+    stop = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    return executor, stop
 
 
 # --- the parent ---

@@ -21,13 +21,15 @@ import platform
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))  # fleet.py beside it, also when imported as benchmarks.flood
+from fleet import executor_until_stdin_closes  # noqa: E402
+
 LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 JOINTS = [f"joint{j}" for j in range(1, 7)]
 TOPICS = {"trajectory": "joint_trajectory_controller/joint_trajectory", "commands": "commands"}
@@ -48,7 +50,6 @@ def _init(domain: int, name: str):
 def counter(domain: int, nworld: int, out: str) -> None:
     """Every world's joint_states, raw: (world, wall time, sim stamp) of each, saved to `out`
     when stdin closes."""
-    from rclpy.experimental import EventsExecutor
     from sensor_msgs.msg import JointState
 
     context, node = _init(domain, "flood_counter")
@@ -63,10 +64,7 @@ def counter(domain: int, nworld: int, out: str) -> None:
 
     for w in range(nworld):
         node.create_subscription(JointState, f"/world_{w}/joint_states", sink(w), 10, raw=True)
-    executor = EventsExecutor(context=context)
-    executor.add_node(node)
-    stop = threading.Event()
-    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    executor, stop = executor_until_stdin_closes(context, node)
     print("ready", flush=True)
     heard, deadline = False, time.monotonic() + 60
     while not stop.is_set():
@@ -111,7 +109,6 @@ def flooder(domain: int, world: int, kind: str, seconds: float, points: int = 1)
 def diagnostics(domain: int, world: int) -> None:
     """Print world `world`'s /diagnostics values once a second until stdin closes."""
     from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.experimental import EventsExecutor
 
     context, node = _init(domain, "flood_diagnostics")
     last: dict[str, str] = {}
@@ -122,10 +119,7 @@ def diagnostics(domain: int, world: int) -> None:
                 last.update({kv.key: kv.value for kv in status.values})
 
     node.create_subscription(DiagnosticArray, "/diagnostics", callback, 100)
-    executor = EventsExecutor(context=context)
-    executor.add_node(node)
-    stop = threading.Event()
-    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    executor, stop = executor_until_stdin_closes(context, node)
     while not stop.is_set():
         executor.spin_once(timeout_sec=0.05)
     print(" | ".join(f"{k}: {v}" for k, v in last.items()), flush=True)
