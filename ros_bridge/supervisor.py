@@ -35,6 +35,15 @@ HUNG_AFTER = 1.0  # s without a tick before a worker is reported as not answerin
 # without being hung (a graph scan while thousands of endpoints are discovered, on a GPU host)
 HUNG_RESTART = 30.0
 START_TIMEOUT = 120.0  # s a worker may take to come up (imports, endpoints, the start-up check)
+START_WORLDS = 2048  # worlds a worker creates the endpoints of well within START_TIMEOUT
+
+
+def start_timeout(nworld: int) -> float:
+    """Seconds a worker serving `nworld` worlds may take to come up. Creating endpoints grows
+    faster than the worlds (one worker on the 2-core VM: 6.5 s for 1024 worlds, 20.6 s for 2048,
+    104 s for 4096, idle; over 120 s under load): START_TIMEOUT up to START_WORLDS, then with
+    the square of the worlds."""
+    return START_TIMEOUT * max(1.0, (nworld / START_WORLDS) ** 2)
 STOP_TIMEOUT = 1.5  # s workers get to leave the ROS graph before they are killed
 
 # the workers' rclpy log lines (`batchsim: WARN [batchsim_0_1]: ...`), beside batchsim's
@@ -234,13 +243,14 @@ class Supervisor:
                 pass
 
     def _await_ready(self, procs: list[_Process]) -> None:
-        deadline = wallclock.monotonic() + START_TIMEOUT
+        timeout = max((start_timeout(hi - lo) for lo, hi in (self.plan.ranges[p.index] for p in procs)), default=START_TIMEOUT)
+        deadline = wallclock.monotonic() + timeout
         waiting = {p.status: p for p in procs}
         lines: dict[int, bytes] = {fd: b"" for fd in waiting}
         while waiting:
             left = deadline - wallclock.monotonic()
             if left <= 0:
-                raise WorkerError(f"bridge worker {next(iter(waiting.values())).index} did not start in {START_TIMEOUT:g} s")
+                raise WorkerError(f"bridge worker {next(iter(waiting.values())).index} did not start in {timeout:g} s")
             ready, _, _ = select.select(list(waiting), [], [], min(left, 0.2))
             for fd in ready:
                 chunk = os.read(fd, 4096)

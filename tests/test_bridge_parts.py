@@ -454,3 +454,14 @@ def test_a_second_step_simulation_waits_for_the_first_and_each_is_answered_when_
         (1, True, "Completed 7 simulation step(s)."), (2, True, "Completed 25 simulation step(s)."),
     ]  # fmt: skip
     assert answers[0][1] == pytest.approx(7 * dt) and answers[1][1] == pytest.approx(32 * dt)
+
+
+def test_a_worker_with_many_worlds_gets_longer_to_start():
+    """One worker took 104 s to create the endpoints of 4096 arms on the idle 2-core VM (6.5 s
+    for 1024, 20.6 s for 2048) and over the fixed 120 s under load: `batchsim --worlds 4096`
+    failed with 'did not start in 120 s'. The wait grows with the square of its worlds."""
+    from ros_bridge.supervisor import START_TIMEOUT, start_timeout
+
+    assert start_timeout(16) == start_timeout(2048) == START_TIMEOUT == 120.0
+    assert start_timeout(4096) == 4 * START_TIMEOUT
+    assert start_timeout(8192) == 16 * START_TIMEOUT
