@@ -129,10 +129,12 @@ class SimLoop:
             raise OptionError("rtf", f"must be >= 0, got {rtf:g}")
         if not 0 <= thread_priority <= 99:
             raise OptionError("thread_priority", f"must be 0-99 (0: the normal policy), got {thread_priority}")
-        ncpu = os.cpu_count() or 1
-        bad = [c for c in cpu_affinity if not 0 <= c < ncpu]
+        # the cores this process may run on (a container's cpuset may be fewer than the machine's)
+        allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else list(range(os.cpu_count() or 1))
+        bad = [c for c in cpu_affinity if c not in allowed]
         if bad:
-            raise OptionError("cpu_affinity", f"names no core of this machine (0-{ncpu - 1}): {bad[0]}")
+            cores = f"{allowed[0]}-{allowed[-1]}" if allowed == list(range(allowed[0], allowed[-1] + 1)) else ",".join(map(str, allowed))
+            raise OptionError("cpu_affinity", f"names no core of this machine that this process may run on ({cores}): {bad[0]}")
         self.sim = sim
         dt = sim.dt
         if control_rate is None:

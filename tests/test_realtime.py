@@ -178,3 +178,16 @@ def test_a_pinned_loop_keeps_its_bridge_workers_off_its_core(tmp_path):
         proc.terminate()
         proc.wait(timeout=30)
         release_domain(domain)
+
+
+def test_cpu_affinity_names_only_cores_this_process_may_run_on(monkeypatch):
+    """A container's cpuset can be fewer cores than os.cpu_count(): a core outside it is one
+    line naming the cores that are there, not a warning from the kernel at the second period."""
+    from batchsim.loop import OptionError
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 2})
+    sim = batchsim.make("arm", 1, "cpu")
+    with pytest.raises(OptionError, match=r"names no core of this machine that this process may run on \(0,2\): 1"):
+        SimLoop(sim, cpu_affinity=(1,))
+    SimLoop(sim, cpu_affinity=(2,))
+    sim.shutdown()
