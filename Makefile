@@ -22,7 +22,7 @@ install-cpu:
 	@echo "make: installing batchsim with the cpu backend, ROS 2 from PyPI and pytest into $(VENV)"
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[ros,dev]'
+	$(PY) -m pip install -q -e '.[ros,record,dev]'
 	$(PY) -m ros_bridge.interfaces --require
 
 run: $(STAMP)

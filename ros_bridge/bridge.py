@@ -31,12 +31,13 @@ Per world, under its namespace `<ns>` (`world_3` from the template `world_{i}`):
 
 and once per fleet: `/clock` (every control period; worker 0 of the process that has it),
 `/diagnostics` (each worker, for its worlds, about twice a second), `/batchsim/reset`,
-`/batchsim/pause`, `/batchsim/step`.
+`/batchsim/pause`, `/batchsim/step`, `/batchsim/record` (an MCAP recording, ros_bridge/recording.py).
 """
 
 from __future__ import annotations
 
 import atexit
+import sys
 from collections.abc import Sequence
 
 from batchsim.controllers import ControllerManager
@@ -46,6 +47,7 @@ from batchsim.loop import SimLoop
 from ros_bridge.host import BridgeHost
 from ros_bridge.options import BridgeOptions, Reliability, default_workers
 from ros_bridge.plan import build_plan
+from ros_bridge.recording import Recording
 from ros_bridge.registry import ConflictKind
 from ros_bridge.sensor_topics import SensorFeed
 from ros_bridge.supervisor import FleetConflict, WorkerError
@@ -96,6 +98,14 @@ def start_bridge(
     atexit.register(host.close)
     host.start()
     host.attach()
+    if plan.recording is not None:  # MCAP: with --record from the first period, else on request
+        recording = Recording(plan, host.memory, loop)
+        host.on_close.append(recording.close)
+        loop.participants.insert(loop.participants.index(host) + 1, recording)
+        if plan.recording.path is not None:
+            ok, message = recording.start(plan.recording.path, wait=True)
+            if not ok:
+                print(f"batchsim: warning: {message}", file=sys.stderr)
     if plan.sensors is not None:  # cameras and lidars: rendered and scanned right after the host's update
         loop.participants.insert(loop.participants.index(host) + 1, SensorFeed(sim, host.memory, plan.sensors))
     if manager is not None and manager not in loop.participants:

@@ -1,21 +1,18 @@
 """The physics side of the bridge: a loop participant that owns the shared memory and the
-bridge workers. No rclpy here (with workers in processes, the physics process never
-imports it).
+bridge workers. No rclpy here (with workers in processes, the physics process never imports it).
 
 Per control period, in the loop thread:
 
     update      the workers' requests (resets, pause, step; trajectory batches), new
-                commands from their slots, command timeouts, BAD_COMMAND bookkeeping
-    (the controllers run, then write())
+                commands from their slots, command timeouts, BAD_COMMAND bookkeeping (then the controllers, write())
     after_write BAD_COMMAND re-marked; a snapshot (time, status, the channels some worker
                 publishes) copied into shared memory, and the workers woken
     gate        with lockstep: publish the state the period starts from, wait until every
                 world's command (or controller input) arrived
     idle        while paused: requests, resets published at once, steps answered
 
-The workers themselves are ros_bridge/supervisor.py's: a worker that dies is noticed
-within a quarter second, its worlds hold their last commands (or go safe under a command
-timeout), the log names them, and it is restarted on the same shared memory.
+The workers are ros_bridge/supervisor.py's: one that dies is noticed within a quarter second, its worlds
+hold their last commands (or go safe under a command timeout), the log names them; it restarts on the same memory.
 """
 
 from __future__ import annotations
@@ -108,8 +105,9 @@ class BridgeHost:
         self.lockstep_timeout = lockstep_timeout
         self.namespaces = plan.namespaces
         self.readers = list(readers)
+        self.on_close: list[Any] = []  # called first by close(): a recording finishes its file
         self.throttle = LogThrottle(_stderr)
-        self.memory = Memory.create(plan.layout, shared=processes)
+        self.memory = Memory.create(plan.layout, shared=processes or plan.recording is not None)  # a recorder attaches
         plan.memory_name = self.memory.name
         m = self.memory
         m["latest"][0] = -1
@@ -183,6 +181,8 @@ class BridgeHost:
         self._closed = True
         if self.loop.gate == self.gate:
             self.loop.gate = None
+        for hook in self.on_close:
+            hook()
         self.workers.close()
         self.memory.close()
 

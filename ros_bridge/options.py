@@ -29,6 +29,24 @@ class Reliability(AnyCase, enum.Enum):
 
 
 @dataclasses.dataclass(frozen=True)
+class RecordOptions:
+    """What a recording (ros_bridge/recording.py) writes, and where to from the start.
+
+    Attributes:
+      path: an MCAP file to record into from the first period; None: only when asked
+        (the `/batchsim/record` service).
+      topics: topic names as `batchsim` serves them (`joint_states`, `odom`, `/tf`, `/clock`, ...);
+        None: the default set (every state topic published from the start, /tf, /tf_static,
+        /clock, robot_description).
+      worlds: the worlds (indices 0..nworld-1) recorded; None: all.
+    """
+
+    path: str | None = None
+    topics: tuple[str, ...] | None = None
+    worlds: tuple[int, ...] | None = None
+
+
+@dataclasses.dataclass(frozen=True)
 class BridgeOptions:
     """How the fleet is bridged to ROS 2.
 
@@ -58,6 +76,7 @@ class BridgeOptions:
         the path): robot_description publishes it where it is a URDF.
       ros_args: ROS arguments for every worker's node, as after `--ros-args` on a ROS
         executable's command line (`-p use_sim_time:=true`, `-r from:=to`, `--log-level warn`).
+      record: what a recording writes (MCAP, ros_bridge/recording.py); None: no recording, not even on request.
     """
 
     namespace: str = DEFAULT_TEMPLATE
@@ -76,6 +95,7 @@ class BridgeOptions:
     tf: bool = True
     description: str | None = None
     ros_args: tuple[str, ...] = ()
+    record: RecordOptions | None = dataclasses.field(default_factory=RecordOptions)
 
     def check(self) -> None:
         """OptionError for a value no fleet can run with (rates are checked against the loop later)."""

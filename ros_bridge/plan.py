@@ -41,6 +41,7 @@ from ros_bridge.options import BridgeOptions, Reliability
 from ros_bridge.outputs import ChannelFill, Field, OutputSpec, robot_outputs
 from ros_bridge.protocol.commands import rejection_arrays, slot_arrays
 from ros_bridge.protocol.requests import trajectory_bytes, wrench_arrays
+from ros_bridge.recording import RecordSpec, record_spec
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan
 from ros_bridge.tf_plan import TfSpec, tf_spec
 
@@ -109,6 +110,7 @@ class FleetPlan:
       actions: the FollowJointTrajectory and GripperCommand actions (ros_bridge/action_plan.py).
       wrench_service: the ExternalWrenchPlugin's service under each world's namespace
         (`external_wrench/apply_wrench`, batchsim.external_wrench), or "" without the plugin.
+      recording: what a recording writes (ros_bridge/recording.py), or None without recording.
       layout, memory_name: the shared arrays.
     """
 
@@ -136,6 +138,7 @@ class FleetPlan:
     manager: ManagerSpec | None = None
     actions: list[TrajectoryActionSpec | GripperActionSpec] = dataclasses.field(default_factory=list)
     wrench_service: str = ""
+    recording: RecordSpec | None = None
     layout: Layout = dataclasses.field(init=False)
     memory_name: str | None = None
 
@@ -177,6 +180,8 @@ class FleetPlan:
             arrays.append(("goal.refused", (n,), "i8"))
         if self.wrench_service:
             arrays += wrench_arrays(nw)
+        if self.recording is not None:
+            arrays += self.recording.arrays(len(self.channels))
         # room for two of the largest trajectories an input takes (a record may take at most
         # half the ring): a 10,000-point trajectory of 6 joints is 1.5 MB
         largest = max(
@@ -287,6 +292,10 @@ def build_plan(
     wrench = sim.sensors.config.external_wrench  # mujoco_ros2_control's ExternalWrenchPlugin
     ranges = [(r.start, r.stop) for r in split_worlds(nworld, max(1, min(nworker, nworld)))]
     offset = options.world_offset
+    recording = None
+    if options.record is not None:
+        widths = [c.width for c in channels]
+        recording = record_spec(options.record, outputs, widths, tf.channel if tf else None, options.clock, nworld)
     plan = FleetPlan(
         nworld=nworld,
         world_offset=offset,
@@ -312,6 +321,7 @@ def build_plan(
         actions=actions,
         manager=manager_spec(sim, manager, control_rate) if manager is not None else None,
         wrench_service=wrench.service if wrench is not None and available()["mujoco_ros2_control_msgs"] else "",
+        recording=recording,
     )
     return plan, fills, inputs
 

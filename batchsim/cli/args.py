@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
+import importlib.util
 import math
 import os
 import platform
@@ -15,6 +16,7 @@ from pathlib import Path
 import mujoco
 
 import batchsim
+from batchsim import startup
 from batchsim.model import model_names
 from batchsim.model.description import model_file, read_description
 from batchsim.model.from_urdf import is_urdf
@@ -147,6 +149,19 @@ def run_parser() -> argparse.ArgumentParser:
     ros.add_argument(
         "--no-tf", action="store_true", help="publish no tf, tf_static or robot_description (default: every world's)"
     )
+    rec = p.add_argument_group("recording (MCAP, as rosbag2 writes it)")
+    rec.add_argument("--record", default=None, metavar="FILE", help="record every world's state topics into this MCAP file")
+    rec.add_argument(
+        "--record-topics",
+        type=_names,
+        default=None,
+        metavar="T,U,...",
+        help="the topics recorded (default: joint_states and the other state topics published from the start, "
+        "/tf, /tf_static, /clock, robot_description)",
+    )
+    rec.add_argument(
+        "--record-worlds", type=_worlds, default=None, metavar="I,J-K,...", help="the worlds recorded (default: all)"
+    )
     sens = p.add_argument_group("cameras, lidars and sensor noise")
     sens.add_argument(
         "--sensors",
@@ -243,6 +258,23 @@ def _cores(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"cores are whole numbers separated by commas, got {text!r}") from None
 
 
+def _names(text: str) -> tuple[str, ...]:
+    """`joint_states,/tf` -> ("joint_states", "/tf")."""
+    return tuple(t.strip() for t in text.split(",") if t.strip())
+
+
+def _worlds(text: str) -> tuple[int, ...]:
+    """`0,3,8-11` -> (0, 3, 8, 9, 10, 11); argparse names the flag when this raises."""
+    out: list[int] = []
+    try:
+        for part in (p.strip() for p in text.split(",") if p.strip()):
+            lo, _, hi = part.partition("-")
+            out += range(int(lo), int(hi) + 1) if hi else [int(lo)]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"worlds are indices or ranges I-J separated by commas, got {text!r}") from None
+    return tuple(out)
+
+
 def check_args(args: argparse.Namespace) -> None:
     """Every flag value the run will use, checked before anything starts.
 
@@ -268,6 +300,17 @@ def check_args(args: argparse.Namespace) -> None:
             batchsim.set_log_dir(args.log_dir)
         except ValueError as e:
             raise UsageError(f"--log-dir: {e}") from None
+    recording = args.record is not None or args.record_topics is not None or args.record_worlds is not None
+    if recording and args.no_ros:
+        raise UsageError("--record: a recording is the bridge's topics; it needs ROS (drop --no-ros)")
+    if args.record is not None:
+        from ros_bridge.recording import path_problem  # no rclpy
+
+        problem = path_problem(args.record)
+        if problem is not None:
+            raise UsageError(f"--record {problem}")
+        if importlib.util.find_spec("mcap") is None or importlib.util.find_spec("mcap_ros2") is None:
+            raise UsageError(f"--record needs the mcap packages: {startup.install_command('record')}")
     if not args.no_ros:
         from ros_bridge.naming import DEFAULT_TEMPLATE, world_namespaces  # no rclpy: the rules only
 

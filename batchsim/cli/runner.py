@@ -172,6 +172,7 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
             WorkerError,
             start_bridge,
         )
+        from ros_bridge.options import RecordOptions
     except ModuleNotFoundError as e:
         raise UsageError(
             f"ROS 2 is not installed ({e.name} is missing): {startup.install_command('ros')}, or pass --no-ros"
@@ -192,6 +193,7 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
         tf=not args.no_tf,
         description=args.ros2_control,
         ros_args=tuple(args.ros_args),
+        record=RecordOptions(args.record, args.record_topics, args.record_worlds),
     )
     from ros_bridge.interfaces import missing_line
 

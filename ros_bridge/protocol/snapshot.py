@@ -6,7 +6,7 @@ Two buffers, seqlocked: snapshot n goes into buffer n % 2, whose `seq` reads 2n+
 is written and 2n+2 when done, then `latest` says n. A reader copies its rows and checks
 `seq` again: it retries a buffer being rewritten and never keeps a torn row. Each channel
 (ros_bridge/outputs.py) is copied only when some worker publishes from it this period
-(`demand`); `written[c]` says which snapshot last wrote channel c.
+(`demand`, or a recording's `rec.want`); `written[c]` says which snapshot last wrote channel c.
 """
 
 from __future__ import annotations
@@ -38,7 +38,10 @@ def write_snapshot(
     m["meta"][b] = (n, period, time, float(forced))
     m["status"][b] = status
     m["flags"][b] = flags
-    demand = m["demand"].any(axis=0).tolist()
+    demand = m["demand"].any(axis=0)
+    if "rec.want" in m:  # a recording's channels (ros_bridge/protocol/recording.py)
+        demand = demand | m["rec.want"].astype(bool)
+    demand = demand.tolist()
     written = m["written"][b]
     for c, fill in enumerate(fills):
         if due[c] and (every_channel or demand[c]):

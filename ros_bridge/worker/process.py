@@ -19,7 +19,7 @@ from ros_bridge.plan import FleetPlan
 from ros_bridge.worker.core import Worker
 
 
-def _die_with_parent() -> None:
+def die_with_parent() -> None:
     """SIGTERM when the physics process dies, however it dies (Linux)."""
     try:
         libc = ctypes.CDLL(None, use_errno=True)
@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     index, wake_fd, status_fd, notify_fd = (int(a) for a in argv[:4])
     check = "--check" in argv
     parent = os.getppid()
-    _die_with_parent()
+    die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the physics process, which stops us
 
     def on_term(signum: int, frame: Any) -> None:

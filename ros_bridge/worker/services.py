@@ -3,7 +3,8 @@
 A request carries a ticket; the loop carries it out between two periods and writes its
 answer (whether it succeeded, a message, the sim time) into the ticket's slot of shared
 memory (`svc.*`, plan.py); the service answers then, or says the loop did not answer within
-its wait. Services: per world `<ns>/reset`; on worker 0 `/batchsim/{reset,pause,step}`.
+its wait. Services: per world `<ns>/reset`; on worker 0 `/batchsim/{reset,pause,step,record}`
+(record through its own mailbox, ros_bridge/protocol/recording.py).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from std_srvs.srv import SetBool, Trigger
 from batchsim.memory import Memory, Ring
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import SERVICE_SLOTS
+from ros_bridge.protocol.recording import answer as recorded
+from ros_bridge.protocol.recording import put_request
 from ros_bridge.protocol.requests import Kind, encode_reset, encode_ticket
 
 SERVICE_WAIT = 2.0  # s a service waits for the loop to carry out its request
@@ -113,6 +116,24 @@ def create_loop_services(node: Node, requests: LoopRequests, namespaces: list[st
 
     node.create_service(SetBool, "/batchsim/pause", pause)
     node.create_service(Trigger, "/batchsim/step", step)
+    if "rec.req" in requests.memory:
+        node.create_service(SetBool, "/batchsim/record", _record_service(requests))
+
+
+def _record_service(requests: LoopRequests) -> Callable[[Any, Any], Any]:
+    """`/batchsim/record`: true starts an MCAP recording (ros_bridge/recording.py), false stops it."""
+    memory = requests.memory
+
+    def record(request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        ticket = int(memory["rec.req"][0]) + 1
+        put_request(memory, ticket, bool(request.data))
+        deadline = wallclock.monotonic() + SERVICE_WAIT
+        while (answer := recorded(memory, ticket)) is None and wallclock.monotonic() < deadline:
+            wallclock.sleep(0.01)
+        response.success, response.message = answer if answer is not None else (False, "the loop did not answer in time")
+        return response
+
+    return record
 
 
 def _reset_service(requests: LoopRequests, worlds: list[int] | None, target: str) -> Callable[[Any, Any], Any]:

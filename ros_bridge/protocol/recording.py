@@ -1,0 +1,164 @@
+"""The recording protocol: every snapshot the loop writes, queued for the recorder process
+(ros_bridge/worker/recorder.py), through shared memory. Its writer (the physics process,
+`RecordWriter`) and its reader (the recorder, `RecordReader`) are both here; no rclpy.
+
+The snapshot (snapshot.py) keeps only the newest period, which is right for publishing and
+wrong for a file that must hold every period. So while a recording runs, each snapshot's
+recorded rows (the recorded worlds of the recorded channels) are also copied into a ring of
+`slots` periods: the writer owns `rec.pos[0]` (periods written, ever), the reader
+`rec.pos[1]` (periods read); slot k holds period k % slots, and is visible once pos[0]
+has passed it. The writer never waits on the reader (the loop must not slow down, except
+where `--rtf 0` asks for every period as fast as the recorder takes them): a period that
+finds the ring full is counted in `rec.dropped` and skipped.
+
+`rec.on` says a recorder is attached and ready (set by the physics process); `rec.want`
+says which channels the recorder needs written into the snapshot (snapshot.py ORs it
+into the workers' demand). A recording is started and stopped through a mailbox:
+worker 0's `/batchsim/record` service writes `rec.req` (ticket, on), the physics process
+answers in `rec.ans` (ticket, ok) and `rec.msg` (its message).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from batchsim.memory import Memory
+
+RING_BYTES = 32 << 20  # the ring's size, at most (pages are taken only as a recording writes them)
+MIN_SLOTS, MAX_SLOTS = 16, 4096
+MESSAGE = 512  # bytes of the answer's message
+
+
+def ring_slots(nrow: int, widths: Sequence[int]) -> int:
+    """Periods the ring holds: as many as fit in RING_BYTES, within MIN_SLOTS..MAX_SLOTS."""
+    per_slot = 8 * nrow * max(1, sum(widths)) + 2 * nrow + 64
+    return int(min(MAX_SLOTS, max(MIN_SLOTS, RING_BYTES // per_slot)))
+
+
+def recording_arrays(nchannel: int, nrow: int, channels: Sequence[int], widths: Sequence[int]) -> list[tuple[str, tuple[int, ...], str]]:
+    """The Layout entries: `nrow` recorded worlds of the recorded `channels` (their `widths`)."""
+    slots = ring_slots(nrow, widths)
+    arrays: list[tuple[str, tuple[int, ...], str]] = [
+        ("rec.on", (1,), "i8"),
+        ("rec.pos", (2,), "i8"),
+        ("rec.dropped", (1,), "i8"),
+        ("rec.want", (max(1, nchannel),), "u1"),
+        ("rec.req", (2,), "i8"),  # ticket, 1 to start / 0 to stop
+        ("rec.ans", (2,), "i8"),  # ticket answered, 1 when it succeeded
+        ("rec.msg", (MESSAGE,), "u1"),
+        ("rec.meta", (slots, 4), "f8"),  # snapshot n, period, sim time, forced
+        ("rec.flags", (slots, max(1, nrow)), "u1"),
+        ("rec.written", (slots, max(1, len(channels))), "u1"),
+    ]
+    for c, width in zip(channels, widths, strict=True):
+        arrays.append((f"rec.ch{c}", (slots, max(1, nrow), width), "f8"))
+    return arrays
+
+
+class RecordWriter:
+    """The physics process's side: copy each new snapshot's recorded rows into the ring."""
+
+    def __init__(self, memory: Memory, channels: Sequence[int], worlds: np.ndarray):
+        self.m = memory
+        self.channels = list(channels)
+        self.worlds = worlds
+        self.slots = memory["rec.meta"].shape[0]
+        self._last = -1  # the newest snapshot copied
+
+    def full(self) -> bool:
+        pos = self.m["rec.pos"]
+        return int(pos[0]) - int(pos[1]) >= self.slots
+
+    def put_newest(self) -> bool:
+        """Copy the newest snapshot if it is new; False if it was dropped (the ring was full)."""
+        m = self.m
+        n = int(m["latest"][0])
+        if n <= self._last or n < 0:
+            return True
+        self._last = n
+        if self.full():
+            m["rec.dropped"][0] += 1
+            return False
+        b = n % 2
+        k = int(m["rec.pos"][0])
+        s = k % self.slots
+        m["rec.meta"][s] = m["meta"][b]
+        m["rec.flags"][s] = m["flags"][b, self.worlds]
+        written = m["written"][b]
+        for j, c in enumerate(self.channels):
+            fresh = int(written[c]) == n
+            m["rec.written"][s, j] = fresh
+            if fresh:
+                np.take(m[f"ch{c}"][b], self.worlds, axis=0, out=m[f"rec.ch{c}"][s])
+        m["rec.pos"][0] = k + 1
+        return True
+
+    def skip_to_newest(self) -> None:
+        """Start with the next snapshot (not one written before the recording began)."""
+        self._last = int(self.m["latest"][0])
+
+
+class RecordedPeriod:
+    """One period out of the ring: its meta, flags (nrow,), and per recorded channel its rows."""
+
+    __slots__ = ("n", "period", "time", "forced", "flags", "channels")
+
+    def __init__(self, meta: np.ndarray, flags: np.ndarray, channels: dict[int, np.ndarray]):
+        self.n, self.period, self.time, self.forced = int(meta[0]), int(meta[1]), float(meta[2]), bool(meta[3])
+        self.flags = flags
+        self.channels = channels
+
+
+class RecordReader:
+    """The recorder's side: take the periods written so far, in order."""
+
+    def __init__(self, memory: Memory, channels: Sequence[int]):
+        self.m = memory
+        self.channels = list(channels)
+        self.slots = memory["rec.meta"].shape[0]
+
+    def pending(self) -> int:
+        pos = self.m["rec.pos"]
+        return int(pos[0]) - int(pos[1])
+
+    def take(self, most: int = 256) -> list[RecordedPeriod]:
+        """Up to `most` periods (copies), and the ring's room for them handed back."""
+        m = self.m
+        read, write = int(m["rec.pos"][1]), int(m["rec.pos"][0])
+        out = []
+        for k in range(read, min(write, read + most)):
+            s = k % self.slots
+            written = m["rec.written"][s]
+            channels = {c: m[f"rec.ch{c}"][s].copy() for j, c in enumerate(self.channels) if written[j]}
+            out.append(RecordedPeriod(m["rec.meta"][s].copy(), m["rec.flags"][s].copy(), channels))
+        m["rec.pos"][1] = read + len(out)
+        return out
+
+
+def put_request(memory: Memory, ticket: int, on: bool) -> None:
+    """Worker 0: ask for a recording to start (`on`) or stop."""
+    memory["rec.req"][1] = int(on)
+    memory["rec.req"][0] = ticket
+
+
+def take_request(memory: Memory, answered: int) -> tuple[int, bool] | None:
+    """The physics process: a request newer than `answered`, as (ticket, on)."""
+    ticket = int(memory["rec.req"][0])
+    return (ticket, bool(memory["rec.req"][1])) if ticket > answered else None
+
+
+def put_answer(memory: Memory, ticket: int, ok: bool, message: str) -> None:
+    text = message.encode()[:MESSAGE]
+    memory["rec.msg"][:] = 0
+    memory["rec.msg"][: len(text)] = np.frombuffer(text, np.uint8)
+    memory["rec.ans"][1] = int(ok)
+    memory["rec.ans"][0] = ticket
+
+
+def answer(memory: Memory, ticket: int) -> tuple[bool, str] | None:
+    """Worker 0: the answer to `ticket`, once given."""
+    if int(memory["rec.ans"][0]) != ticket:
+        return None
+    return bool(memory["rec.ans"][1]), memory["rec.msg"].tobytes().rstrip(b"\0").decode(errors="replace")

@@ -1,0 +1,283 @@
+"""Recording the fleet into one MCAP file: what is recorded (`RecordSpec`, part of the plan)
+and the physics side (`Recording`, a loop participant). No rclpy here.
+
+The file is written by one recorder process (ros_bridge/worker/recorder.py), not by the
+bridge workers: one file needs one writer, and a process of its own keeps the file's
+compression off both the loop and the workers' publishing. It never goes through DDS: the
+loop's participant copies each snapshot's recorded rows into a ring in shared memory
+(ros_bridge/protocol/recording.py), and the recorder serializes them with the workers' own
+CDR templates. A recording starts with `--record PATH` (before the first period) or
+through `/batchsim/record` (std_srvs/SetBool, worker 0) while the fleet runs, and ends with
+the run, the service, or a failure of its own (a full disk: one line; the loop goes on).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pickle
+import select
+import subprocess
+import sys
+import time as wallclock
+from collections.abc import Sequence
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from batchsim.loop import OptionError, SimLoop
+from ros_bridge.options import RecordOptions
+from ros_bridge.outputs import OutputSpec
+from ros_bridge.protocol.recording import RecordWriter, put_answer, recording_arrays, take_request
+
+FLEET_TOPICS = ("/tf", "/tf_static", "/clock")
+DESCRIPTION = "robot_description"
+READY_TIMEOUT = 60.0  # s the recorder may take to come up (imports, templates) with --record
+FINISH_TIMEOUT = 30.0  # s the recorder may take to drain the ring and close the file at the end
+WATCH = 0.25  # s between two looks at the recorder process
+
+
+@dataclasses.dataclass(frozen=True)
+class RecordSpec:
+    """What a recording writes. Attributes: `outputs`, indices into the plan's outputs;
+    `tf`, `tf_static`, `clock`, `description`: the fleet's /tf, /tf_static, /clock and each
+    world's robot_description; `worlds`, the recorded worlds (indices); `channels` and
+    `widths`, the snapshot channels the ring copies; `path`, the file to record into from
+    the start (None: on request only)."""
+
+    outputs: tuple[int, ...]
+    tf: bool
+    tf_static: bool
+    clock: bool
+    description: bool
+    worlds: tuple[int, ...]
+    channels: tuple[int, ...]
+    widths: tuple[int, ...]
+    path: str | None = None
+
+    def arrays(self, nchannel: int) -> list[tuple[str, tuple[int, ...], str]]:
+        return recording_arrays(nchannel, len(self.worlds), self.channels, self.widths)
+
+
+def record_spec(
+    options: RecordOptions,
+    outputs: Sequence[OutputSpec],
+    widths: Sequence[int],
+    tf_channel: int | None,
+    clock: bool,
+    nworld: int,
+    sensor_topics: Sequence[str] = (),
+) -> RecordSpec:
+    """The recording `options` ask for; OptionError naming `record_topics` or `record_worlds`."""
+    by_name = {o.topic.strip("/"): i for i, o in enumerate(outputs)}
+    fleet = [t for t in FLEET_TOPICS if t != "/clock" or clock]
+    if tf_channel is None:
+        fleet = [t for t in fleet if not t.startswith("/tf")]
+    names = [*by_name, *fleet, *([DESCRIPTION] if tf_channel is not None else [])]
+    if options.topics is None:
+        chosen = [n for n, i in by_name.items() if not outputs[i].on_request] + [n for n in names if n not in by_name]
+    else:
+        chosen = []
+        for topic in options.topics:
+            name = topic.strip()
+            key = f"/{name.strip('/')}" if f"/{name.strip('/')}" in fleet else name.strip("/")
+            if key not in names:
+                if key in {s.strip("/") for s in sensor_topics} or key.endswith(("image_raw", "camera_info", "scan", "points")):
+                    raise OptionError("record_topics", f"names {topic!r}: cameras and lidars are not recorded yet")
+                raise OptionError("record_topics", f"names {topic!r}, which this fleet does not publish (topics: {', '.join(names)})")
+            chosen.append(key)
+    worlds = tuple(range(nworld)) if options.worlds is None else tuple(dict.fromkeys(options.worlds))
+    bad = [w for w in worlds if not 0 <= w < nworld]
+    if bad:
+        raise OptionError("record_worlds", f"names world {bad[0]}, which this fleet does not have (worlds 0..{nworld - 1})")
+    if not worlds:
+        raise OptionError("record_worlds", "names no world")
+    picked = tuple(by_name[n] for n in chosen if n in by_name)
+    channels = sorted({f.channel for i in picked for f in outputs[i].fields} | ({tf_channel} if "/tf" in chosen else set()))
+    return RecordSpec(
+        outputs=picked,
+        tf="/tf" in chosen,
+        tf_static="/tf_static" in chosen,
+        clock="/clock" in chosen,
+        description=DESCRIPTION in chosen,
+        worlds=worlds,
+        channels=tuple(channels),
+        widths=tuple(widths[c] for c in channels),
+        path=options.path,
+    )
+
+
+def default_path(now: datetime | None = None) -> str:
+    """`batchsim_<date>-<time>.mcap` in the working directory, as `ros2 bag record` names its bags."""
+    return f"batchsim_{(now or datetime.now()).strftime('%Y_%m_%d-%H_%M_%S')}.mcap"
+
+
+def path_problem(path: str) -> str | None:
+    """Why `path` cannot be recorded into, or None."""
+    p = Path(path)
+    if p.is_dir():
+        return f"{path} is a directory"
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        return f"{path}: directory {parent} does not exist"
+    if p.exists() and not os.access(p, os.W_OK) or not p.exists() and not os.access(parent, os.W_OK):
+        return f"{path}: not writable"
+    return None
+
+
+class Recording:
+    """The loop's side of recording: the ring writer, the recorder process, the service's mailbox.
+
+    Args:
+      plan: the fleet's plan (its `recording` says what is recorded).
+      memory: the shared arrays (the recorder attaches to them).
+      loop: the loop (with `rtf` 0, a full ring waits for the recorder rather than drop periods).
+    """
+
+    def __init__(self, plan, memory, loop: SimLoop):
+        self.plan = plan
+        self.spec: RecordSpec = plan.recording
+        self.memory = memory
+        self.loop = loop
+        self.writer = RecordWriter(memory, self.spec.channels, np.array(self.spec.worlds, dtype=np.intp))
+        self.path: str | None = None
+        self._proc: subprocess.Popen | None = None
+        self._status: int | None = None  # the recorder's status pipe (read end)
+        self._buffer = b""
+        self._answered = 0
+        self._used: set[str] = set()
+        self._said = False  # the recorder said how it ended
+        self._next_watch = 0.0
+
+    # --- start and stop ---
+    def start(self, path: str, wait: bool = False) -> tuple[bool, str]:
+        """Start the recorder into `path`; with `wait`, until it is ready (else it is, a moment later)."""
+        if self._proc is not None:
+            return False, f"already recording to {self.path}"
+        problem = path_problem(path)
+        if problem is not None:
+            return False, f"cannot record: {problem}"
+        read, write = os.pipe()
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "ros_bridge.worker.recorder", str(write)],
+            stdin=subprocess.PIPE,
+            pass_fds=(write,),
+        )
+        os.close(write)
+        os.set_blocking(read, False)
+        self._status, self._buffer, self.path, self._said = read, b"", path, False
+        self.memory["rec.pos"][1] = self.memory["rec.pos"][0]  # nothing left from a recorder that was killed
+        self._used.add(path)
+        self.memory["rec.dropped"][0] = 0
+        self._proc.stdin.write(pickle.dumps((self.plan, os.path.abspath(path))))
+        self._proc.stdin.flush()
+        if wait:
+            deadline = wallclock.monotonic() + READY_TIMEOUT
+            while self._proc is not None and not self.memory["rec.on"][0] and wallclock.monotonic() < deadline:
+                select.select([read], [], [], 0.1)
+                self._watch()
+        return True, f"recording to {path}"
+
+    def stop(self, timeout: float = 0.0) -> tuple[bool, str]:
+        """Stop writing into the ring and ask the recorder to finish the file (waiting up to `timeout` s)."""
+        if self._proc is None:
+            return False, "not recording"
+        self.memory["rec.on"][0] = 0
+        self.memory["rec.want"][:] = 0
+        try:
+            self._proc.stdin.close()  # EOF: drain the ring, write the summary, exit
+        except OSError:
+            pass
+        path = self.path
+        deadline = wallclock.monotonic() + timeout
+        while self._proc is not None and wallclock.monotonic() < deadline:
+            select.select([self._status], [], [], 0.1)
+            self._watch()
+        return True, f"stopped recording to {path}"
+
+    def close(self) -> None:
+        """End the run's recording: every period written gets into the file."""
+        if self._proc is not None:
+            self.stop(FINISH_TIMEOUT)
+        if self._proc is not None:
+            self._proc.kill()
+            self._finished(f"batchsim: warning: recording: the recorder did not finish {self.path} in {FINISH_TIMEOUT:g} s")
+
+    # --- the loop thread ---
+    def update(self, sim, time: float, period: float) -> None:
+        self._serve()
+
+    def after_write(self, sim, time: float, period: float) -> None:
+        if not self.memory["rec.on"][0]:
+            return
+        if self.loop.rtf == 0:  # as fast as possible, every period: as fast as the recorder takes them
+            while self.writer.full() and self._proc is not None:
+                wallclock.sleep(0.0005)
+                self._watch(force=True)
+        self.writer.put_newest()
+
+    def idle(self, sim, time: float) -> None:
+        self._serve()
+        if self.memory["rec.on"][0]:
+            self.writer.put_newest()
+
+    def _serve(self) -> None:
+        request = take_request(self.memory, self._answered)
+        if request is not None:
+            ticket, on = request
+            ok, message = self.start(self._next_path()) if on else self.stop()
+            put_answer(self.memory, ticket, ok, message)
+            self._answered = ticket
+        if self._proc is not None:
+            self._watch()
+
+    def _next_path(self) -> str:
+        """--record's path the first time, then numbered beside it; else a dated name."""
+        base = self.spec.path
+        if base is None:
+            return default_path()
+        if base not in self._used:
+            return base
+        stem, suffix = os.path.splitext(base)
+        k = 2
+        while f"{stem}_{k}{suffix}" in self._used:
+            k += 1
+        return f"{stem}_{k}{suffix}"
+
+    def _watch(self, force: bool = False) -> None:
+        """The recorder's status lines; its end."""
+        now = wallclock.monotonic()
+        if not force and now < self._next_watch:
+            return
+        self._next_watch = now + WATCH
+        ended = self._proc.poll() is not None  # before reading: its last lines are in the pipe then
+        try:
+            self._buffer += os.read(self._status, 65536)
+        except OSError:  # BlockingIOError: nothing new
+            pass
+        *lines, self._buffer = self._buffer.split(b"\n")
+        for line in lines:
+            text = line.decode(errors="replace")
+            if text == "ready":
+                self.writer.skip_to_newest()
+                self.memory["rec.want"][:] = 0
+                self.memory["rec.want"][list(self.spec.channels)] = 1
+                self.memory["rec.on"][0] = 1
+            elif text:
+                self._said = True
+                print(f"batchsim: {text}", file=sys.stderr, flush=True)
+        if ended:
+            code = self._proc.returncode
+            how = f"was killed by signal {-code}" if code < 0 else f"exited with code {code}"
+            silent = f"batchsim: warning: recording: the recorder {how}; {self.path} holds what it wrote"
+            self._finished(None if self._said else silent + " up to its last complete chunk")
+
+    def _finished(self, line: str | None) -> None:
+        self.memory["rec.on"][0] = 0
+        self.memory["rec.want"][:] = 0
+        if line:
+            print(line, file=sys.stderr, flush=True)
+        if self._status is not None:
+            os.close(self._status)
+        self._proc, self._status = None, None

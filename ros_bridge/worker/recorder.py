@@ -1,0 +1,199 @@
+"""The recorder process: `python -m ros_bridge.worker.recorder STATUS_FD` (ros_bridge/recording.py
+starts it and hands it the plan and the file's path on standard input).
+
+It attaches the shared memory, lays out every recorded message with the bridge workers' own
+CDR templates (messages.py's BulkMessages, tf.py's TfTemplate), and writes the periods the
+loop queues in the recording ring (ros_bridge/protocol/recording.py) into one MCAP file as
+rosbag2's MCAP storage writes a bag: profile `ros2`, one channel per topic, `cdr` messages
+with `ros2msg` schemas (schemas.py), zstd-compressed chunks with message indexes, a summary
+at the end. Every stamp and log time is sim time. A chunk is closed at least once a second,
+so a recorder killed outright leaves a file readable up to its last complete chunk.
+
+It reports `ready` on STATUS_FD once the file has its header, and lines for the log after
+that; it finishes the file when standard input reaches EOF (the recording was stopped) or
+on SIGTERM (the physics process went), after taking what the ring still holds. A write that
+fails (a full disk) ends the recording with one line; the simulation goes on.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import select
+import signal
+import sys
+import time as wallclock
+from typing import Any, BinaryIO
+
+from mcap import __version__ as mcap_version
+from mcap.writer import CompressionType, Writer
+from rclpy.serialization import serialize_message
+from std_msgs.msg import String
+
+from batchsim.memory import Memory
+from ros_bridge.naming import topic_name
+from ros_bridge.plan import FLAG_FROZEN, FleetPlan
+from ros_bridge.protocol.recording import RecordedPeriod, RecordReader
+from ros_bridge.worker.messages import clock_payload, stamp_of
+from ros_bridge.worker.process import die_with_parent
+from ros_bridge.worker.schemas import qos_metadata, schema_text
+from ros_bridge.worker.snapshot import Output
+from ros_bridge.worker.tf import TfTemplate, static_message
+
+CHUNK_BYTES = 1 << 20  # a chunk closes at this size (uncompressed), or after CHUNK_SECONDS
+CHUNK_SECONDS = 1.0
+POLL = 0.01  # s between two looks at the ring
+PROFILE = "ros2"
+
+
+class McapRecording:
+    """One MCAP file of `plan.recording`'s topics and worlds.
+
+    Raises OSError where the file cannot be written."""
+
+    def __init__(self, plan: FleetPlan, stream: BinaryIO):
+        spec = plan.recording
+        self.spec = spec
+        self.namespaces = [plan.namespaces[w] for w in spec.worlds]
+        self.writer = Writer(stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self.writer.start(profile=PROFILE, library=f"batchsim (mcap {mcap_version})")
+        self._schemas: dict[str, int] = {}
+        self._sequence: dict[int, int] = {}
+        self.messages = 0
+        self.outputs = [Output(plan.outputs[i], self.namespaces) for i in spec.outputs]
+        self.channels = [
+            [self._channel(topic_name(ns, out.spec.topic), out.spec.msg_type) for ns in self.namespaces] for out in self.outputs
+        ]
+        self.tf_spec = plan.tf
+        self.tf = TfTemplate(plan.tf, self.namespaces) if spec.tf and plan.tf.moving else None
+        self.tf_channel = self._channel("/tf", "tf2_msgs/msg/TFMessage", depth=100) if self.tf is not None else -1
+        self.clock_channel = self._channel("/clock", "rosgraph_msgs/msg/Clock", depth=1) if spec.clock else -1
+        self._latched = spec.tf_static or spec.description
+        self._last_clock = -1
+        self.writer.add_metadata(
+            "batchsim",
+            {
+                "namespaces": json.dumps(self.namespaces),
+                "worlds": json.dumps([plan.world_offset + w for w in spec.worlds]),
+                "control_rate": f"{plan.control_rate:g}",
+            },
+        )
+        self.writer.flush()
+
+    def _channel(self, topic: str, msg_type: str, depth: int = 10, latched: bool = False) -> int:
+        schema = self._schemas.get(msg_type)
+        if schema is None:
+            schema = self._schemas[msg_type] = self.writer.register_schema(
+                name=msg_type, encoding="ros2msg", data=schema_text(msg_type).encode()
+            )
+        return self.writer.register_channel(
+            topic=topic,
+            message_encoding="cdr",
+            schema_id=schema,
+            metadata={"offered_qos_profiles": qos_metadata(transient_local=latched, depth=depth)},
+        )
+
+    def _add(self, channel: int, t: int, data: bytes) -> None:
+        seq = self._sequence.get(channel, 0)
+        self._sequence[channel] = seq + 1
+        self.writer.add_message(channel, log_time=t, data=data, publish_time=t, sequence=seq)
+        self.messages += 1
+
+    def write(self, period: RecordedPeriod) -> None:
+        """One period's messages, as the workers would have published them."""
+        sec, nanosec = stamp_of(period.time)
+        t = sec * 1_000_000_000 + nanosec
+        if self._latched:
+            self._write_latched(t, sec, nanosec)
+        if self.clock_channel >= 0 and (t != self._last_clock or period.forced):
+            self._last_clock = t
+            self._add(self.clock_channel, t, clock_payload(sec, nanosec))
+        channels = period.channels
+        frozen = (period.flags & FLAG_FROZEN) != 0 if period.flags.any() else None
+        for out, ids in zip(self.outputs, self.channels, strict=True):
+            spec = out.spec
+            if not (period.forced or period.period % spec.every == 0) or any(c not in channels for c in spec.channels):
+                continue
+            out.bulk.fill(out.values(channels), sec, nanosec)
+            payload = out.bulk.payload
+            for r, channel in enumerate(ids):
+                if frozen is None or not spec.state or not frozen[r]:
+                    self._add(channel, t, payload(r))
+        tf = self.tf
+        if tf is not None and self.tf_spec.channel in channels and (period.forced or period.period % self.tf_spec.every == 0):
+            self._add(self.tf_channel, t, tf.fill(self.tf_spec.moving_transforms(channels[self.tf_spec.channel]), sec, nanosec))
+
+    def _write_latched(self, t: int, sec: int, nanosec: int) -> None:
+        """/tf_static and each world's robot_description, once, at the first period."""
+        self._latched = False
+        if self.spec.tf_static:
+            channel = self._channel("/tf_static", "tf2_msgs/msg/TFMessage", depth=1, latched=True)
+            self._add(channel, t, bytes(serialize_message(static_message(self.tf_spec, self.namespaces, sec, nanosec))))
+        if self.spec.description:
+            data = bytes(serialize_message(String(data=self.tf_spec.description)))
+            for ns in self.namespaces:
+                self._add(self._channel(topic_name(ns, "robot_description"), "std_msgs/msg/String", 1, True), t, data)
+
+    def flush(self) -> None:
+        """Close the chunk in progress and hand it to the file."""
+        self.writer.flush()
+
+    def finish(self) -> None:
+        """The summary (statistics, indexes) and the footer."""
+        self.writer.finish()
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    status = os.fdopen(int(argv[0]), "w", buffering=1)
+    die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the physics process, which stops us
+    stopping = []
+    signal.signal(signal.SIGTERM, lambda signum, frame: stopping.append(signum))
+    try:
+        plan, path = pickle.load(sys.stdin.buffer)
+    except (EOFError, pickle.UnpicklingError):
+        return 0
+    memory = Memory.attach(plan.layout, plan.memory_name)
+    reader = RecordReader(memory, plan.recording.channels)
+    recording: McapRecording | None = None
+    stream: Any = None
+    try:
+        stream = open(path, "wb")
+        recording = McapRecording(plan, stream)
+        status.write("ready\n")
+        flushed = wallclock.monotonic()
+        while not stopping:
+            ready, _, _ = select.select([sys.stdin.buffer], [], [], POLL)
+            if ready and not os.read(sys.stdin.fileno(), 4096):
+                break  # EOF: stopped
+            for period in reader.take():
+                recording.write(period)
+            if wallclock.monotonic() - flushed >= CHUNK_SECONDS:
+                recording.flush()
+                flushed = wallclock.monotonic()
+        while reader.pending():  # the loop stopped writing before it told us: take what is left
+            for period in reader.take():
+                recording.write(period)
+        recording.finish()
+        stream.close()
+        dropped = int(memory["rec.dropped"][0])
+        lost = f"; {dropped} periods dropped (the recorder fell behind the loop)" if dropped else ""
+        status.write(f"recording: {recording.messages} messages in {path}{lost}\n")
+        return 0
+    except OSError as e:  # a full disk, a path that went away: the recording stops, the loop goes on
+        memory["rec.on"][0] = 0
+        memory["rec.want"][:] = 0
+        reason = e.strerror or str(e)
+        status.write(f"warning: recording stopped: {path}: {reason}; the simulation goes on\n")
+        return 1
+    finally:
+        memory.close()
+
+
+if __name__ == "__main__":
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)  # skip the interpreter's teardown of rclpy's message modules
