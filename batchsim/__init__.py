@@ -34,6 +34,7 @@ from batchsim.hardware import (
 from batchsim.loop import OptionError
 from batchsim.model import ModelError, RobotSpec, load, model_names
 from batchsim.sensors import SensorConfig, SensorConfigError
+from batchsim.variation import Variation, VariationError
 
 __all__ = [
     "Backend",
@@ -50,6 +51,8 @@ __all__ = [
     "SensorConfigError",
     "Status",
     "SystemInterface",
+    "Variation",
+    "VariationError",
     "controllers",
     "load",
     "make",
@@ -68,6 +71,8 @@ def make(
     processes: bool = False,
     sensors: SensorConfig | str | Path | Mapping[str, Any] | None = None,
     keyframe: str | int | None = None,
+    randomize: Variation | str | Path | Mapping[str, Any] | None = None,
+    world_offset: int = 0,
     **options: Any,
 ) -> BatchedSystem:
     """Build `nworld` worlds of `model` on `backend`, initialized (UNCONFIGURED).
@@ -95,6 +100,10 @@ def make(
       sensors: cameras, lidars and sensor noise (batchsim.sensors.config): a SensorConfig, a
         YAML file (mujoco_ros2_control's plugin parameters and/or batchsim's `sensors:`
         block) or its parsed mapping. None: the model's cameras and lidars, no noise.
+      randomize: per-world variation of model fields and the start pose (batchsim.variation):
+        a Variation, a YAML file (its `randomize:` block) or its mapping; None: every world alike.
+      world_offset: the number of world 0 in a larger fleet: world i draws as world
+        `world_offset + i` (so `nworld=1, world_offset=731` reproduces world 731's draw).
       **options: backend options: `nthread` for "cpu"; `nconmax`, `njmax`, `max_data_bytes`,
         `device`, `graph` for "warp"; `device` for "mjx"; `deterministic` for every backend (bitwise-repeatable
         runs: always so on cpu, slower on a GPU). With "auto", those the chosen backend does
@@ -126,8 +135,7 @@ def make(
             how = "a process each" if processes else "a thread each"
             sim.reason = f"{reason}; {len(chosen_devices)} devices, {how}: {', '.join(map(str, chosen_devices))}"
             sim.initialize()
-            if sensors is not None:
-                sim.set_sensor_config(sensors)
+            _configure_inputs(sim, sensors, randomize, world_offset)
             return sim
         options = {**options, "device": chosen_devices[0]}
     elif processes:
@@ -135,9 +143,16 @@ def make(
     sim = cls(spec, nworld, **options)
     sim.reason = reason
     sim.initialize()
+    _configure_inputs(sim, sensors, randomize, world_offset)
+    return sim
+
+
+def _configure_inputs(sim: BatchedSystem, sensors: Any, randomize: Any, world_offset: int) -> None:
+    """What make() hands a new system before configure: its sensors and its per-world variation."""
     if sensors is not None:
         sim.set_sensor_config(sensors)
-    return sim
+    if randomize is not None or world_offset:
+        sim.set_variation(randomize, first_world=world_offset)
 
 
 def _devices(cls: type[BatchedSystem], devices: Sequence[int | str] | str) -> list[Any]:

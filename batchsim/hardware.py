@@ -13,9 +13,9 @@
   lidars and sensor noise; `true_state` / `true_sensordata` without the noise.
 - `body_poses(worlds=None)` -> `(xpos (n, nbody, 3), xquat (n, nbody, 4) w, x, y, z)` float64,
   on demand only: the links' poses for tf (batchsim.model.frames).
-- `set_base_velocity(command, worlds=None)`, `base_velocity`: mujoco_ros2_control's
-  BaseVelocityPlugin, a free base held at a commanded planar velocity (batchsim.base_velocity).
-- `apply_wrench(wrenches, worlds=None)`: the ExternalWrenchPlugin's wrenches (batchsim.external_wrench).
+- `set_base_velocity(command, worlds=None)`: mujoco_ros2_control's BaseVelocityPlugin
+  (batchsim.base_velocity); `apply_wrench(wrenches, worlds=None)`: its ExternalWrenchPlugin.
+- `set_variation(variation)`, `world_params()`: per-world randomization (batchsim.varying).
 
 A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule
 on every backend: until `reset` lists it, it reads the noise-free values `read()` would have
@@ -28,9 +28,8 @@ A backend subclasses `BatchedSystem` and implements the engine hooks (batchsim.e
 `_set_qstate`, and `_park` where the engine cannot skip a world); everything a user sees,
 checks and bookkeeping included, lives here so that every backend behaves the same.
 
-Beside it: batchsim.lifecycle (ros2_control's lifecycle table, `SystemInterface`),
-batchsim.types (the enums, constants and shaped records of the contract), batchsim.sensing
-(cameras, lidars and sensor noise), batchsim.engine (the hooks). Their names are re-exported here.
+Beside it: batchsim.lifecycle (ros2_control's lifecycle table), batchsim.types (enums, constants,
+shaped records), batchsim.sensing (cameras, lidars, noise), batchsim.engine (the hooks).
 """
 
 from __future__ import annotations
@@ -64,12 +63,13 @@ from batchsim.types import (
 )
 from batchsim.types import Frames as Frames  # re-exported: importers take them from batchsim.hardware
 from batchsim.types import PendingFrames as PendingFrames
+from batchsim.varying import Varying
 
 S = LifecycleState
 _FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
 
 
-class BatchedSystem(BaseDriving, Wrenching, Sensing, EngineHooks, SystemInterface):
+class BatchedSystem(BaseDriving, Wrenching, Sensing, Varying, EngineHooks, SystemInterface):
     """`nworld` copies of one robot behind ros2_control's SystemInterface.
 
     Attributes (valid from on_configure on):
@@ -341,25 +341,26 @@ class BatchedSystem(BaseDriving, Wrenching, Sensing, EngineHooks, SystemInterfac
         self._failure_log.nworld = int(fleet_size)
 
     def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
-        """Reset all worlds, or only the listed ones, to the initial state and command.
-
-        Clears their status bits and refreshes `state`; no other world changes.
-        """
+        """Reset all worlds, or only the listed ones, to the initial state and command (and, with a
+        variation that redraws, fresh draws). Clears their status bits, refreshes `state`; no other world changes."""
         self._require("reset", frozenset({S.UNCONFIGURED, S.INACTIVE, S.ACTIVE}))
         if not self._opened:
             raise LifecycleError("cannot reset: the system is UNCONFIGURED; configure it first")
         rows = self._worlds(worlds)
         sel = np.arange(self.nworld) if rows is None else rows
         self.status[sel] = 0  # first: the engine's reset sees them unfrozen
+        self._vary(sel)  # their randomized model fields first: the engine's reset sees those too
         self._reset(rows)
-        self._command[sel] = self._initial_command
+        start = self._vary_start(sel)  # start-pose noise: (n, ncommand) commands holding it, or None
+        self._command[sel] = self._initial_command if start is None else start
         ctrl = self._ctrl_host()
         ctrl[sel] = self.spec.initial.ctrl
         if self._actuation.trivial:
-            ctrl[np.ix_(sel, self._ctrl_index)] = self._initial_command
+            ctrl[np.ix_(sel, self._ctrl_index)] = self._command[sel]
         else:
             self._actuation.reset(sel, ctrl, self._command)
         self._upload_ctrl()
+        self._place_start(sel)  # the drawn start pose, with the ctrl that holds it in place
         self._reset_base(sel)
         self._reset_wrenches(sel)
         self._refresh()

@@ -175,6 +175,23 @@ def _supports(backend: Choice, spec: RobotSpec) -> bool:
     return check is None or check(spec) is None
 
 
+def varying_backends(field: str, m: mujoco.MjModel) -> list[str]:
+    """The installed backends that can give `field` per-world values (batchsim.varying)."""
+    return [
+        b.value
+        for b in _concrete()
+        if _installed(b) and field in backend_class(b).variable_fields(m)
+    ]
+
+
+def _installed(backend: Choice) -> bool:
+    try:
+        backend_class(backend)
+    except BackendUnavailable:
+        return False
+    return True
+
+
 # --- what a backend's worlds take (batchsim.startup does the sums) ---
 
 def physics_memory(

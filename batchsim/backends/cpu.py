@@ -177,6 +177,15 @@ class CpuSystem(BatchedSystem):
         """
         return {**self._fields, "ctrl": self._ctrl}
 
+    @classmethod
+    def variable_fields(cls, m: mujoco.MjModel) -> frozenset[str]:
+        """What mujoco.batch expands per simulation (its MODEL_FIELDS), asset data aside."""
+        return frozenset(f for f in mjbatch.MODEL_FIELDS if f.startswith("opt.") or isinstance(getattr(m, f, None), np.ndarray))
+
+    def _set_model_fields(self, worlds: np.ndarray, params: dict[str, np.ndarray]) -> None:
+        for field, values in params.items():
+            self._batch.expand(field)[worlds] = values[worlds]
+
     def _reset(self, worlds: np.ndarray | None) -> None:
         ids = None if worlds is None else worlds.astype(np.int32)
         if self._unfilled is not None:

@@ -68,17 +68,20 @@ _CACHE_SIZE = 8  # compiled programs kept per process, by (model, nworld, device
 
 
 class _Programs(NamedTuple):
-    """The jitted programs of one (model, nworld, device, determinism)."""
+    """The jitted programs of one (model, nworld, device, determinism, varied fields)."""
 
-    # (d, nstep: int[, held (nworld, 3)]) -> (d, (nworld, ncolumn + nsensordata + 1) float32): one
-    # control period, `held` the base velocity's target with one (batchsim.base_velocity); the
-    # readings after the period (before it, for a world that failed), then its failure code
+    # (d, nstep: int, fields[, held (nworld, 3)]) -> (d, (nworld, ncolumn + nsensordata + 1)
+    # float32): one control period, `fields` the varied model fields' per-world values (field ->
+    # (nworld, *shape); {}: none), `held` the base velocity's target with one
+    # (batchsim.base_velocity); the readings after the period (before it, for a world that
+    # failed), then its failure code
     period: Callable[..., Any]
     reset: Callable[..., Any]  # (d, d0, mask) -> d
     read: Callable[..., Any]  # (qpos, qvel, qfrc_actuator, sensordata) -> (nworld, ncolumn + nsensordata)
 
 
 _PROGRAMS: OrderedDict[tuple[Any, ...], _Programs] = OrderedDict()
+_VARIABLE: dict[str, frozenset[str]] = {}  # variable_fields() per model fingerprint
 
 
 def _fingerprint(m: mujoco.MjModel) -> str:
@@ -96,6 +99,7 @@ def _programs(
     device: jax.Device,
     deterministic: bool,
     held: tuple[int, int] | None = None,
+    varied: tuple[str, ...] = (),
 ) -> _Programs:
     """Compile (once per key) what one system runs.
 
@@ -107,11 +111,12 @@ def _programs(
     rather than passed to the program, which measured ~1.6 ms a period slower on an H200
     (benchmarks/mjx_period.py, "raw+ctrl").
     """
-    key = (_fingerprint(spec.mjmodel), tuple(c.name for c in columns), nworld, device, deterministic, held)
+    key = (_fingerprint(spec.mjmodel), tuple(c.name for c in columns), nworld, device, deterministic, held, varied)
     if key in _PROGRAMS:
         _PROGRAMS.move_to_end(key)
         return _PROGRAMS[key]
-    step = jax.vmap(mjx.step, in_axes=(None, 0))
+    shared = jax.vmap(mjx.step, in_axes=(None, 0))
+    per_world = jax.vmap(lambda f, d: mjx.step(_with_fields(mx, f), d))
     m = spec.mjmodel
     offset = dict(zip(StateSource, np.cumsum([0, m.nq, m.nv, m.nv]), strict=True))
     take = np.array([offset[c.source] + c.index for c in columns], dtype=np.int32)
@@ -132,9 +137,10 @@ def _programs(
             code = jnp.where(bad.any(axis=1), here, code)
         return code.astype(jnp.float32)  # exact: codes stay below 2**24
 
-    def period(d: mjx.Data, nstep: Any, target: jax.Array | None = None) -> tuple[mjx.Data, jax.Array]:
+    def period(d: mjx.Data, nstep: Any, fields: dict, target: jax.Array | None = None) -> tuple[mjx.Data, jax.Array]:
         start = read(d.qpos, d.qvel, d.qfrc_actuator, d.sensordata)
-        substep = (lambda d: step(mx, d)) if target is None else _holding(step, mx, held, d.qpos, target)
+        step = (lambda d: per_world(fields, d)) if fields else (lambda d: shared(mx, d))
+        substep = step if target is None else _holding(step, held, d.qpos, target)
         if isinstance(nstep, int):  # a static trip count: XLA runs the loop without asking the host
             d = jax.lax.scan(lambda d, _: (substep(d), None), d, None, length=nstep)[0]
         else:
@@ -157,8 +163,8 @@ def _programs(
         # XLA:CPU runs loops on the host anyway: nstep as data, one program for every nstep
         jitted = _float32(jax.jit(period, donate_argnums=0))
 
-        def run(d: mjx.Data, nstep: int, *target: jax.Array) -> tuple[mjx.Data, jax.Array]:
-            return jitted(d, np.int32(nstep), *target)
+        def run(d: mjx.Data, nstep: int, fields: dict, *target: jax.Array) -> tuple[mjx.Data, jax.Array]:
+            return jitted(d, np.int32(nstep), fields, *target)
     else:
         # on an accelerator a data-dependent trip count costs a device-to-host sync per
         # substep; a static one does not, so nstep is compiled in (once per control rate)
@@ -175,9 +181,14 @@ def _programs(
     return programs
 
 
-def _holding(
-    step: Callable[..., Any], mx: mjx.Model, held: Any, qpos: jax.Array, target: jax.Array
-) -> Callable[..., Any]:
+def _with_fields(mx: mjx.Model, fields: dict[str, jax.Array]) -> mjx.Model:
+    """One world's model: `mx` with its values of the varied fields (`opt.<name>` for options)."""
+    options = {k[4:]: v for k, v in fields.items() if k.startswith("opt.")}
+    own = {k: v for k, v in fields.items() if not k.startswith("opt.")}
+    return mx.replace(**own, opt=mx.opt.replace(**options)) if options else mx.replace(**own)
+
+
+def _holding(step: Callable[..., Any], held: Any, qpos: jax.Array, target: jax.Array) -> Callable[..., Any]:
     """A substep that first writes the held base velocity into qvel (batchsim.base_velocity's
     world_velocity, inlined): `target` (nworld, 3) body-frame vx, vy, wz, rotated by the base's
     orientation in `qpos` (the period's start); NaN rows leave the physics alone."""
@@ -197,7 +208,7 @@ def _holding(
     free = jnp.isnan(value)
 
     def substep(d: mjx.Data) -> mjx.Data:
-        return step(mx, d.replace(qvel=d.qvel.at[:, dofs].set(jnp.where(free, d.qvel[:, dofs], value))))
+        return step(d.replace(qvel=d.qvel.at[:, dofs].set(jnp.where(free, d.qvel[:, dofs], value))))
 
     return substep
 
@@ -266,7 +277,9 @@ class MjxSystem(DeviceSystem):
             self.device,
             bool(self.options["deterministic"]),
             None if self.base_velocity is None else (self.base_velocity.qposadr, self.base_velocity.dofadr),
+            tuple(self._bound.fields) if self._bound is not None else (),
         )
+        self._fields: dict[str, jax.Array] = {}  # the varied model fields, (nworld, *shape) each
         self._d = jax.tree.map(lambda x: jnp.repeat(x[None], self.nworld, axis=0), self._d0)
         self._ctrl = np.zeros((self.nworld, m.nu))
         self._ctrl32 = np.zeros((self.nworld, m.nu), np.float32)
@@ -280,7 +293,33 @@ class MjxSystem(DeviceSystem):
         self._xfrc_on_device = True
 
     def _close(self) -> None:
-        del self._d, self._d0, self._programs
+        del self._d, self._d0, self._programs, self._fields
+
+    @classmethod
+    def variable_fields(cls, m: mujoco.MjModel) -> frozenset[str]:
+        """The fields MJX's Model holds as arrays of the MjModel's shape (a vmapped model
+        takes them per world); its options likewise, as `opt.<name>`."""
+        key = _fingerprint(m)
+        if key not in _VARIABLE:
+            mx = mjx.put_model(m, device=jax.devices("cpu")[0], impl="jax")
+
+            def arrays(owner: Any, source: Any, prefix: str) -> set[str]:
+                return {
+                    prefix + name
+                    for name in dir(source)
+                    if not name.startswith("_")
+                    and isinstance(getattr(owner, name, None), jax.Array)
+                    and np.shape(getattr(owner, name)) == np.shape(getattr(source, name))
+                }
+
+            _VARIABLE[key] = frozenset(arrays(mx, m, "") | arrays(mx.opt, m.opt, "opt."))
+        return _VARIABLE[key]
+
+    def _set_model_fields(self, worlds: np.ndarray, params: dict[str, np.ndarray]) -> None:
+        # whole arrays up: a redraw is rare, and the period program takes them as they are
+        host = {f: v.astype(np.float32) for f, v in params.items()}
+        self._fields = jax.device_put(host, self.device)
+        self._packed = None
 
     def _ctrl_host(self) -> np.ndarray:
         return self._ctrl
@@ -331,7 +370,7 @@ class MjxSystem(DeviceSystem):
     def _step(self, nstep: int) -> StepFailures | None:
         self._sync_inputs()
         held = () if self._held_dev is None else (self._held_dev,)
-        self._d, out = self._programs.period(self._d, nstep, *held)
+        self._d, out = self._programs.period(self._d, nstep, self._fields, *held)
         out = np.asarray(out)  # one download: readings, then the failure codes
         self._packed, codes = out[:, :-1], out[:, -1]
         failures = None

@@ -49,6 +49,7 @@ from batchsim.memory import Memory
 from batchsim.model import RobotSpec
 from batchsim.sensors import Camera, Lidar, SensorConfig
 from batchsim.types import check_nstep, split_worlds
+from batchsim.variation import load as load_variation
 
 
 class PerDevice(Sequence[Any]):
@@ -92,6 +93,7 @@ class ShardedSystem(BatchedSystem):
 
     OPTIONS: ClassVar[dict[str, Any]] = {}
     drives_base = False  # the BaseVelocityPlugin's commands do not reach the shards: refused, named
+    _sharded_variation: Any = None
     applies_wrenches = False  # nor do external wrenches
 
     def __init__(
@@ -239,6 +241,28 @@ class ShardedSystem(BatchedSystem):
             calls.append((shard, ShardOp.RESET, (local,)) if local is None or local.size else (shard, ShardOp.READ, ()))
         self._run(calls, self.processes)
         self._add_noise()  # frozen worlds keep their held, noise-free readings
+
+    # --- per-world randomization: each shard draws its own worlds, as world_ranges number them ---
+    def set_variation(self, variation: Any, first_world: int = 0) -> None:
+        """As BatchedSystem.set_variation: every shard draws its worlds as the fleet's
+        `first_world + world_ranges[i].start + j`, so a world draws the same however it is split."""
+        parsed = None if variation is None else load_variation(variation)
+        super().set_variation(None)  # the lifecycle check; the shards hold the draws
+        for shard, r in zip(self.shards, self.world_ranges, strict=True):
+            shard.call(ShardOp.SET_VARIATION, parsed, int(first_world) + r.start)
+        self._sharded_variation = parsed if parsed is not None and parsed.active else None
+
+    @property
+    def variation(self) -> Any:
+        return self._sharded_variation
+
+    def world_params(self, worlds: Sequence[int] | np.ndarray | None = None) -> dict[str, np.ndarray]:
+        parts = self._each(ShardOp.WORLD_PARAMS)
+        if not parts or not parts[0]:
+            return {}
+        every = {f: np.concatenate([p[f] for p in parts]) for f in parts[0]}
+        rows = self._worlds(worlds)
+        return every if rows is None else {f: v[rows] for f, v in every.items()}
 
     def perform_command_mode_switch(self, start: Sequence[str], stop: Sequence[str] = ()) -> None:
         super().perform_command_mode_switch(start, stop)  # checks the names

@@ -61,6 +61,8 @@ class ShardOp(enum.Enum):
     BODY_POSES = "body_poses"
     QSTATE = "qstate"
     SET_QSTATE = "set_qstate"
+    SET_VARIATION = "set_variation"
+    WORLD_PARAMS = "world_params"
     # a shard process's device arrays cannot leave it: it answers these with host copies
     DEVICE_ARRAYS = "device_arrays"
     DEVICE_FRAMES = "device_frames"

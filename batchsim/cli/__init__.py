@@ -27,6 +27,7 @@ from batchsim.model import ModelError
 from batchsim.model.params import ParamsError
 from batchsim.sensors import DeclarationError, SensorConfigError
 from batchsim.startup import MemoryCheckError
+from batchsim.variation import VariationError
 
 __all__ = [
     "EXIT_USAGE", "USER_ERRORS", "StatusLine", "UsageError", "build", "check_args", "default_model", "info", "main",
@@ -36,7 +37,7 @@ __all__ = [
 
 USER_ERRORS = (
     UsageError, ModelError, ConfigurationError, BackendUnavailable, LifecycleError, ParamsError, MemoryCheckError,
-    OptionError, RateError, SensorConfigError, DeclarationError,
+    OptionError, RateError, SensorConfigError, DeclarationError, VariationError,
 )  # fmt: skip
 
 

@@ -174,6 +174,13 @@ def run_parser() -> argparse.ArgumentParser:
     sens.add_argument("--camera-resolution", default=None, metavar="WxH", help="every camera's image size (default: the MJCF's)")
     sens.add_argument("--noise-seed", type=int, default=None, help="sensor noise seed (default: the YAML's, else 0)")
     p.add_argument(
+        "--randomize",
+        default=None,
+        metavar="FILE",
+        help="per-world variation of model fields and the start pose (a `randomize:` YAML block); "
+        "world i's draw depends on the seed and i (--world-offset included)",
+    )
+    p.add_argument(
         "--controllers",
         default=None,
         help="ros2_control controller_manager YAML; none: no controllers (default: the shipped model's own)",
@@ -213,6 +220,8 @@ def info_parser() -> argparse.ArgumentParser:
     _urdf_flags(p)
     p.add_argument("--mjcf", action="store_true", help="print the MJCF batchsim compiles (for a URDF: the one it generates)")
     p.add_argument("--sensors", action="append", metavar="FILE", help="as batchsim's --sensors: what it makes of them")
+    p.add_argument("--randomize", default=None, metavar="FILE", help="as batchsim's --randomize: the distributions, and the draws of the first worlds")
+    p.add_argument("--world-offset", type=int, default=0, help="with --randomize: the number of the first world shown")
     return p
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
+
 from batchsim.backends import resolve
 from batchsim.base_velocity import BaseVelocity
 from batchsim.cli.args import (
@@ -12,8 +14,11 @@ from batchsim.cli.args import (
     default_model,
     info_parser,
 )  # fmt: skip
-from batchsim.model import CommandMode
+from batchsim.model import CommandMode, RobotSpec
 from batchsim.sensors import SensorConfig, SensorSuite
+from batchsim.variation import Bound
+from batchsim.variation import load as load_variation
+from batchsim.variation.report import changes, describe
 
 
 def info(argv: Sequence[str]) -> int:
@@ -80,6 +85,8 @@ def info(argv: Sequence[str]) -> int:
             "(mujoco_ros2_control_msgs/ApplyExternalWrench), answered once the wrenches ran in sim time; "
             "no ~/wrench_markers"
         )
+    if args.randomize is not None:
+        out += randomization_lines(spec, args.randomize, args.world_offset, min(args.worlds, 4))
     warnings = spec.warnings + suite.config.warnings
     if warnings:
         out.append("\nwarnings (not acted on)")
@@ -89,6 +96,23 @@ def info(argv: Sequence[str]) -> int:
         out += [f"  {p}" for p in spec.problems]
     print("\n".join(out))
     return 0
+
+
+def randomization_lines(spec: RobotSpec, source: str, first: int, count: int) -> list[str]:
+    """`batchsim info --randomize`: the distributions, then what the first worlds draw."""
+    variation = load_variation(source)
+    bound = Bound(variation, spec.mjmodel)
+    out = [f"\nrandomization ({source})"] + [f"  {line}" for line in describe(variation)]
+    worlds = np.arange(first, first + count)
+    params = bound.draw(worlds, np.zeros(count, np.int64))
+    for row, world in enumerate(worlds):
+        lines = changes(bound, spec.mjmodel, params, row)
+        out.append(f"  world {world}:{'' if lines else ' as the model'}")
+        out += [f"    {line}" for line in lines]
+        qpos = bound.start_qpos(worlds[row : row + 1], np.zeros(1, np.int64), spec.initial.qpos)
+        if qpos is not None:
+            out.append(f"    start qpos {np.array2string(qpos[0], precision=4, max_line_width=200)}")
+    return out
 
 
 def sensor_lines(suite: SensorSuite) -> list[str]:

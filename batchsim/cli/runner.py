@@ -59,7 +59,15 @@ def build(args: argparse.Namespace, progress: startup.Progress | None = None) ->
     if not args.skip_memory_check:
         check_memory(args, spec, chosen)
     with progress.stage(f"allocating {args.worlds} worlds on {chosen.value}"):
-        sim = batchsim.make(spec, args.worlds, args.backend, sensors=sensors, **options)
+        sim = batchsim.make(
+            spec,
+            args.worlds,
+            args.backend,
+            sensors=sensors,
+            randomize=args.randomize,
+            world_offset=args.world_offset,
+            **options,
+        )
         sim.configure()
         sim.activate()
     for warning in sim.sensors.config.warnings:  # plugins not run, params not taken: never dropped silently

@@ -13,6 +13,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -366,19 +368,21 @@ def floating_base(m: mujoco.MjModel) -> FloatingBase | None:
     )
 
 
-def initial_command(spec: RobotSpec) -> np.ndarray:
+def initial_command(spec: RobotSpec, qpos: np.ndarray | None = None) -> np.ndarray:
     """The command each interface starts with, holding the initial state: the keyframe's ctrl
     where it gives one (direct interfaces); else a position interface holds its actuator's
     initial length (its joint's position, or a tendon's length), a PID position interface its
-    joint's initial position; velocity and effort start at 0."""
+    joint's initial position; velocity and effort start at 0. `qpos` (nq,): a start pose other
+    than the initial state's (a randomized one), held the same way."""
     m = spec.mjmodel
     d = mujoco.MjData(m)
-    spec.initial.apply(m, d)
+    initial = spec.initial if qpos is None else dataclasses.replace(spec.initial, qpos=np.asarray(qpos, np.float64))
+    initial.apply(m, d)
     commands = spec.commands if spec.actuator_commands is None else spec.actuator_commands
     out = np.zeros(len(commands))
     for c, cmd in enumerate(commands):
         if cmd.mode is CommandMode.POSITION_PID:
-            out[c] = spec.initial.qpos[cmd.qposadr]
+            out[c] = initial.qpos[cmd.qposadr]
         elif cmd.mode is not CommandMode.DIRECT:
             continue
         elif spec.initial.ctrl_given:

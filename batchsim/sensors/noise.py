@@ -16,21 +16,20 @@ REP 117's "erroneous measurement".
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
-# splitmix64 / murmur3 finalizer constants
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
+from batchsim.counter_rng import bits as _bits
+from batchsim.counter_rng import element_offsets as _element_offsets
+from batchsim.counter_rng import normal32 as _normal
+from batchsim.counter_rng import stream_id as stream_id
+from batchsim.counter_rng import uniform64
+from batchsim.counter_rng import world_keys as _world_keys
+
 _BIAS_TICK = np.uint64(0xFFFFFFFFFFFFFFFF)  # the tick a world's bias is drawn at, once
 _DROPOUT_SALT = np.uint64(0x5DEECE66D)
-_NO_SALT = np.uint64(0)
-_TWO_PI = 2.0 * np.pi
-_U32 = 1.0 / 4294967296.0
 
 NOISE_KEYS = ("mean", "stddev", "bias_mean", "bias_stddev", "dropout")
 
@@ -78,52 +77,6 @@ class Noise:
     @property
     def active(self) -> bool:
         return any((self.mean, self.stddev, self.bias_mean, self.bias_stddev, self.dropout))
-
-
-def stream_id(name: str) -> np.uint64:
-    """A stable 64-bit id for a noise stream (a sensor's name), the same on every machine."""
-    return np.uint64(int.from_bytes(hashlib.blake2b(name.encode(), digest_size=8).digest(), "little"))
-
-
-_S30, _S27, _S31, _S32, _S11 = (np.uint64(k) for k in (30, 27, 31, 32, 11))
-_ONE = np.uint64(1)
-_LOW32 = np.uint64(0xFFFFFFFF)
-
-
-def _mix(x: np.ndarray) -> np.ndarray:
-    """splitmix64's finalizer, in place on a uint64 array: a bijection that scrambles every bit."""
-    x ^= x >> _S30
-    x *= _M1
-    x ^= x >> _S27
-    x *= _M2
-    x ^= x >> _S31
-    return x
-
-
-def _world_keys(seed: int, stream: np.uint64, nworld: int) -> np.ndarray:
-    """(nworld,) uint64: the key of each world of a stream, before the tick is mixed in."""
-    with np.errstate(over="ignore"):
-        base = np.uint64(seed & 0xFFFFFFFFFFFFFFFF) ^ stream
-        return _mix(_GOLDEN * (np.arange(nworld, dtype=np.uint64) + _ONE) + base)
-
-
-def _element_offsets(size: int, salt: np.uint64 = _NO_SALT) -> np.ndarray:
-    with np.errstate(over="ignore"):
-        return _GOLDEN * (np.arange(size, dtype=np.uint64) + _ONE + salt)
-
-
-def _bits(world_keys: np.ndarray, ticks: np.ndarray, elements: np.ndarray) -> np.ndarray:
-    """(n, size) uint64 random bits: a hash of (world key, tick, element) for each value."""
-    with np.errstate(over="ignore"):
-        keys = _mix(world_keys + _GOLDEN * (ticks.astype(np.uint64) + _ONE))
-        return _mix(keys[:, None] + elements)
-
-
-def _normal(bits: np.ndarray) -> np.ndarray:
-    """Standard normals (float32) from 64 random bits each: Box-Muller on two 32-bit halves."""
-    u1 = ((bits >> _S32).astype(np.float32) + np.float32(0.5)) * np.float32(_U32)
-    u2 = (bits & _LOW32).astype(np.float32) * np.float32(_U32)
-    return np.sqrt(np.float32(-2.0) * np.log(u1)) * np.cos(np.float32(_TWO_PI) * u2)
 
 
 class NoiseStream:
@@ -193,7 +146,7 @@ class NoiseStream:
         if not self._dropout:
             return None
         bits = _bits(self._world_keys(worlds), ticks, self._dropout_elements)
-        return (bits >> _S11).astype(np.float64) * (1.0 / 9007199254740992.0) < self._dropout
+        return uniform64(bits) < self._dropout
 
     def apply(self, values: np.ndarray, worlds: np.ndarray, ticks: np.ndarray) -> None:
         """Add the noise to `values` (n, size), or (n, ...) with `size` elements per row, in place."""

@@ -39,6 +39,7 @@ from batchsim.backends.warp.kernels import (
     set_clock,
     set_rows,
 )
+from batchsim.backends.warp.fields import WarpFields
 from batchsim.backends.warp.sensors import WarpSensors
 from batchsim.backends.warp.wrench import WarpWrenches
 from batchsim.model import RobotSpec
@@ -52,7 +53,7 @@ _CHANGED = int(mjw.State.PHYSICS | mjw.State.WARMSTART)
 _INTEGRATION = int(mjw.State.PHYSICS | mjw.State.USER | mjw.State.WARMSTART)  # no PLUGIN in Warp
 
 
-class WarpSystem(WarpWrenches, WarpSensors, DeviceSystem):
+class WarpSystem(WarpWrenches, WarpSensors, WarpFields, DeviceSystem):
     """`nworld` worlds on MuJoCo Warp, one captured graph per control period.
 
     Options:
@@ -63,8 +64,7 @@ class WarpSystem(WarpWrenches, WarpSensors, DeviceSystem):
         It grows likewise.
       max_data_bytes: the most memory MuJoCo Warp's Data may take when buffers grow; None:
         what the device has free.
-      device: a Warp device ("cuda:0", "cpu"); None is Warp's default (the first GPU if
-        there is one).
+      device: a Warp device ("cuda:0", "cpu"); None is Warp's default (the first GPU, if any).
       graph: capture each control period in a graph and replay it; False launches the
         kernels one by one, for debugging.
       deterministic: bitwise-repeatable results on a GPU (MuJoCo Warp's sorted contacts,

@@ -1,0 +1,61 @@
+"""Per-world model fields on MuJoCo Warp (batchsim.varying): its batched model arrays.
+
+MuJoCo Warp's Model arrays whose spec starts with `*` (and those of its Option) take a leading
+batch dimension, read as `field[worldid % field.shape[0]]` by every kernel: one row is the
+shared model, `nworld` rows a value per world. A varied field gets its `nworld` rows on its
+first draw, before the first period is captured; later draws (a reset that redraws) write
+those same arrays in place, so that captured graphs keep their pointers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import mujoco
+import numpy as np
+import warp as wp
+from mujoco_warp._src import types as mjw_types
+from mujoco_warp._src import warp_util
+
+
+def _batched(cls: type) -> frozenset[str]:
+    return frozenset(
+        f.name
+        for f in dataclasses.fields(cls)
+        if warp_util.is_array_spec(f.type) and getattr(f.type, "shape", ())[:1] == ("*",)
+    )
+
+
+_MODEL_FIELDS = _batched(mjw_types.Model)
+_OPTION_FIELDS = frozenset(f"opt.{name}" for name in _batched(mjw_types.Option))
+
+
+class WarpFields:
+    """Mixed into WarpSystem: `variable_fields` and the `_set_model_fields` hook."""
+
+    _m: Any
+    nworld: int
+    device: Any
+
+    @classmethod
+    def variable_fields(cls, m: mujoco.MjModel) -> frozenset[str]:
+        """MuJoCo Warp's batched Model and Option arrays that mirror an MjModel field of `m`."""
+        own = {f for f in _MODEL_FIELDS if isinstance(getattr(m, f, None), np.ndarray)}
+        return frozenset(own | {f for f in _OPTION_FIELDS if hasattr(m.opt, f[4:])})
+
+    def _set_model_fields(self, worlds: np.ndarray, params: dict[str, np.ndarray]) -> None:
+        with wp.ScopedDevice(self.device):
+            for field, values in params.items():
+                owner, name = (self._m.opt, field[4:]) if field.startswith("opt.") else (self._m, field)
+                array = getattr(owner, name)
+                host = values.astype(np.float32).reshape(len(values), *array.shape[1:], *_inner(array))
+                if array.shape[0] != self.nworld:  # the first draw: a row per world, before any capture
+                    setattr(owner, name, wp.array(host, dtype=array.dtype))
+                else:
+                    array.assign(host)
+
+
+def _inner(array: wp.array) -> tuple[int, ...]:
+    """The shape of one element of `array`: (3,) for a vec3, (3, 3) for a mat33, () for a scalar."""
+    return tuple(getattr(array.dtype, "_shape_", None) or ())

@@ -1,0 +1,40 @@
+"""Per-world randomization: what varies per world (spec), and each world's draw (draw).
+
+    variation = batchsim.variation.load("randomize.yaml")   # or a mapping
+    sim = batchsim.make("arm", 1024, "warp", randomize=variation)
+    sim.world_params()["body_mass"]                          # (1024, nbody)
+
+World i's draw depends only on the seed and i (counter-based, as sensor noise is), so a run
+repeats, and a world's conditions do not change with the fleet's size. The contract applies
+the draws (batchsim.varying) through each backend's batched model fields.
+"""
+
+from batchsim.variation.draw import Bound, nominal, subtree_mass
+from batchsim.variation.spec import (
+    Distribution,
+    Draw,
+    FieldVariation,
+    Operation,
+    Per,
+    StartPose,
+    Variation,
+    VariationError,
+    load,
+    parse,
+)
+
+__all__ = [
+    "Bound",
+    "Distribution",
+    "Draw",
+    "FieldVariation",
+    "Operation",
+    "Per",
+    "StartPose",
+    "Variation",
+    "VariationError",
+    "load",
+    "nominal",
+    "parse",
+    "subtree_mass",
+]
