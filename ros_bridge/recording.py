@@ -76,25 +76,38 @@ def record_spec(
         fleet = [t for t in fleet if not t.startswith("/tf")]
     names = [*by_name, *fleet, *([DESCRIPTION] if tf_channel is not None else [])]
     if options.topics is None:
-        chosen = [n for n, i in by_name.items() if not outputs[i].on_request] + [n for n in names if n not in by_name]
+        chosen = [n for n, i in by_name.items() if not outputs[i].on_request] + [
+            n for n in names if n not in by_name
+        ]
     else:
         chosen = []
         for topic in options.topics:
             name = topic.strip()
             key = f"/{name.strip('/')}" if f"/{name.strip('/')}" in fleet else name.strip("/")
             if key not in names:
-                if key in {s.strip("/") for s in sensor_topics} or key.endswith(("image_raw", "camera_info", "scan", "points")):
-                    raise OptionError("record_topics", f"names {topic!r}: cameras and lidars are not recorded yet")
-                raise OptionError("record_topics", f"names {topic!r}, which this fleet does not publish (topics: {', '.join(names)})")
+                if key in {s.strip("/") for s in sensor_topics} or key.endswith(
+                    ("image_raw", "camera_info", "scan", "points")
+                ):
+                    raise OptionError(
+                        "record_topics", f"names {topic!r}: cameras and lidars are not recorded yet"
+                    )
+                raise OptionError(
+                    "record_topics",
+                    f"names {topic!r}, which this fleet does not publish (topics: {', '.join(names)})",
+                )
             chosen.append(key)
     worlds = tuple(range(nworld)) if options.worlds is None else tuple(dict.fromkeys(options.worlds))
     bad = [w for w in worlds if not 0 <= w < nworld]
     if bad:
-        raise OptionError("record_worlds", f"names world {bad[0]}, which this fleet does not have (worlds 0..{nworld - 1})")
+        raise OptionError(
+            "record_worlds", f"names world {bad[0]}, which this fleet does not have (worlds 0..{nworld - 1})"
+        )
     if not worlds:
         raise OptionError("record_worlds", "names no world")
     picked = tuple(by_name[n] for n in chosen if n in by_name)
-    channels = sorted({f.channel for i in picked for f in outputs[i].fields} | ({tf_channel} if "/tf" in chosen else set()))
+    channels = sorted(
+        {f.channel for i in picked for f in outputs[i].fields} | ({tf_channel} if "/tf" in chosen else set())
+    )
     return RecordSpec(
         outputs=picked,
         tf="/tf" in chosen,
@@ -174,7 +187,9 @@ class Recording:
         self._proc.stdin.flush()
         if wait:
             deadline = wallclock.monotonic() + READY_TIMEOUT
-            while self._proc is not None and not self.memory["rec.on"][0] and wallclock.monotonic() < deadline:
+            while (
+                self._proc is not None and not self.memory["rec.on"][0] and wallclock.monotonic() < deadline
+            ):
                 select.select([read], [], [], 0.1)
                 self._watch()
         return True, f"recording to {path}"
@@ -202,7 +217,9 @@ class Recording:
             self.stop(FINISH_TIMEOUT)
         if self._proc is not None:
             self._proc.kill()
-            self._finished(f"batchsim: warning: recording: the recorder did not finish {self.path} in {FINISH_TIMEOUT:g} s")
+            self._finished(
+                f"batchsim: warning: recording: the recorder did not finish {self.path} in {FINISH_TIMEOUT:g} s"
+            )
 
     # --- the loop thread ---
     def update(self, sim, time: float, period: float) -> None:

@@ -4,6 +4,8 @@
     batchsim --worlds 64 --model quadruped --rtf 0 --no-ros
     batchsim --worlds 16 --controllers controllers.yaml   ros2_control controllers in every world
     batchsim info arm                        interfaces and sensors of a model
+    batchsim --worlds 16 --record run.mcap   every world's state topics into one MCAP file
+    batchsim replay run.mcap --worlds 3      republish a recording over ROS 2, with /clock
 
 Errors a user can fix (a missing file, malformed XML, an unknown model, a bad flag, a
 fleet that will not fit in memory) print one line and exit with code 2. Start-up stages
@@ -20,6 +22,7 @@ from collections.abc import Sequence
 from batchsim.backends import BackendUnavailable
 from batchsim.cli.args import EXIT_USAGE, UsageError, check_args, default_model, run_parser, version_line
 from batchsim.cli.info import info, sensor_lines
+from batchsim.cli.replay import replay
 from batchsim.cli.runner import StatusLine, build, run, setup_controllers, start_ros
 from batchsim.hardware import ConfigurationError, LifecycleError
 from batchsim.loop import OptionError, RateError
@@ -46,6 +49,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if argv and argv[0] == "info":
             return info(argv[1:])
+        if argv and argv[0] == "replay":
+            return replay(argv[1:])
         return run(argv)
     except USER_ERRORS as e:  # what the user can fix, as one line; an internal bug keeps its traceback
         print(f"batchsim: error: {e}", file=sys.stderr)

@@ -160,7 +160,7 @@ def run_parser() -> argparse.ArgumentParser:
         "/tf, /tf_static, /clock, robot_description)",
     )
     rec.add_argument(
-        "--record-worlds", type=_worlds, default=None, metavar="I,J-K,...", help="the worlds recorded (default: all)"
+        "--record-worlds", type=world_list, default=None, metavar="I,J-K,...", help="the worlds recorded (default: all)"
     )
     sens = p.add_argument_group("cameras, lidars and sensor noise")
     sens.add_argument(
@@ -225,6 +225,19 @@ def info_parser() -> argparse.ArgumentParser:
     return p
 
 
+def replay_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="batchsim replay", description="Republish an MCAP recording over ROS 2, with /clock.")
+    p.add_argument("file", help="an MCAP file (batchsim --record, or any ROS 2 MCAP bag)")
+    p.add_argument(
+        "--worlds", type=world_list, default=None, metavar="I,J-K,...", help="the worlds replayed (default: all)"
+    )
+    p.add_argument("--rate", type=float, default=1.0, help="playback rate: 1 real time (default), 2 twice as fast")
+    p.add_argument(
+        "--delay", type=float, default=0.5, help="seconds between creating the publishers and the first message (discovery)"
+    )
+    return p
+
+
 def _urdf_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--mujoco-inputs", default=None, metavar="FILE",
@@ -272,7 +285,7 @@ def _names(text: str) -> tuple[str, ...]:
     return tuple(t.strip() for t in text.split(",") if t.strip())
 
 
-def _worlds(text: str) -> tuple[int, ...]:
+def world_list(text: str) -> tuple[int, ...]:
     """`0,3,8-11` -> (0, 3, 8, 9, 10, 11); argparse names the flag when this raises."""
     out: list[int] = []
     try:

@@ -37,7 +37,9 @@ def ring_slots(nrow: int, widths: Sequence[int]) -> int:
     return int(min(MAX_SLOTS, max(MIN_SLOTS, RING_BYTES // per_slot)))
 
 
-def recording_arrays(nchannel: int, nrow: int, channels: Sequence[int], widths: Sequence[int]) -> list[tuple[str, tuple[int, ...], str]]:
+def recording_arrays(
+    nchannel: int, nrow: int, channels: Sequence[int], widths: Sequence[int]
+) -> list[tuple[str, tuple[int, ...], str]]:
     """The Layout entries: `nrow` recorded worlds of the recorded `channels` (their `widths`)."""
     slots = ring_slots(nrow, widths)
     arrays: list[tuple[str, tuple[int, ...], str]] = [
@@ -106,7 +108,12 @@ class RecordedPeriod:
     __slots__ = ("n", "period", "time", "forced", "flags", "channels")
 
     def __init__(self, meta: np.ndarray, flags: np.ndarray, channels: dict[int, np.ndarray]):
-        self.n, self.period, self.time, self.forced = int(meta[0]), int(meta[1]), float(meta[2]), bool(meta[3])
+        self.n, self.period, self.time, self.forced = (
+            int(meta[0]),
+            int(meta[1]),
+            float(meta[2]),
+            bool(meta[3]),
+        )
         self.flags = flags
         self.channels = channels
 

@@ -58,20 +58,7 @@ class McapRecording:
         self.namespaces = [plan.namespaces[w] for w in spec.worlds]
         self.writer = Writer(stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         self.writer.start(profile=PROFILE, library=f"batchsim (mcap {mcap_version})")
-        self._schemas: dict[str, int] = {}
-        self._sequence: dict[int, int] = {}
-        self.messages = 0
-        self.outputs = [Output(plan.outputs[i], self.namespaces) for i in spec.outputs]
-        self.channels = [
-            [self._channel(topic_name(ns, out.spec.topic), out.spec.msg_type) for ns in self.namespaces] for out in self.outputs
-        ]
-        self.tf_spec = plan.tf
-        self.tf = TfTemplate(plan.tf, self.namespaces) if spec.tf and plan.tf.moving else None
-        self.tf_channel = self._channel("/tf", "tf2_msgs/msg/TFMessage", depth=100) if self.tf is not None else -1
-        self.clock_channel = self._channel("/clock", "rosgraph_msgs/msg/Clock", depth=1) if spec.clock else -1
-        self._latched = spec.tf_static or spec.description
-        self._last_clock = -1
-        self.writer.add_metadata(
+        self.writer.add_metadata(  # first: a replay picks worlds by it before their channels come
             "batchsim",
             {
                 "namespaces": json.dumps(self.namespaces),
@@ -79,6 +66,22 @@ class McapRecording:
                 "control_rate": f"{plan.control_rate:g}",
             },
         )
+        self._schemas: dict[str, int] = {}
+        self._sequence: dict[int, int] = {}
+        self.messages = 0
+        self.outputs = [Output(plan.outputs[i], self.namespaces) for i in spec.outputs]
+        self.channels = [
+            [self._channel(topic_name(ns, out.spec.topic), out.spec.msg_type) for ns in self.namespaces]
+            for out in self.outputs
+        ]
+        self.tf_spec = plan.tf
+        self.tf = TfTemplate(plan.tf, self.namespaces) if spec.tf and plan.tf.moving else None
+        self.tf_channel = (
+            self._channel("/tf", "tf2_msgs/msg/TFMessage", depth=100) if self.tf is not None else -1
+        )
+        self.clock_channel = self._channel("/clock", "rosgraph_msgs/msg/Clock", depth=1) if spec.clock else -1
+        self._latched = spec.tf_static or spec.description
+        self._last_clock = -1
         self.writer.flush()
 
     def _channel(self, topic: str, msg_type: str, depth: int = 10, latched: bool = False) -> int:
@@ -113,7 +116,9 @@ class McapRecording:
         frozen = (period.flags & FLAG_FROZEN) != 0 if period.flags.any() else None
         for out, ids in zip(self.outputs, self.channels, strict=True):
             spec = out.spec
-            if not (period.forced or period.period % spec.every == 0) or any(c not in channels for c in spec.channels):
+            if not (period.forced or period.period % spec.every == 0) or any(
+                c not in channels for c in spec.channels
+            ):
                 continue
             out.bulk.fill(out.values(channels), sec, nanosec)
             payload = out.bulk.payload
@@ -121,19 +126,35 @@ class McapRecording:
                 if frozen is None or not spec.state or not frozen[r]:
                     self._add(channel, t, payload(r))
         tf = self.tf
-        if tf is not None and self.tf_spec.channel in channels and (period.forced or period.period % self.tf_spec.every == 0):
-            self._add(self.tf_channel, t, tf.fill(self.tf_spec.moving_transforms(channels[self.tf_spec.channel]), sec, nanosec))
+        if (
+            tf is not None
+            and self.tf_spec.channel in channels
+            and (period.forced or period.period % self.tf_spec.every == 0)
+        ):
+            self._add(
+                self.tf_channel,
+                t,
+                tf.fill(self.tf_spec.moving_transforms(channels[self.tf_spec.channel]), sec, nanosec),
+            )
 
     def _write_latched(self, t: int, sec: int, nanosec: int) -> None:
         """/tf_static and each world's robot_description, once, at the first period."""
         self._latched = False
         if self.spec.tf_static:
             channel = self._channel("/tf_static", "tf2_msgs/msg/TFMessage", depth=1, latched=True)
-            self._add(channel, t, bytes(serialize_message(static_message(self.tf_spec, self.namespaces, sec, nanosec))))
+            self._add(
+                channel,
+                t,
+                bytes(serialize_message(static_message(self.tf_spec, self.namespaces, sec, nanosec))),
+            )
         if self.spec.description:
             data = bytes(serialize_message(String(data=self.tf_spec.description)))
             for ns in self.namespaces:
-                self._add(self._channel(topic_name(ns, "robot_description"), "std_msgs/msg/String", 1, True), t, data)
+                self._add(
+                    self._channel(topic_name(ns, "robot_description"), "std_msgs/msg/String", 1, True),
+                    t,
+                    data,
+                )
 
     def flush(self) -> None:
         """Close the chunk in progress and hand it to the file."""

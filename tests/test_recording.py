@@ -1,0 +1,261 @@
+"""MCAP recording and replay (issue 25), with the real components: a `batchsim --record` process
+writes the file, mcap's reader and mcap-ros2-support's decoder read it back, `batchsim replay`
+republishes it to a subscriber in this process, each on its own ROS domain; a recorder killed
+outright leaves a readable file and the fleet running; bad input is one line."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import pytest
+from conftest import need
+from ros_fleet import LOCALHOST, alive, children, cmdline, domain_id, release_domain
+
+rclpy = need("rclpy")
+need("mcap")
+need("mcap_ros2")
+
+from mcap.reader import NonSeekingReader, make_reader  # noqa: E402
+from mcap.stream_reader import StreamReader  # noqa: E402
+from mcap_ros2.decoder import DecoderFactory  # noqa: E402
+
+from batchsim import cli  # noqa: E402
+from ros_bridge.worker.schemas import DELIMITER, schema_text  # noqa: E402
+
+pytestmark = pytest.mark.ros
+NWORLD, DURATION, RATE = 3, 1.0, 100  # the recorded run: 100 control periods
+
+
+def _batchsim(args: list[str], domain: int, log: Path) -> subprocess.Popen:
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain), "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(
+        [sys.executable, "-m", "batchsim.cli", *args], env=env, stdout=open(log, "w"), stderr=subprocess.STDOUT
+    )
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> Path:
+    """Worlds 0 and 2 of 3 arms, 1 s of sim time as fast as the recorder takes it."""
+    where = tmp_path_factory.mktemp("recording")
+    path = where / "run.mcap"
+    domain = domain_id(70)
+    try:
+        args = ["--worlds", str(NWORLD), "--rtf", "0", "--duration", str(DURATION), "--quiet", "--record", str(path)]
+        proc = _batchsim([*args, "--record-worlds", "0,2"], domain, where / "log")
+        assert proc.wait(timeout=120) == 0, (where / "log").read_text()
+    finally:
+        release_domain(domain)
+    assert f"messages in {path}" in (where / "log").read_text()
+    return path
+
+
+def test_a_recording_reads_back_with_mcap_and_its_ros2_decoder(recorded):
+    with open(recorded, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        header, summary = reader.get_header(), reader.get_summary()
+        assert header.profile == "ros2"
+        assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+        assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+        assert all("offered_qos_profiles" in c.metadata for c in summary.channels.values())
+        assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {"zstd"}
+        counts: Counter[str] = Counter()
+        times: dict[str, list[int]] = defaultdict(list)
+        for _schema, channel, message, decoded in reader.iter_decoded_messages():  # every schema decodes
+            counts[channel.topic] += 1
+            times[channel.topic].append(message.log_time)
+            stamp = getattr(getattr(decoded, "header", None), "stamp", None) or getattr(decoded, "clock", None)
+            if stamp is not None:
+                assert stamp.sec * 10**9 + stamp.nanosec == message.log_time, channel.topic  # stamps are sim time
+            if channel.topic == "/tf":
+                assert {t.child_frame_id.split("/")[0] for t in decoded.transforms} == {"world_0", "world_2"}
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert summary.statistics.message_count == sum(counts.values())
+    periods = round(DURATION * RATE)
+    for world in (0, 2):  # every recorded world's every period, in order
+        topic = f"/world_{world}/joint_states"
+        assert counts[topic] == periods
+        assert times[topic] == sorted(set(times[topic]))
+        assert times[topic] == times["/clock"]
+        assert counts[f"/world_{world}/robot_description"] == 1
+    assert not any(t.startswith("/world_1/") for t in counts)  # --record-worlds 0,2
+    assert counts["/tf"] == periods and counts["/tf_static"] == 1
+    assert metadata["batchsim"]["worlds"] == "[0, 2]"
+
+
+def test_schemas_carry_their_dependencies_as_rosbag2_writes_them():
+    text = schema_text("sensor_msgs/msg/JointState")
+    assert text.startswith("#") or text.startswith("std_msgs/Header")
+    assert f"\n{DELIMITER}\nMSG: std_msgs/msg/Header\n" in text
+    assert f"\n{DELIMITER}\nMSG: builtin_interfaces/msg/Time\n" in text
+    assert text.count("MSG: ") == 2
+
+
+def test_replay_republishes_what_was_recorded(recorded, tmp_path):
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.qos import QoSProfile
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import JointState
+
+    with open(recorded, "rb") as f:
+        reader = make_reader(f)
+        expected = [m.data for _s, c, m in reader.iter_messages(topics=["/world_2/joint_states"])]
+    domain = domain_id(70)
+    os.environ.update(LOCALHOST)
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = Node("test_replay_client", context=context)
+    got: list[bytes] = []
+    clock: list[bytes] = []
+    node.create_subscription(JointState, "/world_2/joint_states", got.append, QoSProfile(depth=1000), raw=True)
+    node.create_subscription(Clock, "/clock", clock.append, QoSProfile(depth=1000), raw=True)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    proc = _batchsim(["replay", str(recorded), "--worlds", "2", "--rate", "2", "--delay", "5"], domain, tmp_path / "log")
+    try:
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        log = (tmp_path / "log").read_text()
+        assert proc.returncode == 0, log
+        assert got == expected, log  # the recorded CDR bytes, every one, in order
+        assert len(clock) == len(expected)
+        assert node.count_publishers("/world_0/joint_states") == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        release_domain(domain)
+
+
+def _messages_until_cut(path: Path) -> int:
+    """Messages a streaming reader gets out of a file cut short, up to its last complete chunk."""
+    n = 0
+    if not path.exists():
+        return 0
+    with open(path, "rb") as f:
+        try:
+            for _ in NonSeekingReader(f).iter_messages(log_time_order=False):
+                n += 1
+        except Exception:  # the cut: a record that never ended
+            pass
+    return n
+
+
+def test_a_killed_recorder_leaves_a_readable_file_and_the_fleet_running_and_the_service_records_again(tmp_path):
+    from std_srvs.srv import SetBool
+
+    path = tmp_path / "live.mcap"
+    domain = domain_id(70)
+    proc = _batchsim(["--worlds", "2", "--quiet", "--controllers", "none", "--record", str(path)], domain, tmp_path / "log")
+    log = tmp_path / "log"
+    os.environ.update(LOCALHOST)
+    context = None
+    try:
+        deadline = time.monotonic() + 60
+        recorder = None
+        while recorder is None or _messages_until_cut(path) < 100:  # a second's chunks on disk
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.2)
+            recorder = next((c for c in children(proc.pid) if "ros_bridge.worker.recorder" in cmdline(c)), None)
+        os.kill(recorder, signal.SIGKILL)
+        while "was killed by signal 9" not in log.read_text():
+            assert time.monotonic() < deadline, log.read_text()
+            time.sleep(0.1)
+        assert alive(proc.pid)  # the simulation goes on
+        n = _messages_until_cut(path)
+        assert n >= 100
+        # ... and a recording started through the service, stopped through it, is complete
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        context = Context()
+        rclpy.init(context=context, domain_id=domain)
+        node = Node("test_record_client", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        client = node.create_client(SetBool, "/batchsim/record")
+        assert client.wait_for_service(timeout_sec=30)
+
+        def call(on: bool):
+            future = client.call_async(SetBool.Request(data=on))
+            executor.spin_until_future_complete(future, timeout_sec=10)
+            return future.result()
+
+        started = call(True)
+        assert started.success and started.message == f"recording to {tmp_path / 'live_2.mcap'}", started.message
+        assert not call(True).success  # already recording
+        time.sleep(1.5)
+        stopped = call(False)
+        assert stopped.success, stopped.message
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0, log.read_text()
+        with open(tmp_path / "live_2.mcap", "rb") as f:
+            summary = make_reader(f).get_summary()
+        assert summary.statistics.message_count > 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        if context is not None:
+            rclpy.try_shutdown(context=context)
+        release_domain(domain)
+
+
+def test_a_full_disk_stops_the_recording_with_one_line_and_the_run_goes_on(tmp_path):
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full")
+    domain = domain_id(70)
+    try:
+        proc = _batchsim(["--worlds", "1", "--rtf", "0", "--duration", "0.5", "--record", "/dev/full"], domain, tmp_path / "log")
+        assert proc.wait(timeout=120) == 0
+    finally:
+        release_domain(domain)
+    lines = (tmp_path / "log").read_text().splitlines()
+    assert "batchsim: warning: recording stopped: /dev/full: No space left on device; the simulation goes on" in lines
+    assert any(line.startswith("batchsim: stopped at sim time 0.500 s") for line in lines)
+
+
+@pytest.mark.parametrize(
+    "args, line",
+    [
+        (["--record", "/nonexistent/run.mcap"], "--record /nonexistent/run.mcap: directory /nonexistent does not exist"),
+        (["--record", "."], "--record . is a directory"),
+        (["--record-topics", "joint_states,bogus"], "--record-topics names 'bogus', which this fleet does not publish"),
+        (["--record-worlds", "1,7"], "--record-worlds names world 7, which this fleet does not have (worlds 0..1)"),
+        (["--record-topics", "image_raw"], "--record-topics names 'image_raw': cameras and lidars are not recorded yet"),
+    ],
+)
+def test_what_cannot_be_recorded_is_one_line(args, line, capsys, monkeypatch):
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id(70)))
+    assert cli.main(["--worlds", "2", "--controllers", "none", "--no-tf", *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"batchsim: error: {line}"), err
+
+
+def test_what_cannot_be_replayed_is_one_line(recorded, tmp_path, capsys):
+    text = tmp_path / "notes.txt"
+    text.write_text("not a recording\n")
+    assert cli.main(["replay", str(text)]) == 2
+    assert capsys.readouterr().err.strip() == f"batchsim: error: {text} is not an MCAP file (it does not start with MCAP's magic bytes)"
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recorded.read_bytes()[:400])  # the header and the metadata, no chunk
+    assert cli.main(["replay", str(cut)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"batchsim: error: {cut} was cut short before its first complete chunk: nothing to replay"
+    assert err[0].startswith(f"batchsim: warning: {cut} was cut short")
+    assert cli.main(["replay", str(recorded), "--worlds", "1"]) == 2
+    assert capsys.readouterr().err.strip() == f"batchsim: error: --worlds names world 1, which {recorded} does not hold (worlds [0, 2])"
+    assert sum(1 for _ in StreamReader(str(recorded)).records) > 0
