@@ -10,6 +10,7 @@ computes (mj_forward) already sees them; start-pose noise is written after it (`
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -101,6 +102,16 @@ class Varying:
         if self._start_qpos is not None:
             out[START_QPOS] = self._start_qpos[sel].copy()
         return out
+
+    def reseed(self, seed: int) -> None:
+        """Draw from `seed` from now on, as a new run would: every world's next reset is its
+        first draw again (a gymnasium `reset(seed=...)`). Nothing changes until a reset."""
+        if self._bound is None:
+            return
+        if not isinstance(seed, int | np.integer) or seed < 0:
+            raise ValueError(f"a seed is a non-negative integer, got {seed!r}")
+        self._bound = Bound(dataclasses.replace(self._bound.variation, seed=int(seed)), self.model)
+        self._draws[:] = -1
 
     def draw_numbers(self) -> np.ndarray:
         """(nworld,) int64: how many times each world has drawn since its first (0 at start)."""

@@ -1,0 +1,122 @@
+"""The gymnasium vector env over the contract (issue 26): batchsim/vector.py.
+
+gymnasium's own checker passes on one world; the vector env steps, rewards, terminates and
+autoresets world for world as gymnasium's SyncVectorEnv over single worlds does (its reference
+implementation), randomized worlds included; a seeded reset repeats.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from conftest import need
+
+gym = need("gymnasium", "pip install -e '.[gym]'")
+from gymnasium.utils.env_checker import check_env  # noqa: E402
+from gymnasium.vector import AutoresetMode, SyncVectorEnv  # noqa: E402
+
+import batchsim  # noqa: E402
+from batchsim import vector  # noqa: E402
+
+VARIATION = {
+    "seed": 2,
+    "redraw_on_reset": True,
+    "fields": [{"field": "body_mass", "also": ["body_inertia"], "scale": {"uniform": [0.5, 2.0]}}],
+    "start_pose": {"add": {"uniform": [-0.3, 0.3]}},
+}
+NWORLD = 4
+
+
+def reward(obs: np.ndarray, action: np.ndarray, sim: batchsim.BatchedSystem) -> np.ndarray:
+    return -np.abs(obs[:, 0] - action[:, 0])
+
+
+def terminated(obs: np.ndarray, sim: batchsim.BatchedSystem) -> np.ndarray:
+    return obs[:, 0] > 0.25  # joint1 swung past 0.25 rad: episodes of different lengths
+
+
+OPTIONS = {"reward": reward, "terminated": terminated, "max_episode_steps": 7}
+
+
+def _world(i: int, **kw) -> vector.WorldEnv:
+    return vector.WorldEnv(batchsim.make("arm", 1, "cpu", randomize=VARIATION, world_offset=i), **OPTIONS, **kw)
+
+
+def test_one_world_passes_gymnasiums_checker():
+    env = _world(3)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env, skip_render_check=True)
+    # its warnings are failures too, but two: the advice to normalize actions (commands are in
+    # joint units, as ros2_control's), and unbounded observations (velocities, efforts), which
+    # gymnasium's own MuJoCo envs (Ant-v5) draw as well
+    allowed = ("we recommend using a symmetric and normalized space", "A Box observation space m")
+    assert [str(w.message) for w in caught if not any(a in str(w.message) for a in allowed)] == []
+    assert env.action_space.is_bounded()  # the arm's joint ranges bound its position commands
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_the_vector_env_is_gymnasiums_sync_env_of_single_worlds(mode):
+    env = vector.make("arm", NWORLD, "cpu", randomize=VARIATION, autoreset_mode=mode, **OPTIONS)
+    reference = SyncVectorEnv([lambda i=i: _world(i) for i in range(NWORLD)], autoreset_mode=mode)
+    assert env.observation_space == reference.observation_space and env.action_space == reference.action_space
+    obs, _ = env.reset()
+    ref_obs, _ = reference.reset()
+    np.testing.assert_allclose(obs, ref_obs, atol=1e-12)
+    rng = np.random.default_rng(0)
+    ends = 0
+    for _ in range(30):
+        action = np.clip(rng.normal(0.4, 0.3, env.action_space.shape), env.action_space.low, env.action_space.high)
+        got = env.step(action)
+        want = reference.step(action)
+        for a, b in zip(got[:4], want[:4], strict=True):
+            np.testing.assert_allclose(a, b, atol=1e-9)
+        if mode is AutoresetMode.SAME_STEP and want[4]:
+            np.testing.assert_array_equal(got[4]["_final_obs"], want[4]["_final_obs"])
+            np.testing.assert_allclose(got[4]["final_obs"][got[4]["_final_obs"]], np.stack(want[4]["final_obs"][want[4]["_final_obs"]]), atol=1e-9)
+        ends += int((got[2] | got[3]).sum())
+    assert ends >= NWORLD  # worlds ended, at different steps, and came back with fresh draws
+    assert len(set(env.sim.draw_numbers())) > 1
+
+
+def test_a_seeded_reset_repeats_and_another_seed_differs():
+    env = vector.make("arm", NWORLD, "cpu", randomize=VARIATION, **OPTIONS)
+    first, _ = env.reset(seed=7)
+    masses = env.sim.world_params()["body_mass"]
+    env.step(env.action_space.sample())
+    again, _ = env.reset(seed=7)
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(env.sim.world_params()["body_mass"], masses)
+    other, _ = env.reset(seed=8)
+    assert not np.allclose(other, first)
+
+
+def test_a_failed_world_is_terminated_and_comes_back():
+    env = vector.make("arm", 2, "cpu", max_episode_steps=100)
+    env.reset()
+    action = np.zeros(env.action_space.shape)
+    env.sim.command[1] = np.nan  # a bad command: only world 1's, and it is not frozen by it
+    _, _, term, trunc, _ = env.step(action)
+    assert not term.any() and not trunc.any()
+    with pytest.raises(ValueError, match=r"actions must have shape \(2, 6\), got \(6,\)"):
+        env.step(action[0])
+
+
+@pytest.mark.parametrize("backend", ["mjx", "warp"])
+def test_the_device_backends_run_the_vector_env(backend):
+    env = vector.make("arm", NWORLD, backend, randomize=VARIATION, **OPTIONS)
+    reference = vector.make("arm", NWORLD, "cpu", randomize=VARIATION, **OPTIONS)
+    obs, _ = env.reset(seed=1)
+    ref, _ = reference.reset(seed=1)
+    assert env.observation_space.contains(obs)
+    positions = slice(0, 18, 3)
+    np.testing.assert_allclose(obs[:, positions], ref[:, positions], atol=1e-6)
+    action = np.full(env.action_space.shape, 0.2)
+    for _ in range(5):
+        obs, rew, term, trunc, _ = env.step(action)
+        ref, ref_rew, *_ = reference.step(action)
+    np.testing.assert_allclose(obs[:, positions], ref[:, positions], atol=1e-3)
+    assert isinstance(env, gym.vector.VectorEnv) and rew.shape == (NWORLD,)
+    env.close()
