@@ -122,7 +122,7 @@ class ShardedSystem(BatchedSystem):
         # the fleet's arrays, in one block that every shard reads its commands from and
         # writes its readings to (shared memory when the shards are processes)
         layout = fleet_layout(
-            self.nworld, self._readings.shape[1], self.model.nsensordata, len(spec.commands)
+            self.nworld, self._readings.shape[1], self.model.nsensordata, len(spec.commands), len(self.devices)
         )
         self.memory = Memory.create(layout, shared=self.processes)
         self.memory["command"][:] = self._command
@@ -140,9 +140,9 @@ class ShardedSystem(BatchedSystem):
             spin = spin_budget(len(self.devices))
             cpus = _share_cores(len(self.devices)) if pin else [None] * len(self.devices)
             try:
-                for r, device, mine in zip(self.world_ranges, self.devices, cpus, strict=True):
+                for slot, (r, device, mine) in enumerate(zip(self.world_ranges, self.devices, cpus, strict=True)):
                     self.shards.append(
-                        ProcessShard(backend.name, spec, r, device, options, self.memory, self.nworld, spin, mine)
+                        ProcessShard(backend.name, spec, r, device, options, self.memory, self.nworld, spin, mine, slot)
                     )
                 for shard in self.shards:  # they start at once: wait for each
                     shard.started()

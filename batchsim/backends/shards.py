@@ -12,10 +12,12 @@ its readings where the fleet's arrays already are, and the fleet copies nothing.
     shard.started()                      # after starting every shard: they start at once
     shard.submit(ShardOp.STEP, 10).result()  # every shard's submit first, then every result
 
-A process shard runs `main(FD)` of this module in a new Python and talks over a socket pair:
-one request, one reply, pickled. The reply carries the shard's log records, which the
-fleet's process logs as its own, so a failed world's line looks the same whatever the
-shard's kind. A shard process exits when the fleet's process closes the socket or dies.
+A process shard runs `main(FDS)` of this module in a new Python: one request, one reply,
+a control period's through a control row in the fleet's shared memory, the rest pickled on
+a socket pair (batchsim/backends/shard_messages.py). A reply carries the shard's log
+records, which the fleet's process logs as its own, so a failed world's line looks the same
+whatever the shard's kind. A shard process exits when the fleet's process closes the socket
+or dies.
 """
 
 from __future__ import annotations
@@ -26,7 +28,6 @@ import os
 import socket
 import subprocess
 import sys
-import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from multiprocessing.connection import Connection
@@ -35,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from batchsim.backends.shard_messages import POLL, Bell, FleetEnd, Records, ShardEnd, control_array, picklable
 from batchsim.hardware import BatchedSystem, Frames, LifecycleState
 from batchsim.memory import Layout, Memory
 from batchsim.model import RobotSpec
@@ -76,7 +78,7 @@ CALLS = frozenset(ShardOp) - {
     ShardOp.DEVICE_ARRAYS, ShardOp.DEVICE_FRAMES, ShardOp.DEVICE_RANGES,
 }  # fmt: skip
 START_TIMEOUT = 300.0  # s: a shard process importing its backend and building its model
-POLL = 1.0  # s: how often a waiting fleet checks that its shard process is still alive
+PERIOD_OPS = (ShardOp.WRITE, ShardOp.STEP, ShardOp.READ)  # through the control row, unpickled
 # s: how long a waiting side (the fleet for a reply, a shard for its next request) polls
 # before it sleeps. A sleeping process wakes tens to hundreds of microseconds after its
 # message arrives (more in a virtual machine, whose idle cores halt); with four such wake-ups
@@ -96,20 +98,11 @@ def spin_budget(nshard: int) -> float:
     return SPIN if cores >= 2 * (nshard + 1) else 0.0
 
 
-def wait_readable(conn: Connection, spin: float, timeout: float) -> bool:
-    """Whether `conn` has a message within `timeout` s: polled for up to `spin` s, then slept on."""
-    if spin > 0:
-        deadline = time.perf_counter() + min(spin, timeout)
-        while time.perf_counter() < deadline:
-            if conn.poll(0):
-                return True
-    return conn.poll(timeout)
-
-
-def fleet_layout(nworld: int, ncolumn: int, nsensordata: int, ncommand: int) -> Layout:
+def fleet_layout(nworld: int, ncolumn: int, nsensordata: int, ncommand: int, nshard: int = 1) -> Layout:
     """The fleet's arrays that its shards read from or write to: readings `(nworld, ncolumn)`
     (state, then base_state, then what the shards' actuation reads), sensordata `(nworld,
-    nsensordata)`, time, status and command `(nworld, ncommand)`."""
+    nsensordata)`, time, status and command `(nworld, ncommand)`; and each shard process's
+    control row (shard_messages)."""
     return Layout(
         [
             ("readings", (nworld, ncolumn), "f8"),
@@ -117,6 +110,7 @@ def fleet_layout(nworld: int, ncolumn: int, nsensordata: int, ncommand: int) -> 
             ("time", (nworld,), "f8"),
             ("status", (nworld,), "u1"),
             ("command", (nworld, ncommand), "f8"),
+            control_array(nshard),
         ]
     )
 
@@ -248,6 +242,7 @@ class ProcessShard:
       spin: seconds the fleet and the shard process poll for a message before sleeping
         (spin_budget).
       cpus: the cores the shard process runs on (None: this process's).
+      slot: the shard's control row in `memory` (its index in the fleet).
 
     Attributes:
       busy: seconds the shard process spent on the last request, its own work without the
@@ -265,6 +260,7 @@ class ProcessShard:
         fleet_size: int,
         spin: float = 0.0,
         cpus: set[int] | None = None,
+        slot: int = 0,
     ):
         if memory.name is None:
             raise ValueError("a shard process needs the fleet's arrays in shared memory")
@@ -277,18 +273,26 @@ class ProcessShard:
         self.spin = float(spin)
         self.busy = 0.0
         ours, theirs = socket.socketpair()
+        to_shard, to_fleet = Bell.pair(), Bell.pair()
         env, local_device = device_env(device)
         root = str(Path(__file__).resolve().parents[2])
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-        self._popen = subprocess.Popen(
-            [sys.executable, "-c", _MAIN, str(theirs.fileno())],
-            pass_fds=(theirs.fileno(),),
-            env=env,
-            stdin=subprocess.DEVNULL,
-            start_new_session=True,  # Ctrl-C goes to the fleet's process, which stops its shards
-        )
-        theirs.close()
+        theirs_fds = (theirs.fileno(), to_shard.read_fd, to_fleet.write_fd)
+        try:
+            self._popen = subprocess.Popen(
+                [sys.executable, "-c", _MAIN, *map(str, theirs_fds)],
+                pass_fds=theirs_fds,
+                env=env,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,  # Ctrl-C goes to the fleet's process, which stops its shards
+            )
+        finally:
+            theirs.close()
+            for fd in theirs_fds[1:]:
+                os.close(fd)
         self._conn = Connection(ours.detach())
+        inbox, outbox = Bell(to_fleet.read_fd, -1), Bell(-1, to_shard.write_fd)
+        self._end = FleetEnd(memory["control"][slot], self._conn, inbox, outbox, PERIOD_OPS, self.spin)
         self._pending = False
         from batchsim.failures import mujoco_log
 
@@ -304,6 +308,7 @@ class ProcessShard:
             "log_dir": None if mujoco_log() is None else str(mujoco_log().parent),
             "spin": self.spin,
             "cpus": None if cpus is None else sorted(cpus),
+            "slot": slot,
         }
         try:
             self._conn.send(start)
@@ -313,7 +318,19 @@ class ProcessShard:
 
     def started(self) -> None:
         """Wait until the shard process has built its system (call once, after __init__)."""
-        reply = self._receive(START_TIMEOUT)
+        waited = 0.0
+        try:
+            while not self._conn.poll(POLL):  # its start is answered on the socket
+                waited += POLL
+                if self._popen.poll() is not None:
+                    raise self._exited()
+                if waited >= START_TIMEOUT:
+                    raise ShardProcessError(f"the shard process of {self.device} did not start in {START_TIMEOUT:g} s")
+            reply = self._answer(*self._conn.recv())
+        except (OSError, EOFError):
+            raise self._exited() from None
+        finally:
+            self._pending = False
         self.options = dict(reply["options"], device=self.device)
 
     def __repr__(self) -> str:
@@ -328,7 +345,7 @@ class ProcessShard:
         if self._pending:
             raise RuntimeError(f"{self!r}: a request is already waiting for its reply")
         try:
-            self._conn.send((op, args, kwargs))
+            self._end.send(op, args, kwargs)
         except (OSError, EOFError):
             raise self._exited() from None
         self._pending = True
@@ -337,22 +354,19 @@ class ProcessShard:
     def call(self, op: ShardOp, *args: Any, **kwargs: Any) -> Any:
         return self.submit(op, *args, **kwargs).result()
 
-    def _receive(self, timeout: float | None = None) -> Any:
-        waited = 0.0
+    def _receive(self) -> Any:
         try:
-            while not wait_readable(self._conn, self.spin, POLL):
-                waited += POLL
-                if self._popen.poll() is not None:
+            while not self._end.answered(POLL):
+                if self._end.peer_closed() or self._popen.poll() is not None:
                     raise self._exited()
-                if timeout is not None and waited >= timeout:
-                    raise ShardProcessError(
-                        f"the shard process of {self.device} did not answer in {timeout:g} s"
-                    )
-            ok, value, lifecycle, records, self.busy = self._conn.recv()
+            return self._answer(*self._end.reply())
         except (OSError, EOFError):
             raise self._exited() from None
         finally:
             self._pending = False
+
+    def _answer(self, ok: bool, value: Any, lifecycle: int | None, records: list, busy: float) -> Any:
+        self.busy = busy
         for name, level, message in records:  # the shard's log lines, as if logged here
             logging.getLogger(name).log(level, "%s", message)
         if lifecycle is not None:
@@ -377,6 +391,7 @@ class ProcessShard:
         if self._conn.closed:
             return
         self._conn.close()  # the shard process sees the end of its socket and exits
+        self._end.close()
         try:
             self._popen.wait(timeout)
         except subprocess.TimeoutExpired:
@@ -403,27 +418,11 @@ def device_env(device: str) -> tuple[dict[str, str], str]:
 _MAIN = "import sys; from batchsim.backends.shards import main; sys.exit(main(sys.argv[1:]))"
 
 
-class _Records(logging.Handler):
-    """Keeps this process's log records for the next reply."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.DEBUG)
-        self.records: list[tuple[str, int, str]] = []
-        self._lock = threading.Lock()
-
-    def emit(self, record: logging.LogRecord) -> None:
-        with self._lock:
-            self.records.append((record.name, record.levelno, record.getMessage()))
-
-    def take(self) -> list[tuple[str, int, str]]:
-        with self._lock:
-            out, self.records = self.records, []
-        return out
-
-
 def main(argv: list[str]) -> int:
+    """The shard process: argv is its socket's, its inbox bell's and its outbox bell's fds."""
     conn = Connection(int(argv[0]))
-    records = _Records()
+    inbox, outbox = Bell(int(argv[1]), -1), Bell(-1, int(argv[2]))
+    records = Records()
     root = logging.getLogger()
     root.addHandler(records)
     root.setLevel(logging.INFO)
@@ -447,23 +446,23 @@ def main(argv: list[str]) -> int:
             fleet_rows = FleetRows(memory, rows)
             conn.send((True, {"options": system.options}, int(system.lifecycle_state), records.take(), 0.0))
         except Exception as e:
-            conn.send((False, _picklable(e), None, records.take(), 0.0))
+            conn.send((False, picklable(e), None, records.take(), 0.0))
             return 1
-        spin = float(start.get("spin", 0.0))
+        end = ShardEnd(memory["control"][start["slot"]], conn, inbox, outbox, PERIOD_OPS, start["spin"])
         while True:
             try:
-                while not wait_readable(conn, spin, POLL):
-                    pass
-                op, args, kwargs = conn.recv()
+                request = end.next(POLL)
             except EOFError:
                 return 0
+            if request is None:
+                continue
+            op, args, kwargs = request
             begin = time.perf_counter()
             try:
                 value = serve(system, fleet_rows, op, args, kwargs)
-                reply = (True, value, int(system.lifecycle_state), records.take(), time.perf_counter() - begin)
+                end.answer(True, value, int(system.lifecycle_state), records.take(), time.perf_counter() - begin)
             except Exception as e:
-                reply = (False, _picklable(e), int(system.lifecycle_state), records.take(), 0.0)
-            conn.send(reply)
+                end.answer(False, e, int(system.lifecycle_state), records.take(), 0.0)
     except (EOFError, BrokenPipeError, ConnectionResetError, KeyboardInterrupt):
         return 0
     finally:
@@ -477,14 +476,3 @@ def main(argv: list[str]) -> int:
                 pass
         if memory is not None:
             memory.close()
-
-
-def _picklable(e: BaseException) -> BaseException:
-    """`e` if it survives pickling, else a RuntimeError with its text."""
-    import pickle
-
-    try:
-        pickle.loads(pickle.dumps(e))
-        return e
-    except Exception:
-        return RuntimeError(f"{type(e).__name__}: {e}")
