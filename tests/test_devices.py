@@ -78,6 +78,38 @@ def test_a_fleet_on_two_devices_is_the_fleet_on_one(processes):
         sim.shutdown()
 
 
+@SHARDS
+def test_a_shard_reads_into_the_fleets_arrays_and_a_reset_keeps_other_commands(processes):
+    """A shard's system reads into its rows of the fleet's arrays and takes its commands from
+    them (share_host_arrays: no copy between them). So a reset of one world sets that world's
+    command back and leaves a command set but not yet written in another world of the same
+    shard as it is, as one device does (the shard's copy of its commands overwrote it before)."""
+    fleets = [
+        batchsim.make("arm", 4, "warp", devices=["cpu", "cpu"], processes=processes),
+        batchsim.make("arm", 4, "warp"),
+    ]
+    if not processes:
+        shard = fleets[0].shards[1].system
+        assert np.shares_memory(shard.readings, fleets[0].readings)
+        assert np.shares_memory(shard.command, fleets[0].command)
+    for sim in fleets:
+        sim.configure()
+        sim.activate()
+        sim.command[:] = 0.2
+        sim.write()
+        sim.command[1] = 0.3  # world 1: the first shard's, beside the world reset
+        sim.reset([0])
+    np.testing.assert_array_equal(fleets[0].command, fleets[1].command)
+    assert fleets[0].command[1].tolist() == [0.3] * fleets[0].command.shape[1]
+    for sim in fleets:
+        sim.write()
+        sim.step(5)
+        sim.read()
+    np.testing.assert_array_equal(fleets[0].state, fleets[1].state)
+    for sim in fleets:
+        sim.shutdown()
+
+
 def test_devices_are_for_the_device_backends():
     with pytest.raises(ValueError, match="cpu backend runs on the host's cores"):
         batchsim.make("arm", 4, "cpu", devices=[0, 1])

@@ -21,7 +21,7 @@ import numpy as np
 
 from batchsim.backends import unsupported_error
 from batchsim.failures import warning_text
-from batchsim.hardware import BatchedSystem, Status
+from batchsim.hardware import BatchedSystem, LifecycleState, Status
 from batchsim.model import RobotSpec
 
 #: the live arrays `device_arrays()` hands out, `(nworld, ...)` each, `time` `(nworld,)`
@@ -84,6 +84,27 @@ class DeviceSystem(BatchedSystem):
         except NotImplementedError as e:
             return _feature(e)
         return None
+
+    def share_host_arrays(self, readings: np.ndarray, sensordata: np.ndarray, command: np.ndarray) -> None:
+        """Make `readings` (nworld, ncolumn), `sensordata` (nworld, nsensordata) and `command`
+        (nworld, ncommand), C-contiguous float64, the arrays read() fills and write() takes
+        its commands from, in place of this system's own (`command` gets its current rows):
+        a fleet's shard (batchsim/backends/shards.py) then reads into the fleet's arrays and
+        copies nothing. Before configure(); the caller keeps the arrays alive."""
+        self._require("share its host arrays", frozenset({LifecycleState.UNKNOWN, LifecycleState.UNCONFIGURED}))
+        mine = {"readings": self._readings, "sensordata": self._sensor_host, "command": self._command}
+        for name, array in zip(mine, (readings, sensordata, command), strict=True):
+            like = mine[name]
+            if array.shape != like.shape or array.dtype != np.float64 or not array.flags.c_contiguous:
+                raise ValueError(f"{name} must be C-contiguous float64 {like.shape}, got {array.dtype} {array.shape}")
+        command[:] = self._command
+        self._command = command
+        self._bind_readings(readings)
+        self._bind_sensordata(sensordata)
+        self._follow_host_arrays()
+
+    def _follow_host_arrays(self) -> None:
+        """share_host_arrays' hook: the engine's own host buffers follow the shared arrays."""
 
     # --- what each device backend supplies ---
     @staticmethod

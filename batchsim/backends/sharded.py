@@ -154,6 +154,7 @@ class ShardedSystem(BatchedSystem):
             for r, device, fleet_rows in zip(self.world_ranges, self.devices, rows, strict=True):
                 system = backend(spec, len(r), **{**options, "device": device})
                 system.number_worlds_as(r.start, self.nworld)  # failure lines name fleet worlds
+                fleet_rows.share(system)
                 self.shards.append(LocalShard(system, fleet_rows, self._pool))
         self.options = dict(self.shards[0].options, device=self.devices)
         self._stepped: set[int] = set()  # period lengths every shard has compiled or captured

@@ -40,6 +40,7 @@ from batchsim.backends.warp.kernels import (
     set_rows,
 )
 from batchsim.backends.warp.fields import WarpFields
+from batchsim.backends.warp.host import WarpHost
 from batchsim.backends.warp.sensors import WarpSensors
 from batchsim.backends.warp.wrench import WarpWrenches
 from batchsim.model import RobotSpec
@@ -53,7 +54,7 @@ _CHANGED = int(mjw.State.PHYSICS | mjw.State.WARMSTART)
 _INTEGRATION = int(mjw.State.PHYSICS | mjw.State.USER | mjw.State.WARMSTART)  # no PLUGIN in Warp
 
 
-class WarpSystem(WarpWrenches, WarpSensors, WarpFields, DeviceSystem):
+class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, DeviceSystem):
     """`nworld` worlds on MuJoCo Warp, one captured graph per control period.
 
     Options:
@@ -123,10 +124,6 @@ class WarpSystem(WarpWrenches, WarpSensors, WarpFields, DeviceSystem):
         """Warp's devices for this backend: every CUDA GPU ("cuda:0", ...), else ["cpu"]."""
         gpus = [d.alias for d in wp.get_cuda_devices()]
         return gpus or ["cpu"]
-
-    def _host_array(self, shape: tuple[int, ...], dtype: Any) -> wp.array:
-        """A zeroed host array: pinned (page-locked) when the device is a GPU."""
-        return wp.zeros(shape, dtype=dtype, device="cpu", pinned=self._cuda)
 
     # --- engine hooks ---
     def _open(self) -> None:

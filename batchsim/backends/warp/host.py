@@ -1,0 +1,120 @@
+"""The host side of WarpSystem's arrays, mixed into it: the host arrays a user sees are
+pinned (page-locked) memory that the device copies into directly, so read() costs one DMA
+per array and no host copy.
+
+A fleet's shard (DeviceSystem.share_host_arrays) reads into the fleet's arrays instead:
+its rows of a shared-memory segment, or of the fleet's own memory when the shards are
+threads. That memory is page-locked here too, the whole buffer once per process
+(cuMemHostRegister, CU_MEMHOSTREGISTER_PORTABLE: every device's context sees it as
+pinned), and unlocked when the last system reading into it is gone. Where the driver
+refuses, the copies still work, through the driver's pageable path (slower).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import threading
+import weakref
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+log = logging.getLogger("batchsim.warp")
+
+PAGE = 4096
+_PORTABLE = 0x01  # CU_MEMHOSTREGISTER_PORTABLE
+
+
+class WarpHost:
+    """`_host_array` and share_host_arrays' hook for WarpSystem, whose `device`, `_cuda`,
+    `_readings` and `_sensor_host` it uses."""
+
+    def _host_array(self, shape: tuple[int, ...], dtype: Any) -> wp.array:
+        """A zeroed host array: pinned (page-locked) when the device is a GPU."""
+        return wp.zeros(shape, dtype=dtype, device="cpu", pinned=self._cuda)  # type: ignore[attr-defined]
+
+    def _follow_host_arrays(self) -> None:
+        # read() copies (a GPU) or gathers (Warp's CPU device) straight into the shared arrays
+        self._state_wp = self._wrap(self._readings)  # type: ignore[attr-defined]
+        if self._sensor_host.size:  # type: ignore[attr-defined]
+            self._sensor_wp = self._wrap(self._sensor_host)  # type: ignore[attr-defined]
+
+    def _wrap(self, array: np.ndarray) -> wp.array:
+        """A Warp host array over `array`'s memory, page-locked for the device where it can be."""
+        pinned = False
+        if self._cuda:  # type: ignore[attr-defined]
+            pinned = lock_pages(array, self.device)  # type: ignore[attr-defined]
+            if pinned:
+                weakref.finalize(self, unlock_pages, array, self.device)  # type: ignore[attr-defined]
+        return wp.array(ptr=array.ctypes.data, dtype=wp.float64, shape=array.shape, device="cpu", pinned=pinned)
+
+
+# ---------------------------------------------------------------- page-locking, per process
+
+_lock = threading.Lock()
+_locked: dict[int, list[Any]] = {}  # buffer's first page -> [its (address, size), users, the buffer kept alive]
+_driver: Any = None
+
+
+def _cuda_driver() -> Any:
+    global _driver
+    if _driver is None:
+        lib = ctypes.CDLL("libcuda.so.1")
+        lib.cuMemHostRegister_v2.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_uint]
+        lib.cuMemHostUnregister.argtypes = [ctypes.c_void_p]
+        _driver = lib
+    return _driver
+
+
+def whole_buffer(array: np.ndarray) -> tuple[int, int, Any]:
+    """The page-aligned (address, size) of the buffer `array` is a view of (a shared-memory
+    mapping, or the NumPy array that owns the memory), and that buffer."""
+    owner: Any = array
+    while isinstance(owner, np.ndarray) and owner.base is not None:
+        owner = owner.base
+    flat = owner if isinstance(owner, np.ndarray) else np.frombuffer(owner, np.uint8)
+    start, end = flat.ctypes.data, flat.ctypes.data + flat.nbytes
+    start -= start % PAGE
+    end += -end % PAGE
+    return start, end - start, owner
+
+
+def lock_pages(array: np.ndarray, device: Any) -> bool:
+    """Page-lock the buffer under `array` for the CUDA devices of this process (once per
+    buffer, counted); whether it is."""
+    address, size, owner = whole_buffer(array)
+    with _lock:
+        entry = _locked.get(address)
+        if entry is not None:
+            entry[1] += 1
+            return True
+        try:
+            with wp.ScopedDevice(device):  # the driver call needs a current context
+                code = _cuda_driver().cuMemHostRegister_v2(address, size, _PORTABLE)
+        except OSError as e:
+            code = str(e)
+        if code != 0:
+            log.info("batchsim: warp: the fleet's arrays are not page-locked (cuMemHostRegister: %s); reads copy through pageable memory", code)
+            return False
+        _locked[address] = [(address, size), 1, owner]
+        return True
+
+
+def unlock_pages(array: np.ndarray, device: Any) -> None:
+    """lock_pages undone by one of its users; the last unlocks the buffer."""
+    address, _, _ = whole_buffer(array)
+    with _lock:
+        entry = _locked.get(address)
+        if entry is None:
+            return
+        entry[1] -= 1
+        if entry[1] > 0:
+            return
+        del _locked[address]
+        try:
+            with wp.ScopedDevice(device):
+                _cuda_driver().cuMemHostUnregister(address)
+        except Exception:  # a process at its exit, its contexts gone: the pages go with it
+            pass
