@@ -233,7 +233,7 @@ def replay_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--rate", type=float, default=1.0, help="playback rate: 1 real time (default), 2 twice as fast")
     p.add_argument(
-        "--delay", type=float, default=0.5, help="seconds between creating the publishers and the first message (discovery)"
+        "--delay", type=float, default=1.0, help="seconds between creating the publishers and the first message (discovery)"
     )
     return p
 

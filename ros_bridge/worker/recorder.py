@@ -45,6 +45,7 @@ CHUNK_BYTES = 1 << 20  # a chunk closes at this size (uncompressed), or after CH
 CHUNK_SECONDS = 1.0
 POLL = 0.01  # s between two looks at the ring
 PROFILE = "ros2"
+NICE = 10
 
 
 class McapRecording:
@@ -169,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     status = os.fdopen(int(argv[0]), "w", buffering=1)
     die_with_parent()
+    os.nice(NICE)  # the ring gives it seconds of slack: the loop and the workers come first for the cores
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the physics process, which stops us
     stopping = []
     signal.signal(signal.SIGTERM, lambda signum, frame: stopping.append(signum))

@@ -203,7 +203,7 @@ class Replay:
         self._clock = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
 
 
-def replay(path: str, worlds: Sequence[int] | None = None, rate: float = 1.0, delay: float = 0.5,
+def replay(path: str, worlds: Sequence[int] | None = None, rate: float = 1.0, delay: float = 1.0,
            say: Callable[[str], None] = print) -> tuple[int, float, float]:  # fmt: skip
     """Replay `path` over ROS 2 (its own context and node, `batchsim_replay`): (messages
     published, first and last sim time in s). ReplayError: one line naming the problem."""

@@ -1,0 +1,132 @@
+"""Recording at full rate: does it slow the loop, and does every message reach the file?
+
+    .venv/bin/python benchmarks/recording.py --repeat 3           # 16 arms at 1 kHz, 20 s, off then on, 3 times
+    .venv/bin/python benchmarks/recording.py --worlds 1024 --backend warp --control-rate 100
+
+The loop runs in this process as `batchsim` runs it (the arm's default controllers, the ROS 2
+bridge with its workers in processes, RTF 1, the loop thread's SCHED_FIFO where allowed), once
+without a recording and once with `--record` (the default topic set: joint_states,
+wrist_ft_broadcaster/wrench, /tf, /tf_static, /clock, robot_description). Reported per run:
+the RTF held (sim time over wall time from the first period to the last), the loop's own
+time per period (the pacing sleep excluded: median, 99th percentile, worst) against the
+period's budget; with the recording, the messages in the file counted per topic against what
+the periods that ran must have given (every world's state topics every period, /clock and
+/tf every period), the periods the ring dropped, and the file's bytes per world and sim second.
+Nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def run(opts: argparse.Namespace, path: str | None) -> dict:
+    import batchsim
+    from batchsim.controllers import default_controllers, load_controllers
+    from batchsim.loop import SimLoop
+    from batchsim.realtime import DEFAULT_THREAD_PRIORITY
+    from ros_bridge.bridge import BridgeOptions, start_bridge
+    from ros_bridge.options import RecordOptions
+
+    sim = batchsim.make(opts.model, opts.worlds, opts.backend)
+    sim.configure()
+    sim.activate()
+    manager = load_controllers(default_controllers(opts.model), sim.spec, opts.worlds)
+    loop = SimLoop(
+        sim, control_rate=opts.control_rate, rtf=1.0, duration=opts.duration, participants=[manager],
+        thread_priority=DEFAULT_THREAD_PRIORITY,
+    )  # fmt: skip
+    host = start_bridge(sim, loop, BridgeOptions(record=RecordOptions(path)), manager)
+    own: list[float] = []
+    starts: list[float] = []
+    run_period = loop.run_period
+
+    def timed(nstep: int | None = None) -> None:
+        t = time.perf_counter()
+        run_period(nstep)
+        starts.append(t)
+        own.append(time.perf_counter() - t)
+
+    loop.run_period = timed
+    loop.run()
+    wall = time.perf_counter() - starts[0]
+    dropped = int(host.memory["rec.dropped"][0]) if path else 0
+    host.close()  # the recorder finishes the file
+    sim.shutdown()
+    ms = np.array(own) * 1e3
+    return {
+        "periods": len(own),
+        "rtf": loop.sim_time / (wall + 1.0 / loop.control_rate),
+        "median": float(np.median(ms)),
+        "p99": float(np.percentile(ms, 99)),
+        "worst": float(ms.max()),
+        "over": int((ms > 1e3 / loop.control_rate).sum()),
+        "dropped": dropped,
+        "sim_time": loop.sim_time,
+    }
+
+
+def count(path: str) -> Counter:
+    from mcap.reader import make_reader
+
+    topics: Counter = Counter()
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    for channel_id, n in summary.statistics.channel_message_counts.items():
+        topic = summary.channels[channel_id].topic
+        topics[topic if not topic.startswith("/world_") else topic.split("/", 2)[2]] += n
+    return topics
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--worlds", type=int, default=16)
+    p.add_argument("--model", default="arm")
+    p.add_argument("--backend", default="cpu")
+    p.add_argument("--control-rate", type=float, default=1000.0)
+    p.add_argument("--duration", type=float, default=20.0, help="sim seconds per run")
+    p.add_argument("--repeat", type=int, default=1, help="runs of each, alternating (a shared machine's load drifts)")
+    p.add_argument("--domain", type=int, default=91)
+    opts = p.parse_args()
+    os.environ.update({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(opts.domain)})
+    import mcap
+    import mujoco
+
+    print(f"# {platform.node()}: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+          f"Python {platform.python_version()}, MuJoCo {mujoco.__version__}, mcap {mcap.__version__}")  # fmt: skip
+    print(f"# {opts.worlds} x {opts.model} on {opts.backend}, control {opts.control_rate:g} Hz, {opts.duration:g} s per run")
+    budget = 1e3 / opts.control_rate
+    with tempfile.TemporaryDirectory() as where:
+        path = os.path.join(where, "run.mcap")
+        for label, record in [("without recording", None), ("recording", path)] * opts.repeat:
+            r = run(opts, record)
+            print(
+                f"{label:18s} rtf {r['rtf']:.3f} | loop's own time per period: median {r['median']:.3f} ms, "
+                f"p99 {r['p99']:.3f} ms, worst {r['worst']:.2f} ms (budget {budget:g} ms, {r['over']} over) | "
+                f"{r['periods']} periods"
+            )
+        topics = count(path)
+        size = os.path.getsize(path)
+        periods = r["periods"]
+        print(f"file: {size / 1e6:.2f} MB, {sum(topics.values())} messages, ring drops {r['dropped']}, "
+              f"{size / (opts.worlds * r['sim_time']) / 1e3:.1f} kB per world-second")  # fmt: skip
+        for topic, n in sorted(topics.items()):
+            per = opts.worlds if not topic.startswith("/") else 1
+            expected = periods * per if topic not in ("/tf_static", "robot_description") else per
+            print(f"  {topic:32s} {n:8d} of {expected:8d} expected {'ok' if n == expected else 'MISSING'}")
+
+
+if __name__ == "__main__":
+    main()
