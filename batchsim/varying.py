@@ -88,6 +88,11 @@ class Varying:
         """The Variation the worlds draw from, or None."""
         return None if self._bound is None else self._bound.variation
 
+    @property
+    def variation_bound(self) -> Bound | None:
+        """The variation as resolved against this model (what a draw writes, and how), or None."""
+        return self._bound
+
     def world_params(self, worlds: Sequence[int] | np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Each world's current values of every varied field: field -> `(n, *shape)` float64 copies,
         for all or the listed worlds; `start_qpos` `(n, nq)` too where start-pose noise is drawn.

@@ -54,6 +54,7 @@ from ros_bridge.protocol.requests import (
     decode_trajectories,
 )
 from ros_bridge.protocol.snapshot import write_snapshot
+from ros_bridge.protocol.world_params import ParamWriter
 from ros_bridge.simulation import SimulationRequests
 from ros_bridge.supervisor import Supervisor
 from ros_bridge.throttle import LogThrottle
@@ -123,6 +124,9 @@ class BridgeHost:
         self._traj_seen = {i: c.copy() for i, c in self._traj_counters.items()}  # at the last period start
         self._traj_taken = {i: c.copy() for i, c in self._traj_counters.items()}  # as far as the ring was read
         self.rejections = RejectionWriter(m, "hrej")
+        self.params = ParamWriter(m, plan.world_offset, sim.variation.source) if plan.randomized else None
+        if self.params is not None:  # each world's draw, for /diagnostics; again after resets
+            self.params.refresh(sim)
         self._worker_rejections = m["rej.count"]
         self._worker_rejections_seen = self._worker_rejections.copy()
         # controller_manager's services and the actions' goals (switch, cancel, gripper goals)
@@ -315,6 +319,8 @@ class BridgeHost:
         self._timed_out[sel] = False
         self.bad[sel] = False
         self._force = True
+        if self.params is not None:  # worlds drawn anew (a variation that redraws): their /diagnostics lines
+            self.params.refresh(sim)
 
     # --- requests through the rings ---
     def _serve_requests(self, sim: BatchedSystem, good: np.ndarray | None, rejected: np.ndarray | None) -> bool:
@@ -424,9 +430,8 @@ class BridgeHost:
 
     # --- publishing ---
     def _snapshot(self, time: float, force: bool, every_channel: bool = False) -> None:
-        """Copy what is due into the next snapshot (ros_bridge/protocol/snapshot.py) and wake the workers.
-        `every_channel`: every channel, wanted or not (the state lockstep waits in, which a
-        subscriber that comes during the wait gets at once)."""
+        """Copy what is due into the next snapshot (protocol/snapshot.py), wake the workers. `every_channel`:
+        every channel, wanted or not (the lockstep's wait: a subscriber that comes during it gets it at once)."""
         flags = np.zeros(self.nworld, np.uint8)
         status = self.sim.status.copy()
         if self.bad.any():

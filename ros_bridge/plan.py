@@ -41,6 +41,7 @@ from ros_bridge.options import BridgeOptions, Reliability
 from ros_bridge.outputs import ChannelFill, Field, OutputSpec, robot_outputs
 from ros_bridge.protocol.commands import rejection_arrays, slot_arrays
 from ros_bridge.protocol.requests import trajectory_bytes, wrench_arrays
+from ros_bridge.protocol.world_params import param_arrays
 from ros_bridge.recording import RecordSpec, record_spec
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan
 from ros_bridge.tf_plan import TfSpec, tf_spec
@@ -139,6 +140,7 @@ class FleetPlan:
     actions: list[TrajectoryActionSpec | GripperActionSpec] = dataclasses.field(default_factory=list)
     wrench_service: str = ""
     recording: RecordSpec | None = None
+    randomized: bool = False  # the worlds' draws (batchsim.variation) go into /diagnostics
     layout: Layout = dataclasses.field(init=False)
     memory_name: str | None = None
 
@@ -182,6 +184,8 @@ class FleetPlan:
             arrays += wrench_arrays(nw)
         if self.recording is not None:
             arrays += self.recording.arrays(len(self.channels))
+        if self.randomized:
+            arrays += param_arrays(n)
         # room for two of the largest trajectories an input takes (a record may take at most
         # half the ring): a 10,000-point trajectory of 6 joints is 1.5 MB
         largest = max(
@@ -322,6 +326,7 @@ def build_plan(
         manager=manager_spec(sim, manager, control_rate) if manager is not None else None,
         wrench_service=wrench.service if wrench is not None and available()["mujoco_ros2_control_msgs"] else "",
         recording=recording,
+        randomized=sim.variation is not None,
     )
     return plan, fills, inputs
 

@@ -49,6 +49,7 @@ from batchsim.memory import Memory
 from batchsim.model import RobotSpec
 from batchsim.sensors import Camera, Lidar, SensorConfig
 from batchsim.types import check_nstep, split_worlds
+from batchsim.variation import Bound
 from batchsim.variation import load as load_variation
 
 
@@ -256,6 +257,14 @@ class ShardedSystem(BatchedSystem):
     @property
     def variation(self) -> Any:
         return self._sharded_variation
+
+    @property
+    def variation_bound(self) -> Bound | None:
+        variation = self._sharded_variation
+        return None if variation is None else Bound(variation, self.model)
+
+    def draw_numbers(self) -> np.ndarray:
+        return np.concatenate(self._each(ShardOp.DRAW_NUMBERS))
 
     def world_params(self, worlds: Sequence[int] | np.ndarray | None = None) -> dict[str, np.ndarray]:
         parts = self._each(ShardOp.WORLD_PARAMS)

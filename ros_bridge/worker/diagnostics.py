@@ -25,6 +25,7 @@ from batchsim.hardware import Status
 from batchsim.memory import Memory
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT
 from ros_bridge.protocol.commands import Problem, RejectionWriter
+from ros_bridge.protocol.world_params import read_line
 from ros_bridge.worker.messages import stamp_of
 
 
@@ -38,6 +39,8 @@ class Diagnostics:
         self.lo, self.hi = lo, hi
         self.workers = workers or []
         self.hung = memory["worker.hung"]
+        self.memory = memory
+        self.randomized = "wp.text" in memory  # each world's draw (ros_bridge/protocol/world_params.py)
         self.namespaces = namespaces
         self.rejections = RejectionWriter(memory, "rej")
         self.host_rejections = RejectionWriter(memory, "hrej")
@@ -124,7 +127,8 @@ class Diagnostics:
                         KeyValue(key="last_problem", value=last),
                     ]
                     + [KeyValue(key=f"rejected {topic} {reason}", value=str(n)) for (topic, reason), n in rejected[row]]
-                    + [KeyValue(key=f"published {topic}", value=str(counts[row])) for topic, counts in published],
+                    + [KeyValue(key=f"published {topic}", value=str(counts[row])) for topic, counts in published]
+                    + ([KeyValue(key="randomized", value=read_line(self.memory, w))] if self.randomized else []),
                 )
             )
         now = wallclock.time()
