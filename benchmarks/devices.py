@@ -219,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", default="humanoid")
     p.add_argument("--seconds", type=float, default=3.0)
     p.add_argument("--shards", default=",".join(SHARDS), help="processes, threads, or both (default)")
+    p.add_argument("--counts", default="", help="device counts to run, e.g. 1,2,4 (default: 1 up to every device)")
     p.add_argument("--out", default="benchmarks/out")
     p.add_argument("--raw-worker", default=None, help=argparse.SUPPRESS)
     args, _ = p.parse_known_args(argv)
@@ -234,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
         have = cls.available_devices()
         devices = [have[d] if isinstance(d, int) else d for d in devices]
     per_device = int(args.worlds.split(",")[0])
+    counts = [int(k) for k in args.counts.split(",") if k.strip()] or list(range(1, len(devices) + 1))
+    counts = sorted({1, *(k for k in counts if 1 <= k <= len(devices))})  # one device: the baseline
     modes = [m.strip() for m in args.shards.split(",") if m.strip()]
     date = datetime.date.today().isoformat()
     device = device_name([backend])
@@ -246,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"raw, each device alone: {', '.join(f'{r:,.0f}' for r in raw)} steps/s", flush=True)
     # and all at once: whether the devices themselves give the sum when they run together
     together = {1: raw[0]}
-    for k in range(2, len(devices) + 1):
+    for k in counts[1:]:
         each = raw_together(args.model, backend, devices[:k], per_device, args.seconds)
         together[k] = sum(each)
         print(f"raw, {k} devices at once: {', '.join(f'{r:,.0f}' for r in each)} = {together[k]:,.0f} steps/s", flush=True)
@@ -257,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     rows = []
     one = None
-    for k in range(1, len(devices) + 1):
+    for k in counts:
         for shards in modes if k > 1 else ["-"]:
             result = contract(args.model, backend, devices[:k], per_device, args.seconds, shards)
             one = one or result["sps"]

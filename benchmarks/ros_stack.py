@@ -82,23 +82,28 @@ def _until_stdin_closes(go: list[float] | None = None) -> threading.Event:
 
 # --- child processes ---
 def subscriber(domain: int, lo: int, hi: int, fleet_tf: bool) -> None:
-    """Count joint_states and tf of worlds lo..hi-1 (and /tf): `count <wall> <js> <tf> <fleet tf>`."""
+    """Count joint_states and tf of worlds lo..hi-1 (and /tf), and the worlds heard on each:
+    `count <wall> <js> <tf> <fleet tf> <worlds heard on js> <on tf>`."""
     from rclpy.experimental import EventsExecutor
     from sensor_msgs.msg import JointState
     from tf2_msgs.msg import TFMessage
 
     context, node = _init(domain, f"stack_subscriber_{lo}")
-    counts = [0, 0, 0]
+    counts = [0, 0, 0, 0, 0]  # messages on joint_states, tf, /tf; worlds heard on joint_states, tf
+    heard = [bytearray(hi - lo), bytearray(hi - lo)]
 
-    def counter(k: int):
+    def counter(k: int, w: int = -1):
         def callback(msg: bytes) -> None:
             counts[k] += 1
+            if w >= 0 and not heard[k][w]:
+                heard[k][w] = 1
+                counts[3 + k] += 1
 
         return callback
 
     for w in range(lo, hi):
-        node.create_subscription(JointState, f"/world_{w}/joint_states", counter(0), 10, raw=True)
-        node.create_subscription(TFMessage, f"/world_{w}/tf", counter(1), 100, raw=True)
+        node.create_subscription(JointState, f"/world_{w}/joint_states", counter(0, w - lo), 10, raw=True)
+        node.create_subscription(TFMessage, f"/world_{w}/tf", counter(1, w - lo), 100, raw=True)
     if fleet_tf:
         node.create_subscription(TFMessage, "/tf", counter(2), 100, raw=True)
     executor = EventsExecutor(context=context)
@@ -109,7 +114,7 @@ def subscriber(domain: int, lo: int, hi: int, fleet_tf: bool) -> None:
         executor.spin_once(timeout_sec=0.05)
         if time.time() >= next_report:
             next_report = time.time() + 0.25
-            print(f"count {time.time():.3f} {counts[0]} {counts[1]} {counts[2]}", flush=True)
+            print(f"count {time.time():.3f} {' '.join(map(str, counts))}", flush=True)
 
 
 def goal_client(domain: int, lo: int, hi: int, mode: str, rate: float, start: float) -> None:
@@ -258,15 +263,36 @@ def _counted(children: Children, at: float) -> np.ndarray:
     return total
 
 
+def _heard(children: Children) -> tuple[int, int]:
+    """Worlds heard so far on joint_states and on their tf, over all subscribers."""
+    last = [[line for line in lines if line[0] == "count"][-1:] for lines in children.lines]
+    return (sum(int(c[0][5]) for c in last if c), sum(int(c[0][6]) for c in last if c))
+
+
+def _all_heard(children: Children, shares: list[tuple[int, int]]) -> float | None:
+    """The wall time by which every world was heard on joint_states and on tf (None: not yet)."""
+    when = []
+    for lines, (lo, hi) in zip(children.lines, shares, strict=True):
+        done = [float(line[1]) for line in lines if line[0] == "count" and int(line[5]) == int(line[6]) == hi - lo]
+        if not done:
+            return None
+        when.append(done[0])
+    return max(when)
+
+
 def run(opts: argparse.Namespace) -> None:
     os.environ.update(LOCALHOST)
     os.environ["ROS_DOMAIN_ID"] = str(opts.domain)
     import batchsim
+    from batchsim.backends import backend_class
     from batchsim.controllers import default_controllers, load_controllers
     from batchsim.loop import SimLoop
     from ros_bridge.bridge import BridgeOptions, start_bridge
 
     options = {"nthread": opts.threads} if opts.threads else {}
+    if opts.devices:  # one process per device, as `batchsim --devices` runs them
+        have = backend_class(batchsim.Backend.parse(opts.backend)).available_devices()
+        options.update(devices=have if opts.devices == "all" else [have[int(d)] for d in opts.devices.split(",")], processes=True)
     sim = batchsim.make(opts.model, opts.worlds, opts.backend, **options)
     sim.configure()
     sim.activate()
@@ -375,6 +401,8 @@ def run(opts: argparse.Namespace) -> None:
         time.sleep(0.05)
     sim1 = loop.sim_time
     counted = _counted(subs, t1) - _counted(subs, t0)
+    first_period = periods[0][0] - periods[0][1]
+    heard_at = _all_heard(subs, _shares(opts.worlds, opts.subscribers))
     if goals is not None:
         deadline = time.time() + opts.result_timeout
         while opts.goals == "burst" and time.time() < deadline:
@@ -413,6 +441,8 @@ def run(opts: argparse.Namespace) -> None:
           f"{np.percentile(p, 99):.2f} ms p99 (budget {budget * 1e3:.1f} ms, {len(p)} periods)")  # fmt: skip
     print(f"joint_states received {counted[0] / wall:,.0f}/s of {expected:,.0f}/s expected ({counted[0] / wall / expected:.3f})")
     print(f"tf (/<ns>/tf) received {counted[1] / wall:,.0f}/s of {expected:,.0f}/s expected ({counted[1] / wall / expected:.3f})")
+    print(f"every world heard (joint_states and /<ns>/tf) {heard_at - first_period:.1f} s after the loop's first period"
+          if heard_at is not None else f"not every world heard: {_heard(subs)} of {opts.worlds} (joint_states, tf)")  # fmt: skip
     fleet_expected = nworker * opts.control_rate * rtf
     print(f"tf (/tf, {nworker} worker messages per period) received {counted[2] / wall:,.0f}/s of {fleet_expected:,.0f}/s expected")
     if goals is not None:
@@ -483,6 +513,7 @@ def main() -> None:
     p.add_argument("--goals", choices=("none", "burst", "rate"), default="rate")
     p.add_argument("--goal-rate", type=float, default=1.0, help="rate: goals per world per second")
     p.add_argument("--bridge-workers", type=int, default=None)
+    p.add_argument("--devices", default=None, help="mjx/warp: spread the worlds over these GPUs ('all', '0,1'), one process each")
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--warmup", type=float, default=3.0)
     p.add_argument("--result-timeout", type=float, default=30.0)
