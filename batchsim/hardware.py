@@ -11,17 +11,16 @@
 - `render(camera, worlds=None)` -> `(rgb (n, H, W, 3) uint8, depth (n, H, W) float32)`,
   `scan(lidar, worlds=None)` -> `(n, nray) float32`, `sensors` (batchsim.sensors): cameras,
   lidars and sensor noise; `true_state` / `true_sensordata` without the noise.
-- `body_poses(worlds=None)` -> `(xpos (n, nbody, 3), xquat (n, nbody, 4) w, x, y, z)` float64,
-  on demand only: the links' poses for tf (batchsim.model.frames).
+- `body_poses(worlds=None)` -> `(xpos (n, nbody, 3), xquat (n, nbody, 4) w, x, y, z)` float64, on demand (tf).
 - `set_base_velocity(command, worlds=None)`: mujoco_ros2_control's BaseVelocityPlugin
   (batchsim.base_velocity); `apply_wrench(wrenches, worlds=None)`: its ExternalWrenchPlugin.
-- `set_variation(variation)`, `world_params()`: per-world randomization (batchsim.varying).
+- `set_variation(variation)`, `world_params()`: per-world randomization (batchsim.varying);
+  `device_state()`, `write_device(command)`: state and commands on the engine's device (batchsim.device_io).
 
-A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule
-on every backend: until `reset` lists it, it reads the noise-free values `read()` would have
-shown just before the `step()` call in which it failed (state, base_state, sensordata, time),
-with no fresh sensor noise, and the failure is logged once, naming the world and the reason
-(`batchsim.failures`).
+A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule on
+every backend: until `reset` lists it, it reads the noise-free values `read()` would have shown
+just before the `step()` call in which it failed (state, base_state, sensordata, time), with no
+fresh sensor noise, and the failure is logged once, naming the world and why (batchsim.failures).
 
 A backend subclasses `BatchedSystem` and implements the engine hooks (batchsim.engine: `_open`,
 `_close`, `_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, `_body_poses`, `_qstate`,
@@ -42,6 +41,7 @@ import numpy as np
 
 from batchsim.actuation import Actuation
 from batchsim.base_velocity import BaseDriving
+from batchsim.device_io import DeviceIO
 from batchsim.engine import EngineHooks
 from batchsim.external_wrench import Wrenching
 from batchsim.failures import FailureLog, ensure_log_dir
@@ -61,7 +61,7 @@ from batchsim.types import (
     StepFailures,
     check_nstep,
 )
-from batchsim.types import Frames as Frames  # re-exported: importers take them from batchsim.hardware
+from batchsim.types import Frames as Frames  # re-exported here
 from batchsim.types import PendingFrames as PendingFrames
 from batchsim.varying import Varying
 
@@ -69,7 +69,7 @@ S = LifecycleState
 _FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
 
 
-class BatchedSystem(BaseDriving, Wrenching, Sensing, Varying, EngineHooks, SystemInterface):
+class BatchedSystem(BaseDriving, Wrenching, Sensing, Varying, DeviceIO, EngineHooks, SystemInterface):
     """`nworld` copies of one robot behind ros2_control's SystemInterface.
 
     Attributes (valid from on_configure on):

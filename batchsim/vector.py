@@ -16,8 +16,14 @@ or not at all (DISABLED: `reset(options={"worlds": [...]})`),
 with a fresh draw of its randomized conditions where the variation says `redraw_on_reset`.
 `reset(seed=s)` restarts the variation's draws from seed s, so a seeded reset repeats.
 
-Arrays are host NumPy arrays on every backend: the contract's read() and write() path, one
-download and one upload per step.
+By default arrays are host NumPy arrays on every backend: the contract's read() and write()
+path, one download and one upload per step. With `device=True` observations stay on the
+engine's device and actions are taken there (batchsim.device_io: `device_state()`,
+`write_device()`): the backend's own arrays (warp: `wp.array`, mjx: `jax.Array`, float32),
+DLPack-capable (`torch.from_dlpack(obs)`); only the rewards and the done flags, `(nworld,)`
+each, come to the host, where the resets are decided. Next-step and disabled autoreset only
+(same-step's `final_obs` would copy rows on the device), and commands that map one to one
+onto actuators.
 """
 
 from __future__ import annotations
@@ -50,6 +56,7 @@ class BatchsimVectorEnv(VectorEnv):
       max_episode_steps: truncate an episode after this many steps; None: never.
       nstep: physics steps per env step (default: the model's 100 Hz control period).
       autoreset_mode: gymnasium's NEXT_STEP (default), SAME_STEP or DISABLED.
+      device: observations and actions on the engine's device (see the module's docstring).
     """
 
     def __init__(
@@ -61,8 +68,10 @@ class BatchsimVectorEnv(VectorEnv):
         max_episode_steps: int | None = None,
         nstep: int | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        device: bool = False,
     ):
         self.sim = sim
+        self.device = bool(device)
         if sim.lifecycle_state is batchsim.LifecycleState.UNCONFIGURED:
             sim.configure()
         if sim.lifecycle_state is batchsim.LifecycleState.INACTIVE:
@@ -76,9 +85,16 @@ class BatchsimVectorEnv(VectorEnv):
         self.max_episode_steps = max_episode_steps
         self._reward, self._terminated = reward, terminated
         self.autoreset_mode = AutoresetMode(autoreset_mode)
+        if self.device and self.autoreset_mode is AutoresetMode.SAME_STEP:
+            raise ValueError(
+                "device=True autoresets in next-step or disabled mode (same-step's final_obs would copy on the device)"
+            )
         self.metadata = {"autoreset_mode": self.autoreset_mode}
         nstate, ncommand = len(sim.export_state_interfaces()), len(sim.export_command_interfaces())
-        self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (nstate,), np.float64)
+        dtype = (
+            np.float32 if self.device and sim.compiles_first_period else np.float64
+        )  # the GPU engines' float32
+        self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (nstate,), dtype)
         low, high = command_bounds(sim)
         self.single_action_space = gym.spaces.Box(low, high, (ncommand,), np.float64)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
@@ -100,31 +116,40 @@ class BatchsimVectorEnv(VectorEnv):
         rows = slice(None) if worlds is None else worlds
         self._steps[rows] = 0
         self._done[rows] = False
-        return self.sim.state.copy(), {}
+        return self._observe(), {}
+
+    def _observe(self) -> Any:
+        return self.sim.device_state() if self.device else self.sim.state.copy()
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
         sim = self.sim
-        actions = np.asarray(actions, np.float64)
-        if actions.shape != self.action_space.shape:
-            raise ValueError(f"actions must have shape {self.action_space.shape}, got {actions.shape}")
+        if not self.device:
+            actions = np.asarray(actions, np.float64)
+        shape = tuple(getattr(actions, "shape", ()))
+        if shape != self.action_space.shape:
+            raise ValueError(f"actions must have shape {self.action_space.shape}, got {shape}")
         restart = np.flatnonzero(self._done)  # next-step mode: worlds whose episode ended last step
-        sim.command[:] = actions
-        sim.write()
+        if self.device:
+            sim.write_device(actions)
+        else:
+            sim.command[:] = actions
+            sim.write()
         sim.step(self.nstep)
-        sim.read()
+        if not self.device:
+            sim.read()
         if restart.size:  # their step is their reset: its observation, no reward, not done
             sim.reset(restart)
-        obs = sim.state.copy()
+        obs = self._observe()
         self._steps += 1
         self._steps[restart] = 0
         reward = (
             np.zeros(self.num_envs)
             if self._reward is None
-            else np.asarray(self._reward(obs, actions, sim), np.float64)
+            else _host(self._reward(obs, actions, sim), np.float64)
         )
         ended = (sim.status & np.uint8(FROZEN)) != 0
         if self._terminated is not None:
-            ended |= np.asarray(self._terminated(obs, sim), bool)
+            ended |= _host(self._terminated(obs, sim), bool)
         truncated = np.zeros(self.num_envs, bool)
         if self.max_episode_steps is not None:
             truncated = (self._steps >= self.max_episode_steps) & ~ended
@@ -181,6 +206,13 @@ class WorldEnv(gym.Env):
         self._vector.close()
 
 
+def _host(values: Any, dtype: Any) -> np.ndarray:
+    """A callable's (nworld,) result on the host, whatever array it is (a wp.array: .numpy())."""
+    if hasattr(values, "numpy") and not isinstance(values, np.ndarray):
+        values = values.numpy()
+    return np.array(values, dtype=dtype)
+
+
 def command_bounds(sim: BatchedSystem) -> tuple[np.ndarray, np.ndarray]:
     """(ncommand,) low and high of each command interface: the actuator's ctrlrange (through the
     interface's scale and offset) where it is limited, else a position interface's joint range
@@ -209,6 +241,7 @@ def make(
     max_episode_steps: int | None = None,
     nstep: int | None = None,
     autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+    device: bool = False,
     **make_options: Any,
 ) -> BatchsimVectorEnv:
     """A vector env of `nworld` worlds of `model` on `backend`: batchsim.make's arguments
@@ -221,4 +254,5 @@ def make(
         max_episode_steps=max_episode_steps,
         nstep=nstep,
         autoreset_mode=autoreset_mode,
+        device=device,
     )

@@ -3,17 +3,14 @@ bridge workers. No rclpy here (with workers in processes, the physics process ne
 
 Per control period, in the loop thread:
 
-    update      the workers' requests (resets, pause, step; trajectory batches), new
-                commands from their slots, command timeouts, BAD_COMMAND bookkeeping (then the controllers, write())
-    after_write BAD_COMMAND re-marked; a snapshot (time, status, the channels some worker
-                publishes) copied into shared memory, and the workers woken
-    gate        with lockstep: publish the state the period starts from, wait until every
-                world's command (or controller input) arrived
+    update      the workers' requests (resets, pause, step; trajectory batches), new commands from their
+                slots, command timeouts, BAD_COMMAND bookkeeping (then the controllers, write())
+    after_write BAD_COMMAND re-marked; a snapshot (time, status, the channels a worker publishes) to shared memory; workers woken
+    gate        with lockstep: publish the state the period starts from, wait until every world's command arrived
     idle        while paused: requests, resets published at once, steps answered
 
-The workers are ros_bridge/supervisor.py's: one that dies is noticed within a quarter second, its worlds
-hold their last commands (or go safe under a command timeout), the log names them; it restarts on the same memory.
-"""
+The workers are ros_bridge/supervisor.py's: one that dies is noticed within a quarter second, its worlds hold
+their last commands (or go safe under a command timeout), the log names them; it restarts on the same memory."""
 
 from __future__ import annotations
 
@@ -124,9 +121,7 @@ class BridgeHost:
         self._traj_seen = {i: c.copy() for i, c in self._traj_counters.items()}  # at the last period start
         self._traj_taken = {i: c.copy() for i, c in self._traj_counters.items()}  # as far as the ring was read
         self.rejections = RejectionWriter(m, "hrej")
-        self.params = ParamWriter(m, plan.world_offset, sim.variation.source) if plan.randomized else None
-        if self.params is not None:  # each world's draw, for /diagnostics; again after resets
-            self.params.refresh(sim)
+        self.params = ParamWriter.start(m, plan, sim)  # each world's draw, for /diagnostics; again after resets
         self._worker_rejections = m["rej.count"]
         self._worker_rejections_seen = self._worker_rejections.copy()
         # controller_manager's services and the actions' goals (switch, cancel, gripper goals)
@@ -319,8 +314,7 @@ class BridgeHost:
         self._timed_out[sel] = False
         self.bad[sel] = False
         self._force = True
-        if self.params is not None:  # worlds drawn anew (a variation that redraws): their /diagnostics lines
-            self.params.refresh(sim)
+        self.params.refresh(sim)  # worlds drawn anew (a variation that redraws): their /diagnostics lines
 
     # --- requests through the rings ---
     def _serve_requests(self, sim: BatchedSystem, good: np.ndarray | None, rejected: np.ndarray | None) -> bool:

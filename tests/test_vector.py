@@ -8,6 +8,7 @@ implementation), randomized worlds included; a seeded reset repeats.
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -120,3 +121,63 @@ def test_the_device_backends_run_the_vector_env(backend):
     np.testing.assert_allclose(obs[:, positions], ref[:, positions], atol=1e-3)
     assert isinstance(env, gym.vector.VectorEnv) and rew.shape == (NWORLD,)
     env.close()
+
+
+def _host(x):
+    return x.numpy() if hasattr(x, "numpy") and not isinstance(x, np.ndarray) else np.asarray(x)
+
+
+@pytest.mark.parametrize("backend", ["mjx", "warp"])
+def test_the_device_path_is_the_host_path_without_the_copies(backend):
+    """device=True: observations are the backend's own device arrays and actions go in as
+    device arrays (batchsim.device_io); the episodes are the host path's, bit for bit."""
+
+    def device_reward(obs, action, sim):
+        return -((_host(obs)[:, 0] - _host(action)[:, 0]) ** 2)
+
+    def device_terminated(obs, sim):
+        return _host(obs)[:, 0] > 0.25
+
+    options = {"reward": device_reward, "terminated": device_terminated, "max_episode_steps": 7, "randomize": VARIATION}
+    env = vector.make("arm", NWORLD, backend, device=True, **options)
+    host = vector.make("arm", NWORLD, backend, **options)
+    obs, _ = env.reset(seed=3)
+    ref, _ = host.reset(seed=3)
+    native = {"mjx": "ArrayImpl", "warp": "array"}[backend]  # jax.Array, wp.array: no host copy
+    assert type(obs).__name__ == native and env.observation_space.dtype == np.float32
+    np.testing.assert_array_equal(_host(obs), ref)
+    if backend == "mjx":
+        import jax.numpy as jnp
+
+        to_device = jnp.asarray
+    else:
+        import warp as wp
+
+        def to_device(a):
+            return wp.array(a, dtype=wp.float32, device=env.sim.device)
+
+    rng = np.random.default_rng(1)
+    ends = 0
+    for _ in range(30):
+        action = rng.normal(0.4, 0.3, (NWORLD, 6)).astype(np.float32)
+        obs, reward, term, trunc, _ = env.step(to_device(action))
+        ref, ref_reward, ref_term, ref_trunc, _ = host.step(action.astype(np.float64))
+        np.testing.assert_array_equal(_host(obs), ref)
+        np.testing.assert_array_equal(term, ref_term)
+        np.testing.assert_array_equal(trunc, ref_trunc)
+        np.testing.assert_allclose(reward, ref_reward, atol=1e-6)
+        ends += int((term | trunc).sum())
+    assert ends >= NWORLD
+    with pytest.raises(ValueError, match=r"command must have shape \(4, 6\), got \(6,\)"):
+        env.sim.write_device(to_device(np.zeros(6, np.float32)))
+
+
+def test_the_device_path_is_refused_where_commands_run_on_the_host():
+    with pytest.raises(ValueError, match="next-step or disabled"):
+        vector.make("arm", 2, "cpu", device=True, autoreset_mode=AutoresetMode.SAME_STEP)
+    robot = Path(__file__).parent / "upstream" / "mujoco_ros2_control_demos" / "demo_resources" / "robot"
+    urdf = f"{robot / 'test_robot.urdf'} use_pid:=true use_mjcf_from_topic:=true"
+    env = vector.make(urdf, 2, "cpu", device=True)
+    env.reset()
+    with pytest.raises(batchsim.ConfigurationError, match="not plain copies into actuators"):
+        env.step(np.zeros(env.action_space.shape))

@@ -177,6 +177,15 @@ class CpuSystem(BatchedSystem):
         """
         return {**self._fields, "ctrl": self._ctrl}
 
+    # --- the device path (batchsim.device_io): this engine's device is the host ---
+    def _device_state(self) -> np.ndarray:
+        self._refresh()  # the batch's fields, gathered and signed now, noise-free
+        return self._readings[:, : len(self.spec.state)]
+
+    def _write_device(self, command: Any) -> None:
+        self._command[:] = np.asarray(command)
+        self.write()
+
     @classmethod
     def variable_fields(cls, m: mujoco.MjModel) -> frozenset[str]:
         """What mujoco.batch expands per simulation (its MODEL_FIELDS), asset data aside."""

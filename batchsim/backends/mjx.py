@@ -58,6 +58,7 @@ from batchsim.backends.device import (
     code_status,
 )
 from batchsim.backends.host_sensors import HostSensors
+from batchsim.backends.mjx_device import MjxDeviceIO
 from batchsim.base_velocity import HELD_DOFS
 from batchsim.hardware import MAX_COMMAND, Status, StepFailures
 from batchsim.model import RobotSpec, StateColumn
@@ -230,7 +231,7 @@ def _float32(program: Callable[..., Any]) -> Callable[..., Any]:
     return call
 
 
-class MjxSystem(DeviceSystem):
+class MjxSystem(MjxDeviceIO, DeviceSystem):
     """`nworld` worlds on MJX (JAX), one jitted device loop per control period.
 
     Options:

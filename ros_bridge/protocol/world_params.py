@@ -8,6 +8,8 @@ publishes /diagnostics. Writer and reader are here, beside the block's layout.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from batchsim.hardware import BatchedSystem
@@ -23,17 +25,29 @@ def param_arrays(nworld: int) -> list[tuple[str, tuple[int, ...], str]]:
 
 
 class ParamWriter:
-    """The physics process's side: `refresh(sim)` rewrites the lines of worlds drawn anew."""
+    """The physics process's side: `refresh(sim)` rewrites the lines of worlds drawn anew (a
+    writer of a fleet that varies nothing does nothing)."""
 
-    def __init__(self, memory: Memory, world_offset: int, source: str):
-        self.text, self.draw = memory["wp.text"], memory["wp.draw"]
-        self.draw[:] = -1
+    def __init__(self, memory: Memory | None, world_offset: int, source: str):
+        self.text = self.draw = None
+        if memory is not None:
+            self.text, self.draw = memory["wp.text"], memory["wp.draw"]
+            self.draw[:] = -1
         self.offset = world_offset
         self.source = source
 
+    @classmethod
+    def start(cls, memory: Memory, plan: Any, sim: BatchedSystem) -> ParamWriter:
+        """The writer of a fleet's plan (ros_bridge.plan.FleetPlan), every world's line written."""
+        if not plan.randomized:
+            return cls(None, plan.world_offset, "")
+        writer = cls(memory, plan.world_offset, sim.variation.source)
+        writer.refresh(sim)
+        return writer
+
     def refresh(self, sim: BatchedSystem) -> None:
         variation = sim.variation
-        if variation is None:
+        if variation is None or self.draw is None:
             return
         draws = sim.draw_numbers()
         rows = np.flatnonzero(draws != self.draw)

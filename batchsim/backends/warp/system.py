@@ -25,6 +25,9 @@ from batchsim.backends.warp.buffers import (
     plan_growth,
     rollout_sizes,
 )
+from batchsim.backends.warp.device_io import WarpDeviceIO
+from batchsim.backends.warp.fields import WarpFields
+from batchsim.backends.warp.host import WarpHost
 from batchsim.backends.warp.kernels import (
     CPU_GRAPHS,
     advance_clock,
@@ -39,8 +42,6 @@ from batchsim.backends.warp.kernels import (
     set_clock,
     set_rows,
 )
-from batchsim.backends.warp.fields import WarpFields
-from batchsim.backends.warp.host import WarpHost
 from batchsim.backends.warp.sensors import WarpSensors
 from batchsim.backends.warp.wrench import WarpWrenches
 from batchsim.model import RobotSpec
@@ -54,7 +55,7 @@ _CHANGED = int(mjw.State.PHYSICS | mjw.State.WARMSTART)
 _INTEGRATION = int(mjw.State.PHYSICS | mjw.State.USER | mjw.State.WARMSTART)  # no PLUGIN in Warp
 
 
-class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, DeviceSystem):
+class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, DeviceSystem):
     """`nworld` worlds on MuJoCo Warp, one captured graph per control period.
 
     Options:
