@@ -51,6 +51,7 @@ from ros_bridge.recording import Recording
 from ros_bridge.registry import ConflictKind
 from ros_bridge.sensor_topics import SensorFeed
 from ros_bridge.supervisor import FleetConflict, WorkerError
+from ros_bridge.view_plan import ViewProcess
 
 __all__ = ["BridgeHost", "BridgeOptions", "ConflictKind", "FleetConflict", "Reliability", "WorkerError", "start_bridge"]
 
@@ -106,6 +107,11 @@ def start_bridge(
             ok, message = recording.start(plan.recording.path, wait=True)
             if not ok:
                 print(f"batchsim: warning: {message}", file=sys.stderr)
+    if plan.view is not None:  # the web view: a process of its own, reading the snapshot
+        view = ViewProcess(plan)
+        host.on_close.append(view.close)
+        if view.url is not None:
+            print(f"batchsim: view: {view.url} (the fleet in 3D; a browser elsewhere: --view-host 0.0.0.0, or ssh -L)", file=sys.stderr)
     if plan.sensors is not None:  # cameras and lidars: rendered and scanned right after the host's update
         loop.participants.insert(loop.participants.index(host) + 1, SensorFeed(sim, host.memory, plan.sensors))
     if manager is not None and manager not in loop.participants:

@@ -47,6 +47,15 @@ class RecordOptions:
 
 
 @dataclasses.dataclass(frozen=True)
+class ViewOptions:
+    """Where the fleet's web view (ros_bridge/view_plan.py) is served: `host` (127.0.0.1: this
+    machine only; 0.0.0.0: every interface) and `port` (the next free one if it is taken)."""
+
+    host: str = "127.0.0.1"
+    port: int = 8080
+
+
+@dataclasses.dataclass(frozen=True)
 class BridgeOptions:
     """How the fleet is bridged to ROS 2.
 
@@ -77,6 +86,7 @@ class BridgeOptions:
       ros_args: ROS arguments for every worker's node, as after `--ros-args` on a ROS
         executable's command line (`-p use_sim_time:=true`, `-r from:=to`, `--log-level warn`).
       record: what a recording writes (MCAP, ros_bridge/recording.py); None: no recording, not even on request.
+      view: serve the fleet's web view (ros_bridge/view_plan.py) there; None: no view.
     """
 
     namespace: str = DEFAULT_TEMPLATE
@@ -96,6 +106,7 @@ class BridgeOptions:
     description: str | None = None
     ros_args: tuple[str, ...] = ()
     record: RecordOptions | None = dataclasses.field(default_factory=RecordOptions)
+    view: ViewOptions | None = None
 
     def check(self) -> None:
         """OptionError for a value no fleet can run with (rates are checked against the loop later)."""

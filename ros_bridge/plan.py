@@ -45,6 +45,7 @@ from ros_bridge.protocol.world_params import param_arrays
 from ros_bridge.recording import RecordSpec, record_spec
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan
 from ros_bridge.tf_plan import TfSpec, tf_spec
+from ros_bridge.view_plan import ViewSpec, view_spec
 
 #: outputs whose topic holds one of these parts are created only when a subscriber appears
 ON_REQUEST_PARTS = ("/controller_state/",)
@@ -112,6 +113,7 @@ class FleetPlan:
       wrench_service: the ExternalWrenchPlugin's service under each world's namespace
         (`external_wrench/apply_wrench`, batchsim.external_wrench), or "" without the plugin.
       recording: what a recording writes (ros_bridge/recording.py), or None without recording.
+      view: what the web view draws and where it serves (ros_bridge/view_plan.py), or None.
       layout, memory_name: the shared arrays.
     """
 
@@ -140,6 +142,7 @@ class FleetPlan:
     actions: list[TrajectoryActionSpec | GripperActionSpec] = dataclasses.field(default_factory=list)
     wrench_service: str = ""
     recording: RecordSpec | None = None
+    view: ViewSpec | None = None
     randomized: bool = False  # the worlds' draws (batchsim.variation) go into /diagnostics
     layout: Layout = dataclasses.field(init=False)
     memory_name: str | None = None
@@ -184,6 +187,8 @@ class FleetPlan:
             arrays += wrench_arrays(nw)
         if self.recording is not None:
             arrays += self.recording.arrays(len(self.channels))
+        if self.view is not None:  # the channels the view reads while it runs (snapshot.py)
+            arrays.append(("view.want", (max(1, len(self.channels)),), "u1"))
         if self.randomized:
             arrays += param_arrays(n)
         # room for two of the largest trajectories an input takes (a record may take at most
@@ -300,6 +305,14 @@ def build_plan(
     if options.record is not None:
         widths = [c.width for c in channels]
         recording = record_spec(options.record, outputs, widths, tf.channel if tf else None, options.clock, nworld)
+    view = None
+    if options.view is not None:
+        if tf is None:
+            raise OptionError("view", "draws the robots from tf's body poses: it needs tf (drop --no-tf)")
+        js = next((o for o in outputs if o.topic == "joint_states"), None)
+        position = next((f for f in js.fields if f.name == "position"), None) if js is not None else None
+        joints = (position.channel, position.columns, js.names) if position is not None else None
+        view = view_spec(sim, tf.channel, tf.bodies, options.view.host, options.view.port, joints)
     plan = FleetPlan(
         nworld=nworld,
         world_offset=offset,
@@ -326,6 +339,7 @@ def build_plan(
         manager=manager_spec(sim, manager, control_rate) if manager is not None else None,
         wrench_service=wrench.service if wrench is not None and available()["mujoco_ros2_control_msgs"] else "",
         recording=recording,
+        view=view,
         randomized=sim.variation is not None,
     )
     return plan, fills, inputs

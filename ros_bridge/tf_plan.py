@@ -43,6 +43,7 @@ class TfSpec:
       every: control periods between two tf messages.
       mjcf: the MJCF the simulation compiled (mujoco_robot_description, as mujoco_ros2_control
         publishes the one it generates from a URDF).
+      bodies: the body ids whose poses the channel holds, in its order (the view draws from them).
     """
 
     moving: tuple[tuple[str, str], ...]
@@ -55,6 +56,7 @@ class TfSpec:
     description: str
     every: int = 1
     mjcf: str = ""
+    bodies: tuple[int, ...] = ()
 
     def moving_transforms(self, poses: np.ndarray) -> np.ndarray:
         """(n, 7 * nmoving) parent->child transforms (translation xyz, rotation xyzw) of the
@@ -110,6 +112,7 @@ def tf_spec(
         description=description,
         every=every,
         mjcf=sim.spec.xml,
+        bodies=tuple(int(b) for b in bodies),
     )
 
 

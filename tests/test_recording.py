@@ -236,11 +236,17 @@ def test_a_full_disk_stops_the_recording_with_one_line_and_the_run_goes_on(tmp_p
         (["--record-topics", "joint_states,bogus"], "--record-topics names 'bogus', which this fleet does not publish"),
         (["--record-worlds", "1,7"], "--record-worlds names world 7, which this fleet does not have (worlds 0..1)"),
         (["--record-topics", "image_raw"], "--record-topics names 'image_raw': cameras and lidars are not recorded yet"),
+        (["--view"], "--view draws the robots from tf's body poses: it needs tf (drop --no-tf)"),
+        (["--view", "--view-host", "10.99.99.99"], "--view-host 10.99.99.99: cannot serve there"),
     ],
 )
-def test_what_cannot_be_recorded_is_one_line(args, line, capsys, monkeypatch):
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id(70)))
-    assert cli.main(["--worlds", "2", "--controllers", "none", "--no-tf", *args]) == 2
+def test_what_cannot_be_recorded_or_viewed_is_one_line(args, line, capsys, monkeypatch):
+    domain = domain_id(70)
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    try:
+        assert cli.main(["--worlds", "2", "--controllers", "none", "--no-tf", *args]) == 2
+    finally:
+        release_domain(domain)
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith(f"batchsim: error: {line}"), err
 

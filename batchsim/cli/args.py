@@ -9,6 +9,7 @@ import importlib.util
 import math
 import os
 import platform
+import socket
 import tomllib
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -162,6 +163,10 @@ def run_parser() -> argparse.ArgumentParser:
     rec.add_argument(
         "--record-worlds", type=world_list, default=None, metavar="I,J-K,...", help="the worlds recorded (default: all)"
     )
+    view = p.add_argument_group("the web view")
+    view.add_argument("--view", action="store_true", help="serve a web page showing every world in 3D, live")
+    view.add_argument("--view-host", default="127.0.0.1", help="the view's address (default 127.0.0.1; 0.0.0.0: every interface)")
+    view.add_argument("--view-port", type=int, default=8080, help="the view's port (default 8080; the next free one if taken)")
     sens = p.add_argument_group("cameras, lidars and sensor noise")
     sens.add_argument(
         "--sensors",
@@ -322,6 +327,18 @@ def check_args(args: argparse.Namespace) -> None:
             batchsim.set_log_dir(args.log_dir)
         except ValueError as e:
             raise UsageError(f"--log-dir: {e}") from None
+    if args.view and args.no_ros:
+        raise UsageError("--view: the view reads the bridge's shared memory; it needs ROS (drop --no-ros)")
+    if args.view and importlib.util.find_spec("viser") is None:
+        raise UsageError(f"--view needs viser: {startup.install_command('view')}")
+    if not 0 < args.view_port < 65536:
+        raise UsageError(f"--view-port must be in 1..65535, got {args.view_port}")
+    if args.view:
+        try:  # viser would try port after port on an address it can never bind
+            with socket.create_server((args.view_host, 0)):
+                pass
+        except OSError as e:
+            raise UsageError(f"--view-host {args.view_host}: cannot serve there ({e.strerror or e})") from None
     recording = args.record is not None or args.record_topics is not None or args.record_worlds is not None
     if recording and args.no_ros:
         raise UsageError("--record: a recording is the bridge's topics; it needs ROS (drop --no-ros)")

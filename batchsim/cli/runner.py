@@ -180,7 +180,7 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
             WorkerError,
             start_bridge,
         )
-        from ros_bridge.options import RecordOptions
+        from ros_bridge.options import RecordOptions, ViewOptions
     except ModuleNotFoundError as e:
         raise UsageError(
             f"ROS 2 is not installed ({e.name} is missing): {startup.install_command('ros')}, or pass --no-ros"
@@ -202,6 +202,7 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
         description=args.ros2_control,
         ros_args=tuple(args.ros_args),
         record=RecordOptions(args.record, args.record_topics, args.record_worlds),
+        view=ViewOptions(args.view_host, args.view_port) if args.view else None,
     )
     from ros_bridge.interfaces import missing_line
 

@@ -6,7 +6,7 @@ Two buffers, seqlocked: snapshot n goes into buffer n % 2, whose `seq` reads 2n+
 is written and 2n+2 when done, then `latest` says n. A reader copies its rows and checks
 `seq` again: it retries a buffer being rewritten and never keeps a torn row. Each channel
 (ros_bridge/outputs.py) is copied only when some worker publishes from it this period
-(`demand`, or a recording's `rec.want`); `written[c]` says which snapshot last wrote channel c.
+(`demand`, a recording's `rec.want`, the view's `view.want`); `written[c]` says which snapshot last wrote channel c.
 """
 
 from __future__ import annotations
@@ -39,8 +39,9 @@ def write_snapshot(
     m["status"][b] = status
     m["flags"][b] = flags
     demand = m["demand"].any(axis=0)
-    if "rec.want" in m:  # a recording's channels (ros_bridge/protocol/recording.py)
-        demand = demand | m["rec.want"].astype(bool)
+    for extra in ("rec.want", "view.want"):  # a recording's channels (protocol/recording.py), the view's
+        if extra in m:
+            demand = demand | m[extra].astype(bool)
     demand = demand.tolist()
     written = m["written"][b]
     for c, fill in enumerate(fills):

@@ -1,0 +1,183 @@
+"""The fleet's web view, as data and as a process: what it draws (`ViewSpec`, from MuJoCo's own
+geometry) and the physics side (`ViewProcess`). No rclpy, no web code here.
+
+The view (ros_bridge/worker/view.py) is a process of its own, as the recorder is, so serving
+the page and its updates never takes the loop's interpreter. It reads the snapshot the bridge
+workers read: each world's status and flags, and the tf channel's body poses (the moving
+frames' ends, tf_plan.py), from which every visible geom's pose follows by a fixed offset
+computed here once. So the view costs the loop only the tf channel's copy, which it asks
+for through `view.want` while it runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pickle
+import select
+import subprocess
+import sys
+import time as wallclock
+
+import mujoco
+import numpy as np
+
+from batchsim.hardware import BatchedSystem
+
+VISIBLE_GROUPS = 3  # MuJoCo's viewer shows geom groups 0, 1 and 2 by default
+READY_TIMEOUT = 60.0  # s the view process may take to come up
+_G = mujoco.mjtGeom
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewGeom:
+    """One visible geom: `anchor`, the index of the tf channel body it moves with (-1: the
+    world); `pos`, `quat` (w, x, y, z), its pose in the anchor's frame; `rgba`; its triangle
+    mesh, `vertices` (nv, 3) float32 and `faces` (nf, 3) uint32, in its own frame."""
+
+    name: str
+    anchor: int
+    pos: np.ndarray
+    quat: np.ndarray
+    rgba: np.ndarray
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewSpec:
+    """What the view draws: `geoms`; `channel`, the tf channel (7 values per body: position,
+    quaternion w x y z); `spacing`, metres between two worlds of the grid; `host`, `port`,
+    where the page is served; `joints`: the joint_states output's channel and position columns
+    (for the picked world's plot), or None."""
+
+    geoms: tuple[ViewGeom, ...]
+    channel: int
+    spacing: float
+    host: str
+    port: int
+    joints: tuple[int, tuple[int, ...], tuple[str, ...]] | None = None
+
+
+def _sphere(n: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """A unit UV sphere: (vertices, faces)."""
+    theta = np.linspace(0, np.pi, n + 1)
+    phi = np.linspace(0, 2 * np.pi, 2 * n, endpoint=False)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    v = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
+    m = 2 * n
+    faces = []
+    for i in range(n):
+        for j in range(m):
+            a, b, c, d = i * m + j, i * m + (j + 1) % m, (i + 1) * m + j, (i + 1) * m + (j + 1) % m
+            faces += [(a, c, b), (b, c, d)]
+    return v, np.array(faces)
+
+
+def _cylinder(n: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """A cylinder of radius 1 from z=-1 to z=1, capped: (vertices, faces)."""
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    ring = np.stack([np.cos(a), np.sin(a)], -1)
+    v = np.concatenate([np.c_[ring, -np.ones(n)], np.c_[ring, np.ones(n)], [[0, 0, -1], [0, 0, 1]]])
+    faces = []
+    for j in range(n):
+        k = (j + 1) % n
+        faces += [(j, k, n + j), (k, n + k, n + j), (2 * n, k, j), (2 * n + 1, n + j, n + k)]
+    return v, np.array(faces)
+
+
+_BOX_V = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+_BOX_F = np.array([
+    (0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1),
+    (2, 3, 7), (2, 7, 6), (0, 2, 6), (0, 6, 4), (1, 5, 7), (1, 7, 3),
+])  # fmt: skip
+
+
+def geom_mesh(m: mujoco.MjModel, g: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Geom g's triangles in its own frame, or None for what the view leaves out (planes, height fields)."""
+    kind, size = int(m.geom_type[g]), m.geom_size[g]
+    if kind == _G.mjGEOM_MESH:
+        mesh = int(m.geom_dataid[g])
+        v0, nv = int(m.mesh_vertadr[mesh]), int(m.mesh_vertnum[mesh])
+        f0, nf = int(m.mesh_faceadr[mesh]), int(m.mesh_facenum[mesh])
+        return m.mesh_vert[v0 : v0 + nv].copy(), m.mesh_face[f0 : f0 + nf].copy()
+    if kind == _G.mjGEOM_BOX:
+        return _BOX_V * size, _BOX_F
+    if kind in (_G.mjGEOM_SPHERE, _G.mjGEOM_ELLIPSOID):
+        v, f = _sphere()
+        return v * (size[:3] if kind == _G.mjGEOM_ELLIPSOID else size[0]), f
+    if kind == _G.mjGEOM_CAPSULE:  # a sphere whose halves move apart by the half-length
+        v, f = _sphere()
+        v = v * size[0]
+        v[:, 2] += np.where(v[:, 2] >= 0, size[1], -size[1])
+        return v, f
+    if kind == _G.mjGEOM_CYLINDER:
+        v, f = _cylinder()
+        return v * np.array([size[0], size[0], size[1]]), f
+    return None
+
+
+def _pose_in(m: mujoco.MjModel, body: int, anchors: set[int]) -> tuple[int, np.ndarray, np.ndarray]:
+    """The nearest ancestor of `body` (itself included) among `anchors` (0: the world), and
+    `body`'s fixed pose in its frame (the bodies between have no joint)."""
+    pos, quat = np.zeros(3), np.array([1.0, 0, 0, 0])
+    while body not in anchors and body != 0:
+        p, q = np.zeros(3), np.zeros(4)
+        mujoco.mju_mulPose(p, q, m.body_pos[body], m.body_quat[body], pos, quat)
+        pos, quat, body = p, q, int(m.body_parentid[body])
+    return body, pos, quat
+
+
+def view_spec(sim: BatchedSystem, tf_channel: int, tf_bodies: tuple[int, ...], host: str, port: int,
+              joints: tuple[int, tuple[int, ...], tuple[str, ...]] | None = None) -> ViewSpec:  # fmt: skip
+    """The visible geoms of `sim`'s model, each anchored to a body of the tf channel (`tf_bodies`, its body ids)."""
+    m = sim.model
+    index = {b: k for k, b in enumerate(tf_bodies)}
+    geoms = []
+    for g in range(m.ngeom):
+        if m.geom_group[g] >= VISIBLE_GROUPS or m.geom_rgba[g, 3] == 0:
+            continue
+        mesh = geom_mesh(m, g)
+        if mesh is None:
+            continue
+        body, pos, quat = _pose_in(m, int(m.geom_bodyid[g]), set(index))
+        p, q = np.zeros(3), np.zeros(4)
+        mujoco.mju_mulPose(p, q, pos, quat, m.geom_pos[g], m.geom_quat[g])
+        mat = int(m.geom_matid[g])
+        rgba = m.mat_rgba[mat] if mat >= 0 else m.geom_rgba[g]
+        name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom_{g}"
+        geoms.append(ViewGeom(name, index.get(body, -1), p, q, rgba.copy(), mesh[0].astype(np.float32), mesh[1].astype(np.uint32)))
+    spacing = max(1.0, 2.5 * float(m.stat.extent))
+    return ViewSpec(tuple(geoms), tf_channel, spacing, host, port, joints)
+
+
+class ViewProcess:
+    """The view's process: started with the bridge, stopped with it; its URL once it serves."""
+
+    def __init__(self, plan) -> None:
+        read, write = os.pipe()
+        self._proc = subprocess.Popen(  # stdout: viser's banner, which the URL line below replaces
+            [sys.executable, "-m", "ros_bridge.worker.view", str(write)], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, pass_fds=(write,)
+        )
+        os.close(write)
+        self._proc.stdin.write(pickle.dumps(plan))
+        self._proc.stdin.close()
+        self._status = os.fdopen(read, "r")
+        self.url: str | None = None
+        deadline = wallclock.monotonic() + READY_TIMEOUT
+        while self.url is None and wallclock.monotonic() < deadline and self._proc.poll() is None:
+            if select.select([self._status], [], [], 0.2)[0]:
+                line = self._status.readline().strip()
+                if line.startswith("ready "):
+                    self.url = line.split(" ", 1)[1]
+                elif line:
+                    print(f"batchsim: {line}", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self._proc.poll() is None:
+            self._proc.terminate()
+            try:
+                self._proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+        self._status.close()

@@ -1,0 +1,158 @@
+"""The web view (`batchsim --view`), in a real browser: headless Chromium (Debian's chromium and
+chromium-driver; .ci/run installs them), driven over the WebDriver protocol, loads the page of a
+running fleet; the screenshot's pixels show the robots, picking a world shows its status (a
+world whose commands are rejected says `bad command`), and the page keeps up with the fleet."""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+from conftest import need
+from ros_fleet import LOCALHOST, domain_id, release_domain
+
+rclpy = need("rclpy")
+need("viser")
+imageio = need("imageio")
+
+pytestmark = pytest.mark.ros
+CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+if not (CHROMIUM and DRIVER):
+    if os.environ.get("BATCHSIM_FORCE_BACKENDS") == "1":
+        raise RuntimeError("chromium and chromedriver are missing (Debian: apt-get install chromium chromium-driver)")
+    pytest.skip("chromium and chromedriver are not installed", allow_module_level=True)
+
+
+# types a number into the panel's world field as a user would (React sees an input event)
+PICK = "const input = document.querySelector('input.mantine-NumberInput-input'); input.focus(); input.select();"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Browser:
+    """Headless Chromium through chromedriver's WebDriver HTTP API (no selenium needed)."""
+
+    def __init__(self) -> None:
+        self.port = _free_port()
+        self.driver = subprocess.Popen(  # a session of its own: close() ends chromium with it, however the test ends
+            [DRIVER, f"--port={self.port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+        )
+        args = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--window-size=1000,700"]
+        caps = {"capabilities": {"alwaysMatch": {"goog:chromeOptions": {"binary": CHROMIUM, "args": args}}}}
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                self.session = self.call("POST", "/session", caps)["sessionId"]
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+
+    def call(self, method: str, path: str, body: dict | None = None):
+        data = json.dumps(body).encode() if body is not None else None
+        request = urllib.request.Request(f"http://127.0.0.1:{self.port}{path}", data=data, method=method)
+        request.add_header("Content-Type", "application/json")
+        try:
+            with urllib.request.urlopen(request, timeout=60) as reply:
+                return json.loads(reply.read())["value"]
+        except urllib.error.HTTPError as e:  # WebDriver's own message says what went wrong
+            raise RuntimeError(f"{method} {path}: {e.code} {e.read().decode(errors='replace')[:500]}") from None
+
+    def session_call(self, method: str, path: str, body: dict | None = None):
+        return self.call(method, f"/session/{self.session}{path}", body)
+
+    def text(self) -> str:
+        return self.session_call("POST", "/execute/sync", {"script": "return document.body.innerText", "args": []})
+
+    def screenshot(self) -> np.ndarray:
+        return imageio.v3.imread(base64.b64decode(self.session_call("GET", "/screenshot")))
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.call("DELETE", f"/session/{self.session}")
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.driver.pid, signal.SIGKILL)
+        self.driver.wait()
+
+
+def _wait(predicate, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while not (value := predicate()):
+        if time.monotonic() > deadline:
+            raise TimeoutError(what)
+        time.sleep(0.2)
+    return value
+
+
+def test_the_view_shows_the_robots_a_picked_worlds_status_and_keeps_up(tmp_path):
+    from rclpy.context import Context
+    from rclpy.node import Node
+    from std_msgs.msg import Float64MultiArray
+
+    domain, port = domain_id(72), _free_port()
+    log = tmp_path / "log"
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain)}
+    args = ["--worlds", "4", "--quiet", "--controllers", "none", "--view", "--view-port", str(port)]
+    proc = subprocess.Popen([sys.executable, "-m", "batchsim.cli", *args], env=env, stdout=open(log, "w"), stderr=subprocess.STDOUT)
+    os.environ.update(LOCALHOST)
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = Node("test_view_client", context=context)
+    browser = None
+    # world 3's commands are rejected (one value where the arm takes six): BAD_COMMAND
+    pub = node.create_publisher(Float64MultiArray, "/world_3/commands", 10)
+    try:
+        line = _wait(lambda: next((x for x in log.read_text().splitlines() if x.startswith("batchsim: view: ")), None), 60,
+                     "the view's line")  # fmt: skip
+        url = line.split()[2]
+        assert url == f"http://localhost:{port}"
+        browser = Browser()
+        browser.session_call("POST", "/url", {"url": url})
+        _wait(lambda: "4 worlds" in browser.text(), 30, "the fleet's panel")
+        _wait(lambda: pub.publish(Float64MultiArray(data=[0.1])) or "bad command 1" in browser.text(), 30, "world 3's bad command")
+        time.sleep(2.0)  # the meshes arrive and are drawn (software WebGL)
+        shot = browser.screenshot()[..., :3].astype(int)
+        imageio.v3.imwrite(tmp_path / "view.png", shot.astype(np.uint8))  # to look at when this fails
+        r, g, b = shot[..., 0], shot[..., 1], shot[..., 2]
+        arm = (r > 120) & (r - g > 40) & (g - b > 30)  # the arm's orange-brown links, lit or shaded
+        assert arm[:, : shot.shape[1] * 2 // 3].sum() > 300, "no robot in the screenshot"  # left of the panel
+        # pick world 3 by its number: the panel names it and says why it is not fine
+        browser.session_call("POST", "/execute/sync", {"script": PICK, "args": []})
+        keys = [{"type": kind, "value": key} for key in "3\ue007" for kind in ("keyDown", "keyUp")]
+        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        _wait(lambda: "world_3 (world 3): bad command" in browser.text(), 20, f"world 3's status\n{browser.text()}")
+        # the page keeps up: the sim time it shows advances with the fleet (RTF 1)
+        def shown() -> float:
+            text = browser.text()
+            return float(text.split("sim time ", 1)[1].split(" s", 1)[0])
+
+        t0, w0 = shown(), time.monotonic()
+        time.sleep(3.0)
+        advanced = shown() - t0
+        assert advanced > 0.5 * (time.monotonic() - w0), (advanced, browser.text())
+        assert proc.poll() is None
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        if browser is not None:
+            browser.close()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        release_domain(domain)
