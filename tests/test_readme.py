@@ -17,6 +17,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from ros_fleet import LOCALHOST, domain_id, release_domain
 
@@ -77,5 +78,12 @@ def test_a_yaml_block_is_read_as_shown(line, text, tmp_path):
             for joint, values in joints.items():
                 _, warnings = PidGains.from_params(values, f"pid_gains.{mode}.{joint}")
                 assert not warnings, warnings
+    elif text.startswith("randomize:"):  # shown for the arm (its links, joints, position servos)
+        sim = batchsim.make("arm", 3, "cpu", randomize=str(path))
+        sim.configure()
+        drawn = sim.world_params()
+        assert {"body_mass", "geom_friction", "dof_damping", "actuator_gainprm", "opt.gravity", "start_qpos"} <= set(drawn)
+        assert not np.array_equal(drawn["body_mass"][0], drawn["body_mass"][1])
+        sim.shutdown()
     else:
         pytest.fail(f"README line {line}: a YAML block of a kind tests/test_readme.py does not know how to read")
