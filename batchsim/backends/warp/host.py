@@ -43,18 +43,19 @@ class WarpHost:
 
     def _wrap(self, array: np.ndarray) -> wp.array:
         """A Warp host array over `array`'s memory, page-locked for the device where it can be."""
-        pinned = False
-        if self._cuda:  # type: ignore[attr-defined]
-            pinned = lock_pages(array, self.device)  # type: ignore[attr-defined]
-            if pinned:
-                weakref.finalize(self, unlock_pages, array, self.device)  # type: ignore[attr-defined]
-        return wp.array(ptr=array.ctypes.data, dtype=wp.float64, shape=array.shape, device="cpu", pinned=pinned)
+        locked = lock_pages(array, self.device) if self._cuda else None  # type: ignore[attr-defined]
+        if locked is not None:
+            unlock = weakref.finalize(self, unlock_pages, locked, self.device)  # type: ignore[attr-defined]
+            unlock.atexit = False  # a process's end unlocks everything: no driver call as it tears down
+        return wp.array(
+            ptr=array.ctypes.data, dtype=wp.float64, shape=array.shape, device="cpu", pinned=locked is not None
+        )
 
 
 # ---------------------------------------------------------------- page-locking, per process
 
 _lock = threading.Lock()
-_locked: dict[int, list[Any]] = {}  # buffer's first page -> [its (address, size), users, the buffer kept alive]
+_locked: dict[int, list[Any]] = {}  # a locked buffer's first page -> [its users, the buffer, kept alive]
 _driver: Any = None
 
 
@@ -81,15 +82,15 @@ def whole_buffer(array: np.ndarray) -> tuple[int, int, Any]:
     return start, end - start, owner
 
 
-def lock_pages(array: np.ndarray, device: Any) -> bool:
+def lock_pages(array: np.ndarray, device: Any) -> int | None:
     """Page-lock the buffer under `array` for the CUDA devices of this process (once per
-    buffer, counted); whether it is."""
+    buffer, counted): its address, for unlock_pages; None where the driver refuses."""
     address, size, owner = whole_buffer(array)
     with _lock:
         entry = _locked.get(address)
         if entry is not None:
-            entry[1] += 1
-            return True
+            entry[0] += 1
+            return address
         try:
             with wp.ScopedDevice(device):  # the driver call needs a current context
                 code = _cuda_driver().cuMemHostRegister_v2(address, size, _PORTABLE)
@@ -97,20 +98,19 @@ def lock_pages(array: np.ndarray, device: Any) -> bool:
             code = str(e)
         if code != 0:
             log.info("batchsim: warp: the fleet's arrays are not page-locked (cuMemHostRegister: %s); reads copy through pageable memory", code)
-            return False
-        _locked[address] = [(address, size), 1, owner]
-        return True
+            return None
+        _locked[address] = [1, owner]
+        return address
 
 
-def unlock_pages(array: np.ndarray, device: Any) -> None:
-    """lock_pages undone by one of its users; the last unlocks the buffer."""
-    address, _, _ = whole_buffer(array)
+def unlock_pages(address: int, device: Any) -> None:
+    """lock_pages undone by one of the users of the buffer at `address`; the last unlocks it."""
     with _lock:
         entry = _locked.get(address)
         if entry is None:
             return
-        entry[1] -= 1
-        if entry[1] > 0:
+        entry[0] -= 1
+        if entry[0] > 0:
             return
         del _locked[address]
         try:
