@@ -48,8 +48,9 @@ import batchsim
 from batchsim.backends.warp import host
 
 a = np.zeros((4096, 139))
-print("fleet memory page-locked:", host.lock_pages(a, wp.get_device("cuda:0")))
-host.unlock_pages(a, wp.get_device("cuda:0"))
+locked = host.lock_pages(a, wp.get_device("cuda:0"))
+print("fleet memory page-locked:", locked is not None)
+host.unlock_pages(locked, wp.get_device("cuda:0"))
 t = time.time()
 fleets = [batchsim.make("arm", 512, "warp", devices=["cuda:0", "cuda:1"], processes=True), batchsim.make("arm", 512, "warp", device="cuda:0")]
 for sim in fleets:

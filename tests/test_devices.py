@@ -110,6 +110,31 @@ def test_a_shard_reads_into_the_fleets_arrays_and_a_reset_keeps_other_commands(p
         sim.shutdown()
 
 
+@SHARDS
+def test_every_worlds_body_poses_come_through_the_fleets_rows_as_any_worlds_do(processes):
+    """Every world's body poses (tf's, each period) go through the fleet's rows (ShardOp.POSES,
+    nothing pickled), some worlds' through the shards' answers: both as one device gives them,
+    arrays of the caller's own."""
+    fleets = [
+        batchsim.make("arm", 5, "warp", devices=["cpu", "cpu"], processes=processes),
+        batchsim.make("arm", 5, "warp"),
+    ]
+    for sim in fleets:
+        sim.configure()
+        sim.activate()
+        sim.command[4, 1] = 0.4
+        sim.write()
+        sim.step(20)
+    (every, one), some = [sim.body_poses() for sim in fleets], [sim.body_poses([4, 0, 3]) for sim in fleets]
+    for a, b in (*zip(every, one, strict=True), *zip(*some, strict=True)):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    assert np.abs(every[0][4] - every[0][0]).max() > 1e-3  # world 4 moved, on the second device
+    every[0][:] = 0.0  # the caller's own: the next call is not changed by it
+    np.testing.assert_allclose(fleets[0].body_poses()[0], one[0], atol=1e-6)
+    for sim in fleets:
+        sim.shutdown()
+
+
 def test_devices_are_for_the_device_backends():
     with pytest.raises(ValueError, match="cpu backend runs on the host's cores"):
         batchsim.make("arm", 4, "cpu", devices=[0, 1])

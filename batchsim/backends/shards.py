@@ -36,10 +36,10 @@ from typing import Any
 
 import numpy as np
 
-from batchsim.backends.device import DeviceSystem
-from batchsim.backends.shard_messages import POLL, Bell, FleetEnd, Records, ShardEnd, control_array, picklable
+from batchsim.backends.fleet_rows import FleetRows
+from batchsim.backends.shard_messages import POLL, Bell, FleetEnd, Records, ShardEnd, picklable
 from batchsim.hardware import BatchedSystem, Frames, LifecycleState
-from batchsim.memory import Layout, Memory
+from batchsim.memory import Memory
 from batchsim.model import RobotSpec
 
 
@@ -64,6 +64,7 @@ class ShardOp(enum.Enum):
     BODY_POSES = "body_poses"
     QSTATE = "qstate"
     SET_QSTATE = "set_qstate"
+    POSES = "poses"  # every world's body poses into the fleet's rows (tf's each period)
     SET_VARIATION = "set_variation"
     WORLD_PARAMS = "world_params"
     DRAW_NUMBERS = "draw_numbers"
@@ -76,11 +77,11 @@ class ShardOp(enum.Enum):
 # the operations a shard runs as its system's method of the member's value, as they come: the
 # rest of the lifecycle, the sensors and the body poses (an answer of host arrays, as a render's)
 CALLS = frozenset(ShardOp) - {
-    ShardOp.WRITE, ShardOp.STEP, ShardOp.READ, ShardOp.RESET, ShardOp.CONFIGURE,
+    ShardOp.WRITE, ShardOp.STEP, ShardOp.READ, ShardOp.POSES, ShardOp.RESET, ShardOp.CONFIGURE,
     ShardOp.DEVICE_ARRAYS, ShardOp.DEVICE_FRAMES, ShardOp.DEVICE_RANGES,
 }  # fmt: skip
 START_TIMEOUT = 300.0  # s: a shard process importing its backend and building its model
-PERIOD_OPS = (ShardOp.WRITE, ShardOp.STEP, ShardOp.READ)  # through the control row, unpickled
+PERIOD_OPS = (ShardOp.WRITE, ShardOp.STEP, ShardOp.READ, ShardOp.POSES)  # through the control row, unpickled
 # s: how long a waiting side (the fleet for a reply, a shard for its next request) polls
 # before it sleeps. A sleeping process wakes tens to hundreds of microseconds after its
 # message arrives (more in a virtual machine, whose idle cores halt); with four such wake-ups
@@ -100,64 +101,6 @@ def spin_budget(nshard: int) -> float:
     return SPIN if cores >= 2 * (nshard + 1) else 0.0
 
 
-def fleet_layout(nworld: int, ncolumn: int, nsensordata: int, ncommand: int, nshard: int = 1) -> Layout:
-    """The fleet's arrays that its shards read from or write to: readings `(nworld, ncolumn)`
-    (state, then base_state, then what the shards' actuation reads), sensordata `(nworld,
-    nsensordata)`, time, status and command `(nworld, ncommand)`; and each shard process's
-    control row (shard_messages)."""
-    return Layout(
-        [
-            ("readings", (nworld, ncolumn), "f8"),
-            ("sensordata", (nworld, nsensordata), "f8"),
-            ("time", (nworld,), "f8"),
-            ("status", (nworld,), "u1"),
-            ("command", (nworld, ncommand), "f8"),
-            control_array(nshard),
-        ]
-    )
-
-
-class FleetRows:
-    """One shard's rows of the fleet's arrays, and the copies between them and its system.
-
-    A device backend's system reads its readings into these rows and takes its commands
-    from them (`share`, DeviceSystem.share_host_arrays): those copies are then none. The
-    8192 humanoids of one GPU read 9.1 MB a period, whose copy took a shard process 0.7 ms
-    of its 0.87 ms read (4 H200s, benchmarks/RESULTS.md, GPU session 4)."""
-
-    def __init__(self, memory: Memory, rows: range):
-        sel = slice(rows.start, rows.stop)
-        self.readings = memory["readings"][sel]
-        self.sensordata = memory["sensordata"][sel]
-        self.time = memory["time"][sel]
-        self.status = memory["status"][sel]
-        self.command = memory["command"][sel]
-
-    def share(self, system: BatchedSystem) -> None:
-        """Make these rows `system`'s own readings, sensordata and command (before configure)."""
-        if isinstance(system, DeviceSystem):
-            system.share_host_arrays(self.readings, self.sensordata, self.command)
-
-    def take_command(self, system: BatchedSystem) -> None:
-        if system.command is not self.command:
-            system.command[:] = self.command
-
-    def give_status(self, system: BatchedSystem) -> None:
-        self.status[:] = system.status
-
-    def give_readings(self, system: BatchedSystem) -> None:
-        # whole blocks, one copy each (the same robot: the same columns on both sides)
-        if system.readings is not self.readings:
-            self.readings[:] = system.readings
-            self.sensordata[:] = system.sensordata.array
-        self.time[:] = system.time
-        self.status[:] = system.status
-
-    def give_command(self, system: BatchedSystem) -> None:
-        if system.command is not self.command:
-            self.command[:] = system.command
-
-
 def serve(system: BatchedSystem, rows: FleetRows, op: ShardOp, args: tuple, kwargs: dict) -> Any:
     """Run one operation of a shard on its system, moving what it needs through `rows`."""
     if op is ShardOp.WRITE:
@@ -170,6 +113,8 @@ def serve(system: BatchedSystem, rows: FleetRows, op: ShardOp, args: tuple, kwar
     elif op is ShardOp.READ:
         system.read(*args)
         rows.give_readings(system)
+    elif op is ShardOp.POSES:
+        rows.give_poses(system)
     elif op is ShardOp.RESET:
         system.reset(*args)
         rows.give_readings(system)
