@@ -2,7 +2,11 @@
 
   randomized   the contract loop (command, write, step, read) on a fleet whose masses,
                frictions and servo gains are drawn per world, against the same fleet
-               unrandomized, interleaved in rounds (throughput.py's `interleaved`)
+               unrandomized, interleaved in rounds (throughput.py's `interleaved`); and a
+               fleet with the same fields batched per world but drawn at their nominal values
+               (scale 1), against a plain fleet started with it: the same physics, so its
+               ratio is what per-world fields cost the engine, apart from what other masses
+               do to a falling humanoid's contacts
   resets       the randomized fleet with 10 % of its worlds reset with fresh draws every
                simulated second (every `control rate` periods; flat out, so far more often
                than every wall-clock second), against the same fleet without resets; and the
@@ -46,6 +50,14 @@ VARIATION = {
         {"field": "actuator_gainprm", "columns": [0], "scale": {"uniform": [0.8, 1.2]}},
     ],
 }
+
+
+IDENTITY = {  # the same fields batched per world, each drawn at its nominal value
+    "seed": 1,
+    "redraw_on_reset": True,
+    "fields": [{**f, "scale": {"uniform": [1.0, 1.0]}} for f in VARIATION["fields"]],
+}
+WARMUP = 20  # periods each fleet runs before timing: warp's buffers grow in the first ones
 
 
 def made(args: argparse.Namespace, randomize: dict | None) -> batchsim.BatchedSystem:
@@ -101,17 +113,25 @@ def main(argv: list[str] | None = None) -> int:
     work = args.worlds * NSTEP
 
     # --- randomized against plain, interleaved ---
-    plain, varied = made(args, None), made(args, VARIATION)
+    plain, varied, same = made(args, None), made(args, VARIATION), made(args, IDENTITY)
     u = np.zeros((args.worlds, len(plain.spec.commands)))
     t0 = time.perf_counter()
-    loop(varied, u)()  # the first period compiles (mjx) or captures (warp): not timed
-    loop(plain, u)()
-    print(f"first periods (compile/capture): {time.perf_counter() - t0:.1f} s", flush=True)
+    for sim in (varied, plain, same):  # the first period compiles (mjx) or captures (warp): not timed
+        for _ in range(WARMUP):
+            loop(sim, u)()
+    print(f"first periods (compile/capture, {WARMUP} each): {time.perf_counter() - t0:.1f} s", flush=True)
     vs, ps, ratios, _ = interleaved(loop(varied, u), loop(plain, u), work, args.seconds, args.rounds)
     rows["randomized"] = {"varied_sps": vs, "plain_sps": ps, "ratio": vs / ps, "round_ratios": ratios}
-    print(
-        f"randomized/plain: {vs / ps:.3f} ({vs:,.0f} vs {ps:,.0f} steps/s; rounds {', '.join(f'{r:.3f}' for r in ratios)})"
-    )
+    spread = ", ".join(f"{r:.3f}" for r in ratios)
+    print(f"randomized/plain: {vs / ps:.3f} ({vs:,.0f} vs {ps:,.0f} steps/s; rounds {spread})")
+    fresh = made(args, None)  # a plain fleet at the identity fleet's moment of the fall
+    for _ in range(WARMUP):
+        loop(fresh, u)()
+    ss, fs, ratios, _ = interleaved(loop(same, u), loop(fresh, u), work, args.seconds, args.rounds)
+    rows["batched_nominal"] = {"batched_sps": ss, "plain_sps": fs, "ratio": ss / fs, "round_ratios": ratios}
+    spread = ", ".join(f"{r:.3f}" for r in ratios)
+    print(f"fields batched at nominal values/plain: {ss / fs:.3f} ({ss:,.0f} vs {fs:,.0f} steps/s; rounds {spread})")
+    del same, fresh
 
     # --- 10 % of the worlds reset with fresh draws every simulated second ---
     rng = np.random.default_rng(0)

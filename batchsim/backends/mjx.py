@@ -35,7 +35,6 @@ stay on the device.
 
 from __future__ import annotations
 
-import hashlib
 from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -59,6 +58,7 @@ from batchsim.backends.device import (
 )
 from batchsim.backends.host_sensors import HostSensors
 from batchsim.backends.mjx_device import MjxDeviceIO
+from batchsim.backends.mjx_fields import MjxFields, fingerprint, with_fields
 from batchsim.base_velocity import HELD_DOFS
 from batchsim.hardware import MAX_COMMAND, Status, StepFailures
 from batchsim.model import RobotSpec, StateColumn
@@ -82,14 +82,6 @@ class _Programs(NamedTuple):
 
 
 _PROGRAMS: OrderedDict[tuple[Any, ...], _Programs] = OrderedDict()
-_VARIABLE: dict[str, frozenset[str]] = {}  # variable_fields() per model fingerprint
-
-
-def _fingerprint(m: mujoco.MjModel) -> str:
-    """A digest of everything in the model, so that equal models share compiled programs."""
-    buffer = np.empty(mujoco.mj_sizeModel(m), np.uint8)
-    mujoco.mj_saveModel(m, None, buffer)
-    return hashlib.sha256(buffer.tobytes()).hexdigest()
 
 
 def _programs(
@@ -112,12 +104,12 @@ def _programs(
     rather than passed to the program, which measured ~1.6 ms a period slower on an H200
     (benchmarks/mjx_period.py, "raw+ctrl").
     """
-    key = (_fingerprint(spec.mjmodel), tuple(c.name for c in columns), nworld, device, deterministic, held, varied)
+    key = (fingerprint(spec.mjmodel), tuple(c.name for c in columns), nworld, device, deterministic, held, varied)
     if key in _PROGRAMS:
         _PROGRAMS.move_to_end(key)
         return _PROGRAMS[key]
     shared = jax.vmap(mjx.step, in_axes=(None, 0))
-    per_world = jax.vmap(lambda f, d: mjx.step(_with_fields(mx, f), d))
+    per_world = jax.vmap(lambda f, d: mjx.step(with_fields(mx, f), d))
     m = spec.mjmodel
     offset = dict(zip(StateSource, np.cumsum([0, m.nq, m.nv, m.nv]), strict=True))
     take = np.array([offset[c.source] + c.index for c in columns], dtype=np.int32)
@@ -182,13 +174,6 @@ def _programs(
     return programs
 
 
-def _with_fields(mx: mjx.Model, fields: dict[str, jax.Array]) -> mjx.Model:
-    """One world's model: `mx` with its values of the varied fields (`opt.<name>` for options)."""
-    options = {k[4:]: v for k, v in fields.items() if k.startswith("opt.")}
-    own = {k: v for k, v in fields.items() if not k.startswith("opt.")}
-    return mx.replace(**own, opt=mx.opt.replace(**options)) if options else mx.replace(**own)
-
-
 def _holding(step: Callable[..., Any], held: Any, qpos: jax.Array, target: jax.Array) -> Callable[..., Any]:
     """A substep that first writes the held base velocity into qvel (batchsim.base_velocity's
     world_velocity, inlined): `target` (nworld, 3) body-frame vx, vy, wz, rotated by the base's
@@ -231,7 +216,7 @@ def _float32(program: Callable[..., Any]) -> Callable[..., Any]:
     return call
 
 
-class MjxSystem(MjxDeviceIO, DeviceSystem):
+class MjxSystem(MjxFields, MjxDeviceIO, DeviceSystem):
     """`nworld` worlds on MJX (JAX), one jitted device loop per control period.
 
     Options:
@@ -295,32 +280,6 @@ class MjxSystem(MjxDeviceIO, DeviceSystem):
 
     def _close(self) -> None:
         del self._d, self._d0, self._programs, self._fields
-
-    @classmethod
-    def variable_fields(cls, m: mujoco.MjModel) -> frozenset[str]:
-        """The fields MJX's Model holds as arrays of the MjModel's shape (a vmapped model
-        takes them per world); its options likewise, as `opt.<name>`."""
-        key = _fingerprint(m)
-        if key not in _VARIABLE:
-            mx = mjx.put_model(m, device=jax.devices("cpu")[0], impl="jax")
-
-            def arrays(owner: Any, source: Any, prefix: str) -> set[str]:
-                return {
-                    prefix + name
-                    for name in dir(source)
-                    if not name.startswith("_")
-                    and isinstance(getattr(owner, name, None), jax.Array)
-                    and np.shape(getattr(owner, name)) == np.shape(getattr(source, name))
-                }
-
-            _VARIABLE[key] = frozenset(arrays(mx, m, "") | arrays(mx.opt, m.opt, "opt."))
-        return _VARIABLE[key]
-
-    def _set_model_fields(self, worlds: np.ndarray, params: dict[str, np.ndarray]) -> None:
-        # whole arrays up: a redraw is rare, and the period program takes them as they are
-        host = {f: v.astype(np.float32) for f, v in params.items()}
-        self._fields = jax.device_put(host, self.device)
-        self._packed = None
 
     def _ctrl_host(self) -> np.ndarray:
         return self._ctrl

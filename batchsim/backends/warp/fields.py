@@ -4,7 +4,8 @@ MuJoCo Warp's Model arrays whose spec starts with `*` (and those of its Option) 
 batch dimension, read as `field[worldid % field.shape[0]]` by every kernel: one row is the
 shared model, `nworld` rows a value per world. A varied field gets its `nworld` rows on its
 first draw, before the first period is captured; later draws (a reset that redraws) write
-those same arrays in place, so that captured graphs keep their pointers.
+their worlds' rows of those same arrays in place (one upload of those rows and a scatter
+kernel), so that captured graphs keep their pointers.
 """
 
 from __future__ import annotations
@@ -17,6 +18,20 @@ import numpy as np
 import warp as wp
 from mujoco_warp._src import types as mjw_types
 from mujoco_warp._src import warp_util
+
+
+@wp.kernel
+def scatter_rows(src: wp.array(dtype=Any), rows: wp.array(dtype=wp.int32), dst: wp.array(dtype=Any)):
+    """dst[rows[i]] = src[i]: a (nworld,) option array's redrawn worlds."""
+    i = wp.tid()
+    dst[rows[i]] = src[i]
+
+
+@wp.kernel
+def scatter_rows_2d(src: wp.array2d(dtype=Any), rows: wp.array(dtype=wp.int32), dst: wp.array2d(dtype=Any)):
+    """dst[rows[i], j] = src[i, j]: a (nworld, nobject) model array's redrawn worlds."""
+    i, j = wp.tid()
+    dst[rows[i], j] = src[i, j]
 
 
 def _batched(cls: type) -> frozenset[str]:
@@ -49,11 +64,15 @@ class WarpFields:
             for field, values in params.items():
                 owner, name = (self._m.opt, field[4:]) if field.startswith("opt.") else (self._m, field)
                 array = getattr(owner, name)
-                host = values.astype(np.float32).reshape(len(values), *array.shape[1:], *_inner(array))
                 if array.shape[0] != self.nworld:  # the first draw: a row per world, before any capture
+                    host = values.astype(np.float32).reshape(len(values), *array.shape[1:], *_inner(array))
                     setattr(owner, name, wp.array(host, dtype=array.dtype))
-                else:
-                    array.assign(host)
+                    continue
+                rows = values[worlds].astype(np.float32).reshape(len(worlds), *array.shape[1:], *_inner(array))
+                src = wp.array(rows, dtype=array.dtype)
+                index = wp.array(worlds.astype(np.int32), dtype=wp.int32)
+                kernel = scatter_rows if array.ndim == 1 else scatter_rows_2d
+                wp.launch(kernel, dim=src.shape, inputs=[src, index], outputs=[array], device=self.device)
 
 
 def _inner(array: wp.array) -> tuple[int, ...]:
