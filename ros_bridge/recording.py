@@ -30,6 +30,7 @@ from batchsim.loop import OptionError, SimLoop
 from ros_bridge.options import RecordOptions
 from ros_bridge.outputs import OutputSpec
 from ros_bridge.protocol.recording import RecordWriter, put_answer, recording_arrays, take_request
+from ros_bridge.view_plan import recording_geometry
 
 FLEET_TOPICS = ("/tf", "/tf_static", "/clock")
 DESCRIPTION = "robot_description"
@@ -161,6 +162,7 @@ class Recording:
         self._answered = 0
         self._used: set[str] = set()
         self._said = False  # the recorder said how it ended
+        self._geometry: bytes | None = None  # the robots' geoms, for the file (view_plan.py)
         self._next_watch = 0.0
 
     # --- start and stop ---
@@ -183,7 +185,9 @@ class Recording:
         self.memory["rec.pos"][1] = self.memory["rec.pos"][0]  # nothing left from a recorder that was killed
         self._used.add(path)
         self.memory["rec.dropped"][0] = 0
-        self._proc.stdin.write(pickle.dumps((self.plan, os.path.abspath(path))))
+        if self._geometry is None and self.plan.tf is not None:  # for `batchsim view FILE`
+            self._geometry = recording_geometry(self.loop.sim, self.plan.tf)
+        self._proc.stdin.write(pickle.dumps((self.plan, os.path.abspath(path), self._geometry)))
         self._proc.stdin.flush()
         if wait:
             deadline = wallclock.monotonic() + READY_TIMEOUT

@@ -12,6 +12,8 @@ for through `view.want` while it runs.
 from __future__ import annotations
 
 import dataclasses
+import io
+import json
 import os
 import pickle
 import select
@@ -23,7 +25,9 @@ import mujoco
 import numpy as np
 
 from batchsim.hardware import BatchedSystem
+from batchsim.model.frames import frame_tree
 
+GEOMETRY = "batchsim/view_geometry.npz"  # a recording's attachment: the robots' geoms (`batchsim view FILE`)
 VISIBLE_GROUPS = 3  # MuJoCo's viewer shows geom groups 0, 1 and 2 by default
 READY_TIMEOUT = 60.0  # s the view process may take to come up
 _G = mujoco.mjtGeom
@@ -149,6 +153,42 @@ def view_spec(sim: BatchedSystem, tf_channel: int, tf_bodies: tuple[int, ...], h
         geoms.append(ViewGeom(name, index.get(body, -1), p, q, rgba.copy(), mesh[0].astype(np.float32), mesh[1].astype(np.uint32)))
     spacing = max(1.0, 2.5 * float(m.stat.extent))
     return ViewSpec(tuple(geoms), tf_channel, spacing, host, port, joints)
+
+
+def geometry_bytes(spec: ViewSpec, anchor_frames: list[str]) -> bytes:
+    """The geoms of `spec` and the tf frames of its anchors, as an .npz (no pickle): what a
+    recording carries (an MCAP attachment) so that `batchsim view FILE` draws its robots."""
+    arrays: dict[str, np.ndarray] = {
+        "names": np.array(json.dumps([g.name for g in spec.geoms])),
+        "frames": np.array(json.dumps(anchor_frames)),
+        "anchor": np.array([g.anchor for g in spec.geoms], np.int64),
+        "pos": np.array([g.pos for g in spec.geoms]).reshape(-1, 3),
+        "quat": np.array([g.quat for g in spec.geoms]).reshape(-1, 4),
+        "rgba": np.array([g.rgba for g in spec.geoms]).reshape(-1, 4),
+        "spacing": np.array(spec.spacing),
+    }
+    for k, g in enumerate(spec.geoms):
+        arrays[f"v{k}"], arrays[f"f{k}"] = g.vertices, g.faces
+    out = io.BytesIO()
+    np.savez_compressed(out, **arrays)
+    return out.getvalue()
+
+
+def geometry_from_bytes(data: bytes, host: str, port: int) -> tuple[ViewSpec, list[str]]:
+    """`geometry_bytes` read back: the ViewSpec (served at host:port) and the anchors' tf frames."""
+    z = np.load(io.BytesIO(data), allow_pickle=False)
+    names = json.loads(str(z["names"]))
+    geoms = tuple(
+        ViewGeom(name, int(z["anchor"][k]), z["pos"][k], z["quat"][k], z["rgba"][k], z[f"v{k}"], z[f"f{k}"])
+        for k, name in enumerate(names)
+    )
+    return ViewSpec(geoms, -1, float(z["spacing"]), host, port), json.loads(str(z["frames"]))
+
+
+def recording_geometry(sim: BatchedSystem, tf) -> bytes:
+    """What a recording of `sim` carries for the view: its geoms, anchored to tf's frames."""
+    tree = frame_tree(sim.spec)
+    return geometry_bytes(view_spec(sim, tf.channel, tf.bodies, "", 0), [tree.frame(b) for b in tf.bodies])
 
 
 class ViewProcess:

@@ -251,7 +251,7 @@ def test_what_cannot_be_recorded_or_viewed_is_one_line(args, line, capsys, monke
     assert len(err.splitlines()) == 1 and err.startswith(f"batchsim: error: {line}"), err
 
 
-def test_what_cannot_be_replayed_is_one_line(recorded, tmp_path, capsys):
+def test_what_cannot_be_replayed_or_viewed_is_one_line(recorded, tmp_path, capsys):
     text = tmp_path / "notes.txt"
     text.write_text("not a recording\n")
     assert cli.main(["replay", str(text)]) == 2
@@ -262,6 +262,8 @@ def test_what_cannot_be_replayed_is_one_line(recorded, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == f"batchsim: error: {cut} was cut short before its first complete chunk: nothing to replay"
     assert err[0].startswith(f"batchsim: warning: {cut} was cut short")
+    assert cli.main(["view", str(text)]) == 2
+    assert capsys.readouterr().err.strip() == f"batchsim: error: {text} is not an MCAP file (it does not start with MCAP's magic bytes)"
     assert cli.main(["replay", str(recorded), "--worlds", "1"]) == 2
     assert capsys.readouterr().err.strip() == f"batchsim: error: --worlds names world 1, which {recorded} does not hold (worlds [0, 2])"
     assert sum(1 for _ in StreamReader(str(recorded)).records) > 0

@@ -9,6 +9,7 @@ import base64
 import contextlib
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -156,3 +157,42 @@ def test_the_view_shows_the_robots_a_picked_worlds_status_and_keeps_up(tmp_path)
         node.destroy_node()
         rclpy.try_shutdown(context=context)
         release_domain(domain)
+
+
+def test_a_recording_in_the_view_shows_the_robots_and_scrubs(tmp_path):
+    domain, port = domain_id(72), _free_port()
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain)}
+    path = tmp_path / "run.mcap"
+    try:
+        args = ["--worlds", "2", "--quiet", "--controllers", "none", "--rtf", "0", "--duration", "1", "--record", str(path)]
+        subprocess.run([sys.executable, "-m", "batchsim.cli", *args], env=env, check=True, capture_output=True, timeout=120)
+    finally:
+        release_domain(domain)
+    log = tmp_path / "log"
+    proc = subprocess.Popen([sys.executable, "-m", "batchsim.cli", "view", str(path), "--view-port", str(port)],
+                            stdout=open(log, "w"), stderr=subprocess.STDOUT)  # fmt: skip
+    browser = None
+    try:
+        _wait(lambda: "batchsim: view: " in log.read_text(), 60, "the view's line")
+        assert re.search(rf"\({re.escape(str(path))}: 2 worlds, sim time 0\.00 \.\. 0\.9\d s\)", log.read_text())
+        browser = Browser()
+        browser.session_call("POST", "/url", {"url": f"http://localhost:{port}"})
+        _wait(lambda: re.search(r"sim time 0\.00 s of 0\.00 \.\. 0\.9\d s", browser.text()), 30, "the recording's panel")
+        time.sleep(2.0)  # the meshes arrive and are drawn
+        shot = browser.screenshot()[..., :3].astype(int)
+        r, g, b = shot[..., 0], shot[..., 1], shot[..., 2]
+        assert ((r > 120) & (r - g > 40) & (g - b > 30))[:, : shot.shape[1] * 2 // 3].sum() > 300, "no robot in the screenshot"
+        # scrub: the slider's number field takes 0.5 s, and the page shows that moment
+        browser.session_call("POST", "/execute/sync", {"script": SLIDER, "args": []})
+        keys = [{"type": kind, "value": key} for key in "0.5\ue007" for kind in ("keyDown", "keyUp")]
+        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        _wait(lambda: re.search(r"sim time 0\.5\d s of", browser.text()), 20, "the scrubbed time")  # the frame at 0.5 s
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        if browser is not None:
+            browser.close()
+
+
+# the slider's own number field (the second number input of the panel, after the world's)
+SLIDER = "const input = document.querySelectorAll('input.mantine-NumberInput-input')[1]; input.focus(); input.select();"

@@ -6,6 +6,8 @@
     batchsim info arm                        interfaces and sensors of a model
     batchsim --worlds 16 --record run.mcap   every world's state topics into one MCAP file
     batchsim replay run.mcap --worlds 3      republish a recording over ROS 2, with /clock
+    batchsim --worlds 64 --view              the fleet in 3D in a browser, live
+    batchsim view run.mcap                   a recording in the same page, scrubbed through
 
 Errors a user can fix (a missing file, malformed XML, an unknown model, a bad flag, a
 fleet that will not fit in memory) print one line and exit with code 2. Start-up stages
@@ -24,6 +26,7 @@ from batchsim.cli.args import EXIT_USAGE, UsageError, check_args, default_model,
 from batchsim.cli.info import info, sensor_lines
 from batchsim.cli.replay import replay
 from batchsim.cli.runner import StatusLine, build, run, setup_controllers, start_ros
+from batchsim.cli.view import view
 from batchsim.hardware import ConfigurationError, LifecycleError
 from batchsim.loop import OptionError, RateError
 from batchsim.model import ModelError
@@ -51,6 +54,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return info(argv[1:])
         if argv and argv[0] == "replay":
             return replay(argv[1:])
+        if argv and argv[0] == "view":
+            return view(argv[1:])
         return run(argv)
     except USER_ERRORS as e:  # what the user can fix, as one line; an internal bug keeps its traceback
         print(f"batchsim: error: {e}", file=sys.stderr)

@@ -243,6 +243,14 @@ def replay_parser() -> argparse.ArgumentParser:
     return p
 
 
+def view_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="batchsim view", description="Show an MCAP recording in the web view, scrubbed through.")
+    p.add_argument("file", help="an MCAP file written by batchsim --record")
+    p.add_argument("--view-host", default="127.0.0.1", help="the view's address (default 127.0.0.1; 0.0.0.0: every interface)")
+    p.add_argument("--view-port", type=int, default=8080, help="the view's port (default 8080; the next free one if taken)")
+    return p
+
+
 def _urdf_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--mujoco-inputs", default=None, metavar="FILE",

@@ -35,6 +35,7 @@ from batchsim.memory import Memory
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.protocol.recording import RecordedPeriod, RecordReader
+from ros_bridge.view_plan import GEOMETRY
 from ros_bridge.worker.messages import clock_payload, stamp_of
 from ros_bridge.worker.process import die_with_parent
 from ros_bridge.worker.schemas import qos_metadata, schema_text
@@ -175,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     stopping = []
     signal.signal(signal.SIGTERM, lambda signum, frame: stopping.append(signum))
     try:
-        plan, path = pickle.load(sys.stdin.buffer)
+        plan, path, geometry = pickle.load(sys.stdin.buffer)
     except (EOFError, pickle.UnpicklingError):
         return 0
     memory = Memory.attach(plan.layout, plan.memory_name)
@@ -185,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         stream = open(path, "wb")
         recording = McapRecording(plan, stream)
+        if geometry is not None:  # the robots' geoms, for `batchsim view FILE` (ros_bridge/view_plan.py)
+            recording.writer.add_attachment(0, 0, GEOMETRY, "application/x-npz", geometry)
         status.write("ready\n")
         flushed = wallclock.monotonic()
         while not stopping:

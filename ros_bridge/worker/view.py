@@ -20,6 +20,8 @@ the picked world.
 from __future__ import annotations
 
 import collections
+import contextlib
+import io
 import os
 import pickle
 import signal
@@ -34,6 +36,7 @@ from batchsim.hardware import Status
 from batchsim.memory import Memory
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, FleetPlan
 from ros_bridge.protocol.snapshot import Snapshot, read_snapshot
+from ros_bridge.view_plan import ViewSpec
 from ros_bridge.worker.process import die_with_parent
 
 UPDATE_RATE = 20.0  # Hz
@@ -42,7 +45,7 @@ NICE = 10
 FROZEN_RGB, BAD_RGB, TIMEOUT_RGB = (220, 30, 30), (255, 140, 0), (240, 220, 0)
 
 
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton products of (..., 4) quaternions (w, x, y, z)."""
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
@@ -52,7 +55,7 @@ def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ], -1)  # fmt: skip
 
 
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """(..., 3) vectors v rotated by (..., 4) quaternions q."""
     u, w = q[..., 1:], q[..., :1]
     t = 2.0 * np.cross(u, v)
@@ -72,17 +75,18 @@ def status_text(status: int, flags: int) -> str:
     return ", ".join(parts) or "running"
 
 
-class FleetView:
-    """The page for `plan`'s worlds, fed from `memory`."""
+class FleetScene:
+    """The page: `spec`'s geoms for `nworld` worlds (named `namespaces`) on a grid, the panel's
+    fleet line, its world picker and status line, and the picked world's joint plot."""
 
-    def __init__(self, plan: FleetPlan, memory: Memory):
-        spec = plan.view
-        self.plan, self.spec, self.memory = plan, spec, memory
-        self.n = n = plan.nworld
+    def __init__(self, spec: ViewSpec, namespaces: list[str]):
+        self.spec, self.namespaces = spec, namespaces
+        self.n = n = len(namespaces)
         cols = int(np.ceil(np.sqrt(n)))
         k = np.arange(n)
         self.grid = np.stack([(k % cols) * spec.spacing, (k // cols) * spec.spacing, np.zeros(n)], -1)
-        self.server = viser.ViserServer(host=spec.host, port=spec.port, label="batchsim", verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # its banner: batchsim prints the URL itself
+            self.server = viser.ViserServer(host=spec.host, port=spec.port, label="batchsim", verbose=False)
         scene, gui = self.server.scene, self.server.gui
         center = np.array([self.grid[:, 0].max() / 2, self.grid[:, 1].max() / 2, 0.0])
         reach = max(center[0], 1.0) + spec.spacing  # the whole grid in sight
@@ -106,22 +110,66 @@ class FleetView:
         self.picker = gui.add_number("world", 0, min=0, max=max(0, n - 1), step=1)
         self.world_text = gui.add_markdown("")
         self.plot: Any = None
-        joints = spec.joints
-        if joints is not None:
-            names = joints[2]
+        if spec.joints is not None:
+            names = spec.joints[2]
             series = (viser.uplot.Series(label="t"), *(viser.uplot.Series(label=j, stroke=_stroke(i)) for i, j in enumerate(names)))
-            self.plot = gui.add_uplot(data=(np.zeros(1), *[np.zeros(1)] * len(names)), series=series, title="joint positions (rad, m) against sim time (s)",
+            self.plot = gui.add_uplot(data=(np.zeros(1), *[np.zeros(1)] * len(names)), series=series,
+                                      title="joint positions (rad, m) against sim time (s)",
                                       scales={"x": {"time": False}}, aspect=1.5)  # fmt: skip
-        self.history: collections.deque = collections.deque()
-        self.picker.on_update(lambda _: self.history.clear())
-        self.snap = Snapshot()
-        self.rtf = collections.deque(maxlen=int(UPDATE_RATE))  # (wall, sim) of the last second
         self._colors_key: bytes = b""
         self.url = f"http://{'localhost' if spec.host in ('0.0.0.0', '127.0.0.1') else spec.host}:{self.server.get_port()}"
+
+    @property
+    def picked(self) -> int:
+        return int(np.clip(self.picker.value, 0, self.n - 1))
 
     def _clicked(self, event: Any) -> None:
         if event.instance_index is not None:
             self.picker.value = int(event.instance_index)
+
+    def draw(self, poses: np.ndarray) -> None:
+        """poses: (nworld, nanchor, 7) the anchors' world poses (position, quaternion w x y z)."""
+        with self.server.atomic():
+            for g, handle in zip(self.spec.geoms, self.handles, strict=True):
+                if g.anchor < 0:
+                    continue  # on the world body: never moves
+                p, q = poses[:, g.anchor, :3], poses[:, g.anchor, 3:]
+                handle.batched_positions = (self.grid + p + rotate(q, np.broadcast_to(g.pos, p.shape))).astype(np.float32)
+                handle.batched_wxyzs = qmul(q, np.broadcast_to(g.quat, q.shape)).astype(np.float32)
+
+    def tint(self, status: np.ndarray, flags: np.ndarray) -> None:
+        key = status.tobytes() + flags.tobytes()
+        if key == self._colors_key:
+            return
+        self._colors_key = key
+        frozen = ((flags & FLAG_FROZEN) != 0) | ((status & int(Status.DIVERGED | Status.OVERFLOW)) != 0)
+        bad = ((flags & FLAG_BAD) != 0) | ((status & int(Status.BAD_COMMAND)) != 0)
+        timeout = (flags & FLAG_TIMED_OUT) != 0
+        for rgb, handle in zip(self.base_rgb, self.handles, strict=True):
+            colors = np.tile(rgb, (self.n, 1))
+            colors[timeout] = TIMEOUT_RGB
+            colors[bad] = BAD_RGB
+            colors[frozen] = FROZEN_RGB
+            handle.batched_colors = colors
+
+    def plot_joints(self, t: np.ndarray, q: np.ndarray) -> None:
+        """The picked world's joint positions q (len(t), njoint) at sim times t."""
+        if self.plot is not None and len(t):
+            self.plot.data = (t, *q.reshape(len(t), -1).T)
+
+
+class FleetView:
+    """The live page for `plan`'s worlds, fed from `memory` (the snapshot)."""
+
+    def __init__(self, plan: FleetPlan, memory: Memory):
+        self.plan, self.spec, self.memory = plan, plan.view, memory
+        self.n = plan.nworld
+        self.scene = FleetScene(plan.view, plan.namespaces)
+        self.url = self.scene.url
+        self.history: collections.deque = collections.deque()
+        self.scene.picker.on_update(lambda _: self.history.clear())
+        self.snap = Snapshot()
+        self.rtf = collections.deque(maxlen=int(UPDATE_RATE))  # (wall, sim) of the last second
 
     def want(self, on: bool) -> None:
         """Ask the loop for the channels the view reads (the tf poses, the joint positions)."""
@@ -138,33 +186,9 @@ class FleetView:
             return
         self.rtf.append((wallclock.monotonic(), snap.time))
         if self.spec.channel in snap.channels:
-            self._draw(snap.channels[self.spec.channel])
-        self._tint(snap.status, snap.flags)
+            self.scene.draw(snap.channels[self.spec.channel].reshape(self.n, -1, 7))
+        self.scene.tint(snap.status, snap.flags)
         self._panel(snap)
-
-    def _draw(self, channel: np.ndarray) -> None:
-        poses = channel.reshape(self.n, -1, 7)
-        for g, handle in zip(self.spec.geoms, self.handles, strict=True):
-            if g.anchor < 0:
-                continue  # on the world body: never moves
-            p, q = poses[:, g.anchor, :3], poses[:, g.anchor, 3:]
-            handle.batched_positions = (self.grid + p + _rotate(q, np.broadcast_to(g.pos, p.shape))).astype(np.float32)
-            handle.batched_wxyzs = _qmul(q, np.broadcast_to(g.quat, q.shape)).astype(np.float32)
-
-    def _tint(self, status: np.ndarray, flags: np.ndarray) -> None:
-        key = status.tobytes() + flags.tobytes()
-        if key == self._colors_key:
-            return
-        self._colors_key = key
-        frozen = ((flags & FLAG_FROZEN) != 0) | ((status & int(Status.DIVERGED | Status.OVERFLOW)) != 0)
-        bad = ((flags & FLAG_BAD) != 0) | ((status & int(Status.BAD_COMMAND)) != 0)
-        timeout = (flags & FLAG_TIMED_OUT) != 0
-        for rgb, handle in zip(self.base_rgb, self.handles, strict=True):
-            colors = np.tile(rgb, (self.n, 1))
-            colors[timeout] = TIMEOUT_RGB
-            colors[bad] = BAD_RGB
-            colors[frozen] = FROZEN_RGB
-            handle.batched_colors = colors
 
     def _panel(self, snap: Snapshot) -> None:
         (w0, s0), (w1, s1) = self.rtf[0], self.rtf[-1]
@@ -172,20 +196,18 @@ class FleetView:
         frozen = int(((snap.flags & FLAG_FROZEN) != 0).sum())
         bad = int(((snap.flags & FLAG_BAD) != 0).sum())
         timeout = int(((snap.flags & FLAG_TIMED_OUT) != 0).sum())
-        self.fleet_text.content = (
+        self.scene.fleet_text.content = (
             f"**{self.n} worlds** · sim time {snap.time:.2f} s · RTF {rtf:.2f}  \n"
             f"running {self.n - frozen} · frozen {frozen} · bad command {bad} · command timeout {timeout}"
         )
-        w = int(np.clip(self.picker.value, 0, self.n - 1))
-        self.world_text.content = f"**{self.plan.namespaces[w] or '/'}** (world {w}): {status_text(int(snap.status[w]), int(snap.flags[w]))}"
+        w = self.scene.picked
+        self.scene.world_text.content = f"**{self.plan.namespaces[w] or '/'}** (world {w}): {status_text(int(snap.status[w]), int(snap.flags[w]))}"
         joints = self.spec.joints
-        if self.plot is not None and joints[0] in snap.channels:
+        if joints is not None and joints[0] in snap.channels:
             self.history.append((snap.time, snap.channels[joints[0]][w, list(joints[1])]))
             while self.history and self.history[0][0] < snap.time - PLOT_SECONDS:
                 self.history.popleft()
-            t = np.array([h[0] for h in self.history])
-            q = np.array([h[1] for h in self.history]).reshape(len(t), -1)
-            self.plot.data = (t, *q.T)
+            self.scene.plot_joints(np.array([h[0] for h in self.history]), np.array([h[1] for h in self.history]))
 
 
 def _stroke(i: int) -> str:
@@ -219,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
             wallclock.sleep(max(0.0, 1.0 / UPDATE_RATE - (wallclock.monotonic() - began)))
     finally:
         view.want(False)
-        view.server.stop()
+        view.scene.server.stop()
         memory.close()
     return 0
 

@@ -1,0 +1,104 @@
+"""What the web view costs the loop: without it, with it and no browser, with a browser attached.
+
+    .venv/bin/python benchmarks/view.py --repeat 3               # 64 arms at 100 Hz, 20 s per run
+    .venv/bin/python benchmarks/view.py --worlds 1024 --backend warp
+
+The loop runs in this process as `batchsim` runs it (the arm's default controllers, the ROS 2
+bridge with its workers in processes, RTF 1). Three runs: no view; `--view` with nobody
+looking; `--view` with a headless Chromium (Debian's, software WebGL where there is no GPU)
+showing the page the whole time. Reported per run: the RTF held and the loop's own time per
+period (the pacing sleep excluded: median, 99th percentile, worst). Nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+
+def run(opts: argparse.Namespace, view: bool, browser: bool) -> dict:
+    import batchsim
+    from batchsim.controllers import default_controllers, load_controllers
+    from batchsim.loop import SimLoop
+    from batchsim.realtime import DEFAULT_THREAD_PRIORITY
+    from ros_bridge.bridge import BridgeOptions, start_bridge
+    from ros_bridge.options import ViewOptions
+
+    sim = batchsim.make(opts.model, opts.worlds, opts.backend)
+    sim.configure()
+    sim.activate()
+    manager = load_controllers(default_controllers(opts.model), sim.spec, opts.worlds)
+    loop = SimLoop(
+        sim, control_rate=opts.control_rate, rtf=1.0, duration=opts.duration, participants=[manager],
+        thread_priority=DEFAULT_THREAD_PRIORITY,
+    )  # fmt: skip
+    host = start_bridge(sim, loop, BridgeOptions(view=ViewOptions(port=opts.port) if view else None), manager)
+    chrome = None
+    if browser:
+        chrome = subprocess.Popen(
+            [shutil.which("chromium"), "--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+             "--window-size=1000,700", "--remote-debugging-port=0", f"http://localhost:{opts.port}"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+        )  # fmt: skip
+        time.sleep(5.0)  # the page loads and takes the scene
+    own: list[float] = []
+    starts: list[float] = []
+    run_period = loop.run_period
+
+    def timed(nstep: int | None = None) -> None:
+        t = time.perf_counter()
+        run_period(nstep)
+        starts.append(t)
+        own.append(time.perf_counter() - t)
+
+    loop.run_period = timed
+    try:
+        loop.run()
+    finally:
+        if chrome is not None:
+            os.killpg(chrome.pid, 9)
+            chrome.wait()
+    wall = time.perf_counter() - starts[0]
+    host.close()
+    sim.shutdown()
+    ms = np.array(own) * 1e3
+    return {"rtf": loop.sim_time / (wall + 1.0 / loop.control_rate), "median": float(np.median(ms)),
+            "p99": float(np.percentile(ms, 99)), "worst": float(ms.max()), "periods": len(ms)}  # fmt: skip
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--worlds", type=int, default=64)
+    p.add_argument("--model", default="arm")
+    p.add_argument("--backend", default="cpu")
+    p.add_argument("--control-rate", type=float, default=100.0)
+    p.add_argument("--duration", type=float, default=20.0, help="sim seconds per run")
+    p.add_argument("--repeat", type=int, default=1, help="rounds of the three, one after the other (a shared machine's load drifts)")
+    p.add_argument("--port", type=int, default=8099)
+    p.add_argument("--domain", type=int, default=92)
+    opts = p.parse_args()
+    os.environ.update({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(opts.domain)})
+    import mujoco
+    import viser
+
+    print(f"# {platform.node()}: {platform.machine()}, {os.cpu_count()} cores; Python {platform.python_version()}, "
+          f"MuJoCo {mujoco.__version__}, viser {viser.__version__}")  # fmt: skip
+    print(f"# {opts.worlds} x {opts.model} on {opts.backend}, control {opts.control_rate:g} Hz, {opts.duration:g} s per run")
+    for label, view, browser in [("no view", False, False), ("view, no browser", True, False), ("view + Chromium", True, True)] * opts.repeat:
+        r = run(opts, view, browser)
+        print(f"{label:18s} rtf {r['rtf']:.3f} | loop's own time per period: median {r['median']:.3f} ms, "
+              f"p99 {r['p99']:.3f} ms, worst {r['worst']:.2f} ms | {r['periods']} periods")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,170 @@
+"""`batchsim view FILE`: a recording (`batchsim --record`) in the web view, scrubbed through.
+
+The page is the live view's (ros_bridge/worker/view.py's FleetScene); the robots' geoms come
+from the recording's `batchsim/view_geometry.npz` attachment, their poses from its `/tf` and
+`/tf_static`: each world's anchor frames composed up to the fleet frame, at most FRAME_RATE
+frames per sim second, and the picked world's joint positions from its `joint_states`. A
+slider picks the sim time and `play` runs it at real time. The worlds' status is not in a
+recording (only what the topics show), so the view says so. The file is read as a stream:
+one cut short shows what was complete, after one line that says so.
+"""
+
+from __future__ import annotations
+
+import json
+import time as wallclock
+from collections.abc import Callable
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.reader import NonSeekingReader
+from mcap_ros2.decoder import DecoderFactory
+
+from ros_bridge.naming import frame
+from ros_bridge.view_plan import GEOMETRY, ViewSpec, geometry_from_bytes
+from ros_bridge.worker.replay import ReplayError, check_file
+from ros_bridge.worker.view import FleetScene, qmul, rotate
+
+FRAME_RATE = 30.0  # frames per sim second kept from the recording
+FLEET_FRAME = "world"
+IDENTITY = np.array([0, 0, 0, 1.0, 0, 0, 0])
+
+
+def _transform(t) -> np.ndarray:
+    """A geometry_msgs/Transform as (7,): translation, rotation w x y z."""
+    r = t.rotation
+    return np.array([t.translation.x, t.translation.y, t.translation.z, r.w, r.x, r.y, r.z])
+
+
+def _compose(parent: np.ndarray, child: np.ndarray) -> np.ndarray:
+    """(..., 7) poses parent ∘ child."""
+    p = parent[..., :3] + rotate(parent[..., 3:], child[..., :3])
+    return np.concatenate([p, qmul(parent[..., 3:], child[..., 3:])], -1)
+
+
+class Recording:
+    """What a recording holds for the view. ReplayError: one line naming the problem."""
+
+    def __init__(self, path: str, say: Callable[[str], None]):
+        complete = check_file(path)
+        if not complete:
+            say(f"warning: {path} was cut short (it has no summary: was the recorder killed?); showing its complete chunks")
+        self.geometry: bytes | None = None
+        self.namespaces: list[str] = []
+        self.joint_names: tuple[str, ...] = ()
+        static: dict[str, tuple[str, np.ndarray]] = {}  # child frame -> (parent, pose)
+        moving: list[tuple[int, dict[str, tuple[str, np.ndarray]]]] = []  # (log time, child -> (parent, pose))
+        joints: dict[str, list[tuple[int, np.ndarray]]] = {}
+        decoders: dict[int, Callable] = {}
+        factory = DecoderFactory()
+        last: dict[str, int] = {}  # per topic, the log time of the last message kept
+        with open(path, "rb") as f:
+            try:
+                for schema, channel, message in NonSeekingReader(f).iter_messages(log_time_order=False):
+                    topic = channel.topic
+                    if topic not in ("/tf", "/tf_static") and not topic.endswith("/joint_states"):
+                        continue
+                    if topic in last and message.log_time < last[topic] + 1e9 / FRAME_RATE:
+                        continue  # at most FRAME_RATE frames per sim second
+                    last[topic] = message.log_time
+                    decode = decoders.get(channel.id)
+                    if decode is None:
+                        decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
+                    msg = decode(message.data)
+                    if topic == "/tf_static":
+                        static.update({t.child_frame_id: (t.header.frame_id, _transform(t.transform)) for t in msg.transforms})
+                    elif topic == "/tf":
+                        moving.append((message.log_time, {t.child_frame_id: (t.header.frame_id, _transform(t.transform)) for t in msg.transforms}))
+                    else:
+                        joints.setdefault(topic, []).append((message.log_time, np.array(msg.position)))
+                        self.joint_names = self.joint_names or tuple(msg.name)
+            except (McapError, EOFError, ValueError, OSError) as e:
+                if complete:
+                    raise ReplayError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+        self._read_head(path)
+        if self.geometry is None:
+            raise ReplayError(f"{path} holds no robot geometry for the view (record it with batchsim --record)")
+        if not moving:
+            raise ReplayError(f"{path} holds no /tf: the view draws the robots from it (record /tf)")
+        self.times = np.array([t for t, _ in moving]) * 1e-9
+        self.static, self.moving, self.joints = static, moving, joints
+
+    def _read_head(self, path: str) -> None:
+        """The metadata (the worlds) and the geometry attachment, near the file's start."""
+        from mcap.records import Attachment, Message, Metadata
+        from mcap.stream_reader import StreamReader
+
+        with open(path, "rb") as f:
+            try:
+                for record in StreamReader(f, emit_chunks=True).records:
+                    if isinstance(record, Metadata) and record.name == "batchsim":
+                        self.namespaces = json.loads(record.metadata.get("namespaces", "[]"))
+                    elif isinstance(record, Attachment) and record.name == GEOMETRY:
+                        self.geometry = record.data
+                        return
+                    elif isinstance(record, Message):
+                        return
+            except (McapError, EOFError, ValueError):
+                return
+
+    def anchor_poses(self, frames: list[str]) -> np.ndarray:
+        """(ntime, nworld, nanchor, 7): each world's anchor frames in the fleet frame, at each kept time."""
+        out = np.zeros((len(self.moving), len(self.namespaces), len(frames), 7))
+        for k, (_t, transforms) in enumerate(self.moving):
+            memo: dict[str, np.ndarray] = {}
+            for w, ns in enumerate(self.namespaces):
+                for a, name in enumerate(frames):
+                    out[k, w, a] = self._pose(frame(ns, name), transforms, memo)
+        return out
+
+    def _pose(self, name: str, transforms: dict, memo: dict[str, np.ndarray]) -> np.ndarray:
+        """Frame `name` in the fleet frame: its transforms up the tree, composed."""
+        chain = []
+        while name != FLEET_FRAME and name not in memo and len(chain) < 256:
+            parent, local = transforms.get(name) or self.static.get(name) or (FLEET_FRAME, IDENTITY)
+            chain.append((name, local))
+            name = parent
+        pose = memo.get(name, IDENTITY)
+        for child, local in reversed(chain):
+            pose = memo[child] = _compose(pose, local)
+        return pose
+
+
+def serve(path: str, host: str, port: int, say: Callable[[str], None], stop: Callable[[], bool] = lambda: False) -> None:
+    """Serve `path`'s view until `stop()` (or Ctrl-C)."""
+    rec = Recording(path, say)
+    spec, frames = geometry_from_bytes(rec.geometry, host, port)
+    poses = rec.anchor_poses(frames)
+    joints = (-1, (), rec.joint_names) if rec.joint_names else None
+    scene = FleetScene(ViewSpec(spec.geoms, -1, spec.spacing, host, port, joints), rec.namespaces)
+    gui = scene.server.gui
+    t0, t1 = float(rec.times[0]), float(rec.times[-1])
+    step = float(np.median(np.diff(rec.times))) if len(rec.times) > 1 else 0.01
+    slider = gui.add_slider("sim time (s)", min=t0, max=max(t1, t0 + step), step=step, initial_value=t0)
+    play = gui.add_checkbox("play", False)
+    scene.world_text.content = "the worlds' status is not in a recording"
+    say(f"view: {scene.url} ({path}: {len(rec.namespaces)} worlds, sim time {t0:.2f} .. {t1:.2f} s)")
+    shown, last = (-1, -1), wallclock.monotonic()
+    try:
+        while not stop():
+            now = wallclock.monotonic()
+            if play.value:
+                slider.value = t0 + (slider.value - t0 + now - last) % max(t1 - t0, step)
+            last = now
+            k = int(np.clip(np.searchsorted(rec.times, slider.value), 0, len(rec.times) - 1))
+            w = scene.picked
+            if (k, w) != shown:
+                shown = (k, w)
+                scene.draw(poses[k])
+                scene.fleet_text.content = (
+                    f"**{len(rec.namespaces)} worlds** · {path} · sim time {rec.times[k]:.2f} s of {t0:.2f} .. {t1:.2f} s"
+                )
+                series = rec.joints.get(f"/{rec.namespaces[w]}/joint_states" if rec.namespaces[w] else "/joint_states", [])
+                if series:
+                    t = np.array([s[0] for s in series]) * 1e-9
+                    keep = (t <= rec.times[k]) & (t >= rec.times[k] - 10.0)
+                    if keep.any():
+                        scene.plot_joints(t[keep], np.array([s[1] for s, ok in zip(series, keep, strict=True) if ok]))
+            wallclock.sleep(0.05)
+    finally:
+        scene.server.stop()
