@@ -98,6 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--worlds", type=int, default=256)
     p.add_argument("--seconds", type=float, default=3.0, help="timed seconds per side")
     p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--warmup", type=int, default=WARMUP, help="periods each fleet runs before timing")
     p.add_argument("--device", action="store_true", help="also the vector env's device=True (warp, mjx)")
     p.add_argument("--out", default="benchmarks/out/variation.json")
     args = p.parse_args(argv)
@@ -117,15 +118,15 @@ def main(argv: list[str] | None = None) -> int:
     u = np.zeros((args.worlds, len(plain.spec.commands)))
     t0 = time.perf_counter()
     for sim in (varied, plain, same):  # the first period compiles (mjx) or captures (warp): not timed
-        for _ in range(WARMUP):
+        for _ in range(args.warmup):
             loop(sim, u)()
-    print(f"first periods (compile/capture, {WARMUP} each): {time.perf_counter() - t0:.1f} s", flush=True)
+    print(f"first periods (compile/capture, {args.warmup} each): {time.perf_counter() - t0:.1f} s", flush=True)
     vs, ps, ratios, _ = interleaved(loop(varied, u), loop(plain, u), work, args.seconds, args.rounds)
     rows["randomized"] = {"varied_sps": vs, "plain_sps": ps, "ratio": vs / ps, "round_ratios": ratios}
     spread = ", ".join(f"{r:.3f}" for r in ratios)
     print(f"randomized/plain: {vs / ps:.3f} ({vs:,.0f} vs {ps:,.0f} steps/s; rounds {spread})")
     fresh = made(args, None)  # a plain fleet at the identity fleet's moment of the fall
-    for _ in range(WARMUP):
+    for _ in range(args.warmup):
         loop(fresh, u)()
     ss, fs, ratios, _ = interleaved(loop(same, u), loop(fresh, u), work, args.seconds, args.rounds)
     rows["batched_nominal"] = {"batched_sps": ss, "plain_sps": fs, "ratio": ss / fs, "round_ratios": ratios}

@@ -39,9 +39,8 @@ from batchsim.backends.warp.kernels import (
     hold_base_velocity,
     narrow_ctrl,
     rotate_base_velocity,
-    set_clock,
-    set_rows,
 )
+from batchsim.backends.warp.reset import WarpReset
 from batchsim.backends.warp.sensors import WarpSensors
 from batchsim.backends.warp.wrench import WarpWrenches
 from batchsim.model import RobotSpec
@@ -55,7 +54,7 @@ _CHANGED = int(mjw.State.PHYSICS | mjw.State.WARMSTART)
 _INTEGRATION = int(mjw.State.PHYSICS | mjw.State.USER | mjw.State.WARMSTART)  # no PLUGIN in Warp
 
 
-class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, DeviceSystem):
+class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, WarpReset, DeviceSystem):
     """`nworld` worlds on MuJoCo Warp, one captured graph per control period.
 
     Options:
@@ -212,7 +211,7 @@ class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, 
                 self._held_dev = wp.array(self._held_host, dtype=wp.float32) if self._cuda else self._held_wp
                 self._held_world = wp.zeros((n, 3), dtype=wp.float32)
             self._keep_start()  # compile its kernels now rather than inside a capture
-        self._graphs: dict[int, Any] = {}
+        self._graphs: dict[int | str, Any] = {}  # per period length; and the reset (warp/reset.py)
         self._ncols = self._readings.shape[1] + self._sensor_host.shape[1] + 1
 
     def _close(self) -> None:
@@ -435,25 +434,6 @@ class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, 
         self._graphs.clear()  # they launch on the old buffers: capture again
         self._sensor_graphs = None  # likewise
         del old
-
-    def _reset_on_device(self, worlds: np.ndarray | None) -> None:
-        mask = np.ones(self.nworld, bool) if worlds is None else np.isin(np.arange(self.nworld), worlds)
-        with wp.ScopedDevice(self.device):
-            self._mask_dev.assign(mask)
-            mjw.reset_data(self._m, self._d, reset=self._mask_dev)
-            d = self._d
-            # the initial state, and mj_forward's qfrc_actuator and sensordata of it, as on cpu
-            for field, row in self._initial_rows.items():
-                wp.launch(
-                    set_rows,
-                    dim=(self.nworld, row.shape[0]),
-                    inputs=[self._mask_dev, row],
-                    outputs=[getattr(d, field)],
-                )
-            wp.launch(
-                set_clock, dim=self.nworld, inputs=[self._mask_dev, self._time0], outputs=[self._clock, d.time]
-            )
-            self._parked_dev.assign(self.frozen.astype(np.int32))
 
     def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         with wp.ScopedDevice(self.device):
