@@ -63,7 +63,7 @@ class ViewSpec:
     joints: tuple[int, tuple[int, ...], tuple[str, ...]] | None = None
 
 
-def _sphere(n: int = 12) -> tuple[np.ndarray, np.ndarray]:
+def _sphere(n: int = 6) -> tuple[np.ndarray, np.ndarray]:
     """A unit UV sphere: (vertices, faces)."""
     theta = np.linspace(0, np.pi, n + 1)
     phi = np.linspace(0, 2 * np.pi, 2 * n, endpoint=False)
@@ -78,7 +78,7 @@ def _sphere(n: int = 12) -> tuple[np.ndarray, np.ndarray]:
     return v, np.array(faces)
 
 
-def _cylinder(n: int = 24) -> tuple[np.ndarray, np.ndarray]:
+def _cylinder(n: int = 12) -> tuple[np.ndarray, np.ndarray]:
     """A cylinder of radius 1 from z=-1 to z=1, capped: (vertices, faces)."""
     a = np.linspace(0, 2 * np.pi, n, endpoint=False)
     ring = np.stack([np.cos(a), np.sin(a)], -1)
