@@ -63,14 +63,15 @@ class WarpFields:
         with wp.ScopedDevice(self.device):
             for field, values in params.items():
                 owner, name = (self._m.opt, field[4:]) if field.startswith("opt.") else (self._m, field)
-                array = getattr(owner, name)
+                array, redrawn = getattr(owner, name), worlds
                 if array.shape[0] != self.nworld:  # the first draw: a row per world, before any capture
                     host = values.astype(np.float32).reshape(len(values), *array.shape[1:], *_inner(array))
                     setattr(owner, name, wp.array(host, dtype=array.dtype))
-                    continue
-                rows = values[worlds].astype(np.float32).reshape(len(worlds), *array.shape[1:], *_inner(array))
+                    redrawn = worlds[:1]  # and world 0's row scattered, to compile the redraw's kernel now
+                    array = getattr(owner, name)
+                rows = values[redrawn].astype(np.float32).reshape(len(redrawn), *array.shape[1:], *_inner(array))
                 src = wp.array(rows, dtype=array.dtype)
-                index = wp.array(worlds.astype(np.int32), dtype=wp.int32)
+                index = wp.array(redrawn.astype(np.int32), dtype=wp.int32)
                 kernel = scatter_rows if array.ndim == 1 else scatter_rows_2d
                 wp.launch(kernel, dim=src.shape, inputs=[src, index], outputs=[array], device=self.device)
 
