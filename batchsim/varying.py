@@ -74,7 +74,7 @@ class Varying:
         for field in bound.fields:
             if field not in can:
                 raise ConfigurationError(
-                    f"{parsed.source}: the {self.name} backend cannot vary {field} per world; "
+                    f"{bound.where[field]}: the {self.name} backend cannot vary {field} per world; "
                     f"{_backends_that_can(field, self.model)}"
                 )
         self._bound = bound

@@ -95,17 +95,20 @@ class Bound:
       variation: what it was made from.
       fields: every MjModel field a draw writes, in order: those the entries name, then the
         derived ones (body_subtreemass follows body_mass, as mj_setConst computes it).
+      where: each field's entry as messages name it (`file: randomize.fields[2]`).
     """
 
     def __init__(self, variation: Variation, m: mujoco.MjModel):
         self.variation = variation
         self._m = m
         self._nominal: dict[str, np.ndarray] = {}
+        self.where: dict[str, str] = {}  # each field's first entry (file: randomize.fields[i]), for messages
         self._entries = [self._resolve(e) for e in variation.fields]
         self.fields = list(self._nominal)
         self._subtree = "body_mass" in self._nominal
         if self._subtree and "body_subtreemass" not in self._nominal:
             self.fields.append("body_subtreemass")
+            self.where["body_subtreemass"] = self.where["body_mass"] + " (body_subtreemass follows body_mass)"
         self._start = None if variation.start_pose is None else self._resolve_start()
 
     # --- drawing ---
@@ -210,6 +213,7 @@ class Bound:
             targets.append(_Target(other, rows, None if values.ndim == 1 else np.arange(values.shape[1])))
         for target in targets:
             self._nominal.setdefault(target.field, nominal(m, target.field))
+            self.where.setdefault(target.field, spec.where)
         self._check_sign(spec, targets)
         shape = (len(rows), ncol) if spec.per is Per.OBJECT else (1, 1)
         return _Entry(spec, tuple(targets), shape, counter_rng.stream_id(spec.stream))
