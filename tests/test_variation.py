@@ -156,7 +156,7 @@ def test_a_redraw_reaches_the_device(backend):
     np.testing.assert_allclose(_run(sim, 60)[:, 3], _run(reference, 60)[:, 3], atol=TOLERANCE[backend])
 
 
-def test_a_sharded_fleet_draws_as_one_device():
+def test_a_sharded_warp_fleet_draws_as_one_device():
     one = _made("warp", 5)
     two = _made("warp", 5, devices=["cpu", "cpu"])
     try:
@@ -189,7 +189,7 @@ def test_bad_input_is_one_line_naming_the_key(variation, message):
     assert "\n" not in str(caught.value) and str(caught.value).startswith("<mapping>: randomize")
 
 
-def test_a_field_a_backend_cannot_vary_is_refused_naming_those_that_can():
+def test_a_field_warp_cannot_vary_is_refused_naming_the_backends_that_can():
     with pytest.raises(ConfigurationError, match=r"^<mapping>: randomize.fields\[0\]: the warp backend cannot vary opt.impratio per world; backends that can: cpu, mjx$"):
         batchsim.make("arm", 2, "warp", randomize={"fields": [{"field": "opt.impratio", "scale": {"uniform": [1, 2]}}]})
 

@@ -95,12 +95,18 @@ def test_a_seeded_reset_repeats_and_another_seed_differs():
 
 
 def test_a_failed_world_is_terminated_and_comes_back():
+    """A world that diverges is frozen by the contract: its episode ends (terminated), and the
+    next step is its reset; the other world goes on."""
     env = vector.make("arm", 2, "cpu", max_episode_steps=100)
-    env.reset()
+    start, _ = env.reset()
     action = np.zeros(env.action_space.shape)
-    env.sim.command[1] = np.nan  # a bad command: only world 1's, and it is not frozen by it
+    qpos, qvel = env.sim.qstate([1])
+    env.sim.set_qstate([1], qpos, np.full_like(qvel, 1e11))  # beyond MuJoCo's mjMAXVAL: it diverges
     _, _, term, trunc, _ = env.step(action)
-    assert not term.any() and not trunc.any()
+    assert list(term) == [False, True] and not trunc.any()
+    obs, reward, term, trunc, _ = env.step(action)
+    np.testing.assert_allclose(obs[1], start[1])  # its reset: the start again, not frozen
+    assert not term.any() and reward[1] == 0 and env.sim.status[1] == 0
     with pytest.raises(ValueError, match=r"actions must have shape \(2, 6\), got \(6,\)"):
         env.step(action[0])
 
