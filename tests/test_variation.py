@@ -163,6 +163,13 @@ def test_a_sharded_warp_fleet_draws_as_one_device():
         for field, values in one.world_params().items():
             np.testing.assert_array_equal(two.world_params()[field], values)
         np.testing.assert_allclose(two.state, one.state, atol=1e-6)
+        for fleet in (one, two):  # a reseed reaches the shards: their next draw is the new seed's
+            fleet.reseed(4)
+            fleet.reset()
+        for field, values in one.world_params().items():
+            np.testing.assert_array_equal(two.world_params()[field], values)
+        with pytest.raises(batchsim.ConfigurationError, match="several devices has no one device array"):
+            two.device_state()
     finally:
         two.shutdown()
 

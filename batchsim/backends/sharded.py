@@ -44,7 +44,7 @@ import numpy as np
 
 from batchsim.backends.fleet_rows import FleetRows, fleet_layout
 from batchsim.backends.shards import LocalShard, ProcessShard, ShardOp, spin_budget
-from batchsim.hardware import BatchedSystem, CallbackReturn, LifecycleState, ReturnType
+from batchsim.hardware import BatchedSystem, CallbackReturn, ConfigurationError, LifecycleState, ReturnType
 from batchsim.loop import OptionError
 from batchsim.memory import Memory
 from batchsim.model import RobotSpec
@@ -267,6 +267,16 @@ class ShardedSystem(BatchedSystem):
 
     def draw_numbers(self) -> np.ndarray:
         return np.concatenate(self._each(ShardOp.DRAW_NUMBERS))
+
+    def reseed(self, seed: int) -> None:
+        self._each(ShardOp.RESEED, seed)
+
+    # --- the device path: each shard's arrays live on its own device ---
+    def _device_state(self) -> Any:
+        raise ConfigurationError("a fleet over several devices has no one device array: use read() and state")
+
+    def _write_device(self, command: Any) -> None:
+        raise ConfigurationError("a fleet over several devices has no one device array: use command and write()")
 
     def world_params(self, worlds: Sequence[int] | np.ndarray | None = None) -> dict[str, np.ndarray]:
         parts = self._each(ShardOp.WORLD_PARAMS)

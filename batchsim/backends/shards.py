@@ -68,6 +68,7 @@ class ShardOp(enum.Enum):
     SET_VARIATION = "set_variation"
     WORLD_PARAMS = "world_params"
     DRAW_NUMBERS = "draw_numbers"
+    RESEED = "reseed"
     # a shard process's device arrays cannot leave it: it answers these with host copies
     DEVICE_ARRAYS = "device_arrays"
     DEVICE_FRAMES = "device_frames"
