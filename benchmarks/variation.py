@@ -61,7 +61,8 @@ WARMUP = 20  # periods each fleet runs before timing: warp's buffers grow in the
 
 
 def made(args: argparse.Namespace, randomize: dict | None) -> batchsim.BatchedSystem:
-    sim = batchsim.make(args.model, args.worlds, args.backend, randomize=randomize)
+    options = {"nconmax": args.nconmax} if args.nconmax is not None else {}
+    sim = batchsim.make(args.model, args.worlds, args.backend, randomize=randomize, **options)
     sim.configure()
     sim.activate()
     return sim
@@ -99,6 +100,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=3.0, help="timed seconds per side")
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--warmup", type=int, default=WARMUP, help="periods each fleet runs before timing")
+    p.add_argument(
+        "--nconmax", type=int, default=None,
+        help="warp: contacts per world to start with (large enough, no fleet grows its buffers while timed)",
+    )
     p.add_argument(
         "--reset-every", type=float, default=None, metavar="SECONDS",
         help="reset 10%% of the worlds every SECONDS of wall-clock time instead of every simulated second",

@@ -115,6 +115,26 @@ def test_a_reset_redraws_only_the_worlds_it_lists():
         np.testing.assert_array_equal(values, first[field])
 
 
+def test_kp_and_kv_are_a_position_servos_gains():
+    """actuator_kp scales gainprm[0] and -biasprm[1] together, actuator_kv -biasprm[2]: the
+    servo's stiffness and damping, and nothing else of the actuator."""
+    m = batchsim.load("arm").mjmodel
+    kv = {"fields": [{"field": "actuator_kv", "names": ["joint1"], "scale": {"uniform": [2.0, 3.0]}}]}
+    drawn = Bound(load(kv), m).draw(np.arange(3), np.zeros(3, np.int64))
+    bias = drawn["actuator_biasprm"]
+    assert "actuator_gainprm" not in drawn  # a position servo's kv lives in biasprm alone
+    scale = bias[:, 0, 2] / m.actuator_biasprm[0, 2]
+    assert np.all((scale >= 2.0) & (scale <= 3.0)) and len(set(scale)) == 3
+    np.testing.assert_array_equal(bias[:, 1:], np.broadcast_to(m.actuator_biasprm[1:], bias[:, 1:].shape))
+    np.testing.assert_array_equal(bias[:, 0, :2], np.broadcast_to(m.actuator_biasprm[0, :2], (3, 2)))
+    kp = {"fields": [{"field": "actuator_kp", "set": {"uniform": [50.0, 60.0]}, "per": "world"}]}
+    drawn = Bound(load(kp), m).draw(np.arange(2), np.zeros(2, np.int64))
+    assert np.all(drawn["actuator_gainprm"][:, :, 0] == drawn["actuator_gainprm"][:, :1, 0])  # one draw per world
+    np.testing.assert_array_equal(drawn["actuator_biasprm"][:, :, 1], -drawn["actuator_gainprm"][:, :, 0])
+    with pytest.raises(VariationError, match=r"fields\[0\].set: uniform\(-5, 1\) can make actuator_gainprm negative"):
+        Bound(load({"fields": [{"field": "actuator_kp", "set": {"uniform": [-5, 1]}}]}), m)
+
+
 def test_a_start_pose_is_held_by_its_commands():
     sim = _made("cpu", 3, {"start_pose": {"joints": ["joint2", "joint3"], "add": {"uniform": [-0.2, 0.2]}}})
     start = sim.world_params()[START_QPOS]
