@@ -26,6 +26,7 @@ from mcap.exceptions import McapError
 from mcap.records import Channel, DataEnd, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from rclpy.context import Context
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -35,6 +36,7 @@ from ros_bridge.worker.messages import clock_payload, message_type
 
 MAGIC = b"\x89MCAP0\r\n"
 CLOCK_RATE = 100.0  # Hz of the /clock made up for a recording without one
+DRAIN_TIMEOUT = 5.0  # s the replay waits at its end for subscribers to acknowledge the last messages
 FLEET = ("/clock", "/tf", "/tf_static")
 
 
@@ -113,11 +115,22 @@ class Replay:
                      "replaying its complete chunks")  # fmt: skip
         with open(self.path, "rb") as f:
             self._play(node, f)
+        self._drain()
         if self.worlds is not None and self.prefixes is None:
             raise ReplayError(
                 f"{self.path} names no worlds (it is not a batchsim recording): replay it without --worlds"
             )
         return self.published
+
+    def _drain(self, timeout: float = DRAIN_TIMEOUT) -> None:
+        """Wait until the subscribers acknowledged what the reliable publishers sent: the last
+        messages were lost when the process exited right after publishing them."""
+        deadline = wallclock.monotonic() + timeout
+        for pub in [p for p in (*self._publishers.values(), self._clock) if p is not None]:
+            left = deadline - wallclock.monotonic()
+            if left <= 0 or not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                self.say(f"warning: not every subscriber acknowledged the last messages within {timeout:g} s")
+                return
 
     def _play(self, node: Node, f: BinaryIO) -> None:
         start: float | None = None
