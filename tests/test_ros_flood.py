@@ -34,12 +34,19 @@ def test_a_flood_on_one_world_leaves_the_others_rates_within_5_percent_of_asked(
         release_domain(domain)
     log = (tmp_path / "batchsim.log").read_text()
     assert result["sent"] > 10_000, f"the flood was too thin to tell: {result['sent']} messages"
-    # asked: 100 joint_states per sim second; a share of the sim periods heard below 0.95 is a
-    # rate more than 5 % below it (counted in sim time, so a machine too loaded to hold rtf 1
-    # does not read as a slow bridge)
-    heard = {w: flood[1] for w, (_quiet, flood) in result["worlds"].items() if w != FLOODED}
-    table = ", ".join(f"world_{w} {f[0]:.0f}/s {f[1]:.2f} gap {f[2]:.2f} s" for w, (_q, f) in result["worlds"].items())
-    assert min(heard.values()) >= 0.95, f"{result['sent']} messages in {result['seconds']:.1f} s to world_{FLOODED}: {table}"
+    # asked: 100 joint_states per sim second; the share of the sim periods heard, counted in sim
+    # time so that a machine too loaded to hold rtf 1 does not read as a slow bridge. Each other
+    # world's share during the flood against its own before it, on the same machine: a CI run
+    # with a test beside it heard every world during the flood, the flooded one too, at 0.89
+    # alike (the machine, not the flood: the flooded world's own share is no lower); the old
+    # worker took neighbours to 54-95 joint_states/s against 98.6-99.8 fixed (RESULTS.md)
+    kept = {w: flood[1] / max(quiet[1], 1e-9) for w, (quiet, flood) in result["worlds"].items() if w != FLOODED}
+    table = ", ".join(
+        f"world_{w} quiet {q[1]:.2f} flood {f[0]:.0f}/s {f[1]:.2f} gap {f[2]:.2f} s" for w, (q, f) in result["worlds"].items()
+    )
+    where = f"{result['sent']} messages in {result['seconds']:.1f} s to world_{FLOODED}: {table}"
+    assert min(kept.values()) >= 0.95, where
+    assert min(f[1] for w, (_q, f) in result["worlds"].items() if w != FLOODED) >= 0.8, where
     # the flooded world dropped messages, and says so
     topic = f"/world_{FLOODED}/{TOPICS['trajectory']}"
     assert int(result["diagnostics"].get(f"rejected {topic} flood", 0)) > 0, result["diagnostics"]
