@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT))  # benchmarks/flood.py
 
 from benchmarks.flood import TOPICS, run  # noqa: E402
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.timing]  # rates: run alone (the Makefile's second pass)
 
 FLOODED = 3
 
