@@ -22,60 +22,24 @@ import os
 import platform
 import sys
 import tempfile
-import time
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # its siblings
+
+from paced_fleet import paced_fleet, timed_run  # noqa: E402
 
 
 def run(opts: argparse.Namespace, path: str | None) -> dict:
-    import batchsim
-    from batchsim.controllers import default_controllers, load_controllers
-    from batchsim.loop import SimLoop
-    from batchsim.realtime import DEFAULT_THREAD_PRIORITY
-    from ros_bridge.bridge import BridgeOptions, start_bridge
+    from ros_bridge.bridge import BridgeOptions
     from ros_bridge.options import RecordOptions
 
-    sim = batchsim.make(opts.model, opts.worlds, opts.backend)
-    sim.configure()
-    sim.activate()
-    manager = load_controllers(default_controllers(opts.model), sim.spec, opts.worlds)
-    loop = SimLoop(
-        sim, control_rate=opts.control_rate, rtf=1.0, duration=opts.duration, participants=[manager],
-        thread_priority=DEFAULT_THREAD_PRIORITY,
-    )  # fmt: skip
-    host = start_bridge(sim, loop, BridgeOptions(record=RecordOptions(path)), manager)
-    own: list[float] = []
-    starts: list[float] = []
-    run_period = loop.run_period
-
-    def timed(nstep: int | None = None) -> None:
-        t = time.perf_counter()
-        run_period(nstep)
-        starts.append(t)
-        own.append(time.perf_counter() - t)
-
-    loop.run_period = timed
-    loop.run()
-    wall = time.perf_counter() - starts[0]
-    dropped = int(host.memory["rec.dropped"][0]) if path else 0
-    host.close()  # the recorder finishes the file
-    sim.shutdown()
-    ms = np.array(own) * 1e3
-    return {
-        "periods": len(own),
-        "rtf": loop.sim_time / (wall + 1.0 / loop.control_rate),
-        "median": float(np.median(ms)),
-        "p99": float(np.percentile(ms, 99)),
-        "worst": float(ms.max()),
-        "over": int((ms > 1e3 / loop.control_rate).sum()),
-        "dropped": dropped,
-        "sim_time": loop.sim_time,
-    }
+    with paced_fleet(opts, BridgeOptions(record=RecordOptions(path))) as (_sim, loop, host):
+        figures = timed_run(loop)
+        figures["dropped"] = int(host.memory["rec.dropped"][0]) if path else 0
+    return figures
 
 
 def count(path: str) -> Counter:

@@ -21,59 +21,32 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # its siblings
+
+from paced_fleet import paced_fleet, timed_run  # noqa: E402
 
 
 def run(opts: argparse.Namespace, view: bool, browser: bool) -> dict:
-    import batchsim
-    from batchsim.controllers import default_controllers, load_controllers
-    from batchsim.loop import SimLoop
-    from batchsim.realtime import DEFAULT_THREAD_PRIORITY
-    from ros_bridge.bridge import BridgeOptions, start_bridge
+    from ros_bridge.bridge import BridgeOptions
     from ros_bridge.options import ViewOptions
 
-    sim = batchsim.make(opts.model, opts.worlds, opts.backend)
-    sim.configure()
-    sim.activate()
-    manager = load_controllers(default_controllers(opts.model), sim.spec, opts.worlds)
-    loop = SimLoop(
-        sim, control_rate=opts.control_rate, rtf=1.0, duration=opts.duration, participants=[manager],
-        thread_priority=DEFAULT_THREAD_PRIORITY,
-    )  # fmt: skip
-    host = start_bridge(sim, loop, BridgeOptions(view=ViewOptions(port=opts.port) if view else None), manager)
-    chrome = None
-    if browser:
-        chrome = subprocess.Popen(
-            [shutil.which("chromium"), "--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-             "--window-size=1000,700", "--remote-debugging-port=0", f"http://localhost:{opts.port}"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-        )  # fmt: skip
-        time.sleep(5.0)  # the page loads and takes the scene
-    own: list[float] = []
-    starts: list[float] = []
-    run_period = loop.run_period
+    with paced_fleet(opts, BridgeOptions(view=ViewOptions(port=opts.port) if view else None)) as (_sim, loop, _host):
+        chrome = None
+        if browser:
+            chrome = subprocess.Popen(
+                [shutil.which("chromium"), "--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                 "--window-size=1000,700", "--remote-debugging-port=0", f"http://localhost:{opts.port}"],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+            )  # fmt: skip
+            time.sleep(5.0)  # the page loads and takes the scene
 
-    def timed(nstep: int | None = None) -> None:
-        t = time.perf_counter()
-        run_period(nstep)
-        starts.append(t)
-        own.append(time.perf_counter() - t)
+        def stop_browser() -> None:
+            if chrome is not None:
+                os.killpg(chrome.pid, 9)
+                chrome.wait()
 
-    loop.run_period = timed
-    try:
-        loop.run()
-    finally:
-        if chrome is not None:
-            os.killpg(chrome.pid, 9)
-            chrome.wait()
-    wall = time.perf_counter() - starts[0]
-    host.close()
-    sim.shutdown()
-    ms = np.array(own) * 1e3
-    return {"rtf": loop.sim_time / (wall + 1.0 / loop.control_rate), "median": float(np.median(ms)),
-            "p99": float(np.percentile(ms, 99)), "worst": float(ms.max()), "periods": len(ms)}  # fmt: skip
+        return timed_run(loop, after=stop_browser)
 
 
 def main() -> None:
