@@ -281,7 +281,7 @@ def _set(msg: Any, path: str, value: Any) -> None:
     setattr(msg, leaf, value)
 
 
-class _Group:
+class RowGroup:
     """Worlds whose messages share one byte layout: a byte row each, filled at once."""
 
     __slots__ = ("rows", "buf", "value_bytes", "stamp_at")
@@ -344,8 +344,8 @@ class BulkMessages:
             group = by_layout.setdefault(key, ([], [], value_at, stamp_at))
             group[0].append(row)
             group[1].append(data)
-        self.groups = [_Group(rows, templates, value_at, stamp_at) for rows, templates, value_at, stamp_at in by_layout.values()]
-        self._where: list[tuple[_Group, int]] = [None] * len(namespaces)  # type: ignore[list-item]
+        self.groups = [RowGroup(rows, templates, value_at, stamp_at) for rows, templates, value_at, stamp_at in by_layout.values()]
+        self._where: list[tuple[RowGroup, int]] = [None] * len(namespaces)  # type: ignore[list-item]
         for g in self.groups:
             for i, row in enumerate(g.rows.tolist()):
                 self._where[row] = (g, i)

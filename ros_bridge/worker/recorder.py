@@ -26,8 +26,8 @@ import sys
 import time as wallclock
 from typing import Any, BinaryIO
 
+import numpy as np
 from mcap import __version__ as mcap_version
-from mcap.writer import CompressionType, Writer
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String
 
@@ -36,6 +36,7 @@ from ros_bridge.naming import topic_name
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.protocol.recording import RecordedPeriod, RecordReader
 from ros_bridge.view_plan import GEOMETRY
+from ros_bridge.worker.mcap_file import BlockWriter
 from ros_bridge.worker.messages import clock_payload, stamp_of
 from ros_bridge.worker.process import die_with_parent
 from ros_bridge.worker.schemas import qos_metadata, schema_text
@@ -58,7 +59,7 @@ class McapRecording:
         spec = plan.recording
         self.spec = spec
         self.namespaces = [plan.namespaces[w] for w in spec.worlds]
-        self.writer = Writer(stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self.writer = BlockWriter(stream, chunk_bytes=CHUNK_BYTES, compression="zstd")
         self.writer.start(profile=PROFILE, library=f"batchsim (mcap {mcap_version})")
         self.writer.add_metadata(  # first: a replay picks worlds by it before their channels come
             "batchsim",
@@ -69,11 +70,9 @@ class McapRecording:
             },
         )
         self._schemas: dict[str, int] = {}
-        self._sequence: dict[int, int] = {}
-        self.messages = 0
         self.outputs = [Output(plan.outputs[i], self.namespaces) for i in spec.outputs]
-        self.channels = [
-            [self._channel(topic_name(ns, out.spec.topic), out.spec.msg_type) for ns in self.namespaces]
+        self.channels = [  # per output, each recorded world's channel id
+            np.array([self._channel(topic_name(ns, out.spec.topic), out.spec.msg_type) for ns in self.namespaces])
             for out in self.outputs
         ]
         self.tf_spec = plan.tf
@@ -100,10 +99,12 @@ class McapRecording:
         )
 
     def _add(self, channel: int, t: int, data: bytes) -> None:
-        seq = self._sequence.get(channel, 0)
-        self._sequence[channel] = seq + 1
-        self.writer.add_message(channel, log_time=t, data=data, publish_time=t, sequence=seq)
-        self.messages += 1
+        self.writer.add_message(channel, t, data)
+
+    @property
+    def messages(self) -> int:
+        """Messages written so far."""
+        return self.writer.messages
 
     def write(self, period: RecordedPeriod) -> None:
         """One period's messages, as the workers would have published them."""
@@ -123,10 +124,12 @@ class McapRecording:
             ):
                 continue
             out.bulk.fill(out.values(channels), sec, nanosec)
-            payload = out.bulk.payload
-            for r, channel in enumerate(ids):
-                if frozen is None or not spec.state or not frozen[r]:
-                    self._add(channel, t, payload(r))
+            for group in out.bulk.groups:  # the rows of one message layout, a block each
+                rows, buf = group.rows, group.buf
+                if frozen is not None and spec.state:  # a frozen world's state is not published
+                    live = ~frozen[rows]
+                    rows, buf = rows[live], buf[live]
+                self.writer.add_block(ids[rows], t, buf)
         tf = self.tf
         if (
             tf is not None
