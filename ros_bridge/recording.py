@@ -32,7 +32,7 @@ from ros_bridge.outputs import OutputSpec
 from ros_bridge.protocol.recording import RecordWriter, put_answer, recording_arrays, take_request
 from ros_bridge.view_plan import recording_geometry
 
-FLEET_TOPICS = ("/tf", "/tf_static", "/clock")
+FLEET_TOPICS = ("/tf", "/tf_static", "/clock", "/diagnostics")
 DESCRIPTION = "robot_description"
 READY_TIMEOUT = 60.0  # s the recorder may take to come up (imports, templates) with --record
 FINISH_TIMEOUT = 30.0  # s the recorder may take to drain the ring and close the file at the end
@@ -42,8 +42,9 @@ WATCH = 0.25  # s between two looks at the recorder process
 @dataclasses.dataclass(frozen=True)
 class RecordSpec:
     """What a recording writes. Attributes: `outputs`, indices into the plan's outputs;
-    `tf`, `tf_static`, `clock`, `description`: the fleet's /tf, /tf_static, /clock and each
-    world's robot_description; `worlds`, the recorded worlds (indices); `channels` and
+    `tf`, `tf_static`, `clock`, `description`, `diagnostics`: the fleet's /tf, /tf_static,
+    /clock, each world's robot_description, and the worlds' status as /diagnostics;
+    `worlds`, the recorded worlds (indices); `channels` and
     `widths`, the snapshot channels the ring copies; `path`, the file to record into from
     the start (None: on request only)."""
 
@@ -56,6 +57,7 @@ class RecordSpec:
     channels: tuple[int, ...]
     widths: tuple[int, ...]
     path: str | None = None
+    diagnostics: bool = False
 
     def arrays(self, nchannel: int) -> list[tuple[str, tuple[int, ...], str]]:
         return recording_arrays(nchannel, len(self.worlds), self.channels, self.widths)
@@ -115,6 +117,7 @@ def record_spec(
         tf_static="/tf_static" in chosen,
         clock="/clock" in chosen,
         description=DESCRIPTION in chosen,
+        diagnostics="/diagnostics" in chosen,
         worlds=worlds,
         channels=tuple(channels),
         widths=tuple(widths[c] for c in channels),

@@ -4,9 +4,10 @@ The page is the live view's (ros_bridge/worker/view.py's FleetScene); the robots
 from the recording's `batchsim/view_geometry.npz` attachment, their poses from its `/tf` and
 `/tf_static`: each world's anchor frames composed up to the fleet frame, at most FRAME_RATE
 frames per sim second, and the picked world's joint positions from its `joint_states`. A
-slider picks the sim time and `play` runs it at real time. The worlds' status is not in a
-recording (only what the topics show), so the view says so. The file is read as a stream:
-one cut short shows what was complete, after one line that says so.
+slider picks the sim time and `play` runs it at real time. The worlds' status comes from the
+recording's `/diagnostics` (worker/status_recording.py): each world is tinted and the picked
+one's status said as the live view does; a recording without it says so. The file is read as
+a stream: one cut short shows what was complete, after one line that says so.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from ros_bridge.naming import frame
 from ros_bridge.view_plan import GEOMETRY, ViewSpec, geometry_from_bytes
 from ros_bridge.worker.replay import ReplayError, check_file
 from ros_bridge.worker.view import FleetScene, qmul, rotate
+from ros_bridge.world_status import from_values, status_text
 
 FRAME_RATE = 30.0  # frames per sim second kept from the recording
 FLEET_FRAME = "world"
@@ -55,6 +57,7 @@ class Recording:
         static: dict[str, tuple[str, np.ndarray]] = {}  # child frame -> (parent, pose)
         moving: list[tuple[int, dict[str, tuple[str, np.ndarray]]]] = []  # (log time, child -> (parent, pose))
         joints: dict[str, list[tuple[int, np.ndarray]]] = {}
+        statuses: list[tuple[int, list[tuple[str, int, int]]]] = []  # (log time, [(namespace, bits, flags)])
         decoders: dict[int, Callable] = {}
         factory = DecoderFactory()
         last: dict[str, int] = {}  # per topic, the log time of the last message kept
@@ -62,15 +65,16 @@ class Recording:
             try:
                 for schema, channel, message in NonSeekingReader(f).iter_messages(log_time_order=False):
                     topic = channel.topic
-                    if topic not in ("/tf", "/tf_static") and not topic.endswith("/joint_states"):
+                    if topic not in ("/tf", "/tf_static", "/diagnostics") and not topic.endswith("/joint_states"):
+                        continue
+                    if topic == "/diagnostics":  # every change is kept: a world froze at that period
+                        msg = self._decoder(decoders, factory, schema, channel)(message.data)
+                        statuses.append((message.log_time, [(s.hardware_id, *from_values({v.key: v.value for v in s.values})) for s in msg.status]))
                         continue
                     if topic in last and message.log_time < last[topic] + 1e9 / FRAME_RATE:
                         continue  # at most FRAME_RATE frames per sim second
                     last[topic] = message.log_time
-                    decode = decoders.get(channel.id)
-                    if decode is None:
-                        decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
-                    msg = decode(message.data)
+                    msg = self._decoder(decoders, factory, schema, channel)(message.data)
                     if topic == "/tf_static":
                         static.update({t.child_frame_id: (t.header.frame_id, _transform(t.transform)) for t in msg.transforms})
                     elif topic == "/tf":
@@ -88,6 +92,33 @@ class Recording:
             raise ReplayError(f"{path} holds no /tf: the view draws the robots from it (record /tf)")
         self.times = np.array([t for t, _ in moving]) * 1e-9
         self.static, self.moving, self.joints = static, moving, joints
+        self.has_status = bool(statuses)
+        self.status, self.flags = self._status_at(statuses)
+
+    @staticmethod
+    def _decoder(decoders: dict[int, Callable], factory: DecoderFactory, schema, channel) -> Callable:
+        decode = decoders.get(channel.id)
+        if decode is None:
+            decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
+        return decode
+
+    def _status_at(self, statuses: list[tuple[int, list[tuple[str, int, int]]]]) -> tuple[np.ndarray, np.ndarray]:
+        """(ntime, nworld) status bits and flags at each kept time: the newest /diagnostics word
+        of each world at or before it."""
+        row = {ns: w for w, ns in enumerate(self.namespaces)}
+        bits = np.zeros((len(self.times), len(self.namespaces)), np.uint8)
+        flags = np.zeros_like(bits)
+        now_bits, now_flags = bits[0].copy(), flags[0].copy()
+        statuses.sort(key=lambda s: s[0])
+        j = 0
+        for k, t in enumerate(self.times):
+            while j < len(statuses) and statuses[j][0] * 1e-9 <= t + 1e-9:
+                for ns, b, f in statuses[j][1]:
+                    if ns in row:
+                        now_bits[row[ns]], now_flags[row[ns]] = b, f
+                j += 1
+            bits[k], flags[k] = now_bits, now_flags
+        return bits, flags
 
     def _read_head(self, path: str) -> None:
         """The metadata (the worlds) and the geometry attachment, near the file's start."""
@@ -142,7 +173,8 @@ def serve(path: str, host: str, port: int, say: Callable[[str], None], stop: Cal
     step = float(np.median(np.diff(rec.times))) if len(rec.times) > 1 else 0.01
     slider = gui.add_slider("sim time (s)", min=t0, max=max(t1, t0 + step), step=step, initial_value=t0)
     play = gui.add_checkbox("play", False)
-    scene.world_text.content = "the worlds' status is not in a recording"
+    if not rec.has_status:
+        scene.world_text.content = "the worlds' status is not in this recording (record /diagnostics)"
     say(f"view: {scene.url} ({path}: {len(rec.namespaces)} worlds, sim time {t0:.2f} .. {t1:.2f} s)")
     shown, last = (-1, -1), wallclock.monotonic()
     try:
@@ -156,6 +188,10 @@ def serve(path: str, host: str, port: int, say: Callable[[str], None], stop: Cal
             if (k, w) != shown:
                 shown = (k, w)
                 scene.draw(poses[k])
+                if rec.has_status:
+                    scene.tint(rec.status[k], rec.flags[k])
+                    name = rec.namespaces[w] or "/"
+                    scene.world_text.content = f"**{name}** (world {w}): {status_text(int(rec.status[k, w]), int(rec.flags[k, w]))}"
                 scene.fleet_text.content = (
                     f"**{len(rec.namespaces)} worlds** · {path} · sim time {rec.times[k]:.2f} s of {t0:.2f} .. {t1:.2f} s"
                 )

@@ -13,6 +13,7 @@ import time
 from collections import Counter, defaultdict
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import need
 from ros_fleet import LOCALHOST, alive, children, cmdline, domain_id, release_domain
@@ -66,6 +67,7 @@ def test_a_recording_reads_back_with_mcap_and_its_ros2_decoder(recorded):
         assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {"zstd"}
         counts: Counter[str] = Counter()
         times: dict[str, list[int]] = defaultdict(list)
+        status: list[tuple[int, dict]] = []
         for _schema, channel, message, decoded in reader.iter_decoded_messages():  # every schema decodes
             counts[channel.topic] += 1
             times[channel.topic].append(message.log_time)
@@ -74,6 +76,8 @@ def test_a_recording_reads_back_with_mcap_and_its_ros2_decoder(recorded):
                 assert stamp.sec * 10**9 + stamp.nanosec == message.log_time, channel.topic  # stamps are sim time
             if channel.topic == "/tf":
                 assert {t.child_frame_id.split("/")[0] for t in decoded.transforms} == {"world_0", "world_2"}
+            if channel.topic == "/diagnostics":
+                status.append((message.log_time, {s.hardware_id: (s.name, s.message) for s in decoded.status}))
         metadata = {m.name: m.metadata for m in reader.iter_metadata()}
     assert summary.statistics.message_count == sum(counts.values())
     periods = round(DURATION * RATE)
@@ -86,6 +90,56 @@ def test_a_recording_reads_back_with_mcap_and_its_ros2_decoder(recorded):
     assert not any(t.startswith("/world_1/") for t in counts)  # --record-worlds 0,2
     assert counts["/tf"] == periods and counts["/tf_static"] == 1
     assert metadata["batchsim"]["worlds"] == "[0, 2]"
+    # the worlds' status: every recorded world at the first period (and once a sim second)
+    assert status[0] == (times["/clock"][0], {f"world_{w}": (f"batchsim: world_{w}", "ok") for w in (0, 2)})
+    assert 1 <= len(status) <= 2
+
+
+def test_a_recordings_status_holds_each_change_and_the_view_reads_it_back():
+    """/diagnostics in a recording: every world at first and once a sim second, in between the
+    worlds that changed, in the period they changed; the view's reading gives each world's
+    status at each time (ros_bridge/view_file.py)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.serialization import deserialize_message
+
+    from batchsim.hardware import Status
+    from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN
+    from ros_bridge.view_file import Recording as ViewRecording
+    from ros_bridge.worker.status_recording import StatusRecording
+    from ros_bridge.world_status import from_values, status_text
+
+    namespaces = ["world_0", "world_1", "world_2"]
+    rec = StatusRecording(namespaces)
+    ok = np.zeros(3, np.uint8)
+    bad = np.array([0, int(Status.BAD_COMMAND), 0], np.uint8)
+    frozen = np.array([0, 0, int(Status.DIVERGED)], np.uint8)
+    written = []
+    for t, bits, flags in [
+        (0.01, ok, ok),
+        (0.02, ok, ok),
+        (0.03, bad, np.array([0, FLAG_BAD, 0], np.uint8)),
+        (0.04, bad, np.array([0, FLAG_BAD, 0], np.uint8)),
+        (0.05, bad | frozen, np.array([0, FLAG_BAD, FLAG_FROZEN], np.uint8)),
+        (1.00, bad | frozen, np.array([0, FLAG_BAD, FLAG_FROZEN], np.uint8)),
+    ]:
+        data = rec.message(t, 0, int(t * 1e9), bits, flags)
+        if data is not None:
+            msg = deserialize_message(data, DiagnosticArray)
+            written.append((t, [(s.hardware_id, *from_values({v.key: v.value for v in s.values}), s.message) for s in msg.status]))
+    assert [t for t, _ in written] == [0.01, 0.03, 0.05, 1.00]
+    assert [len(s) for _, s in written] == [3, 1, 1, 3]
+    assert written[1][1] == [("world_1", int(Status.BAD_COMMAND), FLAG_BAD, "bad_command")]
+    assert written[2][1][0][:3] == ("world_2", int(Status.DIVERGED), FLAG_FROZEN)
+    assert written[2][1][0][3] == "diverged (frozen until reset: its state topics stopped)"
+    view = ViewRecording.__new__(ViewRecording)  # only its status reading, on kept frame times
+    view.namespaces, view.times = namespaces, np.array([0.01, 0.02, 0.04, 0.06, 1.0])
+    bits, flags = view._status_at([(int(t * 1e9), [(ns, b, f) for ns, b, f, _ in s]) for t, s in written])
+    assert [status_text(int(b), int(f)) for b, f in zip(bits[:, 1], flags[:, 1], strict=True)] == [
+        "running", "running", "bad command", "bad command", "bad command"
+    ]
+    assert [status_text(int(b), int(f)) for b, f in zip(bits[:, 2], flags[:, 2], strict=True)] == [
+        "running", "running", "running", "frozen (diverged) until reset", "frozen (diverged) until reset"
+    ]
 
 
 def test_schemas_carry_their_dependencies_as_rosbag2_writes_them():

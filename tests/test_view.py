@@ -178,6 +178,7 @@ def test_a_recording_in_the_view_shows_the_robots_and_scrubs(tmp_path):
         browser = Browser()
         browser.session_call("POST", "/url", {"url": f"http://localhost:{port}"})
         _wait(lambda: re.search(r"sim time 0\.00 s of 0\.00 \.\. 0\.9\d s", browser.text()), 30, "the recording's panel")
+        assert "world_0 (world 0): running" in browser.text()  # the status, from the recording's /diagnostics
         time.sleep(2.0)  # the meshes arrive and are drawn
         shot = browser.screenshot()[..., :3].astype(int)
         r, g, b = shot[..., 0], shot[..., 1], shot[..., 2]

@@ -52,6 +52,7 @@ def recording_arrays(
         ("rec.msg", (MESSAGE,), "u1"),
         ("rec.meta", (slots, 4), "f8"),  # snapshot n, period, sim time, forced
         ("rec.flags", (slots, max(1, nrow)), "u1"),
+        ("rec.status", (slots, max(1, nrow)), "u1"),  # the worlds' Status bits, for /diagnostics
         ("rec.written", (slots, max(1, len(channels))), "u1"),
     ]
     for c, width in zip(channels, widths, strict=True):
@@ -88,6 +89,7 @@ class RecordWriter:
         s = k % self.slots
         m["rec.meta"][s] = m["meta"][b]
         m["rec.flags"][s] = m["flags"][b, self.worlds]
+        m["rec.status"][s] = m["status"][b, self.worlds]
         written = m["written"][b]
         for j, c in enumerate(self.channels):
             fresh = int(written[c]) == n
@@ -103,11 +105,14 @@ class RecordWriter:
 
 
 class RecordedPeriod:
-    """One period out of the ring: its meta, flags (nrow,), and per recorded channel its rows."""
+    """One period out of the ring: its meta, flags and status bits (nrow,), and per recorded
+    channel its rows."""
 
-    __slots__ = ("n", "period", "time", "forced", "flags", "channels")
+    __slots__ = ("n", "period", "time", "forced", "flags", "status", "channels")
 
-    def __init__(self, meta: np.ndarray, flags: np.ndarray, channels: dict[int, np.ndarray]):
+    def __init__(
+        self, meta: np.ndarray, flags: np.ndarray, channels: dict[int, np.ndarray], status: np.ndarray | None = None
+    ):
         self.n, self.period, self.time, self.forced = (
             int(meta[0]),
             int(meta[1]),
@@ -115,6 +120,7 @@ class RecordedPeriod:
             bool(meta[3]),
         )
         self.flags = flags
+        self.status = np.zeros_like(flags) if status is None else status
         self.channels = channels
 
 
@@ -139,7 +145,9 @@ class RecordReader:
             s = k % self.slots
             written = m["rec.written"][s]
             channels = {c: m[f"rec.ch{c}"][s].copy() for j, c in enumerate(self.channels) if written[j]}
-            out.append(RecordedPeriod(m["rec.meta"][s].copy(), m["rec.flags"][s].copy(), channels))
+            out.append(
+                RecordedPeriod(m["rec.meta"][s].copy(), m["rec.flags"][s].copy(), channels, m["rec.status"][s].copy())
+            )
         m["rec.pos"][1] = read + len(out)
         return out
 

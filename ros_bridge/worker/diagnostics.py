@@ -21,9 +21,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
-from batchsim.hardware import Status
 from batchsim.memory import Memory
-from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT
+from ros_bridge import world_status
 from ros_bridge.protocol.commands import Problem, RejectionWriter
 from ros_bridge.protocol.world_params import read_line
 from ros_bridge.worker.messages import stamp_of
@@ -96,34 +95,19 @@ class Diagnostics:
             w = self.lo + row
             bits = int(snap.status[row])
             flags = int(snap.flags[row])
-            problems = [s.name.lower() for s in Status if s and bits & s]
-            if flags & FLAG_TIMED_OUT:
-                problems.append("command_timeout")
-            level = DiagnosticStatus.OK
-            if bits & (Status.DIVERGED | Status.OVERFLOW):
-                level = DiagnosticStatus.ERROR
-            elif problems:
-                level = DiagnosticStatus.WARN
             count = int(mine.count[w]) + int(host.count[w])
             last = ""
             if count:
                 last = host.reason(w) if host.period[w] > mine.period[w] else mine.reason(w)
-            message = "ok" if not problems else ", ".join(problems)
-            if flags & FLAG_FROZEN:
-                message += " (frozen until reset: its state topics stopped)"
-            if flags & FLAG_BAD and last:
-                message += f" ({last})"
             out.status.append(
                 DiagnosticStatus(
-                    level=level,
-                    name=f"batchsim: {ns}",
-                    message=message,
+                    level=int(world_status.level(bits, flags)),
+                    name=world_status.status_name(ns),
+                    message=world_status.message(bits, flags, last),
                     hardware_id=ns,
-                    values=[
-                        KeyValue(key="status", value=str(bits)),
-                        KeyValue(key="frozen", value=str(bool(flags & FLAG_FROZEN)).lower()),
+                    values=[KeyValue(key=k, value=v) for k, v in world_status.values(bits, flags)]
+                    + [
                         KeyValue(key="bad_commands", value=str(count)),
-                        KeyValue(key="command_timeout", value=str(bool(flags & FLAG_TIMED_OUT)).lower()),
                         KeyValue(key="last_problem", value=last),
                     ]
                     + [KeyValue(key=f"rejected {topic} {reason}", value=str(n)) for (topic, reason), n in rejected[row]]

@@ -41,6 +41,9 @@ from ros_bridge.worker.messages import clock_payload, stamp_of
 from ros_bridge.worker.process import die_with_parent
 from ros_bridge.worker.schemas import qos_metadata, schema_text
 from ros_bridge.worker.snapshot import Output
+from ros_bridge.worker.status_recording import MSG_TYPE as STATUS_TYPE
+from ros_bridge.worker.status_recording import TOPIC as STATUS_TOPIC
+from ros_bridge.worker.status_recording import StatusRecording
 from ros_bridge.worker.tf import TfTemplate, static_message
 
 CHUNK_BYTES = 1 << 20  # a chunk closes at this size (uncompressed), or after CHUNK_SECONDS
@@ -81,6 +84,8 @@ class McapRecording:
             self._channel("/tf", "tf2_msgs/msg/TFMessage", depth=100) if self.tf is not None else -1
         )
         self.clock_channel = self._channel("/clock", "rosgraph_msgs/msg/Clock", depth=1) if spec.clock else -1
+        self.status = StatusRecording(self.namespaces) if spec.diagnostics else None
+        self.status_channel = self._channel(STATUS_TOPIC, STATUS_TYPE) if spec.diagnostics else -1
         self._latched = spec.tf_static or spec.description
         self._last_clock = -1
         self.writer.flush()
@@ -115,6 +120,10 @@ class McapRecording:
         if self.clock_channel >= 0 and (t != self._last_clock or period.forced):
             self._last_clock = t
             self._add(self.clock_channel, t, clock_payload(sec, nanosec))
+        if self.status is not None:
+            data = self.status.message(period.time, sec, nanosec, period.status, period.flags)
+            if data is not None:
+                self._add(self.status_channel, t, data)
         channels = period.channels
         frozen = (period.flags & FLAG_FROZEN) != 0 if period.flags.any() else None
         for out, ids in zip(self.outputs, self.channels, strict=True):

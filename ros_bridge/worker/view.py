@@ -38,6 +38,7 @@ from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, FleetPlan
 from ros_bridge.protocol.snapshot import Snapshot, read_snapshot
 from ros_bridge.view_plan import ViewSpec
 from ros_bridge.worker.process import die_with_parent
+from ros_bridge.world_status import status_text
 
 UPDATE_RATE = 20.0  # Hz
 PLOT_SECONDS = 10.0
@@ -60,19 +61,6 @@ def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     u, w = q[..., 1:], q[..., :1]
     t = 2.0 * np.cross(u, v)
     return v + w * t + np.cross(u, t)
-
-
-def status_text(status: int, flags: int) -> str:
-    """One world's state, as the panel says it."""
-    parts = []
-    if flags & FLAG_FROZEN or status & (Status.DIVERGED | Status.OVERFLOW):
-        why = "diverged" if status & Status.DIVERGED else "contact buffer overflow"
-        parts.append(f"frozen ({why}) until reset")
-    if flags & FLAG_BAD or status & Status.BAD_COMMAND:
-        parts.append("bad command")
-    if flags & FLAG_TIMED_OUT:
-        parts.append("command timeout: holding")
-    return ", ".join(parts) or "running"
 
 
 class FleetScene:
