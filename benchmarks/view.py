@@ -35,7 +35,7 @@ def run(opts: argparse.Namespace, view: bool, browser: bool) -> dict:
         chrome = None
         if browser:
             chrome = subprocess.Popen(
-                [shutil.which("chromium"), "--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                [opts.chromium, "--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
                  "--window-size=1000,700", "--remote-debugging-port=0", f"http://localhost:{opts.port}"],
                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
             )  # fmt: skip
@@ -59,6 +59,7 @@ def main() -> None:
     p.add_argument("--repeat", type=int, default=1, help="rounds of the three, one after the other (a shared machine's load drifts)")
     p.add_argument("--port", type=int, default=8099)
     p.add_argument("--domain", type=int, default=92)
+    p.add_argument("--chromium", default=shutil.which("chromium"), help="the browser to attach (default: chromium on PATH)")
     opts = p.parse_args()
     os.environ.update({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(opts.domain)})
     import mujoco

@@ -1,0 +1,105 @@
+"""Where a control period's time goes through the contract, against the raw library's period.
+
+    python3 benchmarks/period_profile.py --backend warp --worlds 8192 --model humanoid
+
+Times, in one process and interleaved, the raw loop (benchmarks/throughput.py's: NSTEP steps
+captured in one graph, launched and synchronized; for mjx the jitted scan) and the contract's
+period (`command[:] = u; write(); step(NSTEP); read()`), then runs the contract's periods
+once more under cProfile and prints, per period, each function's own time and its time with
+what it calls (the functions that take at least 1 % of a period), so that the gap between
+the two periods can be read off as launches, synchronizations (the wait for the device is
+inside `synchronize_device` / `block_until_ready`), copies and Python. cProfile's own cost
+inflates the profiled period: read the shares, and the unprofiled medians for the totals.
+Nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import platform
+import pstats
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from throughput import NSTEP, raw_mjx, raw_warp  # noqa: E402
+
+import batchsim  # noqa: E402
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--backend", default="warp", choices=["warp", "mjx"])
+    p.add_argument("--worlds", type=int, default=8192)
+    p.add_argument("--model", default="humanoid")
+    p.add_argument("--periods", type=int, default=200)
+    p.add_argument("--rounds", type=int, default=3)
+    opts = p.parse_args()
+
+    sim = batchsim.make(opts.model, opts.worlds, opts.backend)
+    sim.configure()
+    sim.activate()
+    u = np.random.default_rng(0).uniform(-0.2, 0.2, sim.command.shape)
+    raw = (raw_warp if opts.backend == "warp" else raw_mjx)(sim, u[:, : sim.model.nu] if sim.model.nu else u)
+
+    def contract() -> None:
+        sim.command[:] = u
+        sim.write()
+        sim.step(NSTEP)
+        sim.read()
+
+    for _ in range(20):  # compile, capture, settle
+        contract()
+        raw()
+    print(f"# {platform.node()} | {sim.device} | {opts.model} x {opts.worlds} on {opts.backend}, {NSTEP} steps a period")
+    print(f"# python {platform.python_version()}, {time.strftime('%Y-%m-%d')}")
+    sides: dict[str, list[float]] = {"raw": [], "contract": [], "write": [], "step": [], "read": []}
+    for _ in range(opts.rounds):
+        for _ in range(opts.periods):
+            t0 = time.perf_counter()
+            raw()
+            sides["raw"].append(time.perf_counter() - t0)
+        for _ in range(opts.periods):
+            t0 = time.perf_counter()
+            sim.command[:] = u
+            sim.write()
+            t1 = time.perf_counter()
+            sim.step(NSTEP)
+            t2 = time.perf_counter()
+            sim.read()
+            t3 = time.perf_counter()
+            sides["contract"].append(t3 - t0)
+            sides["write"].append(t1 - t0)
+            sides["step"].append(t2 - t1)
+            sides["read"].append(t3 - t2)
+    med = {k: 1e3 * statistics.median(v) for k, v in sides.items()}
+    print(
+        f"period median: raw {med['raw']:.3f} ms, contract {med['contract']:.3f} ms "
+        f"(command+write {med['write']:.3f}, step {med['step']:.3f}, read {med['read']:.3f}); "
+        f"ratio raw/contract {med['raw'] / med['contract']:.3f}; gap {med['contract'] - med['raw']:.3f} ms"
+    )
+    profile = cProfile.Profile()
+    profile.enable()
+    for _ in range(opts.periods):
+        contract()
+    profile.disable()
+    stats = pstats.Stats(profile)
+    total = sum(t for (_cc, _nc, t, _ct, _callers) in stats.stats.values())  # type: ignore[attr-defined]
+    rows = []
+    for (file, line, name), (_cc, ncall, tt, ct, _callers) in stats.stats.items():  # type: ignore[attr-defined]
+        if ct >= 0.01 * total:
+            rows.append((ct, tt, ncall, f"{Path(file).name}:{line}({name})"))
+    print(f"under cProfile: {1e3 * total / opts.periods:.3f} ms a period; per period (ms): with callees / own / calls")
+    for ct, tt, ncall, where in sorted(rows, reverse=True):
+        print(f"  {1e3 * ct / opts.periods:8.3f} {1e3 * tt / opts.periods:8.3f} {ncall / opts.periods:6.1f}  {where}")
+
+
+if __name__ == "__main__":
+    main()
