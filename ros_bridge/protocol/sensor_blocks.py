@@ -2,6 +2,13 @@
 memory, seqlocked per world (the writer in the loop's process, the reader in a worker),
 and the want bits the workers set per world and sensor. No rclpy here. The layout of
 the arrays is ros_bridge/sensor_topics.py's (`SensorPlan.arrays`).
+
+Each reader keeps its own `seen` (the seq it last took, per world): the workers one each for
+their worlds, a recording (ros_bridge/worker/sensor_recording.py) one for the recorded
+worlds, in shared memory (`rec.sensors.seen`, recorded worlds x sensors) so that the writer
+can wait for it where every sample must reach the file (`--rtf 0`). A reader that finds a
+world's seq moved by more than 2 since `seen` missed the samples in between (overwritten
+before it looked).
 """
 
 from __future__ import annotations
@@ -45,11 +52,17 @@ class SensorBlock:
         """The rows of worlds [lo, hi) written since `seen` ((hi - lo,) seq values, updated):
         (local rows (n,), which parts each holds (n,) PART_BITS, stamps (n,) f8 sim seconds,
         per part (n, ...) copies)."""
-        before = self.seq[lo:hi].copy()
+        return self.read_worlds(np.arange(lo, hi), seen)
+
+    def read_worlds(
+        self, worlds: np.ndarray, seen: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """`read` of any worlds ((k,) indices; `seen` (k,)): rows index `worlds`."""
+        before = self.seq[worlds]
         rows = np.flatnonzero((before != seen) & (before % 2 == 0))
         if not rows.size:
             return rows, np.zeros(0, np.uint8), np.zeros(0), {}
-        worlds = rows + lo
+        worlds = worlds[rows]
         time = self.time[worlds]
         parts = self.parts[worlds]
         data = {p: a[worlds] for p, a in self.data.items()}  # fancy indexing: copies
@@ -59,3 +72,10 @@ class SensorBlock:
             data = {p: a[whole] for p, a in data.items()}
         seen[rows] = before[rows]
         return rows, parts, time, data
+
+
+def missed(before: np.ndarray, after: np.ndarray) -> int:
+    """Samples a reader missed in one read, from its `seen` before and after (each write moves
+    a world's seq by 2; a world not read, or read from its first sample, misses none)."""
+    gap = (after - before) // 2 - 1
+    return int(gap[(after != before) & (before >= 0)].clip(min=0).sum())

@@ -9,14 +9,16 @@ payload, and split into a prefix and a suffix around it; a publish is then
     framing.payload(row, sec, nanosec, memoryview(rgb[row]))   # prefix + payload + suffix: one copy
 
 handed to `Publisher.publish(bytes)` (no message object, no per-field conversion).
-benchmarks/sensor_messages.py measures this against filling message objects.
+benchmarks/sensor_messages.py measures this against filling message objects. A recording
+(sensor_recording.py) takes many rows at once: `framing.block(rows, sec, nanosec, rgb)` lays
+them out as a (rows, bytes) array per prefix and suffix length, for mcap_file.py's blocks.
 """
 
 from __future__ import annotations
 
 import array
 import struct
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -56,12 +58,57 @@ class Framing:
             at = find_once(data, marker, topic) if nbytes else len(data)
             self.prefixes.append(bytearray(data[:at]))
             self.suffixes.append(data[at + nbytes :])
+        self._layouts: list[tuple[np.ndarray, np.ndarray]] | None = None  # block()'s, made when first asked
+        self._layout = np.zeros(0, np.intp)  # per row, its layout
+        self._place = np.zeros(0, np.intp)  # per row, its place in its layout's arrays
 
     def payload(self, row: int, sec: int, nanosec: int, data: Any = b"") -> bytes:
         """Row `row`'s message stamped (sec, nanosec), its payload `data` (any buffer of nbytes)."""
         prefix = self.prefixes[row]
         _STAMP.pack_into(prefix, STAMP_AT, sec, nanosec)
         return b"".join((prefix, data, self.suffixes[row])) if self.nbytes else bytes(prefix)
+
+    def block(
+        self, rows: np.ndarray, sec: int, nanosec: int, data: np.ndarray | None = None
+    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """The messages of `rows` ((n,) row indices) stamped (sec, nanosec), row i's payload
+        `data[i]` (data: (n, ...) of nbytes each, any dtype): per layout (rows whose prefix and
+        suffix lengths agree; frame ids of other lengths pad differently), (positions in `rows`
+        (m,), messages (m, L) uint8), each row what `payload` gives."""
+        if self._layouts is None:
+            self._lay_out()
+        payload = np.ascontiguousarray(data).reshape(len(rows), -1).view(np.uint8) if self.nbytes else None
+        stamp = np.frombuffer(_STAMP.pack(sec, nanosec), np.uint8)
+        layout = self._layout[rows]
+        for k in np.unique(layout).tolist():
+            where = np.flatnonzero(layout == k)
+            prefixes, suffixes = self._layouts[k]
+            place = self._place[rows[where]]
+            p = prefixes.shape[1]
+            out = np.empty((len(where), p + self.nbytes + suffixes.shape[1]), np.uint8)
+            out[:, :p] = prefixes[place]
+            out[:, STAMP_AT : STAMP_AT + _STAMP.size] = stamp
+            if payload is not None:
+                out[:, p : p + self.nbytes] = payload[where]
+            out[:, p + self.nbytes :] = suffixes[place]
+            yield where, out
+
+    def _lay_out(self) -> None:
+        keys: dict[tuple[int, int], int] = {}
+        members: list[list[int]] = []
+        self._layout = np.empty(len(self.prefixes), np.intp)
+        self._place = np.empty(len(self.prefixes), np.intp)
+        for row, (prefix, suffix) in enumerate(zip(self.prefixes, self.suffixes, strict=True)):
+            k = keys.setdefault((len(prefix), len(suffix)), len(keys))
+            if k == len(members):
+                members.append([])
+            self._layout[row], self._place[row] = k, len(members[k])
+            members[k].append(row)
+
+        def stack(parts: list, rows: list[int]) -> np.ndarray:
+            return np.array([np.frombuffer(bytes(parts[r]), np.uint8) for r in rows]).reshape(len(rows), -1)
+
+        self._layouts = [(stack(self.prefixes, rows), stack(self.suffixes, rows)) for rows in members]
 
 
 def _set_data(msg: Any, marker: bytes) -> None:
