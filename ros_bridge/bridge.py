@@ -99,6 +99,7 @@ def start_bridge(
     atexit.register(host.close)
     host.start()
     host.attach()
+    recording = None
     if plan.recording is not None:  # MCAP: with --record from the first period, else on request
         recording = Recording(plan, host.memory, loop)
         host.on_close.append(recording.close)
@@ -113,7 +114,8 @@ def start_bridge(
         if view.url is not None:
             print(f"batchsim: view: {view.url} (the fleet in 3D; a browser elsewhere: --view-host 0.0.0.0, or ssh -L)", file=sys.stderr)
     if plan.sensors is not None:  # cameras and lidars: rendered and scanned right after the host's update
-        loop.participants.insert(loop.participants.index(host) + 1, SensorFeed(sim, host.memory, plan.sensors))
+        feed = SensorFeed(sim, host.memory, plan.sensors, recording)  # a recording wants its cameras too
+        loop.participants.insert(loop.participants.index(host) + 1, feed)
     if manager is not None and manager not in loop.participants:
         loop.participants.append(manager)
     return host

@@ -301,10 +301,12 @@ def build_plan(
     wrench = sim.sensors.config.external_wrench  # mujoco_ros2_control's ExternalWrenchPlugin
     ranges = [(r.start, r.stop) for r in split_worlds(nworld, max(1, min(nworker, nworld)))]
     offset = options.world_offset
+    sensors = sensor_plan(sim)
     recording = None
     if options.record is not None:
         widths = [c.width for c in channels]
-        recording = record_spec(options.record, outputs, widths, tf.channel if tf else None, options.clock, nworld)
+        tf_channel = tf.channel if tf else None
+        recording = record_spec(options.record, outputs, widths, tf_channel, options.clock, nworld, sensors)
     view = None
     if options.view is not None:
         if tf is None:
@@ -333,7 +335,7 @@ def build_plan(
         startup_check=options.startup_check,
         all_topics=options.all_topics,
         ros_args=tuple(options.ros_args),
-        sensors=sensor_plan(sim),
+        sensors=sensors,
         tf=tf,
         actions=actions,
         manager=manager_spec(sim, manager, control_rate) if manager is not None else None,

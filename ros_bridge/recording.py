@@ -9,6 +9,11 @@ loop's participant copies each snapshot's recorded rows into a ring in shared me
 CDR templates. A recording starts with `--record PATH` (before the first period) or
 through `/batchsim/record` (std_srvs/SetBool, worker 0) while the fleet runs, and ends with
 the run, the service, or a failure of its own (a full disk: one line; the loop goes on).
+
+Cameras and lidars are opt-in (`--record-topics front_camera/image_raw,scan,...`): while a
+recording runs, their recorded topics are wanted for the recorded worlds as a subscriber
+would want them (`Recording.want_sensors`, asked by sensor_topics.py's SensorFeed), and the
+recorder reads the sensor blocks itself (ros_bridge/worker/sensor_recording.py).
 """
 
 from __future__ import annotations
@@ -30,6 +35,8 @@ from batchsim.loop import OptionError, SimLoop
 from ros_bridge.options import RecordOptions
 from ros_bridge.outputs import OutputSpec
 from ros_bridge.protocol.recording import RecordWriter, put_answer, recording_arrays, take_request
+from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_INFO, WANT_RGB
+from ros_bridge.sensor_topics import SensorPlan
 from ros_bridge.view_plan import recording_geometry
 
 FLEET_TOPICS = ("/tf", "/tf_static", "/clock", "/diagnostics")
@@ -57,10 +64,29 @@ class RecordSpec:
     channels: tuple[int, ...]
     widths: tuple[int, ...]
     path: str | None = None
+    # per camera and lidar (sensors.want's columns), the WANT_* bits of its recorded topics; () for none
+    sensors: tuple[int, ...] = ()
     diagnostics: bool = False
 
     def arrays(self, nchannel: int) -> list[tuple[str, tuple[int, ...], str]]:
-        return recording_arrays(nchannel, len(self.worlds), self.channels, self.widths)
+        arrays = recording_arrays(nchannel, len(self.worlds), self.channels, self.widths)
+        if any(self.sensors):  # the seq the recorder took last (protocol/sensor_blocks.py)
+            arrays.append(("rec.sensors.seen", (len(self.worlds), len(self.sensors)), "i8"))
+        return arrays
+
+
+def sensor_topics(plan: SensorPlan | None) -> dict[str, tuple[int, int]]:
+    """Each camera's and lidar's topic, relative to a world's namespace: (its sensor column, WANT bit)."""
+    if plan is None:
+        return {}
+    out = {}
+    for s, ct in enumerate(plan.cameras):
+        cam = ct.camera
+        for name, bit in ((cam.image_topic, WANT_RGB), (cam.depth_topic, WANT_DEPTH), (cam.info_topic, WANT_INFO)):
+            out[name.strip("/")] = (s, bit)
+    for s, lt in enumerate(plan.lidars, start=len(plan.cameras)):
+        out[lt.lidar.topic.strip("/")] = (s, WANT_RGB)
+    return out
 
 
 def record_spec(
@@ -70,10 +96,12 @@ def record_spec(
     tf_channel: int | None,
     clock: bool,
     nworld: int,
-    sensor_topics: Sequence[str] = (),
+    sensors: SensorPlan | None = None,
 ) -> RecordSpec:
-    """The recording `options` ask for; OptionError naming `record_topics` or `record_worlds`."""
+    """The recording `options` ask for; OptionError naming `record_topics` or `record_worlds`.
+    Cameras' and lidars' topics (`sensors`) only where `options.topics` names them."""
     by_name = {o.topic.strip("/"): i for i, o in enumerate(outputs)}
+    by_sensor = sensor_topics(sensors)
     fleet = [t for t in FLEET_TOPICS if t != "/clock" or clock]
     if tf_channel is None:
         fleet = [t for t in fleet if not t.startswith("/tf")]
@@ -87,16 +115,10 @@ def record_spec(
         for topic in options.topics:
             name = topic.strip()
             key = f"/{name.strip('/')}" if f"/{name.strip('/')}" in fleet else name.strip("/")
-            if key not in names:
-                if key in {s.strip("/") for s in sensor_topics} or key.endswith(
-                    ("image_raw", "camera_info", "scan", "points")
-                ):
-                    raise OptionError(
-                        "record_topics", f"names {topic!r}: cameras and lidars are not recorded yet"
-                    )
+            if key not in names and key not in by_sensor:
                 raise OptionError(
                     "record_topics",
-                    f"names {topic!r}, which this fleet does not publish (topics: {', '.join(names)})",
+                    f"names {topic!r}, which this fleet does not publish (topics: {', '.join([*names, *by_sensor])})",
                 )
             chosen.append(key)
     worlds = tuple(range(nworld)) if options.worlds is None else tuple(dict.fromkeys(options.worlds))
@@ -111,6 +133,11 @@ def record_spec(
     channels = sorted(
         {f.channel for i in picked for f in outputs[i].fields} | ({tf_channel} if "/tf" in chosen else set())
     )
+    bits = [0] * (sensors.nsensor if sensors is not None else 0)
+    for name in chosen:
+        if name in by_sensor:
+            s, bit = by_sensor[name]
+            bits[s] |= bit
     return RecordSpec(
         outputs=picked,
         tf="/tf" in chosen,
@@ -122,6 +149,7 @@ def record_spec(
         channels=tuple(channels),
         widths=tuple(widths[c] for c in channels),
         path=options.path,
+        sensors=tuple(bits) if any(bits) else (),
     )
 
 
@@ -167,6 +195,10 @@ class Recording:
         self._said = False  # the recorder said how it ended
         self._geometry: bytes | None = None  # the robots' geoms, for the file (view_plan.py)
         self._next_watch = 0.0
+        self._sensor_bits = np.array(self.spec.sensors, np.uint8)  # (nsensor,) or (0,)
+        self._worlds = np.array(self.spec.worlds, np.intp)
+        self._row = np.full(plan.nworld, -1, np.intp)  # per world, its row among the recorded
+        self._row[self._worlds] = np.arange(len(self._worlds))
 
     # --- start and stop ---
     def start(self, path: str, wait: bool = False) -> tuple[bool, str]:
@@ -245,6 +277,29 @@ class Recording:
         self._serve()
         if self.memory["rec.on"][0]:
             self.writer.put_newest()
+
+    # --- cameras and lidars (sensor_topics.py's SensorFeed asks, in the loop thread) ---
+    def want_sensors(self, want: np.ndarray) -> None:
+        """While recording, OR the recorded camera and lidar topics' WANT bits into the
+        recorded worlds' rows of `want` ((nworld, nsensor), the workers' want bits)."""
+        if self._sensor_bits.any() and self.memory["rec.on"][0]:
+            want[self._worlds] |= self._sensor_bits
+
+    def hold_sensor(self, column: int, seq: np.ndarray, worlds: np.ndarray) -> None:
+        """Before a sample of sensor `column` overwrites `worlds`' rows of its block (`seq`, the
+        block's (nworld,) seqlock): with `--rtf 0`, wait until the recorder took the last one."""
+        if self.loop.rtf != 0 or not self._sensor_bits.any() or not self._sensor_bits[column]:
+            return
+        rows = self._row[worlds]
+        rows = rows[rows >= 0]
+        seen = self.memory["rec.sensors.seen"]
+        while (
+            self._proc is not None
+            and self.memory["rec.on"][0]
+            and (seq[self._worlds[rows]] != seen[rows, column]).any()
+        ):
+            wallclock.sleep(0.0005)
+            self._watch(force=True)
 
     def _serve(self) -> None:
         request = take_request(self.memory, self._answered)

@@ -29,7 +29,9 @@ The physics side (`SensorFeed`, a loop participant right after the bridge host) 
 want bits into `sim.sensors.want/unwant` each period and runs a `SensorSampler`, which
 renders and scans only wanted worlds at their rates; each sample's rows are copied into
 the blocks (RGB only for worlds that want RGB, depth likewise). So a camera nobody
-subscribes to is never rendered.
+subscribes to is never rendered. A recording of camera or lidar topics (ros_bridge/recording.py)
+adds its want bits for the recorded worlds while it runs, and with `--rtf 0` a sample waits
+for the recorder to have taken the one before it.
 """
 
 from __future__ import annotations
@@ -121,13 +123,15 @@ class SensorFeed:
       sim: the system.
       memory: the bridge's shared arrays (BridgeHost.memory).
       plan: the sensors' plan (FleetPlan.sensors).
+      recording: the recording participant (ros_bridge/recording.py's Recording), or None.
 
     Attributes:
       sampler: the SensorSampler; `sampler.produced` counts world-frames and world-scans.
     """
 
-    def __init__(self, sim: BatchedSystem, memory, plan: SensorPlan):
+    def __init__(self, sim: BatchedSystem, memory, plan: SensorPlan, recording=None):
         self.plan = plan
+        self.recording = recording
         self.want = memory["sensors.want"]
         self.names = [c.camera.name for c in plan.cameras] + [ld.lidar.name for ld in plan.lidars]
         self.blocks = {c.camera.name: SensorBlock(memory, f"cam{k}", ("rgb", "depth")) for k, c in enumerate(plan.cameras)}
@@ -140,6 +144,8 @@ class SensorFeed:
 
     def update(self, sim: BatchedSystem, time: float, period: float) -> None:
         want = self.want.copy()
+        if self.recording is not None:
+            self.recording.want_sensors(want)
         changed = np.flatnonzero((want != self._wanted).any(axis=0))
         for s in changed.tolist():
             mask = want[:, s] != 0
@@ -153,6 +159,8 @@ class SensorFeed:
         if block is None:
             return
         worlds = sample.worlds
+        if self.recording is not None:
+            self.recording.hold_sensor(self.column[sample.name], block.seq, worlds)
         if sample.ranges is not None:
             block.write(worlds, sample.time, {"ranges": (worlds, sample.ranges)})
             return

@@ -289,7 +289,7 @@ def test_a_full_disk_stops_the_recording_with_one_line_and_the_run_goes_on(tmp_p
         (["--record", "."], "--record . is a directory"),
         (["--record-topics", "joint_states,bogus"], "--record-topics names 'bogus', which this fleet does not publish"),
         (["--record-worlds", "1,7"], "--record-worlds names world 7, which this fleet does not have (worlds 0..1)"),
-        (["--record-topics", "image_raw"], "--record-topics names 'image_raw': cameras and lidars are not recorded yet"),
+        (["--record-topics", "image_raw"], "--record-topics names 'image_raw', which this fleet does not publish"),
         (["--view"], "--view draws the robots from tf's body poses: it needs tf (drop --no-tf)"),
         (["--view", "--view-host", "10.99.99.99"], "--view-host 10.99.99.99: cannot serve there"),
     ],

@@ -158,7 +158,8 @@ def run_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="T,U,...",
         help="the topics recorded (default: joint_states and the other state topics published from the start, "
-        "/tf, /tf_static, /clock, robot_description)",
+        "/tf, /tf_static, /clock, robot_description; a camera's or lidar's topics, e.g. front_camera/image_raw "
+        "or scan, only when named)",
     )
     rec.add_argument(
         "--record-worlds", type=world_list, default=None, metavar="I,J-K,...", help="the worlds recorded (default: all)"

@@ -8,6 +8,8 @@ rosbag2's MCAP storage writes a bag: profile `ros2`, one channel per topic, `cdr
 with `ros2msg` schemas (schemas.py), zstd-compressed chunks with message indexes, a summary
 at the end. Every stamp and log time is sim time. A chunk is closed at least once a second,
 so a recorder killed outright leaves a file readable up to its last complete chunk.
+Recorded camera and lidar topics come from the sensor blocks, not the ring
+(sensor_recording.py), looked at on every pass.
 
 It reports `ready` on STATUS_FD once the file has its header, and lines for the log after
 that; it finishes the file when standard input reaches EOF (the recording was stopped) or
@@ -40,6 +42,7 @@ from ros_bridge.worker.mcap_file import BlockWriter
 from ros_bridge.worker.messages import clock_payload, stamp_of
 from ros_bridge.worker.process import die_with_parent
 from ros_bridge.worker.schemas import qos_metadata, schema_text
+from ros_bridge.worker.sensor_recording import SensorRecording
 from ros_bridge.worker.snapshot import Output
 from ros_bridge.worker.status_recording import MSG_TYPE as STATUS_TYPE
 from ros_bridge.worker.status_recording import TOPIC as STATUS_TOPIC
@@ -183,7 +186,6 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     status = os.fdopen(int(argv[0]), "w", buffering=1)
     die_with_parent()
-    os.nice(NICE)  # the ring gives it seconds of slack: the loop and the workers come first for the cores
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the physics process, which stops us
     stopping = []
     signal.signal(signal.SIGTERM, lambda signum, frame: stopping.append(signum))
@@ -191,6 +193,8 @@ def main(argv: list[str] | None = None) -> int:
         plan, path, geometry = pickle.load(sys.stdin.buffer)
     except (EOFError, pickle.UnpicklingError):
         return 0
+    if not any(plan.recording.sensors):  # a sensor block holds one sample: no slack for a camera's recorder
+        os.nice(NICE)  # the ring gives it seconds of slack: the loop and the workers come first for the cores
     memory = Memory.attach(plan.layout, plan.memory_name)
     reader = RecordReader(memory, plan.recording.channels)
     recording: McapRecording | None = None
@@ -200,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         recording = McapRecording(plan, stream)
         if geometry is not None:  # the robots' geoms, for `batchsim view FILE` (ros_bridge/view_plan.py)
             recording.writer.add_attachment(0, 0, GEOMETRY, "application/x-npz", geometry)
+        sensors = SensorRecording(plan, memory, recording._channel, recording.writer)  # cameras, lidars
         status.write("ready\n")
         flushed = wallclock.monotonic()
         while not stopping:
@@ -208,16 +213,19 @@ def main(argv: list[str] | None = None) -> int:
                 break  # EOF: stopped
             for period in reader.take():
                 recording.write(period)
+            sensors.take()
             if wallclock.monotonic() - flushed >= CHUNK_SECONDS:
                 recording.flush()
                 flushed = wallclock.monotonic()
         while reader.pending():  # the loop stopped writing before it told us: take what is left
             for period in reader.take():
                 recording.write(period)
+        sensors.take()
         recording.finish()
         stream.close()
         dropped = int(memory["rec.dropped"][0])
         lost = f"; {dropped} periods dropped (the recorder fell behind the loop)" if dropped else ""
+        lost += sensors.closing()
         status.write(f"recording: {recording.messages} messages in {path}{lost}\n")
         return 0
     except OSError as e:  # a full disk, a path that went away: the recording stops, the loop goes on
