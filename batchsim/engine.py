@@ -58,6 +58,13 @@ class EngineHooks:
         float dtype, arrays the caller may keep and change; frozen worlds' rows are replaced."""
         raise NotImplementedError(f"the {self.name} backend cannot report body poses")
 
+    def _pose_rows(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Every world's `xpos` `(nworld, nbody, 3)` and `xquat` `(nworld, nbody, 4)` as host
+        arrays the engine keeps (any float dtype), current now (read, never changed, by the caller); None
+        where there are none (then `_body_poses` gathers). Frozen worlds' rows are replaced
+        unless the class says they hold their poses already (`_pose_rows_hold_frozen`)."""
+        return None
+
     def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The engine's `qpos` `(n, nq)` and `qvel` `(n, nv)` of `worlds`, any float dtype, copies."""
         raise NotImplementedError(f"the {self.name} backend cannot read the joint state")

@@ -11,7 +11,8 @@
 - `render(camera, worlds=None)` -> `(rgb (n, H, W, 3) uint8, depth (n, H, W) float32)`,
   `scan(lidar, worlds=None)` -> `(n, nray) float32`, `sensors` (batchsim.sensors): cameras,
   lidars and sensor noise; `true_state` / `true_sensordata` without the noise.
-- `body_poses(worlds=None)` -> `(xpos (n, nbody, 3), xquat (n, nbody, 4) w, x, y, z)` float64, on demand (tf).
+- `body_poses(worlds=None)` -> `(xpos (n, nbody, 3), xquat (n, nbody, 4) w, x, y, z)` float64, on demand;
+  `body_poses_into(xpos_out, xquat_out, bodies)`: tf's per-period copy (batchsim.body_poses).
 - `set_base_velocity(command, worlds=None)`: mujoco_ros2_control's BaseVelocityPlugin
   (batchsim.base_velocity); `apply_wrench(wrenches, worlds=None)`: its ExternalWrenchPlugin.
 - `set_variation(variation)`, `world_params()`: per-world randomization (batchsim.varying);
@@ -23,7 +24,7 @@ just before the `step()` call in which it failed (state, base_state, sensordata,
 fresh sensor noise, and the failure is logged once, naming the world and why (batchsim.failures).
 
 A backend subclasses `BatchedSystem` and implements the engine hooks (batchsim.engine: `_open`,
-`_close`, `_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, `_body_poses`, `_qstate`,
+`_close`, `_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, `_body_poses`, `_pose_rows`, `_qstate`,
 `_set_qstate`, and `_park` where the engine cannot skip a world); everything a user sees,
 checks and bookkeeping included, lives here so that every backend behaves the same.
 
@@ -36,11 +37,11 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
-import mujoco
 import numpy as np
 
 from batchsim.actuation import Actuation
 from batchsim.base_velocity import BaseDriving
+from batchsim.body_poses import BodyPoses
 from batchsim.device_io import DeviceIO
 from batchsim.engine import EngineHooks
 from batchsim.external_wrench import Wrenching
@@ -69,7 +70,7 @@ S = LifecycleState
 _FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
 
 
-class BatchedSystem(BaseDriving, Wrenching, Sensing, Varying, DeviceIO, EngineHooks, SystemInterface):
+class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceIO, EngineHooks, SystemInterface):
     """`nworld` copies of one robot behind ros2_control's SystemInterface.
 
     Attributes (valid from on_configure on):
@@ -154,7 +155,7 @@ class BatchedSystem(BaseDriving, Wrenching, Sensing, Varying, DeviceIO, EngineHo
         self._failure_log = FailureLog(self.name, self.nworld, mujoco_logs=self.logs_failures)
         ensure_log_dir()  # MuJoCo's own log out of the working directory, unless placed already
         self._sensor_config: SensorConfig | None = None
-        self._shown_poses: tuple[np.ndarray, np.ndarray] | None = None  # body_poses()' last, per world
+        self._shown_poses = None  # body_poses()' last, per world (batchsim.body_poses)
         self._sensors: SensorSuite | None = None
 
     @property
@@ -365,34 +366,6 @@ class BatchedSystem(BaseDriving, Wrenching, Sensing, Varying, DeviceIO, EngineHo
         self._reset_wrenches(sel)
         self._refresh()
         self._add_noise()
-
-    # --- body poses (tf) ---
-    def body_poses(self, worlds: Sequence[int] | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Every body's pose in the world frame, in all or the listed worlds (indices, in the order
-        given, or a bool mask): positions `(n, nbody, 3)` and orientation quaternions
-        `(n, nbody, 4)` (w, x, y, z), float64 arrays of the caller's own; body 0 is the world body.
-
-        They are MuJoCo's `xpos`/`xquat` as the engine computed them in its last step, i.e. the
-        kinematics of the state before the last physics substep, like `sensordata`; after
-        reset(), of the reset state. A frozen world shows the poses the last call gave it before
-        it froze (the initial state's, if no call did). Nothing is fetched or computed until
-        the first call (batchsim.model.frames turns them into tf transforms).
-        """
-        self._require("read body poses", frozenset({S.INACTIVE, S.ACTIVE}))
-        rows = self._worlds(worlds)
-        sel = np.arange(self.nworld) if rows is None else rows
-        xpos, xquat = self._body_poses(sel)
-        xpos, xquat = xpos.astype(np.float64, copy=False), xquat.astype(np.float64, copy=False)
-        if self._shown_poses is None:  # what a world that freezes goes on showing
-            mjd = mujoco.MjData(self.model)
-            self.spec.initial.apply(self.model, mjd)
-            self._shown_poses = (np.tile(mjd.xpos, (self.nworld, 1, 1)), np.tile(mjd.xquat, (self.nworld, 1, 1)))
-        frozen = self.frozen[sel]
-        for shown, now in zip(self._shown_poses, (xpos, xquat), strict=True):
-            if frozen.any():
-                now[frozen] = shown[sel[frozen]]
-            shown[sel] = now
-        return xpos, xquat
 
     # --- the whole joint state (mujoco_ros2_control's reset_world overrides, set_free_joint_state) ---
     def qstate(self, worlds: Sequence[int] | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

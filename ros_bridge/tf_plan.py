@@ -90,11 +90,9 @@ def tf_spec(
         parent_body=np.searchsorted(bodies, tree.parent_body[moving]),
     )
 
-    def fill_tf(out: np.ndarray) -> None:
-        xpos, xquat = sim.body_poses()
+    def fill_tf(out: np.ndarray) -> None:  # one pass from the engine's rows where it keeps them
         v = out.reshape(nworld, len(bodies), 7)
-        v[:, :, :3] = xpos[:, bodies]
-        v[:, :, 3:] = xquat[:, bodies]
+        sim.body_poses_into(v[:, :, :3], v[:, :, 3:], bodies)
 
     pairs = list(zip(tree.parents, tree.names, strict=True))
     description, extra = _description(sim, tree, source)

@@ -134,10 +134,14 @@ def test_a_frozen_world_shows_the_poses_it_last_showed(tmp_path):
     assert sim.status[1] & batchsim.Status.DIVERGED
     for _ in range(2):
         sim.step(SUBSTEPS)
+        into = np.zeros((3, sim.model.nbody, 7))
+        sim.body_poses_into(into[..., :3], into[..., 3:])  # tf's copy: the same held poses
         xpos, xquat = sim.body_poses()
         np.testing.assert_array_equal(xpos[1], shown_pos[1])
         np.testing.assert_array_equal(xquat[1], shown_quat[1])
         assert np.isfinite(xpos).all() and not np.array_equal(xpos[0], shown_pos[0])  # the others move on
+        np.testing.assert_array_equal(into[..., :3], xpos)
+        np.testing.assert_array_equal(into[..., 3:], xquat)
     sim.reset([1])
     d = mujoco.MjData(sim.model)
     sim.spec.initial.apply(sim.model, d)
@@ -393,6 +397,36 @@ def test_device_backends_body_poses_follow_cpu(backend):
         np.testing.assert_allclose(pos, cpu_pos, atol=1e-5)
         np.testing.assert_allclose(quat, cpu_quat, atol=1e-5)
     for sim in sims:
+        sim.shutdown()
+
+
+@pytest.mark.parametrize(
+    "backend, options",
+    [("cpu", {}), ("mjx", {}), ("warp", {}), ("warp", {"devices": ["cpu", "cpu"]})],
+    ids=["cpu", "mjx", "warp", "warp-2dev"],
+)
+def test_body_poses_into_copies_what_body_poses_gives(backend, options):
+    """tf's per-period copy (body_poses_into: the engine's rows straight into the channel, where
+    it keeps them) gives the listed bodies of every world exactly as body_poses() does, from the
+    first call on, consecutive bodies or not."""
+    _skip_unless(backend)
+    sim = batchsim.make("arm", 3, backend, **options)
+    sim.configure()
+    sim.activate()
+    try:
+        for period in range(3):
+            for bodies in ([1, 2, 3], [4, 0, 2], list(range(sim.model.nbody))):
+                out = np.full((3, len(bodies), 7), np.nan)
+                sim.body_poses_into(out[..., :3], out[..., 3:], bodies)
+                xpos, xquat = sim.body_poses()
+                np.testing.assert_array_equal(out[..., :3], xpos[:, bodies])
+                np.testing.assert_array_equal(out[..., 3:], xquat[:, bodies])
+            sim.command[1] = 0.3 * (period + 1)
+            sim.write()
+            sim.step(10)
+            sim.read()
+        assert not np.allclose(xpos[1], xpos[0])  # world 1 moved: the copies follow the engine
+    finally:
         sim.shutdown()
 
 

@@ -230,6 +230,12 @@ class CpuSystem(BatchedSystem):
                 self._kinematics_now(worlds, self._unfilled[worlds], xpos, xquat)
         return xpos, xquat
 
+    def _pose_rows(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if self._poses is None or (self._unfilled is not None and self._unfilled.any()):
+            return None  # not bound yet, or rows the batch has not filled: _body_poses computes them
+        self._unfilled = None
+        return self._poses
+
     def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self._fields["qpos"][worlds], self._fields["qvel"][worlds]  # fancy indexing: copies
 

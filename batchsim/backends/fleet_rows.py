@@ -9,8 +9,6 @@ shared-memory segment when they are processes.
 
 from __future__ import annotations
 
-import numpy as np
-
 from batchsim.backends.device import DeviceSystem
 from batchsim.backends.shard_messages import control_array
 from batchsim.hardware import BatchedSystem
@@ -82,7 +80,5 @@ class FleetRows:
             self.command[:] = system.command
 
     def give_poses(self, system: BatchedSystem) -> None:
-        """Every world's body poses (system.body_poses()) into these rows."""
-        xpos, xquat = system.body_poses()
-        np.copyto(self.xpos, xpos)
-        np.copyto(self.xquat, xquat)
+        """Every world's body poses (as system.body_poses() gives them) into these rows."""
+        system.body_poses_into(self.xpos, self.xquat)

@@ -463,6 +463,22 @@ class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, 
             host = poses.numpy()
         return host[..., :3], host[..., 3:]
 
+    _pose_host: tuple[wp.array, wp.array] | None = None
+
+    def _pose_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        # every world's, as tf asks each period: the engine's own arrays on Warp's CPU device, else
+        # one copy of each into pinned host arrays kept for it (no gather, no allocation), float32
+        d = self._d
+        if not self._cuda:
+            return d.xpos.numpy(), d.xquat.numpy()
+        with wp.ScopedDevice(self.device):
+            if self._pose_host is None:
+                self._pose_host = (self._host_array(d.xpos.shape, wp.vec3), self._host_array(d.xquat.shape, wp.quat))
+            wp.copy(self._pose_host[0], d.xpos)
+            wp.copy(self._pose_host[1], d.xquat)
+            wp.synchronize_device(self.device)
+        return self._pose_host[0].numpy(), self._pose_host[1].numpy()
+
     # --- for users who stay on the device ---
     def device_arrays(self) -> dict[str, wp.array]:
         """The simulation's live Warp arrays, zero copy: qpos, qvel, qfrc_actuator, sensordata,
