@@ -135,6 +135,47 @@ def test_every_worlds_body_poses_come_through_the_fleets_rows_as_any_worlds_do(p
         sim.shutdown()
 
 
+@SHARDS
+def test_tfs_poses_come_with_the_periods_read_and_are_fetched_again_after_a_reset(processes):
+    """Issue 27: tf copies every world's poses each period; once it has, each read brings them
+    along (ShardOp.READ_POSES), so the copy waits for no shard. Anything else sent to the shards
+    between the read and the copy (a reset here) has them fetched again: never stale."""
+    sim = batchsim.make("arm", 4, "warp", devices=["cpu", "cpu"], processes=processes)
+    sim.configure()
+    sim.activate()
+    sent: list[ShardOp] = []
+    for shard in sim.shards:
+        for name in ("submit", "call"):
+            method = getattr(shard, name)
+            setattr(shard, name, lambda op, *a, _m=method, **k: (sent.append(op), _m(op, *a, **k))[1])
+    out = np.zeros((4, sim.model.nbody, 7))
+
+    def tf_copy() -> None:  # as tf's channel fill copies them, checked against the shards' answers
+        sim.body_poses_into(out[..., :3], out[..., 3:])
+        xpos, xquat = sim.body_poses([0, 1, 2, 3])  # pickled through each shard's own body_poses
+        np.testing.assert_array_equal(out[..., :3], xpos)
+        np.testing.assert_array_equal(out[..., 3:], xquat)
+
+    try:
+        for period in range(4):
+            sim.read()
+            if period == 3:
+                sim.reset([1])
+            del sent[:]
+            tf_copy()
+            assert sent.count(ShardOp.POSES) == (2 if period in (0, 3) else 0)  # the first, and after the reset
+            sim.command[1:] = 0.3 * (period + 1)
+            sim.write()
+            sim.step(5)
+        sent.clear()
+        sim.read()
+        assert sent == [ShardOp.READ_POSES] * 2
+        sim.read()  # no copy since the last read: the poses stay with the shards
+        assert sent[2:] == [ShardOp.READ] * 2
+    finally:
+        sim.shutdown()
+
+
 def test_devices_are_for_the_device_backends():
     with pytest.raises(ValueError, match="cpu backend runs on the host's cores"):
         batchsim.make("arm", 4, "cpu", devices=[0, 1])

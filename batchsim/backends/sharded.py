@@ -161,6 +161,9 @@ class ShardedSystem(BatchedSystem):
                 self.shards.append(LocalShard(system, fleet_rows, self._pool))
         self.options = dict(self.shards[0].options, device=self.devices)
         self._stepped: set[int] = set()  # period lengths every shard has compiled or captured
+        # tf's poses of every world: asked for since the last read (the next read brings them along),
+        # and whether the fleet's pose rows are the engine's current ones (no shard op changed them since)
+        self._poses_wanted = self._poses_current = False
         # a fleet dropped without shutdown() still stops its shard processes and frees its memory
         self._finalizer = weakref.finalize(self, _close, list(self.shards), self.memory, self._pool)
 
@@ -176,6 +179,7 @@ class ShardedSystem(BatchedSystem):
     def on_configure(self, previous_state: LifecycleState) -> CallbackReturn:
         # the first shard alone: it compiles the kernels the others then load from the cache
         # (and in one process, loading kernels and models is not thread-safe)
+        self._poses_current = False
         self.shards[0].call(ShardOp.CONFIGURE)
         self._each(ShardOp.CONFIGURE, shards=self.shards[1:], parallel=self.processes)
         return CallbackReturn.SUCCESS
@@ -213,8 +217,11 @@ class ShardedSystem(BatchedSystem):
     def read(self, time: float | None = None, period: float | None = None) -> ReturnType:
         if self.lifecycle_state not in (LifecycleState.INACTIVE, LifecycleState.ACTIVE):
             return ReturnType.OK
-        # every device's download at once; each shard writes its rows of the fleet's arrays
-        self._each(ShardOp.READ, time, period)
+        # every device's download at once; each shard writes its rows of the fleet's arrays, and
+        # its body poses where tf asked for them last period (no round trip of their own then)
+        with_poses, self._poses_wanted = self._poses_wanted, False
+        self._each(ShardOp.READ_POSES if with_poses else ShardOp.READ, time, period)
+        self._poses_current = with_poses
         self._add_noise()  # frozen worlds keep their held, noise-free readings
         return ReturnType.OK
 
@@ -252,6 +259,7 @@ class ShardedSystem(BatchedSystem):
         `first_world + world_ranges[i].start + j`, so a world draws the same however it is split."""
         parsed = None if variation is None else load_variation(variation)
         super().set_variation(None)  # the lifecycle check; the shards hold the draws
+        self._poses_current = False
         for shard, r in zip(self.shards, self.world_ranges, strict=True):
             shard.call(ShardOp.SET_VARIATION, parsed, int(first_world) + r.start)
         self._sharded_variation = parsed if parsed is not None and parsed.active else None
@@ -331,11 +339,18 @@ class ShardedSystem(BatchedSystem):
             return PerDevice(self._each(ShardOp.DEVICE_RANGES, lidar.name))
         return PerDevice([shard.system.scan(lidar.name, device=True) for shard in self.shards])  # type: ignore[union-attr]
 
-    def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if len(worlds) == self.nworld and np.array_equal(worlds, np.arange(self.nworld)):
-            # every world, as tf asks each period: through the fleet's rows, nothing pickled
+    _pose_rows_hold_frozen = True  # each shard's body_poses() shows its frozen worlds' held poses
+
+    def _pose_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        # every world, as tf asks each period: in the fleet's rows, nothing pickled nor copied here;
+        # brought by this period's read where tf asked last period too, else fetched now
+        self._poses_wanted = True
+        if not self._poses_current:
             self._each(ShardOp.POSES)
-            return self.memory["xpos"].copy(), self.memory["xquat"].copy()
+            self._poses_current = True
+        return self.memory["xpos"], self.memory["xquat"]
+
+    def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # each shard's worlds in ascending order, then put back in the order asked for
         order = np.argsort(worlds, kind="stable")
         parts = self._run([(s, ShardOp.BODY_POSES, (local,)) for s, local in self._split(worlds[order])], self.processes)
@@ -385,11 +400,12 @@ class ShardedSystem(BatchedSystem):
         shards = self.shards if shards is None else shards
         return self._run([(shard, op, args) for shard in shards], parallel)
 
-    @staticmethod
-    def _run(calls: list[tuple[Any, ShardOp, tuple]], parallel: bool) -> list[Any]:
+    def _run(self, calls: list[tuple[Any, ShardOp, tuple]], parallel: bool) -> list[Any]:
         """Run (shard, op, args) calls, at once or in turn; their results in order. Every
         call is answered before the first failure is raised (a shard process then still
         takes requests)."""
+        if any(op not in _KEEP_POSES for _, op, _ in calls):
+            self._poses_current = False  # a step, a reset, a lifecycle call: the poses are the engine's to give again
         if not parallel:
             return [shard.call(op, *args) for shard, op, args in calls]
         pending, failure = [], None
@@ -409,6 +425,12 @@ class ShardedSystem(BatchedSystem):
         if failure is not None:
             raise failure
         return results
+
+
+# the operations after which the fleet's pose rows still hold the engine's current poses
+_KEEP_POSES = frozenset(
+    {ShardOp.WRITE, ShardOp.READ, ShardOp.BODY_POSES, ShardOp.QSTATE, ShardOp.WORLD_PARAMS, ShardOp.DRAW_NUMBERS}
+)
 
 
 def _share_cores(nshard: int) -> list[set[int] | None]:

@@ -65,6 +65,7 @@ class ShardOp(enum.Enum):
     QSTATE = "qstate"
     SET_QSTATE = "set_qstate"
     POSES = "poses"  # every world's body poses into the fleet's rows (tf's each period)
+    READ_POSES = "read_poses"  # read, then the poses: tf's each period, without a round trip of its own
     SET_VARIATION = "set_variation"
     WORLD_PARAMS = "world_params"
     DRAW_NUMBERS = "draw_numbers"
@@ -78,11 +79,12 @@ class ShardOp(enum.Enum):
 # the operations a shard runs as its system's method of the member's value, as they come: the
 # rest of the lifecycle, the sensors and the body poses (an answer of host arrays, as a render's)
 CALLS = frozenset(ShardOp) - {
-    ShardOp.WRITE, ShardOp.STEP, ShardOp.READ, ShardOp.POSES, ShardOp.RESET, ShardOp.CONFIGURE,
+    ShardOp.WRITE, ShardOp.STEP, ShardOp.READ, ShardOp.POSES, ShardOp.READ_POSES, ShardOp.RESET, ShardOp.CONFIGURE,
     ShardOp.DEVICE_ARRAYS, ShardOp.DEVICE_FRAMES, ShardOp.DEVICE_RANGES,
 }  # fmt: skip
 START_TIMEOUT = 300.0  # s: a shard process importing its backend and building its model
-PERIOD_OPS = (ShardOp.WRITE, ShardOp.STEP, ShardOp.READ, ShardOp.POSES)  # through the control row, unpickled
+# through the control row, unpickled
+PERIOD_OPS = (ShardOp.WRITE, ShardOp.STEP, ShardOp.READ, ShardOp.POSES, ShardOp.READ_POSES)
 # s: how long a waiting side (the fleet for a reply, a shard for its next request) polls
 # before it sleeps. A sleeping process wakes tens to hundreds of microseconds after its
 # message arrives (more in a virtual machine, whose idle cores halt); with four such wake-ups
@@ -115,6 +117,10 @@ def serve(system: BatchedSystem, rows: FleetRows, op: ShardOp, args: tuple, kwar
         system.read(*args)
         rows.give_readings(system)
     elif op is ShardOp.POSES:
+        rows.give_poses(system)
+    elif op is ShardOp.READ_POSES:
+        system.read(*args)
+        rows.give_readings(system)
         rows.give_poses(system)
     elif op is ShardOp.RESET:
         system.reset(*args)
