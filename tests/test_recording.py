@@ -126,6 +126,9 @@ def test_a_recordings_status_holds_each_change_and_the_view_reads_it_back():
         if data is not None:
             msg = deserialize_message(data, DiagnosticArray)
             written.append((t, [(s.hardware_id, *from_values({v.key: v.value for v in s.values}), s.message) for s in msg.status]))
+            levels = {s.hardware_id: s.level for s in msg.status}
+            if "world_2" in levels:  # ERROR once diverged
+                assert levels["world_2"] == (b"\x02" if t >= 0.05 else b"\x00")
     assert [t for t, _ in written] == [0.01, 0.03, 0.05, 1.00]
     assert [len(s) for _, s in written] == [3, 1, 1, 3]
     assert written[1][1] == [("world_1", int(Status.BAD_COMMAND), FLAG_BAD, "bad_command")]

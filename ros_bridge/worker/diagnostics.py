@@ -101,7 +101,7 @@ class Diagnostics:
                 last = host.reason(w) if host.period[w] > mine.period[w] else mine.reason(w)
             out.status.append(
                 DiagnosticStatus(
-                    level=int(world_status.level(bits, flags)),
+                    level=bytes([world_status.level(bits, flags)]),  # a ROS byte field
                     name=world_status.status_name(ns),
                     message=world_status.message(bits, flags, last),
                     hardware_id=ns,

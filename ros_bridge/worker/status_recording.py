@@ -52,7 +52,7 @@ class StatusRecording:
         if made is None:
             ns = self.namespaces[row]
             made = self._made[key] = DiagnosticStatus(
-                level=int(world_status.level(bits, flags)),
+                level=bytes([world_status.level(bits, flags)]),  # a ROS byte field
                 name=world_status.status_name(ns),
                 message=world_status.message(bits, flags),
                 hardware_id=ns,
