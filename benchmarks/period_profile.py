@@ -3,8 +3,9 @@
     python3 benchmarks/period_profile.py --backend warp --worlds 8192 --model humanoid
 
 Times, in one process and interleaved, the raw loop (benchmarks/throughput.py's: NSTEP steps
-captured in one graph, launched and synchronized; for mjx the jitted scan) and the contract's
-period (`command[:] = u; write(); step(NSTEP); read()`), then runs the contract's periods
+captured in one graph, launched and synchronized; for mjx the jitted scan), the contract's
+period (`command[:] = u; write(); step(NSTEP); read()`) and its device path
+(`write_device(u); step(NSTEP); device_state()`: nothing through the host), then runs the contract's periods
 once more under cProfile and prints, per period, each function's own time and its time with
 what it calls (the functions that take at least 1 % of a period), so that the gap between
 the two periods can be read off as launches, synchronizations (the wait for the device is
@@ -55,17 +56,37 @@ def main() -> None:
         sim.step(NSTEP)
         sim.read()
 
+    device_u = None
+    if opts.backend == "warp":  # the contract's device path: commands and state stay on the GPU
+        import warp as wp
+
+        device_u = wp.array(u.astype(np.float32), dtype=wp.float32, device=sim.device)
+    else:
+        import jax
+
+        device_u = jax.device_put(u.astype(np.float32), sim.device)
+
+    def device() -> None:
+        sim.write_device(device_u)
+        sim.step(NSTEP)
+        sim.device_state()
+
     for _ in range(20):  # compile, capture, settle
         contract()
         raw()
+        device()
     print(f"# {platform.node()} | {sim.device} | {opts.model} x {opts.worlds} on {opts.backend}, {NSTEP} steps a period")
     print(f"# python {platform.python_version()}, {time.strftime('%Y-%m-%d')}")
-    sides: dict[str, list[float]] = {"raw": [], "contract": [], "write": [], "step": [], "read": []}
+    sides: dict[str, list[float]] = {"raw": [], "contract": [], "write": [], "step": [], "read": [], "device": []}
     for _ in range(opts.rounds):
         for _ in range(opts.periods):
             t0 = time.perf_counter()
             raw()
             sides["raw"].append(time.perf_counter() - t0)
+        for _ in range(opts.periods):
+            t0 = time.perf_counter()
+            device()
+            sides["device"].append(time.perf_counter() - t0)
         for _ in range(opts.periods):
             t0 = time.perf_counter()
             sim.command[:] = u
@@ -83,7 +104,11 @@ def main() -> None:
     print(
         f"period median: raw {med['raw']:.3f} ms, contract {med['contract']:.3f} ms "
         f"(command+write {med['write']:.3f}, step {med['step']:.3f}, read {med['read']:.3f}); "
-        f"ratio raw/contract {med['raw'] / med['contract']:.3f}; gap {med['contract'] - med['raw']:.3f} ms"
+        f"ratio contract/raw steps/s {med['raw'] / med['contract']:.3f}; gap {med['contract'] - med['raw']:.3f} ms"
+    )
+    print(
+        f"device path (write_device, step, device_state): {med['device']:.3f} ms, "
+        f"ratio to raw steps/s {med['raw'] / med['device']:.3f}"
     )
     profile = cProfile.Profile()
     profile.enable()

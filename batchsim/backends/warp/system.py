@@ -35,13 +35,12 @@ from batchsim.backends.warp.kernels import (
     copy_items,
     copy_rows,
     gather_poses,
-    gather_state,
     hold_base_velocity,
-    narrow_ctrl,
     rotate_base_velocity,
 )
 from batchsim.backends.warp.reset import WarpReset
 from batchsim.backends.warp.sensors import WarpSensors
+from batchsim.backends.warp.transfers import WarpTransfers
 from batchsim.backends.warp.wrench import WarpWrenches
 from batchsim.model import RobotSpec
 from batchsim.types import MAX_COMMAND, READ_FIELDS, Status, StepFailures
@@ -54,7 +53,9 @@ _CHANGED = int(mjw.State.PHYSICS | mjw.State.WARMSTART)
 _INTEGRATION = int(mjw.State.PHYSICS | mjw.State.USER | mjw.State.WARMSTART)  # no PLUGIN in Warp
 
 
-class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, WarpReset, DeviceSystem):
+class WarpSystem(
+    WarpHost, WarpTransfers, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, WarpReset, DeviceSystem
+):
     """`nworld` worlds on MuJoCo Warp, one captured graph per control period.
 
     Options:
@@ -236,52 +237,11 @@ class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, 
     def _ctrl_host(self) -> np.ndarray:
         return self._ctrl
 
-    def _upload_ctrl(self) -> None:
-        with wp.ScopedDevice(self.device):
-            if self._cuda:
-                wp.copy(self._ctrl_dev, self._ctrl_wp)
-            wp.launch(  # the device named: ScopedDevice is process-wide, and shards write at once
-                narrow_ctrl,
-                dim=self._ctrl.shape,
-                inputs=[self._ctrl_dev, self._parked_dev],
-                outputs=[self._d.ctrl],
-                device=self.device,
-            )
-
     def _stage_base_velocity(self, target: np.ndarray) -> None:
         np.copyto(self._held_host, target, casting="same_kind")
         if self._cuda:  # pinned memory: the copy is queued ahead of the next period's graph
             with wp.ScopedDevice(self.device):
                 wp.copy(self._held_dev, self._held_wp)
-
-    def _read(self) -> None:
-        with wp.ScopedDevice(self.device):
-            self._gather_on_device(self._state_dev, self._sensor_dev, self._time_dev)
-            if self._cuda:
-                wp.copy(self._state_wp, self._state_dev)
-                if self._sensor_host.size:
-                    wp.copy(self._sensor_wp, self._sensor_dev)
-                wp.copy(self._time_wp, self._time_dev)
-            wp.synchronize_device(self.device)
-
-    def _gather_on_device(self, state_out: wp.array, sensordata_out: wp.array, time_out: wp.array) -> None:
-        d = self._d
-        wp.launch(
-            gather_state,
-            dim=(self.nworld, self._ncols),
-            inputs=[
-                d.qpos,
-                d.qvel,
-                d.qfrc_actuator,
-                d.sensordata,
-                self._clock,
-                self._source,
-                self._index,
-                self._readings.shape[1],
-            ],
-            outputs=[state_out, sensordata_out, time_out],
-            device=self.device,  # named: a sharded fleet reads its shards at once, and ScopedDevice is process-wide
-        )
 
     def _step(self, nstep: int) -> StepFailures | None:
         while True:
@@ -303,11 +263,11 @@ class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, 
                 graph = self._graphs.get(nstep)
                 if graph is None:
                     graph = self._graphs[nstep] = self._capture(nstep)
-                wp.capture_launch(graph)
+                wp.capture_launch(graph)  # the flags' copy to the host is in it
             else:
                 self._period(nstep)
-            if self._cuda:
-                wp.copy(self._flags_wp, self._flags_dev)
+                if self._cuda:
+                    wp.copy(self._flags_wp, self._flags_dev)
             wp.synchronize_device(self.device)
 
     def _period(self, nstep: int) -> None:
@@ -332,6 +292,8 @@ class WarpSystem(WarpHost, WarpWrenches, WarpSensors, WarpFields, WarpDeviceIO, 
     def _capture(self, nstep: int) -> Any:
         with wp.ScopedCapture(device=self.device) as capture:
             self._period(nstep)
+            if self._cuda:  # one call fewer a period: the check's flags come back inside the graph
+                wp.copy(self._flags_wp, self._flags_dev)
         return capture.graph
 
     # --- the period's start: kept, restored ---
