@@ -43,10 +43,32 @@ def run(opts: argparse.Namespace, view: bool, browser: bool) -> dict:
 
         def stop_browser() -> None:
             if chrome is not None:
+                if opts.screenshot:  # what the page showed: proof that the browser drew the fleet
+                    print(screenshot(opts, f"http://localhost:{opts.port}"), flush=True)
                 os.killpg(chrome.pid, 9)
                 chrome.wait()
 
         return timed_run(loop, after=stop_browser)
+
+
+def screenshot(opts: argparse.Namespace, url: str) -> str:
+    """A second headless Chromium's screenshot of the page into --screenshot, and how many of its
+    pixels are the arm's orange-brown links (tests/test_view.py's test of the same)."""
+    subprocess.run(
+        [opts.chromium, "--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+         "--window-size=1000,700", "--virtual-time-budget=8000", f"--screenshot={opts.screenshot}", url],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=120, check=False,
+    )  # fmt: skip
+    try:
+        import numpy as np
+        from PIL import Image
+
+        shot = np.asarray(Image.open(opts.screenshot).convert("RGB")).astype(int)
+    except (OSError, ImportError) as e:
+        return f"screenshot: none ({e})"
+    r, g, b = shot[..., 0], shot[..., 1], shot[..., 2]
+    arm = int(((r > 120) & (r - g > 40) & (g - b > 30)).sum())
+    return f"screenshot: {opts.screenshot}, {shot.shape[1]}x{shot.shape[0]}, {arm} pixels of the arms' links"
 
 
 def main() -> None:
@@ -60,6 +82,7 @@ def main() -> None:
     p.add_argument("--port", type=int, default=8099)
     p.add_argument("--domain", type=int, default=92)
     p.add_argument("--chromium", default=shutil.which("chromium"), help="the browser to attach (default: chromium on PATH)")
+    p.add_argument("--screenshot", default=None, help="a PNG of the page taken at the end of each browser run")
     opts = p.parse_args()
     os.environ.update({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(opts.domain)})
     import mujoco
