@@ -14,7 +14,8 @@ import numpy as np
 
 @contextmanager
 def paced_fleet(opts: argparse.Namespace, bridge_options: Any) -> Iterator[tuple[Any, Any, Any]]:
-    """(sim, loop, bridge host) of `opts.worlds` x `opts.model` on `opts.backend`, the model's
+    """(sim, loop, bridge host) of `opts.worlds` x `opts.model` on `opts.backend` (over
+    `opts.devices`, if it has them: 'all' or '0,1', one shard process each), the model's
     default controllers, RTF 1 for `opts.duration` sim seconds at `opts.control_rate`, the loop
     thread's SCHED_FIFO where allowed; the bridge closed and the sim shut down on leaving."""
     import batchsim
@@ -23,7 +24,14 @@ def paced_fleet(opts: argparse.Namespace, bridge_options: Any) -> Iterator[tuple
     from batchsim.realtime import DEFAULT_THREAD_PRIORITY
     from ros_bridge.bridge import start_bridge
 
-    sim = batchsim.make(opts.model, opts.worlds, opts.backend)
+    options: dict[str, Any] = {}
+    if getattr(opts, "devices", None):  # one process per device, as `batchsim --devices` runs them
+        from batchsim.backends import backend_class
+
+        have = backend_class(batchsim.Backend.parse(opts.backend)).available_devices()
+        chosen = have if opts.devices == "all" else [have[int(d)] for d in opts.devices.split(",")]
+        options.update(devices=chosen, processes=True)
+    sim = batchsim.make(opts.model, opts.worlds, opts.backend, **options)
     sim.configure()
     sim.activate()
     manager = load_controllers(default_controllers(opts.model), sim.spec, opts.worlds)

@@ -63,6 +63,7 @@ def main() -> None:
     p.add_argument("--duration", type=float, default=20.0, help="sim seconds per run")
     p.add_argument("--repeat", type=int, default=1, help="runs of each, alternating (a shared machine's load drifts)")
     p.add_argument("--domain", type=int, default=91)
+    p.add_argument("--devices", default=None, help="mjx/warp: spread the worlds over these GPUs ('all', '0,1')")
     p.add_argument("--warmup", action="store_true", help="one untimed 1 s fleet first (warp compiles and captures)")
     opts = p.parse_args()
     os.environ.update({"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(opts.domain)})
