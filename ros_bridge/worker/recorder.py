@@ -78,22 +78,24 @@ class McapRecording:
         self._schemas: dict[str, int] = {}
         self.outputs = [Output(plan.outputs[i], self.namespaces) for i in spec.outputs]
         self.channels = [  # per output, each recorded world's channel id
-            np.array([self._channel(topic_name(ns, out.spec.topic), out.spec.msg_type) for ns in self.namespaces])
+            np.array([self.channel(topic_name(ns, out.spec.topic), out.spec.msg_type) for ns in self.namespaces])
             for out in self.outputs
         ]
         self.tf_spec = plan.tf
         self.tf = TfTemplate(plan.tf, self.namespaces) if spec.tf and plan.tf.moving else None
         self.tf_channel = (
-            self._channel("/tf", "tf2_msgs/msg/TFMessage", depth=100) if self.tf is not None else -1
+            self.channel("/tf", "tf2_msgs/msg/TFMessage", depth=100) if self.tf is not None else -1
         )
-        self.clock_channel = self._channel("/clock", "rosgraph_msgs/msg/Clock", depth=1) if spec.clock else -1
+        self.clock_channel = self.channel("/clock", "rosgraph_msgs/msg/Clock", depth=1) if spec.clock else -1
         self.status = StatusRecording(self.namespaces) if spec.diagnostics else None
-        self.status_channel = self._channel(STATUS_TOPIC, STATUS_TYPE) if spec.diagnostics else -1
+        self.status_channel = self.channel(STATUS_TOPIC, STATUS_TYPE) if spec.diagnostics else -1
         self._latched = spec.tf_static or spec.description
         self._last_clock = -1
         self.writer.flush()
 
-    def _channel(self, topic: str, msg_type: str, depth: int = 10, latched: bool = False) -> int:
+    def channel(self, topic: str, msg_type: str, depth: int = 10, latched: bool = False) -> int:
+        """A new channel of `topic` (its `msg_type`'s schema registered once), with the QoS
+        rosbag2 records (`depth`; `latched`: transient local); its id."""
         schema = self._schemas.get(msg_type)
         if schema is None:
             schema = self._schemas[msg_type] = self.writer.register_schema(
@@ -158,7 +160,7 @@ class McapRecording:
         """/tf_static and each world's robot_description, once, at the first period."""
         self._latched = False
         if self.spec.tf_static:
-            channel = self._channel("/tf_static", "tf2_msgs/msg/TFMessage", depth=1, latched=True)
+            channel = self.channel("/tf_static", "tf2_msgs/msg/TFMessage", depth=1, latched=True)
             self._add(
                 channel,
                 t,
@@ -168,7 +170,7 @@ class McapRecording:
             data = bytes(serialize_message(String(data=self.tf_spec.description)))
             for ns in self.namespaces:
                 self._add(
-                    self._channel(topic_name(ns, "robot_description"), "std_msgs/msg/String", 1, True),
+                    self.channel(topic_name(ns, "robot_description"), "std_msgs/msg/String", 1, True),
                     t,
                     data,
                 )
@@ -204,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
         recording = McapRecording(plan, stream)
         if geometry is not None:  # the robots' geoms, for `batchsim view FILE` (ros_bridge/view_plan.py)
             recording.writer.add_attachment(0, 0, GEOMETRY, "application/x-npz", geometry)
-        sensors = SensorRecording(plan, memory, recording._channel, recording.writer)  # cameras, lidars
+        sensors = SensorRecording(plan, memory, recording.channel, recording.writer)  # cameras, lidars
         status.write("ready\n")
         flushed = wallclock.monotonic()
         while not stopping:
