@@ -24,7 +24,6 @@ import sys
 import tempfile
 import time
 import types
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # its siblings
 
 from paced_fleet import timed_run  # noqa: E402
+from recording import count  # noqa: E402  (the file's messages per topic, as recording.py counts them)
 
 TOPICS = ("front_camera/image_raw", "front_camera/depth/image_raw", "front_camera/camera_info")
 
@@ -64,17 +64,6 @@ def run(opts: argparse.Namespace, rtf: float, path: str) -> dict:
         sim.shutdown()
     figures["wall"] = loop.sim_time / figures["rtf"]
     return figures
-
-
-def count(path: str) -> Counter:
-    from mcap.reader import make_reader
-
-    topics: Counter = Counter()
-    with open(path, "rb") as f:
-        summary = make_reader(f).get_summary()
-    for channel_id, n in summary.statistics.channel_message_counts.items():
-        topics[summary.channels[channel_id].topic.split("/", 2)[2]] += n
-    return topics
 
 
 def recorder_alone(opts: argparse.Namespace, periods: int = 600) -> tuple[float, float]:
