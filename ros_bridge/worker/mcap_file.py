@@ -118,9 +118,8 @@ class BlockWriter:
         self._start_time: int | None = None
         self._end_time = 0
         self._nchunk = 0
-        self._pool = ThreadPoolExecutor(
-            max_workers=1, thread_name_prefix="mcap-compress"
-        )  # one: a ZstdCompressor is not thread-safe
+        # one thread: a ZstdCompressor is not thread-safe (two at once crashed the process)
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mcap-compress")
         self._pending: deque = deque()  # closed chunks: (data, index, start, end, compression job)
         self._new_chunk()
 
