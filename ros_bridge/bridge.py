@@ -108,13 +108,15 @@ def start_bridge(
             ok, message = recording.start(plan.recording.path, wait=True)
             if not ok:
                 print(f"batchsim: warning: {message}", file=sys.stderr)
+    view = None
     if plan.view is not None:  # the web view: a process of its own, reading the snapshot
-        view = ViewProcess(plan)
+        view = ViewProcess(plan, host.memory)
         host.on_close.append(view.close)
         if view.url is not None:
             print(f"batchsim: view: {view.url} (the fleet in 3D; a browser elsewhere: --view-host 0.0.0.0, or ssh -L)", file=sys.stderr)
     if plan.sensors is not None:  # cameras and lidars: rendered and scanned right after the host's update
-        feed = SensorFeed(sim, host.memory, plan.sensors, recording)  # a recording wants its cameras too
+        # a recording wants its cameras too, and the view the camera of the world it shows
+        feed = SensorFeed(sim, host.memory, plan.sensors, recording, view.camera if view is not None else None)
         loop.participants.insert(loop.participants.index(host) + 1, feed)
     if manager is not None and manager not in loop.participants:
         loop.participants.append(manager)

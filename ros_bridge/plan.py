@@ -189,6 +189,8 @@ class FleetPlan:
             arrays += self.recording.arrays(len(self.channels))
         if self.view is not None:  # the channels the view reads while it runs (snapshot.py)
             arrays.append(("view.want", (max(1, len(self.channels)),), "u1"))
+            if self.sensors is not None and self.sensors.cameras:  # (world, camera) it shows, -1: none (view_plan.py)
+                arrays.append(("view.camera", (2,), "i8"))
         if self.randomized:
             arrays += param_arrays(n)
         # room for two of the largest trajectories an input takes (a record may take at most

@@ -31,7 +31,8 @@ renders and scans only wanted worlds at their rates; each sample's rows are copi
 the blocks (RGB only for worlds that want RGB, depth likewise). So a camera nobody
 subscribes to is never rendered. A recording of camera or lidar topics (ros_bridge/recording.py)
 adds its want bits for the recorded worlds while it runs, and with `--rtf 0` a sample waits
-for the recorder to have taken the one before it.
+for the recorder to have taken the one before it; the web view adds RGB for the camera of the
+world it shows (ros_bridge/view_plan.py's ViewCamera).
 """
 
 from __future__ import annotations
@@ -124,14 +125,16 @@ class SensorFeed:
       memory: the bridge's shared arrays (BridgeHost.memory).
       plan: the sensors' plan (FleetPlan.sensors).
       recording: the recording participant (ros_bridge/recording.py's Recording), or None.
+      view: the web view's camera request (ros_bridge/view_plan.py's ViewCamera), or None.
 
     Attributes:
       sampler: the SensorSampler; `sampler.produced` counts world-frames and world-scans.
     """
 
-    def __init__(self, sim: BatchedSystem, memory, plan: SensorPlan, recording=None):
+    def __init__(self, sim: BatchedSystem, memory, plan: SensorPlan, recording=None, view=None):
         self.plan = plan
         self.recording = recording
+        self.askers = [a for a in (recording, view) if a is not None]  # each ORs its want bits in
         self.want = memory["sensors.want"]
         self.names = [c.camera.name for c in plan.cameras] + [ld.lidar.name for ld in plan.lidars]
         self.blocks = {c.camera.name: SensorBlock(memory, f"cam{k}", ("rgb", "depth")) for k, c in enumerate(plan.cameras)}
@@ -144,8 +147,8 @@ class SensorFeed:
 
     def update(self, sim: BatchedSystem, time: float, period: float) -> None:
         want = self.want.copy()
-        if self.recording is not None:
-            self.recording.want_sensors(want)
+        for asker in self.askers:
+            asker.want_sensors(want)
         changed = np.flatnonzero((want != self._wanted).any(axis=0))
         for s in changed.tolist():
             mask = want[:, s] != 0

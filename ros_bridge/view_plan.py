@@ -6,7 +6,10 @@ the page and its updates never takes the loop's interpreter. It reads the snapsh
 workers read: each world's status and flags, and the tf channel's body poses (the moving
 frames' ends, tf_plan.py), from which every visible geom's pose follows by a fixed offset
 computed here once. So the view costs the loop only the tf channel's copy, which it asks
-for through `view.want` while it runs.
+for through `view.want` while it runs. Where the fleet has cameras, the panel shows the picked
+world's camera image: the view process writes (world, camera) into `view.camera`, and the
+physics side (`ViewCamera`, asked by sensor_topics.py's SensorFeed) ORs WANT_RGB into that
+world's want bits, so that one camera renders as if subscribed; the view reads its block.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import numpy as np
 
 from batchsim.hardware import BatchedSystem
 from batchsim.model.frames import frame_tree
+from ros_bridge.protocol.sensor_blocks import WANT_RGB
 
 GEOMETRY = "batchsim/view_geometry.npz"  # a recording's attachment: the robots' geoms (`batchsim view FILE`)
 VISIBLE_GROUPS = 3  # MuJoCo's viewer shows geom groups 0, 1 and 2 by default
@@ -191,10 +195,28 @@ def recording_geometry(sim: BatchedSystem, tf) -> bytes:
     return geometry_bytes(view_spec(sim, tf.channel, tf.bodies, "", 0), [tree.frame(b) for b in tf.bodies])
 
 
-class ViewProcess:
-    """The view's process: started with the bridge, stopped with it; its URL once it serves."""
+class ViewCamera:
+    """The physics side of the view's camera image: `view.camera` ((2,) i8 in `memory`: the
+    world and the camera index the page shows, -1 while it shows none), written by the view
+    process, becomes WANT_RGB in that world's camera column of the want bits."""
 
-    def __init__(self, plan) -> None:
+    def __init__(self, memory) -> None:
+        self.request = memory["view.camera"]
+        self.request[:] = -1  # nothing until the page asks (a new segment reads as world 0)
+
+    def want_sensors(self, want: np.ndarray) -> None:
+        """OR the view's camera into `want` ((nworld, nsensor), the workers' want bits)."""
+        world, camera = self.request.tolist()
+        if 0 <= world < want.shape[0] and 0 <= camera < want.shape[1]:
+            want[world, camera] |= WANT_RGB
+
+
+class ViewProcess:
+    """The view's process: started with the bridge, stopped with it; its URL once it serves.
+    `camera`: its camera request (ViewCamera) where the fleet has cameras, else None."""
+
+    def __init__(self, plan, memory=None) -> None:
+        self.camera = ViewCamera(memory) if memory is not None and "view.camera" in memory else None
         read, write = os.pipe()
         self._proc = subprocess.Popen(  # stdout: viser's banner, which the URL line below replaces
             [sys.executable, "-m", "ros_bridge.worker.view", str(write)], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, pass_fds=(write,)
@@ -214,6 +236,8 @@ class ViewProcess:
                     print(f"batchsim: {line}", file=sys.stderr, flush=True)
 
     def close(self) -> None:
+        if self.camera is not None:
+            self.camera.request[:] = -1
         if self._proc.poll() is None:
             self._proc.terminate()
             try:

@@ -139,6 +139,8 @@ def test_the_view_shows_the_robots_a_picked_worlds_status_and_keeps_up(tmp_path)
         keys = [{"type": kind, "value": key} for key in "3\ue007" for kind in ("keyDown", "keyUp")]
         browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
         _wait(lambda: "world_3 (world 3): bad command" in browser.text(), 20, f"world 3's status\n{browser.text()}")
+        no_image = f"return document.querySelectorAll(\"{CAMERA_IMAGE}\").length"
+        assert browser.session_call("POST", "/execute/sync", {"script": no_image, "args": []}) == 0  # the arm has no camera
         # the page keeps up: the sim time it shows advances with the fleet (RTF 1)
         def shown() -> float:
             text = browser.text()
@@ -157,6 +159,46 @@ def test_the_view_shows_the_robots_a_picked_worlds_status_and_keeps_up(tmp_path)
         node.destroy_node()
         rclpy.try_shutdown(context=context)
         release_domain(domain)
+
+
+def test_the_view_shows_the_picked_worlds_camera_image(tmp_path):
+    domain, port = domain_id(72), _free_port()
+    log = tmp_path / "log"
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain)}
+    args = ["--model", "rover", "--worlds", "2", "--quiet", "--controllers", "none", "--camera-resolution", "64x48",
+            "--camera-rate", "20", "--view", "--view-port", str(port)]  # fmt: skip
+    proc = subprocess.Popen([sys.executable, "-m", "batchsim.cli", *args], env=env, stdout=open(log, "w"), stderr=subprocess.STDOUT)
+    browser = None
+    try:
+        _wait(lambda: "batchsim: view: " in log.read_text(), 60, "the view's line")
+        browser = Browser()
+        browser.session_call("POST", "/url", {"url": f"http://localhost:{port}"})
+        _wait(lambda: "front_camera (world 0)" in browser.text(), 30, f"the camera image's label\n{browser.text()}")
+        browser.session_call("POST", "/execute/sync", {"script": PICK, "args": []})
+        keys = [{"type": kind, "value": key} for key in "1\ue007" for kind in ("keyDown", "keyUp")]
+        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        _wait(lambda: "front_camera (world 1)" in browser.text(), 20, f"world 1's camera\n{browser.text()}")
+
+        def image() -> list[np.ndarray] | None:  # the <img> on the page, as drawn: world 1's frame once it came
+            found = browser.session_call("POST", "/element", {"using": "css selector", "value": CAMERA_IMAGE})
+            shot = browser.session_call("GET", f"/element/{next(iter(found.values()))}/screenshot")
+            pixels = imageio.v3.imread(base64.b64decode(shot))[..., :3].astype(int)
+            return [pixels] if pixels.std() > 5 else None  # not the grey it shows until a frame comes
+
+        [pixels] = _wait(image, 20, "a camera frame in the panel")
+        imageio.v3.imwrite(tmp_path / "camera.png", pixels.astype(np.uint8))
+        size = browser.session_call("POST", "/execute/sync", {"script": IMAGE_SIZE, "args": []})
+        assert size == [64, 48]  # the camera's own frame, not a placeholder of another size
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        if browser is not None:
+            browser.close()
+        release_domain(domain)
+
+
+CAMERA_IMAGE = "img[src^='blob:']"  # the panel's image, from an object URL of the JPEG viser sends (its logo is an SVG)
+IMAGE_SIZE = f"const img = document.querySelector(\"{CAMERA_IMAGE}\"); return [img.naturalWidth, img.naturalHeight];"
 
 
 def test_a_recording_in_the_view_shows_the_robots_and_scrubs(tmp_path):

@@ -7,9 +7,12 @@ mesh with an instance per world, so a thousand worlds cost the browser one draw 
 and this process one array per geom per update. Each world is tinted by its status (red:
 frozen, diverged or overflowed; orange: its last command was rejected; yellow: command
 timeout); the panel shows sim time, the RTF and how many worlds are in each state; a world is
-picked by its number or by clicking it, and the panel then shows its status and its joint
-positions over the last seconds. Poses and status come from the snapshot the bridge workers
-read (ros_bridge/protocol/snapshot.py), at most UPDATE_RATE times a second.
+picked by its number or by clicking it, and the panel then shows its status, its joint
+positions over the last seconds and, where the fleet has cameras, its camera's latest RGB
+image (the first camera, or the one chosen). Poses and status come from the snapshot the
+bridge workers read (ros_bridge/protocol/snapshot.py), at most UPDATE_RATE times a second;
+the image from the camera's sensor block (ros_bridge/protocol/sensor_blocks.py), rendered
+for that one world while the view asks (`view.camera`, ros_bridge/view_plan.py's ViewCamera).
 
 viser rather than foxglove-sdk or rerun: it serves its own page from this process (no app to
 fetch from the internet, so a browser on an isolated machine works), instanced meshes with a
@@ -35,6 +38,7 @@ import viser
 from batchsim.hardware import Status
 from batchsim.memory import Memory
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, FleetPlan
+from ros_bridge.protocol.sensor_blocks import WANT_RGB, SensorBlock
 from ros_bridge.protocol.snapshot import Snapshot, read_snapshot
 from ros_bridge.view_plan import ViewSpec
 from ros_bridge.worker.process import die_with_parent
@@ -44,6 +48,7 @@ UPDATE_RATE = 20.0  # Hz
 PLOT_SECONDS = 10.0
 NICE = 10
 FROZEN_RGB, BAD_RGB, TIMEOUT_RGB = (220, 30, 30), (255, 140, 0), (240, 220, 0)
+NO_IMAGE = 40  # the image's grey until the picked world's camera sends a frame
 
 
 def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -65,9 +70,10 @@ def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 class FleetScene:
     """The page: `spec`'s geoms for `nworld` worlds (named `namespaces`) on a grid, the panel's
-    fleet line, its world picker and status line, and the picked world's joint plot."""
+    fleet line, its world picker and status line, the picked world's joint plot and, where
+    `cameras` ((name, height, width) each) are given, its camera image and camera chooser."""
 
-    def __init__(self, spec: ViewSpec, namespaces: list[str]):
+    def __init__(self, spec: ViewSpec, namespaces: list[str], cameras: tuple[tuple[str, int, int], ...] = ()):
         self.spec, self.namespaces = spec, namespaces
         self.n = n = len(namespaces)
         cols = int(np.ceil(np.sqrt(n)))
@@ -104,12 +110,29 @@ class FleetScene:
             self.plot = gui.add_uplot(data=(np.zeros(1), *[np.zeros(1)] * len(names)), series=series,
                                       title="joint positions (rad, m) against sim time (s)",
                                       scales={"x": {"time": False}}, aspect=1.5)  # fmt: skip
+        self.cameras = cameras
+        self.chooser: Any = None
+        self.image: Any = None
+        if len(cameras) > 1:
+            self.chooser = gui.add_dropdown("camera", tuple(c[0] for c in cameras), initial_value=cameras[0][0])
+        if cameras:
+            self.image = gui.add_image(self.blank(0), label=cameras[0][0], format="jpeg", jpeg_quality=85)
         self._colors_key: bytes = b""
         self.url = f"http://{'localhost' if spec.host in ('0.0.0.0', '127.0.0.1') else spec.host}:{self.server.get_port()}"
 
     @property
     def picked(self) -> int:
         return int(np.clip(self.picker.value, 0, self.n - 1))
+
+    @property
+    def camera(self) -> int:
+        """The chosen camera's index in `cameras` (0 without a chooser)."""
+        names = [c[0] for c in self.cameras]
+        return names.index(self.chooser.value) if self.chooser is not None else 0
+
+    def blank(self, camera: int) -> np.ndarray:
+        _name, h, w = self.cameras[camera]
+        return np.full((h, w, 3), NO_IMAGE, np.uint8)
 
     def _clicked(self, event: Any) -> None:
         if event.instance_index is not None:
@@ -152,21 +175,29 @@ class FleetView:
     def __init__(self, plan: FleetPlan, memory: Memory):
         self.plan, self.spec, self.memory = plan, plan.view, memory
         self.n = plan.nworld
-        self.scene = FleetScene(plan.view, plan.namespaces)
+        self.snap = Snapshot()
+        self.rtf = collections.deque(maxlen=int(UPDATE_RATE))  # (wall, sim) of the last second
+        cameras = plan.sensors.cameras if plan.sensors is not None else ()
+        self.scene = FleetScene(plan.view, plan.namespaces, tuple((c.camera.name, c.camera.height, c.camera.width) for c in cameras))
         self.url = self.scene.url
         self.history: collections.deque = collections.deque()
         self.scene.picker.on_update(lambda _: self.history.clear())
-        self.snap = Snapshot()
-        self.rtf = collections.deque(maxlen=int(UPDATE_RATE))  # (wall, sim) of the last second
+        self.blocks = [SensorBlock(memory, f"cam{k}", ("rgb",)) for k in range(len(cameras))]
+        self.seen = np.full(1, -1, np.int64)  # the seq of the shown world's frame last taken
+        self.shown = (-1, -1)  # (world, camera) of the image
 
     def want(self, on: bool) -> None:
-        """Ask the loop for the channels the view reads (the tf poses, the joint positions)."""
+        """Ask the loop for the channels the view reads (the tf poses, the joint positions);
+        off, for no camera image either."""
         want = self.memory["view.want"]
         want[:] = 0
         if on:
             want[self.spec.channel] = 1
             if self.spec.joints is not None:
                 want[self.spec.joints[0]] = 1
+        elif self.blocks:
+            self.memory["view.camera"][:] = -1
+            self.shown = (-1, -1)
 
     def update(self) -> None:
         snap = read_snapshot(self.memory, len(self.plan.channels), 0, self.n, self.snap)
@@ -177,6 +208,22 @@ class FleetView:
             self.scene.draw(snap.channels[self.spec.channel].reshape(self.n, -1, 7))
         self.scene.tint(snap.status, snap.flags)
         self._panel(snap)
+        if self.blocks:
+            self._image()
+
+    def _image(self) -> None:
+        """The picked world's newest frame of the chosen camera, asked for while it is shown."""
+        w, k = self.scene.picked, self.scene.camera
+        block = self.blocks[k]
+        if (w, k) != self.shown:  # only frames rendered from now: an older one may be long stale
+            self.memory["view.camera"][:] = (w, k)
+            self.shown = (w, k)
+            self.seen[0] = block.seq[w]
+            self.scene.image.image = self.scene.blank(k)
+            self.scene.image.label = f"{self.scene.cameras[k][0]} (world {w})"
+        rows, parts, _time, data = block.read_worlds(np.array([w]), self.seen)
+        if rows.size and parts[0] & WANT_RGB:
+            self.scene.image.image = data["rgb"][0]
 
     def _panel(self, snap: Snapshot) -> None:
         (w0, s0), (w1, s1) = self.rtf[0], self.rtf[-1]

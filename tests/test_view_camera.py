@@ -1,0 +1,50 @@
+"""The web view's camera image, physics side, in process: the view's request (`view.camera`)
+makes exactly that world's camera wanted (as a subscriber would), beside the workers' own want
+bits, and renders it; dropping the request leaves the workers' bits as they were. The page
+itself: tests/test_view.py, in a browser."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import batchsim
+from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_RGB, SensorBlock
+from ros_bridge.sensor_topics import SensorFeed, sensor_plan
+from ros_bridge.view_plan import ViewCamera
+
+
+def test_the_views_request_wants_exactly_that_worlds_camera_and_dropping_it_clears_it():
+    sim = batchsim.make("rover", 3, "cpu", sensors={"sensors": {"camera_resolution": [16, 12], "camera_rate": 50}})
+    sim.configure()
+    sim.activate()
+    plan = sensor_plan(sim)
+    memory = {name: np.zeros(shape, dtype) for name, shape, dtype in [*plan.arrays(3), ("view.camera", (2,), "i8")]}
+    camera = ViewCamera(memory)
+    assert memory["view.camera"].tolist() == [-1, -1]  # a new segment's zeros would ask for world 0
+    feed = SensorFeed(sim, memory, plan, None, camera)
+    block = SensorBlock(memory, "cam0", ("rgb", "depth"))
+    workers = memory["sensors.want"]
+    workers[2, 0] = WANT_DEPTH  # a subscriber of world 2's depth image
+    before = workers.copy()
+    time = 0.0
+
+    def run(periods: int) -> None:
+        nonlocal time
+        for _ in range(periods):
+            feed.update(sim, time, 0.01)
+            time += 0.01
+
+    run(3)
+    assert sim.sensors.wanted("front_camera").tolist() == [False, False, True]
+    memory["view.camera"][:] = (1, 0)  # the page picked world 1
+    run(10)
+    assert sim.sensors.wanted("front_camera").tolist() == [False, True, True]
+    assert not sim.sensors.wanted("base_scan").any()  # the camera only
+    assert np.array_equal(workers, before)  # the workers' rows are theirs: ORed into a copy
+    assert block.seq[0] == 0 and block.seq[1] > 0
+    assert block.parts[1] & WANT_RGB and not block.parts[2] & WANT_RGB  # world 2 asked for depth only
+    assert block.data["rgb"][1].std() > 0  # a rendered image, not the zeros it started as
+    memory["view.camera"][:] = -1  # the page closed
+    run(3)
+    assert sim.sensors.wanted("front_camera").tolist() == [False, False, True]
+    sim.shutdown()
