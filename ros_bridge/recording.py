@@ -35,7 +35,6 @@ from batchsim.loop import OptionError, SimLoop
 from ros_bridge.options import RecordOptions
 from ros_bridge.outputs import OutputSpec
 from ros_bridge.protocol.recording import RecordWriter, put_answer, recording_arrays, take_request
-from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_INFO, WANT_RGB
 from ros_bridge.sensor_topics import SensorPlan
 from ros_bridge.view_plan import recording_geometry
 
@@ -75,20 +74,6 @@ class RecordSpec:
         return arrays
 
 
-def sensor_topics(plan: SensorPlan | None) -> dict[str, tuple[int, int]]:
-    """Each camera's and lidar's topic, relative to a world's namespace: (its sensor column, WANT bit)."""
-    if plan is None:
-        return {}
-    out = {}
-    for s, ct in enumerate(plan.cameras):
-        cam = ct.camera
-        for name, bit in ((cam.image_topic, WANT_RGB), (cam.depth_topic, WANT_DEPTH), (cam.info_topic, WANT_INFO)):
-            out[name.strip("/")] = (s, bit)
-    for s, lt in enumerate(plan.lidars, start=len(plan.cameras)):
-        out[lt.lidar.topic.strip("/")] = (s, WANT_RGB)
-    return out
-
-
 def record_spec(
     options: RecordOptions,
     outputs: Sequence[OutputSpec],
@@ -101,7 +86,7 @@ def record_spec(
     """The recording `options` ask for; OptionError naming `record_topics` or `record_worlds`.
     Cameras' and lidars' topics (`sensors`) only where `options.topics` names them."""
     by_name = {o.topic.strip("/"): i for i, o in enumerate(outputs)}
-    by_sensor = sensor_topics(sensors)
+    by_sensor = {t.name: t for t in sensors.topics()} if sensors is not None else {}
     fleet = [t for t in FLEET_TOPICS if t != "/clock" or clock]
     if tf_channel is None:
         fleet = [t for t in fleet if not t.startswith("/tf")]
@@ -136,8 +121,7 @@ def record_spec(
     bits = [0] * (sensors.nsensor if sensors is not None else 0)
     for name in chosen:
         if name in by_sensor:
-            s, bit = by_sensor[name]
-            bits[s] |= bit
+            bits[by_sensor[name].sensor] |= by_sensor[name].want
     return RecordSpec(
         outputs=picked,
         tf="/tf" in chosen,

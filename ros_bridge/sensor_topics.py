@@ -38,13 +38,50 @@ world it shows (ros_bridge/view_plan.py's ViewCamera).
 from __future__ import annotations
 
 import dataclasses
+import enum
 
 import numpy as np
 
 from batchsim.hardware import BatchedSystem
 from batchsim.sampler import Sample, SensorSampler
 from batchsim.sensors import Camera, CameraMode, Lidar
-from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_RGB, SensorBlock
+from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_INFO, WANT_RGB, SensorBlock
+
+
+class TopicKind(enum.Enum):
+    """What a camera's or lidar's topic carries."""
+
+    IMAGE = "image"  # the block's rgb part, rgb8
+    DEPTH = "depth"  # the depth part, 32FC1 metres
+    INFO = "camera_info"  # no part: the camera's constants, stamped like its frames
+    SCAN = "scan"  # a 2D lidar's ranges, LaserScan
+    CLOUD = "points"  # a 3D lidar's ranges as points, PointCloud2
+
+    @property
+    def msg_type(self) -> str:
+        return _MSG_TYPES[self]
+
+
+_MSG_TYPES = {
+    TopicKind.IMAGE: "sensor_msgs/msg/Image",
+    TopicKind.DEPTH: "sensor_msgs/msg/Image",
+    TopicKind.INFO: "sensor_msgs/msg/CameraInfo",
+    TopicKind.SCAN: "sensor_msgs/msg/LaserScan",
+    TopicKind.CLOUD: "sensor_msgs/msg/PointCloud2",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorTopic:
+    """One topic of one camera or lidar: `sensor` its column in `sensors.want` (cameras, then
+    lidars), `name` relative to a world's namespace, `kind`, `want` the WANT_* bit that asks
+    for it, `part` the sensor block's array its payload comes from (None: CameraInfo)."""
+
+    sensor: int
+    name: str
+    kind: TopicKind
+    want: int
+    part: str | None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,6 +115,21 @@ class SensorPlan:
     @property
     def nsensor(self) -> int:
         return len(self.cameras) + len(self.lidars)
+
+    def topics(self) -> list[SensorTopic]:
+        """Every camera's and lidar's topic, in `sensors.want` column order."""
+        out = []
+        for s, ct in enumerate(self.cameras):
+            cam = ct.camera
+            out += [
+                SensorTopic(s, cam.image_topic.strip("/"), TopicKind.IMAGE, WANT_RGB, "rgb"),
+                SensorTopic(s, cam.depth_topic.strip("/"), TopicKind.DEPTH, WANT_DEPTH, "depth"),
+                SensorTopic(s, cam.info_topic.strip("/"), TopicKind.INFO, WANT_INFO, None),
+            ]
+        for s, lt in enumerate(self.lidars, start=len(self.cameras)):
+            kind = TopicKind.CLOUD if lt.lidar.is_3d else TopicKind.SCAN
+            out.append(SensorTopic(s, lt.lidar.topic.strip("/"), kind, WANT_RGB, "ranges"))
+        return out
 
     def arrays(self, nworld: int) -> list[tuple[str, tuple[int, ...], str]]:
         """The Layout entries of the sensor blocks for `nworld` worlds."""

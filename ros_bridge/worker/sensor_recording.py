@@ -20,7 +20,8 @@ from collections.abc import Callable
 import numpy as np
 
 from ros_bridge.plan import FleetPlan
-from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_INFO, WANT_RGB, SensorBlock, missed
+from ros_bridge.protocol.sensor_blocks import PART_BITS, SensorBlock, missed
+from ros_bridge.sensor_topics import TopicKind
 from ros_bridge.worker.mcap_file import BlockWriter
 from ros_bridge.worker.messages import stamp_of
 from ros_bridge.worker.sensor_messages import (
@@ -32,8 +33,16 @@ from ros_bridge.worker.sensor_messages import (
 )
 from ros_bridge.worker.sensors import under
 
-IMAGE, INFO = "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo"
-SCAN, CLOUD = "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/PointCloud2"
+
+def _framing(kind: TopicKind, source, rate: float | None, frames: list[str], topic: str) -> Framing:
+    """The workers' framing of a `kind` topic of `source` (a Camera or a Lidar at `rate`)."""
+    if kind is TopicKind.IMAGE or kind is TopicKind.DEPTH:
+        return image_framing(source, frames, kind is TopicKind.DEPTH, topic)
+    if kind is TopicKind.INFO:
+        return camera_info_framing(source, frames, topic)
+    if kind is TopicKind.CLOUD:
+        return point_cloud_framing(source, frames, topic)
+    return laser_scan_framing(source, rate, frames, topic)
 
 
 @dataclasses.dataclass
@@ -79,37 +88,26 @@ class SensorRecording:
             return
         namespaces = [plan.namespaces[w] for w in spec.worlds]
         seen = memory["rec.sensors.seen"]
-
-        def topic(name: str, msg_type: str, part: str | None, bit: int, framing: Callable, *args) -> _Topic:
-            names = ["/" + t for t in under(namespaces, name)]
-            ids = np.array([channel(t, msg_type) for t in names], np.int64)
-            return _Topic(part, bit, framing(*args, names[0]), ids)
-
-        for k, ct in enumerate(sensors.cameras):
-            bits, cam = spec.sensors[k], ct.camera
-            if not bits:
+        ncam = len(sensors.cameras)
+        by_sensor: dict[int, list[_Topic]] = {}
+        for t in sensors.topics():  # the recorded ones, framed as the workers frame them
+            if not spec.sensors[t.sensor] & t.want:
                 continue
-            frames = under(namespaces, cam.frame_id)
-            topics = []
-            if bits & WANT_RGB:
-                topics.append(topic(cam.image_topic, IMAGE, "rgb", WANT_RGB, image_framing, cam, frames, False))
-            if bits & WANT_DEPTH:
-                topics.append(topic(cam.depth_topic, IMAGE, "depth", WANT_DEPTH, image_framing, cam, frames, True))
-            if bits & WANT_INFO:
-                topics.append(topic(cam.info_topic, INFO, None, 0, camera_info_framing, cam, frames))
-            block = SensorBlock(memory, f"cam{k}", ("rgb", "depth"))
-            self.sensors.append(_Sensor(block, seen[:, k], topics))
-        for k, lt in enumerate(sensors.lidars):
-            s, ld = len(sensors.cameras) + k, lt.lidar
-            if not spec.sensors[s]:
-                continue
-            frames = under(namespaces, ld.frame_id)
-            if ld.is_3d:
-                t = topic(ld.topic, CLOUD, "ranges", WANT_RGB, point_cloud_framing, ld, frames)
+            if t.sensor < ncam:
+                source, rate = sensors.cameras[t.sensor].camera, None
             else:
-                t = topic(ld.topic, SCAN, "ranges", WANT_RGB, laser_scan_framing, ld, lt.rate, frames)
-            block = SensorBlock(memory, f"lid{k}", ("ranges",))
-            self.sensors.append(_Sensor(block, seen[:, s], [t], ld.points if ld.is_3d else None))
+                source, rate = sensors.lidars[t.sensor - ncam].lidar, sensors.lidars[t.sensor - ncam].rate
+            names = ["/" + n for n in under(namespaces, t.name)]
+            framing = _framing(t.kind, source, rate, under(namespaces, source.frame_id), names[0])
+            ids = np.array([channel(n, t.kind.msg_type) for n in names], np.int64)
+            by_sensor.setdefault(t.sensor, []).append(_Topic(t.part, PART_BITS[t.part] if t.part else 0, framing, ids))
+        for s, topics in by_sensor.items():
+            if s < ncam:
+                block, points = SensorBlock(memory, f"cam{s}", ("rgb", "depth")), None
+            else:
+                ld = sensors.lidars[s - ncam].lidar
+                block, points = SensorBlock(memory, f"lid{s - ncam}", ("ranges",)), ld.points if ld.is_3d else None
+            self.sensors.append(_Sensor(block, seen[:, s], topics, points))
         for sensor in self.sensors:  # from now on: a sample written before the recording is not taken
             seq = sensor.block.seq[self.worlds]
             sensor.seen[:] = seq - seq % 2
