@@ -100,3 +100,25 @@ def test_fleet_published_is_the_workers_count_interpolated_between_their_diagnos
     published.samples = {"world_0": [(0.0, 0.0), (1.0, 100.0)], "world_8": [(0.5, 10.0), (1.5, 30.0)]}
     assert published.total(0.75) == 75.0 + 15.0
     assert math.isnan(published.total(0.25))  # world_8's worker had not reported yet: no figure
+
+
+def test_a_paced_runs_rtf_leaves_out_what_runs_after_the_loop():
+    """timed_run's after-hook (view.py's screenshot, the browser's kill) is not loop time: the
+    RTF counted it, and a 3 s run with a screenshot read 0.335."""
+    import time as wallclock
+
+    timed_run = benchmark("paced_fleet").timed_run
+
+    class Loop:
+        control_rate, sim_time = 100.0, 0.0
+
+        def run_period(self, nstep=None):
+            self.sim_time += 0.01
+
+        def run(self):
+            for _ in range(20):
+                self.run_period()
+                wallclock.sleep(0.01)
+
+    figures = timed_run(Loop(), after=lambda: wallclock.sleep(0.5))
+    assert figures["periods"] == 20 and 0.5 < figures["rtf"] <= 1.2, figures
