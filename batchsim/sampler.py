@@ -11,10 +11,15 @@ are spread over the sensor's period: with a 10 Hz camera and a 100 Hz loop, worl
 rendered in the periods k with k % 10 == w % 10, so no period carries the whole fleet's
 images (its worst period, not only its mean, stays in budget). Where one launch covers
 every world at the same cost (warp: `BatchedSystem.sensors_batched`), all wanted worlds are
-produced together. Either way each world's sensor runs at its rate, rounded to a whole
-number of control periods when spread.
+produced together, and it is the sensors that are spread: a period runs one such launch,
+the earliest deadline first, and a sensor due in the same period waits for a later one as
+long as it can without missing its next reading (a 30 Hz camera and a 10 Hz lidar at a
+100 Hz loop: the lidar one period after the camera they would share; two 100 Hz cameras
+still share every period). Either way each world's sensor runs at its rate, rounded to a
+whole number of control periods when spread, and every sample is stamped with the sim time
+it was taken at.
 
-Cameras are rendered with `render_async`: on cpu and mjx a render thread draws them while
+Cameras on cpu and mjx are rendered with `render_async`: a render thread draws them while
 the loop steps the physics, so rendering and physics share two cores instead of queueing
 on one. A render is handed to the listeners once it is done, at the next update() or the
 one after (its stamp stays the sim time its state was taken at); at most MAX_PENDING
@@ -88,6 +93,7 @@ class SensorSampler:
 
     def update(self, sim: BatchedSystem, time: float, period: float) -> None:
         suite = sim.sensors
+        batched = []  # (deadline, name, mask) of the batched sensors due now
         for name, every in self._period.items():
             mask = suite.wanted(name)
             if not mask.any():
@@ -95,15 +101,20 @@ class SensorSampler:
             if self._spread:
                 phases = max(1, round(every / period))
                 mask = mask & (self._world % phases == round(time / period) % phases)
-                if not mask.any():
-                    continue
-            else:
-                # due once a sensor period has elapsed; half a control period of slack absorbs rounding
-                if time + 0.5 * period < self._due[name]:
-                    continue
-                # the next reading one sensor period on; after idling or falling behind, from now
-                due = self._due[name] + every
-                self._due[name] = due if due > time else time + every
+                if mask.any():
+                    self._produce(sim, name, np.flatnonzero(mask), time)
+            # due once a sensor period has elapsed; half a control period of slack absorbs rounding
+            elif time + 0.5 * period >= self._due[name]:
+                # the last period it can run in before its next reading is due
+                batched.append((self._due[name] + every - period, name, mask))
+        batched.sort()
+        for i, (deadline, name, mask) in enumerate(batched):
+            if i and time + 0.5 * period < deadline:
+                continue  # one launch a period: this one in a later period, still before its next reading
+            # the next reading one sensor period on from this one's schedule (the rate holds
+            # when it waited); after idling or falling behind, from now
+            due = self._due[name] + self._period[name]
+            self._due[name] = due if due > time else time + self._period[name]
             self._produce(sim, name, np.flatnonzero(mask), time)
         # renders done by now go out, oldest first, past MAX_PENDING the oldest is waited for;
         # but a world's second frame of a camera waits for the next update
@@ -127,7 +138,11 @@ class SensorSampler:
 
     def _produce(self, sim: BatchedSystem, name: str, worlds: np.ndarray, time: float) -> None:
         if name in sim.sensors.cameras:
-            self._pending.append((time, sim.render_async(name, worlds)))
+            if self._spread:
+                self._pending.append((time, sim.render_async(name, worlds)))
+            else:  # drawn before render returns: handed out as they are, no thread, no copy of the frames
+                rgb, depth = sim.render(name, worlds, copy=False)
+                self._hand_out(Sample(name, time, worlds, rgb=rgb, depth=depth))
         else:
             self._hand_out(Sample(name, time, worlds, ranges=sim.scan(name, worlds, copy=False)))
 
