@@ -35,6 +35,7 @@ from ros_bridge.protocol.requests import (
     encode_reset,
     encode_trajectories,
 )
+from ros_bridge.protocol.snapshot import Snapshot, read_snapshot, write_snapshot
 from ros_bridge.throttle import LogThrottle
 
 IFACES = [f"joint{i}/position" for i in range(1, 4)]
@@ -163,6 +164,43 @@ def test_shared_memory_is_seen_by_an_attached_view_and_unlinked_by_its_creator()
     created.close()
     with pytest.raises(FileNotFoundError):
         Memory.attach(layout, created.name)
+
+
+def test_a_worker_a_period_late_still_gets_a_channel_due_only_in_the_period_it_missed():
+    """joint_states at 25 Hz in a 100 Hz loop are in one snapshot of four: a worker woken after
+    the next snapshot was written read only the newest and lost them (4096 arms on a GPU host:
+    0.946 of the joint_states arrived)."""
+    nworld = 3
+    layout = Layout(
+        [("latest", (1,), "i8"), ("seq", (2,), "i8"), ("meta", (2, 4), "f8"), ("status", (2, nworld), "u1"),
+         ("flags", (2, nworld), "u1"), ("written", (2, 1), "i8"), ("demand", (1, 1), "u1"), ("ch0", (2, nworld, 2), "f8")]
+    )  # fmt: skip
+    m = Memory.create(layout, shared=False)
+    m["demand"][:] = 1
+    m["written"][:] = -1
+    zeros = np.zeros(nworld, np.uint8)
+
+    def write(n: int, due: bool) -> None:
+        fill = lambda out: out.fill(float(n))  # noqa: E731
+        write_snapshot(m, n, n, 0.01 * n, False, zeros, zeros, [fill], [due])
+
+    seen = Snapshot()
+    write(0, True)
+    assert read_snapshot(m, 1, 0, nworld, seen, catch_up=True).n == 0
+    write(1, False)
+    write(2, True)  # due, then superseded before the worker woke
+    write(3, False)
+    snap = read_snapshot(m, 1, 1, 3, seen, catch_up=True)
+    assert (snap.n, snap.period) == (2, 2) and snap.channels[0].tolist() == [[2.0, 2.0], [2.0, 2.0]]
+    snap = read_snapshot(m, 1, 1, 3, seen, catch_up=True)
+    assert snap.n == 3 and snap.channels == {}
+    assert read_snapshot(m, 1, 1, 3, seen, catch_up=True) is None
+    # without catch_up (the view), the newest; and none older where the newest has the channel too
+    write(4, True)
+    write(5, True)
+    assert read_snapshot(m, 1, 0, nworld, Snapshot()).n == 5
+    assert read_snapshot(m, 1, 0, nworld, Snapshot(), catch_up=True).n == 5
+    m.close()
 
 
 def test_ring_wraps_refuses_when_full_and_continues_across_writers():

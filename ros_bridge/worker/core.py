@@ -83,7 +83,6 @@ class Worker:
       index: which worker (its range, node name, ring).
       memory: the shared arrays (attached, or the physics process's own).
       notify_fd: a pipe the loop waits on in lockstep; a byte is written when a command arrives.
-      log: where the worker's own lines go (its node's logger by default).
     """
 
     def __init__(self, plan: FleetPlan, index: int, memory: Memory, *, notify_fd: int | None = None):
@@ -107,9 +106,7 @@ class Worker:
         self.qos = QoSProfile(
             depth=plan.qos_depth,
             history=HistoryPolicy.KEEP_LAST,
-            reliability=(
-                ReliabilityPolicy.BEST_EFFORT if plan.reliability is Reliability.BEST_EFFORT else ReliabilityPolicy.RELIABLE
-            ),
+            reliability=ReliabilityPolicy.BEST_EFFORT if plan.reliability is Reliability.BEST_EFFORT else ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.VOLATILE,
         )
         self.snapshot = Snapshot()
@@ -265,8 +262,10 @@ class Worker:
     def tick(self) -> None:
         """Publish the newest snapshot if it is new; answer services; housekeeping."""
         self._beat[self.index] += 1
-        snap = read_snapshot(self.memory, len(self.plan.channels), self.lo, self.hi, self.snapshot)
-        if snap is not None:
+        for _ in range(2):  # a period late: the one it missed (its due channels), then the newest
+            snap = read_snapshot(self.memory, len(self.plan.channels), self.lo, self.hi, self.snapshot, catch_up=True)
+            if snap is None:
+                break
             self._publish(snap)
             if self.actions is not None:
                 self.actions.update(snap.channels, snap.time)
