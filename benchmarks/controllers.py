@@ -1,6 +1,7 @@
 """What the controllers cost per control period, message hand-over included, against the physics.
 
-Every control period runs, in one process, on the cpu backend, as the loop runs it:
+Every control period runs, in one process, on the cpu backend (or `--backend warp|mjx` on a
+GPU host), as the loop runs it:
 
   hand-over:    what arrived in this period, one call per controller, as a bridge delivers it
                 (`set_trajectories(batch)`, `set_cmd_vel_batch`, `set_commands_batch`)
@@ -8,8 +9,9 @@ Every control period runs, in one process, on the cpu backend, as the loop runs 
   physics:      sim.write(); sim.step(substeps); sim.read()
 
 The controllers' share of a period is hand-over + update, timed together; the physics is
-timed apart. Both are reported as the median and the worst period (and the 99th
-percentile, since one stray period of a shared machine sets the worst). `--clock cpu`
+timed apart. Both, and the whole period (their sum, what a control period's deadline
+holds), are reported as the median and the worst period (and the 99th percentile, since
+one stray period of a shared machine sets the worst). `--clock cpu`
 times the controllers by this process's CPU time instead of the wall clock: on a machine
 whose cores other jobs share, that leaves out the time the process waited for a core
 (the controllers run in one thread; the physics column stays wall time).
@@ -28,7 +30,7 @@ A last line times the hand-over alone: 1024 10-point trajectories in one `set_tr
 call, and as 1024 `set_trajectory` calls (one per message, as a bridge without batches does).
 
     python benchmarks/controllers.py [--worlds 16,256,1024] [--models arm,car,quadruped]
-                                     [--cases stream,burst,long] [--seconds 3]
+                                     [--cases stream,burst,long] [--seconds 3] [--backend cpu]
 """
 
 from __future__ import annotations
@@ -135,10 +137,16 @@ def feeder(
 
 
 def measure(
-    model: str, case: str, nworld: int, seconds: float, clock: Callable[[], float] = time.perf_counter
+    model: str,
+    case: str,
+    nworld: int,
+    seconds: float,
+    clock: Callable[[], float] = time.perf_counter,
+    backend: str = "cpu",
 ) -> dict[str, np.ndarray]:
-    """Seconds per period of the physics and of the controllers (hand-over + update), recorded periods only."""
-    sim = batchsim.make(model, nworld, "cpu")
+    """Seconds per period of the physics and of the controllers (hand-over + update), recorded
+    periods only (the warm-up's first period compiles on the GPU backends)."""
+    sim = batchsim.make(model, nworld, backend)
     sim.configure()
     sim.activate()
     manager = load_controllers(default_controllers(model), sim.spec, nworld)
@@ -180,17 +188,20 @@ def main() -> None:
     p.add_argument("--seconds", type=float, default=3.0, help="wall seconds per (case, worlds), at least")
     p.add_argument("--no-handover", action="store_true", help="skip the hand-over line")
     p.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="how the controllers are timed")
+    p.add_argument("--backend", default="cpu", help="the physics' backend (cpu, warp, mjx)")
     args = p.parse_args()
     clock = time.perf_counter if args.clock == "wall" else time.process_time
 
     print(
         f"# {platform.node()} | {os.cpu_count()} cores | {platform.processor() or platform.machine()} | "
         f"python {platform.python_version()} | mujoco {mujoco.__version__} | numpy {np.__version__} | "
-        f"{time.strftime('%Y-%m-%d')} | load {os.getloadavg()[0]:.1f} | controllers timed by {args.clock} clock"
+        f"{time.strftime('%Y-%m-%d')} | load {os.getloadavg()[0]:.1f} | controllers timed by {args.clock} clock | "
+        f"backend {args.backend}"
     )
     print(
         f"{'model':10s} {'case':7s} {'worlds':>6s} {'periods':>7s} | {'physics ms: median':>18s} {'worst':>7s} | "
-        f"{'controllers ms: median':>22s} {'p99':>7s} {'worst':>7s} | {'median ratio':>12s}"
+        f"{'controllers ms: median':>22s} {'p99':>7s} {'worst':>7s} | {'median ratio':>12s} | "
+        f"{'period ms: median':>17s} {'worst':>7s}"
     )
     for model in args.models.split(","):
         cases = args.cases.split(",") if model == "arm" else ["-"]
@@ -198,12 +209,13 @@ def main() -> None:
             for nworld in (int(n) for n in args.worlds.split(",")):
                 if case == "long" and nworld != 16:
                     continue
-                r = measure(model, case, nworld, args.seconds, clock)
+                r = measure(model, case, nworld, args.seconds, clock, args.backend)
                 ph, ct = r["physics"] * 1e3, r["controllers"] * 1e3
+                whole = ph + ct
                 print(
                     f"{model:10s} {case:7s} {nworld:6d} {len(ct):7d} | {np.median(ph):18.3f} {ph.max():7.2f} | "
                     f"{np.median(ct):22.3f} {np.percentile(ct, 99):7.3f} {ct.max():7.3f} | "
-                    f"{np.median(ct) / np.median(ph):12.3f}",
+                    f"{np.median(ct) / np.median(ph):12.3f} | {np.median(whole):17.3f} {whole.max():7.2f}",
                     flush=True,
                 )
     if not args.no_handover:

@@ -16,7 +16,8 @@ Per size, each in fresh processes on a private ROS domain (discovery limited to 
               two can differ by about a publishing round's messages per edge either way; the loop never waits for the workers: a worker that
               falls behind publishes the newest state and skips the rest)
   real time   `batchsim --rtf 1`, the same subscribers: the RTF held (median and worst
-              one-second window), joint_states received/s against worlds x publish rate x RTF
+              one-second window), joint_states received/s against published/s (the
+              workers' count, as above) and against worlds x publish rate x RTF
   heard after seconds from batchsim's start line (its workers up) until every world's
               joint_states reached a subscriber, in the real-time run
 
@@ -178,11 +179,30 @@ class Published:
 
     def total(self, t: float) -> float:
         """joint_states all workers had published by wall time `t` (interpolated); NaN where
-        a worker's /diagnostics do not reach that far (or none came)."""
-        counts = [at(s, t) for s in list(self.samples.values())]
-        if not counts or any(c is None for c in counts):
+        a worker's /diagnostics do not reach that far (or none came): which, on stderr."""
+        series = dict(self.samples)
+        counts = {worker: at(s, t) for worker, s in series.items()}
+        late = sorted(worker for worker, c in counts.items() if c is None)
+        if not counts or late:
+            spans = ", ".join(f"{w} {series[w][0][0] - t:+.1f}..{series[w][-1][0] - t:+.1f} s" for w in late[:4])
+            print(f"# published: no /diagnostics at the window's edge from {len(late)} of {len(counts)} workers ({spans})",
+                  file=sys.stderr, flush=True)  # fmt: skip
             return float("nan")
-        return float(sum(counts))
+        return float(sum(counts.values()))
+
+    def wait_ready(self, timeout: float, settle: float = 1.5) -> None:
+        """Until some worker's /diagnostics came and no new worker's for `settle` seconds: a
+        window opened before a worker's first /diagnostics cannot count it at its start (a
+        worker of 512 worlds publishes its first ones seconds after the fleet runs)."""
+        deadline = time.time() + timeout
+        seen, since = 0, time.time()
+        while time.time() < deadline:
+            n = len(self.samples)
+            if n != seen:
+                seen, since = n, time.time()
+            elif n and time.time() - since >= settle:
+                return
+            time.sleep(0.1)
 
     def close(self) -> None:
         try:
@@ -193,6 +213,7 @@ class Published:
             self.proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             self.proc.kill()
+
 
 def _pythonpath() -> str:
     """The project first, then whatever the caller's PYTHONPATH holds (on the GPU host, the
@@ -352,12 +373,13 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
         try:
             b.wait_running(opts.start_timeout)
             time.sleep(opts.warmup)
+            published.wait_ready(30.0)
             t0 = time.time()
             time.sleep(opts.seconds)
             t1 = time.time()
             # both counts interpolated at t0 and t1: every subscriber (every 0.25 s) and every
             # worker's /diagnostics (every 0.5 s) reported past t1
-            wait_sampled([*subs.samples, *published.samples.values()], t1, 3.0)
+            wait_sampled([*subs.samples, *published.samples.values()], t1, 5.0)
             rows = b.status(t0, t1 + 0.8)
         finally:
             b.stop()
@@ -369,6 +391,7 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
         subs.close()
 
     subs = Subscribers(domain, worlds, opts.subscriber_processes, "world_{i}")
+    published = Published(domain)
     try:
         time.sleep(1.0)  # the subscribers' own start
         b = Batchsim(ros + ["--rtf", "1"], domain)
@@ -380,15 +403,19 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
             heard = subs.all_heard()
             out["heard"] = (heard - b.started) if heard is not None else float("nan")
             time.sleep(opts.warmup)
+            published.wait_ready(30.0)
             t0 = time.time()
             c0 = subs.total(t0)
             time.sleep(opts.seconds)
             t1 = time.time() - 0.3  # the subscribers' last reports lag a little
+            wait_sampled([*subs.samples, *published.samples.values()], t1, 5.0)
             c1 = subs.total(t1)
+            out["published"] = (published.total(t1) - published.total(t0)) / (t1 - t0)
             rows = b.status(t0, t1 + 0.8)
         finally:
             b.stop()
     finally:
+        published.close()
         subs.close()
     rtfs = [r for r, _ in rows]
     out["rtf"] = statistics.median(rtfs) if rtfs else float("nan")
@@ -445,9 +472,9 @@ def main() -> None:
     print(
         "| worlds | control Hz | joint_states Hz | steps/s no ROS | steps/s flat out with ROS | ratio "
         "| joint_states/s flat out, received / published | RTF held (median / worst) "
-        "| joint_states received/s | expected/s | all worlds heard after s |"
+        "| joint_states received/s | published/s | expected/s | all worlds heard after s |"
     )
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
     last = None
     began = time.monotonic()
     for worlds, control, publish in sizes:
@@ -456,7 +483,7 @@ def main() -> None:
         last = r
         print(
             f"| {worlds} | {control:g} | {publish:g} | {r['no_ros']:,.0f} | {r['flat_out']:,.0f} | {r['flat_out'] / r['no_ros']:.3f} | "
-            f"{r['flat_out_received']:,.0f} / {r['flat_out_published']:,.0f} | {r['rtf']:.2f} / {r['rtf_min']:.2f} | {r['received']:,.0f} | {r['expected']:,.0f} | {r['heard']:.1f} |",
+            f"{r['flat_out_received']:,.0f} / {r['flat_out_published']:,.0f} | {r['rtf']:.2f} / {r['rtf_min']:.2f} | {r['received']:,.0f} | {r['published']:,.0f} | {r['expected']:,.0f} | {r['heard']:.1f} |",
             flush=True,
         )
     if last is not None:
