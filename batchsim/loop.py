@@ -242,7 +242,8 @@ class SimLoop:
 
     def run(self, report: Callable[[LoopStats], None] | None = None, report_every: float = 1.0) -> LoopStats:
         """Run until stop() or `duration`; call `report` about every `report_every` wall seconds."""
-        scheduling = _Scheduling(self) if self.rtf > 0 and (self.thread_priority or self.cpu_affinity) else None
+        # flat out (rtf 0) the thread keeps its cores but never asks for SCHED_FIFO (it would starve them)
+        scheduling = _Scheduling(self) if self.cpu_affinity or (self.rtf > 0 and self.thread_priority) else None
         try:
             return self._run(report, report_every, scheduling)
         finally:
@@ -328,7 +329,8 @@ class _Scheduling:
         # objects took 160-190 ms of one period (1024 arms with the bridge, H100 host)
         gc.collect()
         gc.freeze()
-        self.saved, problems = realtime.elevate(self.loop.thread_priority, self.loop.cpu_affinity)
+        priority = self.loop.thread_priority if self.loop.rtf > 0 else 0
+        self.saved, problems = realtime.elevate(priority, self.loop.cpu_affinity)
         for line in problems:
             log.warning("batchsim: warning: the loop thread runs without %s (its periods may run late under load)", line)
 

@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/fleet.py --preset gpu     # the GPU host's target set (warp, arm)
     .venv/bin/python benchmarks/fleet.py --preset 2core   # this project's 2-core CI machine
     .venv/bin/python benchmarks/fleet.py --backend cpu --worlds 16,64 --control-rate 100
+    .venv/bin/python benchmarks/fleet.py --preset gpu --cpu-affinity 0   # the loop on core 0, the rest off it
 
 Per size, each in fresh processes on a private ROS domain (discovery limited to this host):
 
@@ -162,11 +163,12 @@ def wait_sampled(series: list[list[tuple[float, float]]], t: float, timeout: flo
 class Published:
     """A process reading the workers' /diagnostics: joint_states published, per worker."""
 
-    def __init__(self, domain: int):
+    def __init__(self, domain: int, reserved: tuple[int, ...] = ()):
         env = {**os.environ, **LOCALHOST, "PYTHONPATH": _pythonpath()}
         self.proc = subprocess.Popen(
             [sys.executable, __file__, "--published", str(domain)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env
         )
+        keep_off(self.proc, reserved)
         self.samples: dict[str, list[tuple[float, float]]] = {}
         self._thread = threading.Thread(target=self._read, daemon=True)
         self._thread.start()
@@ -215,6 +217,12 @@ class Published:
             self.proc.kill()
 
 
+def keep_off(proc: subprocess.Popen, reserved: tuple[int, ...]) -> None:
+    """Keep a helper process off the loop's cores (`--cpu-affinity`), as a user's taskset would."""
+    if reserved:
+        os.sched_setaffinity(proc.pid, set(os.sched_getaffinity(0)) - set(reserved))
+
+
 def _pythonpath() -> str:
     """The project first, then whatever the caller's PYTHONPATH holds (on the GPU host, the
     MuJoCo wheels' directory)."""
@@ -225,7 +233,7 @@ def _pythonpath() -> str:
 class Subscribers:
     """K subscriber processes sharing the worlds."""
 
-    def __init__(self, domain: int, worlds: int, k: int, template: str):
+    def __init__(self, domain: int, worlds: int, k: int, template: str, reserved: tuple[int, ...] = ()):
         k = max(1, min(k, worlds))
         edges = [round(i * worlds / k) for i in range(k + 1)]
         env = {**os.environ, **LOCALHOST, "PYTHONPATH": _pythonpath()}
@@ -236,6 +244,8 @@ class Subscribers:
             )  # fmt: skip
             for a, b in zip(edges[:-1], edges[1:], strict=True)
         ]
+        for proc in self.procs:
+            keep_off(proc, reserved)
         self.heard: list[float | None] = [None] * len(self.procs)
         self.samples: list[list[tuple[float, int]]] = [[] for _ in self.procs]
         self._threads = [threading.Thread(target=self._read, args=(i,), daemon=True) for i in range(len(self.procs))]
@@ -347,6 +357,9 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
         common += ["--threads", str(opts.threads)]
     if opts.devices:
         common += ["--devices", opts.devices]
+    reserved = tuple(int(c) for c in opts.cpu_affinity.split(",")) if opts.cpu_affinity else ()
+    if reserved:  # the loop's thread on these cores, with ROS and without; the workers keep off them
+        common += ["--cpu-affinity", opts.cpu_affinity]
     ros = common + ["--publish-rate", f"{publish:g}"]
     if opts.bridge_workers is not None:
         ros += ["--bridge-workers", str(opts.bridge_workers)]
@@ -366,8 +379,8 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
         b.stop()
     out["no_ros"] = statistics.median(s for _, s in rows) if rows else float("nan")
 
-    subs = Subscribers(domain, worlds, opts.subscriber_processes, "world_{i}")
-    published = Published(domain)
+    subs = Subscribers(domain, worlds, opts.subscriber_processes, "world_{i}", reserved)
+    published = Published(domain, reserved)
     try:
         b = Batchsim(ros + ["--rtf", "0"], domain)
         try:
@@ -390,8 +403,8 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
         published.close()
         subs.close()
 
-    subs = Subscribers(domain, worlds, opts.subscriber_processes, "world_{i}")
-    published = Published(domain)
+    subs = Subscribers(domain, worlds, opts.subscriber_processes, "world_{i}", reserved)
+    published = Published(domain, reserved)
     try:
         time.sleep(1.0)  # the subscribers' own start
         b = Batchsim(ros + ["--rtf", "1"], domain)
@@ -444,6 +457,9 @@ def main() -> None:
     p.add_argument("--bridge-workers", type=int, default=None, help="default: batchsim's own choice")
     p.add_argument("--devices", default=None, help="GPU backends: the devices the worlds are split over ('all', '0,1')")
     p.add_argument("--threads", type=int, default=None, help="cpu backend: physics threads")
+    p.add_argument(
+        "--cpu-affinity", default="", metavar="I,J", help="batchsim's --cpu-affinity (both runs); the subscribers keep off these cores"
+    )
     p.add_argument("--seconds", type=float, default=8.0, help="measurement window, wall seconds")
     p.add_argument("--warmup", type=float, default=2.0)
     p.add_argument("--start-timeout", type=float, default=300.0, help="seconds batchsim may take to start (GPU compiles)")
@@ -467,6 +483,7 @@ def main() -> None:
         f"# {platform.node() or 'host'}, {os.cpu_count()} cores, Python {platform.python_version()}, {versions}, "
         f"{opts.backend} {opts.model}, physics threads {opts.threads or 'default'}, "
         f"{opts.subscriber_processes} subscriber processes, bridge workers {opts.bridge_workers if opts.bridge_workers is not None else 'default'}, "
+        f"loop on cores {opts.cpu_affinity or 'any'}, "
         f"load {os.getloadavg()[0]:.1f}, {time.strftime('%Y-%m-%d')}"
     )  # fmt: skip
     print(
