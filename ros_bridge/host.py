@@ -50,7 +50,7 @@ from ros_bridge.protocol.requests import (
     decode_ticket,
     decode_trajectories,
 )
-from ros_bridge.protocol.snapshot import write_snapshot
+from ros_bridge.protocol.snapshot import reset_snapshots, write_snapshot
 from ros_bridge.protocol.world_params import ParamWriter
 from ros_bridge.simulation import SimulationRequests
 from ros_bridge.supervisor import Supervisor
@@ -108,8 +108,7 @@ class BridgeHost:
         self.memory = Memory.create(plan.layout, shared=processes or plan.recording is not None)  # a recorder attaches
         plan.memory_name = self.memory.name
         m = self.memory
-        m["latest"][0] = -1
-        m["written"][:] = -1
+        reset_snapshots(m)
         self.commands = SlotReader(m, "cmd")
         self._input_readers = [
             SlotReader(m, spec.slots) if spec.kind is not MessageKind.JOINT_TRAJECTORY else None for spec in plan.inputs

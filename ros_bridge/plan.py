@@ -41,6 +41,7 @@ from ros_bridge.options import BridgeOptions, Reliability
 from ros_bridge.outputs import ChannelFill, Field, OutputSpec, robot_outputs
 from ros_bridge.protocol.commands import rejection_arrays, slot_arrays
 from ros_bridge.protocol.requests import trajectory_bytes, wrench_arrays
+from ros_bridge.protocol.snapshot import snapshot_arrays
 from ros_bridge.protocol.world_params import param_arrays
 from ros_bridge.recording import RecordSpec, record_spec
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan
@@ -150,12 +151,7 @@ class FleetPlan:
     def __post_init__(self) -> None:
         n, ncmd, nw = self.nworld, len(self.interfaces), len(self.ranges)
         arrays: list[tuple[str, tuple[int, ...], str]] = [
-            ("latest", (1,), "i8"),  # the newest complete snapshot
-            ("seq", (2,), "i8"),  # per buffer: 2n+1 while snapshot n is written, 2n+2 when done
-            ("meta", (2, 4), "f8"),  # per buffer: snapshot n, period index, sim time, forced
-            ("status", (2, n), "u1"),  # Status bits, the bridge's BAD_COMMAND included
-            ("flags", (2, n), "u1"),  # FLAG_* bits
-            ("written", (2, max(1, len(self.channels))), "i8"),  # snapshot that wrote each channel
+            *snapshot_arrays(n, [ch.width for ch in self.channels]),  # protocol/snapshot.py
             ("demand", (nw, max(1, len(self.channels))), "u1"),  # per worker: channels it publishes
             ("svc.issued", (nw,), "i8"),  # per worker: its last service ticket
             ("svc.done", (nw,), "i8"),  # per worker: the newest ticket the loop carried out
@@ -168,8 +164,6 @@ class FleetPlan:
             ("beat", (nw,), "i8"),  # per worker: ticks served
             ("worker.hung", (nw,), "f8"),  # per worker: since when (epoch s) it has not ticked; 0: it does
         ]
-        for c, ch in enumerate(self.channels):
-            arrays.append((f"ch{c}", (2, n, ch.width), "f8"))
         arrays += slot_arrays("cmd", n, ncmd, per_column=True)
         for spec in self.inputs:
             if spec.kind is MessageKind.JOINT_TRAJECTORY:

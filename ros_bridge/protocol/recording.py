@@ -25,6 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from batchsim.memory import Memory
+from ros_bridge.protocol.snapshot import HEADERS, channel_rows
 
 RING_BYTES = 32 << 20  # the ring's size, at most (pages are taken only as a recording writes them)
 MIN_SLOTS, MAX_SLOTS = 16, 4096
@@ -84,18 +85,17 @@ class RecordWriter:
         if self.full():
             m["rec.dropped"][0] += 1
             return False
-        b = n % 2
+        b = n % HEADERS
         k = int(m["rec.pos"][0])
         s = k % self.slots
         m["rec.meta"][s] = m["meta"][b]
         m["rec.flags"][s] = m["flags"][b, self.worlds]
         m["rec.status"][s] = m["status"][b, self.worlds]
-        written = m["written"][b]
         for j, c in enumerate(self.channels):
-            fresh = int(written[c]) == n
-            m["rec.written"][s, j] = fresh
-            if fresh:
-                np.take(m[f"ch{c}"][b], self.worlds, axis=0, out=m[f"rec.ch{c}"][s])
+            rows = channel_rows(m, n, c)
+            m["rec.written"][s, j] = rows is not None
+            if rows is not None:
+                np.take(rows, self.worlds, axis=0, out=m[f"rec.ch{c}"][s])
         m["rec.pos"][0] = k + 1
         return True
 

@@ -1,15 +1,22 @@
 """The snapshot protocol: what the loop publishes each control period, through shared memory.
 Its writer (the physics process, `write_snapshot`) and its reader (a bridge worker,
-`read_snapshot`) are both here; no rclpy.
+`read_snapshot`) are both here, with their shared arrays (`snapshot_arrays`); no rclpy.
 
-Two buffers, seqlocked: snapshot n goes into buffer n % 2, whose `seq` reads 2n+1 while it
-is written and 2n+2 when done, then `latest` says n. A reader copies its rows and checks
-`seq` again: it retries a buffer being rewritten and never keeps a torn row. A worker woken
-late reads the snapshot before the newest first where that one holds a channel the newest
-does not (joint_states at 25 Hz in a 100 Hz loop are in one snapshot of four): a reader one
-period late loses no message; two periods late, it does. Each channel
-(ros_bridge/outputs.py) is copied only when some worker publishes from it this period
-(`demand`, a recording's `rec.want`, the view's `view.want`); `written[c]` says which snapshot last wrote channel c.
+A snapshot is a header (its number n, period index, sim time, forced; each world's status
+and flags; which channels it wrote) and the rows of the channels it wrote. Headers go into a
+ring of HEADERS buffers, snapshot n into buffer n % HEADERS, whose `seq` reads 2n+1 while it
+is written and 2n+2 when done, then `latest` says n. A channel's rows go into the channel's
+own two slots, its w-th write into slot w % 2 (`cseq[c, slot]`: 2w+1 while written, 2w+2
+when done), so a snapshot that does not write a channel leaves its last rows alone. A reader
+copies and checks the seqs again: it retries a header being rewritten and never keeps a
+torn row. Each channel (ros_bridge/outputs.py) is written only when some worker publishes
+from it this period (`demand`, a recording's `rec.want`, the view's `view.want`).
+
+A worker woken late (`catch_up`) reads the oldest snapshot it has not seen that holds a
+channel no later one holds, then the next: joint_states at 25 Hz in a 100 Hz loop are in
+one snapshot of four, and a worker that stalls 30-100 ms (a graph scan, /diagnostics of 512
+worlds) still publishes each of them, as long as its header and that channel's rows were
+not overwritten since (HEADERS - 1 periods; two more writes of the channel).
 """
 
 from __future__ import annotations
@@ -19,6 +26,41 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from batchsim.memory import Memory
+
+HEADERS = 8  # snapshot headers kept: a reader HEADERS - 1 periods late still finds one
+
+
+def snapshot_arrays(nworld: int, widths: Sequence[int]) -> list[tuple[str, tuple[int, ...], str]]:
+    """The shared arrays of snapshots of `nworld` worlds with channels of these widths."""
+    nch = max(1, len(widths))
+    arrays: list[tuple[str, tuple[int, ...], str]] = [
+        ("latest", (1,), "i8"),  # the newest complete snapshot
+        ("seq", (HEADERS,), "i8"),  # per header: 2n+1 while snapshot n is written, 2n+2 when done
+        ("meta", (HEADERS, 4), "f8"),  # per header: snapshot n, period index, sim time, forced
+        ("status", (HEADERS, nworld), "u1"),  # Status bits, the bridge's BAD_COMMAND included
+        ("flags", (HEADERS, nworld), "u1"),  # FLAG_* bits
+        ("written", (HEADERS, nch), "i8"),  # per header and channel: n if it wrote the channel, else -1
+        ("cwrite", (HEADERS, nch), "i8"),  # ... and which write of the channel that was
+        ("cseq", (nch, 2), "i8"),  # per channel and slot: 2w+1 while its write w goes in, 2w+2 done
+        ("cwrites", (nch,), "i8"),  # per channel: its writes so far
+    ]
+    arrays += [(f"ch{c}", (2, nworld, width), "f8") for c, width in enumerate(widths)]
+    return arrays
+
+
+def reset_snapshots(memory: Memory) -> None:
+    """No snapshot yet."""
+    memory["latest"][0] = -1
+    memory["written"][:] = -1
+
+
+def channel_rows(memory: Memory, n: int, c: int) -> np.ndarray | None:
+    """Channel c's rows as snapshot n wrote them (nworld, width), a view; None where n did
+    not write c. For the writer's own process (no check against a concurrent write)."""
+    b = n % HEADERS
+    if int(memory["written"][b, c]) != n:
+        return None
+    return memory[f"ch{c}"][int(memory["cwrite"][b, c]) % 2]
 
 
 def write_snapshot(
@@ -36,7 +78,7 @@ def write_snapshot(
     """Write snapshot `n`: status and flags `(nworld,)`, and each channel `c` a worker demands
     (every one with `every_channel`) whose `due[c]` is true, by `fills[c](out)`. Returns n."""
     m = memory
-    b = n % 2
+    b = n % HEADERS
     m["seq"][b] = 2 * n + 1
     m["meta"][b] = (n, period, time, float(forced))
     m["status"][b] = status
@@ -46,11 +88,15 @@ def write_snapshot(
         if extra in m:
             demand = demand | m[extra].astype(bool)
     demand = demand.tolist()
-    written = m["written"][b]
+    written, cwrite, cseq, cwrites = m["written"][b], m["cwrite"][b], m["cseq"], m["cwrites"]
     for c, fill in enumerate(fills):
         if due[c] and (every_channel or demand[c]):
-            fill(m[f"ch{c}"][b])
-            written[c] = n
+            w = int(cwrites[c])
+            cseq[c, w % 2] = 2 * w + 1
+            fill(m[f"ch{c}"][w % 2])
+            cseq[c, w % 2] = 2 * w + 2
+            cwrites[c] = w + 1
+            written[c], cwrite[c] = n, w
         else:
             written[c] = -1
     m["seq"][b] = 2 * n + 2
@@ -79,8 +125,9 @@ def read_snapshot(
 ) -> Snapshot | None:
     """Rows lo..hi-1 of the newest snapshot into `snap`, if newer than it; None otherwise.
 
-    With `catch_up`, the snapshot before the newest instead, where `snap` has not seen it
-    and it holds a channel the newest does not: the next call then gives the newest."""
+    With `catch_up`, the oldest snapshot `snap` has not seen that holds a channel no later
+    snapshot holds, where there is one still kept: the next calls give the later ones. A
+    channel whose rows were overwritten meanwhile is left out of `snap.channels`."""
     m = memory
     latest, seq = m["latest"], m["seq"]
     for _ in range(8):
@@ -88,23 +135,38 @@ def read_snapshot(
         if n <= snap.n:
             return None
         if catch_up and n - 1 > snap.n:
-            # unlocked look: a buffer rewritten meanwhile fails the seq checks below
-            older, newest = m["written"][(n - 1) % 2], m["written"][n % 2]
-            if ((older == n - 1) & (newest != n)).any():
-                n -= 1
-        b = n % 2
+            n = _oldest_needed(m, n, max(snap.n + 1, n - HEADERS + 2))
+        b = n % HEADERS
         if int(seq[b]) != 2 * n + 2:
             continue  # being rewritten: a newer one is coming
         meta = m["meta"][b].copy()
         status = m["status"][b, lo:hi].copy()
         flags = m["flags"][b, lo:hi].copy()
         written = m["written"][b].copy()
-        channels = {
-            c: m[f"ch{c}"][b, lo:hi].copy() for c in range(nchannel) if written[c] == n
-        }
+        cwrite = m["cwrite"][b].copy()
         if int(seq[b]) != 2 * n + 2:
             continue  # torn: the loop lapped us
+        channels = {}
+        for c in range(nchannel):
+            if written[c] == n:
+                w = int(cwrite[c])
+                rows = m[f"ch{c}"][w % 2, lo:hi].copy()
+                if int(m["cseq"][c, w % 2]) == 2 * w + 2:  # not overwritten while copied, nor before
+                    channels[c] = rows
         snap.n, snap.period, snap.time, snap.forced = n, int(meta[1]), float(meta[2]), bool(meta[3])
         snap.status, snap.flags, snap.written, snap.channels = status, flags, written, channels
         return snap
     return None
+
+
+def _oldest_needed(m: Memory, n: int, first: int) -> int:
+    """The oldest of snapshots first..n holding a channel none after it holds (n if none).
+    Unlocked looks: a header rewritten meanwhile fails read_snapshot's seq checks."""
+    held = m["written"][n % HEADERS] == n  # channels a later snapshot holds
+    pick = n
+    for k in range(n - 1, first - 1, -1):
+        mine = m["written"][k % HEADERS] == k
+        if (mine & ~held).any():
+            pick = k
+        held |= mine
+    return pick

@@ -51,7 +51,7 @@ from ros_bridge.naming import topic_name, worlds_label
 from ros_bridge.options import Reliability
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.protocol.commands import Problem, SlotWriter, check_single, check_vector
-from ros_bridge.protocol.snapshot import Snapshot, read_snapshot
+from ros_bridge.protocol.snapshot import HEADERS, Snapshot, read_snapshot
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.worker.conflicts import check_conflicts
 from ros_bridge.worker.diagnostics import Diagnostics
@@ -262,7 +262,7 @@ class Worker:
     def tick(self) -> None:
         """Publish the newest snapshot if it is new; answer services; housekeeping."""
         self._beat[self.index] += 1
-        for _ in range(2):  # a period late: the one it missed (its due channels), then the newest
+        for _ in range(HEADERS):  # woken late: each missed snapshot holding what no later one holds, then the newest
             snap = read_snapshot(self.memory, len(self.plan.channels), self.lo, self.hi, self.snapshot, catch_up=True)
             if snap is None:
                 break
