@@ -35,8 +35,16 @@ from ros_bridge.protocol.requests import (
     encode_reset,
     encode_trajectories,
 )
-from ros_bridge.protocol.snapshot import HEADERS, Snapshot, read_snapshot, reset_snapshots, snapshot_arrays, write_snapshot
+from ros_bridge.protocol.snapshot import (
+    HEADERS,
+    Snapshot,
+    read_snapshot,
+    reset_snapshots,
+    snapshot_arrays,
+    write_snapshot,
+)
 from ros_bridge.throttle import LogThrottle
+from ros_bridge.worker.graph_scan import SLICE, GraphScan
 
 IFACES = [f"joint{i}/position" for i in range(1, 4)]
 
@@ -209,6 +217,32 @@ def test_a_late_worker_still_gets_each_channel_due_only_in_periods_it_missed():
     snap = read_snapshot(m, 2, 0, nworld, late, catch_up=True)
     assert snap.n == 11 and snap.channels[0].tolist() == [[11.0, 11.0]] * 3
     m.close()
+
+
+def test_the_graph_scan_looks_at_a_slice_of_the_names_a_tick_and_passes_every_interval():
+    """One pass over a 4096-world graph (~8,000 topics, ~6 us a name) in one tick stalled a
+    worker ~60 ms: now at most SLICE names a tick."""
+
+    class Node:
+        lists = 0
+
+        def get_topic_names_and_types(self):
+            Node.lists += 1
+            return [(f"/world_{i}/joint_states", ["sensor_msgs/msg/JointState"]) for i in range(2 * SLICE + 5)]
+
+    seen: list[list[str]] = []
+    passes: list[int] = []
+    scan = GraphScan(Node(), lambda name: seen[-1].append(name), lambda topics: passes.append(len(topics)), every=1.0)
+    for now in (0.0, 0.01, 0.02, 0.03):
+        seen.append([])
+        scan.step(now)
+    assert [len(s) for s in seen] == [SLICE, SLICE, 5, 0] and passes == [2 * SLICE + 5]
+    assert len({n for s in seen for n in s}) == 2 * SLICE + 5 and Node.lists == 1
+    seen.append([])
+    scan.step(1.01)  # a second after the pass ended
+    assert passes == [2 * SLICE + 5] and seen[-1] == []
+    scan.step(1.03)
+    assert Node.lists == 2 and len(seen[-1]) == SLICE
 
 
 def test_ring_wraps_refuses_when_full_and_continues_across_writers():

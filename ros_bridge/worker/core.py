@@ -55,6 +55,7 @@ from ros_bridge.protocol.snapshot import HEADERS, Snapshot, read_snapshot
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.worker.conflicts import check_conflicts
 from ros_bridge.worker.diagnostics import Diagnostics
+from ros_bridge.worker.graph_scan import GraphScan
 from ros_bridge.worker.intake import Intake
 from ros_bridge.worker.messages import (
     MESSAGE_TYPES,
@@ -69,7 +70,6 @@ from ros_bridge.worker.snapshot import Output
 from ros_bridge.worker.trajectories import FLUSH_AFTER, TrajectoryIntake
 
 SUBSCRIBER_REFRESH = 0.5  # s: subscriber counts re-read (lazy publishing)
-GRAPH_SCAN = 1.0  # s: topics created on request, commands to unknown actuators
 DIAGNOSTICS_PERIOD = 0.5  # s
 ACTION_POLL = 0.005  # s: while goals are in flight, their feedback and results wait at most this
 _ACTUATOR_TOPIC = re.compile(r"^/(.+)/actuators/([^/]+)/command$")
@@ -102,6 +102,7 @@ class Worker:
             rclpy.try_shutdown(context=self.context)
             raise
         self.logger = self.node.get_logger()
+        self._graph = GraphScan(self.node, self._topic_seen, self._graph_seen)  # on request, unknown actuators
         self.throttle = LogThrottle(self.logger.warning)
         self.qos = QoSProfile(
             depth=plan.qos_depth,
@@ -121,7 +122,7 @@ class Worker:
         self._svc_done = memory["svc.done"]
         self._running = False
         self._thread: threading.Thread | None = None
-        self._due = {"refresh": 0.0, "scan": 0.0, "diag": 0.0}
+        self._due = {"refresh": 0.0, "diag": 0.0}
         self._clock_pub: Any = None
         self._last_clock = (-1, -1)
         self._clock_subscribers = 0
@@ -280,9 +281,7 @@ class Worker:
         if now >= due["refresh"]:
             due["refresh"] = now + SUBSCRIBER_REFRESH
             self._refresh()
-        if now >= due["scan"]:
-            due["scan"] = now + GRAPH_SCAN
-            self._scan_graph()
+        self._graph.step(now)
         if now >= due["diag"] and self.snapshot.n >= 0:
             due["diag"] = now + DIAGNOSTICS_PERIOD
             self.diagnostics.publish(self.snapshot)
@@ -351,47 +350,49 @@ class Worker:
                 self._clock_pub.publish(clock_payload(sec, nanosec))
             self._clock_subscribers = count
 
-    def _scan_graph(self) -> None:
-        """Create on-request publishers and actuator subscriptions someone asks for; reject
-        commands to actuators this model does not have."""
+    def _topic_seen(self, name: str) -> None:
+        """The graph scan saw topic `name` (ros_bridge/worker/graph_scan.py): create an on-request
+        publisher or actuator subscription someone asks for; reject commands to actuators this
+        model does not have."""
         node = self.node
-        topics = node.get_topic_names_and_types()
-        for name, _types in topics:
-            if (
-                (self.sensors is not None and self.sensors.requested(name))
-                or (self.tf is not None and self.tf.requested(name))
-                or (self.actions is not None and self.actions.requested(name))
-            ):
+        if (
+            (self.sensors is not None and self.sensors.requested(name))
+            or (self.tf is not None and self.tf.requested(name))
+            or (self.actions is not None and self.actions.requested(name))
+        ):
+            self._due["refresh"] = 0.0
+            return
+        hit = self._on_request.get(name)
+        if hit is not None:
+            if node.count_subscribers(name) > 0:
+                out, row = hit
+                out.publishers[row] = node.create_publisher(out.msg_type, name, self.qos)
+                del self._on_request[name]
                 self._due["refresh"] = 0.0
-                continue
-            hit = self._on_request.get(name)
-            if hit is not None:
-                if node.count_subscribers(name) > 0:
-                    out, row = hit
-                    out.publishers[row] = node.create_publisher(out.msg_type, name, self.qos)
-                    del self._on_request[name]
-                    self._due["refresh"] = 0.0
-                continue
-            act = self._actuators.get(name)
-            if act is not None:
-                w, c = act
-                if c >= 0 and node.count_publishers(name) > 0:
-                    callback = self._single_callback(w, c, name, self.plan.interfaces, self.plan.owners)
-                    self.intake.subscribe(w, Float64, name, callback)
-                    self._actuators[name] = (w, -1)  # subscribed
-                continue
-            match = _ACTUATOR_TOPIC.match(name) if "/actuators/" in name else None
-            if match is not None:
-                w = self._world_of.get(match.group(1))
-                if w is not None and node.count_publishers(name) > 0:
-                    self._reject(
-                        w,
-                        name,
-                        Problem.UNKNOWN_ACTUATOR,
-                        f"no actuator named {match.group(2)!r} in this model (actuators: {self._actuator_list})",
-                    )
+            return
+        act = self._actuators.get(name)
+        if act is not None:
+            w, c = act
+            if c >= 0 and node.count_publishers(name) > 0:
+                callback = self._single_callback(w, c, name, self.plan.interfaces, self.plan.owners)
+                self.intake.subscribe(w, Float64, name, callback)
+                self._actuators[name] = (w, -1)  # subscribed
+            return
+        match = _ACTUATOR_TOPIC.match(name) if "/actuators/" in name else None
+        if match is not None:
+            w = self._world_of.get(match.group(1))
+            if w is not None and node.count_publishers(name) > 0:
+                self._reject(
+                    w,
+                    name,
+                    Problem.UNKNOWN_ACTUATOR,
+                    f"no actuator named {match.group(2)!r} in this model (actuators: {self._actuator_list})",
+                )
+
+    def _graph_seen(self, topics: list) -> None:
+        """A pass over the graph's topics is through: services, then the type check."""
         if self._served:  # their services appear with a client
-            for name, _types in node.get_service_names_and_types():
+            for name, _types in self.node.get_service_names_and_types():
                 if any(served.requested(name) for served in self._served):
                     self._due["refresh"] = 0.0
         if self.type_check is not None:
