@@ -988,6 +988,66 @@ def test_under_churn_every_world_follows_its_own_trajectory_as_if_alone():
     assert max(rows_seen) >= 2000 and min(rows_seen[100:]) < max(rows_seen)  # it grew and gave rows back
 
 
+@pytest.mark.parametrize("interpolation", ["splines", "none"])
+def test_one_batch_one_by_one_and_alone_give_the_same_reference(interpolation):
+    """The same trajectories handed over as one batch, one at a time, and each to a one-world
+    controller of its own give the same reference at every update: linear, cubic and quintic
+    ones mixed in a batch, partial goals, a world named twice (the later wins), equal lengths
+    and mixed ones, replaced while still in their first segment or later, in buffer rows that
+    held another kind's points."""
+    rng = np.random.default_rng(21)
+    spec = batchsim.load("arm")
+    nworld, period = 6, 0.01
+    yaml_text = LINEAR_JTC
+    if interpolation == "none":
+        yaml_text = LINEAR_JTC.replace("max_trajectory_points: 6000", "interpolation_method: none")
+    sims = [FakeSim(spec, nworld, np.random.default_rng(7)) for _ in range(2)]  # the same states
+    batched, single = (load_controllers(yaml_text, spec, nworld) for _ in range(2))
+    alone = [load_controllers(yaml_text, spec, 1) for _ in range(nworld)]
+    views = [WorldView(sims[0], w) for w in range(nworld)]
+    rounds = {0, 1, 8, 9, 10, 25, 40, 41, 55, 70, 71, 90}  # consecutive: replaced in the first segment
+    t = 0.0
+    for step in range(130):
+        if step in rounds:
+            every = rng.random() < 0.5
+            worlds = np.arange(nworld) if every else np.flatnonzero(rng.random(nworld) < 0.6)
+            if len(worlds) > 1 and rng.random() < 0.5:
+                worlds = np.append(worlds, worlds[0])  # named twice: the later wins
+            same = int(rng.integers(1, 12)) if rng.random() < 0.5 else None  # one length: by block
+            goals = []
+            for w in worlds:
+                n = same or int(rng.integers(1, 12))
+                times = np.cumsum(rng.uniform(0.015, 0.04, n))
+                mask = rng.random(6) < 0.7 if rng.random() < 0.25 else np.ones(6, bool)
+                mask[0] = True
+                kind = rng.choice(["linear", "cubic", "quintic"])
+                V = None if kind == "linear" else rng.normal(size=(n, 6))
+                A = rng.normal(size=(n, 6)) if kind == "quintic" else None
+                stamp = float(rng.choice([0.0, t + 0.02, max(t - 0.02, 1e-3)]))
+                goals.append((int(w), stamp, times, rng.normal(size=(n, 6)), V, A, mask))
+            together = {k for k, _ in batched["t"].set_trajectories(batch_of(goals))}
+            for k, goal in enumerate(goals):
+                assert (k in together) == bool(single["t"].set_trajectories(batch_of([goal])))
+                one = alone[goal[0]]["t"].set_trajectories(batch_of([(0, *goal[1:])]))
+                assert (k in together) == bool(one)
+        batched.update(sims[0], t, period)
+        single.update(sims[1], t, period)
+        for w in range(nworld):
+            alone[w].update(views[w], t, period)
+        a, b, c = batched["t"], single["t"], [one["t"] for one in alone]
+        for name, tol in (("reference_position", 1e-12), ("reference_velocity", 1e-9)):
+            np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=tol, err_msg=f"{name} {t}")
+            each = np.concatenate([getattr(one, name) for one in c])
+            np.testing.assert_allclose(getattr(a, name), each, atol=tol, err_msg=f"{name} {t}")
+        np.testing.assert_array_equal(a.executing, b.executing)
+        np.testing.assert_array_equal(a.executing, np.concatenate([one.executing for one in c]))
+        np.testing.assert_allclose(sims[0].command, sims[1].command, atol=1e-12)
+        for sim in sims:
+            sim.advance(period)
+        t += period
+    assert all(a.buffer_rows < 1000 for a in (batched["t"], single["t"]))
+
+
 def test_the_trajectory_buffer_follows_each_worlds_own_trajectory():
     spec = batchsim.load("arm")
     nworld, period = 16, 0.01

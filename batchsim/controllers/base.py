@@ -234,7 +234,7 @@ def ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 def last_per_world(worlds: np.ndarray) -> np.ndarray:
     """Indices of the last entry for each distinct world, in increasing order: a later input wins."""
-    if len(worlds) < 2:
+    if len(worlds) < 2 or (worlds[1:] > worlds[:-1]).all():  # each world once, in order: no sort
         return np.arange(len(worlds))
     _, first_from_end = np.unique(worlds[::-1], return_index=True)
     return np.sort(len(worlds) - 1 - first_from_end)

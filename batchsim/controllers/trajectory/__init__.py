@@ -37,10 +37,11 @@ Semantics follow ros2_control's controller:
 
 At fleet scale trajectories arrive as a `TrajectoryBatch`, one call per period however
 many messages came: validation, queueing and the start of every due trajectory are
-vectorized over the batch. Points live in one flat pool of segment rows (each row: a
-segment's time and its polynomial), a block per world and trajectory, so memory follows
-each world's own trajectory; each world keeps the index of its current segment, which
-advances as time does, so sampling costs O(worlds), not O(points).
+vectorized over the batch. Points live as given in one flat pool of rows (each row: a
+point's time, position, velocity and acceleration), a block per world and trajectory, so
+memory follows each world's own trajectory; each world keeps the index of its current
+segment, which advances as time does, and that segment's polynomial, made when time
+enters it, so queueing costs a copy of the points and sampling O(worlds), not O(points).
 
 Commands: a `position` interface gets the reference position (and `velocity`, when
 claimed alongside it, the reference velocity); a lone `velocity` or `effort` interface

@@ -23,7 +23,7 @@ from batchsim.controllers.topics import (
 )
 from batchsim.controllers.trajectory.gains import read_gains
 from batchsim.controllers.trajectory.goals import Constraints, GoalTracker
-from batchsim.controllers.trajectory.splines import Interpolation, point_rows
+from batchsim.controllers.trajectory.splines import Interpolation
 from batchsim.controllers.trajectory.timeline import Timeline
 from batchsim.controllers.trajectory.validation import CommandBound, check, one_trajectory, unpack
 from batchsim.model import RobotSpec
@@ -179,7 +179,7 @@ class JointTrajectoryController(Controller):
 
     @property
     def buffer_rows(self) -> int:
-        """Trajectory rows allocated for the whole fleet (each ~(6 * njoint + 1) float64)."""
+        """Trajectory rows allocated for the whole fleet (each 3 * njoint + 1 float64)."""
         return self._timeline.pool.capacity
 
     # --- input (from the loop thread) ---
@@ -248,10 +248,7 @@ class JointTrajectoryController(Controller):
             bound=self._bound,
             step_points=self._step_points,
         )
-        rows = point_rows(
-            b.steps, b.offsets, verdict.owner, verdict.spline, verdict.points, self._step_points
-        )
-        keep = self._timeline.queue(b, np.flatnonzero(~verdict.failed), verdict.spline, rows)
+        keep = self._timeline.queue(b, np.flatnonzero(~verdict.failed), verdict.spline, verdict.points)
         if keep.size:
             self._goals.queue(
                 b.worlds[keep],

@@ -8,6 +8,7 @@ a right-sized one only when it fills or empties.
 from __future__ import annotations
 
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 
 from batchsim.controllers.base import ranges
 
@@ -22,18 +23,19 @@ MIN_POOL_ROWS = 256
 class SegmentPool:
     """Every world's trajectory rows in one flat array, a block of contiguous rows per trajectory.
 
-    Row r of a block is point r's segment: `times[r]` its time from the trajectory's start
-    and `coefficients[r]` the polynomial of the segment that leaves it. Blocks are carved
-    from the end of the used rows. A released block becomes its world's spare, reused by
-    its next trajectory if that needs between half of it and all of it (or it is small), so
-    a fleet streaming trajectories reuses rows instead of allocating; a spare larger than
-    SPARE_ROWS is freed when it does not fit that way, or when the world's trajectory ends.
+    Row r of a block is point r: `times[r]` its time from the trajectory's start and
+    `points[:, r]` its position, velocity and acceleration (the segment that leaves it runs
+    to row r + 1). Blocks are carved from the end of the used rows. A released block
+    becomes its world's spare, reused by its next trajectory if that needs between half of
+    it and all of it (or it is small), so a fleet streaming trajectories reuses rows
+    instead of allocating; a spare larger than SPARE_ROWS is freed when it does not fit
+    that way, or when the world's trajectory ends.
     When the end of the array is reached, or fewer than a quarter of its rows are held, the
     held blocks are copied into a right-sized array.
 
     Attributes:
       times: (capacity,) float64.
-      coefficients: (capacity, 6, njoint) float64, of s^0 .. s^5.
+      points: (3, capacity, njoint) float64: the position, velocity and acceleration planes.
       offset: (3, nworld) int64, the first row of each world's running, pending and spare
         block, -1 for none.
       size: (3, nworld) int64, the rows each of those blocks holds.
@@ -43,7 +45,7 @@ class SegmentPool:
     def __init__(self, nworld: int, njoint: int):
         self.njoint = njoint
         self.times = np.zeros(0)
-        self.coefficients = np.zeros((0, 6, njoint))
+        self.points = np.zeros((3, 0, njoint))
         self.offset = np.full((3, nworld), -1, np.int64)
         self.size = np.zeros((3, nworld), np.int64)
         self.held = 0
@@ -112,6 +114,28 @@ class SegmentPool:
         self.used += total
         self.held += total
 
+    def put(
+        self, starts: np.ndarray, counts: np.ndarray, times: np.ndarray, planes: dict[int, np.ndarray | float]
+    ) -> None:
+        """Fill blocks of rows: rows starts[i] .. starts[i] + counts[i] - 1 get the i-th block
+        of `times` (sum(counts),) and of each plane's values ({plane: (sum(counts), njoint),
+        or a number for every row}); the other planes keep what they held."""
+        put_blocks(self.times, starts, counts, times)
+        for k, values in planes.items():
+            put_blocks(self.points[k], starts, counts, values)
+
+    def ends(self, rows: np.ndarray, planes: np.ndarray) -> np.ndarray:
+        """(n, 3, 2, njoint): the position, velocity and acceleration of the points at `rows`
+        and at the row after each (the two ends of the segments that leave `rows`), of the
+        planes (3,) bool asked for; the others are left uninitialized."""
+        out = np.empty((len(rows), 3, 2, self.njoint))
+        for k in np.flatnonzero(planes).tolist():
+            plane = self.points[k]
+            # row r of the window: plane rows r and r + 1
+            pairs = as_strided(plane, (len(plane) - 1, 2, self.njoint), (plane.strides[0], *plane.strides))
+            out[:, k] = pairs[rows]
+        return out
+
     def shrink(self) -> None:
         """Copy the held blocks into a smaller array when most rows are no longer held."""
         if self.capacity > MIN_POOL_ROWS and self.held < self.capacity // 4:
@@ -123,10 +147,27 @@ class SegmentPool:
         total = int(size.sum())
         capacity = max(MIN_POOL_ROWS, 2 * (total + extra))  # room for as much again before the next copy
         times = np.zeros(capacity)
-        coefficients = np.zeros((capacity, 6, self.njoint))
+        points = np.zeros((3, capacity, self.njoint))
         source = ranges(off, size)
         times[:total] = self.times[source]
-        coefficients[:total] = self.coefficients[source]
+        points[:, :total] = self.points[:, source]
         self.offset[kinds, worlds] = np.cumsum(size) - size
-        self.times, self.coefficients = times, coefficients
+        self.times, self.points = times, points
         self.used = self.held = total
+
+
+def put_blocks(
+    target: np.ndarray, starts: np.ndarray, counts: np.ndarray, values: np.ndarray | float
+) -> None:
+    """target[starts[i] : starts[i] + counts[i]] = the i-th block of `values` (CSR by counts),
+    along the first axis of a C-contiguous `target`; blocks of one length (a batch of equal
+    trajectories: the usual case) go as one row each of a window onto `target`."""
+    if not len(counts):
+        return
+    size = int(counts[0])
+    if size < 1 or (counts != size).any() or size > len(target):
+        target[ranges(starts, counts)] = values
+        return
+    row, item = target.strides[0], target.itemsize  # row r of the window: target rows r .. r + size - 1
+    window = as_strided(target, (len(target) - size + 1, size * row // item), (row, item))
+    window[starts] = values if np.ndim(values) == 0 else np.reshape(values, (len(counts), -1))

@@ -1,9 +1,9 @@
 """The spline math of the trajectory controller: segment polynomials and their sampling.
 
-A segment is a polynomial in s, the time since the point it leaves, stored as six
-(njoint,) coefficients of s^0 .. s^5 (ros2_control's Trajectory Representation): linear
-between points that give positions only, cubic Hermite where they give velocities too,
-quintic where they give accelerations as well.
+A segment is a polynomial in s, the time since the point it leaves: six (njoint,)
+coefficients of s^0 .. s^5, made from the points at its two ends (ros2_control's
+Trajectory Representation): linear between points that give positions only, cubic
+Hermite where they give velocities too, quintic where they give accelerations as well.
 """
 
 from __future__ import annotations
@@ -31,9 +31,51 @@ class Interpolation(enum.Enum):
     NONE = "none"
 
 
-_D1 = np.arange(1.0, 6.0)  # d/ds s^k = k s^(k-1), k = 1..5
-_D2 = np.array([2.0, 6.0, 12.0, 20.0])  # d2/ds2 s^k = k (k-1) s^(k-2), k = 2..5
-_HOLD = np.array([[1.0, 0, 0, 0, 0, 0], [0] * 6, [0] * 6])  # past the last point: p = c0, at rest
+HELD = 0  # interpolation none: each point held until the next one's time (a `coefficients` kind)
+ENDS = ("p0", "p1", "v0", "v1", "a0", "a1")  # the end values of a segment, as `coefficients` takes them
+
+# Each kind's coefficients: c_k = sum of w * x / T^m over its terms (x, m, w), h = p1 - p0.
+# m is always k less 0, 1 or 2 for a position, velocity or acceleration (the units of c_k).
+_TERMS: dict[int, dict[int, tuple[tuple[str, int, float], ...]]] = {
+    HELD: {0: (("p0", 0, 1.0),), 1: (("v0", 0, 1.0),), 2: (("a0", 0, 0.5),)},  # the point as it is
+    LINEAR: {0: (("p0", 0, 1.0),), 1: (("h", 1, 1.0),)},
+    CUBIC: {  # Hermite
+        0: (("p0", 0, 1.0),),
+        1: (("v0", 0, 1.0),),
+        2: (("h", 2, 3.0), ("v0", 1, -2.0), ("v1", 1, -1.0)),
+        3: (("h", 3, -2.0), ("v0", 2, 1.0), ("v1", 2, 1.0)),
+    },
+    QUINTIC: {
+        0: (("p0", 0, 1.0),),
+        1: (("v0", 0, 1.0),),
+        2: (("a0", 0, 0.5),),
+        3: (("h", 3, 10.0), ("v0", 2, -6.0), ("a0", 1, -1.5), ("v1", 2, -4.0), ("a1", 1, 0.5)),
+        4: (("h", 4, -15.0), ("v0", 3, 8.0), ("a0", 2, 1.5), ("v1", 3, 7.0), ("a1", 2, -1.0)),
+        5: (("h", 5, 6.0), ("v0", 4, -3.0), ("a0", 3, -0.5), ("v1", 4, -3.0), ("a1", 3, 0.5)),
+    },
+}
+
+
+def _tables() -> tuple[np.ndarray, np.ndarray]:
+    """From _TERMS, per kind: (4, 6, 6) the matrix that makes T^k c_k from the end values in
+    units of a position (p0, p1, v0 T, v1 T, a0 T^2, a1 T^2), and (4, 6) bool the ends it reads."""
+    matrix = np.zeros((4, 6, 6))
+    for kind, coefficient in _TERMS.items():
+        for k, terms in coefficient.items():
+            for x, m, w in terms:
+                for end, sign in ((("p1", 1.0), ("p0", -1.0)) if x == "h" else ((x, 1.0),)):
+                    j = ENDS.index(end)
+                    assert m == k - j // 2  # x / T^m = (x T^(j // 2)) / T^k
+                    matrix[kind, k, j] += sign * w
+    return matrix, (matrix != 0).any(axis=1)
+
+
+_MATRIX, _READS = _tables()
+# the derivatives of s^k: row r (position, velocity, acceleration) of evaluate's basis is
+# _DERIVATIVE[r, k] * s^(k - r), taken from column _DERIVATIVE_COLUMN[r, k] of _powers(s)
+_DERIVATIVE = np.array([[1.0] * 6, [0, 1, 2, 3, 4, 5], [0, 0, 2, 6, 12, 20]])
+_DERIVATIVE_COLUMN = np.array([[1 + k - r if k >= r else 0 for k in range(6)] for r in range(3)]).reshape(-1)
+_HOLD = np.array([1.0, 0, 0, 0, 0, 0] + [0] * 12)  # past the last point: p = c0, at rest
 
 
 def spline_of(has_velocities: np.ndarray, has_accelerations: np.ndarray) -> np.ndarray:
@@ -41,107 +83,72 @@ def spline_of(has_velocities: np.ndarray, has_accelerations: np.ndarray) -> np.n
     return np.where(has_accelerations, QUINTIC, np.where(has_velocities, CUBIC, LINEAR)).astype(np.int8)
 
 
+def _kinds(kind: np.ndarray) -> np.ndarray:
+    """The distinct kinds of (n,) Spline or HELD (the usual one kind without a sort)."""
+    return kind[:1] if len(kind) and (kind == kind[0]).all() else np.unique(kind)
+
+
+def planes_read(kind: np.ndarray) -> np.ndarray:
+    """(3,) bool: whether segments of these kinds ((n,) Spline or HELD) read the position,
+    velocity, acceleration of their points."""
+    return _READS[_kinds(kind)].reshape(-1, 3, 2).any(axis=(0, 2))
+
+
+def _powers(x: np.ndarray) -> np.ndarray:
+    """(n, 7): 0, then x^0 .. x^5 of each of the (n,) x."""
+    out = np.zeros((len(x), 7))
+    out[:, 1] = 1.0
+    out[:, 2] = x
+    for m in range(3, 7):
+        np.multiply(out[:, m - 1], x, out=out[:, m])
+    return out
+
+
 def coefficients(
-    spline: np.ndarray,
-    p0: np.ndarray,
-    p1: np.ndarray,
-    v0: np.ndarray,
-    v1: np.ndarray,
-    a0: np.ndarray,
-    a1: np.ndarray,
-    T: np.ndarray,
-) -> tuple[np.ndarray, ...]:
-    """Segment polynomials: the six (n, njoint) coefficients of s^0 .. s^5.
-
-    Args:
-      spline: (n,) Spline of each segment: linear from positions only, cubic Hermite from
-        positions and velocities, quintic from all three.
-      p0, p1, v0, v1, a0, a1: (n, njoint) the values at the segment's two ends.
-      T: (n, 1) its length, > 0.
-    """
-    kinds = spline[:1] if len(spline) and (spline == spline[0]).all() else np.unique(spline)
-    if len(kinds) > 1:
-        out = [np.zeros(p0.shape) for _ in range(6)]
-        for kind in kinds:
-            m = spline == kind
-            part = coefficients(spline[m], p0[m], p1[m], v0[m], v1[m], a0[m], a1[m], T[m])
-            for o, c in zip(out, part, strict=True):
-                o[m] = c
-        return tuple(out)
-    h = p1 - p0
-    zero = np.broadcast_to(0.0, h.shape)  # a read-only view: no array to fill
-    if len(kinds) == 0 or kinds[0] == LINEAR:
-        return p0, h / T, zero, zero, zero, zero
-    if kinds[0] == CUBIC:
-        inverse = 1.0 / T
-        c2 = (3 * h * inverse - (2 * v0 + v1)) * inverse
-        c3 = ((v0 + v1) - 2 * h * inverse) * inverse * inverse
-        return p0, v0, c2, c3, zero, zero
-    T2 = T * T
-    T3 = T2 * T
-    b3 = (20 * h - (8 * v1 + 12 * v0) * T - (3 * a0 - a1) * T2) / (2 * T3)
-    b4 = (-30 * h + (14 * v1 + 16 * v0) * T + (3 * a0 - 2 * a1) * T2) / (2 * T3 * T)
-    b5 = (12 * h - 6 * (v1 + v0) * T + (a1 - a0) * T2) / (2 * T3 * T2)
-    return p0, v0, a0 / 2, b3, b4, b5
-
-
-def point_rows(
-    steps: np.ndarray,
-    offsets: np.ndarray,
-    owner: np.ndarray,
-    spline: np.ndarray,
-    points: tuple[np.ndarray, ...],
-    step_points: bool,
+    kind: np.ndarray, ends: np.ndarray, T: np.ndarray, out: np.ndarray | None = None
 ) -> np.ndarray:
-    """(npoint, 6, njoint): each point's pool row, the polynomial of the segment to the next
-    point (the last point's, and every point's with interpolation none: its p, v, a / 2).
+    """(n, 6, njoint): segment polynomials, the coefficients of s^0 .. s^5.
 
     Args:
-      steps: (npoint - 1,) the time from each point to the next one of the flat arrays.
-      offsets: (n + 1,) the first point of each trajectory (CSR, as TrajectoryBatch.offsets).
-      owner: (npoint,) the trajectory of each point.
-      spline: (n,) Spline of each trajectory.
-      points: (p, v, a), each (npoint, njoint).
-      step_points: interpolation none: hold each point until the next one's time.
+      kind: (n,) Spline of each segment (linear from positions only, cubic Hermite from
+        positions and velocities, quintic from all three), or HELD: the point's own p, v
+        and a / 2 (evaluated at s = 0, they give the point as it is; pass T = 1).
+      ends: (n, 6, njoint) the values at the segment's two ends, in ENDS order (p0, p1, v0,
+        v1, a0, a1): overwritten (those its kind does not read may be anything).
+      T: (n,) the segment's length; one <= 0 (a last point's) is taken as 1.
+      out: (n, 6, njoint) where to write them, or None.
     """
-    p, v, a = points
-    npoint, nj = p.shape
-    rows = np.empty((npoint, 6, nj))
-    if step_points or npoint < 2:
-        held = np.arange(npoint)
-    else:
-        # every point to the next, across trajectories too (those rows are overwritten below)
-        T = steps[:, None]
-        with np.errstate(all="ignore"):
-            c = coefficients(spline[owner[:-1]], p[:-1], p[1:], v[:-1], v[1:], a[:-1], a[1:], T)
-        for k in range(6):
-            rows[:-1, k] = c[k]
-        held = offsets[1:][offsets[1:] > offsets[:-1]] - 1  # each trajectory's last point
-    rows[held, 0], rows[held, 1], rows[held, 2] = p[held], v[held], 0.5 * a[held]
-    rows[held, 3:] = 0.0
-    return rows
+    kinds = _kinds(kind)
+    single = len(kinds) == 1
+    k = int(kinds[0]) if single else kind  # one kind: one matrix for all
+    unread = ~_READS[k]
+    if single:
+        ends[:, unread] = 0.0
+    elif unread.any():
+        ends[unread] = 0.0
+    T = np.where(T > 0, T, 1.0)
+    scaled = bool((T != 1.0).any())
+    if scaled:  # each value in units of a position: v T, a T^2 (where read)
+        _, v, a = planes_read(kinds)
+        if v:
+            ends[:, 2:4] *= T[:, None, None]
+        if a:
+            ends[:, 4:6] *= (T * T)[:, None, None]
+    out = np.matmul(_MATRIX[k], ends, out=out)  # T^k c_k
+    if scaled:
+        out *= _powers(1.0 / T)[:, 1:, None]
+    return out
 
 
-def evaluate(polynomials: np.ndarray, s: np.ndarray, done: np.ndarray, step_points: bool) -> np.ndarray:
+def evaluate(polynomials: np.ndarray, s: np.ndarray, done: np.ndarray) -> np.ndarray:
     """(n, 3, njoint): position, velocity and acceleration of each polynomial at its `s`.
 
     Args:
       polynomials: (n, 6, njoint) coefficients of s^0 .. s^5.
-      s: (n,) time since the segment's point (clamped at 0).
+      s: (n,) time since the segment's point (clamped at 0; 0 for a HELD point).
       done: (n,) past the last point: the point's position, at rest.
-      step_points: interpolation none: the point's own p, v, a (rows store a / 2).
     """
     # position, velocity and acceleration as one product: (n, 3, 6) derivatives of s^k @ (n, 6, nj)
-    n = len(s)
-    basis = np.zeros((n, 3, 6))
-    if step_points:
-        basis[:, 0, 0], basis[:, 1, 1], basis[:, 2, 2] = 1.0, 1.0, 2.0
-    else:
-        powers = np.ones((n, 6))
-        powers[:, 1:] = np.maximum(s, 0.0)[:, None]
-        np.cumprod(powers, axis=1, out=powers)
-        basis[:, 0] = powers
-        basis[:, 1, 1:] = powers[:, :5] * _D1
-        basis[:, 2, 2:] = powers[:, :4] * _D2
+    basis = _powers(np.maximum(s, 0.0))[:, _DERIVATIVE_COLUMN] * _DERIVATIVE.reshape(-1)
     basis[done] = _HOLD
-    return basis @ polynomials
+    return basis.reshape(len(s), 3, 6) @ polynomials

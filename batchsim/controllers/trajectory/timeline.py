@@ -4,9 +4,12 @@ A world holds at most two trajectories in the segment pool: the one waiting for 
 time and the one running. `queue` stores accepted trajectories as the pending ones, `start`
 makes the due ones running from the state the controller measured (inserting it as the
 point the first segment leaves from, dropping points already past), and `sample` advances
-each world's current segment and evaluates the reference at the update's time. A world
-with no running trajectory holds its reference. Goals and commands stay with the
-controller: `queue` and `start` return what it needs for them.
+each world's current segment and evaluates the reference at the update's time. The pool
+holds the points as given; a segment's polynomial is made from its two points when time
+enters it (the first one's from the start state, when the trajectory starts) and kept
+while time stays in it, so queueing costs a copy of the points and sampling O(worlds).
+A world with no running trajectory holds its reference. Goals and commands stay with
+the controller: `queue` and `start` return what it needs for them.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import numpy as np
 
 from batchsim.controllers.base import last_per_world, ranges
 from batchsim.controllers.trajectory.pool import PENDING, RUNNING, SegmentPool
-from batchsim.controllers.trajectory.splines import CUBIC, QUINTIC, coefficients, evaluate
+from batchsim.controllers.trajectory.splines import HELD, coefficients, evaluate, planes_read
 from batchsim.controllers.trajectory.validation import Unpacked
 
 
@@ -27,7 +30,8 @@ class Timeline:
       step_points: `interpolation_method: none`: hold each point, no splines.
 
     Attributes (the running trajectory is block rows 0..last of `pool`, the pending one's
-    points rows 1..npoint of its block; row 0 is the start row, filled when it starts):
+    points rows 1..npoint of its block; row 0 is the start point: its time is filled when
+    the trajectory starts, and its values go straight into the first segment's polynomial):
       pool: the SegmentPool holding every world's rows.
       reference_position, reference_velocity, reference_acceleration: (nworld, njoint), the
         reference at the last `sample` (or `stop`).
@@ -39,6 +43,9 @@ class Timeline:
       t0: (nworld,) float64, its start, sim time.
       segment: (nworld,) int64, the block row time has reached.
       last: (nworld,) int64, its last row.
+      spline: (nworld,) int8 Spline of the running trajectory.
+      polynomial: (nworld, 6, njoint), the polynomial of its segment `made` (splines.coefficients).
+      made: (nworld,) int64, the segment `polynomial` is of; -1: none yet.
       pending_start: (nworld,) float64, the pending trajectory's start time (0: the next
         update), inf for none.
       pending_npoint: (nworld,) int64, its points.
@@ -61,6 +68,9 @@ class Timeline:
         self.t0 = np.zeros(W)
         self.segment = np.zeros(W, np.int64)
         self.last = np.zeros(W, np.int64)
+        self.spline = np.zeros(W, np.int8)
+        self.polynomial = np.zeros((W, 6, nj))
+        self.made = np.full(W, -1, np.int64)
         self.pending_start = np.full(W, np.inf)
         self.pending_npoint = np.zeros(W, np.int64)
         self.pending_spline = np.zeros(W, np.int8)
@@ -77,14 +87,17 @@ class Timeline:
             return np.zeros(0, np.int64)
         return np.flatnonzero(self.pending_start <= time + 1e-9)
 
-    def queue(self, b: Unpacked, accepted: np.ndarray, spline: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    def queue(
+        self, b: Unpacked, accepted: np.ndarray, spline: np.ndarray, points: tuple[np.ndarray | None, ...]
+    ) -> np.ndarray:
         """Store the accepted trajectories (the last per world) as their worlds' pending ones.
 
         Args:
           b: the batch.
           accepted: (n,) indices into the batch of the accepted trajectories.
           spline: (ntrajectory,) int8 Spline of each trajectory of the batch.
-          rows: (npoint, 6, njoint) the accepted points' segment rows (splines.point_rows).
+          points: (p, v, a), each (npoint, njoint) or None (all 0): the batch's points, 0
+            where not given (validation.Verdict.points).
 
         Returns:
           (k,) the indices into the batch of the trajectories queued, one per world.
@@ -98,13 +111,16 @@ class Timeline:
         filled = npoint > 0
         pool.allocate(PENDING, worlds[filled], npoint[filled] + 1)  # + the start row
         off = pool.offset[PENDING, worlds[filled]]
-        dest = ranges(off + 1, npoint[filled])
-        if len(dest) == len(rows):  # every point is kept (the usual case): no gather
-            pool.times[dest], pool.coefficients[dest] = b.times, rows
-        else:
-            source = ranges(b.offsets[keep][filled], npoint[filled])
-            pool.times[dest] = b.times[source]
-            pool.coefficients[dest] = rows[source]
+        # the planes the trajectories' segments read (a plane they do not read keeps what it held)
+        read = planes_read(np.array([HELD]) if self.step_points else spline[keep])
+        everything = int(npoint.sum()) == len(b.times)  # every point kept (the usual case): no gather
+        source = slice(None) if everything else ranges(b.offsets[keep][filled], npoint[filled])
+        planes = {
+            k: 0.0 if values is None else values[source]
+            for k, (values, wanted) in enumerate(zip(points, read, strict=True))
+            if wanted
+        }
+        pool.put(off + 1, npoint[filled], b.times[source], planes)
         self.pending_start[worlds] = b.start_time[keep]
         self.pending_npoint[worlds] = npoint
         self.pending_spline[worlds] = spline[keep]
@@ -149,7 +165,7 @@ class Timeline:
         hold = here[stop].copy()
         ended = npoint[stop] > 0
         if ended.any():
-            last = pool.coefficients[off[stop][ended] + npoint[stop][ended]][:, 0]
+            last = pool.points[0, off[stop][ended] + npoint[stop][ended]]
             mask = self.pending_mask[stopped[ended]]
             hold[ended] = np.where(mask, last, hold[ended])
         pool.release(RUNNING, stopped)
@@ -162,9 +178,8 @@ class Timeline:
         go = ~stop
         worlds = due[go]
         if worlds.size:
-            hold = np.where(self.on_trajectory[worlds, None], self.reference_position[worlds], here[go])
             pool.promote(worlds)
-            self._begin(worlds, t0[go], time, skip[go], here[go], here_v[go], hold)
+            self._begin(worlds, t0[go], time, skip[go], here[go], here_v[go])
         self.pending_start[due] = np.inf
         self.pending_npoint[due] = 0
         return end, worlds
@@ -177,43 +192,34 @@ class Timeline:
         skip: np.ndarray,
         here: np.ndarray,
         here_v: np.ndarray,
-        hold: np.ndarray,
     ) -> None:
         """Insert the current point before the first point ahead and set the worlds running."""
         pool = self.pool
         off = pool.offset[RUNNING, worlds]
         npoint = self.pending_npoint[worlds]
         mask = self.pending_mask[worlds]
-        spline = self.pending_spline[worlds]
-        start_row, first = off + skip, off + skip + 1
-        rel = time - t0
-        row = np.zeros((len(worlds), 6, self.njoint))
-        if self.step_points:
-            row[:, 0], row[:, 1] = here, here_v
-        else:
-            # the first point ahead, from its row (a point's row starts with its p, v and a / 2)
-            c = pool.coefficients[first]
-            p1 = np.where(mask, c[:, 0], hold)
-            v1 = np.where(mask & (spline >= CUBIC)[:, None], c[:, 1], 0.0)
-            a1 = np.where(mask & (spline == QUINTIC)[:, None], 2 * c[:, 2], 0.0)
-            T = pool.times[first] - rel
-            T = np.where(T > 0, T, 1.0)[:, None]  # a zero-length segment is never sampled
-            for k, plane in enumerate(coefficients(spline, here, p1, here_v, v1, np.zeros_like(here), a1, T)):
-                row[:, k] = plane
-        pool.times[start_row] = rel
-        pool.coefficients[start_row] = row
+        start_row = off + skip
+        pool.times[start_row] = time - t0
         partial = ~mask.all(axis=1)
-        if partial.any():  # joints a partial goal leaves out hold after the first segment
-            rows = ranges(first[partial], npoint[partial] - skip[partial])
-            which = np.repeat(np.flatnonzero(partial), npoint[partial] - skip[partial])
-            block = pool.coefficients[rows]  # (n, 6, nj)
-            out = ~mask[which]
-            block.transpose(0, 2, 1)[out] = 0.0
-            block[:, 0][out] = hold[which][out]
-            pool.coefficients[rows] = block
+        if partial.any():  # joints a partial goal leaves out go to their reference and hold there
+            hold = np.where(
+                self.on_trajectory[worlds[partial], None],
+                self.reference_position[worlds[partial]],
+                here[partial],
+            )
+            rows = ranges(start_row[partial] + 1, npoint[partial] - skip[partial])
+            which = np.repeat(np.arange(len(hold)), npoint[partial] - skip[partial])
+            block = pool.points[:, rows]  # (3, n, nj)
+            out = ~mask[partial][which]
+            block[:, out] = 0.0
+            block[0, out] = hold[which][out]
+            pool.points[:, rows] = block
         self.t0[worlds] = t0
         self.segment[worlds] = skip
         self.last[worlds] = npoint
+        self.spline[worlds] = self.pending_spline[worlds]
+        self._make(worlds, start_row, np.zeros(len(worlds), bool), start=(here, here_v))
+        self.made[worlds] = skip
         self.running[worlds] = True
         self.on_trajectory[worlds] = True
 
@@ -247,7 +253,13 @@ class Timeline:
         self.segment[running] = segment
         row = base + segment
         done = segment >= last  # past the last point: its position, at rest
-        reference = evaluate(pool.coefficients[row], rel - times[row], done, self.step_points)
+        entered = np.flatnonzero(self.made[running] != segment)
+        if entered.size:  # the segments time entered since the last update: their polynomials
+            self._make(running[entered], row[entered], done[entered])
+            self.made[running[entered]] = segment[entered]
+        polynomial = self.polynomial if len(running) == self.nworld else self.polynomial[running]
+        s = np.zeros(len(running)) if self.step_points else rel - times[row]  # a held point: as it is
+        reference = evaluate(polynomial, s, done)
         pos[running], vel[running], acc[running] = reference[:, 0], reference[:, 1], reference[:, 2]
         self.executing[running] = ~done
         finished = running[done]
@@ -256,6 +268,40 @@ class Timeline:
             self.running[finished] = False
             pool.release(RUNNING, finished)
             pool.trim(finished)
+
+    def _make(
+        self,
+        worlds: np.ndarray,
+        row: np.ndarray,
+        done: np.ndarray,
+        start: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> None:
+        """The polynomials of the worlds' segments that leave pool row `row` (past the last
+        point, `done`: that point's position); `start`: (n, njoint) the position and
+        velocity they leave from (at rest otherwise) instead of the row's point."""
+        pool, n = self.pool, len(worlds)
+        every = n == self.nworld  # a burst: straight into place
+        polynomial = self.polynomial if every else np.empty((n, 6, self.njoint))
+        go = np.flatnonzero(~done)
+        if len(go) < n:
+            polynomial[done] = 0.0
+            polynomial[done, 0] = pool.points[0, row[done]]
+        if go.size:
+            r = row[go]
+            if self.step_points:  # each point as it is
+                kind, T = np.full(len(go), HELD, np.int8), np.ones(len(go))
+            else:
+                kind, T = self.spline[worlds[go]], pool.times[r + 1] - pool.times[r]
+            ends = pool.ends(r, planes_read(kind))  # (n, 3, 2, nj): splines.ENDS
+            if start is not None:
+                ends[:, 0, 0], ends[:, 1, 0], ends[:, 2, 0] = start[0][go], start[1][go], 0.0
+            ends = ends.reshape(len(go), 6, self.njoint)
+            if len(go) == n:
+                coefficients(kind, ends, T, out=polynomial)
+            else:
+                polynomial[go] = coefficients(kind, ends, T)
+        if not every:
+            self.polynomial[worlds] = polynomial
 
     def stop(self, worlds: np.ndarray, position: np.ndarray) -> None:
         """Drop the worlds' trajectories, running and queued, and hold them at `position`

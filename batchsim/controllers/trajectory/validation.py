@@ -53,14 +53,15 @@ class Verdict:
       rejected: (index in the batch, reason) of each, in batch order.
       spline: (n,) int8 Spline of each trajectory.
       owner: (npoint,) the trajectory of each point.
-      points: (p, v, a), each (npoint, njoint): the points' values, 0 where not given.
+      points: (p, v, a), each (npoint, njoint): the points' values, 0 where not given; v or
+        a None where no point gives it (all 0). Read only: they may be the batch's own.
     """
 
     failed: np.ndarray
     rejected: list[tuple[int, str]]
     spline: np.ndarray
     owner: np.ndarray
-    points: tuple[np.ndarray, ...]
+    points: tuple[np.ndarray | None, ...]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -237,23 +238,26 @@ def check(
     counts = b.counts
     owner = np.repeat(np.arange(n), counts)  # (npoint,) the trajectory of each point
     empty = counts == 0
-    named = b.joint_mask[owner]  # (npoint, nj)
 
     def per_trajectory(bad_point: np.ndarray) -> np.ndarray:
         return np.bincount(owner, weights=bad_point, minlength=n) > 0
 
     # the checks of single points: one pass over the points, the per-check split only if needed
-    points = _points(b, owner, named)
-    magnitude = np.stack([np.abs(x).max(axis=1, initial=0.0) for x in points])  # (3, npoint), NaN: NaN
+    points = _points(b, owner)
+    # the largest |value| of the batch's positions, velocities, accelerations (NaN: NaN): the
+    # points' own only when some is not below MAX_COMMAND (the usual batch: none)
+    largest = np.array([_largest(x) for x in points])
+    magnitude = None if (largest < MAX_COMMAND).all() else _magnitude(points)
     disorder = np.zeros(npoint, bool)  # a point not after the one before it
     disorder[1:] = ~(b.steps > 0) & (owner[1:] == owner[:-1])
+    fine = np.zeros(npoint, bool)
     point_checks = [
         ~(np.isfinite(b.times) & (b.times >= 0)),
         disorder,
-        *~(magnitude < MAX_COMMAND),  # positions, velocities, accelerations
+        *(3 * [fine] if magnitude is None else ~(magnitude < MAX_COMMAND)),  # positions, velocities, accel.
     ]
     none = np.zeros(n, bool)
-    if per_trajectory(np.logical_or.reduce(point_checks)).any():
+    if np.logical_or.reduce(point_checks).any():
         bad_time, bad_order, bad_p, bad_v, bad_a = (per_trajectory(c) for c in point_checks)
     else:
         bad_time = bad_order = bad_p = bad_v = bad_a = none
@@ -314,8 +318,9 @@ def check(
             rejected[k] = f"{name}: {reason(k)}"
 
     spline = spline_of(b.has_velocities, b.has_accelerations)
-    reach = _reach(b, owner, spline, points, magnitude, failed | empty, bound, step_points)
-    too_far = per_trajectory(~(reach < MAX_COMMAND)) & ~failed
+    reach = _reach(b, owner, spline, points, largest, magnitude, failed | empty, bound, step_points)
+    far = ~(reach < MAX_COMMAND)
+    too_far = (per_trajectory(far) if far.any() else none) & ~failed
     for k in np.flatnonzero(too_far).tolist():
         point = int(np.argmax(~(reach[b.offsets[k] : b.offsets[k + 1]] < MAX_COMMAND)))
         where = "the start (from rest)" if point == 0 else f"point {point - 1}"
@@ -346,24 +351,43 @@ def _value_reason(b: Unpacked, k: int, what: str) -> str:
     )
 
 
-def _points(b: Unpacked, owner: np.ndarray, named: np.ndarray) -> tuple[np.ndarray, ...]:
-    """(p, v, a), each (npoint, njoint): the points' values, 0 for joints or fields not given."""
-    p = np.where(named, b.positions, 0.0)
-    v = np.zeros_like(p) if b.velocities is None else np.where(named, b.velocities, 0.0)
-    a = np.zeros_like(p) if b.accelerations is None else np.where(named, b.accelerations, 0.0)
-    if not b.has_velocities.all():
-        v[~b.has_velocities[owner]] = 0.0
-    if not b.has_accelerations.all():
-        a[~b.has_accelerations[owner]] = 0.0
-    return p, v, a
+def _points(b: Unpacked, owner: np.ndarray) -> tuple[np.ndarray | None, ...]:
+    """(p, v, a), each (npoint, njoint): the points' values, 0 for joints or fields not
+    given; v or a None where no point gives it (the batch's own arrays where it gives
+    every one: read only)."""
+    named = None if b.joint_mask.all() else b.joint_mask[owner]  # (npoint, nj)
+
+    def given(values: np.ndarray | None, has: np.ndarray) -> np.ndarray | None:
+        if values is None or not has.any():
+            return None
+        if has.all():
+            return values if named is None else np.where(named, values, 0.0)
+        out = values.copy() if named is None else np.where(named, values, 0.0)
+        out[~has[owner]] = 0.0
+        return out
+
+    p = b.positions if named is None else np.where(named, b.positions, 0.0)
+    return p, given(b.velocities, b.has_velocities), given(b.accelerations, b.has_accelerations)
+
+
+def _largest(x: np.ndarray | None) -> float:
+    """The largest |value| of a (npoint, njoint) table of points (None: 0); NaN: NaN."""
+    return 0.0 if x is None else float(np.maximum(x.max(initial=0.0), -x.min(initial=0.0)))
+
+
+def _magnitude(points: tuple[np.ndarray | None, ...]) -> np.ndarray:
+    """(3, npoint): the largest |value| of each point's p, v and a; NaN: NaN."""
+    npoint = len(points[0])
+    return np.stack([np.zeros(npoint) if x is None else np.abs(x).max(axis=1, initial=0.0) for x in points])
 
 
 def _reach(
     b: Unpacked,
     owner: np.ndarray,
     spline: np.ndarray,
-    points: tuple[np.ndarray, ...],
-    magnitude: np.ndarray,
+    points: tuple[np.ndarray | None, ...],
+    largest: np.ndarray,
+    magnitude: np.ndarray | None,
     skip: np.ndarray,
     bound: CommandBound,
     step_points: bool,
@@ -372,21 +396,24 @@ def _reach(
     point's: from rest at time 0); 0 for the points of `skip` and first points at time 0.
 
     A cheap bound from the segment's end values screens every segment; the polynomial's
-    own bound is computed only for the few the cheap one cannot clear.
+    own bound is computed only for the few the cheap one cannot clear. `largest`: (3,) the
+    batch's largest |p|, |v|, |a|; `magnitude`: (3, npoint) each point's (`_magnitude`), or
+    None when not computed yet.
     """
-    p, v, a = points
+    p = points[0]
     npoint = len(p)
     if npoint == 0:
         return np.zeros(0)
     with np.errstate(all="ignore"):
-        mp, mv, ma = magnitude  # (npoint,) each: the largest |value| of each point
         first = np.zeros(npoint, bool)
         first[b.offsets[:-1][b.offsets[:-1] < npoint]] = True
         T = np.concatenate([b.times[:1], b.steps])
         T[first] = b.times[first]
         ignore = skip[owner] | (first & ~(T > 0))  # a first point at time 0 is dropped at the start
-        if step_points:  # each point is commanded as given
-            reach = bound(mp, mv, ma)
+        if step_points:  # each point is commanded as given (the bound grows with each value)
+            if bound(*largest) < MAX_COMMAND:
+                return np.zeros(npoint)
+            reach = bound(*(_magnitude(points) if magnitude is None else magnitude))
             reach[ignore] = 0.0
             return reach
         # the end values bound a Hermite segment's position, velocity and acceleration:
@@ -394,7 +421,7 @@ def _reach(
         # First the whole batch at once, from its largest values and longest and shortest segments
         used = T[~ignore]
         longest, shortest = used.max(initial=1.0), used[used > 0].min(initial=1.0)
-        Mp, Mv, Ma = mp.max(initial=0.0), mv.max(initial=0.0), ma.max(initial=0.0)
+        Mp, Mv, Ma = largest
         whole = 100.0 * bound(
             Mp + Mv * longest + Ma * longest**2,
             Mp / shortest + Mv + Ma * longest,
@@ -402,7 +429,7 @@ def _reach(
         )
         if whole < MAX_COMMAND:
             return np.zeros(npoint)
-        m = magnitude
+        m = _magnitude(points) if magnitude is None else magnitude
         Mp, Mv, Ma = np.maximum(
             m, np.where(first, 0.0, np.concatenate([np.zeros((3, 1)), m[:, :-1]], axis=1))
         )
@@ -415,18 +442,13 @@ def _reach(
         if close.size:  # the polynomial's own bound, sum |c_k| s^k over the segment
             start = first[close][:, None]
             before = np.maximum(close - 1, 0)
-            c = coefficients(
-                spline[owner[close]],
-                np.where(start, 0.0, p[before]),
-                p[close],
-                np.where(start, 0.0, v[before]),
-                v[close],
-                np.where(start, 0.0, a[before]),
-                a[close],
-                safe[close, None],
+            given = [np.zeros_like(p) if x is None else x for x in points]
+            ends = np.stack(  # splines.ENDS: p0, p1, v0, v1, a0, a1
+                [y for x in given for y in (np.where(start, 0.0, x[before]), x[close])], axis=1
             )
+            c = coefficients(spline[owner[close]], ends, safe[close])
             powers = safe[close, None, None] ** np.arange(6)[:, None]  # (n, 6, 1)
-            mag = np.abs(np.stack(c, axis=1))  # (n, 6, nj)
+            mag = np.abs(c)  # (n, 6, nj)
             position = (mag * powers).sum(axis=1)
             velocity = (mag[:, 1:] * np.arange(1, 6)[:, None] * powers[:, :5]).sum(axis=1)
             acceleration = (mag[:, 2:] * np.array([2, 6, 12, 20])[:, None] * powers[:, :4]).sum(axis=1)
