@@ -46,6 +46,7 @@ class SegmentPool:
         self.njoint = njoint
         self.times = np.zeros(0)
         self.points = np.zeros((3, 0, njoint))
+        self._pairs = _pairs(self.points)
         self.offset = np.full((3, nworld), -1, np.int64)
         self.size = np.zeros((3, nworld), np.int64)
         self.held = 0
@@ -130,10 +131,7 @@ class SegmentPool:
         planes (3,) bool asked for; the others are left uninitialized."""
         out = np.empty((len(rows), 3, 2, self.njoint))
         for k in np.flatnonzero(planes).tolist():
-            plane = self.points[k]
-            # row r of the window: plane rows r and r + 1
-            pairs = as_strided(plane, (len(plane) - 1, 2, self.njoint), (plane.strides[0], *plane.strides))
-            out[:, k] = pairs[rows]
+            out[:, k] = self._pairs[k][rows]
         return out
 
     def shrink(self) -> None:
@@ -153,7 +151,16 @@ class SegmentPool:
         points[:, :total] = self.points[:, source]
         self.offset[kinds, worlds] = np.cumsum(size) - size
         self.times, self.points = times, points
+        self._pairs = _pairs(points)
         self.used = self.held = total
+
+
+def _pairs(points: np.ndarray) -> list[np.ndarray]:
+    """Per plane of (3, capacity, njoint) points, a window whose row r holds rows r and r + 1."""
+    return [
+        as_strided(plane, (max(len(plane) - 1, 0), 2, plane.shape[1]), (plane.strides[0], *plane.strides))
+        for plane in points
+    ]
 
 
 def put_blocks(

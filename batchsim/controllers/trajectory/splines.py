@@ -127,16 +127,13 @@ def coefficients(
     elif unread.any():
         ends[unread] = 0.0
     T = np.where(T > 0, T, 1.0)
-    scaled = bool((T != 1.0).any())
-    if scaled:  # each value in units of a position: v T, a T^2 (where read)
-        _, v, a = planes_read(kinds)
-        if v:
-            ends[:, 2:4] *= T[:, None, None]
-        if a:
-            ends[:, 4:6] *= (T * T)[:, None, None]
+    reads = _READS[kinds].any(axis=0)
+    if reads[2]:  # each value in units of a position: v T, a T^2 (exact for T = 1)
+        ends[:, 2:4] *= T[:, None, None]
+    if reads[4]:
+        ends[:, 4:6] *= (T * T)[:, None, None]
     out = np.matmul(_MATRIX[k], ends, out=out)  # T^k c_k
-    if scaled:
-        out *= _powers(1.0 / T)[:, 1:, None]
+    out *= _powers(1.0 / T)[:, 1:, None]
     return out
 
 

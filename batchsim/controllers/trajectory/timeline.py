@@ -282,21 +282,22 @@ class Timeline:
         pool, n = self.pool, len(worlds)
         every = n == self.nworld  # a burst: straight into place
         polynomial = self.polynomial if every else np.empty((n, 6, self.njoint))
-        go = np.flatnonzero(~done)
-        if len(go) < n:
+        go: slice | np.ndarray = slice(None)
+        if done.any():
             polynomial[done] = 0.0
             polynomial[done, 0] = pool.points[0, row[done]]
-        if go.size:
-            r = row[go]
+            go = np.flatnonzero(~done)
+        r = row[go]
+        if len(r):
             if self.step_points:  # each point as it is
-                kind, T = np.full(len(go), HELD, np.int8), np.ones(len(go))
+                kind, T = np.full(len(r), HELD, np.int8), np.ones(len(r))
             else:
                 kind, T = self.spline[worlds[go]], pool.times[r + 1] - pool.times[r]
             ends = pool.ends(r, planes_read(kind))  # (n, 3, 2, nj): splines.ENDS
             if start is not None:
                 ends[:, 0, 0], ends[:, 1, 0], ends[:, 2, 0] = start[0][go], start[1][go], 0.0
-            ends = ends.reshape(len(go), 6, self.njoint)
-            if len(go) == n:
+            ends = ends.reshape(len(r), 6, self.njoint)
+            if len(r) == n:
                 coefficients(kind, ends, T, out=polynomial)
             else:
                 polynomial[go] = coefficients(kind, ends, T)
