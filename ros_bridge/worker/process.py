@@ -8,6 +8,7 @@ WAKE_FD reaches EOF (the physics process went) or carries `q`.
 from __future__ import annotations
 
 import ctypes
+import gc
 import os
 import pickle
 import signal
@@ -70,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
             stacks.start(os.environ["BATCHSIM_WORKER_STACKS"], index)
         worker.build()
         worker.start()
+        # what start-up made is never scanned again, as the loop does (SimLoop): a full collection
+        # of a 512-world worker took 16-48 ms (2-core VM), a stall in which snapshots went unread
+        gc.collect()
+        gc.freeze()
         status.write("ready\n")
         ready = True
         worker.serve(wake_fd)
