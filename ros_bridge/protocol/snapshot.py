@@ -6,17 +6,18 @@ A snapshot is a header (its number n, period index, sim time, forced; each world
 and flags; which channels it wrote) and the rows of the channels it wrote. Headers go into a
 ring of HEADERS buffers, snapshot n into buffer n % HEADERS, whose `seq` reads 2n+1 while it
 is written and 2n+2 when done, then `latest` says n. A channel's rows go into the channel's
-own two slots, its w-th write into slot w % 2 (`cseq[c, slot]`: 2w+1 while written, 2w+2
-when done), so a snapshot that does not write a channel leaves its last rows alone. A reader
+own SLOTS slots, its w-th write into slot w % SLOTS (`cseq[c, slot]`: 2w+1 while written,
+2w+2 when done), so a snapshot that does not write a channel leaves its last rows alone. A reader
 copies and checks the seqs again: it retries a header being rewritten and never keeps a
 torn row. Each channel (ros_bridge/outputs.py) is written only when some worker publishes
 from it this period (`demand`, a recording's `rec.want`, the view's `view.want`).
 
 A worker woken late (`catch_up`) reads the oldest snapshot it has not seen that holds a
 channel no later one holds, then the next: joint_states at 25 Hz in a 100 Hz loop are in
-one snapshot of four, and a worker that stalls 30-100 ms (a graph scan, /diagnostics of 512
-worlds) still publishes each of them, as long as its header and that channel's rows were
-not overwritten since (HEADERS - 1 periods; two more writes of the channel).
+one snapshot of four, and a worker that stalls for some periods (publishing 512 worlds'
+messages, their /diagnostics, a garbage collection) still publishes each of them, as long
+as its header and that channel's rows were not overwritten since (HEADERS - 2 periods;
+SLOTS - 1 more writes of the channel: 140 ms and 80 ms at 100 Hz and 25 Hz).
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ import numpy as np
 
 from batchsim.memory import Memory
 
-HEADERS = 8  # snapshot headers kept: a reader HEADERS - 1 periods late still finds one
+HEADERS = 16  # snapshot headers kept: a reader HEADERS - 2 periods late still finds one
+SLOTS = 3  # each channel's rows kept: a channel's newest and the SLOTS - 1 before it
 
 
 def snapshot_arrays(nworld: int, widths: Sequence[int]) -> list[tuple[str, tuple[int, ...], str]]:
@@ -41,10 +43,10 @@ def snapshot_arrays(nworld: int, widths: Sequence[int]) -> list[tuple[str, tuple
         ("flags", (HEADERS, nworld), "u1"),  # FLAG_* bits
         ("written", (HEADERS, nch), "i8"),  # per header and channel: n if it wrote the channel, else -1
         ("cwrite", (HEADERS, nch), "i8"),  # ... and which write of the channel that was
-        ("cseq", (nch, 2), "i8"),  # per channel and slot: 2w+1 while its write w goes in, 2w+2 done
+        ("cseq", (nch, SLOTS), "i8"),  # per channel and slot: 2w+1 while its write w goes in, 2w+2 done
         ("cwrites", (nch,), "i8"),  # per channel: its writes so far
     ]
-    arrays += [(f"ch{c}", (2, nworld, width), "f8") for c, width in enumerate(widths)]
+    arrays += [(f"ch{c}", (SLOTS, nworld, width), "f8") for c, width in enumerate(widths)]
     return arrays
 
 
@@ -60,7 +62,7 @@ def channel_rows(memory: Memory, n: int, c: int) -> np.ndarray | None:
     b = n % HEADERS
     if int(memory["written"][b, c]) != n:
         return None
-    return memory[f"ch{c}"][int(memory["cwrite"][b, c]) % 2]
+    return memory[f"ch{c}"][int(memory["cwrite"][b, c]) % SLOTS]
 
 
 def write_snapshot(
@@ -92,9 +94,9 @@ def write_snapshot(
     for c, fill in enumerate(fills):
         if due[c] and (every_channel or demand[c]):
             w = int(cwrites[c])
-            cseq[c, w % 2] = 2 * w + 1
-            fill(m[f"ch{c}"][w % 2])
-            cseq[c, w % 2] = 2 * w + 2
+            cseq[c, w % SLOTS] = 2 * w + 1
+            fill(m[f"ch{c}"][w % SLOTS])
+            cseq[c, w % SLOTS] = 2 * w + 2
             cwrites[c] = w + 1
             written[c], cwrite[c] = n, w
         else:
@@ -150,8 +152,8 @@ def read_snapshot(
         for c in range(nchannel):
             if written[c] == n:
                 w = int(cwrite[c])
-                rows = m[f"ch{c}"][w % 2, lo:hi].copy()
-                if int(m["cseq"][c, w % 2]) == 2 * w + 2:  # not overwritten while copied, nor before
+                rows = m[f"ch{c}"][w % SLOTS, lo:hi].copy()
+                if int(m["cseq"][c, w % SLOTS]) == 2 * w + 2:  # not overwritten while copied, nor before
                     channels[c] = rows
         snap.n, snap.period, snap.time, snap.forced = n, int(meta[1]), float(meta[2]), bool(meta[3])
         snap.status, snap.flags, snap.written, snap.channels = status, flags, written, channels
