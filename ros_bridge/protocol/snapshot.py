@@ -16,8 +16,8 @@ A worker woken late (`catch_up`) reads the oldest snapshot it has not seen that 
 channel no later one holds, then the next: joint_states at 25 Hz in a 100 Hz loop are in
 one snapshot of four, and a worker that stalls for some periods (publishing 512 worlds'
 messages, their /diagnostics, a garbage collection) still publishes each of them, as long
-as its header and that channel's rows were not overwritten since (HEADERS - 2 periods;
-SLOTS - 1 more writes of the channel: 140 ms and 80 ms at 100 Hz and 25 Hz).
+as its header and that channel's rows were not overwritten since: up to HEADERS - 2 periods
+(140 ms at 100 Hz), and before the channel's SLOTS-th next write (a 25 Hz channel: 110 ms).
 """
 
 from __future__ import annotations
