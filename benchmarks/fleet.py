@@ -322,6 +322,11 @@ class Batchsim:
                 out.append((float(m.group(1)), float(m.group(2)) * (1e6 if m.group(3) == "M" else 1e3)))
         return out
 
+    def stalls(self, since: float, until: float) -> int:
+        """Warnings of a bridge worker without a tick for a second (ros_bridge/supervisor.py)
+        between two wall times: in such a second its worlds publish nothing."""
+        return sum(1 for t, line in self.lines if since <= t <= until and "has not answered" in line)
+
     def wait_started(self, timeout: float) -> None:
         deadline = time.time() + timeout
         while self.started is None:
@@ -418,12 +423,14 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
             time.sleep(opts.warmup)
             published.wait_ready(30.0)
             t0 = time.time()
-            c0 = subs.total(t0)
             time.sleep(opts.seconds)
             t1 = time.time() - 0.3  # the subscribers' last reports lag a little
+            # both edges counted once every report past them came: at t0 itself the newest
+            # report was up to 0.25 s old, and the window counted those messages as its own
             wait_sampled([*subs.samples, *published.samples.values()], t1, 5.0)
-            c1 = subs.total(t1)
+            c0, c1 = subs.total(t0), subs.total(t1)
             out["published"] = (published.total(t1) - published.total(t0)) / (t1 - t0)
+            out["stalls"] = b.stalls(t0, t1)
             rows = b.status(t0, t1 + 0.8)
         finally:
             b.stop()
@@ -496,7 +503,8 @@ def main() -> None:
     began = time.monotonic()
     for worlds, control, publish in sizes:
         r = run_size(opts, worlds, control, publish, opts.domain)
-        print(f"# {worlds} worlds measured in {time.monotonic() - began:.0f} s since the start", file=sys.stderr, flush=True)
+        print(f"# {worlds} worlds measured in {time.monotonic() - began:.0f} s since the start; "
+              f"{r['stalls']} worker stalls of 1 s or more in the real-time window", file=sys.stderr, flush=True)  # fmt: skip
         last = r
         print(
             f"| {worlds} | {control:g} | {publish:g} | {r['no_ros']:,.0f} | {r['flat_out']:,.0f} | {r['flat_out'] / r['no_ros']:.3f} | "
