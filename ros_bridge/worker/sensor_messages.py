@@ -26,6 +26,7 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2, PointField
 
 from batchsim.sensors import Camera, Lidar
+from ros_bridge.sensor_topics import TopicKind
 from ros_bridge.worker.messages import find_once, locate_stamps, set_stamp_marker
 
 _STAMP = struct.Struct("<iI")
@@ -178,3 +179,15 @@ def point_cloud_framing(lidar: Lidar, frames: Sequence[str], topic: str) -> Fram
         messages.append(msg)
     return Framing(messages, _set_data, 12 * lidar.nray, topic)
 
+
+def topic_framing(kind: TopicKind, source: Camera | Lidar, rate: float | None, frames: Sequence[str], topic: str) -> Framing:
+    """The framing of a `kind` topic (SensorPlan.topics()) of `source`, a Camera or a Lidar at
+    `rate` Hz, over the worlds whose frame ids are `frames`; `topic` the first world's topic.
+    The workers publish with it and the recorder records with it."""
+    if kind is TopicKind.IMAGE or kind is TopicKind.DEPTH:
+        return image_framing(source, frames, kind is TopicKind.DEPTH, topic)
+    if kind is TopicKind.INFO:
+        return camera_info_framing(source, frames, topic)
+    if kind is TopicKind.CLOUD:
+        return point_cloud_framing(source, frames, topic)
+    return laser_scan_framing(source, rate, frames, topic)

@@ -21,28 +21,10 @@ import numpy as np
 
 from ros_bridge.plan import FleetPlan
 from ros_bridge.protocol.sensor_blocks import PART_BITS, SensorBlock, missed
-from ros_bridge.sensor_topics import TopicKind
 from ros_bridge.worker.mcap_file import BlockWriter
 from ros_bridge.worker.messages import stamp_of
-from ros_bridge.worker.sensor_messages import (
-    Framing,
-    camera_info_framing,
-    image_framing,
-    laser_scan_framing,
-    point_cloud_framing,
-)
+from ros_bridge.worker.sensor_messages import Framing, topic_framing
 from ros_bridge.worker.sensors import under
-
-
-def _framing(kind: TopicKind, source, rate: float | None, frames: list[str], topic: str) -> Framing:
-    """The workers' framing of a `kind` topic of `source` (a Camera or a Lidar at `rate`)."""
-    if kind is TopicKind.IMAGE or kind is TopicKind.DEPTH:
-        return image_framing(source, frames, kind is TopicKind.DEPTH, topic)
-    if kind is TopicKind.INFO:
-        return camera_info_framing(source, frames, topic)
-    if kind is TopicKind.CLOUD:
-        return point_cloud_framing(source, frames, topic)
-    return laser_scan_framing(source, rate, frames, topic)
 
 
 @dataclasses.dataclass
@@ -98,7 +80,7 @@ class SensorRecording:
             else:
                 source, rate = sensors.lidars[t.sensor - ncam].lidar, sensors.lidars[t.sensor - ncam].rate
             names = ["/" + n for n in under(namespaces, t.name)]
-            framing = _framing(t.kind, source, rate, under(namespaces, source.frame_id), names[0])
+            framing = topic_framing(t.kind, source, rate, under(namespaces, source.frame_id), names[0])
             ids = np.array([channel(n, t.kind.msg_type) for n in names], np.int64)
             by_sensor.setdefault(t.sensor, []).append(_Topic(t.part, PART_BITS[t.part] if t.part else 0, framing, ids))
         for s, topics in by_sensor.items():

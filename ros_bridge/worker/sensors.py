@@ -13,6 +13,7 @@ stamped with the sim time of the sample.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -22,16 +23,10 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2
 
 from ros_bridge.naming import topic_name
-from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_INFO, WANT_RGB, SensorBlock
-from ros_bridge.sensor_topics import SensorPlan
+from ros_bridge.protocol.sensor_blocks import PART_BITS, SensorBlock
+from ros_bridge.sensor_topics import SensorPlan, SensorTopic, TopicKind
 from ros_bridge.worker.messages import stamp_of
-from ros_bridge.worker.sensor_messages import (
-    Framing,
-    camera_info_framing,
-    image_framing,
-    laser_scan_framing,
-    point_cloud_framing,
-)
+from ros_bridge.worker.sensor_messages import Framing, topic_framing
 
 
 def under(namespaces: Sequence[str], name: str) -> list[str]:
@@ -95,44 +90,27 @@ class SensorPublishers:
         self.want = memory["sensors.want"]
         self.published = 0
         n = hi - lo
-        self.cameras: list[tuple[SensorBlock, np.ndarray, _Topic, _Topic, _Topic]] = []
-        for k, ct in enumerate(plan.cameras):
-            cam = ct.camera
-            frames = under(namespaces, cam.frame_id)
-
-            def topic(name: str) -> list[str]:
-                return ["/" + t for t in under(namespaces, name)]
-
-            image = topic(cam.image_topic)
-            depth = topic(cam.depth_topic)
-            info = topic(cam.info_topic)
-            self.cameras.append(
-                (
-                    SensorBlock(memory, f"cam{k}", ("rgb", "depth")),
-                    np.zeros(n, np.int64),
-                    _Topic(Image, image, lambda c=cam, f=frames, t=image[0]: image_framing(c, f, False, t)),
-                    _Topic(Image, depth, lambda c=cam, f=frames, t=depth[0]: image_framing(c, f, True, t)),
-                    _Topic(CameraInfo, info, lambda c=cam, f=frames, t=info[0]: camera_info_framing(c, f, t)),
-                )
-            )
-        self.lidars: list[tuple[SensorBlock, np.ndarray, _Topic, Any]] = []
-        for k, lt in enumerate(plan.lidars):
-            ld = lt.lidar
-            frames = under(namespaces, ld.frame_id)
-            names = ["/" + t for t in under(namespaces, ld.topic)]
-            if ld.is_3d:
-                t = _Topic(PointCloud2, names, lambda d=ld, f=frames, t=names[0]: point_cloud_framing(d, f, t))
+        ncam = len(plan.cameras)
+        # per sensor (`sensors.want` column): its block, each row's last seq published, its
+        # topics (SensorPlan.topics(): name, kind, want bit, block part) with their publishers
+        self.blocks = [SensorBlock(memory, f"cam{k}", ("rgb", "depth")) for k in range(ncam)]
+        self.blocks += [SensorBlock(memory, f"lid{k}", ("ranges",)) for k in range(len(plan.lidars))]
+        self.seen = [np.zeros(n, np.int64) for _ in self.blocks]
+        self.topics: list[list[tuple[SensorTopic, _Topic]]] = [[] for _ in self.blocks]
+        self.lidars = {ncam + k: lt.lidar for k, lt in enumerate(plan.lidars)}
+        for t in plan.topics():
+            if t.sensor < ncam:
+                source, rate = plan.cameras[t.sensor].camera, None
             else:
-                t = _Topic(
-                    LaserScan, names, lambda d=ld, r=lt.rate, f=frames, t=names[0]: laser_scan_framing(d, r, f, t)
-                )
-            self.lidars.append((SensorBlock(memory, f"lid{k}", ("ranges",)), np.zeros(n, np.int64), t, ld))
+                source, rate = plan.lidars[t.sensor - ncam].lidar, plan.lidars[t.sensor - ncam].rate
+            names = ["/" + name for name in under(namespaces, t.name)]
+            make = functools.partial(topic_framing, t.kind, source, rate, under(namespaces, source.frame_id), names[0])
+            self.topics[t.sensor].append((t, _Topic(_MSG_TYPES[t.kind], names, make)))
         # topic -> (its _Topic, row): publishers are created once a subscriber shows up in the
         # graph (a fleet of thousands of worlds would otherwise hold 3 endpoints per camera and world)
         self.node, self.qos = node, qos
         self._pending: dict[str, tuple[_Topic, int]] = {}
-        topics = [t for c in self.cameras for t in c[2:]] + [lid[2] for lid in self.lidars]
-        for t in topics:
+        for t in (topic for topics in self.topics for _, topic in topics):
             for row, name in enumerate(t.topics):
                 self._pending[name] = (t, row)
         if all_topics:
@@ -154,36 +132,38 @@ class SensorPublishers:
 
     def refresh(self) -> None:
         """Subscriber counts -> this worker's rows of the want bits."""
-        want = np.zeros((self.hi - self.lo, self.want.shape[1]), np.uint8)
-        for s, (_, _, image, depth, info) in enumerate(self.cameras):
-            want[:, s] = image.refresh() * WANT_RGB | depth.refresh() * WANT_DEPTH | info.refresh() * WANT_INFO
-        for s, (_, _, topic, _) in enumerate(self.lidars, start=len(self.cameras)):
-            want[:, s] = topic.refresh() * WANT_RGB
+        want = np.zeros((self.hi - self.lo, self.want.shape[1]), np.int64)
+        for s, topics in enumerate(self.topics):
+            for t, topic in topics:
+                want[:, s] |= topic.refresh() * t.want
         self.want[self.lo : self.hi] = want
 
     def publish(self) -> None:
-        """Publish every sample written since the last call, once, where someone subscribes."""
+        """Publish every sample written since the last call, once, where someone subscribes:
+        a topic with a payload where its part was written, CameraInfo with its camera's frames."""
         lo, hi = self.lo, self.hi
-        for block, seen, image, depth, info in self.cameras:
+        for s, (block, seen, topics) in enumerate(zip(self.blocks, self.seen, self.topics, strict=True)):
             rows, parts, time, data = block.read(lo, hi, seen)
-            for i, r in enumerate(rows.tolist()):
-                sec, nanosec = stamp_of(float(time[i]))
-                if image.subscribed[r] and parts[i] & WANT_RGB:
-                    image.publishers[r].publish(image.framing.payload(r, sec, nanosec, data["rgb"][i]))
-                    self.published += 1
-                if depth.subscribed[r] and parts[i] & WANT_DEPTH:
-                    depth.publishers[r].publish(depth.framing.payload(r, sec, nanosec, data["depth"][i]))
-                    self.published += 1
-                if info.subscribed[r]:
-                    info.publishers[r].publish(info.framing.payload(r, sec, nanosec))
-                    self.published += 1
-        for block, seen, topic, ld in self.lidars:
-            rows, _, time, data = block.read(lo, hi, seen)
             if not rows.size:
                 continue
-            values = ld.points(data["ranges"]) if ld.is_3d else data["ranges"]
-            for i, r in enumerate(rows.tolist()):
-                if topic.subscribed[r]:
-                    sec, nanosec = stamp_of(float(time[i]))
-                    topic.publishers[r].publish(topic.framing.payload(r, sec, nanosec, values[i]))
+            stamps = [stamp_of(float(x)) for x in time]
+            for t, topic in topics:
+                values = data[t.part] if t.part is not None else None
+                if t.kind is TopicKind.CLOUD:
+                    values = self.lidars[s].points(values)
+                for i, r in enumerate(rows.tolist()):
+                    if not topic.subscribed[r] or (values is not None and not parts[i] & PART_BITS[t.part]):
+                        continue
+                    extra = () if values is None else (values[i],)
+                    topic.publishers[r].publish(topic.framing.payload(r, *stamps[i], *extra))
                     self.published += 1
+
+
+_MSG_TYPES = {
+    TopicKind.IMAGE: Image,
+    TopicKind.DEPTH: Image,
+    TopicKind.INFO: CameraInfo,
+    TopicKind.SCAN: LaserScan,
+    TopicKind.CLOUD: PointCloud2,
+}
+
