@@ -131,6 +131,17 @@ class SensorPlan:
             out.append(SensorTopic(s, lt.lidar.topic.strip("/"), kind, WANT_RGB, "ranges"))
         return out
 
+    def source(self, s: int) -> tuple[Camera | Lidar, float | None]:
+        """Sensor `s` (`sensors.want` column order): its Camera, or its Lidar and rate."""
+        ncam = len(self.cameras)
+        return (self.cameras[s].camera, None) if s < ncam else (self.lidars[s - ncam].lidar, self.lidars[s - ncam].rate)
+
+    def block(self, memory, s: int) -> SensorBlock:
+        """Sensor `s`'s block in `memory` (`sensors.want` column order): a camera's rgb and
+        depth, a lidar's ranges, as `arrays` lays them out."""
+        ncam = len(self.cameras)
+        return SensorBlock(memory, f"cam{s}", ("rgb", "depth")) if s < ncam else SensorBlock(memory, f"lid{s - ncam}", ("ranges",))
+
     def arrays(self, nworld: int) -> list[tuple[str, tuple[int, ...], str]]:
         """The Layout entries of the sensor blocks for `nworld` worlds."""
         out: list[tuple[str, tuple[int, ...], str]] = [("sensors.want", (nworld, max(1, self.nsensor)), "u1")]
@@ -189,8 +200,7 @@ class SensorFeed:
         self.askers = [a for a in (recording, view) if a is not None]  # each ORs its want bits in
         self.want = memory["sensors.want"]
         self.names = [c.camera.name for c in plan.cameras] + [ld.lidar.name for ld in plan.lidars]
-        self.blocks = {c.camera.name: SensorBlock(memory, f"cam{k}", ("rgb", "depth")) for k, c in enumerate(plan.cameras)}
-        self.blocks.update({ld.lidar.name: SensorBlock(memory, f"lid{k}", ("ranges",)) for k, ld in enumerate(plan.lidars)})
+        self.blocks = {name: plan.block(memory, s) for s, name in enumerate(self.names)}
         self.column = {name: s for s, name in enumerate(self.names)}
         self._wanted = np.zeros_like(self.want)
         self.sampler = SensorSampler(sim, [self._write])

@@ -19,6 +19,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from batchsim.sensors import Lidar
 from ros_bridge.plan import FleetPlan
 from ros_bridge.protocol.sensor_blocks import PART_BITS, SensorBlock, missed
 from ros_bridge.worker.mcap_file import BlockWriter
@@ -70,26 +71,19 @@ class SensorRecording:
             return
         namespaces = [plan.namespaces[w] for w in spec.worlds]
         seen = memory["rec.sensors.seen"]
-        ncam = len(sensors.cameras)
         by_sensor: dict[int, list[_Topic]] = {}
         for t in sensors.topics():  # the recorded ones, framed as the workers frame them
             if not spec.sensors[t.sensor] & t.want:
                 continue
-            if t.sensor < ncam:
-                source, rate = sensors.cameras[t.sensor].camera, None
-            else:
-                source, rate = sensors.lidars[t.sensor - ncam].lidar, sensors.lidars[t.sensor - ncam].rate
+            source, rate = sensors.source(t.sensor)
             names = ["/" + n for n in under(namespaces, t.name)]
             framing = topic_framing(t.kind, source, rate, under(namespaces, source.frame_id), names[0])
             ids = np.array([channel(n, t.kind.msg_type) for n in names], np.int64)
             by_sensor.setdefault(t.sensor, []).append(_Topic(t.part, PART_BITS[t.part] if t.part else 0, framing, ids))
         for s, topics in by_sensor.items():
-            if s < ncam:
-                block, points = SensorBlock(memory, f"cam{s}", ("rgb", "depth")), None
-            else:
-                ld = sensors.lidars[s - ncam].lidar
-                block, points = SensorBlock(memory, f"lid{s - ncam}", ("ranges",)), ld.points if ld.is_3d else None
-            self.sensors.append(_Sensor(block, seen[:, s], topics, points))
+            source, _ = sensors.source(s)
+            points = source.points if isinstance(source, Lidar) and source.is_3d else None
+            self.sensors.append(_Sensor(sensors.block(memory, s), seen[:, s], topics, points))
         for sensor in self.sensors:  # from now on: a sample written before the recording is not taken
             seq = sensor.block.seq[self.worlds]
             sensor.seen[:] = seq - seq % 2

@@ -23,7 +23,7 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2
 
 from ros_bridge.naming import topic_name
-from ros_bridge.protocol.sensor_blocks import PART_BITS, SensorBlock
+from ros_bridge.protocol.sensor_blocks import PART_BITS
 from ros_bridge.sensor_topics import SensorPlan, SensorTopic, TopicKind
 from ros_bridge.worker.messages import stamp_of
 from ros_bridge.worker.sensor_messages import Framing, topic_framing
@@ -86,23 +86,17 @@ class SensorPublishers:
         namespaces: Sequence[str],
         all_topics: bool = False,
     ):
-        self.lo, self.hi = lo, hi
+        self.lo, self.hi, self.plan = lo, hi, plan
         self.want = memory["sensors.want"]
         self.published = 0
         n = hi - lo
-        ncam = len(plan.cameras)
         # per sensor (`sensors.want` column): its block, each row's last seq published, its
         # topics (SensorPlan.topics(): name, kind, want bit, block part) with their publishers
-        self.blocks = [SensorBlock(memory, f"cam{k}", ("rgb", "depth")) for k in range(ncam)]
-        self.blocks += [SensorBlock(memory, f"lid{k}", ("ranges",)) for k in range(len(plan.lidars))]
+        self.blocks = [plan.block(memory, s) for s in range(plan.nsensor)]
         self.seen = [np.zeros(n, np.int64) for _ in self.blocks]
         self.topics: list[list[tuple[SensorTopic, _Topic]]] = [[] for _ in self.blocks]
-        self.lidars = {ncam + k: lt.lidar for k, lt in enumerate(plan.lidars)}
         for t in plan.topics():
-            if t.sensor < ncam:
-                source, rate = plan.cameras[t.sensor].camera, None
-            else:
-                source, rate = plan.lidars[t.sensor - ncam].lidar, plan.lidars[t.sensor - ncam].rate
+            source, rate = plan.source(t.sensor)
             names = ["/" + name for name in under(namespaces, t.name)]
             make = functools.partial(topic_framing, t.kind, source, rate, under(namespaces, source.frame_id), names[0])
             self.topics[t.sensor].append((t, _Topic(_MSG_TYPES[t.kind], names, make)))
@@ -150,7 +144,7 @@ class SensorPublishers:
             for t, topic in topics:
                 values = data[t.part] if t.part is not None else None
                 if t.kind is TopicKind.CLOUD:
-                    values = self.lidars[s].points(values)
+                    values = self.plan.source(s)[0].points(values)
                 for i, r in enumerate(rows.tolist()):
                     if not topic.subscribed[r] or (values is not None and not parts[i] & PART_BITS[t.part]):
                         continue
