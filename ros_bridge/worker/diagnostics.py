@@ -47,6 +47,7 @@ class Diagnostics:
         self._rejected: list[dict[tuple[str, str], int]] = [{} for _ in namespaces]
         self._lock = threading.Lock()
         self._host_seen = self.host_rejections.count[lo:hi].copy()
+        self._heads: dict[tuple[int, int], list[KeyValue]] = {}  # _head's, per (status bits, flags)
         # per state topic (joint_states, ...): messages published per world (row), since start
         self._published: dict[str, np.ndarray] = {}
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
@@ -73,6 +74,14 @@ class Diagnostics:
         if counts is None:
             counts = self._published[topic] = np.zeros(len(self.namespaces), dtype=np.int64)
         counts[rows] += 1
+
+    def _head(self, bits: int, flags: int) -> list[KeyValue]:
+        """The key values a world's status starts with, made once per (bits, flags) and shared
+        by the worlds in that state (a message's fields are serialized by value)."""
+        head = self._heads.get((bits, flags))
+        if head is None:
+            head = self._heads[(bits, flags)] = [KeyValue(key=k, value=v) for k, v in world_status.values(bits, flags)]
+        return head
 
     def publish(self, snap) -> None:
         """One DiagnosticArray for this worker's worlds, from snapshot `snap`, if someone listens."""
@@ -105,7 +114,7 @@ class Diagnostics:
                     name=world_status.status_name(ns),
                     message=world_status.message(bits, flags, last),
                     hardware_id=ns,
-                    values=[KeyValue(key=k, value=v) for k, v in world_status.values(bits, flags)]
+                    values=self._head(bits, flags)
                     + [
                         KeyValue(key="bad_commands", value=str(count)),
                         KeyValue(key="last_problem", value=last),
