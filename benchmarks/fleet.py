@@ -45,6 +45,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 PUBLISHED_KEY = "published joint_states"  # per world in /diagnostics (ros_bridge/worker/diagnostics.py)
+MISSED_KEY = "missed joint_states"  # ... due, not published: the worker read its snapshot too late
 
 # per preset: backend, model, (worlds, control Hz, joint_states Hz) per size, subscriber
 # processes, physics threads (2 cores: one for the physics, one for the bridge and subscriber)
@@ -113,14 +114,16 @@ def published_listener(domain: int) -> None:
 
     def callback(msg: DiagnosticArray) -> None:
         now = time.time()
-        worker, total = None, 0
+        worker, total, missed = None, 0, 0
         for status in msg.status:
             for kv in status.values:
                 if kv.key == PUBLISHED_KEY:
                     worker = worker or status.hardware_id
                     total += int(kv.value)
+                elif kv.key == MISSED_KEY:
+                    missed += int(kv.value)
         if worker is not None:
-            print(f"published {now:.3f} {worker} {total}", flush=True)
+            print(f"published {now:.3f} {worker} {total} {missed}", flush=True)
 
     node.create_subscription(DiagnosticArray, "/diagnostics", callback, 100)
     executor, stop = executor_until_stdin_closes(context, node)
@@ -170,19 +173,22 @@ class Published:
         )
         keep_off(self.proc, reserved)
         self.samples: dict[str, list[tuple[float, float]]] = {}
+        self.missed: dict[str, list[tuple[float, float]]] = {}  # per worker, as samples
         self._thread = threading.Thread(target=self._read, daemon=True)
         self._thread.start()
 
     def _read(self) -> None:
         for line in self.proc.stdout:
             parts = line.split()
-            if len(parts) == 4 and parts[0] == "published":
+            if len(parts) == 5 and parts[0] == "published":
                 self.samples.setdefault(parts[2], []).append((float(parts[1]), float(parts[3])))
+                self.missed.setdefault(parts[2], []).append((float(parts[1]), float(parts[4])))
 
-    def total(self, t: float) -> float:
-        """joint_states all workers had published by wall time `t` (interpolated); NaN where
-        a worker's /diagnostics do not reach that far (or none came): which, on stderr."""
-        series = dict(self.samples)
+    def total(self, t: float, missed: bool = False) -> float:
+        """joint_states all workers had published (`missed`: were due and did not publish) by
+        wall time `t` (interpolated); NaN where a worker's /diagnostics do not reach that far
+        (or none came): which, on stderr."""
+        series = dict(self.missed if missed else self.samples)
         counts = {worker: at(s, t) for worker, s in series.items()}
         late = sorted(worker for worker, c in counts.items() if c is None)
         if not counts or late:
@@ -322,6 +328,21 @@ class Batchsim:
                 out.append((float(m.group(1)), float(m.group(2)) * (1e6 if m.group(3) == "M" else 1e3)))
         return out
 
+    def sim_rate(self, since: float, until: float) -> float:
+        """Sim seconds per wall second between two wall times, from the status lines' sim time
+        (printed each second, to 0.01 s) interpolated at both; NaN without lines around both.
+        Waits up to 2.5 s for a line after `until`."""
+        deadline = time.time() + 2.5
+        while time.time() < deadline and not any(t > until and " rtf " in line for t, line in list(self.lines)):
+            time.sleep(0.05)
+        samples = []
+        for t, line in list(self.lines):
+            m = re.search(r"sim\s+([0-9.]+) s \|", line)
+            if m:
+                samples.append((t, float(m.group(1))))
+        a, b = at(samples, since), at(samples, until)
+        return float("nan") if a is None or b is None else (b - a) / (until - since)
+
     def stalls(self, since: float, until: float) -> int:
         """Warnings of a bridge worker without a tick for a second (ros_bridge/supervisor.py)
         between two wall times: in such a second its worlds publish nothing."""
@@ -430,6 +451,8 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
             wait_sampled([*subs.samples, *published.samples.values()], t1, 5.0)
             c0, c1 = subs.total(t0), subs.total(t1)
             out["published"] = (published.total(t1) - published.total(t0)) / (t1 - t0)
+            out["missed"] = (published.total(t1, missed=True) - published.total(t0, missed=True)) / (t1 - t0)
+            out["sim_rate"] = b.sim_rate(t0, t1)
             out["stalls"] = b.stalls(t0, t1)
             rows = b.status(t0, t1 + 0.8)
         finally:
@@ -441,7 +464,9 @@ def run_size(opts: argparse.Namespace, worlds: int, control: float, publish: flo
     out["rtf"] = statistics.median(rtfs) if rtfs else float("nan")
     out["rtf_min"] = min(rtfs) if rtfs else float("nan")
     out["received"] = (c1 - c0) / (t1 - t0)
-    out["expected"] = worlds * publish * out["rtf"]
+    # sim seconds per wall second over the window, from the status lines' sim time (the RTF they
+    # print is rounded to 0.01, worth 1 % of the expected count); the median RTF where not
+    out["expected"] = worlds * publish * (out["sim_rate"] if out["sim_rate"] == out["sim_rate"] else out["rtf"])
     return out
 
 
@@ -504,7 +529,9 @@ def main() -> None:
     for worlds, control, publish in sizes:
         r = run_size(opts, worlds, control, publish, opts.domain)
         print(f"# {worlds} worlds measured in {time.monotonic() - began:.0f} s since the start; "
-              f"{r['stalls']} worker stalls of 1 s or more in the real-time window", file=sys.stderr, flush=True)  # fmt: skip
+              f"{r['stalls']} worker stalls of 1 s or more in the real-time window; the workers missed "
+              f"{r['missed']:,.0f} joint_states/s (due, their snapshots gone before read); sim {r['sim_rate']:.4f} s per s",
+              file=sys.stderr, flush=True)  # fmt: skip
         last = r
         print(
             f"| {worlds} | {control:g} | {publish:g} | {r['no_ros']:,.0f} | {r['flat_out']:,.0f} | {r['flat_out'] / r['no_ros']:.3f} | "

@@ -57,13 +57,7 @@ from ros_bridge.worker.conflicts import check_conflicts
 from ros_bridge.worker.diagnostics import Diagnostics
 from ros_bridge.worker.graph_scan import GraphScan
 from ros_bridge.worker.intake import Intake
-from ros_bridge.worker.messages import (
-    MESSAGE_TYPES,
-    clock_payload,
-    parse_row,
-    parse_trajectory,
-    stamp_of,
-)
+from ros_bridge.worker.messages import MESSAGE_TYPES, clock_payload, parse_row, parse_trajectory, stamp_of
 from ros_bridge.worker.sensors import SensorPublishers
 from ros_bridge.worker.services import LoopRequests, create_loop_services
 from ros_bridge.worker.snapshot import Output
@@ -72,6 +66,7 @@ from ros_bridge.worker.trajectories import FLUSH_AFTER, TrajectoryIntake
 SUBSCRIBER_REFRESH = 0.5  # s: subscriber counts re-read (lazy publishing)
 DIAGNOSTICS_PERIOD = 0.5  # s
 ACTION_POLL = 0.005  # s: while goals are in flight, their feedback and results wait at most this
+CATCH_UP = 0.05  # s: a late worker's tick publishes missed snapshots this long, the rest at the next
 _ACTUATOR_TOPIC = re.compile(r"^/(.+)/actuators/([^/]+)/command$")
 
 
@@ -263,13 +258,16 @@ class Worker:
     def tick(self) -> None:
         """Publish the newest snapshot if it is new; answer services; housekeeping."""
         self._beat[self.index] += 1
-        for _ in range(HEADERS):  # woken late: each missed snapshot holding what no later one holds, then the newest
+        until = wallclock.monotonic() + CATCH_UP
+        for _ in range(HEADERS):  # woken late: each missed snapshot holding a channel, in order
             snap = read_snapshot(self.memory, len(self.plan.channels), self.lo, self.hi, self.snapshot, catch_up=True)
             if snap is None:
                 break
             self._publish(snap)
             if self.actions is not None:
                 self.actions.update(snap.channels, snap.time)
+            if wallclock.monotonic() > until:
+                break  # services, the beat and housekeeping go on; the rest at the next tick
         if self.sensors is not None:
             self.sensors.publish()
         done = int(self._svc_done[self.index])
@@ -296,12 +294,12 @@ class Worker:
             self._clock_pub.publish(clock_payload(sec, nanosec))
         for out in self._active:
             if snap.forced or snap.period % out.spec.every == 0:
-                self._publish_rows(out, snap, out.rows, sec, nanosec)
+                self._publish_rows(out, snap, out.rows, sec, nanosec, out.missed(snap))
         tf = self.tf
         if tf is not None and tf.wanted and tf.channel in snap.channels:
             self.published += tf.publish(snap.channels[tf.channel], sec, nanosec)
 
-    def _publish_rows(self, out: Output, snap: Snapshot, rows: list[int], sec: int, nanosec: int) -> None:
+    def _publish_rows(self, out: Output, snap: Snapshot, rows: list[int], sec: int, nanosec: int, missed: int = 0) -> None:
         spec = out.spec
         if any(c not in snap.channels for c in spec.channels):
             return  # not copied this time (nobody wanted it until now)
@@ -313,7 +311,7 @@ class Worker:
         for r in rows:
             pubs[r].publish(payload(r))
         self.published += len(rows)
-        self.diagnostics.published(spec.topic, rows)
+        self.diagnostics.published(spec.topic, rows, missed)
 
     def _refresh(self) -> None:
         """Lazy publishing: which rows have subscribers; which channels this worker needs.

@@ -6,7 +6,8 @@ controllers' own rejections in the loop arrive through the `hrej` block. /diagno
 (diagnostic_msgs/DiagnosticArray) carries one status per world: its status bits, whether
 it is frozen or its commands timed out, its rejection counts, and the messages published per
 state topic (`published joint_states`: how many went out, counted where they are published,
-for benchmarks/fleet.py to set against what subscribers received); and one ERROR status per
+for benchmarks/fleet.py to set against what subscribers received) and those due but missed
+(`missed joint_states`: the worker read their snapshots too late); and one ERROR status per
 other bridge worker that has stopped answering (the supervisor's `worker.hung`), naming
 the worlds nobody serves meanwhile.
 """
@@ -50,6 +51,7 @@ class Diagnostics:
         self._heads: dict[tuple[int, int], list[KeyValue]] = {}  # _head's, per (status bits, flags)
         # per state topic (joint_states, ...): messages published per world (row), since start
         self._published: dict[str, np.ndarray] = {}
+        self._missed: dict[str, np.ndarray] = {}  # ... and not published, due but its snapshot gone
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
 
     def reject(self, world: int, period: int, topic: str, problem: Problem, reason: str) -> None:
@@ -68,12 +70,15 @@ class Diagnostics:
             counts = self._rejected[row]
             counts[topic, problem.value] = counts.get((topic, problem.value), 0) + count
 
-    def published(self, topic: str, rows: list[int]) -> None:
-        """One message on `topic` went out to each of `rows` (the worker's publishing thread)."""
-        counts = self._published.get(topic)
-        if counts is None:
-            counts = self._published[topic] = np.zeros(len(self.namespaces), dtype=np.int64)
-        counts[rows] += 1
+    def published(self, topic: str, rows: list[int], missed: int = 0) -> None:
+        """One message on `topic` went out to each of `rows` (the worker's publishing thread),
+        after `missed` periods it was due in and could not be published (its snapshots gone)."""
+        for counter, n in ((self._published, 1), (self._missed, missed)):
+            if n:
+                counts = counter.get(topic)
+                if counts is None:
+                    counts = counter[topic] = np.zeros(len(self.namespaces), dtype=np.int64)
+                counts[rows] += n
 
     def _head(self, bits: int, flags: int) -> list[KeyValue]:
         """The key values a world's status starts with, made once per (bits, flags) and shared
@@ -99,7 +104,8 @@ class Diagnostics:
         self._host_seen = host_counts
         with self._lock:
             rejected = [sorted(c.items()) for c in self._rejected]
-        published = [(topic, counts.tolist()) for topic, counts in sorted(self._published.items())]
+        published = [(f"published {topic}", counts.tolist()) for topic, counts in sorted(self._published.items())]
+        missed = [(f"missed {topic}", counts.tolist()) for topic, counts in sorted(self._missed.items())]
         for row, ns in enumerate(self.namespaces):
             w = self.lo + row
             bits = int(snap.status[row])
@@ -120,7 +126,8 @@ class Diagnostics:
                         KeyValue(key="last_problem", value=last),
                     ]
                     + [KeyValue(key=f"rejected {topic} {reason}", value=str(n)) for (topic, reason), n in rejected[row]]
-                    + [KeyValue(key=f"published {topic}", value=str(counts[row])) for topic, counts in published]
+                    + [KeyValue(key=key, value=str(counts[row])) for key, counts in published]
+                    + [KeyValue(key=key, value=str(counts[row])) for key, counts in missed if counts[row]]
                     + ([KeyValue(key="randomized", value=read_line(self.memory, w))] if self.randomized else []),
                 )
             )
