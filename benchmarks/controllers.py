@@ -157,7 +157,8 @@ def measure(
     arrivals = feeder(model, case, manager, nworld, period)
     warmup = round(WARMUP / period)
     least = warmup + 3 * round(max(RESEND, LONG_RESEND if case == "long" else 0) / period)
-    physics_t, control_t = [], []
+    physics_t, control_t, arrived = [], [], []
+    buffers = (getattr(sim, "nconmax", None), getattr(sim, "njmax", None))  # warp's, to see them grow
     gc.collect()
     gc.freeze()  # start-up's objects out of the collector, as the paced loop does (SimLoop)
     wall = time.perf_counter()
@@ -178,10 +179,14 @@ def measure(
         if k >= warmup:
             control_t.append(c - s)
             physics_t.append(e - p)
+            arrived.append(handover is not None)
         k += 1
+    grown = (getattr(sim, "nconmax", None), getattr(sim, "njmax", None))
     sim.shutdown()
     gc.unfreeze()
-    return {"physics": np.array(physics_t), "controllers": np.array(control_t)}
+    out = {"physics": np.array(physics_t), "controllers": np.array(control_t), "arrived": np.array(arrived)}
+    out["buffers"] = np.array([buffers, grown], dtype=object)  # (nconmax, njmax) before and after
+    return out
 
 
 def main() -> None:
@@ -220,6 +225,17 @@ def main() -> None:
                     f"{model:10s} {case:7s} {nworld:6d} {len(ct):7d} | {np.median(ph):18.3f} {ph.max():7.2f} | "
                     f"{np.median(ct):22.3f} {np.percentile(ct, 99):7.3f} {ct.max():7.3f} | "
                     f"{np.median(ct) / np.median(ph):12.3f} | {np.median(whole):17.3f} {whole.max():7.2f}",
+                    flush=True,
+                )
+                # what the worst whole period was made of: a stray one of a shared machine, the
+                # physics (warp's buffers growing: a period repeated), or the controllers' burst
+                i = int(np.argmax(whole))
+                (c0, j0), (c1, j1) = r["buffers"]
+                print(
+                    f"#   worst period: {i} of {len(whole)}, physics {ph[i]:.2f} ms, controllers {ct[i]:.2f} ms, "
+                    f"{'messages arrived' if r['arrived'][i] else 'no messages'}; periods over 2x the median "
+                    f"{int((whole > 2 * np.median(whole)).sum())}"
+                    + (f"; warp buffers nconmax {c0} -> {c1}, njmax {j0} -> {j1}" if c0 is not None else ""),
                     flush=True,
                 )
     if not args.no_handover:
