@@ -48,7 +48,11 @@ def main() -> None:
     sim.configure()
     sim.activate()
     u = np.random.default_rng(0).uniform(-0.2, 0.2, sim.command.shape)
-    raw = (raw_warp if opts.backend == "warp" else raw_mjx)(sim, u[:, : sim.model.nu] if sim.model.nu else u)
+    ctrl = u[:, : sim.model.nu] if sim.model.nu else u
+    raw = (raw_warp if opts.backend == "warp" else raw_mjx)(sim, ctrl)
+    # warp: the raw loop that also keeps the period's start and moves the contract's bytes
+    # (commands up, state down): the floor under any loop that commands from the host
+    floor = raw_warp(sim, ctrl, keep_start=True, io=True) if opts.backend == "warp" else None
 
     def contract() -> None:
         sim.command[:] = u
@@ -75,10 +79,16 @@ def main() -> None:
         contract()
         raw()
         device()
+        if floor is not None:
+            floor()
     print(f"# {platform.node()} | {sim.device} | {opts.model} x {opts.worlds} on {opts.backend}, {NSTEP} steps a period")
     print(f"# python {platform.python_version()}, {time.strftime('%Y-%m-%d')}")
-    sides: dict[str, list[float]] = {"raw": [], "contract": [], "write": [], "step": [], "read": [], "device": []}
+    sides: dict[str, list[float]] = {"raw": [], "contract": [], "write": [], "step": [], "read": [], "device": [], "floor": []}
     for _ in range(opts.rounds):
+        for _ in range(opts.periods if floor is not None else 0):
+            t0 = time.perf_counter()
+            floor()
+            sides["floor"].append(time.perf_counter() - t0)
         for _ in range(opts.periods):
             t0 = time.perf_counter()
             raw()
@@ -100,7 +110,9 @@ def main() -> None:
             sides["write"].append(t1 - t0)
             sides["step"].append(t2 - t1)
             sides["read"].append(t3 - t2)
-    med = {k: 1e3 * statistics.median(v) for k, v in sides.items()}
+    med = {k: 1e3 * statistics.median(v) for k, v in sides.items() if v}
+    mean = {k: 1e3 * statistics.fmean(v) for k, v in sides.items() if v}
+    worst = {k: 1e3 * max(v) for k, v in sides.items() if v}
     print(
         f"period median: raw {med['raw']:.3f} ms, contract {med['contract']:.3f} ms "
         f"(command+write {med['write']:.3f}, step {med['step']:.3f}, read {med['read']:.3f}); "
@@ -109,6 +121,15 @@ def main() -> None:
     print(
         f"device path (write_device, step, device_state): {med['device']:.3f} ms, "
         f"ratio to raw steps/s {med['raw'] / med['device']:.3f}"
+    )
+    if "floor" in med:
+        print(
+            f"raw + keep + io (the start kept, the contract's bytes moved): {med['floor']:.3f} ms, "
+            f"ratio to raw {med['raw'] / med['floor']:.3f}; the contract at {med['floor'] / med['contract']:.3f} of it"
+        )
+    print(
+        "mean (worst) ms: " + ", ".join(f"{k} {mean[k]:.3f} ({worst[k]:.2f})" for k in ("raw", "contract", "device", "floor") if k in mean)
+        + f"; ratio of means contract/raw {mean['raw'] / mean['contract']:.3f}"
     )
     profile = cProfile.Profile()
     profile.enable()

@@ -14,6 +14,9 @@ sides see the same machine state, it times:
             (mjw.get_state of mjSTATE_PHYSICS and the warmstart, qfrc_actuator, sensordata, a
             float64 clock), as batchsim does so that an overflowing period can be repeated:
             the cost of that copy, in the same terms
+  raw+keep+io (warp only): that, its graph also moving the bytes any loop that commands from
+            the host moves: every world's commands up and its state down (the contract's
+            float64 columns, pinned host memory), the floor under the contract's host path
 
 Both sides start from the same state, warm up for the same number of periods and make the
 same number of calls per round, so they simulate the same stretch of time. It reports
@@ -85,11 +88,12 @@ def interleaved(
     work: int,
     seconds: float,
     rounds: int = 3,
-    extra: Callable[[], None] | None = None,
-) -> tuple[float, float, list[float], float | None]:
+    extra: Callable[[], None] | list[Callable[[], None]] | None = None,
+) -> tuple[float, float, list[float], Any]:
     """Median steps/s of contract and raw, measured in alternating rounds (who goes first
     alternates), each round's ratio contract/raw, to show the spread, and the median steps/s
-    of `extra` (a variant of raw, timed after the two in each round) if given.
+    of `extra` (a variant of raw, timed after the two in each round) if given (a list of
+    variants: a list of their medians).
 
     Both sides make the same number of calls each round, so that, having started from the
     same initial state with the same commands and the same number of warm-up periods, they
@@ -100,7 +104,8 @@ def interleaved(
     raw()
     calls = max(3, round(seconds / rounds / (time.perf_counter() - t0)))
     contract()  # and the contract one period too: both stay in step
-    c, r, x = [], [], []
+    extras = [] if extra is None else extra if isinstance(extra, list) else [extra]
+    c, r, x = [], [], [[] for _ in extras]
     for i in range(rounds):
         if i % 2:
             c.append(rate(contract, calls, work))
@@ -108,13 +113,14 @@ def interleaved(
         else:
             r.append(rate(raw, calls, work))
             c.append(rate(contract, calls, work))
-        if extra is not None:
-            x.append(rate(extra, calls, work))
+        for body, rates in zip(extras, x, strict=True):
+            rates.append(rate(body, calls, work))
+    medians = [float(np.median(v)) for v in x]
     return (
         float(np.median(c)),
         float(np.median(r)),
         [a / b for a, b in zip(c, r, strict=True)],
-        float(np.median(x)) if x else None,
+        medians if isinstance(extra, list) else (medians[0] if medians else None),
     )
 
 
@@ -179,7 +185,9 @@ def raw_mjx(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]
     return body
 
 
-def raw_warp(sim: batchsim.BatchedSystem, ctrl: np.ndarray, keep_start: bool = False) -> Callable[[], None]:
+def raw_warp(
+    sim: batchsim.BatchedSystem, ctrl: np.ndarray, keep_start: bool = False, io: bool = False
+) -> Callable[[], None]:
     import mujoco
     import mujoco_warp as mjw
     import warp as wp
@@ -202,8 +210,15 @@ def raw_warp(sim: batchsim.BatchedSystem, ctrl: np.ndarray, keep_start: bool = F
             wp.zeros(sim.nworld, dtype=wp.float64),
         )
         clock = wp.zeros(sim.nworld, dtype=wp.float64)
+        # io: the contract's bytes each period, float64 (commands up; state, sensordata, time down)
+        ncols = len(sim.export_state_interfaces()) + sim.model.nsensordata + 1
+        pinned = wp.get_device(sim.device).is_cuda
+        up = (wp.zeros(sim.command.shape, dtype=wp.float64, device="cpu", pinned=pinned), wp.zeros(sim.command.shape, dtype=wp.float64))
+        down = (wp.zeros((sim.nworld, ncols), dtype=wp.float64), wp.zeros((sim.nworld, ncols), dtype=wp.float64, device="cpu", pinned=pinned))
 
         def period() -> None:
+            if io:
+                wp.copy(up[1], up[0])
             if keep_start:  # what batchsim's warp backend copies at the start of each period
                 mjw.get_state(mw, d, start[0], sig)
                 wp.copy(start[1], d.qfrc_actuator)
@@ -212,6 +227,8 @@ def raw_warp(sim: batchsim.BatchedSystem, ctrl: np.ndarray, keep_start: bool = F
                 wp.copy(start[3], clock)
             for _ in range(NSTEP):
                 mjw.step(mw, d)
+            if io:
+                wp.copy(down[1], down[0])
 
         period()  # load every kernel before the capture
         with wp.ScopedCapture() as capture:
@@ -222,7 +239,7 @@ def raw_warp(sim: batchsim.BatchedSystem, ctrl: np.ndarray, keep_start: bool = F
             wp.capture_launch(graph)
             wp.synchronize_device(sim.device)
 
-    body.keep = (mw, d, start, clock)  # type: ignore[attr-defined]
+    body.keep = (mw, d, start, clock, up, down)  # type: ignore[attr-defined]
     body()
     return body
 
@@ -258,15 +275,21 @@ def measure(
     raw = RAW[backend](sim, ctrl)
     for _ in range(2):
         raw()
-    keep = None
+    extras = []
     if backend == "warp":
-        keep = raw_warp(sim, ctrl, keep_start=True)
-        for _ in range(2):
-            keep()
-    c, r, per_round, k = interleaved(contract, raw, nworld * NSTEP, seconds, rounds, extra=keep)
+        extras = [raw_warp(sim, ctrl, keep_start=True), raw_warp(sim, ctrl, keep_start=True, io=True)]
+        for body in extras:
+            for _ in range(2):
+                body()
+    c, r, per_round, ks = interleaved(contract, raw, nworld * NSTEP, seconds, rounds, extra=extras)
     note = f"rounds {min(per_round):.2f}-{max(per_round):.2f}"
-    if k is not None:
+    if ks:
+        k, kio = ks
         note += f"; raw+keep {k:,.0f} steps/s: keeping the period's start costs {r / k - 1:+.1%} of a period"
+        note += (
+            f"; raw+keep+io {kio:,.0f} steps/s: with the bytes a host loop moves {r / kio - 1:+.1%}, "
+            f"the contract at {c / kio:.3f} of that"
+        )
     if sim.status.any():
         note += f"; {int((sim.status != 0).sum())} worlds frozen"
     if backend == "warp":
