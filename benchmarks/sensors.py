@@ -34,7 +34,8 @@ raw library's best (raw or raw graph).
 The loop section (--loop) runs the physics at --control-rate with the camera at
 --camera-rate and the lidar at --lidar-rate for every world, as fast as it goes, through
 SensorSampler (the participant the ROS bridge will use), and reports the real-time factor
-held, frames/s, and the median and worst control period.
+held, frames/s, and the median and worst control period; benchmarks/sensor_loop_profile.py
+breaks that period down by phase, beside the same model's physics-only rate.
 
 The ROS section (--ros) runs the same loop as the `batchsim` command with the bridge
 (`--rtf 0` flat out, or paced with --ros-rtf 1; its bridge workers), while subscriber

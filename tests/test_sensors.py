@@ -767,3 +767,42 @@ def test_host_site_poses_are_each_worlds_kinematics_at_its_current_state():
                 mujoco.mj_kinematics(m, d)
                 assert np.array_equal(xpos[k], d.site_xpos[site]) and np.array_equal(xmat[k], d.site_xmat[site].reshape(3, 3))
     sensors.close()
+
+
+def test_the_loop_profile_times_each_configuration_and_puts_the_library_back():
+    """benchmarks/sensor_loop_profile.py (issue 24: mjx's camera loop), a short run on cpu: every
+    configuration ran its periods, the phases land where they ran (the render thread, or the
+    sampler when drawn in the loop), and the functions it timed are MuJoCo's and HostSensors'
+    own again afterwards."""
+    import argparse
+    import importlib.util
+
+    import mujoco
+
+    from batchsim.backends.host_sensors import HostSensors
+
+    folder = str(Path(__file__).resolve().parent.parent / "benchmarks")
+    sys.path.insert(0, folder)  # the script imports its siblings by bare name
+    try:
+        spec = importlib.util.spec_from_file_location("_loop_profile", f"{folder}/sensor_loop_profile.py")
+        profile = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(profile)
+    finally:
+        while folder in sys.path:
+            sys.path.remove(folder)
+    own = (mujoco.mjr_render, mujoco.mj_kinematics, HostSensors.submit, HostSensors.cast)
+    args = argparse.Namespace(seconds=0.2, rounds=2, control_rate=100.0, camera_rate=10.0, lidar_rate=10.0)
+    out = profile.profile("cpu", 2, (32, 24), args)
+    configs = out["configs"]
+    assert list(configs) == list(profile.CONFIGS) and out["budget_ms"] == pytest.approx(10.0)
+    for name, c in configs.items():
+        assert c["periods"] == 20 and c["rtf"] > 0, name
+        period = c["ms"]["period"]
+        assert 0 < period[0] <= period[1], name
+    assert "lidar rays" not in configs["physics"]["ms"] and configs["physics"]["scans_per_s"] == 0
+    assert configs["lidar"]["scans_per_s"] > 0 and configs["lidar"]["frames_per_s"] == 0
+    both, sync = configs["camera+lidar"], configs["camera+lidar sync"]
+    assert both["frames_per_s"] > 0 and "loop render: draw" not in both["ms"]  # drawn on the render thread
+    assert sync["frames_per_s"] > 0 and "loop render: draw" in sync["ms"] and "render: draw" not in sync["ms"]
+    assert sync["ms"]["drawing"][1] > 0
+    assert (mujoco.mjr_render, mujoco.mj_kinematics, HostSensors.submit, HostSensors.cast) == own
