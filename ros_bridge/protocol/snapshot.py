@@ -17,11 +17,13 @@ channel, then the next: joint_states at 25 Hz in a 100 Hz loop are in one snapsh
 and a worker that stalls for some periods (publishing 512 worlds' messages, their
 /diagnostics, a garbage collection) still publishes each of them, in order, as long as its
 header and that channel's rows were not overwritten since: up to HEADERS - 2 periods (300 ms
-at 100 Hz), and before the channel's SLOTS-th next write (a 25 Hz channel: 230 ms). A due
-snapshot lost all the same is counted (`missed joint_states` in /diagnostics). (Until
-2026-11-27 a late reader skipped a snapshot whose channels a later one also held: a worker
-late by more than one 25 Hz period published the newest joint_states only, and 4096 arms on
-an H100 host published 0.970 of theirs.)
+at 100 Hz), and before the channel's SLOTS-th next write (a 25 Hz channel: 230 ms). A worker
+further behind than BACKLOG such snapshots cannot catch up (a fleet flat out, a worker with
+more worlds than it can publish): it skips to the oldest snapshot holding a channel that no
+later one holds, so that what it publishes stays fresh. A due snapshot lost either way is
+counted (`missed joint_states` in /diagnostics). (Until 2026-11-27 a late reader always
+skipped: a worker late by more than one 25 Hz period published the newest joint_states only,
+and 4096 arms on a GPU host published 0.970-0.975 of theirs.)
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from batchsim.memory import Memory
 # 4096 arms at 25 Hz on an H100 host: 16 headers and 3 slots (110 ms) published 0.970 of the
 # joint_states, their workers now and then late by more (publishing 512 worlds, /diagnostics)
 HEADERS = 32  # snapshot headers kept: a reader HEADERS - 2 periods late still finds one
+BACKLOG = 8  # snapshots holding a channel a late reader publishes one by one; beyond, it skips
 SLOTS = 6  # each channel's rows kept: a channel's newest and the SLOTS - 1 before it
 
 
@@ -134,7 +137,8 @@ def read_snapshot(
     """Rows lo..hi-1 of the newest snapshot into `snap`, if newer than it; None otherwise.
 
     With `catch_up`, the oldest snapshot `snap` has not seen that holds a channel, where there
-    is one still kept: the next calls give the later ones. A channel whose rows were
+    is one still kept and no more than BACKLOG such wait (more: the oldest holding a channel
+    no later one holds): the next calls give the later ones. A channel whose rows were
     overwritten meanwhile is left out of `snap.channels`."""
     m = memory
     latest, seq = m["latest"], m["seq"]
@@ -168,10 +172,18 @@ def read_snapshot(
 
 
 def _oldest_needed(m: Memory, n: int, first: int) -> int:
-    """The oldest of snapshots first..n holding a channel (n if none). Unlocked looks: a
-    header rewritten meanwhile fails read_snapshot's seq checks."""
+    """The oldest of snapshots first..n-1 holding a channel, if no more than BACKLOG do; else
+    the oldest holding a channel none after it holds; n if none. Unlocked looks: a header
+    rewritten meanwhile fails read_snapshot's seq checks."""
     written = m["written"]
-    for k in range(first, n):
-        if (written[k % HEADERS] == k).any():
-            return k
-    return n
+    holding = [k for k in range(first, n) if (written[k % HEADERS] == k).any()]
+    if len(holding) <= BACKLOG:
+        return holding[0] if holding else n
+    held = written[n % HEADERS] == n  # channels a later snapshot holds
+    pick = n
+    for k in reversed(holding):
+        mine = written[k % HEADERS] == k
+        if (mine & ~held).any():
+            pick = k
+        held |= mine
+    return pick
