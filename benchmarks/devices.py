@@ -11,6 +11,13 @@ of raw, ratio, contract(k) / contract(1), the period's median and worst) and wri
 devices.csv and devices.png to --out. Beside the sum of raw, "raw at once" is the raw loop
 run on the k devices at the same time, one process each: what the devices give together.
 
+The period's parts are timed apart: `set`, the period's commands put in (`--commands set`:
+`sim.command = ...`, set_command, which a fleet copies on as many threads as shards where
+cores allow; `assign`: `sim.command[:] = ...`, one copy in this process), then `write`,
+`step`, `read` (up to 2026-11-26 the `write` column held the commands' copy too). With shard
+processes a line under each row says, per call, when the request had reached the last shard,
+when the last shard was done and when the fleet's call returned (us from the call's start).
+
     python benchmarks/throughput.py --devices all --backends warp --worlds 8192 --model humanoid
     python benchmarks/devices.py --devices 0,1 --worlds 8192        # the same, directly
 """
@@ -53,12 +60,21 @@ FIELDS = [
     "period_worst_ms",
     "raw_together_sps",
     "ratio_together",
+    "commands",
+    "set_ms",
+    "write_ms",
+    "step_ms",
+    "read_ms",
 ]
 SHARDS = ("processes", "pinned", "threads")  # pinned: processes, each on cores of its own
+OPS = ("write", "step", "read")
 
 
-def contract(model: str, backend: str, devices: list, per_device: int, seconds: float, shards: str) -> dict:
-    """Steps/s of the contract period over `devices` at once, and its median / worst period."""
+def contract(
+    model: str, backend: str, devices: list, per_device: int, seconds: float, shards: str, commands: str = "set"
+) -> dict:
+    """Steps/s of the contract period over `devices` at once, and its median / worst period;
+    `commands`: how the period's commands go in (set: sim.command = ..., assign: sim.command[:] = ...)."""
     nworld = per_device * len(devices)
     if len(devices) == 1:
         sim = batchsim.make(model, nworld, backend, device=devices[0])
@@ -72,31 +88,44 @@ def contract(model: str, backend: str, devices: list, per_device: int, seconds: 
     sim.activate()
     command = _command(sim, nworld)
 
-    parts: list[tuple[float, float, float]] = []  # write, step, read: where a period goes
-    busy: list[tuple[float, float, float]] = []  # the slowest shard process's own work in each
+    parts: list[tuple[float, ...]] = []  # set, write, step, read: where a period goes
+    busy: list[tuple[float, ...]] = []  # the slowest shard process's own work in write, step, read
+    reach: list[tuple[float, ...]] = []  # per call: last shard began, last shard done, call back (from its start)
     shards_busy = [getattr(s, "busy", None) is not None for s in getattr(sim, "shards", [])]
     processes = bool(shards_busy) and all(shards_busy)
 
     def slowest() -> float:
         return max(s.busy for s in sim.shards)
 
+    def timeline(start: float, end: float) -> tuple[float, float, float]:
+        began = max(s.began for s in sim.shards)
+        return began - start, max(s.began + s.busy for s in sim.shards) - start, end - start
+
     def period() -> None:
         t0 = time.perf_counter()
-        sim.command[:] = command
-        sim.write()
+        if commands == "set":
+            sim.command = command
+        else:
+            sim.command[:] = command
         t1 = time.perf_counter()
-        b1 = slowest() if processes else 0.0
-        sim.step(NSTEP)
+        sim.write()
         t2 = time.perf_counter()
-        b2 = slowest() if processes else 0.0
+        b1, r1 = (slowest(), timeline(t1, t2)) if processes else (0.0, ())
+        sim.step(NSTEP)
+        t3 = time.perf_counter()
+        b2, r2 = (slowest(), timeline(t2, t3)) if processes else (0.0, ())
         sim.read()
-        parts.append((t1 - t0, t2 - t1, time.perf_counter() - t2))
-        busy.append((b1, b2, slowest() if processes else 0.0))
+        t4 = time.perf_counter()
+        parts.append((t1 - t0, t2 - t1, t3 - t2, t4 - t3))
+        if processes:
+            busy.append((b1, b2, slowest()))
+            reach.append((*r1, *r2, *timeline(t3, t4)))
 
     for _ in range(3):  # compile, capture, warm up
         period()
     parts.clear()
     busy.clear()
+    reach.clear()
     sps, periods = _timed(period, nworld, seconds)
     frozen = int((sim.status != 0).sum())
     sim.shutdown()
@@ -108,6 +137,7 @@ def contract(model: str, backend: str, devices: list, per_device: int, seconds: 
         "frozen": frozen,
         "split": split,
         "busy": np.median(np.array(busy), axis=0) * 1e3 if processes else None,
+        "reach": np.median(np.array(reach), axis=0) * 1e6 if processes else None,
     }
 
 
@@ -220,6 +250,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=3.0)
     p.add_argument("--shards", default=",".join(SHARDS), help="processes, threads, or both (default)")
     p.add_argument("--counts", default="", help="device counts to run, e.g. 1,2,4 (default: 1 up to every device)")
+    p.add_argument(
+        "--commands", default="set", help="the commands put in by set (sim.command = ...), assign ([:] =) or both"
+    )
     p.add_argument("--out", default="benchmarks/out")
     p.add_argument("--raw-worker", default=None, help=argparse.SUPPRESS)
     args, _ = p.parse_known_args(argv)
@@ -238,6 +271,9 @@ def main(argv: list[str] | None = None) -> int:
     counts = [int(k) for k in args.counts.split(",") if k.strip()] or list(range(1, len(devices) + 1))
     counts = sorted({1, *(k for k in counts if 1 <= k <= len(devices))})  # one device: the baseline
     modes = [m.strip() for m in args.shards.split(",") if m.strip()]
+    puts = [m.strip() for m in args.commands.split(",") if m.strip()]
+    if not puts or set(puts) - {"set", "assign"}:
+        p.error(f"--commands takes set, assign or both, got {args.commands!r}")
     date = datetime.date.today().isoformat()
     device = device_name([backend])
     print(f"batchsim devices: {args.model}, {per_device} worlds per device, {NSTEP} steps per period, {date}")
@@ -256,13 +292,13 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'devices':>7} {'shards':>9} {'worlds':>7} {'batchsim steps/s':>17} {'sum of raw':>14} {'ratio':>6} "
         f"{'x one device':>12} {'period median / worst ms':>25} {'raw at once':>12} {'ratio':>6} "
-        f"{'write / step / read ms':>23} {'in the shard processes':>23}"
+        f"{'set / write / step / read ms':>29} {'write / step / read in the shards':>34}"
     )
     rows = []
     one = None
     for k in counts:
-        for shards in modes if k > 1 else ["-"]:
-            result = contract(args.model, backend, devices[:k], per_device, args.seconds, shards)
+        for shards, put in [(m, c) for m in modes for c in puts] if k > 1 else [("-", puts[0])]:
+            result = contract(args.model, backend, devices[:k], per_device, args.seconds, shards, put)
             one = one or result["sps"]
             row = {
                 "date": date,
@@ -280,17 +316,24 @@ def main(argv: list[str] | None = None) -> int:
                 "period_worst_ms": result["worst"],
                 "raw_together_sps": together[k],
                 "ratio_together": result["sps"] / together[k],
+                "commands": put,
+                **{f"{part}_ms": float(t) for part, t in zip(("set", *OPS), result["split"], strict=True)},
             }
             rows.append(row)
+            label = shards if k == 1 or len(puts) == 1 else f"{shards}/{put}"
             print(
-                f"{k:7d} {shards:>9} {k * per_device:7d} {row['contract_sps']:17,.0f} {row['raw_sum_sps']:14,.0f} "
+                f"{k:7d} {label:>9} {k * per_device:7d} {row['contract_sps']:17,.0f} {row['raw_sum_sps']:14,.0f} "
                 f"{row['ratio']:6.3f} {row['scaling']:12.2f} {result['median']:12.2f} / {result['worst']:9.2f} "
                 f"{together[k]:12,.0f} {row['ratio_together']:6.3f} "
-                f"{' / '.join(f'{t:.2f}' for t in result['split']):>23} "
-                + (f"{' / '.join(f'{t:.2f}' for t in result['busy']):>23}" if result["busy"] is not None else "")
+                f"{' / '.join(f'{t:.2f}' for t in result['split']):>29} "
+                + (f"{' / '.join(f'{t:.2f}' for t in result['busy']):>34}" if result["busy"] is not None else "")
                 + (f"  ({result['frozen']} worlds frozen)" if result["frozen"] else ""),
                 flush=True,
             )
+            if result["reach"] is not None:  # where the fleet's wait goes, us from each call's start
+                r = result["reach"]
+                calls = ", ".join(f"{op} " + " / ".join(f"{t:.0f}" for t in r[3 * i : 3 * i + 3]) for i, op in enumerate(OPS))
+                print(f"{'':9}us after the call: request at the last shard / last shard done / back: {calls}")
     with open(out / "devices.csv", "w", newline="") as fh:
         writer = csv.DictWriter(fh, FIELDS)
         writer.writeheader()

@@ -111,3 +111,14 @@ def test_a_closed_fleet_ends_the_shards_wait():
     ours.close()
     with pytest.raises(EOFError):
         shard.next(5.0)
+
+
+def test_the_shards_beginning_of_a_request_comes_back_in_the_row(ends):
+    """When the shard began a request (its perf_counter, one clock on Linux) comes back beside
+    its busy time, for the fleet to split its wait (benchmarks/devices.py)."""
+    fleet, shard = ends
+    fleet.send(ShardOp.STEP, (10,), {})
+    assert shard.next(5.0) == (ShardOp.STEP, (10,), {})
+    shard.answer(True, None, 3, [], 0.25, 12.5)
+    assert fleet.answered(5.0)
+    assert fleet.reply() == (True, None, 3, [], 0.25) and fleet.began() == 12.5

@@ -5,7 +5,7 @@ Each shard has a control row in the fleet's shared memory (`control`, CONTROL in
 shard; float fields are float64 views of their slots). One request at a time:
 
 - the fleet writes a request's fields (OP, NSTEP, GIVEN, TIME, PERIOD), then REQUEST + 1;
-- the shard writes the reply's fields (PICKLED, LIFECYCLE, BUSY), then REPLY = REQUEST.
+- the shard writes the reply's fields (PICKLED, LIFECYCLE, BUSY, BEGAN), then REPLY = REQUEST.
 
 Each side writes only its own fields, and its sequence number last; the fleet writes a
 request only after the reply to the last. A control period's operations (write and read
@@ -42,6 +42,10 @@ import numpy as np
 CONTROL = 16  # int64 per shard: two cache lines, the fleet's fields in the first, the shard's in the second
 REQUEST, OP, GIVEN, ARGS = 0, 1, 2, 3  # ARGS, ARGS + 1: up to two arguments, int64 or float64
 REPLY, PICKLED, LIFECYCLE, BUSY = 8, 9, 10, 11
+# float64: time.perf_counter() when the shard began the request. On Linux perf_counter is
+# CLOCK_MONOTONIC, one clock for every process, so the fleet can set it beside its own times
+# (benchmarks/devices.py: how long a request took to reach the last shard)
+BEGAN = 12
 PICKLED_OP = -1  # OP of a request that waits on the socket
 POLL = 1.0  # s: how often a sleeping side looks at its peer's process
 # GIVEN: the argument count in its low two bits, then per argument: given (not None), an integer
@@ -167,6 +171,10 @@ class FleetEnd(_End):
     def answered(self, timeout: float) -> bool:
         return self.wait(REPLY, int(self.row[REQUEST]), timeout)
 
+    def began(self) -> float:
+        """When the shard began the answered request, by its time.perf_counter() (0.0: not said)."""
+        return float(self.floats[BEGAN])
+
     def reply(self) -> tuple[bool, Any, int, list, float]:
         """The answer (once answered()): (ok, value or exception, lifecycle, log records, busy s)."""
         row = self.row
@@ -201,11 +209,11 @@ class ShardEnd(_End):
                 args.append(float(self.floats[ARGS + i]))
         return self.ops[op], tuple(args), {}
 
-    def answer(self, ok: bool, value: Any, lifecycle: int, records: list, busy: float) -> None:
+    def answer(self, ok: bool, value: Any, lifecycle: int, records: list, busy: float, began: float = 0.0) -> None:
         row = self.row
         pickled = not ok or value is not None or bool(records)
         row[PICKLED], row[LIFECYCLE] = int(pickled), lifecycle
-        self.floats[BUSY] = busy
+        self.floats[BUSY], self.floats[BEGAN] = busy, began
         row[REPLY] = row[REQUEST]
         self.outbox.ring()
         if pickled:

@@ -214,6 +214,9 @@ class ProcessShard:
     Attributes:
       busy: seconds the shard process spent on the last request, its own work without the
         messages (benchmarks/devices.py sets it beside the fleet's wait).
+      sent, began, seen: time.perf_counter() of the last request's sending (this process),
+        of its beginning in the shard process (its clock: the same on Linux; 0.0 where not
+        said) and of its answer's arrival here: where a period's messages take their time.
     """
 
     def __init__(
@@ -238,7 +241,7 @@ class ProcessShard:
         self.lifecycle_state = LifecycleState.UNKNOWN
         self.options: dict[str, Any] = {}
         self.spin = float(spin)
-        self.busy = 0.0
+        self.busy = self.sent = self.began = self.seen = 0.0
         ours, theirs = socket.socketpair()
         to_shard, to_fleet = Bell.pair(), Bell.pair()
         env, local_device = device_env(device)
@@ -311,6 +314,7 @@ class ProcessShard:
         """Send one request; its `result()` waits for the reply (one request at a time)."""
         if self._pending:
             raise RuntimeError(f"{self!r}: a request is already waiting for its reply")
+        self.sent = time.perf_counter()
         try:
             self._end.send(op, args, kwargs)
         except (OSError, EOFError):
@@ -326,6 +330,7 @@ class ProcessShard:
             while not self._end.answered(POLL):
                 if self._end.peer_closed() or self._popen.poll() is not None:
                     raise self._exited()
+            self.seen, self.began = time.perf_counter(), self._end.began()
             return self._answer(*self._end.reply())
         except (OSError, EOFError):
             raise self._exited() from None
@@ -428,7 +433,7 @@ def main(argv: list[str]) -> int:
             begin = time.perf_counter()
             try:
                 value = serve(system, fleet_rows, op, args, kwargs)
-                end.answer(True, value, int(system.lifecycle_state), records.take(), time.perf_counter() - begin)
+                end.answer(True, value, int(system.lifecycle_state), records.take(), time.perf_counter() - begin, begin)
             except Exception as e:
                 end.answer(False, e, int(system.lifecycle_state), records.take(), 0.0)
     except (EOFError, BrokenPipeError, ConnectionResetError, KeyboardInterrupt):
