@@ -32,7 +32,8 @@ class EngineHooks:
         """Free the engine (on_cleanup, on_shutdown, on_error)."""
 
     def _ctrl_host(self) -> np.ndarray:
-        """The host (nworld, nu) float64 ctrl array that write() fills."""
+        """The host (nworld, nu) ctrl array that write() fills: float64, or float32 where the
+        engine's ctrl is float32 anyway (warp)."""
         raise NotImplementedError
 
     def _upload_ctrl(self) -> None:

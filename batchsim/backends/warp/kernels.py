@@ -60,16 +60,16 @@ def check_worlds(
 
 @wp.kernel
 def narrow_ctrl(
-    ctrl64: wp.array2d(dtype=wp.float64),
+    host: wp.array2d(dtype=wp.float32),
     parked: wp.array(dtype=wp.int32),
     ctrl: wp.array2d(dtype=wp.float32),
 ):
-    """The host's float64 ctrl into the simulation's float32 ctrl; parked worlds get zero."""
+    """The host's ctrl (float32, uploaded) into the simulation's; parked worlds get zero."""
     w, j = wp.tid()
     if parked[w] != 0:
         ctrl[w, j] = wp.float32(0.0)
     else:
-        ctrl[w, j] = wp.float32(ctrl64[w, j])
+        ctrl[w, j] = host[w, j]
 
 
 @wp.kernel

@@ -103,7 +103,9 @@ class WarpSystem(
         self._state_wp = self._host_array(self._readings.shape, wp.float64)
         self._sensor_wp = self._host_array(self._sensor_host.shape, wp.float64)
         self._time_wp = self._host_array(self.time.shape, wp.float64)
-        self._ctrl_wp = self._host_array((self.nworld, self.model.nu), wp.float64)
+        # ctrl is float32 on the device: write() narrows into it on the host, in the copy it makes
+        # anyway (8192 x 21: 43 us against 84 for float64, and half the bytes up; period_profile.py)
+        self._ctrl_wp = self._host_array((self.nworld, self.model.nu), wp.float32)
         self._flags_wp = self._host_array((self.nworld,), wp.int32)
         self._bind_readings(self._state_wp.numpy())
         self._bind_sensordata(self._sensor_wp.numpy())
@@ -193,7 +195,7 @@ class WarpSystem(
                 self._state_dev = wp.zeros(self._readings.shape, dtype=wp.float64)
                 self._sensor_dev = wp.zeros(self._sensor_host.shape, dtype=wp.float64)
                 self._time_dev = wp.zeros(n, dtype=wp.float64)
-                self._ctrl_dev = wp.zeros(self._ctrl.shape, dtype=wp.float64)
+                self._ctrl_dev = wp.zeros(self._ctrl.shape, dtype=wp.float32)
                 self._flags_dev = wp.zeros(n, dtype=wp.int32)
             else:  # Warp's CPU device: the kernels read and write the host arrays themselves
                 self._state_dev, self._sensor_dev, self._time_dev = (
