@@ -259,6 +259,9 @@ class WarpSystem(
             # grown, and every world back at the period's start: run the period again
 
     def _launch(self, nstep: int) -> None:
+        if self._replay_captured(nstep):  # the flags' copy to the host is in it
+            wp.synchronize_device(self.device)
+            return
         serial = CPU_GRAPHS if self.options["graph"] and not self._cuda else contextlib.nullcontext()
         with wp.ScopedDevice(self.device), serial:
             if self.options["graph"]:
