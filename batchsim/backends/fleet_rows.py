@@ -9,20 +9,10 @@ shared-memory segment when they are processes.
 
 from __future__ import annotations
 
-import itertools
-import threading
-from concurrent.futures import Executor
-
-import numpy as np
-
 from batchsim.backends.device import DeviceSystem
 from batchsim.backends.shard_messages import control_array
 from batchsim.hardware import BatchedSystem
 from batchsim.memory import Layout, Memory
-
-# bytes: from this size on, a fleet's set_command of every world copies on several threads at
-# once (RowCopier; below it, waking the threads costs more than the copy)
-PARALLEL_COPY = 1 << 20
 
 
 def fleet_layout(
@@ -92,63 +82,3 @@ class FleetRows:
     def give_poses(self, system: BatchedSystem) -> None:
         """Every world's body poses (as system.body_poses() gives them) into these rows."""
         system.body_poses_into(self.xpos, self.xquat)
-
-
-class RowCopier:
-    """Copies a fleet's commands into its array on this thread and `pool`'s at once (NumPy lets
-    go of the GIL while it copies): ShardedSystem.set_command of every world. In one thread the
-    copy grows with the fleet while each shard's own work does not: 32,768 humanoids' commands
-    are 5.5 MB a period (benchmarks/devices.py). The rows go in chunks of CHUNK bytes to
-    whichever thread asks next, this one from the start: a pool thread that wakes late (tens
-    to hundreds of microseconds in a virtual machine) finds less to do, and none left means
-    no wait for it."""
-
-    CHUNK = 1 << 18  # bytes
-
-    def __init__(self, pool: Executor, nthread: int):
-        self.pool, self.nthread = pool, nthread
-
-    def applies(self, dst: np.ndarray, src: np.ndarray) -> bool:
-        """Whether `src` (float64, dst's shape or one row of it) is copied here: large enough,
-        and no view of `dst` (NumPy's own copy takes care of an overlap; chunks at once would not)."""
-        return (
-            self.nthread > 0
-            and dst.nbytes >= PARALLEL_COPY
-            and src.shape in (dst.shape, dst.shape[1:])
-            and not np.may_share_memory(dst, src)
-        )
-
-    def __call__(self, dst: np.ndarray, src: np.ndarray) -> None:
-        """dst[:] = src (a row broadcasts to every row)."""
-        rows = max(1, self.CHUNK // max(1, dst.strides[0]))
-        copy = _Chunks(dst, src, list(range(0, len(dst), rows)) + [len(dst)])
-        for _ in range(min(self.nthread, len(copy.bounds) - 2)):
-            self.pool.submit(copy.run)
-        copy.run()
-        copy.finished.wait()
-        if copy.failure is not None:
-            raise copy.failure
-
-
-class _Chunks:
-    """One copy in chunks, taken by whichever thread asks next (next() on a count holds the GIL)."""
-
-    def __init__(self, dst: np.ndarray, src: np.ndarray, bounds: list[int]):
-        self.dst, self.src, self.bounds = dst, src, bounds
-        self.taken = itertools.count()
-        self.left = len(bounds) - 1
-        self.lock = threading.Lock()
-        self.finished = threading.Event()
-        self.failure: BaseException | None = None
-
-    def run(self) -> None:
-        while (i := next(self.taken)) < len(self.bounds) - 1:
-            a, b = self.bounds[i], self.bounds[i + 1]
-            try:
-                np.copyto(self.dst[a:b], self.src if self.src.ndim == 1 else self.src[a:b])
-            except BaseException as e:
-                self.failure = self.failure or e
-            with self.lock:
-                self.left -= 1
-                if self.left == 0:
-                    self.finished.set()

@@ -24,9 +24,7 @@ Two ways to run the shards:
   runs on its own core; a device's arrays then live in its process, and `device_arrays()`
   and `render(device=True)` give host copies of them. Where there are cores to spare, the
   fleet and its shard processes poll for each other's messages rather than sleep
-  (shards.spin_budget): a woken process starts late, four times a period. There too,
-  `sim.command = ...` (set_command) copies on as many threads as there are shards: the one
-  copy in this process that grows with the fleet (fleet_rows.RowCopier).
+  (shards.spin_budget): a woken process starts late, four times a period.
 
 Cameras and lidars render and cast on each shard; sensor noise is the fleet's, seeded by
 fleet world numbers, so a world's noise does not depend on how many devices there are.
@@ -44,7 +42,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from batchsim.backends.fleet_rows import FleetRows, RowCopier, fleet_layout
+from batchsim.backends.fleet_rows import FleetRows, fleet_layout
 from batchsim.backends.shards import LocalShard, ProcessShard, ShardOp, spin_budget
 from batchsim.hardware import BatchedSystem, CallbackReturn, ConfigurationError, LifecycleState, ReturnType
 from batchsim.loop import OptionError
@@ -162,12 +160,6 @@ class ShardedSystem(BatchedSystem):
                 fleet_rows.share(system)
                 self.shards.append(LocalShard(system, fleet_rows, self._pool))
         self.options = dict(self.shards[0].options, device=self.devices)
-        # set_command of every world: copied on as many threads as shards, where there are cores to spare
-        self._copier: RowCopier | None = None
-        if len(self.devices) > 1 and copies_at_once(len(self.devices)):
-            if self._pool is None:  # shard processes: threads for the copy alone
-                self._pool = ThreadPoolExecutor(len(self.devices) - 1, thread_name_prefix="batchsim-copy")
-            self._copier = RowCopier(self._pool, len(self.devices) - 1)
         self._stepped: set[int] = set()  # period lengths every shard has compiled or captured
         # tf's poses of every world: asked for since the last read (the next read brings them along),
         # and whether the fleet's pose rows are the engine's current ones (no shard op changed them since)
@@ -238,17 +230,6 @@ class ShardedSystem(BatchedSystem):
             return ReturnType.OK
         self._each(ShardOp.WRITE, time, period)  # each shard takes its rows of `command`; uploads at once
         return ReturnType.OK
-
-    def set_command(self, command: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
-        """As BatchedSystem.set_command (`sim.command = ...` too). Every world's commands at
-        once, on a host with cores to spare, are copied on as many threads as there are shards
-        (fleet_rows.RowCopier): the one copy in this process that grows with the fleet."""
-        if worlds is None and self._copier is not None:
-            rows = np.asarray(command, dtype=np.float64)
-            if self._copier.applies(self._command, rows):
-                self._copier(self._command, rows)
-                return
-        super().set_command(command, worlds)
 
     def step(self, nstep: int = 1) -> None:
         """Advance every world `nstep` steps, every device at once; returns when all are done."""
@@ -450,12 +431,6 @@ class ShardedSystem(BatchedSystem):
 _KEEP_POSES = frozenset(
     {ShardOp.WRITE, ShardOp.READ, ShardOp.BODY_POSES, ShardOp.QSTATE, ShardOp.WORLD_PARAMS, ShardOp.DRAW_NUMBERS}
 )
-
-
-def copies_at_once(nshard: int) -> bool:
-    """Whether set_command copies a fleet of `nshard` shards' commands on `nshard` threads:
-    where the host has cores to spare, as for polling (shards.spin_budget)."""
-    return spin_budget(nshard) > 0
 
 
 def _share_cores(nshard: int) -> list[set[int] | None]:
