@@ -13,9 +13,8 @@ what grows with the fleet (the commands' copy in the fleet's process).
 
 `--counts`: shard processes per fleet, one fleet each (0: one system in this process, no
 shards: the baseline). `--commands`: how each period's commands go in, `set` (`sim.command =
-...`: ShardedSystem.set_command, copied on as many threads as shards where cores allow, or
-always with `--copy-threads on`) or `assign` (`sim.command[:] = ...`: one copy in this
-process). Prints, per fleet and call, the medians over `--calls` periods: the fleet's wait,
+...`: ShardedSystem.set_command) or `assign` (`sim.command[:] = ...`), each one copy in this
+process. Prints, per fleet and call, the medians over `--calls` periods: the fleet's wait,
 the slowest shard's own time, their difference, and when the request had reached the last
 shard and the last shard was done (us from the call's start; perf_counter is one clock for
 every process on Linux).
@@ -102,12 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--calls", type=int, default=300, help="timed periods")
     p.add_argument("--commands", default="set", help="set (sim.command = ...), assign ([:] =), or both")
     p.add_argument("--spin", choices=("auto", "on", "off"), default="auto", help="poll for messages (auto: where cores allow)")
-    p.add_argument("--copy-threads", choices=("auto", "on", "off"), default="auto", help="set_command's copy on threads")
     args = p.parse_args(argv)
     if args.spin != "auto":  # the fleet's choice of polling, made for it
         sharded.spin_budget = lambda nshard: 0.05 if args.spin == "on" else 0.0  # type: ignore[assignment]
-    if args.copy_threads != "auto":
-        sharded.copies_at_once = lambda nshard: args.copy_threads == "on"  # type: ignore[assignment]
     counts = [int(k) for k in args.counts.split(",") if k.strip()] or [args.shards]
     puts = [c.strip() for c in args.commands.split(",") if c.strip()]
     print(f"{args.worlds} {args.model} per shard, Warp's CPU device, step({args.nstep}), {args.calls} periods each")
@@ -115,8 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         for commands in puts:
             sim = fleet(args.model, args.worlds, nshard)
             what = (
-                f"{nshard} shard processes, polling {sim.shards[0].spin > 0}, "
-                f"set_command on threads {getattr(sim, '_copier', None) is not None}"
+                f"{nshard} shard processes, polling {sim.shards[0].spin > 0}"
                 if nshard
                 else "one system in this process"
             )
