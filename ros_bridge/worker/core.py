@@ -266,6 +266,8 @@ class Worker:
             self._publish(snap)
             if self.actions is not None:
                 self.actions.update(snap.channels, snap.time)
+            if self.sensors is not None:  # between snapshots too: a camera's block holds its newest frame only
+                self.sensors.publish()
             if wallclock.monotonic() > until:
                 break  # services, the beat and housekeeping go on; the rest at the next tick
         if self.sensors is not None:
