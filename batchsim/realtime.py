@@ -88,3 +88,20 @@ def restore(saved: Saved | None) -> None:
 def current() -> tuple[int, int]:
     """The calling thread's (policy, priority)."""
     return os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+
+
+def with_siblings(cpus: Sequence[int], sysfs: str = "/sys/devices/system/cpu") -> frozenset[int]:
+    """`cpus` and the other hardware threads of their cores (SMT siblings, as sysfs lists
+    them): a sibling shares its core's execution units and caches, so a process kept off the
+    loop's cores keeps off their siblings too. Where sysfs does not say, `cpus` alone."""
+    out = set(cpus)
+    for cpu in cpus:
+        try:
+            with open(f"{sysfs}/cpu{int(cpu)}/topology/thread_siblings_list") as f:
+                text = f.read().strip()
+        except OSError:
+            continue
+        for part in filter(None, text.split(",")):
+            lo, _, hi = part.partition("-")
+            out.update(range(int(lo), int(hi or lo) + 1))
+    return frozenset(out)

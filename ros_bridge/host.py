@@ -29,6 +29,7 @@ from batchsim.hardware import BatchedSystem, Status
 from batchsim.loop import SimLoop
 from batchsim.memory import Memory, Ring
 from batchsim.model import InterfaceKind
+from batchsim.realtime import with_siblings
 from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
 from ros_bridge.manager_link import ManagerLink
 from ros_bridge.naming import topic_name
@@ -154,7 +155,7 @@ class BridgeHost:
         self._closed = False
         # the workers: started, woken, watched and restarted (ros_bridge/supervisor.py)
         # ... off the loop thread's cores (SimLoop.cpu_affinity): a woken worker would take its core
-        avoid = frozenset(loop.cpu_affinity)
+        avoid = with_siblings(loop.cpu_affinity)  # the loop's cores, and their other hardware threads
         self.workers = Supervisor(plan, m, processes=processes, throttle=self.throttle, command_timeout=command_timeout, avoid_cpus=avoid)
 
     # --- start and stop ---

@@ -202,3 +202,17 @@ def test_cpu_affinity_names_only_cores_this_process_may_run_on(monkeypatch):
         SimLoop(sim, cpu_affinity=(1,))
     SimLoop(sim, cpu_affinity=(2,))
     sim.shutdown()
+
+
+def test_the_cores_kept_for_the_loop_include_their_hardware_threads(tmp_path):
+    """A bridge worker on the loop core's SMT sibling shares its execution units and caches:
+    --cpu-affinity keeps the workers (and fleet.py's subscribers) off the siblings too."""
+    from batchsim.realtime import with_siblings
+
+    for cpu, siblings in ((0, "0,8"), (8, "0,8"), (1, "1-2"), (3, "3")):
+        (tmp_path / f"cpu{cpu}" / "topology").mkdir(parents=True)
+        (tmp_path / f"cpu{cpu}" / "topology" / "thread_siblings_list").write_text(siblings + "\n")
+    assert with_siblings((0,), str(tmp_path)) == {0, 8}
+    assert with_siblings((1, 3), str(tmp_path)) == {1, 2, 3}
+    assert with_siblings((5,), str(tmp_path)) == {5}  # sysfs silent: the core alone
+    assert with_siblings((), str(tmp_path)) == frozenset()
