@@ -99,7 +99,7 @@ class Clock:
         return call
 
 
-def instrument(clock: Clock) -> Callable[[], None]:
+def instrument(clock: Clock, backend: str) -> Callable[[], None]:
     """Time the host renderer's and ray caster's parts (module-wide); returns the undo."""
     import mujoco
 
@@ -112,6 +112,11 @@ def instrument(clock: Clock) -> Callable[[], None]:
     host_sensors._draw = clock.timed("total", host_sensors._draw, render=True)
     for name, phase in methods.items():
         setattr(cls, name, clock.timed(phase, getattr(cls, name)))
+    if backend == "mjx":  # its download of the state into the host mirror (read() does not use it)
+        import jax
+
+        saved.append((jax, "device_get", jax.device_get))
+        jax.device_get = clock.timed("host copy", jax.device_get)
 
     def undo() -> None:
         for owner, name, value in saved:
@@ -136,8 +141,6 @@ class Loop:
                 sim.sensors.want(name)
             self.sampler = SensorSampler(sim)
             sim.render(CAMERA), sim.scan(LIDAR)  # GL context, buffers: setup excluded
-            if hasattr(sim, "_host_copy"):  # mjx: the download into the host mirror
-                sim._host_copy = clock.timed("host copy", sim._host_copy)
             deliver = self.sampler._deliver
 
             def timed_deliver(at: float, job) -> None:
@@ -209,7 +212,7 @@ class Loop:
 
 def profile(backend: str, nworld: int, size: tuple[int, int], args) -> dict:
     clock = Clock()
-    undo = instrument(clock)
+    undo = instrument(clock, backend)
     loops = []
     try:
         loops = [Loop(config, backend, nworld, size, args, clock) for config in CONFIGS]
