@@ -250,11 +250,51 @@ RAW = {"cpu": raw_cpu, "mjx": raw_mjx, "warp": raw_warp}
 # ---------------------------------------------------------------- one measurement
 
 
+def raw_overflowed(raw: Callable[[], None]) -> int:
+    """How many worlds of raw_warp's Data overflowed a buffer so far. MuJoCo Warp then drops
+    contact candidates, contacts or constraint rows without a word (raw_warp turns its warning
+    off, as batchsim does): cheaper physics, and wrong."""
+    from batchsim.backends.warp.buffers import BUFFER_OVERFLOWS
+
+    d = raw.keep[1]  # type: ignore[attr-defined]
+    return int(np.count_nonzero(d.overflow.numpy() & BUFFER_OVERFLOWS))
+
+
+def unequal_buffers(sim: batchsim.BatchedSystem, built: tuple[int, int], raws: list[Callable[[], None]]) -> str | None:
+    """Why a warp measurement compared different physics, or None: the contract grew its
+    buffers (nconmax, njmax) after the raw loops were built with `built`, or a raw loop
+    overflowed its own. Either way the contract stepped bigger buffers, or more contacts,
+    than raw did."""
+    now = (sim.nconmax, sim.njmax)
+    over = max((raw_overflowed(r) for r in raws), default=0)
+    if now == built and not over:
+        return None
+    why = []
+    if now != built:
+        why.append(f"the contract grew nconmax {built[0]} -> {now[0]}, njmax {built[1]} -> {now[1]} while raw kept {built}")
+    if over:
+        why.append(f"raw overflowed its buffers in {over} of {sim.nworld} worlds (it drops contacts silently)")
+    return "; ".join(why)
+
+
 def measure(
-    model: str, backend: str, nworld: int, seconds: float, rounds: int = 3, deterministic: bool = False
+    model: str,
+    backend: str,
+    nworld: int,
+    seconds: float,
+    rounds: int = 3,
+    deterministic: bool = False,
+    buffers: tuple[int, int] | None = None,
+    again: bool | None = None,
 ) -> dict:
+    """One size of one backend. warp: when the contract's buffers grew during the timing (a
+    long run of falling humanoids does, at about 8 s of sim time) or raw's overflowed, the
+    two stepped different physics, so it is measured again from the start, every side built
+    with the grown (nconmax, njmax) (`buffers`), and the note says so (`again`: whether it may;
+    by default only when no `buffers` were given)."""
     t0 = time.perf_counter()
-    sim = batchsim.make(model, nworld, backend, deterministic=deterministic)
+    sizing = {} if buffers is None else {"nconmax": buffers[0], "njmax": buffers[1]}
+    sim = batchsim.make(model, nworld, backend, deterministic=deterministic, **sizing)
     sim.configure()
     sim.activate()
     rng = np.random.default_rng(0)
@@ -272,6 +312,7 @@ def measure(
     for _ in range(3):  # compile, capture, warm caches
         contract()
     compile_s = time.perf_counter() - t0
+    built = (sim.nconmax, sim.njmax) if backend == "warp" else (0, 0)
     raw = RAW[backend](sim, ctrl)
     for _ in range(2):
         raw()
@@ -282,7 +323,19 @@ def measure(
             for _ in range(2):
                 body()
     c, r, per_round, ks = interleaved(contract, raw, nworld * NSTEP, seconds, rounds, extra=extras)
+    unequal = unequal_buffers(sim, built, [raw, *extras]) if backend == "warp" else None
+    if unequal is not None and (buffers is None if again is None else again):
+        grown = (sim.nconmax, sim.njmax)
+        if grown == built:  # raw overflowed where the contract did not grow: give both room
+            grown = (2 * built[0], 2 * built[1])
+        sim.shutdown()
+        del raw, extras
+        second = measure(model, backend, nworld, seconds, rounds, deterministic, buffers=grown, again=False)
+        second["note"] = f"measured again from the start at nconmax {grown[0]}, njmax {grown[1]}: {unequal}; " + second["note"]
+        return second
     note = f"rounds {min(per_round):.2f}-{max(per_round):.2f}"
+    if unequal is not None:
+        note += f"; NOT THE SAME PHYSICS: {unequal}"
     if ks:
         k, kio = ks
         note += f"; raw+keep {k:,.0f} steps/s: keeping the period's start costs {r / k - 1:+.1%} of a period"

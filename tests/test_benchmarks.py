@@ -122,3 +122,51 @@ def test_a_paced_runs_rtf_leaves_out_what_runs_after_the_loop():
 
     figures = timed_run(Loop(), after=lambda: wallclock.sleep(0.5))
     assert figures["periods"] == 20 and 0.5 < figures["rtf"] <= 1.2, figures
+
+
+# ---------------------------------------------------------------- throughput.py: the same physics
+
+needs_warp = pytest.mark.skipif(
+    importlib.util.find_spec("mujoco_warp") is None and os.environ.get("BATCHSIM_FORCE_BACKENDS") != "1",
+    reason="the warp backend needs mujoco_warp, which is not installed",
+)
+
+
+@needs_warp
+def test_throughput_sees_raw_warp_overflow_its_buffers():
+    """raw_warp builds MuJoCo Warp's Data at the contract's buffer sizes and turns the overflow
+    warning off: once the falling humanoids make more contacts than nconmax, raw drops them
+    silently and steps cheaper physics than the contract, which grows its buffers instead.
+    unequal_buffers must say so (it was how throughput.py and period_profile.py disagreed)."""
+    throughput = benchmark("throughput")
+    import batchsim
+
+    sim = batchsim.make("humanoid", 2, "warp", nconmax=1)  # raised to the start's 8 contacts
+    sim.configure()
+    sim.activate()
+    u = np.random.default_rng(0).uniform(-0.3, 0.3, sim.command.shape)
+    built = (sim.nconmax, sim.njmax)
+    raw = throughput.raw_warp(sim, u)
+    assert throughput.unequal_buffers(sim, built, [raw]) is None
+    why = None
+    for _ in range(60):
+        sim.command[:] = u
+        sim.write()
+        sim.step(throughput.NSTEP)
+        sim.read()
+        raw()
+        why = throughput.unequal_buffers(sim, built, [raw])
+        if why is not None:
+            break
+    sim.shutdown()
+    assert why is not None and ("raw overflowed" in why or "the contract grew" in why), why
+
+
+@needs_warp
+def test_throughput_measures_warp_again_when_the_buffers_differed():
+    """A warp measurement whose raw loop overflowed is not reported as is: it is measured again
+    from the start with every side at the grown buffers, and the note says why."""
+    throughput = benchmark("throughput")
+    result = throughput.measure("humanoid", "warp", 2, 0.4, rounds=2, buffers=(1, 117), again=True)
+    assert result["note"].startswith("measured again from the start at nconmax "), result["note"]
+    assert "NOT THE SAME PHYSICS" not in result["note"], result["note"]
