@@ -39,6 +39,7 @@ import argparse
 import gc
 import os
 import platform
+import resource
 import time
 from collections.abc import Callable
 
@@ -137,6 +138,14 @@ def feeder(
     return lambda k: handover if k % every == 0 else None
 
 
+def thread_usage() -> np.ndarray:
+    """This thread's CPU seconds (user + system), involuntary context switches (the kernel took
+    the core away), minor and major page faults so far: a period's difference says whether a
+    stray period computed, faulted, or waited for its core."""
+    r = resource.getrusage(resource.RUSAGE_THREAD)
+    return np.array([r.ru_utime + r.ru_stime, r.ru_nivcsw, r.ru_minflt, r.ru_majflt])
+
+
 def measure(
     model: str,
     case: str,
@@ -157,7 +166,7 @@ def measure(
     arrivals = feeder(model, case, manager, nworld, period)
     warmup = round(WARMUP / period)
     least = warmup + 3 * round(max(RESEND, LONG_RESEND if case == "long" else 0) / period)
-    physics_t, control_t, arrived = [], [], []
+    physics_t, control_t, arrived, usage = [], [], [], []
     buffers = (getattr(sim, "nconmax", None), getattr(sim, "njmax", None))  # warp's, to see them grow
     gc.collect()
     gc.freeze()  # start-up's objects out of the collector, as the paced loop does (SimLoop)
@@ -166,6 +175,7 @@ def measure(
     while k < least or time.perf_counter() - wall < seconds:
         handover = arrivals(k)
         t = k * period
+        u0 = thread_usage()
         s = clock()
         if handover is not None:
             handover()
@@ -180,11 +190,13 @@ def measure(
             control_t.append(c - s)
             physics_t.append(e - p)
             arrived.append(handover is not None)
+            usage.append(thread_usage() - u0)
         k += 1
     grown = (getattr(sim, "nconmax", None), getattr(sim, "njmax", None))
     sim.shutdown()
     gc.unfreeze()
     out = {"physics": np.array(physics_t), "controllers": np.array(control_t), "arrived": np.array(arrived)}
+    out["usage"] = np.array(usage).reshape(-1, 4)  # per period: on-CPU s, involuntary switches, minor and major faults
     out["buffers"] = np.array([buffers, grown], dtype=object)  # (nconmax, njmax) before and after
     return out
 
@@ -231,9 +243,13 @@ def main() -> None:
                 # physics (warp's buffers growing: a period repeated), or the controllers' burst
                 i = int(np.argmax(whole))
                 (c0, j0), (c1, j1) = r["buffers"]
+                cpu, switches, minor, major = r["usage"][i]
                 print(
                     f"#   worst period: {i} of {len(whole)}, physics {ph[i]:.2f} ms, controllers {ct[i]:.2f} ms, "
-                    f"{'messages arrived' if r['arrived'][i] else 'no messages'}; periods over 2x the median "
+                    f"{'messages arrived' if r['arrived'][i] else 'no messages'}; the loop's thread in it: on a core "
+                    f"{cpu * 1e3:.2f} ms, {switches:.0f} involuntary switches, {minor:.0f} minor and {major:.0f} major "
+                    f"page faults (median period: on a core {np.median(r['usage'][:, 0]) * 1e3:.2f} ms, "
+                    f"{np.median(r['usage'][:, 2]):.0f} minor faults); periods over 2x the median "
                     f"{int((whole > 2 * np.median(whole)).sum())}"
                     + (f"; warp buffers nconmax {c0} -> {c1}, njmax {j0} -> {j1}" if c0 is not None else ""),
                     flush=True,
