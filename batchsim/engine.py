@@ -45,10 +45,28 @@ class EngineHooks:
         Frozen worlds' rows are overwritten afterwards with what they hold."""
         raise NotImplementedError
 
+    #: whether `_step` calls `_while_stepping()` once its steps are launched on a device, so that
+    #: step()'s `meanwhile` runs beside them; False: step() calls it before `_step`
+    steps_on_device = False
+    _meanwhile: Any = None
+
     def _step(self, nstep: int) -> StepFailures | None:
         """Advance the unfrozen worlds nstep steps; report the worlds that failed in this call
-        (None or an empty StepFailures: none). The base class then freezes them."""
+        (None or an empty StepFailures: none). The base class then freezes them. Where
+        `steps_on_device`, call `_while_stepping()` between the launch and the wait."""
         raise NotImplementedError
+
+    def _while_stepping(self) -> None:
+        """Run step()'s `meanwhile` now, once (later calls in the same step do nothing). What it
+        raises, step() raises once the period is done, so the engine's bookkeeping stays whole."""
+        meanwhile, self._meanwhile = self._meanwhile, None
+        if meanwhile is not None:
+            try:
+                meanwhile()
+            except Exception as e:
+                self._meanwhile_error = e
+
+    _meanwhile_error: Exception | None = None
 
     def _reset(self, worlds: np.ndarray | None) -> None:
         """Reset the listed worlds (None: all) to `spec.initial`. Their status is already clear."""

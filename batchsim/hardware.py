@@ -34,7 +34,7 @@ shaped records), batchsim.sensing (cameras, lidars, noise), batchsim.engine (the
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -309,20 +309,36 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         self._command[slice(None) if rows is None else rows] = command
 
     # --- stepping ---
-    def step(self, nstep: int = 1) -> None:
+    def step(self, nstep: int = 1, meanwhile: Callable[[], None] | None = None) -> None:
         """Advance every world `nstep` physics steps; frozen (diverged, overflowed) worlds stay put.
 
         A world that fails during the call gets DIVERGED or OVERFLOW in `status`, is logged
         once (rate-limited over worlds) and is frozen: it reads as it did before this call
         until `reset` lists it.
+
+        `meanwhile()`, if given, runs once on this thread while the steps run: where they run
+        on a device (`steps_on_device`: warp, mjx, a fleet of shards), after they are launched
+        and before they are waited for, so host work (the ROS bridge's snapshot) hides under
+        the device's; elsewhere just before them. It must not call the system; what read()
+        filled and `command` stay as they are until step() returns.
         """
         self._require("step", frozenset({S.INACTIVE, S.ACTIVE}))
         check_nstep(nstep)
         self._failure_log.flush()
-        failures = self._step(int(nstep))
+        self._meanwhile, self._meanwhile_error = meanwhile, None
+        if not self.steps_on_device:
+            self._while_stepping()
+        try:
+            failures = self._step(int(nstep))
+            self._while_stepping()  # where the engine's path did not (Warp's CPU device steps on the host)
+        finally:
+            self._meanwhile = None
         self._readings_current = False
         if failures is not None and failures.worlds.size:
             self._freeze(failures)
+        if self._meanwhile_error is not None:
+            error, self._meanwhile_error = self._meanwhile_error, None
+            raise error
 
     def _freeze(self, failures: StepFailures) -> None:
         """Hold what the failed worlds read before the failing step, mark them, park them, say so."""

@@ -75,7 +75,9 @@ class Participant(Protocol):
     def update(self, sim: BatchedSystem, time: float, period: float) -> None: ...
 
     # Optional, looked up with getattr: `after_write(sim, time, period)` runs right after
-    # write(); `idle(sim, time)` runs instead of update() while the loop is paused;
+    # write(); `while_stepping(sim, time, period)` runs while the period's physics steps on a
+    # device (BatchedSystem.step's `meanwhile`: host work only, the system not called; just
+    # before the steps on the cpu backend); `idle(sim, time)` runs instead of update() while the loop is paused;
     # `on_reset(sim, worlds)` runs after SimLoop.reset reset worlds (None: all), in the
     # loop thread, so participants never have to infer a reset from the state.
 
@@ -232,11 +234,23 @@ class SimLoop:
         for p in self.participants:
             p.update(sim, t, period)
         sim.write(t, period)
+        meanwhile = []
         for p in self.participants:  # optional: e.g. the bridge re-marks commands it rejected
             after = getattr(p, "after_write", None)
             if after is not None:
                 after(sim, t, period)
-        sim.step(nstep)
+            during = getattr(p, "while_stepping", None)
+            if during is not None:
+                meanwhile.append(during)
+        if meanwhile:  # e.g. the bridge's snapshot, under the device's steps
+
+            def hooks() -> None:
+                for during in meanwhile:
+                    during(sim, t, period)
+
+            sim.step(nstep, meanwhile=hooks)
+        else:
+            sim.step(nstep)
         self.sim_time += period
         self.stats.periods += 1
 

@@ -67,6 +67,7 @@ class DeviceSystem(BatchedSystem):
     """
 
     compiles_first_period = True  # jax.jit compiles, Warp captures its graph, on the first period
+    steps_on_device = True  # step()'s `meanwhile` runs between the period's launch and its wait
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__(spec, nworld, **options)

@@ -331,6 +331,7 @@ class MjxSystem(MjxFields, MjxDeviceIO, DeviceSystem):
         self._sync_inputs()
         held = () if self._held_dev is None else (self._held_dev,)
         self._d, out = self._programs.period(self._d, nstep, self._fields, *held)
+        self._while_stepping()  # JAX dispatched the period; it runs on the device meanwhile
         out = np.asarray(out)  # one download: readings, then the failure codes
         self._packed, codes = out[:, :-1], out[:, -1]
         failures = None

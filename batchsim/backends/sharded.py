@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import weakref
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, ClassVar
@@ -231,13 +231,26 @@ class ShardedSystem(BatchedSystem):
         self._each(ShardOp.WRITE, time, period)  # each shard takes its rows of `command`; uploads at once
         return ReturnType.OK
 
-    def step(self, nstep: int = 1) -> None:
-        """Advance every world `nstep` steps, every device at once; returns when all are done."""
+    steps_on_device = True  # the shards step; `meanwhile` runs once every one has its request
+
+    def step(self, nstep: int = 1, meanwhile: Callable[[], None] | None = None) -> None:
+        """Advance every world `nstep` steps, every device at once; returns when all are done.
+        `meanwhile` as BatchedSystem.step's: here, once every shard has the request."""
         self._require("step", frozenset({LifecycleState.INACTIVE, LifecycleState.ACTIVE}))
         check_nstep(nstep)
         # the first period of a length compiles or captures it: one device at a time
-        self._each(ShardOp.STEP, int(nstep), parallel=nstep in self._stepped)
+        parallel = nstep in self._stepped
+        error = None
+        if meanwhile is not None and not parallel:
+            try:
+                meanwhile()
+            except Exception as e:  # raised once the period is done, as BatchedSystem.step does
+                error = e
+            meanwhile = None
+        self._each(ShardOp.STEP, int(nstep), parallel=parallel, meanwhile=meanwhile)
         self._stepped.add(nstep)
+        if error is not None:
+            raise error
 
     def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
         """Reset all or the listed worlds (fleet numbering), each on its shard."""
@@ -395,15 +408,18 @@ class ShardedSystem(BatchedSystem):
         *args: Any,
         shards: Sequence[LocalShard | ProcessShard] | None = None,
         parallel: bool = True,
+        meanwhile: Callable[[], None] | None = None,
     ) -> list[Any]:
         """`op(*args)` on every shard (or those given): at once, or one after the other."""
         shards = self.shards if shards is None else shards
-        return self._run([(shard, op, args) for shard in shards], parallel)
+        return self._run([(shard, op, args) for shard in shards], parallel, meanwhile)
 
-    def _run(self, calls: list[tuple[Any, ShardOp, tuple]], parallel: bool) -> list[Any]:
+    def _run(
+        self, calls: list[tuple[Any, ShardOp, tuple]], parallel: bool, meanwhile: Callable[[], None] | None = None
+    ) -> list[Any]:
         """Run (shard, op, args) calls, at once or in turn; their results in order. Every
         call is answered before the first failure is raised (a shard process then still
-        takes requests)."""
+        takes requests). `meanwhile()` runs once every call is submitted (parallel only)."""
         if any(op not in _KEEP_POSES for _, op, _ in calls):
             self._poses_current = False  # a step, a reset, a lifecycle call: the poses are the engine's to give again
         if not parallel:
@@ -414,6 +430,11 @@ class ShardedSystem(BatchedSystem):
                 pending.append(shard.submit(op, *args))
             except Exception as e:  # a shard process that has exited: the others still answer
                 pending.append(None)
+                failure = failure or e
+        if meanwhile is not None:
+            try:
+                meanwhile()
+            except Exception as e:  # raised once every shard has answered, as theirs are
                 failure = failure or e
         results = []
         for p in pending:

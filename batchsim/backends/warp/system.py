@@ -260,6 +260,7 @@ class WarpSystem(
 
     def _launch(self, nstep: int) -> None:
         if self._replay_captured(nstep):  # the flags' copy to the host is in it
+            self._while_stepping()
             wp.synchronize_device(self.device)
             return
         serial = CPU_GRAPHS if self.options["graph"] and not self._cuda else contextlib.nullcontext()
@@ -273,6 +274,7 @@ class WarpSystem(
                 self._period(nstep)
                 if self._cuda:
                     wp.copy(self._flags_wp, self._flags_dev)
+            self._while_stepping()
             wp.synchronize_device(self.device)
 
     def _period(self, nstep: int) -> None:
