@@ -5,7 +5,9 @@ Per control period, in the loop thread:
 
     update      the workers' requests (resets, pause, step; trajectory batches), new commands from their
                 slots, command timeouts, BAD_COMMAND bookkeeping (then the controllers, write())
-    after_write BAD_COMMAND re-marked; a snapshot (time, status, the channels a worker publishes) to shared memory; workers woken
+    after_write BAD_COMMAND re-marked; a snapshot (time, status, the channels a worker publishes) to shared memory,
+                workers woken: here if a channel due reads the engine (tf), else in
+    while_stepping, beside the device's steps (BatchedSystem.step's `meanwhile`)
     gate        with lockstep: publish the state the period starts from, wait until every world's command arrived
     idle        while paused: requests, resets published at once, steps answered
 
@@ -28,7 +30,6 @@ from batchsim.controllers.topics import Input, MessageKind
 from batchsim.hardware import BatchedSystem, Status
 from batchsim.loop import SimLoop
 from batchsim.memory import Memory, Ring
-from batchsim.model import InterfaceKind
 from batchsim.realtime import with_siblings
 from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
 from ros_bridge.manager_link import ManagerLink
@@ -51,11 +52,12 @@ from ros_bridge.protocol.requests import (
     decode_ticket,
     decode_trajectories,
 )
-from ros_bridge.protocol.snapshot import reset_snapshots, write_snapshot
+from ros_bridge.protocol.snapshot import demanded, reset_snapshots, write_snapshot
 from ros_bridge.protocol.world_params import ParamWriter
 from ros_bridge.simulation import SimulationRequests
 from ros_bridge.supervisor import Supervisor
 from ros_bridge.throttle import LogThrottle
+from ros_bridge.timeouts import CommandTimeouts
 
 IDLE_TICK = 0.02  # s between two in-process worker ticks while paused
 _BAD = np.uint8(Status.BAD_COMMAND)
@@ -141,9 +143,10 @@ class BridgeHost:
             self._channel_every[action.channel].add(action.every)
 
         self.bad = np.zeros(n, dtype=bool)
-        self._last_command = np.full(n, np.inf)  # sim time of the last command; inf: never
-        self._timed_out = np.zeros(n, dtype=bool)
-        self._safe = _safe_plan(sim)
+        self.timeouts = CommandTimeouts(sim, command_timeout, self.free, self.namespaces, self.throttle.warn)
+        # channels whose fill reads the engine itself (tf's poses): written before the steps
+        self._engine_channels = [c for c, fill in enumerate(self.fills) if getattr(fill, "reads_engine", False)]
+        self._deferred: tuple[float, bool] | None = None  # a snapshot for while_stepping (time, force)
         self._period = 0  # control periods run, for the outputs' decimation
         self._n = -1  # snapshots written
         self._published_time: float | None = None
@@ -200,6 +203,7 @@ class BridgeHost:
     # --- the loop thread ---
     def update(self, sim: BatchedSystem, time: float, period: float) -> None:
         """Requests, commands, timeouts, BAD_COMMAND; the controllers run after this."""
+        self._flush()
         self.workers.supervise()
         good = np.zeros(self.nworld, dtype=bool)
         rejected = np.zeros(self.nworld, dtype=bool)
@@ -210,8 +214,7 @@ class BridgeHost:
         if new.any():
             np.copyto(sim.command, values, where=new)
             got = new.any(axis=1)
-            self._last_command[got] = time
-            self._timed_out[got] = False
+            self.timeouts.heard(got, time)
             good |= got
         for i, reader in enumerate(self._input_readers):
             if reader is None:
@@ -227,22 +230,46 @@ class BridgeHost:
         self._worker_rejections_seen = counts
         for i, taken in self._traj_taken.items():  # this period's trajectories, for the next lockstep wait
             self._traj_seen[i] = taken.copy()
-        if self.command_timeout is not None:
-            self._check_timeouts(sim, time)
+        self.timeouts.check(sim, time)
         # a rejection sets BAD_COMMAND until the world's next good command; when controllers
         # hold every interface, every period applies theirs
         self.bad = rejected | (np.zeros_like(self.bad) if self.all_claimed else self.bad & ~good)
 
     def after_write(self, sim: BatchedSystem, time: float, period: float) -> None:
-        """write() clears BAD_COMMAND for the rows it applied: keep the bridge's; publish."""
+        """write() clears BAD_COMMAND for the rows it applied: keep the bridge's; publish: now
+        if a channel due reads the engine (tf), else while the device steps (while_stepping)."""
         if self.bad.any():
             sim.status[self.bad] |= _BAD
         if self._published_time != time or self._force:
-            self._snapshot(time, force=self._force)
+            if self._engine_channels and self._engine_due():
+                self._snapshot(time, force=self._force)
+            else:
+                self._deferred = (time, self._force)
+                return
         self._period += 1
+
+    def while_stepping(self, sim: BatchedSystem, time: float, period: float) -> None:
+        """The period's snapshot, from host copies only, while the device steps (SimLoop)."""
+        self._flush()
+
+    def _flush(self) -> None:
+        """Write a snapshot after_write left for while_stepping: a driver that calls no
+        while_stepping (benchmarks/bridge_period.py) has it written at the next call here."""
+        if self._deferred is not None:
+            (time, force), self._deferred = self._deferred, None
+            self._snapshot(time, force=force)
+            self._period += 1
+
+    def _engine_due(self) -> bool:
+        """Whether this period's snapshot writes a channel whose fill reads the engine."""
+        k, wanted = self._period, demanded(self.memory)
+        return any(
+            wanted[c] and (self._force or any(k % e == 0 for e in self._channel_every[c])) for c in self._engine_channels
+        )
 
     def idle(self, sim: BatchedSystem, time: float) -> None:
         """While paused: requests; a reset or a finished step is published at once."""
+        self._flush()
         self._gate_since = None
         self.workers.supervise()
         if self._serve_requests(sim, None, None) and self._force:
@@ -262,6 +289,7 @@ class BridgeHost:
         wait timed out); False to be asked again, so stop() and pause() stay responsive."""
         if self._closed:
             return True
+        self._flush()
         self.workers.supervise()
         self._serve_requests(self.sim, None, None)
         now = wallclock.monotonic()
@@ -310,8 +338,7 @@ class BridgeHost:
         for i, counter in self._traj_counters.items():
             self._traj_seen[i][sel] = counter[sel]
             self._traj_taken[i][sel] = counter[sel]
-        self._last_command[sel] = np.inf
-        self._timed_out[sel] = False
+        self.timeouts.forget(sel)
         self.bad[sel] = False
         self._force = True
         self.params.refresh(sim)  # worlds drawn anew (a variation that redraws): their /diagnostics lines
@@ -431,8 +458,9 @@ class BridgeHost:
         if self.bad.any():
             status[self.bad] |= _BAD
             flags[self.bad] |= FLAG_BAD
-        if self._timed_out.any():
-            flags[self._timed_out] |= FLAG_TIMED_OUT
+        timed_out = self.timeouts.timed_out
+        if timed_out.any():
+            flags[timed_out] |= FLAG_TIMED_OUT
         if status.any():
             flags[(status & _FROZEN) != 0] |= FLAG_FROZEN
         k = self._period
@@ -455,44 +483,6 @@ class BridgeHost:
             if reader is not None:
                 ready &= reader.fresh()
         return ready
-
-    def _check_timeouts(self, sim: BatchedSystem, time: float) -> None:
-        stale = (time - self._last_command > self.command_timeout + 1e-9) & ~self._timed_out
-        if not stale.any():
-            return
-        rows = np.flatnonzero(stale)
-        self._timed_out[rows] = True
-        hold_cols, hold_src, zero_cols = self._safe
-        command = sim.command
-        for c, s in zip(hold_cols, hold_src, strict=True):
-            if self.free[c]:
-                command[rows, c] = sim.state[rows, s]
-        for c in zero_cols:
-            if self.free[c]:
-                command[rows, c] = 0.0
-        names = ", ".join(self.namespaces[w] for w in rows[:8]) + (" ..." if len(rows) > 8 else "")
-        self.throttle.warn(
-            "timeout",
-            f"{names}: no command for {self.command_timeout:g} s (command timeout); "
-            "holding position, zero velocity and effort",
-        )
-
-
-def _safe_plan(sim: BatchedSystem) -> tuple[list[int], list[int], list[int]]:
-    """Where each command goes on a command timeout: position interfaces to the measured
-    joint position (state column), velocity and effort to zero."""
-    spec = sim.spec
-    column = {name: i for i, name in enumerate(spec.state_interfaces)}
-    hold_cols, hold_src, zero_cols = [], [], []
-    for c, cmd in enumerate(spec.commands):
-        if cmd.kind is InterfaceKind.POSITION:
-            src = column.get(f"{cmd.joint}/position") if cmd.joint else None
-            if src is not None:  # a position actuator without a measured joint holds its command
-                hold_cols.append(c)
-                hold_src.append(src)
-        else:
-            zero_cols.append(c)
-    return hold_cols, hold_src, zero_cols
 
 
 def _stderr(line: str) -> None:

@@ -20,6 +20,9 @@ from batchsim.readings import actuator_state_index
 from ros_bridge.naming import ros_names
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
+#: fill(out (nworld, width)): a channel's values from host copies (what read() filled, a
+#: controller's arrays), so the bridge may run it while the device steps (BridgeHost.while_stepping);
+#: a fill that reads the engine itself (tf's body poses) is marked `fill.reads_engine = True`
 ChannelFill = Callable[[np.ndarray], None]
 #: channel(name, width, fill) -> the channel's index
 Channel = Callable[[str, int, ChannelFill], int]

@@ -94,6 +94,8 @@ def tf_spec(
         v = out.reshape(nworld, len(bodies), 7)
         sim.body_poses_into(v[:, :, :3], v[:, :, 3:], bodies)
 
+    fill_tf.reads_engine = True  # type: ignore[attr-defined]  # the bridge writes it before the steps, never beside them
+
     pairs = list(zip(tree.parents, tree.names, strict=True))
     description, extra = _description(sim, tree, source)
     static = [pairs[k] for k in fixed] + [(body, link) for body, link, _, _ in extra]

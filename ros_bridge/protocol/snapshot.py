@@ -74,6 +74,16 @@ def channel_rows(memory: Memory, n: int, c: int) -> np.ndarray | None:
     return memory[f"ch{c}"][int(memory["cwrite"][b, c]) % SLOTS]
 
 
+def demanded(memory: Memory) -> np.ndarray:
+    """(nchannel,) bool: the channels someone reads: a worker (for its subscribers), a
+    recording (protocol/recording.py) or the view."""
+    demand = memory["demand"].any(axis=0)
+    for extra in ("rec.want", "view.want"):
+        if extra in memory:
+            demand = demand | memory[extra].astype(bool)
+    return demand
+
+
 def write_snapshot(
     memory: Memory,
     n: int,
@@ -94,11 +104,7 @@ def write_snapshot(
     m["meta"][b] = (n, period, time, float(forced))
     m["status"][b] = status
     m["flags"][b] = flags
-    demand = m["demand"].any(axis=0)
-    for extra in ("rec.want", "view.want"):  # a recording's channels (protocol/recording.py), the view's
-        if extra in m:
-            demand = demand | m[extra].astype(bool)
-    demand = demand.tolist()
+    demand = demanded(m).tolist()
     written, cwrite, cseq, cwrites = m["written"][b], m["cwrite"][b], m["cseq"], m["cwrites"]
     for c, fill in enumerate(fills):
         if due[c] and (every_channel or demand[c]):
