@@ -25,7 +25,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # a source checkout, uninstalled
 
 
-def measure(model: str, nworld: int, backend: str, devices: list | None, periods: int) -> dict[str, np.ndarray]:
+def measure(
+    model: str, nworld: int, backend: str, devices: list | None, periods: int, tf: bool = True
+) -> dict[str, np.ndarray]:
     """Per-period milliseconds of the host's hooks and of read and write, on `nworld` worlds."""
     import batchsim
     from batchsim.controllers import default_controllers, load_controllers
@@ -44,7 +46,7 @@ def measure(model: str, nworld: int, backend: str, devices: list | None, periods
     host = BridgeHost(sim, loop, plan, fills, inputs, processes=False, manager=manager)  # no workers started
     try:
         wanted = [c for o in plan.outputs if o.topic == "joint_states" for c in o.channels]
-        if plan.tf is not None:
+        if tf and plan.tf is not None:
             wanted.append(plan.tf.channel)
         host.memory["demand"][:, wanted] = 1  # subscribers on every world's joint_states and tf
         names = ("read", "update", "write", "after_write")
@@ -78,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--backend", default="cpu")
     p.add_argument("--devices", default="", help="one shard process per device: cpu,cpu (Warp's CPU device) or 0,1,2,3")
     p.add_argument("--periods", type=int, default=200)
+    p.add_argument("--no-tf", action="store_true", help="joint_states wanted only (as benchmarks/fleet.py's subscribers)")
     args = p.parse_args(argv)
     devices = [d if d == "cpu" or ":" in d else int(d) for d in args.devices.split(",")] if args.devices else None
     where = f"{args.backend}" + (f", devices {args.devices} (one shard process each)" if devices else "")
@@ -86,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'worlds':>7} " + " ".join(f"{name + ' median':>18} {'worst':>7}" for name in names))
     for nworld in (int(n) for n in args.worlds.split(",")):
         gc.collect()
-        t = measure(args.model, nworld, args.backend, devices, args.periods)
+        t = measure(args.model, nworld, args.backend, devices, args.periods, tf=not args.no_tf)
         cells = " ".join(f"{np.median(t[name]):>18.3f} {t[name].max():>7.3f}" for name in names)
         print(f"{nworld:>7} {cells}", flush=True)
     return 0
