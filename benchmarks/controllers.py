@@ -139,11 +139,25 @@ def feeder(
 
 
 def thread_usage() -> np.ndarray:
-    """This thread's CPU seconds (user + system), involuntary context switches (the kernel took
-    the core away), minor and major page faults so far: a period's difference says whether a
-    stray period computed, faulted, or waited for its core."""
+    """This thread's CPU seconds, involuntary context switches (the kernel gave its core to
+    another thread), minor and major page faults so far: a period's difference says whether a
+    stray period computed, faulted, or waited. The CPU seconds are the thread's clock
+    (CLOCK_THREAD_CPUTIME_ID, nanoseconds; getrusage's counted 4 ms ticks on the GPU hosts),
+    which on a VM whose kernel accounts steal (CONFIG_PARAVIRT_TIME_ACCOUNTING, the GPU hosts')
+    leaves out the time the hypervisor ran something else on the core."""
     r = resource.getrusage(resource.RUSAGE_THREAD)
-    return np.array([r.ru_utime + r.ru_stime, r.ru_nivcsw, r.ru_minflt, r.ru_majflt])
+    return np.array([time.thread_time(), r.ru_nivcsw, r.ru_minflt, r.ru_majflt])
+
+
+def steal_seconds() -> float:
+    """Seconds every core of this VM has had stolen by its hypervisor so far (/proc/stat's
+    steal column, summed; 0 where there is none or no /proc)."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
 
 
 def measure(
@@ -166,10 +180,11 @@ def measure(
     arrivals = feeder(model, case, manager, nworld, period)
     warmup = round(WARMUP / period)
     least = warmup + 3 * round(max(RESEND, LONG_RESEND if case == "long" else 0) / period)
-    physics_t, control_t, arrived, usage = [], [], [], []
+    physics_t, control_t, arrived, usage, control_cpu = [], [], [], [], []
     buffers = (getattr(sim, "nconmax", None), getattr(sim, "njmax", None))  # warp's, to see them grow
     gc.collect()
     gc.freeze()  # start-up's objects out of the collector, as the paced loop does (SimLoop)
+    stolen = steal_seconds()
     wall = time.perf_counter()
     k = 0
     while k < least or time.perf_counter() - wall < seconds:
@@ -181,6 +196,7 @@ def measure(
             handover()
         manager.update(sim, t, period)
         c = clock()
+        c_cpu = time.thread_time()
         p = time.perf_counter()
         sim.write()
         sim.step(substeps)
@@ -191,12 +207,17 @@ def measure(
             physics_t.append(e - p)
             arrived.append(handover is not None)
             usage.append(thread_usage() - u0)
+            control_cpu.append(c_cpu - u0[0])
         k += 1
+    out_wall = time.perf_counter() - wall
+    stolen = steal_seconds() - stolen
     grown = (getattr(sim, "nconmax", None), getattr(sim, "njmax", None))
     sim.shutdown()
     gc.unfreeze()
     out = {"physics": np.array(physics_t), "controllers": np.array(control_t), "arrived": np.array(arrived)}
+    out["control_cpu"] = np.array(control_cpu)  # the controllers' part of it on a core (thread clock)
     out["usage"] = np.array(usage).reshape(-1, 4)  # per period: on-CPU s, involuntary switches, minor and major faults
+    out["steal"] = np.array([stolen / out_wall / (os.cpu_count() or 1)])  # the hypervisor's share of a core, on average
     out["buffers"] = np.array([buffers, grown], dtype=object)  # (nconmax, njmax) before and after
     return out
 
@@ -247,9 +268,10 @@ def main() -> None:
                 print(
                     f"#   worst period: {i} of {len(whole)}, physics {ph[i]:.2f} ms, controllers {ct[i]:.2f} ms, "
                     f"{'messages arrived' if r['arrived'][i] else 'no messages'}; the loop's thread in it: on a core "
-                    f"{cpu * 1e3:.2f} ms, {switches:.0f} involuntary switches, {minor:.0f} minor and {major:.0f} major "
+                    f"{cpu * 1e3:.2f} ms (the controllers' part {r['control_cpu'][i] * 1e3:.2f}), {switches:.0f} involuntary switches, {minor:.0f} minor and {major:.0f} major "
                     f"page faults (median period: on a core {np.median(r['usage'][:, 0]) * 1e3:.2f} ms, "
-                    f"{np.median(r['usage'][:, 2]):.0f} minor faults); periods over 2x the median "
+                    f"{np.median(r['usage'][:, 2]):.0f} minor faults; steal over the run {r['steal'][0]:.1%} of each core); "
+                    f"periods over 2x the median "
                     f"{int((whole > 2 * np.median(whole)).sum())}"
                     + (f"; warp buffers nconmax {c0} -> {c1}, njmax {j0} -> {j1}" if c0 is not None else ""),
                     flush=True,
