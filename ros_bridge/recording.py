@@ -248,7 +248,9 @@ class Recording:
     def update(self, sim, time: float, period: float) -> None:
         self._serve()
 
-    def after_write(self, sim, time: float, period: float) -> None:
+    def while_stepping(self, sim, time: float, period: float) -> None:
+        """This period's snapshot into the ring: after the host's (it runs first), which on a GPU
+        writes it here too, beside the steps."""
         if not self.memory["rec.on"][0]:
             return
         if self.loop.rtf == 0:  # as fast as possible, every period: as fast as the recorder takes them

@@ -45,8 +45,8 @@ def test_meanwhile_runs_once_per_step_and_sees_the_periods_start(backend):
     sim.read()
     for k in range(2):  # a fleet's first period of a length steps one shard at a time, then all at once
         start = sim.state.copy()
-        seen = []
-        sim.step(5, meanwhile=lambda: seen.append((sim.state.copy(), sim.time.copy())))
+        seen: list = []
+        sim.step(5, meanwhile=lambda seen=seen: seen.append((sim.state.copy(), sim.time.copy())))
         assert len(seen) == 1
         state, time = seen[0]
         np.testing.assert_array_equal(state, start)  # what read() filled stays until the next read()
@@ -158,5 +158,30 @@ def test_the_bridges_snapshot_is_written_beside_the_steps_and_shows_the_periods_
         expected = sim.steps_on_device and not tf_wanted
         assert written_while_stepping == [expected] * 4
     finally:
+        host.close()
+        sim.shutdown()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_recording_takes_each_periods_own_snapshot(backend):
+    """The recording's participant copies the newest snapshot into its ring. Taken in
+    after_write, it took the one before: on a GPU the host writes this period's beside the
+    steps now, after every after_write."""
+    from ros_bridge.recording import Recording
+
+    sim = active(backend)
+    loop, host, plan, (position, _) = _bridge(sim)
+    recording = Recording(plan, host.memory, loop)
+    loop.participants.insert(loop.participants.index(host) + 1, recording)
+    m = host.memory
+    m["demand"][:, position.channel] = 1
+    m["rec.on"][0] = 1  # as the recorder process says once it is ready
+    try:
+        for k in range(4):
+            loop.run_period()
+            slot = (int(m["rec.pos"][0]) - 1) % recording.writer.slots
+            assert int(m["rec.meta"][slot][1]) == k  # (n, period, time, forced) of the snapshot taken
+    finally:
+        m["rec.on"][0] = 0
         host.close()
         sim.shutdown()
