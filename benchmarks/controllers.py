@@ -180,7 +180,7 @@ def measure(
     arrivals = feeder(model, case, manager, nworld, period)
     warmup = round(WARMUP / period)
     least = warmup + 3 * round(max(RESEND, LONG_RESEND if case == "long" else 0) / period)
-    physics_t, control_t, arrived, usage, control_cpu = [], [], [], [], []
+    physics_t, control_t, arrived, usage, control_cpu, handover_t = [], [], [], [], [], []
     buffers = (getattr(sim, "nconmax", None), getattr(sim, "njmax", None))  # warp's, to see them grow
     gc.collect()
     gc.freeze()  # start-up's objects out of the collector, as the paced loop does (SimLoop)
@@ -194,6 +194,7 @@ def measure(
         s = clock()
         if handover is not None:
             handover()
+        h = clock()
         manager.update(sim, t, period)
         c = clock()
         c_cpu = time.thread_time()
@@ -208,6 +209,7 @@ def measure(
             arrived.append(handover is not None)
             usage.append(thread_usage() - u0)
             control_cpu.append(c_cpu - u0[0])
+            handover_t.append(h - s)
         k += 1
     out_wall = time.perf_counter() - wall
     stolen = steal_seconds() - stolen
@@ -215,6 +217,7 @@ def measure(
     sim.shutdown()
     gc.unfreeze()
     out = {"physics": np.array(physics_t), "controllers": np.array(control_t), "arrived": np.array(arrived)}
+    out["handover"] = np.array(handover_t)  # the controllers' time: hand-over, then the update
     out["control_cpu"] = np.array(control_cpu)  # the controllers' part of it on a core (thread clock)
     out["usage"] = np.array(usage).reshape(-1, 4)  # per period: on-CPU s, involuntary switches, minor and major faults
     out["steal"] = np.array([stolen / out_wall / (os.cpu_count() or 1)])  # the hypervisor's share of a core, on average
@@ -266,7 +269,8 @@ def main() -> None:
                 (c0, j0), (c1, j1) = r["buffers"]
                 cpu, switches, minor, major = r["usage"][i]
                 print(
-                    f"#   worst period: {i} of {len(whole)}, physics {ph[i]:.2f} ms, controllers {ct[i]:.2f} ms, "
+                    f"#   worst period: {i} of {len(whole)}, physics {ph[i]:.2f} ms, controllers {ct[i]:.2f} ms "
+                    f"(hand-over {r['handover'][i] * 1e3:.2f}, update {ct[i] - r['handover'][i] * 1e3:.2f}), "
                     f"{'messages arrived' if r['arrived'][i] else 'no messages'}; the loop's thread in it: on a core "
                     f"{cpu * 1e3:.2f} ms (the controllers' part {r['control_cpu'][i] * 1e3:.2f}), {switches:.0f} involuntary switches, {minor:.0f} minor and {major:.0f} major "
                     f"page faults (median period: on a core {np.median(r['usage'][:, 0]) * 1e3:.2f} ms, "
