@@ -170,3 +170,17 @@ def test_throughput_measures_warp_again_when_the_buffers_differed():
     result = throughput.measure("humanoid", "warp", 2, 0.4, rounds=2, buffers=(1, 117), again=True)
     assert result["note"].startswith("measured again from the start at nconmax "), result["note"]
     assert "NOT THE SAME PHYSICS" not in result["note"], result["note"]
+
+
+def test_controllers_benchmark_says_what_the_thread_did_in_each_period():
+    """controllers.py's worst-period line reads the thread's own clock, its switches and faults,
+    the hand-over apart from the update, and the VM's steal: a smoke run on 16 arms."""
+    controllers = benchmark("controllers")
+    r = controllers.measure("arm", "burst", 16, 0.05)
+    n = len(r["controllers"])
+    assert n >= 3 * 20 and r["usage"].shape == (n, 4) and r["handover"].shape == (n,)
+    assert (r["handover"] <= r["controllers"] + 1e-9).all()
+    assert r["handover"][r["arrived"]].min() > 0 and (r["handover"][~r["arrived"]] < 1e-3).all()
+    cpu = r["usage"][:, 0]
+    assert (cpu > 0).all() and (cpu <= r["physics"] + r["controllers"] + 2e-3).all()  # the thread's own seconds
+    assert 0.0 <= r["steal"][0] < 1.0
