@@ -68,6 +68,12 @@ class EngineHooks:
 
     _meanwhile_error: Exception | None = None
 
+    def _raise_meanwhile_error(self) -> None:
+        """Raise what `meanwhile` raised in this step, if anything (step() calls it once done)."""
+        error, self._meanwhile_error = self._meanwhile_error, None
+        if error is not None:
+            raise error
+
     def _reset(self, worlds: np.ndarray | None) -> None:
         """Reset the listed worlds (None: all) to `spec.initial`. Their status is already clear."""
         raise NotImplementedError

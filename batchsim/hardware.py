@@ -336,9 +336,7 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         self._readings_current = False
         if failures is not None and failures.worlds.size:
             self._freeze(failures)
-        if self._meanwhile_error is not None:
-            error, self._meanwhile_error = self._meanwhile_error, None
-            raise error
+        self._raise_meanwhile_error()
 
     def _freeze(self, failures: StepFailures) -> None:
         """Hold what the failed worlds read before the failing step, mark them, park them, say so."""

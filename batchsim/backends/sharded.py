@@ -240,17 +240,15 @@ class ShardedSystem(BatchedSystem):
         check_nstep(nstep)
         # the first period of a length compiles or captures it: one device at a time
         parallel = nstep in self._stepped
-        error = None
-        if meanwhile is not None and not parallel:
-            try:
-                meanwhile()
-            except Exception as e:  # raised once the period is done, as BatchedSystem.step does
-                error = e
-            meanwhile = None
-        self._each(ShardOp.STEP, int(nstep), parallel=parallel, meanwhile=meanwhile)
+        self._meanwhile, self._meanwhile_error = meanwhile, None  # as BatchedSystem.step: raised once done
+        if not parallel:
+            self._while_stepping()
+        try:
+            self._each(ShardOp.STEP, int(nstep), parallel=parallel, meanwhile=self._while_stepping)
+        finally:
+            self._meanwhile = None
         self._stepped.add(nstep)
-        if error is not None:
-            raise error
+        self._raise_meanwhile_error()
 
     def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
         """Reset all or the listed worlds (fleet numbering), each on its shard."""
@@ -419,7 +417,8 @@ class ShardedSystem(BatchedSystem):
     ) -> list[Any]:
         """Run (shard, op, args) calls, at once or in turn; their results in order. Every
         call is answered before the first failure is raised (a shard process then still
-        takes requests). `meanwhile()` runs once every call is submitted (parallel only)."""
+        takes requests). `meanwhile()` (which must not raise) runs once every call is submitted
+        (parallel only)."""
         if any(op not in _KEEP_POSES for _, op, _ in calls):
             self._poses_current = False  # a step, a reset, a lifecycle call: the poses are the engine's to give again
         if not parallel:
@@ -432,10 +431,7 @@ class ShardedSystem(BatchedSystem):
                 pending.append(None)
                 failure = failure or e
         if meanwhile is not None:
-            try:
-                meanwhile()
-            except Exception as e:  # raised once every shard has answered, as theirs are
-                failure = failure or e
+            meanwhile()
         results = []
         for p in pending:
             try:
