@@ -38,7 +38,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # a source checkout, uninstalled
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from throughput import NSTEP, RAW, device_name, versions  # noqa: E402
+from raw_loops import NSTEP, RAW  # noqa: E402
+from throughput import device_name, versions  # noqa: E402
 
 import batchsim  # noqa: E402
 from batchsim.backends import backend_class  # noqa: E402

@@ -36,7 +36,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # a source checkout, uninstalled
 
-from throughput import NSTEP, device_name, mjx_rollout, versions  # noqa: E402
+from raw_loops import NSTEP, mjx_rollout  # noqa: E402
+from throughput import device_name, versions  # noqa: E402
 
 import batchsim  # noqa: E402
 

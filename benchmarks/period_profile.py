@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from throughput import NSTEP, raw_mjx, raw_warp, unequal_buffers  # noqa: E402
+from raw_loops import NSTEP, raw_mjx, raw_warp, unequal_buffers  # noqa: E402
 
 import batchsim  # noqa: E402
 

@@ -36,7 +36,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # a source checkout, uninstalled
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from throughput import NSTEP, device_name, interleaved, rate, versions  # noqa: E402
+from raw_loops import NSTEP  # noqa: E402
+from throughput import device_name, interleaved, rate, versions  # noqa: E402
 
 import batchsim  # noqa: E402
 from batchsim import vector  # noqa: E402

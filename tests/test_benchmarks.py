@@ -137,8 +137,9 @@ def test_throughput_sees_raw_warp_overflow_its_buffers():
     """raw_warp builds MuJoCo Warp's Data at the contract's buffer sizes and turns the overflow
     warning off: once the falling humanoids make more contacts than nconmax, raw drops them
     silently and steps cheaper physics than the contract, which grows its buffers instead.
-    unequal_buffers must say so (it was how throughput.py and period_profile.py disagreed)."""
-    throughput = benchmark("throughput")
+    unequal_buffers must say so (benchmarks/raw_loops.py; throughput.py and period_profile.py
+    then measure again at the grown size)."""
+    raw_loops = benchmark("raw_loops")
     import batchsim
 
     sim = batchsim.make("humanoid", 2, "warp", nconmax=1)  # raised to the start's 8 contacts
@@ -146,16 +147,16 @@ def test_throughput_sees_raw_warp_overflow_its_buffers():
     sim.activate()
     u = np.random.default_rng(0).uniform(-0.3, 0.3, sim.command.shape)
     built = (sim.nconmax, sim.njmax)
-    raw = throughput.raw_warp(sim, u)
-    assert throughput.unequal_buffers(sim, built, [raw]) is None
+    raw = raw_loops.raw_warp(sim, u)
+    assert raw_loops.unequal_buffers(sim, built, [raw]) is None
     why = None
     for _ in range(60):
         sim.command[:] = u
         sim.write()
-        sim.step(throughput.NSTEP)
+        sim.step(raw_loops.NSTEP)
         sim.read()
         raw()
-        why = throughput.unequal_buffers(sim, built, [raw])
+        why = raw_loops.unequal_buffers(sim, built, [raw])
         if why is not None:
             break
     sim.shutdown()
