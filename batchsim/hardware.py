@@ -331,6 +331,11 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         try:
             failures = self._step(int(nstep))
             self._while_stepping()  # where the engine's path did not (Warp's CPU device steps on the host)
+        except BaseException as e:  # the engine's failure first; meanwhile's, if any, is its context
+            if self._meanwhile_error is not None and e.__context__ is None:
+                e.__context__ = self._meanwhile_error
+            self._meanwhile_error = None
+            raise
         finally:
             self._meanwhile = None
         self._readings_current = False

@@ -242,17 +242,23 @@ class SimLoop:
             during = getattr(p, "while_stepping", None)
             if during is not None:
                 meanwhile.append(during)
+        errors: list[Exception] = []
         if meanwhile:  # e.g. the bridge's snapshot, under the device's steps
 
             def hooks() -> None:
-                for during in meanwhile:
-                    during(sim, t, period)
+                for during in meanwhile:  # every one runs; the first error is raised once the period is counted
+                    try:
+                        during(sim, t, period)
+                    except Exception as e:
+                        errors.append(e)
 
             sim.step(nstep, meanwhile=hooks)
         else:
             sim.step(nstep)
         self.sim_time += period
         self.stats.periods += 1
+        if errors:
+            raise errors[0]
 
     def run(self, report: Callable[[LoopStats], None] | None = None, report_every: float = 1.0) -> LoopStats:
         """Run until stop() or `duration`; call `report` about every `report_every` wall seconds."""

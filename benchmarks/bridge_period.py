@@ -1,15 +1,18 @@
-"""The loop process's per-period work for the bridge (issue 27): `BridgeHost.update` and
-`BridgeHost.after_write` (the snapshot into shared memory, tf's body poses of every world),
-timed alone per fleet size, with every world's joint_states and tf wanted (as subscribers on
-every world make the workers ask). No ROS and no workers: the host is driven as SimLoop.run_period
-drives it (read, update, write, after_write, one physics step), unpaced; the figures are the
-host's own and the contract's read and write beside them (work may move between them).
+"""The loop process's per-period work for the bridge (issue 27): `BridgeHost.update`, and the
+snapshot into shared memory (tf's body poses of every world among it): in `after_write` when tf
+is due, else in `while_stepping`, beside the physics step (on a GPU, the device's), timed alone
+per fleet size, with every world's joint_states and tf wanted (as subscribers on every world make
+the workers ask; `--no-tf`: joint_states only). No ROS and no workers: the host is driven as
+SimLoop.run_period drives it (read, update, write, after_write, one physics step with
+while_stepping beside it), unpaced; the figures are the host's own and the contract's read and
+write beside them (work may move between them).
 
     python benchmarks/bridge_period.py --worlds 1024,2048,4096,8192            # cpu backend
     python benchmarks/bridge_period.py --backend warp --devices cpu,cpu        # shard processes
     python benchmarks/bridge_period.py --backend warp --devices 0,1,2,3        # a 4-GPU host
 
-Prints, per fleet size: median and worst per-period after_write, update, read and write (ms).
+Prints, per fleet size: median and worst per-period after_write, while_stepping, update, read
+and write (ms).
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ def measure(
             wanted.append(plan.tf.channel)
         host.memory["demand"][:, wanted] = 1  # subscribers on every world's joint_states and tf
         names = ("read", "update", "write", "after_write")
-        times: dict[str, list[float]] = {name: [] for name in names}
+        times: dict[str, list[float]] = {name: [] for name in (*names, "while_stepping")}
         period = 1.0 / loop.control_rate
         for k in range(periods + 5):
             t = k * period
@@ -63,10 +66,18 @@ def measure(
             marks.append(time.perf_counter())
             host.after_write(sim, t, period)
             marks.append(time.perf_counter())
-            sim.step(1)  # one physics step: the engine's poses move on, as in a running loop
+            beside = []
+
+            def snapshot(t=t, beside=beside) -> None:  # as SimLoop passes the hook: beside a device's steps
+                s = time.perf_counter()
+                host.while_stepping(sim, t, period)
+                beside.append(time.perf_counter() - s)
+
+            sim.step(1, meanwhile=snapshot)  # one physics step: the engine's poses move on, as in a running loop
             if k >= 5:  # the first periods bind, compile and page in
                 for name, a, b in zip(names, marks, marks[1:], strict=False):
                     times[name].append(b - a)
+                times["while_stepping"].append(beside[0])
     finally:
         host.close()
         sim.shutdown()
@@ -85,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     devices = [d if d == "cpu" or ":" in d else int(d) for d in args.devices.split(",")] if args.devices else None
     where = f"{args.backend}" + (f", devices {args.devices} (one shard process each)" if devices else "")
     print(f"# {args.model} on {where}, {args.periods} periods each; ms per period")
-    names = ("after_write", "update", "read", "write")
+    names = ("after_write", "while_stepping", "update", "read", "write")
     print(f"{'worlds':>7} " + " ".join(f"{name + ' median':>18} {'worst':>7}" for name in names))
     for nworld in (int(n) for n in args.worlds.split(",")):
         gc.collect()

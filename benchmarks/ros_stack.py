@@ -328,7 +328,7 @@ def run(opts: argparse.Namespace) -> None:
     for name in ("read", "write", "step"):
         setattr(sim, name, clocked(name, getattr(sim, name)))
     for part in loop.participants:
-        for hook in ("update", "after_write", "while_stepping"):  # while_stepping runs inside step
+        for hook in ("update", "after_write"):  # `step` holds the while_stepping hooks (the bridge's snapshot on a GPU)
             if hasattr(part, hook):
                 setattr(part, hook, clocked(f"{type(part).__name__}.{hook}", getattr(part, hook)))
     collections: list[tuple[int, float, float]] = []  # (generation, wall time at its start, seconds)

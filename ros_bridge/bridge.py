@@ -71,7 +71,9 @@ def start_bridge(
       options: see BridgeOptions.
       manager: the controllers; their topics are served, and the manager is appended to
         the loop's participants if it is not there yet.
-      outputs: more per-world messages to publish (topics.Output), e.g. a sensor's.
+      outputs: more per-world messages to publish (topics.Output), e.g. a sensor's. Their
+        `read()` must return host arrays and not call the system: on a GPU the bridge reads
+        them while the device steps the period (BridgeHost.while_stepping).
 
     Raises:
       OptionError (batchsim.loop): a bad option, named.

@@ -203,7 +203,7 @@ class BridgeHost:
     # --- the loop thread ---
     def update(self, sim: BatchedSystem, time: float, period: float) -> None:
         """Requests, commands, timeouts, BAD_COMMAND; the controllers run after this."""
-        self._flush()
+        self._flush(write=False)  # a step that failed before while_stepping: read() has moved on since
         self.workers.supervise()
         good = np.zeros(self.nworld, dtype=bool)
         rejected = np.zeros(self.nworld, dtype=bool)
@@ -243,21 +243,23 @@ class BridgeHost:
         if self._published_time != time or self._force:
             if self._engine_channels and self._engine_due():
                 self._snapshot(time, force=self._force)
-            else:
-                self._deferred = (time, self._force)
+            else:  # decided now: what a worker asks for meanwhile never reads the engine beside the steps,
+                # and the status is this moment's (a fleet's shards write theirs while they step)
+                self._deferred = (time, self._force, sim.status.copy())
                 return
         self._period += 1
 
     def while_stepping(self, sim: BatchedSystem, time: float, period: float) -> None:
         """The period's snapshot, from host copies only, while the device steps (SimLoop)."""
-        self._flush()
+        self._flush(write=True)
 
-    def _flush(self) -> None:
-        """Write a snapshot after_write left for while_stepping: a driver that calls no
-        while_stepping (benchmarks/bridge_period.py) has it written at the next call here."""
+    def _flush(self, write: bool) -> None:
+        """The snapshot after_write left for while_stepping, if it is still pending: written
+        (`write`: before any read() since), or else dropped, the period counted either way."""
         if self._deferred is not None:
-            (time, force), self._deferred = self._deferred, None
-            self._snapshot(time, force=force)
+            (time, force, status), self._deferred = self._deferred, None
+            if write:
+                self._snapshot(time, force=force, status=status, engine=False)
             self._period += 1
 
     def _engine_due(self) -> bool:
@@ -269,7 +271,7 @@ class BridgeHost:
 
     def idle(self, sim: BatchedSystem, time: float) -> None:
         """While paused: requests; a reset or a finished step is published at once."""
-        self._flush()
+        self._flush(write=True)
         self._gate_since = None
         self.workers.supervise()
         if self._serve_requests(sim, None, None) and self._force:
@@ -289,7 +291,7 @@ class BridgeHost:
         wait timed out); False to be asked again, so stop() and pause() stay responsive."""
         if self._closed:
             return True
-        self._flush()
+        self._flush(write=True)
         self.workers.supervise()
         self._serve_requests(self.sim, None, None)
         now = wallclock.monotonic()
@@ -450,11 +452,15 @@ class BridgeHost:
         self.workers.wake(worker)
 
     # --- publishing ---
-    def _snapshot(self, time: float, force: bool, every_channel: bool = False) -> None:
+    def _snapshot(
+        self, time: float, force: bool, every_channel: bool = False, status: np.ndarray | None = None, engine: bool = True
+    ) -> None:
         """Copy what is due into the next snapshot (protocol/snapshot.py), wake the workers. `every_channel`:
-        every channel, wanted or not (the lockstep's wait: a subscriber that comes during it gets it at once)."""
+        every channel, wanted or not (the lockstep's wait: a subscriber that comes during it gets it at once);
+        `status`: the one to show (default the system's now); `engine` False: not the channels whose fill
+        reads the engine (beside the device's steps)."""
         flags = np.zeros(self.nworld, np.uint8)
-        status = self.sim.status.copy()
+        status = self.sim.status.copy() if status is None else status
         if self.bad.any():
             status[self.bad] |= _BAD
             flags[self.bad] |= FLAG_BAD
@@ -465,6 +471,9 @@ class BridgeHost:
             flags[(status & _FROZEN) != 0] |= FLAG_FROZEN
         k = self._period
         due = [every_channel or force or any(k % e == 0 for e in every) for every in self._channel_every]
+        if not engine:
+            for c in self._engine_channels:
+                due[c] = False
         self._n = write_snapshot(self.memory, self._n + 1, k, time, force, status, flags, self.fills, due, every_channel)
         self._published_time = time
         self._force = False

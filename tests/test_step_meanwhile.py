@@ -20,8 +20,10 @@ import batchsim
 from batchsim.controllers import default_controllers, load_controllers
 from batchsim.loop import SimLoop
 
-HAVE_WARP = importlib.util.find_spec("mujoco_warp") is not None or os.environ.get("BATCHSIM_FORCE_BACKENDS") == "1"
+FORCED = os.environ.get("BATCHSIM_FORCE_BACKENDS") == "1"
+HAVE_WARP = importlib.util.find_spec("mujoco_warp") is not None or FORCED
 NEEDS_WARP = pytest.mark.skipif(not HAVE_WARP, reason="mujoco_warp is not installed")
+NEEDS_JAX = pytest.mark.skipif(importlib.util.find_spec("jax") is None and not FORCED, reason="jax is not installed")
 BACKENDS = ["cpu", pytest.param("warp", marks=NEEDS_WARP)]
 # and a fleet of two shards (Warp's CPU device twice, in this process): its own step()
 WITH_SHARDS = [*BACKENDS, pytest.param("warp shards", marks=NEEDS_WARP)]
@@ -37,7 +39,7 @@ def active(backend: str, nworld: int = 3):
     return sim
 
 
-@pytest.mark.parametrize("backend", WITH_SHARDS)
+@pytest.mark.parametrize("backend", [*WITH_SHARDS, pytest.param("mjx", marks=NEEDS_JAX)])
 def test_meanwhile_runs_once_per_step_and_sees_the_periods_start(backend):
     sim = active(backend)
     sim.command[:] = 0.3
@@ -183,5 +185,100 @@ def test_a_recording_takes_each_periods_own_snapshot(backend):
             assert int(m["rec.meta"][slot][1]) == k  # (n, period, time, forced) of the snapshot taken
     finally:
         m["rec.on"][0] = 0
+        host.close()
+        sim.shutdown()
+
+
+@pytest.mark.skipif(not HAVE_WARP, reason="mujoco_warp is not installed")
+def test_warp_runs_meanwhile_before_it_waits_for_the_device(monkeypatch):
+    """On a device, after the launch and before the wait (on Warp's CPU device too, whose
+    graph replays at once, so the state alone cannot tell)."""
+    import warp as wp
+
+    sim = active("warp")
+    sim.step(5)  # the period's graph captured
+    events = []
+    synchronize = wp.synchronize_device
+    monkeypatch.setattr(wp, "synchronize_device", lambda *a, **k: (events.append("wait"), synchronize(*a, **k))[1])
+    sim.step(5, meanwhile=lambda: events.append("meanwhile"))
+    assert events[:2] == ["meanwhile", "wait"], events
+    sim.shutdown()
+
+
+class _Hook:
+    def __init__(self, fails: bool):
+        self.fails, self.ran = fails, 0
+
+    def update(self, sim, time, period):
+        pass
+
+    def while_stepping(self, sim, time, period):
+        self.ran += 1
+        if self.fails:
+            raise RuntimeError("a hook failed")
+
+
+def test_a_failing_while_stepping_hook_leaves_the_loops_clock_with_the_engine():
+    """The period ran, so the loop counts it; every other hook ran too; then the error."""
+    sim = active("cpu")
+    failing, other = _Hook(True), _Hook(False)
+    loop = SimLoop(sim, control_rate=100.0, rtf=0.0, participants=[failing, other])
+    with pytest.raises(RuntimeError, match="a hook failed"):
+        loop.run_period()
+    assert other.ran == 1 and loop.stats.periods == 1
+    sim.read()
+    np.testing.assert_allclose(sim.time, loop.sim_time)
+    sim.shutdown()
+
+
+class _LateDemand:
+    """After the bridge's after_write: a subscriber to tf arrives, and a shard writes a
+    world's status, both before the bridge's snapshot beside the steps."""
+
+    def __init__(self, memory, channel, at):
+        self.memory, self.channel, self.at, self.period = memory, channel, at, 0
+
+    def update(self, sim, time, period):
+        pass
+
+    def after_write(self, sim, time, period):
+        if self.period == self.at:
+            self.memory["demand"][:, self.channel] = 1
+            sim.status[0] |= np.uint8(batchsim.Status.BAD_COMMAND)  # as a shard's step would write it
+        self.period += 1
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_what_arrives_after_after_write_waits_for_the_next_snapshot(backend):
+    """The snapshot written beside the steps is the one after_write decided on, with the status
+    of that moment: a tf subscriber arriving in between gets tf from the next period on,
+    written before the steps (a fill that reads the engine beside them read post-step poses on
+    a GPU, and on a fleet of shard processes stopped the loop)."""
+    from ros_bridge.protocol.snapshot import Snapshot, read_snapshot
+
+    sim = active(backend)
+    loop, host, plan, (position, state_columns) = _bridge(sim)
+    if plan.tf is None:
+        host.close()
+        sim.shutdown()
+        pytest.skip("no tf in the plan: tf2_msgs is not installed")
+    spy = _Spy()
+    loop.participants += [_LateDemand(host.memory, plan.tf.channel, at=1), spy]
+    host.memory["demand"][:, position.channel] = 1
+    nchannel = len(plan.channels)
+    try:
+        sim.command[:] = 0.4
+        for k in range(3):
+            loop.run_period()
+            snap = read_snapshot(host.memory, nchannel, 0, sim.nworld, Snapshot())
+            assert snap.period == k
+            np.testing.assert_array_equal(snap.channels[position.channel][:, list(position.columns)], spy.state[k][:, state_columns])
+            if k == 1:  # decided without tf: none now, and the status of after_write's moment
+                assert plan.tf.channel not in snap.channels
+                assert not snap.status[0] & np.uint8(batchsim.Status.BAD_COMMAND)
+            if k == 2:
+                tf = np.asarray(snap.channels[plan.tf.channel]).reshape(sim.nworld, -1, 7)
+                np.testing.assert_allclose(tf[:, :, :3], spy.poses[k][0][:, list(plan.tf.bodies)], atol=1e-6)
+    finally:
         host.close()
         sim.shutdown()
