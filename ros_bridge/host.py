@@ -243,8 +243,7 @@ class BridgeHost:
         if self._published_time != time or self._force:
             if self._engine_channels and self._engine_due():
                 self._snapshot(time, force=self._force)
-            else:  # decided now: what a worker asks for meanwhile never reads the engine beside the steps,
-                # and the status is this moment's (a fleet's shards write theirs while they step)
+            else:  # decided now, with this moment's status (a fleet's shards write theirs while they step)
                 self._deferred = (time, self._force, sim.status.copy())
                 return
         self._period += 1
@@ -277,7 +276,10 @@ class BridgeHost:
         if self._serve_requests(sim, None, None) and self._force:
             for c in self.readers:  # the controllers' copies of the state, for what is published now
                 c.update(sim, time, 0.0)
-        if self._published_time != time:  # a step ran: publish it before the answer
+        if self._published_time != time:  # a step ran: publish what it left (read now) before the answer
+            sim.read(time, 0.0)
+            for c in self.readers:
+                c.update(sim, time, 0.0)
             self._snapshot(time, force=True)
         self.simulation.poll()
         if self._force or self._published_time != time:

@@ -598,3 +598,36 @@ def test_a_worker_with_many_worlds_gets_longer_to_start():
     assert start_timeout(16) == start_timeout(2048) == START_TIMEOUT == 120.0
     assert start_timeout(4096) == 4 * START_TIMEOUT
     assert start_timeout(8192) == 16 * START_TIMEOUT
+
+
+def test_a_step_run_while_paused_is_published_as_it_left_the_worlds():
+    """While paused, a step (the step services) ran read, the controllers, write and the
+    physics; the bridge then published it under the new sim time, but with what read() had
+    filled before the physics ran: the state of the period before."""
+    from ros_bridge.host import BridgeHost
+    from ros_bridge.protocol.snapshot import Snapshot, read_snapshot
+
+    sim = batchsim.make("arm", 2, "cpu")
+    sim.configure()
+    sim.activate()
+    loop = SimLoop(sim, control_rate=100.0, rtf=0.0)  # no controllers: the commands below move the arm
+    plan, fills, inputs = build_plan(sim, loop.control_rate, BridgeOptions(), None, 1)
+    host = BridgeHost(sim, loop, plan, fills, inputs, processes=False)
+    host.attach()
+    joint_states = next(o for o in plan.outputs if o.topic == "joint_states")
+    position = next(f for f in joint_states.fields if f.name == "position")
+    column = {name: i for i, name in enumerate(sim.spec.state_interfaces)}
+    host.memory["demand"][:, position.channel] = 1
+    try:
+        sim.command[:] = 1.5
+        loop.run_period()
+        loop.run_period()  # as a paused loop runs a step it was asked for
+        host.idle(sim, loop.sim_time)  # then idles, paused
+        snap = read_snapshot(host.memory, len(plan.channels), 0, sim.nworld, Snapshot())
+        assert snap.time == pytest.approx(loop.sim_time)
+        sim.read()
+        expected = sim.state[:, [column[f"{j}/position"] for j in joint_states.names]]
+        np.testing.assert_array_equal(snap.channels[position.channel][:, list(position.columns)], expected)
+    finally:
+        host.close()
+        sim.shutdown()
