@@ -132,14 +132,24 @@ def test_images_info_scans_and_clouds_arrive_under_each_namespace(rovers):
         assert np.abs(xyz[1, :, 2]).max() < 1e-4 and np.linalg.norm(xyz[1, :, :2], axis=1).min() > 0.2
 
 
+def assert_sim_periods(gaps: np.ndarray, period: float) -> None:
+    """Every gap a positive whole number of `period`s (to 1e-6 s), most of them exactly one."""
+    periods = np.round(gaps / period)
+    assert (periods >= 1).all(), gaps
+    np.testing.assert_allclose(gaps, periods * period, atol=1e-6)
+    assert (periods == 1).sum() > len(gaps) / 2, gaps
+
+
 def test_stamps_are_sim_time(rovers):
     for w in range(NWORLD):
         rovers.wait(lambda w=w: len(rovers.sinks["image", w].history) >= 4, 20, f"four images of world {w}")
         stamps = [sim_time(m.header.stamp) for m in rovers.sinks["image", w].history]
-        # one frame per camera period of sim time, whatever the wall clock did
-        np.testing.assert_allclose(np.diff(stamps), 1 / CAMERA_RATE, atol=1e-6)
+        # frames a whole number of camera periods of sim time apart, whatever the wall clock did.
+        # Mostly one period; a worker that stalls (seen: 0.3 s on the loaded 2-core CI machine)
+        # finds only the newest frame in its world's camera block, so the others were never sent
+        assert_sim_periods(np.diff(stamps), 1 / CAMERA_RATE)
         scans = [sim_time(m.header.stamp) for m in rovers.sinks["scan", w].history]
-        np.testing.assert_allclose(np.diff(scans), 0.1, atol=1e-6)  # the lidar's own update_rate
+        assert_sim_periods(np.diff(scans), 0.1)  # the lidar's own update_rate
         # never ahead of /clock, once the clock message of the same period has arrived too
         # (the image and the clock travel apart: the image may come first)
         assert stamps[-1] > 0
