@@ -19,20 +19,11 @@
 #   cd .gpu24 && WHEELS=.. bash benchmarks/gpu24.sh fleet
 # The figures, with the card named beside each, go to benchmarks/RESULTS.md; a figure from the
 # other card is compared only after its baseline ran again on this one.
-set -uo pipefail
-stage=${1:?stage}
-shift || true
-export PYTHONPATH=/root/site:$PWD PYTHONUNBUFFERED=1
-OUT=${OUT:-/tmp/out}
-W=${WHEELS:-.}
-mkdir -p "$OUT"
+source "$(dirname "$0")/gpu_stages.sh"  # $stage, OUT, W, warm; the stages copy1 and copy2
 # Warp's per-module lines and the container's SCHED_FIFO refusal say nothing about speed
 quiet() { grep -v "^Warp \|^Module \|SCHED_FIFO"; }
-warm() { test -d /root/site || { echo "COLD: the machine was given back; start again at copy1"; exit 3; }; }
 
 case $stage in
-copy1) mkdir -p /root/stage && cp "$W"/.whl1/* /root/stage/ && echo copied .whl1 ;;
-copy2) cp "$W"/.whl2/* /root/stage/ && echo copied .whl2 ;;
 install)
   {
     bash "$W"/.whl3/install.sh 2>&1 | tail -2

@@ -14,20 +14,12 @@
 # holding the staged .whl*/ folders (default: here); run from a clean export of a commit
 # (`git archive HEAD | tar -x -C .gpu27`, carried) so that others' edits in progress stay out:
 #   cd .gpu27 && WHEELS=.. bash benchmarks/gpu27.sh bench
-set -uo pipefail
-stage=${1:?stage}
-shift || true
-export PYTHONPATH=/root/site:$PWD PYTHONUNBUFFERED=1
-OUT=${OUT:-/tmp/out}
-W=${WHEELS:-.}
-mkdir -p "$OUT"
+source "$(dirname "$0")/gpu_stages.sh"  # $stage, OUT, W; the stages copy1 and copy2
 
 case $stage in
-copy1) mkdir -p /root/stage && cp "$W"/.whl1/* /root/stage/ && echo copied .whl1 ;;
-copy2) cp "$W"/.whl2/* /root/stage/ && echo copied .whl2 ;;
 install) bash "$W"/.whl3/install.sh ;;
 bench)
-  test -d /root/site || { echo COLD; exit 3; }
+  warm
   {
     set -x
     nvidia-smi --query-gpu=index,name,memory.total,driver_version --format=csv
@@ -69,7 +61,7 @@ PY
   } 2>&1 | tee "$OUT/bench.log"
   ;;
 fleet)
-  test -d /root/site || { echo COLD; exit 3; }
+  warm
   for worlds in "${@:-8192}"; do
     python3 benchmarks/ros_stack.py --backend warp --devices 0,1,2,3 --worlds "$worlds" --subscribers 16 \
       --goals none --seconds 10 --warmup 10 --thread-priority 0 2>&1 | tee -a "$OUT/fleet.log"
