@@ -101,7 +101,6 @@ class BridgeHost:
         self.fills = list(fills)
         self.inputs = list(inputs)
         self.processes = processes
-        self.command_timeout = command_timeout
         self.lockstep = plan.lockstep
         self.lockstep_timeout = lockstep_timeout
         self.namespaces = plan.namespaces
