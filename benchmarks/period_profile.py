@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import os
 import platform
 import pstats
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -156,6 +158,8 @@ def profile(opts: argparse.Namespace, buffers: tuple[int, int] | None) -> tuple[
         "mean (worst) ms: " + ", ".join(f"{k} {mean[k]:.3f} ({worst[k]:.2f})" for k in ("raw", "contract", "device", "floor") if k in mean)
         + f"; ratio of means contract/raw {mean['raw'] / mean['contract']:.3f}"
     )
+    if opts.backend == "warp":
+        probe_host(sim, u, opts.periods)
     profile = cProfile.Profile()
     profile.enable()
     for _ in range(opts.periods):
@@ -175,6 +179,40 @@ def profile(opts: argparse.Namespace, buffers: tuple[int, int] | None) -> tuple[
     sim.shutdown()
     dsim.shutdown()
     return None
+
+
+def probe_host(sim: batchsim.BatchedSystem, u: np.ndarray, periods: int) -> None:
+    """The host's share of a period, piece by piece: what write() does to the commands (a check
+    for NaN and out-of-range values, the narrowing to float32), timed on copies of the same
+    arrays inside real periods (so the caches are as write() finds them), and alternatives
+    that make one pass fewer: the sum of squares (one BLAS pass) for the check, np.copyto for
+    the narrowing. Only public arrays are touched; the period runs after each probe."""
+    c = sim.command
+    flat = c.reshape(-1)
+    scratch = np.empty(c.shape, np.float32)
+    probes: dict[str, Callable[[], object]] = {
+        "command[:] = u": lambda: np.copyto(c, u),
+        "min()": c.min,
+        "max()": c.max,
+        "dot(c, c)": lambda: np.dot(flat, flat),
+        "abs().max()": lambda: np.abs(c).max(),
+        "narrow: scratch[:] = c": lambda: scratch.__setitem__(slice(None), c),
+        "narrow: copyto": lambda: np.copyto(scratch, c, casting="same_kind"),
+        "write()": sim.write,
+        "step()": lambda: sim.step(NSTEP),
+        "read()": sim.read,
+    }
+    times: dict[str, list[float]] = {k: [] for k in probes}
+    for _ in range(periods):
+        for name, probe in probes.items():
+            t0 = time.perf_counter()
+            probe()
+            times[name].append(time.perf_counter() - t0)
+    print("host pieces inside real periods, median (worst) us: " + "; ".join(
+        f"{k} {1e6 * statistics.median(v):.0f} ({1e6 * max(v):.0f})" for k, v in times.items()
+    ))
+    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), "?")
+    print(f"# cpu {cpu}; numpy {np.__version__}; load {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":
