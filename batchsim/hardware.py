@@ -245,29 +245,37 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         if self._lifecycle is not S.ACTIVE:
             return ReturnType.OK
         command = self._command
-        ctrl = self._ctrl_host()
-        # MuJoCo itself zeroes ctrl beyond mjMAXVAL; reject it here, per world, with a status
-        # bit. Fast path: two reductions, no temporaries (a NaN makes both comparisons fail).
-        if command.size == 0 or (command.min() > -MAX_COMMAND and command.max() < MAX_COMMAND):
-            if self._actuation.trivial:
+        rejected = self._apply_commands() if self._actuation.trivial else None
+        if rejected is None:
+            ctrl = self._ctrl_host()
+            rows = None  # every world's row is good
+            # MuJoCo itself zeroes ctrl beyond mjMAXVAL; reject it here, per world, with a status
+            # bit. Fast path: two reductions, no temporaries (a NaN makes both comparisons fail).
+            if command.size and not (command.min() > -MAX_COMMAND and command.max() < MAX_COMMAND):
+                rejected = ~(np.abs(command) < MAX_COMMAND).all(axis=1)
+                rows = np.flatnonzero(~rejected)
+            if not self._actuation.trivial:
+                self._actuate(ctrl, rows)
+            elif rows is None:
                 ctrl[:, self._ctrl_cols] = command
             else:
-                self._actuate(ctrl, None)
-            if self.status.any():
-                self.status &= ~np.uint8(Status.BAD_COMMAND)
-        else:
-            good = (np.abs(command) < MAX_COMMAND).all(axis=1)
-            rows = np.flatnonzero(good)
-            if self._actuation.trivial:
                 ctrl[np.ix_(rows, self._ctrl_index)] = command[rows]
-            else:
-                self._actuate(ctrl, rows)
-            self.status[good] &= ~np.uint8(Status.BAD_COMMAND)
-            self.status[~good] |= np.uint8(Status.BAD_COMMAND)
-        self._upload_ctrl()
+            self._upload_ctrl()
+        if rejected is not None and rejected.any():
+            self.status[~rejected] &= ~np.uint8(Status.BAD_COMMAND)
+            self.status[rejected] |= np.uint8(Status.BAD_COMMAND)
+        elif self.status.any():
+            self.status &= ~np.uint8(Status.BAD_COMMAND)
         self._drive_base()  # the BaseVelocityPlugin's target, if any: held from the next step()
         self._apply_wrenches()  # the ExternalWrenchPlugin's xfrc_applied, if any wrench runs
         return ReturnType.OK
+
+    def _apply_commands(self) -> np.ndarray | None:
+        """write()'s engine hook for commands that are plain copies into actuators: check each
+        world's row of `command` (NaN, inf, beyond MAX_COMMAND), apply the good rows to ctrl on
+        the engine (parked worlds keep zero) and return the rejected rows, (nworld,) bool. None:
+        the engine has no such path, and write() checks and applies on the host."""
+        return None
 
     def _actuate(self, ctrl: np.ndarray, rows: np.ndarray | None) -> None:
         """write()'s hook for the non-trivial command path (batchsim.actuation): PIDs on motors,

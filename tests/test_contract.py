@@ -448,6 +448,28 @@ def test_nan_command_sets_bad_command_and_spares_the_others(arm):
     arm.reset()
 
 
+def test_write_takes_the_commands_as_they_are_then(arm):
+    """write() applies `command` as it is when called: edits after it wait for the next write(),
+    and a reset of some worlds leaves the others' written commands in place (warp's commands
+    go up whole and are checked on the device; the host's copy of ctrl lags until a reset or
+    a park needs it)."""
+    arm.reset()
+    j1 = arm.export_state_interfaces().index("joint1/position")
+    arm.command[:] = 0.25
+    arm.command[1] = 0.2
+    arm.write()
+    arm.command[:] = np.nan  # not written: never reaches the worlds
+    arm.reset(worlds=[0])  # after the write: worlds 1-3 keep theirs; world 0 holds its start
+    arm.step(200)
+    arm.read()
+    assert not np.any(arm.status)
+    assert abs(arm.state[1, j1] - 0.2) < 0.02
+    assert np.all(np.abs(arm.state[[2, 3], j1] - 0.25) < 0.02)
+    assert abs(arm.state[0, j1]) < 0.02
+    arm.command[:] = 0.0
+    arm.reset()
+
+
 @pytest.mark.parametrize("value", [np.inf, -np.inf, 1e11])
 def test_inf_and_huge_commands_are_rejected_too(arm, value):
     arm.reset()

@@ -36,8 +36,10 @@ class WarpHost:
         return wp.zeros(shape, dtype=dtype, device="cpu", pinned=self._cuda)  # type: ignore[attr-defined]
 
     def _follow_host_arrays(self) -> None:
-        # read() copies (a GPU) or gathers (Warp's CPU device) straight into the shared arrays
+        # read() copies (a GPU) or gathers (Warp's CPU device) straight into the shared arrays,
+        # and write() takes the commands straight from them
         self._state_wp = self._wrap(self._readings)  # type: ignore[attr-defined]
+        self._command_wp = self._wrap(self._command)  # type: ignore[attr-defined]
         if self._sensor_host.size:  # type: ignore[attr-defined]
             self._sensor_wp = self._wrap(self._sensor_host)  # type: ignore[attr-defined]
 

@@ -1,6 +1,6 @@
-"""The Warp kernels of a control period: the per-world check, ctrl narrowed to float32, the
-held base velocity, the read() gather, the float64 clock, and the row copies that resets and
-restores make.
+"""The Warp kernels of a control period: the per-world check, the commands checked and
+narrowed into ctrl, the held base velocity, the read() gather, the float64 clock, and the
+row copies that resets and restores make.
 
 Every array leads with `nworld` (one thread per world, or per world and column).
 """
@@ -70,6 +70,35 @@ def narrow_ctrl(
         ctrl[w, j] = wp.float32(0.0)
     else:
         ctrl[w, j] = host[w, j]
+
+
+@wp.kernel
+def apply_commands(
+    command: wp.array2d(dtype=wp.float64),
+    actuator: wp.array(dtype=wp.int32),
+    parked: wp.array(dtype=wp.int32),
+    limit: wp.float64,
+    ctrl_kept: wp.array2d(dtype=wp.float32),
+    ctrl: wp.array2d(dtype=wp.float32),
+    rejected: wp.array(dtype=wp.bool),
+):
+    """write()'s check and narrowing on the device, for commands that are plain copies into
+    actuators: a world whose row holds NaN, inf or a value beyond `limit` is rejected (as
+    hardware.write's host check rejects it) and keeps its ctrl; the others' values go, as
+    float32, into ctrl[w, actuator[j]] and into the kept copy of ctrl the host path uploads
+    from. Parked worlds keep their zero ctrl."""
+    w = wp.tid()
+    bad = int(0)  # noqa: UP018  (int(): a mutable Warp variable, not a constant)
+    for j in range(command.shape[1]):
+        if not (wp.abs(command[w, j]) < limit):
+            bad = 1
+    rejected[w] = bad != 0
+    if bad == 0:
+        for j in range(command.shape[1]):
+            x = wp.float32(command[w, j])
+            ctrl_kept[w, actuator[j]] = x
+            if parked[w] == 0:
+                ctrl[w, actuator[j]] = x
 
 
 @wp.kernel

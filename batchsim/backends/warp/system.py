@@ -107,11 +107,18 @@ class WarpSystem(
         # anyway (8192 x 21: 43 us against 84 for float64, and half the bytes up; period_profile.py)
         self._ctrl_wp = self._host_array((self.nworld, self.model.nu), wp.float32)
         self._flags_wp = self._host_array((self.nworld,), wp.int32)
+        # plain commands go up as they are, from pinned memory (warp/transfers.py); the rows the
+        # device's check rejected come back in `_rejected`
+        self._command_wp = self._host_array(self._command.shape, wp.float64)
+        self._command_wp.numpy()[:] = self._command
+        self._rejected_wp = self._host_array((self.nworld,), wp.bool)
         self._bind_readings(self._state_wp.numpy())
         self._bind_sensordata(self._sensor_wp.numpy())
         self.time = self._time_wp.numpy()
         self._ctrl = self._ctrl_wp.numpy()
         self._flags = self._flags_wp.numpy()
+        self._command = self._command_wp.numpy()
+        self._rejected = self._rejected_wp.numpy()
 
     @staticmethod
     def _resolve_device(option: Any) -> Any:
@@ -197,6 +204,8 @@ class WarpSystem(
                 self._time_dev = wp.zeros(n, dtype=wp.float64)
                 self._ctrl_dev = wp.zeros(self._ctrl.shape, dtype=wp.float32)
                 self._flags_dev = wp.zeros(n, dtype=wp.int32)
+                self._command_dev = wp.zeros(self._command.shape, dtype=wp.float64)
+                self._rejected_dev = wp.zeros(n, dtype=wp.bool)
             else:  # Warp's CPU device: the kernels read and write the host arrays themselves
                 self._state_dev, self._sensor_dev, self._time_dev = (
                     self._state_wp,
@@ -204,6 +213,9 @@ class WarpSystem(
                     self._time_wp,
                 )
                 self._ctrl_dev, self._flags_dev = self._ctrl_wp, self._flags_wp
+                self._command_dev, self._rejected_dev = self._command_wp, self._rejected_wp
+            self._actuator_dev = wp.array(self._ctrl_index.astype(np.int32), dtype=wp.int32)
+            self._ctrl_behind = False
             # the base velocity's target (batchsim.base_velocity): staged on the host, copied to the
             # device, rotated into the world at each period's start; NaN until write() stages one
             self._held_host = self._held_dev = self._held_world = None
@@ -233,11 +245,9 @@ class WarpSystem(
             "_failed_readings",
             "_held_dev",
             "_held_world",
+            "_actuator_dev",
         ):
             self.__dict__.pop(name, None)
-
-    def _ctrl_host(self) -> np.ndarray:
-        return self._ctrl
 
     def _stage_base_velocity(self, target: np.ndarray) -> None:
         np.copyto(self._held_host, target, casting="same_kind")

@@ -1,5 +1,13 @@
-"""A control period's transfers on MuJoCo Warp: write()'s upload of the commands and read()'s
+"""A control period's transfers on MuJoCo Warp: write()'s commands to the device and read()'s
 gather of the state into the host arrays.
+
+Commands that are plain copies into actuators (no PIDs, scaling, mimic joints or
+transmissions) go up as they are: `command` is pinned memory, copied to the device whole,
+where one kernel checks each world's row (NaN, inf, beyond MAX_COMMAND) and narrows the good
+rows into ctrl; the rejected rows come back, one flag a world, and write() waits for them.
+The host makes no pass over the commands: on an H200 host the two reductions of its check
+and the narrowing cost ~0.3 ms of a 15 ms period of 8192 humanoids. Other commands are
+turned into ctrl on the host (batchsim.actuation), which then goes up as float32.
 
 Each is a few Warp calls (a copy, a kernel launch; a kernel launch and three copies), and on
 an H100 host each call costs 30-90 us of Python (the arguments packed, the device scoped),
@@ -17,17 +25,52 @@ from typing import Any
 
 import warp as wp
 
-from batchsim.backends.warp.kernels import gather_state, narrow_ctrl
+from batchsim.backends.warp.kernels import apply_commands, gather_state, narrow_ctrl
+from batchsim.types import MAX_COMMAND
 
-WRITE, READ = "write", "read"  # their keys among the system's graphs
+WRITE, READ, COMMANDS = "write", "read", "commands"  # their keys among the system's graphs
 
 
 class WarpTransfers:
-    """Mixed into WarpSystem: `_upload_ctrl`, `_read`, `_gather_on_device`."""
+    """Mixed into WarpSystem: `_apply_commands`, `_ctrl_host`, `_upload_ctrl`, `_read`,
+    `_gather_on_device`."""
 
     _graphs: dict[Any, Any]
+    _ctrl_behind = False  # whether the host's ctrl lags the device's kept copy (after _apply_commands)
+
+    def _apply_commands(self) -> Any:
+        if not self._command.size:  # type: ignore[attr-defined]
+            return None
+        if not self._replay_captured(COMMANDS):
+            with wp.ScopedDevice(self.device):  # type: ignore[attr-defined]
+                self._replay(COMMANDS, self._command_kernels)
+        wp.synchronize_device(self.device)  # type: ignore[attr-defined]
+        self._ctrl_behind = self._cuda  # type: ignore[attr-defined]  # (the CPU device writes the host's)
+        return self._rejected
+
+    def _command_kernels(self) -> None:
+        if self._cuda:  # type: ignore[attr-defined]
+            wp.copy(self._command_dev, self._command_wp)  # type: ignore[attr-defined]
+        wp.launch(
+            apply_commands,
+            dim=self.nworld,  # type: ignore[attr-defined]
+            inputs=[self._command_dev, self._actuator_dev, self._parked_dev, float(MAX_COMMAND)],  # type: ignore[attr-defined]
+            outputs=[self._ctrl_dev, self._d.ctrl, self._rejected_dev],  # type: ignore[attr-defined]
+            device=self.device,  # type: ignore[attr-defined]
+        )
+        if self._cuda:  # type: ignore[attr-defined]
+            wp.copy(self._rejected_wp, self._rejected_dev)  # type: ignore[attr-defined]
+
+    def _ctrl_host(self) -> Any:
+        if self._ctrl_behind:  # the commands went up whole: bring the kept ctrl down (a reset's, a park's)
+            with wp.ScopedDevice(self.device):  # type: ignore[attr-defined]
+                wp.copy(self._ctrl_wp, self._ctrl_dev)  # type: ignore[attr-defined]
+                wp.synchronize_device(self.device)  # type: ignore[attr-defined]
+            self._ctrl_behind = False
+        return self._ctrl  # type: ignore[attr-defined]
 
     def _upload_ctrl(self) -> None:
+        self._ctrl_host()  # up to date first: all of it goes up
         if self._replay_captured(WRITE):
             return
         with wp.ScopedDevice(self.device):  # type: ignore[attr-defined]
