@@ -160,6 +160,30 @@ def steal_seconds() -> float:
         return 0.0
 
 
+class GcClock:
+    """The collector's time, as gc.callbacks report it: seconds so far, and the oldest generation
+    collected since `take()` (-1: none), so that a stray period can be told apart as a collection."""
+
+    def __init__(self) -> None:
+        self.seconds, self.oldest, self._start = 0.0, -1, 0.0
+        gc.callbacks.append(self)
+
+    def __call__(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._start = time.perf_counter()
+        else:
+            self.seconds += time.perf_counter() - self._start
+            self.oldest = max(self.oldest, int(info["generation"]))
+
+    def take(self) -> tuple[float, int]:
+        out = (self.seconds, self.oldest)
+        self.seconds, self.oldest = 0.0, -1
+        return out
+
+    def close(self) -> None:
+        gc.callbacks.remove(self)
+
+
 def measure(
     model: str,
     case: str,
@@ -185,12 +209,15 @@ def measure(
     gc.collect()
     gc.freeze()  # start-up's objects out of the collector, as the paced loop does (SimLoop)
     stolen = steal_seconds()
+    collector = GcClock()
+    collected = []
     wall = time.perf_counter()
     k = 0
     while k < least or time.perf_counter() - wall < seconds:
         handover = arrivals(k)
         t = k * period
         u0 = thread_usage()
+        collector.take()
         s = clock()
         if handover is not None:
             handover()
@@ -210,8 +237,10 @@ def measure(
             usage.append(thread_usage() - u0)
             control_cpu.append(c_cpu - u0[0])
             handover_t.append(h - s)
+            collected.append(collector.take())
         k += 1
     out_wall = time.perf_counter() - wall
+    collector.close()
     stolen = steal_seconds() - stolen
     grown = (getattr(sim, "nconmax", None), getattr(sim, "njmax", None))
     sim.shutdown()
@@ -222,6 +251,7 @@ def measure(
     out["usage"] = np.array(usage).reshape(-1, 4)  # per period: on-CPU s, involuntary switches, minor and major faults
     out["steal"] = np.array([stolen / out_wall / (os.cpu_count() or 1)])  # the hypervisor's share of a core, on average
     out["buffers"] = np.array([buffers, grown], dtype=object)  # (nconmax, njmax) before and after
+    out["gc"] = np.array(collected).reshape(-1, 2)  # per period: the collector's seconds, oldest generation (-1 none)
     return out
 
 
@@ -276,7 +306,9 @@ def main() -> None:
                     f"page faults (median period: on a core {np.median(r['usage'][:, 0]) * 1e3:.2f} ms, "
                     f"{np.median(r['usage'][:, 2]):.0f} minor faults; steal over the run {r['steal'][0]:.1%} of each core); "
                     f"periods over 2x the median "
-                    f"{int((whole > 2 * np.median(whole)).sum())}"
+                    f"{int((whole > 2 * np.median(whole)).sum())}; "
+                    f"the collector in it {r['gc'][i, 0] * 1e3:.2f} ms{gc_generation(r['gc'][i, 1])}, over the run "
+                    f"{int((r['gc'][:, 1] == 2).sum())} full collections, longest {r['gc'][:, 0].max() * 1e3:.2f} ms"
                     + (f"; warp buffers nconmax {c0} -> {c1}, njmax {j0} -> {j1}" if c0 is not None else ""),
                     flush=True,
                 )
@@ -286,6 +318,10 @@ def main() -> None:
             f"hand-over of 1024 10-point trajectories, median of 20: one set_trajectories call {one * 1e3:.2f} ms, "
             f"1024 set_trajectory calls {each * 1e3:.2f} ms"
         )
+
+
+def gc_generation(oldest: float) -> str:
+    return "" if oldest < 0 else f" (generation {int(oldest)})"
 
 
 def handover(nworld: int, clock: Callable[[], float] = time.perf_counter) -> tuple[float, float]:
