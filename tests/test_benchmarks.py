@@ -185,3 +185,28 @@ def test_controllers_benchmark_says_what_the_thread_did_in_each_period():
     cpu = r["usage"][:, 0]
     assert (cpu > 0).all() and (cpu <= r["physics"] + r["controllers"] + 2e-3).all()  # the thread's own seconds
     assert 0.0 <= r["steal"][0] < 1.0
+    # the collector's share of each period, and which generation it reached: a full collection is told
+    assert r["gc"].shape == (n, 2) and (r["gc"][:, 0] >= 0).all() and set(r["gc"][:, 1]) <= {-1, 0, 1, 2}
+
+
+def test_controllers_gc_clock_sees_a_full_collection():
+    controllers = benchmark("controllers")
+    clock = controllers.GcClock()
+    try:
+        clock.take()
+        import gc
+
+        gc.collect()
+        seconds, oldest = clock.take()
+        assert oldest == 2 and seconds > 0
+        assert clock.take() == (0.0, -1)
+    finally:
+        clock.close()
+
+
+def test_jitter_prints_its_one_line(capsys, monkeypatch):
+    jitter = benchmark("jitter")
+    monkeypatch.setattr(sys, "argv", ["jitter.py", "--seconds", "0.2", "--worlds", "64"])
+    jitter.main()
+    out = capsys.readouterr().out
+    assert re.search(r"repetitions of 64 x 6 spline rows: wall ms median [0-9.]+, p99 .* over 5x the median: \d+", out)
