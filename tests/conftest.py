@@ -8,7 +8,8 @@ backend is one class and one registry line (issue 22).
 XLA_FLAGS below; Warp's one CPU device, twice), so the suite runs unchanged on it.
 `warp-2proc` is the same with each device's share in a process of its own: set
 BATCHSIM_SHARD_PROCESSES=1 to run the suite on it too (a process fleet costs seconds to
-start on 2 cores, so CI runs tests/test_devices.py's process tests instead).
+start on 2 cores, so CI runs tests/test_devices.py's process tests instead). On a host with
+two GPUs, BATCHSIM_TEST_WARP_DEVICES=cuda:0,cuda:1 puts warp's two devices on them.
 
 A backend whose optional packages are missing is skipped, unless
 BATCHSIM_FORCE_BACKENDS=1 (CI sets it, so a broken install fails instead of skipping);
@@ -42,6 +43,8 @@ if os.environ.get("BATCHSIM_SHARD_PROCESSES") == "1":  # 5 minutes more on 2 cor
     BACKENDS["warp-2proc"] = "mujoco_warp"
 CONTRACT_BACKENDS = {**BACKENDS, "ref": "mujoco"}
 TWO_DEVICES = {"mjx": ["cpu:0", "cpu:1"], "warp": ["cpu", "cpu"]}
+if os.environ.get("BATCHSIM_TEST_WARP_DEVICES"):  # e.g. "cuda:0,cuda:1": warp-2dev/2proc on a GPU host's cards
+    TWO_DEVICES["warp"] = os.environ["BATCHSIM_TEST_WARP_DEVICES"].split(",")
 
 
 def _available(backend: str) -> bool:
