@@ -103,8 +103,8 @@ class WarpSystem(
         self._state_wp = self._host_array(self._readings.shape, wp.float64)
         self._sensor_wp = self._host_array(self._sensor_host.shape, wp.float64)
         self._time_wp = self._host_array(self.time.shape, wp.float64)
-        # ctrl is float32 on the device: write() narrows into it on the host, in the copy it makes
-        # anyway (8192 x 21: 43 us against 84 for float64, and half the bytes up; period_profile.py)
+        # the host's ctrl, float32 as on the device: what commands through PIDs, scaling, mimic
+        # joints or transmissions become on the host, and what resets and parks upload
         self._ctrl_wp = self._host_array((self.nworld, self.model.nu), wp.float32)
         self._flags_wp = self._host_array((self.nworld,), wp.int32)
         # plain commands go up as they are, from pinned memory (warp/transfers.py); the rows the
