@@ -234,6 +234,35 @@ def test_device_arrays_show_what_write_and_read_show(arm):
     arm.reset()
 
 
+def on_device(sim: batchsim.BatchedSystem, values: np.ndarray):
+    """`values` as an array on `sim`'s engine device, of the engine's own kind (write_device)."""
+    ctrl = sim.device_arrays()["ctrl"]
+    if isinstance(ctrl, np.ndarray):
+        return values
+    if type(ctrl).__module__.startswith("warp"):
+        import warp as wp
+
+        return wp.array(values, dtype=wp.float32, device=ctrl.device)
+    import jax
+
+    return jax.device_put(values, next(iter(ctrl.devices())))
+
+
+def test_a_reset_keeps_the_other_worlds_device_written_commands(one_device_backend):
+    """write_device() after write(), then a reset of one world: the others keep what
+    write_device() wrote (warp uploaded its host copy of ctrl, from the last write())."""
+    sim = active("arm", one_device_backend)
+    try:
+        sim.command[:] = 0.1
+        sim.write()
+        sim.write_device(on_device(sim, np.full(sim.command.shape, 0.25, np.float32)))
+        sim.reset(worlds=[0])
+        ctrl = host(sim.device_arrays()["ctrl"])[:, sim._ctrl_cols]
+        assert np.allclose(ctrl[1:], 0.25, atol=1e-6), ctrl
+    finally:
+        sim.shutdown()
+
+
 # ---------------------------------------------------------------- write / read gating
 
 

@@ -43,4 +43,5 @@ class MjxDeviceIO:
             raise ValueError(f"command must be float32 or float64, got {source.dtype}")
         parked = jax.device_put(self.frozen, self.device)
         self._d = self._d.replace(ctrl=self._device_jits()[1](self._d.ctrl, source, parked))
+        self._ctrl_behind = True  # the host's ctrl, which resets upload whole, is brought down when wanted
         self._packed = None
