@@ -55,7 +55,10 @@ class Browser:
             [DRIVER, f"--port={self.port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
         )
         args = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--window-size=1000,700"]
-        caps = {"capabilities": {"alwaysMatch": {"goog:chromeOptions": {"binary": CHROMIUM, "args": args}}}}
+        # a script waits up to 150 s (chromedriver's default: 30): on 2 busy cores, software WebGL has
+        # held the page's thread 30-100 s right after a world was picked, and the page then caught up
+        always = {"goog:chromeOptions": {"binary": CHROMIUM, "args": args}, "timeouts": {"script": 150_000}}
+        caps = {"capabilities": {"alwaysMatch": always}}
         deadline = time.monotonic() + 30
         while True:
             try:
@@ -71,7 +74,7 @@ class Browser:
         request = urllib.request.Request(f"http://127.0.0.1:{self.port}{path}", data=data, method=method)
         request.add_header("Content-Type", "application/json")
         try:
-            with urllib.request.urlopen(request, timeout=60) as reply:
+            with urllib.request.urlopen(request, timeout=180) as reply:
                 return json.loads(reply.read())["value"]
         except urllib.error.HTTPError as e:  # WebDriver's own message says what went wrong
             raise RuntimeError(f"{method} {path}: {e.code} {e.read().decode(errors='replace')[:500]}") from None
