@@ -55,8 +55,9 @@ class Browser:
             [DRIVER, f"--port={self.port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
         )
         args = ["--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--window-size=1000,700"]
-        # a script waits up to 150 s (chromedriver's default: 30): on 2 busy cores, software WebGL has
-        # held the page's thread 30-100 s right after a world was picked, and the page then caught up
+        # a script waits up to 150 s (chromedriver's default: 30): the page's thread was seen held for
+        # minutes right after a world was picked on a machine whose /dev/shm held thousands of stale
+        # Fast DDS segments from earlier runs (with them removed it took 18 s); headroom, not a cure
         always = {"goog:chromeOptions": {"binary": CHROMIUM, "args": args}, "timeouts": {"script": 150_000}}
         caps = {"capabilities": {"alwaysMatch": always}}
         deadline = time.monotonic() + 30
