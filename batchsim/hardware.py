@@ -48,7 +48,7 @@ from batchsim.external_wrench import Wrenching
 from batchsim.failures import FailureLog, ensure_log_dir
 from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState, SystemInterface
 from batchsim.model import RobotSpec, initial_command
-from batchsim.readings import Finish, actuator_columns, as_slice, base_columns
+from batchsim.readings import Finish, as_slice, layout
 from batchsim.sensing import Sensing
 from batchsim.sensors import SensorConfig, SensorSuite
 from batchsim.types import (
@@ -121,11 +121,11 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         ncommand = len(spec.commands)
         # commands -> ctrl beyond a plain copy: PIDs on motors, scaled grippers, mimic joints
         self._actuation = Actuation(spec, self.nworld)
-        # what read() gathers: the state interfaces, the floating base's pose and twist, and
-        # the joint positions/velocities the PIDs measure
-        self._columns = (
-            list(spec.state) + base_columns(spec) + actuator_columns(spec) + self._actuation.feedback_columns
-        )
+        # what read() gathers (batchsim.readings): the state interfaces, the floating base's pose
+        # and twist, the actuator states not among them, the joint positions/velocities the PIDs measure
+        feedback = self._actuation.feedback_columns
+        self._columns, self._actuator_columns = layout(spec, feedback)
+        self._nfeedback = len(feedback)
         self._bind_readings(np.zeros((self.nworld, len(self._columns))))
         self._command = np.zeros((self.nworld, ncommand))
         self.status = np.zeros(self.nworld, np.uint8)
@@ -166,21 +166,21 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
 
     @property
     def actuator_states(self) -> np.ndarray:
-        """(nworld, 3 * n) float64 view: position, velocity and effort blocks of the n
-        `spec.actuator_joints` with an address (mujoco_actuators_states), refreshed by read()."""
-        return self._actuator_states
+        """(nworld, 3 * n) float64: position, velocity and effort blocks of the n
+        `spec.actuator_joints` with an address (mujoco_actuators_states), as the last read()
+        left them, without sensor noise. A view where they are columns of their own, else a
+        copy (the usual case: a motor's joint reads them as its state interfaces)."""
+        return self._noise_free()[0][:, self._actuator_columns]
 
     def _bind_readings(self, readings: np.ndarray) -> None:
         """Make `readings` (nworld, len(_columns)) the array read() fills; `state`,
-        `base_state` and `actuator_states` are views of its columns."""
+        `base_state` and the PIDs' feedback are views of its columns."""
         nstate = len(self.spec.state)
         nbase = 13 if self.spec.floating_base is not None else 0
-        nact = nstate + nbase + len(actuator_columns(self.spec))
         self._readings = readings
         self.state = readings[:, :nstate]
         self.base_state = readings[:, nstate : nstate + nbase] if nbase else None
-        self._actuator_states = readings[:, nstate + nbase : nact]
-        self._feedback = readings[:, nact:]
+        self._feedback = readings[:, readings.shape[1] - self._nfeedback :]
 
     def _bind_sensordata(self, sensordata: np.ndarray) -> None:
         """Make `sensordata` (nworld, nsensordata) the array read() fills; `self.sensordata`

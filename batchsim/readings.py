@@ -5,7 +5,10 @@ One block per fleet, `BatchedSystem.readings` `(nworld, ncolumn)`, in this order
 - the state interfaces (`RobotSpec.state`);
 - the floating base's 7 qpos and 6 qvel entries (`base_columns`; none without a base);
 - mujoco_ros2_control's actuator states: position, velocity and effort of each joint on
-  `RobotSpec.actuator_joints` that has an address (`actuator_columns`);
+  `RobotSpec.actuator_joints` that has an address (`actuator_columns`), those not already
+  among the columns above (`layout`): a motor on a joint reads what the joint's own state
+  interfaces read, and read() moves each value once (on a GPU, 63 of a humanoid's 140
+  float64 columns a world came down twice);
 - the joint positions and velocities the PIDs measure (`Actuation.feedback_columns`).
 
 After each gather, `finish` negates the columns read negated and maps transmissions' joints.
@@ -39,6 +42,30 @@ def actuator_columns(spec: RobotSpec) -> list[StateColumn]:
         + [StateColumn(f"{n}/actuator_velocity", StateSource.QVEL, v) for n, _, v in found]
         + [StateColumn(f"{n}/actuator_effort", StateSource.QFRC_ACTUATOR, v) for n, _, v in found]
     )
+
+
+def layout(spec: RobotSpec, feedback: list[StateColumn]) -> tuple[list[StateColumn], slice | np.ndarray]:
+    """read()'s columns (state, base, the actuator states not read already, `feedback`), and
+    where `BatchedSystem.actuator_states`' columns are among them (a slice where it can be).
+
+    An actuator state is read already where an earlier column has its source, index and sign
+    and nothing changes that column after the gather: not a transmission's joint, whose state
+    interfaces are mapped to the joint side, where mujoco_ros2_control's actuator states stay.
+    """
+    mapped = {joint for t in spec.transmissions for joint in t.joints}
+    columns = list(spec.state) + base_columns(spec)
+    read: dict[tuple[StateSource, int, float], int] = {}
+    for k, c in enumerate(columns):
+        if c.name.rsplit("/", 1)[0] not in mapped:
+            read.setdefault((c.source, c.index, c.sign), k)
+    where = []
+    for c in actuator_columns(spec):
+        k = read.get((c.source, c.index, c.sign))
+        if k is None:
+            k = len(columns)
+            columns.append(c)
+        where.append(k)
+    return columns + list(feedback), as_slice(where)
 
 
 def actuator_state_index(spec: RobotSpec) -> np.ndarray:

@@ -714,6 +714,29 @@ def test_base_state_follows_the_free_joint_of_the_robot(backend):
     assert batchsim.make("arm", 1, backend).base_state is None  # a fixed-base robot has none
 
 
+def test_read_moves_each_value_once_and_actuator_states_still_read_them(backend):
+    """A motor's actuator states are its joint's own state interfaces: the readings block holds
+    them once (the state, the base, nothing twice; on a GPU every column comes down each
+    period), and actuator_states reads them from there, as the engine has them."""
+    sim = batchsim.make("humanoid", 2, backend)
+    sim.configure()
+    sim.activate()
+    nstate = len(sim.spec.state)
+    assert sim.readings.shape == (2, nstate + 13)  # 140 columns before: the actuator states again
+    sim.step(5)
+    sim.read()
+    names = sim.export_state_interfaces()
+    joints = [name for name, _, _ in sim.spec.actuator_joints]
+    expected = np.concatenate(
+        [sim.state[:, [names.index(f"{j}/{kind}") for j in joints]] for kind in ("position", "velocity", "effort")], axis=1
+    )
+    np.testing.assert_array_equal(sim.actuator_states, expected)
+    qpos = host(sim.device_arrays()["qpos"]).astype(np.float64)
+    adr = [q for _, q, _ in sim.spec.actuator_joints]
+    np.testing.assert_allclose(sim.actuator_states[:, : len(joints)], qpos[:, adr], atol=1e-6)
+    sim.shutdown()
+
+
 def test_reset_returns_to_the_initial_state_not_qpos0(backend):
     """A world starts in, and resets to, spec.initial (here a ros2_control initial_value)."""
     block = """<ros2_control name="arm" type="system"><joint name="joint2">
