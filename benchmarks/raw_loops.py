@@ -24,6 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # a source chec
 import batchsim  # noqa: E402
 
 NSTEP = 10  # physics steps a call (a control period's worth), on every side
+# whether the raw loop writes its commands every call (cpu: `ctrl[:] = u`) or sets them once (mjx,
+# warp: on the device before the loop): the contract's loop does the same user work beside it
+COPIES_EACH_CALL = {"cpu": True, "mjx": False, "warp": False}
 
 
 def raw_cpu(sim: batchsim.BatchedSystem, ctrl: np.ndarray) -> Callable[[], None]:

@@ -3,7 +3,9 @@
 For each backend and world count, in one process and interleaved in rounds so that both
 sides see the same machine state, it times:
 
-  contract: sim.command[:] = u; sim.write(); sim.step(NSTEP); sim.read()
+  contract: sim.write(); sim.step(NSTEP); sim.read(), with sim.command[:] = u before each
+            call where the raw loop copies its commands each call too (cpu), else once
+            (mjx, warp: raw sets ctrl once); write() checks and applies `command` every call
   raw:      the library itself doing the same physics, NSTEP steps per call, synchronized:
             cpu  mujoco.batch.Batch: ctrl[:] = u; batch.step(nstep=NSTEP)
             mjx  jax.jit(lax.scan over NSTEP of jax.vmap(mjx.step)), Data donated, float32
@@ -14,6 +16,8 @@ sides see the same machine state, it times:
             (mjw.get_state of mjSTATE_PHYSICS and the warmstart, qfrc_actuator, sensordata, a
             float64 clock), as batchsim does so that an overflowing period can be repeated:
             the cost of that copy, in the same terms
+  contract+copy (warp only): a second fleet whose loop also copies u into `command` each call,
+            as a loop whose commands change does: the user's own pass over the commands
   raw+keep+io (warp only): that, its graph also moving the bytes any loop that commands from
             the host moves: every world's commands up and its state down (the contract's
             float64 columns, pinned host memory), the floor under the contract's host path
@@ -53,7 +57,7 @@ import batchsim  # noqa: E402
 from batchsim.backends import WARP_MIN_WORLDS, resolve  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from raw_loops import NSTEP, RAW, raw_warp, unequal_buffers  # noqa: E402  (the raw libraries' loops)
+from raw_loops import COPIES_EACH_CALL, NSTEP, RAW, raw_warp, unequal_buffers  # noqa: E402  (the raw libraries' loops)
 
 # --around-threshold: world counts as multiples of WARP_MIN_WORLDS (128 .. 2048 at 512)
 THRESHOLD_FACTORS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 4.0)
@@ -157,12 +161,18 @@ def measure(
     ctrl = np.zeros((nworld, sim.model.nu))
     ctrl[:, [c.actuator_id for c in sim.spec.commands]] = command
 
-    def contract() -> None:
-        sim.command[:] = command
-        sim.write()
-        sim.step(NSTEP)
-        sim.read()
+    def loop(system: batchsim.BatchedSystem, copy: bool) -> Callable[[], None]:
+        def body() -> None:
+            if copy:
+                system.command[:] = command
+            system.write()
+            system.step(NSTEP)
+            system.read()
 
+        return body
+
+    sim.command[:] = command
+    contract = loop(sim, COPIES_EACH_CALL[backend])
     for _ in range(3):  # compile, capture, warm caches
         contract()
     compile_s = time.perf_counter() - t0
@@ -176,13 +186,25 @@ def measure(
         for body in extras:
             for _ in range(2):
                 body()
+        # the contract again on a fleet of its own (the same moment of the fall as the others)
+        copying = batchsim.make(model, nworld, backend, deterministic=deterministic, **sizing)
+        copying.configure()
+        copying.activate()
+        extras.append(loop(copying, True))
+        for _ in range(4):  # as many periods as `contract` has run when the timing starts
+            extras[-1]()
     c, r, per_round, ks = interleaved(contract, raw, nworld * NSTEP, seconds, rounds, extra=extras)
-    unequal = unequal_buffers(sim, built, [raw, *extras]) if backend == "warp" else None
+    unequal = None
+    if backend == "warp":
+        unequal = unequal_buffers(sim, built, [raw, *extras[:2]])
+        if unequal is None and (copying.nconmax, copying.njmax) != built:
+            unequal = unequal_buffers(copying, built, [])
     if unequal is not None and (buffers is None if again is None else again):
-        grown = (sim.nconmax, sim.njmax)
+        grown = (max(sim.nconmax, copying.nconmax), max(sim.njmax, copying.njmax))
         if grown == built:  # raw overflowed where the contract did not grow: give both room
             grown = (2 * built[0], 2 * built[1])
         sim.shutdown()
+        copying.shutdown()
         del raw, extras
         second = measure(model, backend, nworld, seconds, rounds, deterministic, buffers=grown, again=False)
         second["note"] = f"measured again from the start at nconmax {grown[0]}, njmax {grown[1]}: {unequal}; " + second["note"]
@@ -191,12 +213,14 @@ def measure(
     if unequal is not None:
         note += f"; NOT THE SAME PHYSICS: {unequal}"
     if ks:
-        k, kio = ks
+        k, kio, copied = ks
         note += f"; raw+keep {k:,.0f} steps/s: keeping the period's start costs {r / k - 1:+.1%} of a period"
         note += (
             f"; raw+keep+io {kio:,.0f} steps/s: with the bytes a host loop moves {r / kio - 1:+.1%}, "
             f"the contract at {c / kio:.3f} of that"
         )
+        note += f"; contract+copy {copied:,.0f} steps/s: {copied / r:.3f} of raw with the loop's own copy of the commands"
+        copying.shutdown()
     if sim.status.any():
         note += f"; {int((sim.status != 0).sum())} worlds frozen"
     if backend == "warp":
