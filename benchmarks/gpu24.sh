@@ -12,6 +12,7 @@
 #   carry [export]                   bash benchmarks/gpu24.sh fleet      # flat out at 1024 arms, twice; 4096 at 25 Hz
 #   carry [export]                   bash benchmarks/gpu24.sh contract   # warp against raw MuJoCo Warp, both tools
 #   carry [export]                   bash benchmarks/gpu24.sh loops      # the controllers' burst, the sensor loop
+#   carry [export]                   bash benchmarks/gpu24.sh cold       # 1024 rovers from an empty kernel cache, then warm
 #
 # Everything printed also goes to $OUT/<stage>.log. WHEELS: the folder holding the staged
 # .whl*/ folders (default: here). Run from a clean export of a commit, carried
@@ -70,6 +71,13 @@ loops)
     timeout 200 python3 benchmarks/sensors.py --backends warp --no-camera --no-lidar --loop 1024 --loop-size 64x64 \
       --loop-seconds 6 --json "$OUT/sensors.json"
   } 2>&1 | quiet | tee "$OUT/loops.log"
+  ;;
+cold)
+  warm
+  {
+    timeout 390 python3 benchmarks/cold_start.py --worlds 1024 --seconds 20 --domain 71
+    timeout 180 python3 benchmarks/cold_start.py --worlds 1024 --seconds 10 --domain 72 --keep-cache
+  } 2>&1 | quiet | tee "$OUT/cold.log"
   ;;
 *) echo "unknown stage $stage"; exit 2 ;;
 esac

@@ -210,3 +210,14 @@ def test_jitter_prints_its_one_line(capsys, monkeypatch):
     jitter.main()
     out = capsys.readouterr().out
     assert re.search(r"repetitions of 64 x 6 spline rows: wall ms median [0-9.]+, p99 .* over 5x the median: \d+", out)
+
+
+def test_cold_start_fails_loudly_when_its_subscribers_die(monkeypatch, capsys):
+    """benchmarks/cold_start.py: a subscriber that dies before batchsim starts is one line and
+    status 1, not a run that reports no images; no batchsim is started."""
+    cold = benchmark("cold_start")
+    dies = "import sys; sys.stderr.write('ImportError: rclpy\\n'); sys.exit(1)"
+    monkeypatch.setattr(cold, "subscriber_command", lambda domain, lo, hi: [sys.executable, "-c", dies])
+    assert cold.main(["--worlds", "2", "--subscribers", "1", "--keep-cache"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.fullmatch(r"cold_start\.py: subscriber 0 \(pid \d+\) exited with status 1: ImportError: rclpy", err[0]), err
