@@ -223,6 +223,59 @@ def _sensor_recording(nworld: int):
     return SensorRecording(plan, memory, channel, writer), memory, writer, stream
 
 
+def test_a_worker_publishes_each_new_sample_once_and_counts_the_ones_overwritten_before_it_looked():
+    """A camera's block holds each world's newest sample only: what a busy worker never got is
+    counted per world and topic, for /diagnostics (`missed front_camera/image_raw`), where a
+    subscriber listens; before, it was lost without a word."""
+    from ros_bridge.protocol.sensor_blocks import SensorBlock
+    from ros_bridge.sensor_topics import sensor_plan
+    from ros_bridge.worker.sensors import SensorPublishers
+
+    class Publisher:
+        def __init__(self):
+            self.sent = 0
+
+        def publish(self, payload) -> None:
+            self.sent += 1
+
+        def get_subscription_count(self) -> int:
+            return 1
+
+    class Node:
+        publishers: dict[str, Publisher] = {}
+
+        def create_publisher(self, msg_type, topic, qos):
+            return self.publishers.setdefault(topic, Publisher())
+
+    sim = batchsim.make("rover", 1, "cpu", sensors={"sensors": {"cameras": {"front_camera": {"width": 8, "height": 6}}}})
+    plan = sensor_plan(sim)
+    memory = {name: np.zeros(shape, dtype) for name, shape, dtype in plan.arrays(6)}
+    missed: list[tuple[str, list[int], list[int]]] = []
+    node = Node()
+    worker = SensorPublishers(node, QoSProfile(depth=1), memory, plan, 2, 6, [f"world_{w}" for w in range(2, 6)], True,
+                              lambda topic, rows, counts: missed.append((topic, rows.tolist(), counts.tolist())))  # fmt: skip
+    worker.refresh()  # every topic subscribed
+    block = SensorBlock(memory, "cam0", ("rgb", "depth"))
+    rgb = np.zeros((6, 6, 8, 3), np.uint8)
+    everyone = np.arange(6)
+    block.write(everyone, 0.05, {"rgb": (everyone, rgb)})
+    worker.publish()
+    image = node.publishers["/world_3/front_camera/image_raw"]
+    assert image.sent == 1 and not missed
+    block.write(everyone, 0.10, {"rgb": (everyone, rgb)})  # worlds 2-5: overwritten unread
+    block.write(everyone[3:], 0.15, {"rgb": (everyone[3:], rgb[3:])})  # worlds 3-5 again
+    block.write(everyone[3:], 0.20, {"rgb": (everyone[3:], rgb[3:])})  # ... and again
+    worker.publish()
+    assert image.sent == 2  # the newest only
+    counted = {topic: (rows, counts) for topic, rows, counts in missed}
+    assert counted["front_camera/image_raw"] == ([1, 2, 3], [2, 2, 2])  # this worker's rows: worlds 3-5, 2 each
+    assert counted["front_camera/camera_info"] == ([1, 2, 3], [2, 2, 2])  # it goes with each frame
+    assert "front_camera/depth/image_raw" not in counted  # no depth in these samples: none would have gone
+    assert "scan" not in counted  # the lidar wrote nothing
+    worker.publish()
+    assert len(missed) == len(counted) and image.sent == 2  # nothing new: nothing published or counted
+
+
 def test_the_recorder_takes_each_new_sample_once_and_counts_the_ones_overwritten_before_it_looked():
     from ros_bridge.protocol.sensor_blocks import SensorBlock
 

@@ -74,8 +74,14 @@ class SensorBlock:
         return rows, parts, time, data
 
 
-def missed(before: np.ndarray, after: np.ndarray) -> int:
-    """Samples a reader missed in one read, from its `seen` before and after (each write moves
-    a world's seq by 2; a world not read, or read from its first sample, misses none)."""
+def gaps(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Per world, the samples a reader missed in one read, from its `seen` before and after
+    (each write moves a world's seq by 2; a world not read, or read from its first sample,
+    misses none)."""
     gap = (after - before) // 2 - 1
-    return int(gap[(after != before) & (before >= 0)].clip(min=0).sum())
+    return np.where((after != before) & (before >= 0), gap, 0).clip(min=0)
+
+
+def missed(before: np.ndarray, after: np.ndarray) -> int:
+    """`gaps`, summed over the worlds."""
+    return int(gaps(before, after).sum())

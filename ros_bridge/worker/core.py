@@ -189,7 +189,7 @@ class Worker:
             self.tf = TfPublishers(node, plan.tf, self.namespaces, all_topics=plan.all_topics)
         if plan.sensors is not None:
             self.sensors = SensorPublishers(
-                node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, all_topics=plan.all_topics
+                node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, plan.all_topics, self.diagnostics.missed
             )
         create_loop_services(node, self.requests, self.namespaces, self.lo, fleet=self.index == 0)
         if plan.actions:  # the plan has them only where control_msgs is there

@@ -7,7 +7,8 @@ controllers' own rejections in the loop arrive through the `hrej` block. /diagno
 it is frozen or its commands timed out, its rejection counts, and the messages published per
 state topic (`published joint_states`: how many went out, counted where they are published,
 for benchmarks/fleet.py to set against what subscribers received) and those due but missed
-(`missed joint_states`: the worker read their snapshots too late); and one ERROR status per
+(`missed joint_states`: the worker read their snapshots too late; `missed <camera or lidar
+topic>`: samples overwritten in their block before the worker took them); and one ERROR status per
 other bridge worker that has stopped answering (the supervisor's `worker.hung`), naming
 the worlds nobody serves meanwhile.
 """
@@ -79,6 +80,14 @@ class Diagnostics:
                 if counts is None:
                     counts = counter[topic] = np.zeros(len(self.namespaces), dtype=np.int64)
                 counts[rows] += n
+
+    def missed(self, topic: str, rows: np.ndarray, counts: np.ndarray) -> None:
+        """Samples on `topic` that `rows` never got (a camera's or lidar's, overwritten in its
+        block before the worker looked), `counts` (n,) of them per row."""
+        total = self._missed.get(topic)
+        if total is None:
+            total = self._missed[topic] = np.zeros(len(self.namespaces), dtype=np.int64)
+        total[rows] += counts
 
     def _head(self, bits: int, flags: int) -> list[KeyValue]:
         """The key values a world's status starts with, made once per (bits, flags) and shared

@@ -14,7 +14,7 @@ stamped with the sim time of the sample.
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -23,7 +23,7 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2
 
 from ros_bridge.naming import topic_name
-from ros_bridge.protocol.sensor_blocks import PART_BITS
+from ros_bridge.protocol.sensor_blocks import PART_BITS, gaps
 from ros_bridge.sensor_topics import SensorPlan, SensorTopic, TopicKind
 from ros_bridge.worker.messages import stamp_of
 from ros_bridge.worker.sensor_messages import Framing, topic_framing
@@ -70,6 +70,8 @@ class SensorPublishers:
       lo, hi: this worker's worlds.
       namespaces: (hi - lo,) their namespaces.
       all_topics: create every publisher now, not when a subscriber appears.
+      count_missed: told (topic, rows, counts) of the samples subscribed rows never got: each
+        block holds a world's newest sample only (Diagnostics.missed).
 
     Attributes:
       published: messages published so far.
@@ -85,10 +87,12 @@ class SensorPublishers:
         hi: int,
         namespaces: Sequence[str],
         all_topics: bool = False,
+        count_missed: Callable[[str, np.ndarray, np.ndarray], None] | None = None,
     ):
         self.lo, self.hi, self.plan = lo, hi, plan
         self.want = memory["sensors.want"]
         self.published = 0
+        self.count_missed = count_missed
         n = hi - lo
         # per sensor (`sensors.want` column): its block, each row's last seq published, its
         # topics (SensorPlan.topics(): name, kind, want bit, block part) with their publishers
@@ -137,11 +141,17 @@ class SensorPublishers:
         a topic with a payload where its part was written, CameraInfo with its camera's frames."""
         lo, hi = self.lo, self.hi
         for s, (block, seen, topics) in enumerate(zip(self.blocks, self.seen, self.topics, strict=True)):
+            before = seen.copy()
             rows, parts, time, data = block.read(lo, hi, seen)
             if not rows.size:
                 continue
+            lost = gaps(before[rows], seen[rows])
             stamps = [stamp_of(float(x)) for x in time]
             for t, topic in topics:
+                if self.count_missed is not None and lost.any():  # those it would have published, as this one
+                    hit = (lost > 0) & topic.subscribed[rows] & ((parts & PART_BITS[t.part]) != 0 if t.part else True)
+                    if hit.any():
+                        self.count_missed(t.name, rows[hit], lost[hit])
                 values = data[t.part] if t.part is not None else None
                 if t.kind is TopicKind.CLOUD:
                     values = self.plan.source(s)[0].points(values)
