@@ -9,6 +9,7 @@ first status line. This prints, with the wall time since the process started:
   - each status line of the first --seconds after it (sim time, RTF);
   - when the subscribers got their first image and first scan;
   - images and scans received per wall second in the windows after the first status line;
+  - the camera and lidar samples the bridge's workers never got (`missed <topic>` in /diagnostics);
 
 and ends with one verdict line: whether the fleet ran from its first status line (sim time
 advancing in every status line, images and scans arriving within --first-within seconds of it).
@@ -33,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fleet import Batchsim  # noqa: E402
+from fleet import Batchsim, executor_until_stdin_closes  # noqa: E402
 from sensors import LOCALHOST, MODEL, Helper, HelperDied, check_batchsim, subscriber_command, subscriber_env  # noqa: E402
 
 STATUS = re.compile(r"sim\s+([0-9.]+) s \| rtf\s+([0-9.]+)")  # a status line (the start line names an rtf too)
@@ -50,7 +51,45 @@ def first(samples: list[list[tuple[float, tuple[int, ...]]]], kind: int) -> floa
     return min(times) if times else None
 
 
+def missed_listener(domain: int) -> None:
+    """Print `missed <worker> <topic>=<n> ...` for every /diagnostics message: its worlds'
+    `missed <camera or lidar topic>` counts summed (ros_bridge/worker/diagnostics.py), until
+    stdin closes."""
+    os.environ.update(LOCALHOST)
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.context import Context
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+
+    context = Context()
+    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    node = Node("cold_start_missed", context=context)
+
+    def callback(msg: DiagnosticArray) -> None:
+        sums: dict[str, int] = {}
+        for status in msg.status:
+            for kv in status.values:
+                if kv.key.startswith("missed ") and kv.key != "missed joint_states":
+                    sums[kv.key[7:]] = sums.get(kv.key[7:], 0) + int(kv.value)
+        if msg.status:
+            worker = msg.status[0].hardware_id
+            print(f"missed {worker} " + " ".join(f"{k}={v}" for k, v in sorted(sums.items())), flush=True)
+
+    node.create_subscription(DiagnosticArray, "/diagnostics", callback, 100)
+    executor, stop = executor_until_stdin_closes(context, node)
+    while not stop.is_set():
+        executor.spin_once(timeout_sec=0.1)
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--missed-listener"]:
+        missed_listener(int(argv[1]))
+        return 0
     try:
         return run(argv)
     except HelperDied as e:  # one line, naming who died and why, and a failed run
@@ -77,6 +116,16 @@ def run(argv: list[str] | None = None) -> int:
     edges = [round(i * n / k) for i in range(k + 1)]
     env = subscriber_env()
     helpers = [Helper(f"subscriber {i}", subscriber_command(args.domain, a, b), env) for i, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True))]
+    listener = Helper("the /diagnostics listener", [sys.executable, __file__, "--missed-listener", str(args.domain)], env)
+    missed: dict[str, dict[str, int]] = {}  # per worker (its first world): topic -> samples missed, its last report
+
+    def listen() -> None:
+        for line in listener.proc.stdout:
+            parts = line.split()
+            if parts[:1] == ["missed"] and len(parts) >= 2:
+                missed[parts[1]] = {k: int(v) for k, _, v in (p.partition("=") for p in parts[2:])}
+
+    threading.Thread(target=listen, daemon=True).start()
     samples: list[list[tuple[float, tuple[int, ...]]]] = [[] for _ in helpers]
 
     def read(i: int) -> None:
@@ -111,12 +160,12 @@ def run(argv: list[str] | None = None) -> int:
         finally:
             b.stop()
     finally:
-        for h in helpers:
+        for h in [*helpers, listener]:
             try:
                 h.proc.stdin.close()
             except OSError:
                 pass
-        for h in helpers:
+        for h in [*helpers, listener]:
             h.proc.wait(timeout=20)
         if cache is not None:
             cache.cleanup()
@@ -138,6 +187,12 @@ def run(argv: list[str] | None = None) -> int:
     for a, z in zip(edges_s[:-1], edges_s[1:], strict=False):
         got = (total(running + z) - total(running + a)) / (z - a)
         print(f"  {a:4.1f}-{z:4.1f} s after it: {got[0]:9,.0f} images/s, {got[1]:9,.0f} depth images/s, {got[2]:9,.0f} scans/s received")
+    lost: dict[str, int] = {}
+    for counts in missed.values():
+        for topic, n in counts.items():
+            lost[topic] = lost.get(topic, 0) + n
+    print(f"missed at the workers by the end (/diagnostics, {len(missed)} workers heard): "
+          + (", ".join(f"{topic} {n:,}" for topic, n in sorted(lost.items())) or "none"))  # fmt: skip
     late = [name for name, at in (("image", image), ("scan", scan)) if at is None or at - running > args.first_within]
     ok = not still and not late and not slow
     print(("RAN FROM ITS FIRST STATUS LINE" if ok else "DID NOT RUN FROM ITS FIRST STATUS LINE")
