@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fleet import Batchsim, executor_until_stdin_closes  # noqa: E402
+from fleet import Batchsim, listen_to_diagnostics  # noqa: E402
 from sensors import LOCALHOST, MODEL, Helper, HelperDied, check_batchsim, subscriber_command, subscriber_env  # noqa: E402
 
 STATUS = re.compile(r"sim\s+([0-9.]+) s \| rtf\s+([0-9.]+)")  # a status line (the start line names an rtf too)
@@ -55,18 +55,8 @@ def missed_listener(domain: int) -> None:
     """Print `missed <worker> <topic>=<n> ...` for every /diagnostics message: its worlds'
     `missed <camera or lidar topic>` counts summed (ros_bridge/worker/diagnostics.py), until
     stdin closes."""
-    os.environ.update(LOCALHOST)
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.context import Context
-    from rclpy.node import Node
-    from rclpy.signals import SignalHandlerOptions
 
-    context = Context()
-    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
-    node = Node("cold_start_missed", context=context)
-
-    def callback(msg: DiagnosticArray) -> None:
+    def callback(msg) -> None:
         sums: dict[str, int] = {}
         for status in msg.status:
             for kv in status.values:
@@ -76,13 +66,7 @@ def missed_listener(domain: int) -> None:
             worker = msg.status[0].hardware_id
             print(f"missed {worker} " + " ".join(f"{k}={v}" for k, v in sorted(sums.items())), flush=True)
 
-    node.create_subscription(DiagnosticArray, "/diagnostics", callback, 100)
-    executor, stop = executor_until_stdin_closes(context, node)
-    while not stop.is_set():
-        executor.spin_once(timeout_sec=0.1)
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown(context=context)
+    listen_to_diagnostics(domain, "cold_start_missed", callback)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -40,7 +40,9 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
@@ -97,10 +99,10 @@ def subscriber(domain: int, lo: int, hi: int, template: str) -> None:
     rclpy.try_shutdown(context=context)
 
 
-def published_listener(domain: int) -> None:
-    """Print `published <wall> <worker> <total>` for every /diagnostics message: the sum of its
-    worlds' `published joint_states` (a worker publishes its own worlds' DiagnosticArray; the
-    first world's namespace names it), until stdin closes."""
+def listen_to_diagnostics(domain: int, node_name: str, callback: Callable[[Any], None]) -> None:
+    """In a child process: `callback(msg)` for every /diagnostics message (a DiagnosticArray:
+    a worker publishes its own worlds' statuses, the first world's namespace naming it),
+    until the parent closes this process's stdin."""
     os.environ.update(LOCALHOST)
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -110,9 +112,21 @@ def published_listener(domain: int) -> None:
 
     context = Context()
     rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
-    node = Node("fleet_benchmark_published", context=context)
+    node = Node(node_name, context=context)
+    node.create_subscription(DiagnosticArray, "/diagnostics", callback, 100)
+    executor, stop = executor_until_stdin_closes(context, node)
+    while not stop.is_set():
+        executor.spin_once(timeout_sec=0.05)
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
 
-    def callback(msg: DiagnosticArray) -> None:
+
+def published_listener(domain: int) -> None:
+    """Print `published <wall> <worker> <total> <missed>` for every /diagnostics message: the sum
+    of its worlds' `published joint_states` and `missed joint_states`, until stdin closes."""
+
+    def callback(msg: Any) -> None:
         now = time.time()
         worker, total, missed = None, 0, 0
         for status in msg.status:
@@ -125,13 +139,7 @@ def published_listener(domain: int) -> None:
         if worker is not None:
             print(f"published {now:.3f} {worker} {total} {missed}", flush=True)
 
-    node.create_subscription(DiagnosticArray, "/diagnostics", callback, 100)
-    executor, stop = executor_until_stdin_closes(context, node)
-    while not stop.is_set():
-        executor.spin_once(timeout_sec=0.05)
-    executor.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown(context=context)
+    listen_to_diagnostics(domain, "fleet_benchmark_published", callback)
 
 
 def executor_until_stdin_closes(context, node):
