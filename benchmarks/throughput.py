@@ -16,11 +16,11 @@ sides see the same machine state, it times:
             (mjw.get_state of mjSTATE_PHYSICS and the warmstart, qfrc_actuator, sensordata, a
             float64 clock), as batchsim does so that an overflowing period can be repeated:
             the cost of that copy, in the same terms
-  contract+copy (warp only): a second fleet whose loop also copies u into `command` each call,
-            as a loop whose commands change does: the user's own pass over the commands
   raw+keep+io (warp only): that, its graph also moving the bytes any loop that commands from
             the host moves: every world's commands up and its state down (the contract's
             float64 columns, pinned host memory), the floor under the contract's host path
+  contract+copy (warp only): a second fleet whose loop also copies u into `command` each call,
+            as a loop whose commands change does: the user's own pass over the commands
 
 Both sides start from the same state, warm up for the same number of periods and make the
 same number of calls per round, so they simulate the same stretch of time. It reports
@@ -195,10 +195,8 @@ def measure(
             extras[-1]()
     c, r, per_round, ks = interleaved(contract, raw, nworld * NSTEP, seconds, rounds, extra=extras)
     unequal = None
-    if backend == "warp":
-        unequal = unequal_buffers(sim, built, [raw, *extras[:2]])
-        if unequal is None and (copying.nconmax, copying.njmax) != built:
-            unequal = unequal_buffers(copying, built, [])
+    if backend == "warp":  # the raw loops (extras[:2]) overflowed, or either contract fleet grew
+        unequal = unequal_buffers(sim, built, [raw, *extras[:2]]) or unequal_buffers(copying, built, [])
     if unequal is not None and (buffers is None if again is None else again):
         grown = (max(sim.nconmax, copying.nconmax), max(sim.njmax, copying.njmax))
         if grown == built:  # raw overflowed where the contract did not grow: give both room

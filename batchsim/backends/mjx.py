@@ -268,7 +268,7 @@ class MjxSystem(MjxFields, MjxDeviceIO, DeviceSystem):
         self._fields: dict[str, jax.Array] = {}  # the varied model fields, (nworld, *shape) each
         self._d = jax.tree.map(lambda x: jnp.repeat(x[None], self.nworld, axis=0), self._d0)
         self._ctrl = np.zeros((self.nworld, m.nu))
-        self._ctrl_behind = False
+        self._ctrl_behind = False  # whether write_device() changed ctrl on the device since the host's was set
         self._ctrl32 = np.zeros((self.nworld, m.nu), np.float32)
         self._ctrl_on_device = True  # whether self._d.ctrl holds self._ctrl32
         self._clock = np.full(self.nworld, self.spec.initial.time)  # float64: the worlds' time
@@ -281,8 +281,6 @@ class MjxSystem(MjxFields, MjxDeviceIO, DeviceSystem):
 
     def _close(self) -> None:
         del self._d, self._d0, self._programs, self._fields
-
-    _ctrl_behind = False  # whether write_device() changed ctrl on the device since the host's was set
 
     def _ctrl_host(self) -> np.ndarray:
         if self._ctrl_behind:  # a reset or a write() after write_device(): start from the device's ctrl

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import threading
 import time as wallclock
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -74,20 +75,21 @@ class Diagnostics:
     def published(self, topic: str, rows: list[int], missed: int = 0) -> None:
         """One message on `topic` went out to each of `rows` (the worker's publishing thread),
         after `missed` periods it was due in and could not be published (its snapshots gone)."""
-        for counter, n in ((self._published, 1), (self._missed, missed)):
-            if n:
-                counts = counter.get(topic)
-                if counts is None:
-                    counts = counter[topic] = np.zeros(len(self.namespaces), dtype=np.int64)
-                counts[rows] += n
+        self._add(self._published, topic, rows, 1)
+        if missed:
+            self._add(self._missed, topic, rows, missed)
 
     def missed(self, topic: str, rows: np.ndarray, counts: np.ndarray) -> None:
         """Samples on `topic` that `rows` never got (a camera's or lidar's, overwritten in its
         block before the worker looked), `counts` (n,) of them per row."""
-        total = self._missed.get(topic)
-        if total is None:
-            total = self._missed[topic] = np.zeros(len(self.namespaces), dtype=np.int64)
-        total[rows] += counts
+        self._add(self._missed, topic, rows, counts)
+
+    def _add(self, counter: dict[str, np.ndarray], topic: str, rows: Any, n: Any) -> None:
+        """counter[topic][rows] += n, the per-world counts made on first use."""
+        counts = counter.get(topic)
+        if counts is None:
+            counts = counter[topic] = np.zeros(len(self.namespaces), dtype=np.int64)
+        counts[rows] += n
 
     def _head(self, bits: int, flags: int) -> list[KeyValue]:
         """The key values a world's status starts with, made once per (bits, flags) and shared
