@@ -4,9 +4,15 @@ Every control period runs, in one process, on the cpu backend (or `--backend war
 GPU host), as the loop runs it:
 
   hand-over:    what arrived in this period, one call per controller, as a bridge delivers it
-                (`set_trajectories(batch)`, `set_cmd_vel_batch`, `set_commands_batch`)
+                (`set_cmd_vel_batch`, `set_commands_batch`)
   controllers:  manager.update(sim, t, period)           (the model's default YAML)
-  physics:      sim.write(); sim.step(substeps); sim.read()
+  physics:      sim.write(); sim.step(substeps, meanwhile=...); sim.read()
+
+Trajectories (`set_trajectories(batch)`: validation and queueing) are handed over as the bridge
+hands them (ros_bridge/trajectory_inputs.py): in step()'s `meanwhile`, while the device steps
+(on the cpu backend, just before the steps), and they start at the next period's update. So
+their cost counts in the physics' column only where it outlasts the device's steps, and the
+trajectory hand-over's own time is reported apart.
 
 The controllers' share of a period is hand-over + update, timed together; the physics is
 timed apart. Both, and the whole period (their sum, what a control period's deadline
@@ -204,7 +210,7 @@ def measure(
     arrivals = feeder(model, case, manager, nworld, period)
     warmup = round(WARMUP / period)
     least = warmup + 3 * round(max(RESEND, LONG_RESEND if case == "long" else 0) / period)
-    physics_t, control_t, arrived, usage, control_cpu, handover_t = [], [], [], [], [], []
+    physics_t, control_t, arrived, usage, control_cpu, handover_t, beside_t = [], [], [], [], [], [], []
     buffers = (getattr(sim, "nconmax", None), getattr(sim, "njmax", None))  # warp's, to see them grow
     gc.collect()
     gc.freeze()  # start-up's objects out of the collector, as the paced loop does (SimLoop)
@@ -215,11 +221,12 @@ def measure(
     k = 0
     while k < least or time.perf_counter() - wall < seconds:
         handover = arrivals(k)
+        beside = handover if model == "arm" else None  # trajectories: while the device steps, as the bridge
         t = k * period
         u0 = thread_usage()
         collector.take()
         s = clock()
-        if handover is not None:
+        if handover is not None and beside is None:
             handover()
         h = clock()
         manager.update(sim, t, period)
@@ -227,7 +234,17 @@ def measure(
         c_cpu = time.thread_time()
         p = time.perf_counter()
         sim.write()
-        sim.step(substeps)
+        took = [0.0]
+        if beside is not None:
+
+            def meanwhile(beside: Callable[[], None] = beside, took: list[float] = took) -> None:
+                b = time.perf_counter()
+                beside()
+                took[0] = time.perf_counter() - b
+
+            sim.step(substeps, meanwhile=meanwhile)
+        else:
+            sim.step(substeps)
         sim.read()
         e = time.perf_counter()
         if k >= warmup:
@@ -237,6 +254,7 @@ def measure(
             usage.append(thread_usage() - u0)
             control_cpu.append(c_cpu - u0[0])
             handover_t.append(h - s)
+            beside_t.append(took[0])
             collected.append(collector.take())
         k += 1
     out_wall = time.perf_counter() - wall
@@ -247,6 +265,7 @@ def measure(
     gc.unfreeze()
     out = {"physics": np.array(physics_t), "controllers": np.array(control_t), "arrived": np.array(arrived)}
     out["handover"] = np.array(handover_t)  # the controllers' time: hand-over, then the update
+    out["beside"] = np.array(beside_t)  # the trajectories' hand-over, in the physics' time (while the device steps)
     out["control_cpu"] = np.array(control_cpu)  # the controllers' part of it on a core (thread clock)
     out["usage"] = np.array(usage).reshape(-1, 4)  # per period: on-CPU s, involuntary switches, minor and major faults
     out["steal"] = np.array([stolen / out_wall / (os.cpu_count() or 1)])  # the hypervisor's share of a core, on average
@@ -301,7 +320,10 @@ def main() -> None:
                 print(
                     f"#   worst period: {i} of {len(whole)}, physics {ph[i]:.2f} ms, controllers {ct[i]:.2f} ms "
                     f"(hand-over {r['handover'][i] * 1e3:.2f}, update {ct[i] - r['handover'][i] * 1e3:.2f}), "
-                    f"{'messages arrived' if r['arrived'][i] else 'no messages'}; the loop's thread in it: on a core "
+                    f"{'messages arrived' if r['arrived'][i] else 'no messages'}"
+                    + (f" (trajectories handed over beside its steps {r['beside'][i] * 1e3:.2f} ms)" if r["beside"][i] else "")
+                    + (", trajectories started" if model == "arm" and i and r["arrived"][i - 1] else "")
+                    + "; the loop's thread in it: on a core "
                     f"{cpu * 1e3:.2f} ms (the controllers' part {r['control_cpu'][i] * 1e3:.2f}), {switches:.0f} involuntary switches, {minor:.0f} minor and {major:.0f} major "
                     f"page faults (median period: on a core {np.median(r['usage'][:, 0]) * 1e3:.2f} ms, "
                     f"{np.median(r['usage'][:, 2]):.0f} minor faults; steal over the run {r['steal'][0]:.1%} of each core); "
@@ -312,6 +334,16 @@ def main() -> None:
                     + (f"; warp buffers nconmax {c0} -> {c1}, njmax {j0} -> {j1}" if c0 is not None else ""),
                     flush=True,
                 )
+                if model == "arm" and r["arrived"].any():
+                    starts = np.flatnonzero(r["arrived"][:-1]) + 1  # the periods whose update starts them
+                    b = r["beside"][r["arrived"]] * 1e3
+                    print(
+                        f"#   trajectories: handed over beside the steps in {len(b)} periods, median {np.median(b):.2f} ms, "
+                        f"worst {b.max():.2f}; the {len(starts)} periods that start them: controllers median "
+                        f"{np.median(ct[starts]):.2f}, worst {ct[starts].max():.2f} ms; whole period median "
+                        f"{np.median(whole[starts]):.2f}, worst {whole[starts].max():.2f} ms",
+                        flush=True,
+                    )
     if not args.no_handover:
         one, each = handover(1024, clock)
         print(

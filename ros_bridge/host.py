@@ -46,7 +46,6 @@ from ros_bridge.plan import (
 from ros_bridge.protocol.commands import RejectionWriter, SlotReader
 from ros_bridge.protocol.requests import (
     Kind,
-    concatenate,
     decode_document,
     decode_reset,
     decode_ticket,
@@ -58,6 +57,7 @@ from ros_bridge.simulation import SimulationRequests
 from ros_bridge.supervisor import Supervisor
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.timeouts import CommandTimeouts
+from ros_bridge.trajectory_inputs import TrajectoryInputs
 
 IDLE_TICK = 0.02  # s between two in-process worker ticks while paused
 _BAD = np.uint8(Status.BAD_COMMAND)
@@ -115,12 +115,9 @@ class BridgeHost:
         self._input_readers = [
             SlotReader(m, spec.slots) if spec.kind is not MessageKind.JOINT_TRAJECTORY else None for spec in plan.inputs
         ]
-        # trajectory inputs: arrival counters the workers move when a batch is in the ring
-        self._traj_counters = {
-            i: m[f"{spec.slots}.seq"] for i, spec in enumerate(plan.inputs) if spec.kind is MessageKind.JOINT_TRAJECTORY
-        }
-        self._traj_seen = {i: c.copy() for i, c in self._traj_counters.items()}  # at the last period start
-        self._traj_taken = {i: c.copy() for i, c in self._traj_counters.items()}  # as far as the ring was read
+        # trajectory inputs: handed to their controllers while the device steps (ros_bridge/trajectory_inputs.py)
+        kinds, slots = [spec.kind for spec in plan.inputs], [spec.slots for spec in plan.inputs]
+        self.trajectories = TrajectoryInputs(m, kinds, slots, self.inputs, self._refused, n)
         self.rejections = RejectionWriter(m, "hrej")
         self.params = ParamWriter.start(m, plan, sim)  # each world's draw, for /diagnostics; again after resets
         self._worker_rejections = m["rej.count"]
@@ -206,7 +203,8 @@ class BridgeHost:
         self.workers.supervise()
         good = np.zeros(self.nworld, dtype=bool)
         rejected = np.zeros(self.nworld, dtype=bool)
-        self._serve_requests(sim, good, rejected)
+        self._serve_requests(sim, good, rejected, later=not self.lockstep)
+        self.trajectories.verdicts(good, rejected)  # of the trajectories handed over beside the last steps
         self.simulation.poll()
 
         new, values = self.commands.take()
@@ -227,8 +225,7 @@ class BridgeHost:
         counts = self._worker_rejections.copy()
         rejected |= counts != self._worker_rejections_seen
         self._worker_rejections_seen = counts
-        for i, taken in self._traj_taken.items():  # this period's trajectories, for the next lockstep wait
-            self._traj_seen[i] = taken.copy()
+        self.trajectories.period_starts()
         self.timeouts.check(sim, time)
         # a rejection sets BAD_COMMAND until the world's next good command; when controllers
         # hold every interface, every period applies theirs
@@ -248,8 +245,10 @@ class BridgeHost:
         self._period += 1
 
     def while_stepping(self, sim: BatchedSystem, time: float, period: float) -> None:
-        """The period's snapshot, from host copies only, while the device steps (SimLoop)."""
+        """The period's snapshot, from host copies only, then the trajectories its update took
+        to their controllers, while the device steps (SimLoop)."""
         self._flush(write=True)
+        self.trajectories.hand_over(beside_steps=True)
 
     def _flush(self, write: bool) -> None:
         """The snapshot after_write left for while_stepping, if it is still pending: written
@@ -338,17 +337,19 @@ class BridgeHost:
             if reader is not None:
                 reader.drop(worlds)
         sel = slice(None) if worlds is None else worlds
-        for i, counter in self._traj_counters.items():
-            self._traj_seen[i][sel] = counter[sel]
-            self._traj_taken[i][sel] = counter[sel]
+        self.trajectories.forget(sel)
         self.timeouts.forget(sel)
         self.bad[sel] = False
         self._force = True
         self.params.refresh(sim)  # worlds drawn anew (a variation that redraws): their /diagnostics lines
 
     # --- requests through the rings ---
-    def _serve_requests(self, sim: BatchedSystem, good: np.ndarray | None, rejected: np.ndarray | None) -> bool:
-        """Carry out what the workers' rings hold; True if there was anything."""
+    def _serve_requests(
+        self, sim: BatchedSystem, good: np.ndarray | None, rejected: np.ndarray | None, later: bool = False
+    ) -> bool:
+        """Carry out what the workers' rings hold; True if there was anything. Trajectories go to
+        their controllers now, or `later`: while the device steps."""
+        self.trajectories.hand_over(good, rejected)  # what an earlier period left waiting (its steps failed), first
         anything = False
         resets: list[tuple[int, int]] = []
         reset_all = False
@@ -395,22 +396,7 @@ class BridgeHost:
             self.loop.reset(reset_rows)  # every participant hears of it (on_reset), this one too
             for j, ticket in resets:
                 self._done(j, ticket, self.loop.sim_time, ok=True)
-        for index, batches in trajectories.items():
-            batch = concatenate(batches)
-            self._traj_taken[index] = self._traj_counters[index].copy()  # read after the ring: never ahead of it
-            if resets:  # a trajectory that arrived with a reset does not survive it
-                keep = np.zeros(len(batch), bool) if reset_rows is None else ~np.isin(batch.worlds, reset_rows)
-                if not keep.all():
-                    batch = batch.select(keep)
-            if not len(batch):
-                continue
-            refused = self.inputs[index].apply(batch)
-            if good is not None:
-                good[batch.worlds] = True
-            self._refused(index, batch.worlds, refused, good, rejected)
-            if batch.goals is not None and refused:  # goals the controller refused: their workers answer
-                at = np.array([k for k, _ in refused], dtype=np.intp)
-                self.memory["goal.refused"][batch.worlds[at]] = batch.goals[at]
+        self.trajectories.take(trajectories, reset_rows, bool(resets), good, rejected, later=later)
         return anything
 
     def _refused(
@@ -487,8 +473,7 @@ class BridgeHost:
         ready = np.ones(self.nworld, dtype=bool)
         if self.free.any():
             ready &= self.commands.fresh()[:, self.free].all(axis=1)
-        for i, counter in self._traj_counters.items():
-            ready &= counter != self._traj_seen[i]
+        ready &= self.trajectories.ready()
         for reader in self._input_readers:
             if reader is not None:
                 ready &= reader.fresh()

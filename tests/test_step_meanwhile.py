@@ -282,3 +282,102 @@ def test_what_arrives_after_after_write_waits_for_the_next_snapshot(backend):
     finally:
         host.close()
         sim.shutdown()
+
+
+def _trajectory_batch(worlds, njoint, position):
+    """One 2-point trajectory per world, to `position` (a NaN is refused by the controller)."""
+    from batchsim.controllers import TrajectoryBatch
+
+    n = len(worlds)
+    positions = np.full((2 * n, njoint), position)
+    return TrajectoryBatch(
+        worlds=np.asarray(worlds, np.int64),
+        start_time=np.zeros(n),
+        joint_mask=np.ones((n, njoint), bool),
+        offsets=np.arange(n + 1, dtype=np.int64) * 2,
+        times=np.tile([0.05, 0.1], n),
+        positions=positions,
+    )
+
+
+class _Pending:
+    """A participant between the bridge and the controllers: whether each period's update
+    finds world 0's trajectory queued (handed over) before the controllers run."""
+
+    def __init__(self, jtc):
+        self.jtc, self.seen = jtc, []
+
+    def update(self, sim, time, period):
+        self.seen.append((bool(self.jtc.pending[0]), bool(self.jtc.executing[0])))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_bridge_hands_trajectories_over_beside_the_steps_and_they_start_at_the_next_update(backend):
+    """A burst of 4096 trajectories cost its period ~2.2 ms of validation and queueing on the loop's
+    thread (5 ms on the GPU hosts), on top of the controllers' update and the physics: over the 10 ms
+    period. The bridge now hands a period's trajectories to their controllers while the device
+    steps, and they start at the next update, as upstream's subscriber callback hands a message to
+    the controller's next update. A refused one sets BAD_COMMAND from the next period on."""
+    from batchsim.memory import Ring
+    from ros_bridge.protocol.requests import Kind, encode_trajectories
+
+    sim = active(backend)
+    loop, host, plan, _ = _bridge(sim)
+    jtc = loop.participants[1]["joint_trajectory_controller"]
+    spy = _Pending(jtc)
+    loop.participants.insert(1, spy)  # after the bridge's update, before the controllers'
+    (index, spec), = [(i, s) for i, s in enumerate(plan.inputs) if s.topic.endswith("joint_trajectory")]
+    try:
+        loop.run_period()  # the controllers hold where the arms are
+        batch = _trajectory_batch([0, 2], len(jtc.joints), 0.2)
+        batch.positions[2:] = np.nan  # world 2's is refused
+        assert Ring(host.memory, "ring0").put(Kind.TRAJECTORY, encode_trajectories(index, batch))
+        np.add.at(host.memory[f"{spec.slots}.seq"], batch.worlds, 1)
+        loop.run_period()  # taken from the ring, queued beside the steps
+        assert spy.seen[1] == (False, False) and jtc.pending[0] and not jtc.executing[0]
+        bad = np.uint8(batchsim.Status.BAD_COMMAND)
+        assert not (sim.status & bad).any()
+        loop.run_period()  # started by this period's update
+        assert spy.seen[2] == (True, False) and jtc.executing[0] and not jtc.pending[0]
+        assert sim.status[2] & bad and not sim.status[0] & bad and not jtc.pending[2]
+    finally:
+        host.close()
+        sim.shutdown()
+
+
+def test_a_reset_before_the_hand_over_drops_the_reset_worlds_waiting_trajectories():
+    """Taken in update(), handed over beside the steps: a reset in between (a reset_world request
+    served after the ring was read) drops its worlds' trajectories, as it drops a queued one."""
+    from batchsim.controllers.topics import Input, MessageKind
+    from batchsim.memory import Layout, Memory
+    from ros_bridge.trajectory_inputs import TrajectoryInputs
+
+    memory = Memory.create(Layout([("traj.seq", (4,), "int64"), ("goal.refused", (4,), "int64")]), shared=False)
+    got = []
+
+    def apply(batch):
+        got.append(batch.worlds.tolist())
+        return [(k, "bad") for k in range(len(batch)) if batch.worlds[k] == 3]
+
+    def refused(index, worlds, rejections, good, rejected):  # as the bridge's bookkeeping
+        for k, _ in rejections:
+            good[worlds[k]], rejected[worlds[k]] = False, True
+
+    inputs = [Input("t", MessageKind.JOINT_TRAJECTORY, apply)]
+    trajectories = TrajectoryInputs(memory, [MessageKind.JOINT_TRAJECTORY], ["traj"], inputs, refused, 4)
+    try:
+        trajectories.take({0: [_trajectory_batch([0, 1, 3], 2, 0.1)]}, None, False, None, None, later=True)
+        assert trajectories.waiting == 1 and not got
+        trajectories.forget(np.array([1]))
+        trajectories.hand_over(beside_steps=True)
+        assert got == [[0, 3]] and trajectories.waiting == 0
+        good, rejected = np.zeros(4, bool), np.zeros(4, bool)
+        trajectories.verdicts(good, rejected)  # the next update's: world 0 accepted, world 3 refused
+        assert good.tolist() == [True, False, False, False] and rejected.tolist() == [False, False, False, True]
+        trajectories.verdicts(good, rejected)  # taken once
+        trajectories.take({0: [_trajectory_batch([2], 2, 0.1)]}, None, False, None, None, later=True)
+        trajectories.forget(slice(None))  # every world reset
+        trajectories.hand_over(beside_steps=True)
+        assert got == [[0, 3]]
+    finally:
+        memory.close()
