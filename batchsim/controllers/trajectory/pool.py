@@ -46,7 +46,6 @@ class SegmentPool:
         self.njoint = njoint
         self.times = np.zeros(0)
         self.points = np.zeros((3, 0, njoint))
-        self._pairs = _pairs(self.points)
         self.offset = np.full((3, nworld), -1, np.int64)
         self.size = np.zeros((3, nworld), np.int64)
         self.held = 0
@@ -126,12 +125,15 @@ class SegmentPool:
             put_blocks(self.points[k], starts, counts, values)
 
     def ends(self, rows: np.ndarray, planes: np.ndarray) -> np.ndarray:
-        """(n, 3, 2, njoint): the position, velocity and acceleration of the points at `rows`
-        and at the row after each (the two ends of the segments that leave `rows`), of the
-        planes (3,) bool asked for; the others are left uninitialized."""
-        out = np.empty((len(rows), 3, 2, self.njoint))
+        """(6, n, njoint), splines.ENDS (p0, p1, v0, v1, a0, a1): the position, velocity and
+        acceleration of the points at `rows` and at the row after each (the two ends of the
+        segments that leave `rows`), of the planes (3,) bool asked for; the others are left
+        uninitialized."""
+        out = np.empty((6, len(rows), self.njoint))
+        after = rows + 1
         for k in np.flatnonzero(planes).tolist():
-            out[:, k] = self._pairs[k][rows]
+            np.take(self.points[k], rows, axis=0, out=out[2 * k])
+            np.take(self.points[k], after, axis=0, out=out[2 * k + 1])
         return out
 
     def shrink(self) -> None:
@@ -151,16 +153,7 @@ class SegmentPool:
         points[:, :total] = self.points[:, source]
         self.offset[kinds, worlds] = np.cumsum(size) - size
         self.times, self.points = times, points
-        self._pairs = _pairs(points)
         self.used = self.held = total
-
-
-def _pairs(points: np.ndarray) -> list[np.ndarray]:
-    """Per plane of (3, capacity, njoint) points, a window whose row r holds rows r and r + 1."""
-    return [
-        as_strided(plane, (max(len(plane) - 1, 0), 2, plane.shape[1]), (plane.strides[0], *plane.strides))
-        for plane in points
-    ]
 
 
 def put_blocks(

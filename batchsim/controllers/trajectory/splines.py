@@ -1,7 +1,8 @@
 """The spline math of the trajectory controller: segment polynomials and their sampling.
 
 A segment is a polynomial in s, the time since the point it leaves: six (njoint,)
-coefficients of s^0 .. s^5, made from the points at its two ends (ros2_control's
+coefficients of s^0 .. s^5 (held coefficient first: (6, n, njoint) for n segments, so that
+making a batch of them is one matrix product), made from the points at its two ends (ros2_control's
 Trajectory Representation): linear between points that give positions only, cubic
 Hermite where they give velocities too, quintic where they give accelerations as well.
 """
@@ -71,6 +72,7 @@ def _tables() -> tuple[np.ndarray, np.ndarray]:
 
 
 _MATRIX, _READS = _tables()
+_COLUMNS = [np.flatnonzero(reads) for reads in _READS]  # the ends each kind reads
 # the derivatives of s^k: row r (position, velocity, acceleration) of evaluate's basis is
 # _DERIVATIVE[r, k] * s^(k - r), taken from column _DERIVATIVE_COLUMN[r, k] of _powers(s)
 _DERIVATIVE = np.array([[1.0] * 6, [0, 1, 2, 3, 4, 5], [0, 0, 2, 6, 12, 20]])
@@ -107,33 +109,43 @@ def _powers(x: np.ndarray) -> np.ndarray:
 def coefficients(
     kind: np.ndarray, ends: np.ndarray, T: np.ndarray, out: np.ndarray | None = None
 ) -> np.ndarray:
-    """(n, 6, njoint): segment polynomials, the coefficients of s^0 .. s^5.
+    """(6, n, njoint): segment polynomials, the coefficients of s^0 .. s^5.
 
     Args:
       kind: (n,) Spline of each segment (linear from positions only, cubic Hermite from
         positions and velocities, quintic from all three), or HELD: the point's own p, v
         and a / 2 (evaluated at s = 0, they give the point as it is; pass T = 1).
-      ends: (n, 6, njoint) the values at the segment's two ends, in ENDS order (p0, p1, v0,
-        v1, a0, a1): overwritten (those its kind does not read may be anything).
+      ends: (6, n, njoint) C-contiguous, the values at the segment's two ends, in ENDS order
+        (p0, p1, v0, v1, a0, a1): overwritten (those its kind does not read may be anything).
       T: (n,) the segment's length; one <= 0 (a last point's) is taken as 1.
-      out: (n, 6, njoint) where to write them, or None.
+      out: (6, n, njoint) C-contiguous, where to write them, or None.
     """
     kinds = _kinds(kind)
-    single = len(kinds) == 1
-    k = int(kinds[0]) if single else kind  # one kind: one matrix for all
-    unread = ~_READS[k]
-    if single:
-        ends[:, unread] = 0.0
-    elif unread.any():
-        ends[unread] = 0.0
     T = np.where(T > 0, T, 1.0)
     reads = _READS[kinds].any(axis=0)
     if reads[2]:  # each value in units of a position: v T, a T^2 (exact for T = 1)
-        ends[:, 2:4] *= T[:, None, None]
+        ends[2:4] *= T[:, None]
     if reads[4]:
-        ends[:, 4:6] *= (T * T)[:, None, None]
-    out = np.matmul(_MATRIX[k], ends, out=out)  # T^k c_k
-    out *= _powers(1.0 / T)[:, 1:, None]
+        ends[4:6] *= (T * T)[:, None]
+    if out is None:
+        out = np.empty_like(ends)
+    if len(kinds) == 1:  # the usual case: one kind, one matrix product for every segment
+        _product(int(kinds[0]), ends, out)
+    else:
+        for k in kinds.tolist():
+            of = np.flatnonzero(kind == k)
+            out[:, of] = _product(k, np.ascontiguousarray(ends[:, of]), np.empty((6, len(of), ends.shape[2])))
+    out *= _powers(1.0 / T)[:, 1:].T[:, :, None]
+    return out
+
+
+def _product(kind: int, ends: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """T^k c_k into `out` (6, n, njoint), C-contiguous: the kind's matrix times the ends it reads
+    (a prefix of ENDS but for HELD's), the others not read."""
+    columns = _COLUMNS[kind]
+    m = len(columns)
+    x = ends[:m] if columns[-1] == m - 1 else ends[columns]
+    np.matmul(_MATRIX[kind][:, columns], x.reshape(m, -1), out=out.reshape(6, -1))
     return out
 
 
@@ -141,11 +153,11 @@ def evaluate(polynomials: np.ndarray, s: np.ndarray, done: np.ndarray) -> np.nda
     """(n, 3, njoint): position, velocity and acceleration of each polynomial at its `s`.
 
     Args:
-      polynomials: (n, 6, njoint) coefficients of s^0 .. s^5.
+      polynomials: (6, n, njoint) coefficients of s^0 .. s^5.
       s: (n,) time since the segment's point (clamped at 0; 0 for a HELD point).
       done: (n,) past the last point: the point's position, at rest.
     """
     # position, velocity and acceleration as one product: (n, 3, 6) derivatives of s^k @ (n, 6, nj)
     basis = _powers(np.maximum(s, 0.0))[:, _DERIVATIVE_COLUMN] * _DERIVATIVE.reshape(-1)
     basis[done] = _HOLD
-    return basis.reshape(len(s), 3, 6) @ polynomials
+    return basis.reshape(len(s), 3, 6) @ polynomials.transpose(1, 0, 2)

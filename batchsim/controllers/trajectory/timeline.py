@@ -44,7 +44,7 @@ class Timeline:
       segment: (nworld,) int64, the block row time has reached.
       last: (nworld,) int64, its last row.
       spline: (nworld,) int8 Spline of the running trajectory.
-      polynomial: (nworld, 6, njoint), the polynomial of its segment `made` (splines.coefficients).
+      polynomial: (6, nworld, njoint), the polynomial of its segment `made` (splines.coefficients).
       made: (nworld,) int64, the segment `polynomial` is of; -1: none yet.
       pending_start: (nworld,) float64, the pending trajectory's start time (0: the next
         update), inf for none.
@@ -69,7 +69,7 @@ class Timeline:
         self.segment = np.zeros(W, np.int64)
         self.last = np.zeros(W, np.int64)
         self.spline = np.zeros(W, np.int8)
-        self.polynomial = np.zeros((W, 6, nj))
+        self.polynomial = np.zeros((6, W, nj))
         self.made = np.full(W, -1, np.int64)
         self.pending_start = np.full(W, np.inf)
         self.pending_npoint = np.zeros(W, np.int64)
@@ -158,14 +158,29 @@ class Timeline:
         filled = npoint > 0
         end[filled] += pool.times[off[filled] + npoint[filled]]
         stop = skip >= npoint
-        stopped = due[stop]
-        # every point already passed (a single point at time 0, stamped now, as ros2_controllers
-        # applies at once; or the last point's time gone by before the loop took it): the
-        # reference is past the end, so it holds the last point; an empty trajectory holds here
-        hold = here[stop].copy()
-        ended = npoint[stop] > 0
+        if stop.any():
+            self._hold_at_end(due[stop], off[stop], npoint[stop], here[stop])
+            go = ~stop
+            worlds, t0, skip, here, here_v = due[go], t0[go], skip[go], here[go], here_v[go]
+        else:  # the usual case: every one has a point ahead
+            worlds = due
+        if worlds.size:
+            pool.promote(worlds)
+            self._begin(worlds, t0, time, skip, here, here_v)
+        self.pending_start[due] = np.inf
+        self.pending_npoint[due] = 0
+        return end, worlds
+
+    def _hold_at_end(self, stopped: np.ndarray, off: np.ndarray, npoint: np.ndarray, here: np.ndarray) -> None:
+        """Due trajectories with every point already passed (a single point at time 0, stamped
+        now, as ros2_controllers applies at once; or the last point's time gone by before the
+        loop took it): the reference is past the end, so it holds the last point; an empty
+        trajectory holds `here`."""
+        pool = self.pool
+        hold = here.copy()
+        ended = npoint > 0
         if ended.any():
-            last = pool.points[0, off[stop][ended] + npoint[stop][ended]]
+            last = pool.points[0, off[ended] + npoint[ended]]
             mask = self.pending_mask[stopped[ended]]
             hold[ended] = np.where(mask, last, hold[ended])
         pool.release(RUNNING, stopped)
@@ -174,15 +189,6 @@ class Timeline:
         self.running[stopped] = False
         self.on_trajectory[stopped] = False
         self.hold[stopped] = hold
-
-        go = ~stop
-        worlds = due[go]
-        if worlds.size:
-            pool.promote(worlds)
-            self._begin(worlds, t0[go], time, skip[go], here[go], here_v[go])
-        self.pending_start[due] = np.inf
-        self.pending_npoint[due] = 0
-        return end, worlds
 
     def _begin(
         self,
@@ -257,7 +263,7 @@ class Timeline:
         if entered.size:  # the segments time entered since the last update: their polynomials
             self._make(running[entered], row[entered], done[entered])
             self.made[running[entered]] = segment[entered]
-        polynomial = self.polynomial if len(running) == self.nworld else self.polynomial[running]
+        polynomial = self.polynomial if len(running) == self.nworld else self.polynomial[:, running]
         s = np.zeros(len(running)) if self.step_points else rel - times[row]  # a held point: as it is
         reference = evaluate(polynomial, s, done)
         pos[running], vel[running], acc[running] = reference[:, 0], reference[:, 1], reference[:, 2]
@@ -281,11 +287,11 @@ class Timeline:
         velocity they leave from (at rest otherwise) instead of the row's point."""
         pool, n = self.pool, len(worlds)
         every = n == self.nworld  # a burst: straight into place
-        polynomial = self.polynomial if every else np.empty((n, 6, self.njoint))
+        polynomial = self.polynomial if every else np.empty((6, n, self.njoint))
         go: slice | np.ndarray = slice(None)
         if done.any():
-            polynomial[done] = 0.0
-            polynomial[done, 0] = pool.points[0, row[done]]
+            polynomial[:, done] = 0.0
+            polynomial[0, done] = pool.points[0, row[done]]
             go = np.flatnonzero(~done)
         r = row[go]
         if len(r):
@@ -293,16 +299,15 @@ class Timeline:
                 kind, T = np.full(len(r), HELD, np.int8), np.ones(len(r))
             else:
                 kind, T = self.spline[worlds[go]], pool.times[r + 1] - pool.times[r]
-            ends = pool.ends(r, planes_read(kind))  # (n, 3, 2, nj): splines.ENDS
-            if start is not None:
-                ends[:, 0, 0], ends[:, 1, 0], ends[:, 2, 0] = start[0][go], start[1][go], 0.0
-            ends = ends.reshape(len(r), 6, self.njoint)
+            ends = pool.ends(r, planes_read(kind))  # (6, n, nj): splines.ENDS
+            if start is not None:  # p0, v0, a0
+                ends[0], ends[2], ends[4] = start[0][go], start[1][go], 0.0
             if len(r) == n:
                 coefficients(kind, ends, T, out=polynomial)
             else:
-                polynomial[go] = coefficients(kind, ends, T)
+                polynomial[:, go] = coefficients(kind, ends, T)
         if not every:
-            self.polynomial[worlds] = polynomial
+            self.polynomial[:, worlds] = polynomial
 
     def stop(self, worlds: np.ndarray, position: np.ndarray) -> None:
         """Drop the worlds' trajectories, running and queued, and hold them at `position`

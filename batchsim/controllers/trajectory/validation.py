@@ -444,13 +444,13 @@ def _reach(
             before = np.maximum(close - 1, 0)
             given = [np.zeros_like(p) if x is None else x for x in points]
             ends = np.stack(  # splines.ENDS: p0, p1, v0, v1, a0, a1
-                [y for x in given for y in (np.where(start, 0.0, x[before]), x[close])], axis=1
+                [y for x in given for y in (np.where(start, 0.0, x[before]), x[close])]
             )
             c = coefficients(spline[owner[close]], ends, safe[close])
-            powers = safe[close, None, None] ** np.arange(6)[:, None]  # (n, 6, 1)
-            mag = np.abs(c)  # (n, 6, nj)
-            position = (mag * powers).sum(axis=1)
-            velocity = (mag[:, 1:] * np.arange(1, 6)[:, None] * powers[:, :5]).sum(axis=1)
-            acceleration = (mag[:, 2:] * np.array([2, 6, 12, 20])[:, None] * powers[:, :4]).sum(axis=1)
+            powers = safe[close][:, None] ** np.arange(6)[:, None, None]  # (6, n, 1)
+            mag = np.abs(c)  # (6, n, nj)
+            position = (mag * powers).sum(axis=0)
+            velocity = (mag[1:] * np.arange(1, 6)[:, None, None] * powers[:5]).sum(axis=0)
+            acceleration = (mag[2:] * np.array([2, 6, 12, 20])[:, None, None] * powers[:4]).sum(axis=0)
             reach[close] = bound(position, velocity, acceleration).max(axis=1)
     return reach
