@@ -124,15 +124,16 @@ class SegmentPool:
         for k, values in planes.items():
             put_blocks(self.points[k], starts, counts, values)
 
-    def ends(self, rows: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    def ends(self, rows: np.ndarray, planes: np.ndarray, start: bool = False) -> np.ndarray:
         """(6, n, njoint), splines.ENDS (p0, p1, v0, v1, a0, a1): the position, velocity and
         acceleration of the points at `rows` and at the row after each (the two ends of the
         segments that leave `rows`), of the planes (3,) bool asked for; the others are left
-        uninitialized."""
+        uninitialized, and so are the points at `rows` with `start` (the caller's start point)."""
         out = np.empty((6, len(rows), self.njoint))
         after = rows + 1
         for k in np.flatnonzero(planes).tolist():
-            np.take(self.points[k], rows, axis=0, out=out[2 * k])
+            if not start:
+                np.take(self.points[k], rows, axis=0, out=out[2 * k])
             np.take(self.points[k], after, axis=0, out=out[2 * k + 1])
         return out
 

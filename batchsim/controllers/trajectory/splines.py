@@ -149,15 +149,19 @@ def _product(kind: int, ends: np.ndarray, out: np.ndarray) -> np.ndarray:
     return out
 
 
-def evaluate(polynomials: np.ndarray, s: np.ndarray, done: np.ndarray) -> np.ndarray:
-    """(n, 3, njoint): position, velocity and acceleration of each polynomial at its `s`.
+def evaluate(polynomials: np.ndarray, s: np.ndarray, done: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """(3, n, njoint): position, velocity and acceleration of each polynomial at its `s`.
 
     Args:
       polynomials: (6, n, njoint) coefficients of s^0 .. s^5.
       s: (n,) time since the segment's point (clamped at 0; 0 for a HELD point).
       done: (n,) past the last point: the point's position, at rest.
+      out: (3, n, njoint) where to write them, or None.
     """
     # position, velocity and acceleration as one product: (n, 3, 6) derivatives of s^k @ (n, 6, nj)
     basis = _powers(np.maximum(s, 0.0))[:, _DERIVATIVE_COLUMN] * _DERIVATIVE.reshape(-1)
     basis[done] = _HOLD
-    return basis.reshape(len(s), 3, 6) @ polynomials.transpose(1, 0, 2)
+    if out is None:
+        out = np.empty((3, len(s), polynomials.shape[2]))
+    np.matmul(basis.reshape(len(s), 3, 6), polynomials.transpose(1, 0, 2), out=out.transpose(1, 0, 2))
+    return out

@@ -58,9 +58,8 @@ class Timeline:
         self.nworld, self.njoint = nworld, njoint
         self.step_points = step_points
         self.pool = SegmentPool(W, nj)
-        self.reference_position = np.zeros((W, nj))
-        self.reference_velocity = np.zeros((W, nj))
-        self.reference_acceleration = np.zeros((W, nj))
+        self._reference = np.zeros((3, W, nj))  # sampled in one product when every world runs
+        self.reference_position, self.reference_velocity, self.reference_acceleration = self._reference
         self.executing = np.zeros(W, bool)
         self.hold = np.zeros((W, nj))
         self.on_trajectory = np.zeros(W, bool)
@@ -263,10 +262,11 @@ class Timeline:
         if entered.size:  # the segments time entered since the last update: their polynomials
             self._make(running[entered], row[entered], done[entered])
             self.made[running[entered]] = segment[entered]
-        polynomial = self.polynomial if len(running) == self.nworld else self.polynomial[:, running]
         s = np.zeros(len(running)) if self.step_points else rel - times[row]  # a held point: as it is
-        reference = evaluate(polynomial, s, done)
-        pos[running], vel[running], acc[running] = reference[:, 0], reference[:, 1], reference[:, 2]
+        if len(running) == self.nworld:  # straight into place
+            evaluate(self.polynomial, s, done, out=self._reference)
+        else:
+            self._reference[:, running] = evaluate(self.polynomial[:, running], s, done)
         self.executing[running] = ~done
         finished = running[done]
         if finished.size:  # past the last point: hold it and give the rows back
@@ -299,7 +299,7 @@ class Timeline:
                 kind, T = np.full(len(r), HELD, np.int8), np.ones(len(r))
             else:
                 kind, T = self.spline[worlds[go]], pool.times[r + 1] - pool.times[r]
-            ends = pool.ends(r, planes_read(kind))  # (6, n, nj): splines.ENDS
+            ends = pool.ends(r, planes_read(kind), start=start is not None)  # (6, n, nj): splines.ENDS
             if start is not None:  # p0, v0, a0
                 ends[0], ends[2], ends[4] = start[0][go], start[1][go], 0.0
             if len(r) == n:
