@@ -1241,3 +1241,42 @@ def test_a_trajectory_batch_queues_like_single_trajectories():
         loop.run_period()
     np.testing.assert_allclose(jtc.reference_position[[1, 3]], np.tile(goal, (2, 1)), atol=1e-12)
     assert not np.allclose(jtc.reference_position[[0, 2]], goal)
+
+
+def test_segment_splines_meet_their_ends_for_every_kind_mixed_in_one_batch():
+    """splines.coefficients makes a batch with one matrix product and evaluate samples it by
+    Horner's rule over coefficient planes (the GPU hosts ran a product per segment 2-4 times
+    slower): every kind meets its ends, mixed in one batch, whatever the ends it does not read
+    hold, and 4 terms give what 6 give where no segment is quintic."""
+    from batchsim.controllers.trajectory import splines
+
+    rng = np.random.default_rng(3)
+    n, nj = 40, 3
+    kind = rng.choice([splines.HELD, *(int(s) for s in splines.Spline)], n).astype(np.int8)
+    ends = rng.normal(size=(6, n, nj))  # p0, p1, v0, v1, a0, a1
+    T = rng.uniform(0.05, 0.5, n)
+    given = ends.copy()
+    for i, k in enumerate(kind):
+        ends[~splines._READS[k], i] = np.nan  # not read: anything
+    c = splines.coefficients(kind, ends, np.where(kind == splines.HELD, 1.0, T))
+    none = np.zeros(n, bool)
+    at0 = splines.evaluate(c, np.zeros(n), none)
+    atT = splines.evaluate(c, T, none)
+    p0, p1, v0, v1, a0, a1 = given
+    held, line, cubic, quintic = (kind == k for k in (splines.HELD, splines.LINEAR, splines.CUBIC, splines.QUINTIC))
+    np.testing.assert_allclose(at0[0], p0)  # every kind leaves from its first point
+    np.testing.assert_allclose(at0[1][held | cubic | quintic], v0[held | cubic | quintic])
+    np.testing.assert_allclose(at0[2][held | quintic], a0[held | quintic])
+    ends_kinds = line | cubic | quintic
+    np.testing.assert_allclose(atT[0][ends_kinds], p1[ends_kinds])  # and reaches the next one
+    np.testing.assert_allclose(atT[1][line], ((p1 - p0) / T[:, None])[line])
+    np.testing.assert_allclose(atT[1][cubic | quintic], v1[cubic | quintic])
+    np.testing.assert_allclose(atT[2][quintic], a1[quintic], rtol=1e-6)
+    cubic_only = ~quintic
+    s = rng.uniform(0, 0.5, n)
+    done = rng.random(n) < 0.3
+    four = splines.evaluate(c[:, cubic_only], s[cubic_only], done[cubic_only], terms=splines.CUBIC_TERMS)
+    np.testing.assert_allclose(four, splines.evaluate(c[:, cubic_only], s[cubic_only], done[cubic_only]))
+    past = splines.evaluate(c, s, done)  # past the last point: the point, at rest
+    np.testing.assert_array_equal(past[0][done], c[0][done])
+    assert not past[1:, done].any()

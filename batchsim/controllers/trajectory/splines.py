@@ -73,11 +73,9 @@ def _tables() -> tuple[np.ndarray, np.ndarray]:
 
 _MATRIX, _READS = _tables()
 _COLUMNS = [np.flatnonzero(reads) for reads in _READS]  # the ends each kind reads
-# the derivatives of s^k: row r (position, velocity, acceleration) of evaluate's basis is
-# _DERIVATIVE[r, k] * s^(k - r), taken from column _DERIVATIVE_COLUMN[r, k] of _powers(s)
-_DERIVATIVE = np.array([[1.0] * 6, [0, 1, 2, 3, 4, 5], [0, 0, 2, 6, 12, 20]])
-_DERIVATIVE_COLUMN = np.array([[1 + k - r if k >= r else 0 for k in range(6)] for r in range(3)]).reshape(-1)
-_HOLD = np.array([1.0, 0, 0, 0, 0, 0] + [0] * 12)  # past the last point: p = c0, at rest
+# the coefficients each kind makes (those after are 0): the held point's c0..c2, a line's c0, c1, ...
+TERMS = np.array([int(np.flatnonzero((m != 0).any(axis=1)).max()) + 1 for m in _MATRIX])
+CUBIC_TERMS = int(TERMS[CUBIC])  # every kind but QUINTIC makes at most this many
 
 
 def spline_of(has_velocities: np.ndarray, has_accelerations: np.ndarray) -> np.ndarray:
@@ -94,16 +92,6 @@ def planes_read(kind: np.ndarray) -> np.ndarray:
     """(3,) bool: whether segments of these kinds ((n,) Spline or HELD) read the position,
     velocity, acceleration of their points."""
     return _READS[_kinds(kind)].reshape(-1, 3, 2).any(axis=(0, 2))
-
-
-def _powers(x: np.ndarray) -> np.ndarray:
-    """(n, 7): 0, then x^0 .. x^5 of each of the (n,) x."""
-    out = np.zeros((len(x), 7))
-    out[:, 1] = 1.0
-    out[:, 2] = x
-    for m in range(3, 7):
-        np.multiply(out[:, m - 1], x, out=out[:, m])
-    return out
 
 
 def coefficients(
@@ -135,21 +123,30 @@ def coefficients(
         for k in kinds.tolist():
             of = np.flatnonzero(kind == k)
             out[:, of] = _product(k, np.ascontiguousarray(ends[:, of]), np.empty((6, len(of), ends.shape[2])))
-    out *= _powers(1.0 / T)[:, 1:].T[:, :, None]
+    m = int(TERMS[kinds].max())
+    scale = np.empty((m, len(T)))  # 1 / T^k, contiguous per k
+    scale[0] = 1.0
+    np.divide(1.0, T, out=scale[1])
+    for k in range(2, m):
+        np.multiply(scale[k - 1], scale[1], out=scale[k])
+    out[1:m] *= scale[1:, :, None]  # c_k = (T^k c_k) / T^k
     return out
 
 
 def _product(kind: int, ends: np.ndarray, out: np.ndarray) -> np.ndarray:
     """T^k c_k into `out` (6, n, njoint), C-contiguous: the kind's matrix times the ends it reads
-    (a prefix of ENDS but for HELD's), the others not read."""
-    columns = _COLUMNS[kind]
-    m = len(columns)
-    x = ends[:m] if columns[-1] == m - 1 else ends[columns]
-    np.matmul(_MATRIX[kind][:, columns], x.reshape(m, -1), out=out.reshape(6, -1))
+    (a prefix of ENDS but for HELD's), the others not read; the coefficients it does not make, 0.
+    One matrix product (BLAS): on the GPU hosts a tenth of the time of a term-by-term sum."""
+    columns, m = _COLUMNS[kind], int(TERMS[kind])
+    x = ends[: len(columns)] if columns[-1] == len(columns) - 1 else ends[columns]
+    np.matmul(_MATRIX[kind][:m, columns], x.reshape(len(columns), -1), out=out[:m].reshape(m, -1))
+    out[m:] = 0.0
     return out
 
 
-def evaluate(polynomials: np.ndarray, s: np.ndarray, done: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+def evaluate(
+    polynomials: np.ndarray, s: np.ndarray, done: np.ndarray, out: np.ndarray | None = None, terms: int = 6
+) -> np.ndarray:
     """(3, n, njoint): position, velocity and acceleration of each polynomial at its `s`.
 
     Args:
@@ -157,11 +154,34 @@ def evaluate(polynomials: np.ndarray, s: np.ndarray, done: np.ndarray, out: np.n
       s: (n,) time since the segment's point (clamped at 0; 0 for a HELD point).
       done: (n,) past the last point: the point's position, at rest.
       out: (3, n, njoint) where to write them, or None.
+      terms: the coefficients in use, 4 to 6 (CUBIC_TERMS where no segment is QUINTIC): those
+        after are 0.
+
+    Horner's rule over whole coefficient planes: elementwise NumPy only, which ran 2-4 times
+    faster than a (3, 6) x (6, njoint) matrix product per segment, and its powers of s, on the
+    GPU hosts (benchmarks/RESULTS.md, "The trajectory burst").
     """
-    # position, velocity and acceleration as one product: (n, 3, 6) derivatives of s^k @ (n, 6, nj)
-    basis = _powers(np.maximum(s, 0.0))[:, _DERIVATIVE_COLUMN] * _DERIVATIVE.reshape(-1)
-    basis[done] = _HOLD
+    c, m = polynomials, min(max(int(terms), 4), 6)
     if out is None:
-        out = np.empty((3, len(s), polynomials.shape[2]))
-    np.matmul(basis.reshape(len(s), 3, 6), polynomials.transpose(1, 0, 2), out=out.transpose(1, 0, 2))
+        out = np.empty((3, *c.shape[1:]))
+    x = np.maximum(s, 0.0)[:, None]
+    p, v, a = out
+    np.multiply(c[m - 1], x, out=p)  # p = c0 + x (c1 + x (c2 + ...))
+    for k in range(m - 2, 0, -1):
+        p += c[k]
+        p *= x
+    p += c[0]
+    np.multiply(c[m - 1], (m - 1) * x, out=v)  # v = c1 + x (2 c2 + x (3 c3 + ...))
+    for k in range(m - 2, 1, -1):
+        v += k * c[k]
+        v *= x
+    v += c[1]
+    np.multiply(c[m - 1], (m - 1) * (m - 2) * x, out=a)  # a = 2 c2 + x (6 c3 + x (12 c4 + ...))
+    for k in range(m - 2, 2, -1):
+        a += (k * (k - 1)) * c[k]
+        a *= x
+    a += 2.0 * c[2]
+    if done.any():  # past the last point: exactly the point, at rest
+        out[0, done] = c[0, done]
+        out[1:, done] = 0.0
     return out

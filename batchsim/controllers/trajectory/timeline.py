@@ -18,7 +18,14 @@ import numpy as np
 
 from batchsim.controllers.base import last_per_world, ranges
 from batchsim.controllers.trajectory.pool import PENDING, RUNNING, SegmentPool
-from batchsim.controllers.trajectory.splines import HELD, coefficients, evaluate, planes_read
+from batchsim.controllers.trajectory.splines import (
+    CUBIC_TERMS,
+    HELD,
+    QUINTIC,
+    coefficients,
+    evaluate,
+    planes_read,
+)
 from batchsim.controllers.trajectory.validation import Unpacked
 
 
@@ -263,10 +270,12 @@ class Timeline:
             self._make(running[entered], row[entered], done[entered])
             self.made[running[entered]] = segment[entered]
         s = np.zeros(len(running)) if self.step_points else rel - times[row]  # a held point: as it is
-        if len(running) == self.nworld:  # straight into place
-            evaluate(self.polynomial, s, done, out=self._reference)
+        every = len(running) == self.nworld
+        terms = 6 if ((self.spline if every else self.spline[running]) == QUINTIC).any() else CUBIC_TERMS
+        if every:  # straight into place
+            evaluate(self.polynomial, s, done, out=self._reference, terms=terms)
         else:
-            self._reference[:, running] = evaluate(self.polynomial[:, running], s, done)
+            self._reference[:, running] = evaluate(self.polynomial[:, running], s, done, terms=terms)
         self.executing[running] = ~done
         finished = running[done]
         if finished.size:  # past the last point: hold it and give the rows back
