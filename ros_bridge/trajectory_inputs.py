@@ -139,10 +139,12 @@ class TrajectoryInputs:
             self.seen[i] = taken.copy()
 
     def forget(self, rows: slice | np.ndarray) -> None:
-        """Worlds were reset: their arrivals are seen, their waiting trajectories and verdicts dropped."""
+        """Worlds were reset (`rows`: their indices, or slice(None): every world): their arrivals
+        are seen, their waiting trajectories and verdicts dropped."""
+        every = isinstance(rows, slice)
         kept = []
         for index, batch in self._waiting:
-            keep = np.zeros(len(batch), bool) if isinstance(rows, slice) else ~np.isin(batch.worlds, rows)
+            keep = np.zeros(len(batch), bool) if every else ~np.isin(batch.worlds, rows)
             batch = batch if keep.all() else batch.select(keep)
             if len(batch):
                 kept.append((index, batch))
