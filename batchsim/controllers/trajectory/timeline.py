@@ -65,7 +65,7 @@ class Timeline:
         self.nworld, self.njoint = nworld, njoint
         self.step_points = step_points
         self.pool = SegmentPool(W, nj)
-        self._reference = np.zeros((3, W, nj))  # sampled in one product when every world runs
+        self._reference = np.zeros((3, W, nj))  # sampled straight into it when every world runs
         self.reference_position, self.reference_velocity, self.reference_acceleration = self._reference
         self.executing = np.zeros(W, bool)
         self.hold = np.zeros((W, nj))
