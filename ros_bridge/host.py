@@ -269,6 +269,9 @@ class BridgeHost:
     def idle(self, sim: BatchedSystem, time: float) -> None:
         """While paused: requests; a reset or a finished step is published at once."""
         self._flush(write=True)
+        refused = np.zeros(self.nworld, dtype=bool)  # trajectories refused beside the last steps: shown now
+        self.trajectories.verdicts(np.zeros(self.nworld, dtype=bool), refused)
+        self.bad |= refused
         self._gate_since = None
         self.workers.supervise()
         if self._serve_requests(sim, None, None) and self._force:
@@ -348,7 +351,7 @@ class BridgeHost:
         self, sim: BatchedSystem, good: np.ndarray | None, rejected: np.ndarray | None, later: bool = False
     ) -> bool:
         """Carry out what the workers' rings hold; True if there was anything. Trajectories go to
-        their controllers now, or `later`: while the device steps."""
+        their controllers now, or `later`: while the device steps (now if a switch came with them)."""
         self.trajectories.hand_over(good, rejected)  # what an earlier period left waiting (its steps failed), first
         anything = False
         resets: list[tuple[int, int]] = []
@@ -388,6 +391,7 @@ class BridgeHost:
                 elif kind == Kind.GRIPPER_GOAL and self.manager_link is not None:
                     self._gripper_goal(payload)
                 elif kind == Kind.SWITCH and self.manager_link is not None:
+                    later = False  # the switch resets its controllers in this period: trajectories go first, as ever
                     ticket, _, ok, message = self.manager_link.switch(payload)
                     self._done(j, ticket, self.loop.sim_time, ok=ok, message=message)
         reset_rows: np.ndarray | None = None

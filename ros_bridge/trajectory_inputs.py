@@ -9,12 +9,13 @@ subscriber's callback, outside the control loop, and starts it at its next updat
 trajectory stamped zero starts at the next period's update, one period after the one whose update took
 it from the ring. Where the loop does not step, or must not wait for it, the hand-over is at once:
 under lockstep (a world's trajectory then starts in the period its arrival let begin), while
-paused, and in the lockstep gate. A batch not yet handed over when the next period, the gate or a
+paused, in the lockstep gate, and when the same read holds a controller switch (which resets its
+controllers before the steps: what came before it must be there to be dropped). A batch not yet handed over when the next period, the gate or a
 pause comes is handed over then, first: none is lost.
 
 A controller's verdicts on a batch handed over while the device steps reach BAD_COMMAND in the
 next update (`verdicts`), as though the trajectories had arrived then: accepted ones count as the
-world's good command, refused ones set the flag.
+world's good command, refused ones set the flag (while paused, at once).
 """
 
 from __future__ import annotations

@@ -374,10 +374,73 @@ def test_a_reset_before_the_hand_over_drops_the_reset_worlds_waiting_trajectorie
         good, rejected = np.zeros(4, bool), np.zeros(4, bool)
         trajectories.verdicts(good, rejected)  # the next update's: world 0 accepted, world 3 refused
         assert good.tolist() == [True, False, False, False] and rejected.tolist() == [False, False, False, True]
+        good, rejected = np.zeros(4, bool), np.zeros(4, bool)
         trajectories.verdicts(good, rejected)  # taken once
+        assert not good.any() and not rejected.any()
         trajectories.take({0: [_trajectory_batch([2], 2, 0.1)]}, None, False, None, None, later=True)
         trajectories.forget(slice(None))  # every world reset
         trajectories.hand_over(beside_steps=True)
         assert got == [[0, 3]]
     finally:
         memory.close()
+
+
+def _ring_trajectory(host, plan, batch):
+    """Put a trajectory batch in worker 0's ring, as a worker does (ros_bridge/worker/trajectories.py)."""
+    from batchsim.memory import Ring
+    from ros_bridge.protocol.requests import Kind, encode_trajectories
+
+    (index, spec), = [(i, s) for i, s in enumerate(plan.inputs) if s.topic.endswith("joint_trajectory")]
+    assert Ring(host.memory, "ring0").put(Kind.TRAJECTORY, encode_trajectories(index, batch))
+    np.add.at(host.memory[f"{spec.slots}.seq"], batch.worlds, 1)
+
+
+def test_a_goal_that_comes_with_a_switch_that_deactivates_its_controller_is_aborted_as_before():
+    """A review found: handed over beside the steps, a FollowJointTrajectory goal read from the ring
+    together with a switch_controller deactivating its controller reached the controller after the
+    switch had reset it, and stayed ACTIVE on an inactive controller. A read holding a switch now
+    hands its trajectories over at once, before the switch takes effect, as before."""
+    from batchsim.controllers.topics import GoalOutcome
+    from batchsim.memory import Ring
+    from ros_bridge.protocol.requests import Kind, encode_switch
+
+    sim = active("cpu")
+    loop, host, plan, _ = _bridge(sim)
+    manager = loop.participants[1]
+    jtc = manager["joint_trajectory_controller"]
+    try:
+        loop.run_period()
+        ring = Ring(host.memory, "ring0")
+        assert ring.put(Kind.SWITCH, encode_switch(1, 0, [], ["joint_trajectory_controller"], 1, False))
+        batch = _trajectory_batch([0], len(jtc.joints), 0.2)
+        batch.goals = np.array([7])
+        _ring_trajectory(host, plan, batch)
+        for _ in range(3):
+            loop.run_period()
+        assert not manager.active("joint_trajectory_controller")[0]
+        assert jtc.outcome[0] == GoalOutcome.ABORTED and not jtc.pending[0] and not jtc.executing[0]
+    finally:
+        host.close()
+        sim.shutdown()
+
+
+def test_a_trajectory_refused_beside_the_last_steps_shows_bad_command_while_paused():
+    """A step run while paused hands its trajectories over beside its steps; one refused there
+    shows BAD_COMMAND in what is published at once while paused, not only after the next period."""
+    from ros_bridge.protocol.snapshot import Snapshot, read_snapshot
+
+    sim = active("cpu")
+    loop, host, plan, _ = _bridge(sim)
+    jtc = loop.participants[1]["joint_trajectory_controller"]
+    try:
+        loop.run_period()
+        batch = _trajectory_batch([1], len(jtc.joints), np.nan)  # refused
+        _ring_trajectory(host, plan, batch)
+        loop.run_period()  # the one step_simulation runs while paused
+        host.idle(sim, loop.sim_time)
+        snap = read_snapshot(host.memory, len(plan.channels), 0, sim.nworld, Snapshot())
+        bad = np.uint8(batchsim.Status.BAD_COMMAND)
+        assert snap.status[1] & bad and not snap.status[0] & bad
+    finally:
+        host.close()
+        sim.shutdown()
