@@ -351,13 +351,15 @@ class BridgeHost:
         self, sim: BatchedSystem, good: np.ndarray | None, rejected: np.ndarray | None, later: bool = False
     ) -> bool:
         """Carry out what the workers' rings hold; True if there was anything. Trajectories go to
-        their controllers now, or `later`: while the device steps (now if a switch came with them)."""
+        their controllers now, or `later`: while the device steps (now if a switch or a cancel came
+        with them); cancels go after them, so a goal canceled in the read that brought it is canceled."""
         self.trajectories.hand_over(good, rejected)  # what an earlier period left waiting (its steps failed), first
         anything = False
         resets: list[tuple[int, int]] = []
         reset_all = False
         reset_worlds: list[np.ndarray] = []
         trajectories: dict[int, list] = {}
+        cancels: list[tuple[int, int, int]] = []  # after this read's goals, which they may cancel
         for j, ring in enumerate(self._rings):
             for kind, payload in ring.take():
                 anything = True
@@ -385,9 +387,8 @@ class BridgeHost:
                 elif kind == Kind.APPLY_WRENCH:
                     self.simulation.apply_wrench(j, *decode_document(payload))
                 elif kind == Kind.CANCEL and self.manager_link is not None:
-                    index, world, goal = decode_cancel(payload)
-                    controller = self.manager_link.manager[self.plan.actions[index].controller]
-                    controller.cancel(np.array([world]), np.array([goal]))
+                    cancels.append(decode_cancel(payload))
+                    later = False
                 elif kind == Kind.GRIPPER_GOAL and self.manager_link is not None:
                     self._gripper_goal(payload)
                 elif kind == Kind.SWITCH and self.manager_link is not None:
@@ -401,6 +402,9 @@ class BridgeHost:
             for j, ticket in resets:
                 self._done(j, ticket, self.loop.sim_time, ok=True)
         self.trajectories.take(trajectories, reset_rows, bool(resets), good, rejected, later=later)
+        for index, world, goal in cancels:
+            controller = self.manager_link.manager[self.plan.actions[index].controller]
+            controller.cancel(np.array([world]), np.array([goal]))
         return anything
 
     def _refused(

@@ -10,7 +10,8 @@ trajectory stamped zero starts at the next period's update, one period after the
 it from the ring. Where the loop does not step, or must not wait for it, the hand-over is at once:
 under lockstep (a world's trajectory then starts in the period its arrival let begin), while
 paused, in the lockstep gate, and when the same read holds a controller switch (which resets its
-controllers before the steps: what came before it must be there to be dropped). A batch not yet handed over when the next period, the gate or a
+controllers before the steps: what came before it must be there to be dropped) or a goal's cancel
+(served after the read's trajectories, so that it finds the goal it cancels). A batch not yet handed over when the next period, the gate or a
 pause comes is handed over then, first: none is lost.
 
 A controller's verdicts on a batch handed over while the device steps reach BAD_COMMAND in the

@@ -444,3 +444,31 @@ def test_a_trajectory_refused_beside_the_last_steps_shows_bad_command_while_paus
     finally:
         host.close()
         sim.shutdown()
+
+
+def test_a_goal_canceled_in_the_ring_read_that_brought_it_is_canceled():
+    """A review found that a FollowJointTrajectory goal and its cancel in one ring read (a client
+    that cancels within a period) had the cancel served first, when the goal was not there yet, so
+    the goal ran. Cancels are now served after the read's trajectories."""
+    from batchsim.controllers.topics import GoalOutcome
+    from batchsim.memory import Ring
+    from ros_bridge.action_plan import encode_cancel
+    from ros_bridge.protocol.requests import Kind
+
+    sim = active("cpu")
+    loop, host, plan, _ = _bridge(sim)
+    jtc = loop.participants[1]["joint_trajectory_controller"]
+    (action,) = [a for a, spec in enumerate(plan.actions) if spec.controller == "joint_trajectory_controller"]
+    try:
+        loop.run_period()
+        batch = _trajectory_batch([0, 1], len(jtc.joints), 0.2)
+        batch.goals = np.array([7, 8])
+        _ring_trajectory(host, plan, batch)
+        assert Ring(host.memory, "ring0").put(Kind.CANCEL, encode_cancel(action, 0, 7))
+        for _ in range(2):
+            loop.run_period()
+        assert jtc.outcome[0] == GoalOutcome.CANCELED and not jtc.executing[0]
+        assert jtc.outcome[1] == GoalOutcome.ACTIVE and jtc.executing[1]  # the other world's goal runs
+    finally:
+        host.close()
+        sim.shutdown()
