@@ -10,9 +10,10 @@ GPU host), as the loop runs it:
 
 Trajectories (`set_trajectories(batch)`: validation and queueing) are handed over as the bridge
 hands them (ros_bridge/trajectory_inputs.py): in step()'s `meanwhile`, while the device steps
-(on the cpu backend, just before the steps), and they start at the next period's update. So
-their cost counts in the physics' column only where it outlasts the device's steps, and the
-trajectory hand-over's own time is reported apart.
+(on the cpu backend, just before the steps), and they start at the next period's update. Then,
+as SimLoop calls it there too, the manager's `while_stepping` makes ahead what the next update
+needs (the segments the worlds enter). Both count in the physics' column only where they outlast
+the device's steps; their own times are reported apart.
 
 The controllers' share of a period is hand-over + update, timed together; the physics is
 timed apart. Both, and the whole period (their sum, what a control period's deadline
@@ -210,7 +211,7 @@ def measure(
     arrivals = feeder(model, case, manager, nworld, period)
     warmup = round(WARMUP / period)
     least = warmup + 3 * round(max(RESEND, LONG_RESEND if case == "long" else 0) / period)
-    physics_t, control_t, arrived, usage, control_cpu, handover_t, beside_t = [], [], [], [], [], [], []
+    physics_t, control_t, arrived, usage, control_cpu, handover_t, beside_t, ahead_t = [], [], [], [], [], [], [], []
     buffers = (getattr(sim, "nconmax", None), getattr(sim, "njmax", None))  # warp's, to see them grow
     gc.collect()
     gc.freeze()  # start-up's objects out of the collector, as the paced loop does (SimLoop)
@@ -234,17 +235,17 @@ def measure(
         c_cpu = time.thread_time()
         p = time.perf_counter()
         sim.write()
-        took = [0.0]
-        if beside is not None:
+        took = [0.0, 0.0]
 
-            def meanwhile(beside: Callable[[], None] = beside, took: list[float] = took) -> None:
-                b = time.perf_counter()
+        def meanwhile(beside: Callable[[], None] | None = beside, took: list[float] = took, t: float = t) -> None:
+            b = time.perf_counter()
+            if beside is not None:  # the bridge's while_stepping, then the manager's (SimLoop's order)
                 beside()
-                took[0] = time.perf_counter() - b
+            m = time.perf_counter()
+            manager.while_stepping(sim, t, period)
+            took[0], took[1] = m - b, time.perf_counter() - m
 
-            sim.step(substeps, meanwhile=meanwhile)
-        else:
-            sim.step(substeps)
+        sim.step(substeps, meanwhile=meanwhile)
         sim.read()
         e = time.perf_counter()
         if k >= warmup:
@@ -255,6 +256,7 @@ def measure(
             control_cpu.append(c_cpu - u0[0])
             handover_t.append(h - s)
             beside_t.append(took[0])
+            ahead_t.append(took[1])
             collected.append(collector.take())
         k += 1
     out_wall = time.perf_counter() - wall
@@ -266,6 +268,7 @@ def measure(
     out = {"physics": np.array(physics_t), "controllers": np.array(control_t), "arrived": np.array(arrived)}
     out["handover"] = np.array(handover_t)  # the controllers' time: hand-over, then the update
     out["beside"] = np.array(beside_t)  # the trajectories' hand-over, in the physics' time (while the device steps)
+    out["ahead"] = np.array(ahead_t)  # the controllers' work done ahead for the next update (while the device steps)
     out["control_cpu"] = np.array(control_cpu)  # the controllers' part of it on a core (thread clock)
     out["usage"] = np.array(usage).reshape(-1, 4)  # per period: on-CPU s, involuntary switches, minor and major faults
     out["steal"] = np.array([stolen / out_wall / (os.cpu_count() or 1)])  # the hypervisor's share of a core, on average
@@ -337,8 +340,10 @@ def main() -> None:
                 if model == "arm" and r["arrived"].any():
                     starts = np.flatnonzero(r["arrived"][:-1]) + 1  # the periods whose update starts them
                     b = r["beside"][r["arrived"]] * 1e3
+                    a = r["ahead"] * 1e3
                     print(
-                        f"#   trajectories: handed over beside the steps in {len(b)} periods, median {np.median(b):.2f} ms, "
+                        f"#   made ahead beside the steps: median {np.median(a):.2f} ms, worst {a.max():.2f}; "
+                        f"trajectories: handed over beside the steps in {len(b)} periods, median {np.median(b):.2f} ms, "
                         f"worst {b.max():.2f}; the {len(starts)} periods that start them: controllers median "
                         f"{np.median(ct[starts]):.2f}, worst {ct[starts].max():.2f} ms; whole period median "
                         f"{np.median(whole[starts]):.2f}, worst {whole[starts].max():.2f} ms",

@@ -200,6 +200,11 @@ class Controller:
     def update(self, sim: Any, time: float, period: float) -> None:
         raise NotImplementedError
 
+    def prepare(self, time: float) -> None:
+        """Optional: work for the update at `time` done ahead, while the device steps the period
+        before it (ControllerManager.while_stepping); from the controller's own state only, and
+        none that update() would not redo if something changed meanwhile."""
+
     def topics(self) -> ControllerTopics:
         """The controller's per-world ROS topics, as data (batchsim/controllers/topics.py)."""
         return ControllerTopics(self.name)

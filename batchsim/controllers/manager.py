@@ -241,6 +241,12 @@ class ControllerManager:
                 c.update(sim, time, period)
                 sim.command[where] = kept
 
+    def while_stepping(self, sim: Any, time: float, period: float) -> None:
+        """While the device steps the period from `time` (SimLoop): each running controller's
+        work for the next update done ahead (Controller.prepare)."""
+        for c, _, _ in self._plan:
+            c.prepare(time + period)
+
     def on_reset(self, sim: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
         """The listed worlds (None: all) were reset: every controller drops their goals.
 

@@ -367,6 +367,11 @@ class JointTrajectoryController(Controller):
             self._check_goals(sim, time)
         self._command(sim, period)
 
+    def prepare(self, time: float) -> None:
+        """The polynomials of the segments the worlds enter at the next update, made while the
+        device steps (Timeline.prepare)."""
+        self._timeline.prepare(time)
+
     def _check_goals(self, sim: Any, time: float) -> None:
         """Goal outcomes of this update; a world whose goal was aborted for a violation holds."""
         errors = (

@@ -53,6 +53,8 @@ class Timeline:
       spline: (nworld,) int8 Spline of the running trajectory.
       polynomial: (6, nworld, njoint), the polynomial of its segment `made` (splines.coefficients).
       made: (nworld,) int64, the segment `polynomial` is of; -1: none yet.
+      generation: (nworld,) int64, counts the world's starts and stops: a polynomial `prepare`
+        made is taken only for the same generation and segment.
       pending_start: (nworld,) float64, the pending trajectory's start time (0: the next
         update), inf for none.
       pending_npoint: (nworld,) int64, its points.
@@ -77,6 +79,11 @@ class Timeline:
         self.spline = np.zeros(W, np.int8)
         self.polynomial = np.zeros((6, W, nj))
         self.made = np.full(W, -1, np.int64)
+        self.generation = np.zeros(W, np.int64)
+        # polynomials made ahead (prepare) for the segment and generation each is of (-1: none)
+        self._prepared = np.zeros((6, W, nj))
+        self._prepared_segment = np.full(W, -1, np.int64)
+        self._prepared_generation = np.full(W, -1, np.int64)
         self.pending_start = np.full(W, np.inf)
         self.pending_npoint = np.zeros(W, np.int64)
         self.pending_spline = np.zeros(W, np.int8)
@@ -195,6 +202,7 @@ class Timeline:
         self.running[stopped] = False
         self.on_trajectory[stopped] = False
         self.hold[stopped] = hold
+        self.generation[stopped] += 1
 
     def _begin(
         self,
@@ -234,6 +242,7 @@ class Timeline:
         self.made[worlds] = skip
         self.running[worlds] = True
         self.on_trajectory[worlds] = True
+        self.generation[worlds] += 1
 
     def sample(self, time: float) -> None:
         """Reference position/velocity/acceleration of every world at `time`."""
@@ -250,25 +259,14 @@ class Timeline:
         times = pool.times
         rel = time - self.t0[running]
         base = pool.offset[RUNNING, running]
-        segment, last = self.segment[running], self.last[running]
-        # segment: the last point at or before rel; usually the same as last period or the next
-        moving = np.flatnonzero(
-            (segment < last) & (times[base + np.minimum(segment + 1, last)] <= rel + 1e-12)
-        )
-        while moving.size:
-            segment[moving] += 1
-            s = segment[moving]
-            ahead = (s < last[moving]) & (
-                times[base[moving] + np.minimum(s + 1, last[moving])] <= rel[moving] + 1e-12
-            )
-            moving = moving[ahead]
+        last = self.last[running]
+        segment = self._segment_at(running, base, rel)
         self.segment[running] = segment
         row = base + segment
         done = segment >= last  # past the last point: its position, at rest
         entered = np.flatnonzero(self.made[running] != segment)
         if entered.size:  # the segments time entered since the last update: their polynomials
-            self._make(running[entered], row[entered], done[entered])
-            self.made[running[entered]] = segment[entered]
+            self._enter(running[entered], segment[entered], row[entered], done[entered])
         s = np.zeros(len(running)) if self.step_points else rel - times[row]  # a held point: as it is
         every = len(running) == self.nworld
         terms = 6 if ((self.spline if every else self.spline[running]) == QUINTIC).any() else CUBIC_TERMS
@@ -284,6 +282,57 @@ class Timeline:
             pool.release(RUNNING, finished)
             pool.trim(finished)
 
+    def prepare(self, time: float) -> None:
+        """Make ahead the polynomials of the segments running worlds will have entered at `time`
+        (the next update's), so that its `sample` only takes them: a fleet whose trajectories
+        run in step enters new segments all in one period. Host work only, while the device steps
+        (Controller.prepare). A world whose queued trajectory is due by then is left out (it
+        starts anew); one that starts or stops meanwhile has a new generation, and makes its own."""
+        running = np.flatnonzero(self.running & (self.pending_start > time + 1e-9))
+        if not running.size:
+            return
+        base = self.pool.offset[RUNNING, running]
+        segment = self._segment_at(running, base, time - self.t0[running])
+        ahead = np.flatnonzero((segment != self.made[running]) & (segment < self.last[running]))
+        if not ahead.size:
+            return
+        worlds, segment = running[ahead], segment[ahead]
+        no = np.zeros(len(worlds), bool)
+        if len(worlds) == self.nworld:  # every world: straight into place
+            self._polynomials(worlds, base[ahead] + segment, no, out=self._prepared)
+        else:
+            self._prepared[:, worlds] = self._polynomials(worlds, base[ahead] + segment, no)
+        self._prepared_segment[worlds] = segment
+        self._prepared_generation[worlds] = self.generation[worlds]
+
+    def _segment_at(self, running: np.ndarray, base: np.ndarray, rel: np.ndarray) -> np.ndarray:
+        """(n,) the segment each of the running worlds is in at `rel` (time since its start): the
+        last point at or before it, from the current one on (usually the same or the next)."""
+        times = self.pool.times
+        segment, last = self.segment[running], self.last[running]
+        moving = np.flatnonzero((segment < last) & (times[base + np.minimum(segment + 1, last)] <= rel + 1e-12))
+        while moving.size:
+            segment[moving] += 1
+            s = segment[moving]
+            ahead = (s < last[moving]) & (times[base[moving] + np.minimum(s + 1, last[moving])] <= rel[moving] + 1e-12)
+            moving = moving[ahead]
+        return segment
+
+    def _enter(self, worlds: np.ndarray, segment: np.ndarray, row: np.ndarray, done: np.ndarray) -> None:
+        """The worlds' polynomials for the segments they entered: those `prepare` made for the
+        same segment and generation, else made now."""
+        ready = (self._prepared_segment[worlds] == segment) & (self._prepared_generation[worlds] == self.generation[worlds])
+        if ready.all() and len(worlds) == self.nworld:
+            np.copyto(self.polynomial, self._prepared)
+        else:
+            if ready.any():
+                taken = worlds[ready]
+                self.polynomial[:, taken] = self._prepared[:, taken]
+            if not ready.all():
+                self._make(worlds[~ready], row[~ready], done[~ready])
+        self._prepared_segment[worlds] = -1
+        self.made[worlds] = segment
+
     def _make(
         self,
         worlds: np.ndarray,
@@ -291,12 +340,26 @@ class Timeline:
         done: np.ndarray,
         start: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
-        """The polynomials of the worlds' segments that leave pool row `row` (past the last
-        point, `done`: that point's position); `start`: (n, njoint) the position and
-        velocity they leave from (at rest otherwise) instead of the row's point."""
+        """The worlds' polynomials (_polynomials), into place."""
+        if len(worlds) == self.nworld:  # a burst: straight into place
+            self._polynomials(worlds, row, done, start, out=self.polynomial)
+        else:
+            self.polynomial[:, worlds] = self._polynomials(worlds, row, done, start)
+
+    def _polynomials(
+        self,
+        worlds: np.ndarray,
+        row: np.ndarray,
+        done: np.ndarray,
+        start: tuple[np.ndarray, np.ndarray] | None = None,
+        out: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """(6, n, njoint): the polynomials of the worlds' segments that leave pool row `row` (past
+        the last point, `done`: that point's position); `start`: (n, njoint) the position and
+        velocity they leave from (at rest otherwise) instead of the row's point. `out`: where
+        to write them ((6, n, njoint), C-contiguous)."""
         pool, n = self.pool, len(worlds)
-        every = n == self.nworld  # a burst: straight into place
-        polynomial = self.polynomial if every else np.empty((6, n, self.njoint))
+        polynomial = np.empty((6, n, self.njoint)) if out is None else out
         go: slice | np.ndarray = slice(None)
         if done.any():
             polynomial[:, done] = 0.0
@@ -315,8 +378,7 @@ class Timeline:
                 coefficients(kind, ends, T, out=polynomial)
             else:
                 polynomial[:, go] = coefficients(kind, ends, T)
-        if not every:
-            self.polynomial[:, worlds] = polynomial
+        return polynomial
 
     def stop(self, worlds: np.ndarray, position: np.ndarray) -> None:
         """Drop the worlds' trajectories, running and queued, and hold them at `position`
@@ -333,3 +395,4 @@ class Timeline:
         self.executing[worlds] = False
         self.pending_start[worlds] = np.inf
         self.pending_npoint[worlds] = 0
+        self.generation[worlds] += 1
