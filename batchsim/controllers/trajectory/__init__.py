@@ -42,6 +42,10 @@ point's time, position, velocity and acceleration), a block per world and trajec
 memory follows each world's own trajectory; each world keeps the index of its current
 segment, which advances as time does, and that segment's polynomial, made when time
 enters it, so queueing costs a copy of the points and sampling O(worlds), not O(points).
+The loop keeps the work off the period's critical path where it can: the bridge hands
+trajectories over while the device steps (they start at the next update), and
+`prepare` (ControllerManager.while_stepping) makes beside the steps the polynomials of
+the segments the next update enters.
 
 Commands: a `position` interface gets the reference position (and `velocity`, when
 claimed alongside it, the reference velocity); a lone `velocity` or `effort` interface

@@ -6,8 +6,9 @@ makes the due ones running from the state the controller measured (inserting it 
 point the first segment leaves from, dropping points already past), and `sample` advances
 each world's current segment and evaluates the reference at the update's time. The pool
 holds the points as given; a segment's polynomial is made from its two points when time
-enters it (the first one's from the start state, when the trajectory starts) and kept
-while time stays in it, so queueing costs a copy of the points and sampling O(worlds).
+enters it (the first one's from the start state, when the trajectory starts), or ahead by
+`prepare` while the device steps the period before, and kept while time stays in it, so
+queueing costs a copy of the points and sampling O(worlds).
 A world with no running trajectory holds its reference. Goals and commands stay with
 the controller: `queue` and `start` return what it needs for them.
 """
