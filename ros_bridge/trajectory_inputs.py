@@ -2,17 +2,19 @@
 FollowJointTrajectory goals, from the workers' rings to their controllers.
 
 A period's trajectories are taken from the rings in the bridge's update() and handed to their
-controllers (`Input.apply`: validated and queued, about 0.5 ms per thousand 10-point
-trajectories on one core) while the device steps (BridgeHost.while_stepping), not on the period's
-critical path: ros2_control's JointTrajectoryController likewise takes a message in its
-subscriber's callback, outside the control loop, and starts it at its next update. So a
-trajectory stamped zero starts at the next period's update, one period after the one whose update took
-it from the ring. Where the loop does not step, or must not wait for it, the hand-over is at once:
-under lockstep (a world's trajectory then starts in the period its arrival let begin), while
-paused, in the lockstep gate, and when the same read holds a controller switch (which resets its
-controllers before the steps: what came before it must be there to be dropped) or a goal's cancel
-(served after the read's trajectories, so that it finds the goal it cancels). A batch not yet handed over when the next period, the gate or a
-pause comes is handed over then, first: none is lost.
+controllers (`Input.apply`: validated and queued; 2.2-2.9 ms for 4096 10-point trajectories on
+the 2-core VM, 2.4-5.4 ms on the GPU hosts) while the device steps (BridgeHost.while_stepping),
+not on the period's critical path: ros2_control's JointTrajectoryController likewise takes a
+message in its subscriber's callback, outside the control loop, and starts it at its next
+update. So a trajectory stamped zero starts at the next period's update, one period after the
+one whose update took it from the ring.
+
+Where the loop does not step, or must not wait for it, the hand-over is at once: under lockstep
+(a world's trajectory then starts in the period its arrival let begin), while paused, in the
+lockstep gate, and when the same read holds a controller switch (which resets its controllers
+before the steps: what came before it must be there to be dropped) or a goal's cancel (served
+after the read's trajectories, so that it finds the goal it cancels). A batch not yet handed
+over when the next period, the gate or a pause comes is handed over then, first: none is lost.
 
 A controller's verdicts on a batch handed over while the device steps reach BAD_COMMAND in the
 next update (`verdicts`), as though the trajectories had arrived then: accepted ones count as the

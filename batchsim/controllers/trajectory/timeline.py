@@ -298,11 +298,7 @@ class Timeline:
         if not ahead.size:
             return
         worlds, segment = running[ahead], segment[ahead]
-        no = np.zeros(len(worlds), bool)
-        if len(worlds) == self.nworld:  # every world: straight into place
-            self._polynomials(worlds, base[ahead] + segment, no, out=self._prepared)
-        else:
-            self._prepared[:, worlds] = self._polynomials(worlds, base[ahead] + segment, no)
+        self._make(worlds, base[ahead] + segment, np.zeros(len(worlds), bool), into=self._prepared)
         self._prepared_segment[worlds] = segment
         self._prepared_generation[worlds] = self.generation[worlds]
 
@@ -340,12 +336,15 @@ class Timeline:
         row: np.ndarray,
         done: np.ndarray,
         start: tuple[np.ndarray, np.ndarray] | None = None,
+        into: np.ndarray | None = None,
     ) -> None:
-        """The worlds' polynomials (_polynomials), into place."""
-        if len(worlds) == self.nworld:  # a burst: straight into place
-            self._polynomials(worlds, row, done, start, out=self.polynomial)
+        """The worlds' polynomials (_polynomials), into their place in `into` ((6, nworld, njoint):
+        `polynomial`, or `_prepared` for prepare)."""
+        into = self.polynomial if into is None else into
+        if len(worlds) == self.nworld:  # every world (a burst): straight into place
+            self._polynomials(worlds, row, done, start, out=into)
         else:
-            self.polynomial[:, worlds] = self._polynomials(worlds, row, done, start)
+            into[:, worlds] = self._polynomials(worlds, row, done, start)
 
     def _polynomials(
         self,
