@@ -13,7 +13,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from batchsim.controllers.base import Controller, Params, last_per_world
+from batchsim.controllers.base import Controller, Params, last_per_world, rows_all
 from batchsim.controllers.topics import ControllerTopics, Input, MessageKind
 from batchsim.hardware import MAX_COMMAND
 from batchsim.model import RobotSpec
@@ -79,8 +79,8 @@ class ForwardCommandController(Controller):
         if len(values) != len(w):
             raise ValueError(f"{self.name}: {len(w)} worlds but {len(values)} rows of commands")
         with np.errstate(invalid="ignore"):
-            finite = np.isfinite(values).all(axis=1)
-            small = (np.abs(values) < MAX_COMMAND).all(axis=1)
+            finite = rows_all(np.isfinite(values))
+            small = rows_all(np.abs(values) < MAX_COMMAND)
         for k in np.flatnonzero((lengths != nj) | ~finite | ~small).tolist():
             if k in rejected:
                 continue

@@ -32,7 +32,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from batchsim.controllers.base import Params
+from batchsim.controllers.base import Params, rows_any
 from batchsim.controllers.topics import GoalOutcome
 
 #: control_msgs/JointTolerance's value that erases a default tolerance
@@ -235,9 +235,9 @@ class GoalTracker:
         goal_w = w[~moving]
         self._first[:] = False
         path_bad = self._outside(self._path, path_w, errors)
-        violated = path_w[path_bad.any(axis=1)]
+        violated = path_w[rows_any(path_bad)]
         goal_bad = self._outside(self._goal, goal_w, errors)
-        inside = ~goal_bad.any(axis=1)
+        inside = ~rows_any(goal_bad)
         clear = ~np.isin(goal_w, violated) if violated.size else np.ones(len(goal_w), bool)
         succeeded = goal_w[inside & clear]
         late_rows = ~inside & clear

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from batchsim.controllers.base import rows_all
 from batchsim.controllers.topics import TrajectoryBatch
 from batchsim.controllers.trajectory.splines import coefficients, spline_of
 from batchsim.hardware import MAX_COMMAND
@@ -275,7 +276,7 @@ def check(
             lambda k: "the goal's trajectory has no points",
         ),
         (
-            ~empty & ~b.joint_mask.all(axis=1) & (not allow_partial),
+            ~empty & ~rows_all(b.joint_mask) & (not allow_partial),
             lambda k: (
                 f"the trajectory lacks joint {joints[int(np.argmin(b.joint_mask[k]))]!r} and "
                 "allow_partial_joints_goal is false"
