@@ -1372,3 +1372,87 @@ def test_segments_made_while_the_device_steps_give_the_reference_made_at_the_upd
         for sim in sims:
             sim.shutdown()
     assert entered_ahead >= 10, entered_ahead
+
+
+OPEN_LOOP_JTC = LINEAR_JTC + "    open_loop_control: true\n"
+
+
+@pytest.mark.parametrize(
+    "yaml_text", [LINEAR_JTC, OPEN_LOOP_JTC, HELD_JTC], ids=["closed loop", "open loop", "none"]
+)
+def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_the_start(yaml_text):
+    """Trajectories handed over beside the steps start at the next update. Under open_loop_control
+    they leave from the reference, known then, and `prepare` makes their first segments ahead (4096
+    arms' burst: the start update's largest part). The reference must be the one made at the start,
+    through bursts, partial goals (made at the start), stamped starts, trajectories replaced, worlds
+    reset and goals canceled after `prepare`; a start whose first segments were all made ahead
+    makes none. In closed loop (they leave from the state measured at the start) none is made ahead."""
+    from batchsim.controllers.trajectory import timeline
+
+    nworld = 8
+    sims = [batchsim.make("arm", nworld, "cpu") for _ in range(2)]
+    managers = []
+    for sim in sims:
+        sim.configure()
+        sim.activate()
+        managers.append(load_controllers(yaml_text, sim.spec, nworld))
+    jtcs = [m["t"] for m in managers]
+    made = {"calls": 0}
+    coefficients = timeline.coefficients
+
+    def counted(*args, **kwargs):
+        made["calls"] += 1
+        return coefficients(*args, **kwargs)
+
+    timeline.coefficients = counted
+    period, substeps = 0.01, round(0.01 / sims[0].dt)
+    rngs = [np.random.default_rng(9), np.random.default_rng(9)]
+    started_ahead = 0
+    try:
+        for k in range(120):
+            t = k * period
+            calls = []
+            for sim, manager, jtc, rng, ahead in zip(sims, managers, jtcs, rngs, (False, True), strict=True):
+                sim.read()
+                made["calls"] = 0
+                manager.update(sim, t, period)
+                calls.append(made["calls"])
+                sim.write()
+                goals = _goals_of_period(k, rng, nworld, period)
+                if k % 10 == 7:  # stamped in the past: its first point gone, it leaves from the second row
+                    goals.append((2, (k - 3) * period, np.array([0.01, 0.05, 0.09]), rng.uniform(-0.3, 0.3, (3, 6)), None, None, [True] * 6))
+                if goals:  # handed over beside the steps, as the bridge does: they start at the next update
+                    batch = batch_of(goals)
+                    if k % 18 == 0:  # some bursts are goals, aborted on a tight path tolerance
+                        batch.goals = np.arange(1, len(goals) + 1) + 100 * k
+                        batch.path_tolerance = np.tile([0.05, -1.0, -1.0], (len(goals), 6, 1))
+                    assert not jtc.set_trajectories(batch)
+                if ahead and k % 7 != 3:  # some periods not made ahead: what was made before must not be taken
+                    # nor what was made for another time (every 10th: half a period on)
+                    manager.while_stepping(sim, t, period / 2 if k % 10 == 7 else period)
+                if k % 9 == 0 and k % 4 == 0:  # after prepare: world 5's trajectory replaced (at once, as
+                    # the bridge does when a switch comes in the same read), worlds 1 and 3 reset
+                    late = [(5, 0.0, np.array([0.02, 0.07]), rng.uniform(-0.3, 0.3, (2, 6)), np.zeros((2, 6)), None, [True] * 6)]
+                    assert not jtc.set_trajectories(batch_of(late))
+                    manager.on_reset(sim, np.array([1, 3]))
+                if k % 18 == 9:
+                    jtc.cancel(np.array([6]), np.array([100 * (k - 9) + 7]))  # world 6's burst goal, before it starts
+                sim.step(substeps)
+            for name in ("reference_position", "reference_velocity", "reference_acceleration"):
+                # a stamped start's first segment is made for t + period and taken at (k + 1) period: the
+                # two differ by a rounding, of the size of the largest value (accelerations of thousands)
+                made_at_start = getattr(jtcs[0], name)
+                scale = 1e-12 * max(1.0, float(np.abs(made_at_start).max()))
+                np.testing.assert_allclose(getattr(jtcs[1], name), made_at_start, rtol=1e-12, atol=scale)
+            np.testing.assert_array_equal(jtcs[1].executing, jtcs[0].executing)
+            if k % 9 == 1 and calls[0] and not calls[1]:
+                started_ahead += 1  # a burst started in this update, every first segment made ahead
+    finally:
+        timeline.coefficients = coefficients
+        for sim in sims:
+            sim.shutdown()
+    if jtcs[0].open_loop:
+        assert started_ahead >= 5, started_ahead
+    else:
+        assert started_ahead == 0, started_ahead
+

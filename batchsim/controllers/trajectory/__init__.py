@@ -45,7 +45,8 @@ enters it, so queueing costs a copy of the points and sampling O(worlds), not O(
 The loop keeps the work off the period's critical path where it can: the bridge hands
 trajectories over while the device steps (they start at the next update), and
 `prepare` (ControllerManager.while_stepping) makes beside the steps the polynomials of
-the segments the next update enters.
+the segments the next update enters, and under open_loop_control (trajectories leave from
+the reference, known then) the first segments of the trajectories it starts.
 
 Commands: a `position` interface gets the reference position (and `velocity`, when
 claimed alongside it, the reference velocity); a lone `velocity` or `effort` interface

@@ -369,8 +369,9 @@ class JointTrajectoryController(Controller):
 
     def prepare(self, time: float) -> None:
         """The polynomials of the segments the worlds enter at the next update, made while the
-        device steps (Timeline.prepare)."""
-        self._timeline.prepare(time)
+        device steps (Timeline.prepare); under open_loop_control the first segments of the
+        trajectories that start then too (they leave from the reference, known now)."""
+        self._timeline.prepare(time, starts=self.open_loop)
 
     def _check_goals(self, sim: Any, time: float) -> None:
         """Goal outcomes of this update; a world whose goal was aborted for a violation holds."""

@@ -7,7 +7,8 @@ point the first segment leaves from, dropping points already past), and `sample`
 each world's current segment and evaluates the reference at the update's time. The pool
 holds the points as given; a segment's polynomial is made from its two points when time
 enters it (the first one's from the start state, when the trajectory starts), or ahead by
-`prepare` while the device steps the period before, and kept while time stays in it, so
+`prepare` while the device steps the period before (a first one too, when the state it
+leaves from is the reference then), and kept while time stays in it, so
 queueing costs a copy of the points and sampling O(worlds).
 A world with no running trajectory holds its reference. Goals and commands stay with
 the controller: `queue` and `start` return what it needs for them.
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from batchsim.controllers.base import last_per_world, ranges
+from batchsim.controllers.base import last_per_world, ranges, rows_all
 from batchsim.controllers.trajectory.pool import PENDING, RUNNING, SegmentPool
 from batchsim.controllers.trajectory.splines import (
     CUBIC_TERMS,
@@ -54,8 +55,9 @@ class Timeline:
       spline: (nworld,) int8 Spline of the running trajectory.
       polynomial: (6, nworld, njoint), the polynomial of its segment `made` (splines.coefficients).
       made: (nworld,) int64, the segment `polynomial` is of; -1: none yet.
-      generation: (nworld,) int64, counts the world's starts and stops: a polynomial `prepare`
-        made is taken only for the same generation and segment.
+      generation: (nworld,) int64, counts the world's queued trajectories, starts and stops: a
+        polynomial `prepare` made is taken only for the same generation and segment (and, for
+        a first segment, the same start time and state).
       pending_start: (nworld,) float64, the pending trajectory's start time (0: the next
         update), inf for none.
       pending_npoint: (nworld,) int64, its points.
@@ -85,6 +87,10 @@ class Timeline:
         self._prepared = np.zeros((6, W, nj))
         self._prepared_segment = np.full(W, -1, np.int64)
         self._prepared_generation = np.full(W, -1, np.int64)
+        # or the first segment of the queued trajectory due then: its start time (nan: not one),
+        # and the position and velocity it leaves from
+        self._prepared_start = np.full(W, np.nan)
+        self._prepared_from = np.zeros((2, W, nj))
         self.pending_start = np.full(W, np.inf)
         self.pending_npoint = np.zeros(W, np.int64)
         self.pending_spline = np.zeros(W, np.int8)
@@ -139,6 +145,7 @@ class Timeline:
         self.pending_npoint[worlds] = npoint
         self.pending_spline[worlds] = spline[keep]
         self.pending_mask[worlds] = b.joint_mask[keep]
+        self.generation[worlds] += 1  # a first segment made ahead for the one replaced is not taken
         return keep
 
     def start(
@@ -155,10 +162,30 @@ class Timeline:
           end: (n,) sim time of each trajectory's last point.
           started: the worlds of `due` now running (the others had no point ahead, and hold).
         """
+        t0, off, skip, end = self._leaving(due, time)
+        npoint = self.pending_npoint[due]
+        stop = skip >= npoint
+        if stop.any():
+            self._hold_at_end(due[stop], off[stop], npoint[stop], here[stop])
+            go = ~stop
+            worlds, t0, skip, here, here_v = due[go], t0[go], skip[go], here[go], here_v[go]
+        else:  # the usual case: every one has a point ahead
+            worlds = due
+        if worlds.size:
+            self.pool.promote(worlds)
+            self._begin(worlds, t0, time, skip, here, here_v)
+        self.pending_start[due] = np.inf
+        self.pending_npoint[due] = 0
+        return end, worlds
+
+    def _leaving(self, due: np.ndarray, time: float) -> tuple[np.ndarray, ...]:
+        """For the due worlds' queued trajectories started at `time`: their start t0 (sim
+        time), the offset of their pending block, the points already past at `time` (dropped:
+        the first segment leaves the row of the last of them, or row 0), and the sim time of
+        their last point; each (n,)."""
         pool = self.pool
         t0 = np.where(self.pending_start[due] > 0, self.pending_start[due], time)
         npoint = self.pending_npoint[due]
-        # the first point still ahead: points already in the past at the start are dropped
         off = pool.offset[PENDING, due]
         skip = np.zeros(len(due), np.int64)
         late = npoint > 0
@@ -171,19 +198,7 @@ class Timeline:
         end = t0.copy()
         filled = npoint > 0
         end[filled] += pool.times[off[filled] + npoint[filled]]
-        stop = skip >= npoint
-        if stop.any():
-            self._hold_at_end(due[stop], off[stop], npoint[stop], here[stop])
-            go = ~stop
-            worlds, t0, skip, here, here_v = due[go], t0[go], skip[go], here[go], here_v[go]
-        else:  # the usual case: every one has a point ahead
-            worlds = due
-        if worlds.size:
-            pool.promote(worlds)
-            self._begin(worlds, t0, time, skip, here, here_v)
-        self.pending_start[due] = np.inf
-        self.pending_npoint[due] = 0
-        return end, worlds
+        return t0, off, skip, end
 
     def _hold_at_end(self, stopped: np.ndarray, off: np.ndarray, npoint: np.ndarray, here: np.ndarray) -> None:
         """Due trajectories with every point already passed (a single point at time 0, stamped
@@ -221,7 +236,7 @@ class Timeline:
         mask = self.pending_mask[worlds]
         start_row = off + skip
         pool.times[start_row] = time - t0
-        partial = ~mask.all(axis=1)
+        partial = ~rows_all(mask)
         if partial.any():  # joints a partial goal leaves out go to their reference and hold there
             hold = np.where(
                 self.on_trajectory[worlds[partial], None],
@@ -239,7 +254,7 @@ class Timeline:
         self.segment[worlds] = skip
         self.last[worlds] = npoint
         self.spline[worlds] = self.pending_spline[worlds]
-        self._make(worlds, start_row, np.zeros(len(worlds), bool), start=(here, here_v))
+        self._first_segments(worlds, skip, start_row, time, here, here_v)
         self.made[worlds] = skip
         self.running[worlds] = True
         self.on_trajectory[worlds] = True
@@ -283,24 +298,42 @@ class Timeline:
             pool.release(RUNNING, finished)
             pool.trim(finished)
 
-    def prepare(self, time: float) -> None:
-        """Make ahead the polynomials of the segments running worlds will have entered at `time`
-        (the next update's), so that its `sample` only takes them: a fleet whose trajectories
-        run in step enters new segments all in one period. Host work only, while the device steps
-        (Controller.prepare). A world whose queued trajectory is due by then is left out (it
-        starts anew); one that starts or stops meanwhile has a new generation, and makes its own."""
-        running = np.flatnonzero(self.running & (self.pending_start > time + 1e-9))
-        if not running.size:
-            return
-        base = self.pool.offset[RUNNING, running]
-        segment = self._segment_at(running, base, time - self.t0[running])
-        ahead = np.flatnonzero((segment != self.made[running]) & (segment < self.last[running]))
-        if not ahead.size:
-            return
-        worlds, segment = running[ahead], segment[ahead]
-        self._make(worlds, base[ahead] + segment, np.zeros(len(worlds), bool), into=self._prepared)
-        self._prepared_segment[worlds] = segment
-        self._prepared_generation[worlds] = self.generation[worlds]
+    def prepare(self, time: float, starts: bool = False) -> None:
+        """Make ahead what the next update (at `time`) would make, so that it only takes it: the
+        polynomials of the segments running worlds will have entered (a fleet whose trajectories
+        run in step enters new segments all in one period), and with `starts` (the trajectories
+        leave from the reference: open_loop_control) the first segments of the queued ones due
+        by then, from the reference now. Host work only, while the device steps
+        (Controller.prepare). A world that queues, starts or stops meanwhile has a new
+        generation, and makes its own; so does a start from another state."""
+        due = np.isfinite(self.pending_start) & (self.pending_start <= time + 1e-9)
+        running = np.flatnonzero(self.running & ~due)
+        if running.size:
+            base = self.pool.offset[RUNNING, running]
+            segment = self._segment_at(running, base, time - self.t0[running])
+            ahead = np.flatnonzero((segment != self.made[running]) & (segment < self.last[running]))
+            if ahead.size:
+                worlds, segment = running[ahead], segment[ahead]
+                self._make(worlds, base[ahead] + segment, np.zeros(len(worlds), bool), into=self._prepared)
+                self._prepared_segment[worlds] = segment
+                self._prepared_generation[worlds] = self.generation[worlds]
+                self._prepared_start[worlds] = np.nan
+        due = np.flatnonzero(due & rows_all(self.pending_mask)) if starts else ()  # partial goals: at the start
+        if len(due):
+            t0, off, skip, _ = self._leaving(due, time)
+            go = skip < self.pending_npoint[due]  # the others hold their last point
+            worlds, row = due[go], (off + skip)[go]
+            every = len(worlds) == self.nworld
+            here = self._reference[:2] if every else self._reference[:2, worlds]
+            self._make(worlds, row, np.zeros(len(worlds), bool), start=(here[0], here[1]), into=self._prepared,
+                       spline=self.pending_spline[worlds], leave=time - t0[go])
+            self._prepared_segment[worlds] = skip[go]
+            self._prepared_generation[worlds] = self.generation[worlds]
+            self._prepared_start[worlds] = time
+            if every:
+                np.copyto(self._prepared_from, here)
+            else:
+                self._prepared_from[:, worlds] = here
 
     def _segment_at(self, running: np.ndarray, base: np.ndarray, rel: np.ndarray) -> np.ndarray:
         """(n,) the segment each of the running worlds is in at `rel` (time since its start): the
@@ -318,7 +351,11 @@ class Timeline:
     def _enter(self, worlds: np.ndarray, segment: np.ndarray, row: np.ndarray, done: np.ndarray) -> None:
         """The worlds' polynomials for the segments they entered: those `prepare` made for the
         same segment and generation, else made now."""
-        ready = (self._prepared_segment[worlds] == segment) & (self._prepared_generation[worlds] == self.generation[worlds])
+        ready = (
+            (self._prepared_segment[worlds] == segment)
+            & (self._prepared_generation[worlds] == self.generation[worlds])
+            & np.isnan(self._prepared_start[worlds])
+        )
         if ready.all() and len(worlds) == self.nworld:
             np.copyto(self.polynomial, self._prepared)
         else:
@@ -330,6 +367,39 @@ class Timeline:
         self._prepared_segment[worlds] = -1
         self.made[worlds] = segment
 
+    def _first_segments(
+        self,
+        worlds: np.ndarray,
+        skip: np.ndarray,
+        row: np.ndarray,
+        time: float,
+        here: np.ndarray,
+        here_v: np.ndarray,
+    ) -> None:
+        """The starting worlds' first polynomials, leaving block row `skip` (pool row `row`) from
+        `here`, `here_v`: those `prepare` made for the same row, generation, start time and
+        state (never a partial goal's: its other joints' points change at the start), else
+        made now."""
+        every = len(worlds) == self.nworld  # (in order: `due`)
+        made_from = self._prepared_from if every else self._prepared_from[:, worlds]
+        ready = (
+            (self._prepared_segment[worlds] == skip)
+            & (self._prepared_generation[worlds] == self.generation[worlds])
+            & (np.abs(self._prepared_start[worlds] - time) <= 1e-9)  # nan: not a first segment
+        )
+        if not ((made_from[0] == here).all() and (made_from[1] == here_v).all()):  # (a tenth of a per-row test)
+            ready &= rows_all(made_from[0] == here) & rows_all(made_from[1] == here_v)
+        self._prepared_segment[worlds] = -1
+        if ready.all() and every:  # a burst made ahead
+            np.copyto(self.polynomial, self._prepared)
+            return
+        if ready.any():
+            taken = worlds[ready]
+            self.polynomial[:, taken] = self._prepared[:, taken]
+        if not ready.all():
+            rest = ~ready
+            self._make(worlds[rest], row[rest], np.zeros(int(rest.sum()), bool), start=(here[rest], here_v[rest]))
+
     def _make(
         self,
         worlds: np.ndarray,
@@ -337,14 +407,16 @@ class Timeline:
         done: np.ndarray,
         start: tuple[np.ndarray, np.ndarray] | None = None,
         into: np.ndarray | None = None,
+        spline: np.ndarray | None = None,
+        leave: np.ndarray | None = None,
     ) -> None:
-        """The worlds' polynomials (_polynomials), into their place in `into` ((6, nworld, njoint):
-        `polynomial`, or `_prepared` for prepare)."""
+        """The worlds' polynomials (_polynomials, with its `spline` and `leave`), into their
+        place in `into` ((6, nworld, njoint): `polynomial`, or `_prepared` for prepare)."""
         into = self.polynomial if into is None else into
         if len(worlds) == self.nworld:  # every world (a burst): straight into place
-            self._polynomials(worlds, row, done, start, out=into)
+            self._polynomials(worlds, row, done, start, out=into, spline=spline, leave=leave)
         else:
-            into[:, worlds] = self._polynomials(worlds, row, done, start)
+            into[:, worlds] = self._polynomials(worlds, row, done, start, spline=spline, leave=leave)
 
     def _polynomials(
         self,
@@ -353,11 +425,15 @@ class Timeline:
         done: np.ndarray,
         start: tuple[np.ndarray, np.ndarray] | None = None,
         out: np.ndarray | None = None,
+        spline: np.ndarray | None = None,
+        leave: np.ndarray | None = None,
     ) -> np.ndarray:
         """(6, n, njoint): the polynomials of the worlds' segments that leave pool row `row` (past
         the last point, `done`: that point's position); `start`: (n, njoint) the position and
         velocity they leave from (at rest otherwise) instead of the row's point. `out`: where
-        to write them ((6, n, njoint), C-contiguous)."""
+        to write them ((6, n, njoint), C-contiguous). A queued trajectory's first segment, made
+        before it starts: `spline` (n,) its Spline and `leave` (n,) the time of `row` then (the
+        running trajectory's and the row's time otherwise)."""
         pool, n = self.pool, len(worlds)
         polynomial = np.empty((6, n, self.njoint)) if out is None else out
         go: slice | np.ndarray = slice(None)
@@ -370,7 +446,8 @@ class Timeline:
             if self.step_points:  # each point as it is
                 kind, T = np.full(len(r), HELD, np.int8), np.ones(len(r))
             else:
-                kind, T = self.spline[worlds[go]], pool.times[r + 1] - pool.times[r]
+                kind = self.spline[worlds[go]] if spline is None else spline[go]
+                T = pool.times[r + 1] - (pool.times[r] if leave is None else leave[go])
             ends = pool.ends(r, planes_read(kind), start=start is not None)  # (6, n, nj): splines.ENDS
             if start is not None:  # p0, v0, a0
                 ends[0], ends[2], ends[4] = start[0][go], start[1][go], 0.0
