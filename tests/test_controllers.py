@@ -1310,14 +1310,29 @@ HELD_JTC = arm_yaml(
 )
 
 
+
+def _assert_same_reference(ahead, at_update) -> None:
+    """The reference of a fleet whose work was made ahead is the one made at the update. prepare
+    works at t + period and the update comes at (k + 1) period: the two times differ by a
+    rounding, which a polynomial of a short stamped segment (accelerations of thousands) turns
+    into differences of that size's rounding."""
+    for name in ("reference_position", "reference_velocity", "reference_acceleration"):
+        made_at_update = getattr(at_update, name)
+        scale = 1e-12 * max(1.0, float(np.abs(made_at_update).max()))
+        np.testing.assert_allclose(getattr(ahead, name), made_at_update, rtol=1e-12, atol=scale)
+    np.testing.assert_array_equal(ahead.executing, at_update.executing)
+
+
 @pytest.mark.parametrize("yaml_text", [LINEAR_JTC, HELD_JTC], ids=["splines", "none"])
 def test_segments_made_while_the_device_steps_give_the_reference_made_at_the_update(yaml_text):
     """ControllerManager.while_stepping makes ahead the polynomials of the segments the worlds enter
     at the next update (a fleet running in step enters them all in one period: 4096 arms' update
     took 5 ms in such a period on an H100 host). The reference must be the one made at the update,
     through bursts, partial goals, quintics, stamped starts, resets and stops; and the update of a
-    period whose segments were made ahead makes none."""
-    from batchsim.controllers.trajectory import timeline
+    period whose segments were made ahead makes none. prepare samples the reference ahead too: an
+    update whose worlds keep the polynomials prepare sampled (or take those it made) samples none."""
+    from batchsim.controllers.trajectory import pool as timeline  # where the polynomials are made
+    from batchsim.controllers.trajectory import timeline as sampling
 
     nworld = 8
     sims = [batchsim.make("arm", nworld, "cpu") for _ in range(2)]
@@ -1327,7 +1342,7 @@ def test_segments_made_while_the_device_steps_give_the_reference_made_at_the_upd
         sim.activate()
         managers.append(load_controllers(yaml_text, sim.spec, nworld))  # partial goals allowed
     jtcs = [m["t"] for m in managers]
-    made = {"calls": 0}
+    made = {"calls": 0, "samples": 0}
     coefficients = timeline.coefficients
 
     def counted(*args, **kwargs):
@@ -1335,13 +1350,20 @@ def test_segments_made_while_the_device_steps_give_the_reference_made_at_the_upd
         return coefficients(*args, **kwargs)
 
     timeline.coefficients = counted
+    evaluate = sampling.evaluate
+
+    def sampled(*args, **kwargs):
+        made["samples"] += 1
+        return evaluate(*args, **kwargs)
+
+    sampling.evaluate = sampled
     period, substeps = 0.01, round(0.01 / sims[0].dt)
     rngs = [np.random.default_rng(5), np.random.default_rng(5)]
-    entered_ahead = 0
+    entered_ahead = sampled_ahead = 0
     try:
         for k in range(120):
             t = k * period
-            calls = []
+            calls, samples = [], []
             for sim, manager, jtc, rng, ahead in zip(sims, managers, jtcs, rngs, (False, True), strict=True):
                 sim.read()
                 goals = _goals_of_period(k, rng, nworld, period)
@@ -1355,23 +1377,28 @@ def test_segments_made_while_the_device_steps_give_the_reference_made_at_the_upd
                     manager.on_reset(sim, np.array([1, 3]))
                 if k == 70:
                     jtc.cancel(np.array([0]), np.array([0]))  # no goal to cancel: nothing happens
-                made["calls"] = 0
+                made["calls"] = made["samples"] = 0
                 manager.update(sim, t, period)
                 calls.append(made["calls"])
+                samples.append(made["samples"])
                 sim.write()
                 if ahead and k % 5 != 1:  # some periods not made ahead: what was made before must not be taken
                     manager.while_stepping(sim, t, period)
                 sim.step(substeps)
-            for name in ("reference_position", "reference_velocity", "reference_acceleration"):
-                np.testing.assert_allclose(getattr(jtcs[1], name), getattr(jtcs[0], name), rtol=1e-12, atol=1e-12)
-            np.testing.assert_array_equal(jtcs[1].executing, jtcs[0].executing)
+            _assert_same_reference(jtcs[1], jtcs[0])
             if calls[0] and not calls[1]:
                 entered_ahead += 1  # segments entered in this update, every one made ahead
+            if samples[0] and not samples[1]:
+                sampled_ahead += 1  # the whole reference sampled by prepare
+            if k and (k - 1) % 5 != 1 and k != 50 and not calls[1]:  # prepared, nothing made or reset since
+                assert not samples[1], f"period {k}: the update sampled what prepare had"
     finally:
         timeline.coefficients = coefficients
+        sampling.evaluate = evaluate
         for sim in sims:
             sim.shutdown()
     assert entered_ahead >= 10, entered_ahead
+    assert sampled_ahead >= 25, sampled_ahead
 
 
 OPEN_LOOP_JTC = LINEAR_JTC + "    open_loop_control: true\n"
@@ -1386,8 +1413,10 @@ def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_t
     arms' burst: the start update's largest part). The reference must be the one made at the start,
     through bursts, partial goals (made at the start), stamped starts, trajectories replaced, worlds
     reset and goals canceled after `prepare`; a start whose first segments were all made ahead
-    makes none. In closed loop (they leave from the state measured at the start) none is made ahead."""
-    from batchsim.controllers.trajectory import timeline
+    makes none, nor samples the reference prepare sampled. In closed loop (they leave from the
+    state measured at the start) none is made ahead."""
+    from batchsim.controllers.trajectory import pool as timeline  # where the polynomials are made
+    from batchsim.controllers.trajectory import timeline as sampling
 
     nworld = 8
     sims = [batchsim.make("arm", nworld, "cpu") for _ in range(2)]
@@ -1397,26 +1426,31 @@ def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_t
         sim.activate()
         managers.append(load_controllers(yaml_text, sim.spec, nworld))
     jtcs = [m["t"] for m in managers]
-    made = {"calls": 0}
-    coefficients = timeline.coefficients
+    made = {"calls": 0, "samples": 0}
+    coefficients, evaluate = timeline.coefficients, sampling.evaluate
 
     def counted(*args, **kwargs):
         made["calls"] += 1
         return coefficients(*args, **kwargs)
 
-    timeline.coefficients = counted
+    def sampled(*args, **kwargs):
+        made["samples"] += 1
+        return evaluate(*args, **kwargs)
+
+    timeline.coefficients, sampling.evaluate = counted, sampled
     period, substeps = 0.01, round(0.01 / sims[0].dt)
     rngs = [np.random.default_rng(9), np.random.default_rng(9)]
     started_ahead = 0
     try:
         for k in range(120):
             t = k * period
-            calls = []
+            calls, samples = [], []
             for sim, manager, jtc, rng, ahead in zip(sims, managers, jtcs, rngs, (False, True), strict=True):
                 sim.read()
-                made["calls"] = 0
+                made["calls"] = made["samples"] = 0
                 manager.update(sim, t, period)
                 calls.append(made["calls"])
+                samples.append(made["samples"])
                 sim.write()
                 goals = _goals_of_period(k, rng, nworld, period)
                 if k % 10 == 7:  # stamped in the past: its first point gone, it leaves from the second row
@@ -1438,17 +1472,14 @@ def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_t
                 if k % 18 == 9:
                     jtc.cancel(np.array([6]), np.array([100 * (k - 9) + 7]))  # world 6's burst goal, before it starts
                 sim.step(substeps)
-            for name in ("reference_position", "reference_velocity", "reference_acceleration"):
-                # a stamped start's first segment is made for t + period and taken at (k + 1) period: the
-                # two differ by a rounding, of the size of the largest value (accelerations of thousands)
-                made_at_start = getattr(jtcs[0], name)
-                scale = 1e-12 * max(1.0, float(np.abs(made_at_start).max()))
-                np.testing.assert_allclose(getattr(jtcs[1], name), made_at_start, rtol=1e-12, atol=scale)
-            np.testing.assert_array_equal(jtcs[1].executing, jtcs[0].executing)
+            _assert_same_reference(jtcs[1], jtcs[0])
             if k % 9 == 1 and calls[0] and not calls[1]:
                 started_ahead += 1  # a burst started in this update, every first segment made ahead
+            if k and (k - 1) % 7 != 3 and (k - 1) % 10 != 7 and (k - 1) % 36 and not calls[1]:
+                # prepared for this update, nothing made, replaced or reset since: the reference too
+                assert not samples[1], f"period {k}: the update sampled what prepare had"
     finally:
-        timeline.coefficients = coefficients
+        timeline.coefficients, sampling.evaluate = coefficients, evaluate
         for sim in sims:
             sim.shutdown()
     if jtcs[0].open_loop:
@@ -1456,3 +1487,39 @@ def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_t
     else:
         assert started_ahead == 0, started_ahead
 
+
+
+def test_a_fleet_whose_every_world_enters_a_segment_or_starts_in_one_period_gets_the_reference_made_then():
+    """prepare samples ahead from two blocks: the polynomials kept and those it made (segments
+    entered, first segments). When every world is in the second, world 1 entering a segment and
+    world 0 starting a trajectory, each must get its own reference."""
+    yaml_text = LINEAR_JTC + "    open_loop_control: true\n"
+    sims = [batchsim.make("arm", 2, "cpu") for _ in range(2)]
+    managers = []
+    for sim in sims:
+        sim.configure()
+        sim.activate()
+        managers.append(load_controllers(yaml_text, sim.spec, 2))
+    jtcs = [m["t"] for m in managers]
+    period = 0.01
+    rng = np.random.default_rng(2)
+    p = rng.uniform(-0.3, 0.3, (4, 6))
+    try:
+        for k in range(8):
+            t = k * period
+            for sim, manager, jtc, ahead in zip(sims, managers, jtcs, (False, True), strict=True):
+                sim.read()
+                manager.update(sim, t, period)
+                if k == 0:  # world 1: starts at the update of period 1, its second segment at 0.055 s (entered at 0.06)
+                    assert not jtc.set_trajectories(batch_of([(1, 0.0, np.array([0.045, 0.2]), p[:2], None, None, [True] * 6)]))
+                if k == 5:  # world 0: a trajectory that starts at the update of period 6
+                    assert not jtc.set_trajectories(batch_of([(0, 0.0, np.array([0.1, 0.2]), p[2:], None, None, [True] * 6)]))
+                if ahead:
+                    manager.while_stepping(sim, t, period)
+                sim.write()
+                sim.step(10)
+            _assert_same_reference(jtcs[1], jtcs[0])
+        assert jtcs[1].executing.all()
+    finally:
+        for sim in sims:
+            sim.shutdown()

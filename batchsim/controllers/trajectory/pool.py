@@ -11,6 +11,7 @@ import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
 from batchsim.controllers.base import ranges
+from batchsim.controllers.trajectory.splines import HELD, coefficients, planes_read
 
 # the blocks of pool rows a world may hold: rows of SegmentPool.offset and .size
 RUNNING = 0  # the trajectory being followed
@@ -136,6 +137,43 @@ class SegmentPool:
                 np.take(self.points[k], rows, axis=0, out=out[2 * k])
             np.take(self.points[k], after, axis=0, out=out[2 * k + 1])
         return out
+
+    def polynomials(
+        self,
+        kind: np.ndarray,
+        rows: np.ndarray,
+        done: np.ndarray,
+        start: tuple[np.ndarray, np.ndarray] | None = None,
+        leave: np.ndarray | None = None,
+        out: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """(6, n, njoint): the polynomials (splines.coefficients) of the segments that leave `rows`,
+        of kind `kind` (n,) Spline or HELD (the point as it is); past the last point (`done`),
+        that point's position. `start`: (n, njoint) the position and velocity they leave from
+        (at rest otherwise) instead of the row's point; `leave`: (n,) the time of `rows` (a
+        queued trajectory's first segment, made before it starts: then the row holds a passed
+        point's or nothing). `out`: where to write them ((6, n, njoint), C-contiguous)."""
+        n = len(rows)
+        polynomial = np.empty((6, n, self.njoint)) if out is None else out
+        go: slice | np.ndarray = slice(None)
+        if done.any():
+            polynomial[:, done] = 0.0
+            polynomial[0, done] = self.points[0, rows[done]]
+            go = np.flatnonzero(~done)
+        r, kind = rows[go], kind[go]
+        if len(r):
+            if (kind == HELD).all():
+                T = np.ones(len(r))
+            else:
+                T = self.times[r + 1] - (self.times[r] if leave is None else leave[go])
+            ends = self.ends(r, planes_read(kind), start=start is not None)  # (6, n, nj): splines.ENDS
+            if start is not None:  # p0, v0, a0
+                ends[0], ends[2], ends[4] = start[0][go], start[1][go], 0.0
+            if len(r) == n:
+                coefficients(kind, ends, T, out=polynomial)
+            else:
+                polynomial[:, go] = coefficients(kind, ends, T)
+        return polynomial
 
     def shrink(self) -> None:
         """Copy the held blocks into a smaller array when most rows are no longer held."""

@@ -24,7 +24,6 @@ from batchsim.controllers.trajectory.splines import (
     CUBIC_TERMS,
     HELD,
     QUINTIC,
-    coefficients,
     evaluate,
     planes_read,
 )
@@ -55,6 +54,8 @@ class Timeline:
       spline: (nworld,) int8 Spline of the running trajectory.
       polynomial: (6, nworld, njoint), the polynomial of its segment `made` (splines.coefficients).
       made: (nworld,) int64, the segment `polynomial` is of; -1: none yet.
+      version: (nworld,) int64, an id of the polynomial in `polynomial` (each one made has its
+        own): a reference `prepare` sampled ahead is taken for the same id, s and end.
       generation: (nworld,) int64, counts the world's queued trajectories, starts and stops: a
         polynomial `prepare` made is taken only for the same generation and segment (and, for
         a first segment, the same start time and state).
@@ -82,6 +83,8 @@ class Timeline:
         self.spline = np.zeros(W, np.int8)
         self.polynomial = np.zeros((6, W, nj))
         self.made = np.full(W, -1, np.int64)
+        self.version = np.full(W, -1, np.int64)
+        self._ids = 0  # the next polynomial's id
         self.generation = np.zeros(W, np.int64)
         # polynomials made ahead (prepare) for the segment and generation each is of (-1: none)
         self._prepared = np.zeros((6, W, nj))
@@ -91,6 +94,12 @@ class Timeline:
         # and the position and velocity it leaves from
         self._prepared_start = np.full(W, np.nan)
         self._prepared_from = np.zeros((2, W, nj))
+        self._prepared_version = np.full(W, -1, np.int64)
+        # the reference sampled ahead (prepare) and what it was sampled from: polynomial id, s, end
+        self._ahead = np.zeros((3, W, nj))
+        self._ahead_version = np.full(W, -2, np.int64)
+        self._ahead_s = np.zeros(W)
+        self._ahead_done = np.zeros(W, bool)
         self.pending_start = np.full(W, np.inf)
         self.pending_npoint = np.zeros(W, np.int64)
         self.pending_spline = np.zeros(W, np.int8)
@@ -285,11 +294,22 @@ class Timeline:
             self._enter(running[entered], segment[entered], row[entered], done[entered])
         s = np.zeros(len(running)) if self.step_points else rel - times[row]  # a held point: as it is
         every = len(running) == self.nworld
-        terms = 6 if ((self.spline if every else self.spline[running]) == QUINTIC).any() else CUBIC_TERMS
-        if every:  # straight into place
-            evaluate(self.polynomial, s, done, out=self._reference, terms=terms)
+        ahead = (
+            (self._ahead_version[running] == self.version[running])
+            & (self._ahead_done[running] == done)
+            & (np.abs(self._ahead_s[running] - s) <= 1e-9)
+        )
+        if ahead.all():  # sampled by prepare, from the same polynomials
+            if every:
+                np.copyto(self._reference, self._ahead)
+            else:
+                self._reference[:, running] = self._ahead[:, running]
+        elif every and not ahead.any():  # straight into place
+            evaluate(self.polynomial, s, done, out=self._reference, terms=self._terms(self.spline))
         else:
-            self._reference[:, running] = evaluate(self.polynomial[:, running], s, done, terms=terms)
+            taken, rest = running[ahead], running[~ahead]
+            self._reference[:, taken] = self._ahead[:, taken]
+            self._reference[:, rest] = evaluate(self.polynomial[:, rest], s[~ahead], done[~ahead], terms=self._terms(self.spline[rest]))
         self.executing[running] = ~done
         finished = running[done]
         if finished.size:  # past the last point: hold it and give the rows back
@@ -301,39 +321,68 @@ class Timeline:
     def prepare(self, time: float, starts: bool = False) -> None:
         """Make ahead what the next update (at `time`) would make, so that it only takes it: the
         polynomials of the segments running worlds will have entered (a fleet whose trajectories
-        run in step enters new segments all in one period), and with `starts` (the trajectories
+        run in step enters new segments all in one period); with `starts` (the trajectories
         leave from the reference: open_loop_control) the first segments of the queued ones due
-        by then, from the reference now. Host work only, while the device steps
-        (Controller.prepare). A world that queues, starts or stops meanwhile has a new
-        generation, and makes its own; so does a start from another state."""
+        by then, from the reference now; and the reference those polynomials give at `time`.
+        Host work only, while the device steps (Controller.prepare). A world that queues, starts
+        or stops meanwhile has a new generation, and makes its own; so does a start from
+        another state; a reference is taken only from the same polynomial, s and end."""
         due = np.isfinite(self.pending_start) & (self.pending_start <= time + 1e-9)
         running = np.flatnonzero(self.running & ~due)
-        if running.size:
-            base = self.pool.offset[RUNNING, running]
-            segment = self._segment_at(running, base, time - self.t0[running])
-            ahead = np.flatnonzero((segment != self.made[running]) & (segment < self.last[running]))
-            if ahead.size:
-                worlds, segment = running[ahead], segment[ahead]
-                self._make(worlds, base[ahead] + segment, np.zeros(len(worlds), bool), into=self._prepared)
-                self._prepared_segment[worlds] = segment
-                self._prepared_generation[worlds] = self.generation[worlds]
-                self._prepared_start[worlds] = np.nan
-        due = np.flatnonzero(due & rows_all(self.pending_mask)) if starts else ()  # partial goals: at the start
-        if len(due):
+        base = self.pool.offset[RUNNING, running]
+        segment = self._segment_at(running, base, time - self.t0[running])
+        done = segment >= self.last[running]  # past the last point: its position, at rest
+        entering = segment != self.made[running]
+        ahead = np.flatnonzero(entering)
+        if ahead.size:
+            worlds = running[ahead]
+            self._make(worlds, base[ahead] + segment[ahead], done[ahead], into=self._prepared)
+            self._prepared_segment[worlds] = segment[ahead]
+            self._prepared_generation[worlds] = self.generation[worlds]
+            self._prepared_start[worlds] = np.nan
+        due = np.flatnonzero(due & rows_all(self.pending_mask)) if starts else np.zeros(0, np.int64)  # partial: at the start
+        if due.size:
             t0, off, skip, _ = self._leaving(due, time)
             go = skip < self.pending_npoint[due]  # the others hold their last point
-            worlds, row = due[go], (off + skip)[go]
-            every = len(worlds) == self.nworld
-            here = self._reference[:2] if every else self._reference[:2, worlds]
-            self._make(worlds, row, np.zeros(len(worlds), bool), start=(here[0], here[1]), into=self._prepared,
-                       spline=self.pending_spline[worlds], leave=time - t0[go])
-            self._prepared_segment[worlds] = skip[go]
-            self._prepared_generation[worlds] = self.generation[worlds]
-            self._prepared_start[worlds] = time
+            due, row = due[go], (off + skip)[go]
+            every = len(due) == self.nworld
+            here = self._reference[:2] if every else self._reference[:2, due]
+            self._make(due, row, np.zeros(len(due), bool), start=(here[0], here[1]), into=self._prepared,
+                       spline=self.pending_spline[due], leave=time - t0[go])
+            self._prepared_segment[due] = skip[go]
+            self._prepared_generation[due] = self.generation[due]
+            self._prepared_start[due] = time
             if every:
                 np.copyto(self._prepared_from, here)
             else:
-                self._prepared_from[:, worlds] = here
+                self._prepared_from[:, due] = here
+        # the reference at `time`: from the polynomial kept, or the one made above (a segment
+        # entered, a trajectory started: s = 0 there); none where the update makes its own
+        s = np.zeros(len(running)) if self.step_points else time - self.t0[running] - self.pool.times[base + segment]
+        keep = ~entering
+        self._sample_ahead(running[keep], self.version[running[keep]], s[keep], done[keep], self.polynomial)
+        made = np.concatenate([running[ahead], due])
+        self._sample_ahead(made, self._prepared_version[made], np.concatenate([s[ahead], np.zeros(len(due))]),
+                           np.concatenate([done[ahead], np.zeros(len(due), bool)]), self._prepared)
+
+    def _sample_ahead(self, worlds: np.ndarray, version: np.ndarray, s: np.ndarray, done: np.ndarray, polynomial: np.ndarray) -> None:
+        """The reference of the worlds' polynomials in `polynomial` at `s` (`done`: past the last
+        point) into `_ahead`, keyed by the polynomials' ids (prepare)."""
+        if not worlds.size:
+            return
+        terms = self._terms(np.concatenate([self.spline[worlds], self.pending_spline[worlds]]))
+        if len(worlds) == self.nworld and (worlds[1:] > worlds[:-1]).all():  # every world, in order
+            evaluate(polynomial, s, done, out=self._ahead, terms=terms)
+        else:
+            self._ahead[:, worlds] = evaluate(polynomial[:, worlds], s, done, terms=terms)
+        self._ahead_version[worlds] = version
+        self._ahead_s[worlds] = s
+        self._ahead_done[worlds] = done
+
+    @staticmethod
+    def _terms(spline: np.ndarray) -> int:
+        """The coefficients `evaluate` needs for segments of these Splines."""
+        return 6 if (spline == QUINTIC).any() else CUBIC_TERMS
 
     def _segment_at(self, running: np.ndarray, base: np.ndarray, rel: np.ndarray) -> np.ndarray:
         """(n,) the segment each of the running worlds is in at `rel` (time since its start): the
@@ -358,10 +407,12 @@ class Timeline:
         )
         if ready.all() and len(worlds) == self.nworld:
             np.copyto(self.polynomial, self._prepared)
+            np.copyto(self.version, self._prepared_version)
         else:
             if ready.any():
                 taken = worlds[ready]
                 self.polynomial[:, taken] = self._prepared[:, taken]
+                self.version[taken] = self._prepared_version[taken]
             if not ready.all():
                 self._make(worlds[~ready], row[~ready], done[~ready])
         self._prepared_segment[worlds] = -1
@@ -392,10 +443,12 @@ class Timeline:
         self._prepared_segment[worlds] = -1
         if ready.all() and every:  # a burst made ahead
             np.copyto(self.polynomial, self._prepared)
+            np.copyto(self.version, self._prepared_version)
             return
         if ready.any():
             taken = worlds[ready]
             self.polynomial[:, taken] = self._prepared[:, taken]
+            self.version[taken] = self._prepared_version[taken]
         if not ready.all():
             rest = ~ready
             self._make(worlds[rest], row[rest], np.zeros(int(rest.sum()), bool), start=(here[rest], here_v[rest]))
@@ -410,52 +463,21 @@ class Timeline:
         spline: np.ndarray | None = None,
         leave: np.ndarray | None = None,
     ) -> None:
-        """The worlds' polynomials (_polynomials, with its `spline` and `leave`), into their
-        place in `into` ((6, nworld, njoint): `polynomial`, or `_prepared` for prepare)."""
+        """The worlds' polynomials (SegmentPool.polynomials, of their running trajectory's kind or
+        `spline`), into their place in `into` ((6, nworld, njoint): `polynomial`, or `_prepared`
+        for prepare), each with a new id in `version` or `_prepared_version`."""
+        if self.step_points:  # each point as it is
+            kind, leave = np.full(len(worlds), HELD, np.int8), None
+        else:
+            kind = self.spline[worlds] if spline is None else spline
         into = self.polynomial if into is None else into
         if len(worlds) == self.nworld:  # every world (a burst): straight into place
-            self._polynomials(worlds, row, done, start, out=into, spline=spline, leave=leave)
+            self.pool.polynomials(kind, row, done, start, leave, out=into)
         else:
-            into[:, worlds] = self._polynomials(worlds, row, done, start, spline=spline, leave=leave)
-
-    def _polynomials(
-        self,
-        worlds: np.ndarray,
-        row: np.ndarray,
-        done: np.ndarray,
-        start: tuple[np.ndarray, np.ndarray] | None = None,
-        out: np.ndarray | None = None,
-        spline: np.ndarray | None = None,
-        leave: np.ndarray | None = None,
-    ) -> np.ndarray:
-        """(6, n, njoint): the polynomials of the worlds' segments that leave pool row `row` (past
-        the last point, `done`: that point's position); `start`: (n, njoint) the position and
-        velocity they leave from (at rest otherwise) instead of the row's point. `out`: where
-        to write them ((6, n, njoint), C-contiguous). A queued trajectory's first segment, made
-        before it starts: `spline` (n,) its Spline and `leave` (n,) the time of `row` then (the
-        running trajectory's and the row's time otherwise)."""
-        pool, n = self.pool, len(worlds)
-        polynomial = np.empty((6, n, self.njoint)) if out is None else out
-        go: slice | np.ndarray = slice(None)
-        if done.any():
-            polynomial[:, done] = 0.0
-            polynomial[0, done] = pool.points[0, row[done]]
-            go = np.flatnonzero(~done)
-        r = row[go]
-        if len(r):
-            if self.step_points:  # each point as it is
-                kind, T = np.full(len(r), HELD, np.int8), np.ones(len(r))
-            else:
-                kind = self.spline[worlds[go]] if spline is None else spline[go]
-                T = pool.times[r + 1] - (pool.times[r] if leave is None else leave[go])
-            ends = pool.ends(r, planes_read(kind), start=start is not None)  # (6, n, nj): splines.ENDS
-            if start is not None:  # p0, v0, a0
-                ends[0], ends[2], ends[4] = start[0][go], start[1][go], 0.0
-            if len(r) == n:
-                coefficients(kind, ends, T, out=polynomial)
-            else:
-                polynomial[:, go] = coefficients(kind, ends, T)
-        return polynomial
+            into[:, worlds] = self.pool.polynomials(kind, row, done, start, leave)
+        ids = self._ids + np.arange(len(worlds))
+        self._ids += len(worlds)
+        (self.version if into is self.polynomial else self._prepared_version)[worlds] = ids
 
     def stop(self, worlds: np.ndarray, position: np.ndarray) -> None:
         """Drop the worlds' trajectories, running and queued, and hold them at `position`
