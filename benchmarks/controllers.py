@@ -219,11 +219,10 @@ def measure(
     collector = GcClock()
     collected = []
     wall = time.perf_counter()
-    k = 0
+    k, t = 0, 0.0  # sim time as SimLoop keeps it (+= period): prepare's t + period is the next update's time
     while k < least or time.perf_counter() - wall < seconds:
         handover = arrivals(k)
         beside = handover if model == "arm" else None  # trajectories: while the device steps, as the bridge
-        t = k * period
         u0 = thread_usage()
         collector.take()
         s = clock()
@@ -259,6 +258,7 @@ def measure(
             ahead_t.append(took[1])
             collected.append(collector.take())
         k += 1
+        t += period
     out_wall = time.perf_counter() - wall
     collector.close()
     stolen = steal_seconds() - stolen

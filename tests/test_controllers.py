@@ -1312,14 +1312,14 @@ HELD_JTC = arm_yaml(
 
 
 def _assert_same_reference(ahead, at_update) -> None:
-    """The reference of a fleet whose work was made ahead is the one made at the update. prepare
-    works at t + period and the update comes at (k + 1) period: the two times differ by a
-    rounding, which a polynomial of a short stamped segment (accelerations of thousands) turns
-    into differences of that size's rounding."""
+    """The reference of a fleet whose work was made ahead is the one made at the update, but for
+    rounding: polynomials made in batches of other sizes can differ in their last bit, which a
+    short segment's accelerations (thousands, cancelling to near 0) carry into differences of
+    their size's rounding. A real difference is of the reference's own size."""
     for name in ("reference_position", "reference_velocity", "reference_acceleration"):
         made_at_update = getattr(at_update, name)
-        scale = 1e-12 * max(1.0, float(np.abs(made_at_update).max()))
-        np.testing.assert_allclose(getattr(ahead, name), made_at_update, rtol=1e-12, atol=scale)
+        scale = 1e-9 * max(1.0, float(np.abs(made_at_update).max()))
+        np.testing.assert_allclose(getattr(ahead, name), made_at_update, rtol=1e-9, atol=scale)
     np.testing.assert_array_equal(ahead.executing, at_update.executing)
 
 
@@ -1362,7 +1362,7 @@ def test_segments_made_while_the_device_steps_give_the_reference_made_at_the_upd
     entered_ahead = sampled_ahead = 0
     try:
         for k in range(120):
-            t = k * period
+            t = sum([period] * k, 0.0)  # sim time as SimLoop keeps it (+= period): prepare's t + period is it
             calls, samples = [], []
             for sim, manager, jtc, rng, ahead in zip(sims, managers, jtcs, rngs, (False, True), strict=True):
                 sim.read()
@@ -1443,7 +1443,7 @@ def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_t
     started_ahead = 0
     try:
         for k in range(120):
-            t = k * period
+            t = sum([period] * k, 0.0)  # sim time as SimLoop keeps it (+= period): prepare's t + period is it
             calls, samples = [], []
             for sim, manager, jtc, rng, ahead in zip(sims, managers, jtcs, rngs, (False, True), strict=True):
                 sim.read()
@@ -1506,7 +1506,7 @@ def test_a_fleet_whose_every_world_enters_a_segment_or_starts_in_one_period_gets
     p = rng.uniform(-0.3, 0.3, (4, 6))
     try:
         for k in range(8):
-            t = k * period
+            t = sum([period] * k, 0.0)  # sim time as SimLoop keeps it (+= period): prepare's t + period is it
             for sim, manager, jtc, ahead in zip(sims, managers, jtcs, (False, True), strict=True):
                 sim.read()
                 manager.update(sim, t, period)

@@ -297,7 +297,7 @@ class Timeline:
         ahead = (
             (self._ahead_version[running] == self.version[running])
             & (self._ahead_done[running] == done)
-            & (np.abs(self._ahead_s[running] - s) <= 1e-9)
+            & (self._ahead_s[running] == s)  # sampled for this very time
         )
         if ahead.all():  # sampled by prepare, from the same polynomials
             if every:
@@ -326,7 +326,8 @@ class Timeline:
         by then, from the reference now; and the reference those polynomials give at `time`.
         Host work only, while the device steps (Controller.prepare). A world that queues, starts
         or stops meanwhile has a new generation, and makes its own; so does a start from
-        another state; a reference is taken only from the same polynomial, s and end."""
+        another state or at another time (SimLoop's next update comes at `time` exactly); a
+        reference is taken only from the same polynomial, s and end."""
         due = np.isfinite(self.pending_start) & (self.pending_start <= time + 1e-9)
         running = np.flatnonzero(self.running & ~due)
         base = self.pool.offset[RUNNING, running]
@@ -359,18 +360,20 @@ class Timeline:
         # the reference at `time`: from the polynomial kept, or the one made above (a segment
         # entered, a trajectory started: s = 0 there); none where the update makes its own
         s = np.zeros(len(running)) if self.step_points else time - self.t0[running] - self.pool.times[base + segment]
-        keep = ~entering
-        self._sample_ahead(running[keep], self.version[running[keep]], s[keep], done[keep], self.polynomial)
-        made = np.concatenate([running[ahead], due])
-        self._sample_ahead(made, self._prepared_version[made], np.concatenate([s[ahead], np.zeros(len(due))]),
-                           np.concatenate([done[ahead], np.zeros(len(due), bool)]), self._prepared)
+        kept = running[~entering]
+        self._sample_ahead(kept, self.version[kept], s[~entering], done[~entering], self.spline[kept], self.polynomial)
+        made, spline = np.concatenate([running[ahead], due]), np.concatenate([self.spline[running[ahead]], self.pending_spline[due]])
+        s, done = np.concatenate([s[ahead], np.zeros(len(due))]), np.concatenate([done[ahead], np.zeros(len(due), bool)])
+        self._sample_ahead(made, self._prepared_version[made], s, done, spline, self._prepared)
 
-    def _sample_ahead(self, worlds: np.ndarray, version: np.ndarray, s: np.ndarray, done: np.ndarray, polynomial: np.ndarray) -> None:
-        """The reference of the worlds' polynomials in `polynomial` at `s` (`done`: past the last
-        point) into `_ahead`, keyed by the polynomials' ids (prepare)."""
+    def _sample_ahead(
+        self, worlds: np.ndarray, version: np.ndarray, s: np.ndarray, done: np.ndarray, spline: np.ndarray, polynomial: np.ndarray
+    ) -> None:
+        """The reference of the worlds' polynomials (of Splines `spline`) in `polynomial` at `s`
+        (`done`: past the last point) into `_ahead`, keyed by the polynomials' ids (prepare)."""
         if not worlds.size:
             return
-        terms = self._terms(np.concatenate([self.spline[worlds], self.pending_spline[worlds]]))
+        terms = self._terms(spline)  # as sample takes them: the same rounding
         if len(worlds) == self.nworld and (worlds[1:] > worlds[:-1]).all():  # every world, in order
             evaluate(polynomial, s, done, out=self._ahead, terms=terms)
         else:
@@ -380,8 +383,7 @@ class Timeline:
         self._ahead_done[worlds] = done
 
     @staticmethod
-    def _terms(spline: np.ndarray) -> int:
-        """The coefficients `evaluate` needs for segments of these Splines."""
+    def _terms(spline: np.ndarray) -> int:  # the coefficients `evaluate` needs for these Splines
         return 6 if (spline == QUINTIC).any() else CUBIC_TERMS
 
     def _segment_at(self, running: np.ndarray, base: np.ndarray, rel: np.ndarray) -> np.ndarray:
@@ -428,15 +430,15 @@ class Timeline:
         here_v: np.ndarray,
     ) -> None:
         """The starting worlds' first polynomials, leaving block row `skip` (pool row `row`) from
-        `here`, `here_v`: those `prepare` made for the same row, generation, start time and
-        state (never a partial goal's: its other joints' points change at the start), else
+        `here`, `here_v`: those `prepare` made for the same row, generation, start time (exactly)
+        and state (never a partial goal's: its other joints' points change at the start), else
         made now."""
         every = len(worlds) == self.nworld  # (in order: `due`)
         made_from = self._prepared_from if every else self._prepared_from[:, worlds]
         ready = (
             (self._prepared_segment[worlds] == skip)
             & (self._prepared_generation[worlds] == self.generation[worlds])
-            & (np.abs(self._prepared_start[worlds] - time) <= 1e-9)  # nan: not a first segment
+            & (self._prepared_start[worlds] == time)  # nan: not a first segment
         )
         if not ((made_from[0] == here).all() and (made_from[1] == here_v).all()):  # (a tenth of a per-row test)
             ready &= rows_all(made_from[0] == here) & rows_all(made_from[1] == here_v)
