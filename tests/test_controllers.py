@@ -1323,40 +1323,48 @@ def _assert_same_reference(ahead, at_update) -> None:
     np.testing.assert_array_equal(ahead.executing, at_update.executing)
 
 
+def _two_fleets(yaml_text: str, nworld: int):
+    """Two identical arm fleets and their controllers `t`: (sims, managers, controllers)."""
+    sims = [batchsim.make("arm", nworld, "cpu") for _ in range(2)]
+    for sim in sims:
+        sim.configure()
+        sim.activate()
+    managers = [load_controllers(yaml_text, sim.spec, nworld) for sim in sims]
+    return sims, managers, [m["t"] for m in managers]
+
+
+def _count_work(monkeypatch) -> dict[str, int]:
+    """Counts, from now on, of the polynomials made ("calls": SegmentPool's calls of
+    splines.coefficients) and of the references sampled ("samples": the timeline's evaluate)."""
+    from batchsim.controllers.trajectory import pool, timeline
+
+    made = {"calls": 0, "samples": 0}
+    coefficients, evaluate = pool.coefficients, timeline.evaluate
+
+    def counted(*args, **kwargs):
+        made["calls"] += 1
+        return coefficients(*args, **kwargs)
+
+    def sampled(*args, **kwargs):
+        made["samples"] += 1
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(pool, "coefficients", counted)
+    monkeypatch.setattr(timeline, "evaluate", sampled)
+    return made
+
+
 @pytest.mark.parametrize("yaml_text", [LINEAR_JTC, HELD_JTC], ids=["splines", "none"])
-def test_segments_made_while_the_device_steps_give_the_reference_made_at_the_update(yaml_text):
+def test_segments_made_while_the_device_steps_give_the_reference_made_at_the_update(yaml_text, monkeypatch):
     """ControllerManager.while_stepping makes ahead the polynomials of the segments the worlds enter
     at the next update (a fleet running in step enters them all in one period: 4096 arms' update
     took 5 ms in such a period on an H100 host). The reference must be the one made at the update,
     through bursts, partial goals, quintics, stamped starts, resets and stops; and the update of a
     period whose segments were made ahead makes none. prepare samples the reference ahead too: an
     update whose worlds keep the polynomials prepare sampled (or take those it made) samples none."""
-    from batchsim.controllers.trajectory import pool as timeline  # where the polynomials are made
-    from batchsim.controllers.trajectory import timeline as sampling
-
     nworld = 8
-    sims = [batchsim.make("arm", nworld, "cpu") for _ in range(2)]
-    managers = []
-    for sim in sims:
-        sim.configure()
-        sim.activate()
-        managers.append(load_controllers(yaml_text, sim.spec, nworld))  # partial goals allowed
-    jtcs = [m["t"] for m in managers]
-    made = {"calls": 0, "samples": 0}
-    coefficients = timeline.coefficients
-
-    def counted(*args, **kwargs):
-        made["calls"] += 1
-        return coefficients(*args, **kwargs)
-
-    timeline.coefficients = counted
-    evaluate = sampling.evaluate
-
-    def sampled(*args, **kwargs):
-        made["samples"] += 1
-        return evaluate(*args, **kwargs)
-
-    sampling.evaluate = sampled
+    sims, managers, jtcs = _two_fleets(yaml_text, nworld)  # partial goals allowed
+    made = _count_work(monkeypatch)
     period, substeps = 0.01, round(0.01 / sims[0].dt)
     rngs = [np.random.default_rng(5), np.random.default_rng(5)]
     entered_ahead = sampled_ahead = 0
@@ -1393,8 +1401,6 @@ def test_segments_made_while_the_device_steps_give_the_reference_made_at_the_upd
             if k and (k - 1) % 5 != 1 and k != 50 and not calls[1]:  # prepared, nothing made or reset since
                 assert not samples[1], f"period {k}: the update sampled what prepare had"
     finally:
-        timeline.coefficients = coefficients
-        sampling.evaluate = evaluate
         for sim in sims:
             sim.shutdown()
     assert entered_ahead >= 10, entered_ahead
@@ -1407,7 +1413,7 @@ OPEN_LOOP_JTC = LINEAR_JTC + "    open_loop_control: true\n"
 @pytest.mark.parametrize(
     "yaml_text", [LINEAR_JTC, OPEN_LOOP_JTC, HELD_JTC], ids=["closed loop", "open loop", "none"]
 )
-def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_the_start(yaml_text):
+def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_the_start(yaml_text, monkeypatch):
     """Trajectories handed over beside the steps start at the next update. Under open_loop_control
     they leave from the reference, known then, and `prepare` makes their first segments ahead (4096
     arms' burst: the start update's largest part). The reference must be the one made at the start,
@@ -1415,29 +1421,9 @@ def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_t
     reset and goals canceled after `prepare`; a start whose first segments were all made ahead
     makes none, nor samples the reference prepare sampled. In closed loop (they leave from the
     state measured at the start) none is made ahead."""
-    from batchsim.controllers.trajectory import pool as timeline  # where the polynomials are made
-    from batchsim.controllers.trajectory import timeline as sampling
-
     nworld = 8
-    sims = [batchsim.make("arm", nworld, "cpu") for _ in range(2)]
-    managers = []
-    for sim in sims:
-        sim.configure()
-        sim.activate()
-        managers.append(load_controllers(yaml_text, sim.spec, nworld))
-    jtcs = [m["t"] for m in managers]
-    made = {"calls": 0, "samples": 0}
-    coefficients, evaluate = timeline.coefficients, sampling.evaluate
-
-    def counted(*args, **kwargs):
-        made["calls"] += 1
-        return coefficients(*args, **kwargs)
-
-    def sampled(*args, **kwargs):
-        made["samples"] += 1
-        return evaluate(*args, **kwargs)
-
-    timeline.coefficients, sampling.evaluate = counted, sampled
+    sims, managers, jtcs = _two_fleets(yaml_text, nworld)
+    made = _count_work(monkeypatch)
     period, substeps = 0.01, round(0.01 / sims[0].dt)
     rngs = [np.random.default_rng(9), np.random.default_rng(9)]
     started_ahead = 0
@@ -1479,7 +1465,6 @@ def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_t
                 # prepared for this update, nothing made, replaced or reset since: the reference too
                 assert not samples[1], f"period {k}: the update sampled what prepare had"
     finally:
-        timeline.coefficients, sampling.evaluate = coefficients, evaluate
         for sim in sims:
             sim.shutdown()
     if jtcs[0].open_loop:
@@ -1488,19 +1473,11 @@ def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_t
         assert started_ahead == 0, started_ahead
 
 
-
 def test_a_fleet_whose_every_world_enters_a_segment_or_starts_in_one_period_gets_the_reference_made_then():
     """prepare samples ahead from two blocks: the polynomials kept and those it made (segments
     entered, first segments). When every world is in the second, world 1 entering a segment and
     world 0 starting a trajectory, each must get its own reference."""
-    yaml_text = LINEAR_JTC + "    open_loop_control: true\n"
-    sims = [batchsim.make("arm", 2, "cpu") for _ in range(2)]
-    managers = []
-    for sim in sims:
-        sim.configure()
-        sim.activate()
-        managers.append(load_controllers(yaml_text, sim.spec, 2))
-    jtcs = [m["t"] for m in managers]
+    sims, managers, jtcs = _two_fleets(OPEN_LOOP_JTC, 2)
     period = 0.01
     rng = np.random.default_rng(2)
     p = rng.uniform(-0.3, 0.3, (4, 6))
