@@ -209,10 +209,16 @@ class Fleet:
         return sink
 
     def publish(self, msg_type: type, topic: str, msg: Any, qos: QoSProfile | int = 10) -> None:
+        self.advertise(msg_type, topic, qos).publish(msg)
+
+    def advertise(self, msg_type: type, topic: str, qos: QoSProfile | int = 10) -> Any:
+        """The publisher of `topic`, made on first use, without a message (wait_subscribed
+        then waits for the fleet to match it): a message sent to make it may reach only
+        some worlds, and under --lockstep it counts as a world's command."""
         pub = self._publishers.get(topic)
         if pub is None:
             pub = self._publishers[topic] = self.node.create_publisher(msg_type, topic, qos)
-        pub.publish(msg)
+        return pub
 
     def publish_until(
         self, msg_type: type, topic: str, msg: Any, predicate: Callable[[], Any], timeout: float = 20.0, what: str = ""

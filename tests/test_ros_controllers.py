@@ -57,9 +57,8 @@ def arms(tmp_path_factory):
 
 def send(fleet, world: int, msg: JointTrajectory) -> None:
     topic = f"/world_{world}/{JTC}/joint_trajectory"
-    if topic not in fleet._publishers:
-        fleet.publish(JointTrajectory, topic, JointTrajectory())  # create the publisher, then wait for the match
-        fleet.wait_subscribed(topic)
+    fleet.advertise(JointTrajectory, topic)
+    fleet.wait_subscribed(topic)
     fleet.publish(JointTrajectory, topic, msg)
 
 

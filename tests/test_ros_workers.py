@@ -120,7 +120,7 @@ def test_a_command_to_the_last_world_of_the_last_worker_moves_only_that_world(fl
 def test_a_trajectory_drives_a_world_of_a_later_worker(fleet):
     goal = [0.4, -0.3, 0.5]
     topic = f"/world_50/{JTC}/joint_trajectory"
-    fleet.publish(JointTrajectory, topic, JointTrajectory())
+    fleet.advertise(JointTrajectory, topic)
     fleet.wait_subscribed(topic)
     fleet.publish(JointTrajectory, topic, trajectory(goal))
     fleet.wait(lambda: np.abs(np.array(fleet.js[50].msg.position[:3]) - goal).max() < 0.04, 20, "world_50 at its goal")
@@ -241,8 +241,8 @@ def test_lockstep_waits_for_every_worlds_trajectory_on_every_worker(tmp_path):
     with Fleet(domain_id(41), args, tmp_path / "lockstep.log") as f:
         clock = f.latest(Clock, "/clock")
         topics = [f"/world_{w}/{JTC}/joint_trajectory" for w in range(n)]
-        for t in topics:
-            f.publish(JointTrajectory, t, JointTrajectory())
+        for t in topics:  # no message yet: one that reaches some worlds would open a later period's gate
+            f.advertise(JointTrajectory, t)
         for t in topics:
             f.wait_subscribed(t)
 
