@@ -235,7 +235,8 @@ class GoalTracker:
         goal_w = w[~moving]
         self._first[:] = False
         path_bad = self._outside(self._path, path_w, errors)
-        violated = path_w[rows_any(path_bad)]
+        path_rows = rows_any(path_bad)
+        violated = path_w[path_rows]
         goal_bad = self._outside(self._goal, goal_w, errors)
         inside = ~rows_any(goal_bad)
         clear = ~np.isin(goal_w, violated) if violated.size else np.ones(len(goal_w), bool)
@@ -249,7 +250,7 @@ class GoalTracker:
             return violated
         self.outcome[succeeded] = GoalOutcome.SUCCEEDED
         self.outcome[violated] = GoalOutcome.PATH_TOLERANCE_VIOLATED
-        self.outcome_joint[violated] = np.argmax(path_bad[path_bad.any(axis=1)], axis=1)
+        self.outcome_joint[violated] = np.argmax(path_bad[path_rows], axis=1)
         self.outcome[late] = GoalOutcome.GOAL_TOLERANCE_VIOLATED
         self.outcome_joint[late] = np.argmax(goal_bad[late_rows], axis=1)
         ended = np.concatenate([violated, succeeded, late])

@@ -434,14 +434,15 @@ class Timeline:
         and state (never a partial goal's: its other joints' points change at the start), else
         made now."""
         every = len(worlds) == self.nworld  # (in order: `due`)
-        made_from = self._prepared_from if every else self._prepared_from[:, worlds]
         ready = (
             (self._prepared_segment[worlds] == skip)
             & (self._prepared_generation[worlds] == self.generation[worlds])
             & (self._prepared_start[worlds] == time)  # nan: not a first segment
         )
-        if not ((made_from[0] == here).all() and (made_from[1] == here_v).all()):  # (a tenth of a per-row test)
-            ready &= rows_all(made_from[0] == here) & rows_all(made_from[1] == here_v)
+        if ready.any():  # (none in closed loop: no state compared)
+            made_from = self._prepared_from if every else self._prepared_from[:, worlds]
+            if not ((made_from[0] == here).all() and (made_from[1] == here_v).all()):  # (a tenth of a per-row test)
+                ready &= rows_all(made_from[0] == here) & rows_all(made_from[1] == here_v)
         self._prepared_segment[worlds] = -1
         if ready.all() and every:  # a burst made ahead
             np.copyto(self.polynomial, self._prepared)
