@@ -237,6 +237,19 @@ def test_a_yaml_in_the_style_of_the_ros2_control_docs_loads():
     assert dd.linear.max_v == 1.0 and dd.angular.min_a == -1.0 and dd.linear.min_a == -1.0
 
 
+def test_columns_that_step_evenly_are_read_through_a_slice_that_gives_what_the_index_gives():
+    """Controllers copy state columns through `as_slice` (a gather through an index array took
+    twice as long at 4096 rows): a slice only where the columns step evenly upward."""
+    from batchsim.controllers.base import as_slice
+
+    state = np.arange(40.0).reshape(4, 10)
+    sliced = ([0, 1, 2], [1, 4, 7], [5])
+    for cols in (*sliced, [], [2, 1, 0], [0, 2, 3], [3, 3]):
+        index = as_slice(np.array(cols, dtype=np.intp))
+        assert isinstance(index, slice) == (cols in sliced), cols
+        np.testing.assert_array_equal(state[:, index], state[:, np.array(cols, dtype=np.intp)])
+
+
 def test_shipped_defaults_and_sensor_broadcasters():
     sim, manager, loop = running("quadruped", 2)
     assert list(manager.controllers) == [

@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from batchsim.controllers.base import Controller, Params
+from batchsim.controllers.base import Controller, Params, as_slice
 from batchsim.controllers.topics import ControllerTopics, MessageKind, Output
 from batchsim.model import RobotSpec
 
@@ -53,23 +53,24 @@ class JointStateBroadcaster(Controller):
         state = self._state_names
         self.names = [j for j in joints if any(f"{j}/{i}" in state for i in interfaces)] + self.extra_joints
         n = len(self.names)
-        self._gather: list[tuple[str, np.ndarray, np.ndarray]] = []
+        self.position = np.full((self.nworld, n), np.nan)
+        self.velocity = np.full((self.nworld, n), np.nan)
+        self.effort = np.full((self.nworld, n), np.nan)
+        # (its array, message columns, state columns), as slices where they step evenly
+        self._gather: list[tuple[np.ndarray, slice | np.ndarray, slice | np.ndarray]] = []
         for i in interfaces:
             rows = [k for k, j in enumerate(self.names[: n - len(self.extra_joints)]) if f"{j}/{i}" in state]
             if rows:
                 cols = self.state_columns("interfaces", [f"{self.names[k]}/{i}" for k in rows])
-                self._gather.append((i, np.array(rows, dtype=np.intp), cols))
-        self.position = np.full((self.nworld, n), np.nan)
-        self.velocity = np.full((self.nworld, n), np.nan)
-        self.effort = np.full((self.nworld, n), np.nan)
+                self._gather.append((getattr(self, i), as_slice(np.array(rows, dtype=np.intp)), as_slice(cols)))
         extra = slice(n - len(self.extra_joints), n)
         for a in (self.position, self.velocity, self.effort):
             a[:, extra] = 0.0
 
     def update(self, sim: Any, time: float, period: float) -> None:
         state = sim.state
-        for kind, rows, cols in self._gather:
-            getattr(self, kind)[:, rows] = state[:, cols]
+        for out, rows, cols in self._gather:
+            out[:, rows] = state[:, cols]
 
     def topics(self) -> ControllerTopics:
         """`<ns>/joint_states` (with use_local_topics `<ns>/<controller>/joint_states`)."""
@@ -150,7 +151,7 @@ class IMUSensorBroadcaster(Controller):
                 f"named so or on a site of that name; sensors: {', '.join(s.name for s in spec.sensors) or 'none'})",
             )
         self._parts = [
-            (part, np.array(c, dtype=np.intp)) for part, c in parts.items() if all(x is not None for x in c)
+            (part, as_slice(np.array(c, dtype=np.intp))) for part, c in parts.items() if all(x is not None for x in c)
         ]
         self.orientation = np.zeros((self.nworld, 4))
         self.orientation[:, 3] = 1.0
@@ -226,8 +227,8 @@ class ForceTorqueSensorBroadcaster(Controller):
                 f"named so or on a site of that name; sensors: {', '.join(s.name for s in spec.sensors) or 'none'})",
             )
         self.frame_id = params.string("frame_id", self.sensor_name)
-        self._rows = np.array([k for k, c in enumerate(cols) if c is not None], dtype=np.intp)
-        self._cols = np.array([c for c in cols if c is not None], dtype=np.intp)
+        self._rows = as_slice(np.array([k for k, c in enumerate(cols) if c is not None], dtype=np.intp))
+        self._cols = as_slice(np.array([c for c in cols if c is not None], dtype=np.intp))
         self.wrench = np.zeros((self.nworld, 6))
 
     @property

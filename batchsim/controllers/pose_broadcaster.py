@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 import mujoco
 import numpy as np
 
-from batchsim.controllers.base import Controller, Params
+from batchsim.controllers.base import Controller, Params, as_slice
 from batchsim.controllers.topics import ControllerTopics, MessageKind, Output
 from batchsim.model import RobotSpec
 
@@ -37,7 +37,7 @@ class PoseBroadcaster(Controller):
         names = [f"{self.pose_name}/{f}" for f in _FIELDS]
         if not all(n in self._state_names for n in names):
             names = self._frame_sensor_columns()
-        self._cols = self.state_columns("pose_name", names)
+        self._cols = as_slice(self.state_columns("pose_name", names))
         self.pose = np.zeros((self.nworld, 7))
         self.pose[:, 6] = 1.0
 

@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from batchsim.controllers.base import Controller, Params
+from batchsim.controllers.base import Controller, Params, as_slice
 from batchsim.controllers.topics import (
     ActionKind,
     ControllerTopics,
@@ -115,14 +115,15 @@ class JointTrajectoryController(Controller):
         )
 
         nj = len(self.joints)
-        self._pos_cols = self.state_columns("state_interfaces", [f"{j}/position" for j in self.joints])
+        # state columns, as slices where they step evenly (batchsim.controllers.base.as_slice)
+        self._pos_cols = as_slice(self.state_columns("state_interfaces", [f"{j}/position" for j in self.joints]))
         self._vel_cols = (
-            self.state_columns("state_interfaces", [f"{j}/velocity" for j in self.joints])
+            as_slice(self.state_columns("state_interfaces", [f"{j}/velocity" for j in self.joints]))
             if "velocity" in self.state_kinds
             else None
         )
         self._acc_cols = (
-            self.state_columns("state_interfaces", [f"{j}/acceleration" for j in self.joints])
+            as_slice(self.state_columns("state_interfaces", [f"{j}/acceleration" for j in self.joints]))
             if "acceleration" in self.state_kinds
             else None
         )
@@ -170,6 +171,18 @@ class JointTrajectoryController(Controller):
         self.error_position = np.zeros((W, nj))
         self.error_velocity = np.zeros((W, nj))
         self.output = np.zeros((W, sum(len(c) for _, c in self._cmd)))
+        # per claimed kind: the reference written, its columns of output and of the command
+        sources = {
+            "position": self.reference_position,
+            "velocity": self.reference_velocity,
+            "acceleration": self.reference_acceleration,
+        }
+        self._writes: list[tuple[np.ndarray, slice, slice | np.ndarray]] = []
+        start = 0
+        for kind, cols in self._cmd:
+            if kind in sources:
+                self._writes.append((sources[kind], slice(start, start + len(cols)), as_slice(cols)))
+            start += len(cols)
 
     # --- what the buffers hold ---
     @property
@@ -408,16 +421,9 @@ class JointTrajectoryController(Controller):
             self.output[:] = u
             sim.command[:, cols] = u
             return
-        start = 0
-        for kind, cols in self._cmd:
-            value = {
-                "position": self.reference_position,
-                "velocity": self.reference_velocity,
-                "acceleration": self.reference_acceleration,
-            }[kind]
-            self.output[:, start : start + len(cols)] = value
+        for value, out, cols in self._writes:
+            self.output[:, out] = value
             sim.command[:, cols] = value
-            start += len(cols)
 
 
 def _order(kind: str) -> int:
