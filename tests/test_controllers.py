@@ -1486,6 +1486,34 @@ def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_t
         assert started_ahead == 0, started_ahead
 
 
+def test_a_fleet_that_took_every_polynomial_made_ahead_keeps_them_through_a_prepare_for_another_time():
+    """When every world takes the polynomials prepare made, the two blocks trade places rather
+    than copy. The block prepare then writes into must not be the one the worlds sample: a
+    prepare for a later time (worlds entering a segment then, not at the next update) must leave
+    the next update's reference as made at the update."""
+    sims, managers, jtcs = _two_fleets(OPEN_LOOP_JTC, 2)
+    period = 0.01
+    p = np.random.default_rng(4).uniform(-0.3, 0.3, (4, 6))
+    times = np.array([0.02, 0.04, 0.06, 0.08])  # a segment every second period, both worlds in step
+    try:
+        for k in range(9):
+            t = sum([period] * k, 0.0)  # sim time as SimLoop keeps it (+= period): prepare's t + period is it
+            for sim, manager, jtc, ahead in zip(sims, managers, jtcs, (False, True), strict=True):
+                sim.read()
+                manager.update(sim, t, period)
+                if k == 0:  # both start at the update of period 1
+                    assert not jtc.set_trajectories(batch_of([(w, 0.0, times, p, None, None, [True] * 6) for w in (0, 1)]))
+                if ahead:  # periods 3 and 5 (after a take of all): prepared for a period on
+                    manager.while_stepping(sim, t + period if k in (3, 5) else t, period)
+                sim.write()
+                sim.step(10)
+            _assert_same_reference(jtcs[1], jtcs[0])
+        assert jtcs[1].executing.all()
+    finally:
+        for sim in sims:
+            sim.shutdown()
+
+
 def test_a_fleet_whose_every_world_enters_a_segment_or_starts_in_one_period_gets_the_reference_made_then():
     """prepare samples ahead from two blocks: the polynomials kept and those it made (segments
     entered, first segments). When every world is in the second, world 1 entering a segment and

@@ -78,8 +78,7 @@ class Timeline:
         self.on_trajectory = np.zeros(W, bool)
         self.running = np.zeros(W, bool)
         self.t0 = np.zeros(W)
-        self.segment = np.zeros(W, np.int64)
-        self.last = np.zeros(W, np.int64)
+        self.segment, self.last = np.zeros(W, np.int64), np.zeros(W, np.int64)
         self.spline = np.zeros(W, np.int8)
         self.polynomial = np.zeros((6, W, nj))
         self.made = np.full(W, -1, np.int64)
@@ -88,8 +87,7 @@ class Timeline:
         self.generation = np.zeros(W, np.int64)
         # polynomials made ahead (prepare) for the segment and generation each is of (-1: none)
         self._prepared = np.zeros((6, W, nj))
-        self._prepared_segment = np.full(W, -1, np.int64)
-        self._prepared_generation = np.full(W, -1, np.int64)
+        self._prepared_segment, self._prepared_generation = np.full(W, -1, np.int64), np.full(W, -1, np.int64)
         # or the first segment of the queued trajectory due then: its start time (nan: not one),
         # and the position and velocity it leaves from
         self._prepared_start = np.full(W, np.nan)
@@ -98,11 +96,9 @@ class Timeline:
         # the reference sampled ahead (prepare) and what it was sampled from: polynomial id, s, end
         self._ahead = np.zeros((3, W, nj))
         self._ahead_version = np.full(W, -2, np.int64)
-        self._ahead_s = np.zeros(W)
-        self._ahead_done = np.zeros(W, bool)
+        self._ahead_s, self._ahead_done = np.zeros(W), np.zeros(W, bool)
         self.pending_start = np.full(W, np.inf)
-        self.pending_npoint = np.zeros(W, np.int64)
-        self.pending_spline = np.zeros(W, np.int8)
+        self.pending_npoint, self.pending_spline = np.zeros(W, np.int64), np.zeros(W, np.int8)
         self.pending_mask = np.zeros((W, nj), bool)
 
     @property
@@ -408,8 +404,7 @@ class Timeline:
             & np.isnan(self._prepared_start[worlds])
         )
         if ready.all() and len(worlds) == self.nworld:
-            np.copyto(self.polynomial, self._prepared)
-            np.copyto(self.version, self._prepared_version)
+            self._take_all_prepared()
         else:
             if ready.any():
                 taken = worlds[ready]
@@ -419,6 +414,12 @@ class Timeline:
                 self._make(worlds[~ready], row[~ready], done[~ready])
         self._prepared_segment[worlds] = -1
         self.made[worlds] = segment
+
+    def _take_all_prepared(self) -> None:
+        """Every world takes what prepare made: the blocks trade places, not copied (the caller
+        marks `_prepared` stale)."""
+        self.polynomial, self._prepared = self._prepared, self.polynomial
+        self.version, self._prepared_version = self._prepared_version, self.version
 
     def _first_segments(
         self,
@@ -445,8 +446,7 @@ class Timeline:
                 ready &= rows_all(made_from[0] == here) & rows_all(made_from[1] == here_v)
         self._prepared_segment[worlds] = -1
         if ready.all() and every:  # a burst made ahead
-            np.copyto(self.polynomial, self._prepared)
-            np.copyto(self.version, self._prepared_version)
+            self._take_all_prepared()
             return
         if ready.any():
             taken = worlds[ready]
