@@ -1486,25 +1486,24 @@ def test_first_segments_made_while_the_device_steps_give_the_reference_made_at_t
         assert started_ahead == 0, started_ahead
 
 
-def test_a_fleet_that_took_every_polynomial_made_ahead_keeps_them_through_a_prepare_for_another_time():
-    """When every world takes the polynomials prepare made, the two blocks trade places rather
-    than copy. The block prepare then writes into must not be the one the worlds sample: a
-    prepare for a later time (worlds entering a segment then, not at the next update) must leave
-    the next update's reference as made at the update."""
-    sims, managers, jtcs = _two_fleets(OPEN_LOOP_JTC, 2)
+def _run_two_fleets(yaml_text: str, nworld: int, periods: int, goals_at, prepared_for=lambda k, t: t) -> None:
+    """`_two_fleets` run in step for `periods` periods of 0.01 s, each handed the goals
+    `goals_at(k)` gives (batch_of's tuples) after its update, the second calling
+    while_stepping for the time `prepared_for(k, t)` gives: their references must agree every
+    period, and every world of the second be on a trajectory at the end."""
+    sims, managers, jtcs = _two_fleets(yaml_text, nworld)
     period = 0.01
-    p = np.random.default_rng(4).uniform(-0.3, 0.3, (4, 6))
-    times = np.array([0.02, 0.04, 0.06, 0.08])  # a segment every second period, both worlds in step
     try:
-        for k in range(9):
+        for k in range(periods):
             t = sum([period] * k, 0.0)  # sim time as SimLoop keeps it (+= period): prepare's t + period is it
             for sim, manager, jtc, ahead in zip(sims, managers, jtcs, (False, True), strict=True):
                 sim.read()
                 manager.update(sim, t, period)
-                if k == 0:  # both start at the update of period 1
-                    assert not jtc.set_trajectories(batch_of([(w, 0.0, times, p, None, None, [True] * 6) for w in (0, 1)]))
-                if ahead:  # periods 3 and 5 (after a take of all): prepared for a period on
-                    manager.while_stepping(sim, t + period if k in (3, 5) else t, period)
+                goals = goals_at(k)
+                if goals:
+                    assert not jtc.set_trajectories(batch_of(goals))
+                if ahead:
+                    manager.while_stepping(sim, prepared_for(k, t), period)
                 sim.write()
                 sim.step(10)
             _assert_same_reference(jtcs[1], jtcs[0])
@@ -1512,32 +1511,33 @@ def test_a_fleet_that_took_every_polynomial_made_ahead_keeps_them_through_a_prep
     finally:
         for sim in sims:
             sim.shutdown()
+
+
+def test_a_fleet_that_took_every_polynomial_made_ahead_keeps_them_through_a_prepare_for_another_time():
+    """When every world takes the polynomials prepare made, the two blocks trade places rather
+    than copy. The block prepare then writes into must not be the one the worlds sample: a
+    prepare for a later time (worlds entering a segment then, not at the next update) must leave
+    the next update's reference as made at the update."""
+    p = np.random.default_rng(4).uniform(-0.3, 0.3, (4, 6))
+    times = np.array([0.02, 0.04, 0.06, 0.08])  # a segment every second period, both worlds in step
+    _run_two_fleets(
+        OPEN_LOOP_JTC,
+        2,
+        9,
+        lambda k: [(w, 0.0, times, p, None, None, [True] * 6) for w in (0, 1)] if k == 0 else [],  # start in period 1
+        lambda k, t: t + 0.01 if k in (3, 5) else t,  # periods 3 and 5 follow a take of all: prepared a period on
+    )
 
 
 def test_a_fleet_whose_every_world_enters_a_segment_or_starts_in_one_period_gets_the_reference_made_then():
     """prepare samples ahead from two blocks: the polynomials kept and those it made (segments
     entered, first segments). When every world is in the second, world 1 entering a segment and
     world 0 starting a trajectory, each must get its own reference."""
-    sims, managers, jtcs = _two_fleets(OPEN_LOOP_JTC, 2)
-    period = 0.01
-    rng = np.random.default_rng(2)
-    p = rng.uniform(-0.3, 0.3, (4, 6))
-    try:
-        for k in range(8):
-            t = sum([period] * k, 0.0)  # sim time as SimLoop keeps it (+= period): prepare's t + period is it
-            for sim, manager, jtc, ahead in zip(sims, managers, jtcs, (False, True), strict=True):
-                sim.read()
-                manager.update(sim, t, period)
-                if k == 0:  # world 1: starts at the update of period 1, its second segment at 0.055 s (entered at 0.06)
-                    assert not jtc.set_trajectories(batch_of([(1, 0.0, np.array([0.045, 0.2]), p[:2], None, None, [True] * 6)]))
-                if k == 5:  # world 0: a trajectory that starts at the update of period 6
-                    assert not jtc.set_trajectories(batch_of([(0, 0.0, np.array([0.1, 0.2]), p[2:], None, None, [True] * 6)]))
-                if ahead:
-                    manager.while_stepping(sim, t, period)
-                sim.write()
-                sim.step(10)
-            _assert_same_reference(jtcs[1], jtcs[0])
-        assert jtcs[1].executing.all()
-    finally:
-        for sim in sims:
-            sim.shutdown()
+    p = np.random.default_rng(2).uniform(-0.3, 0.3, (4, 6))
+    goals = {
+        # world 1: starts at the update of period 1, its second segment at 0.055 s (entered at 0.06)
+        0: [(1, 0.0, np.array([0.045, 0.2]), p[:2], None, None, [True] * 6)],
+        # world 0: a trajectory that starts at the update of period 6
+        5: [(0, 0.0, np.array([0.1, 0.2]), p[2:], None, None, [True] * 6)],
+    }
+    _run_two_fleets(OPEN_LOOP_JTC, 2, 8, lambda k: goals.get(k, []))
