@@ -554,12 +554,21 @@ def main() -> None:
 
 
 def _versions() -> str:
+    """The libraries' versions, from their distributions: rclpy has no `__version__` (the
+    header said `rclpy ?`), and importing warp only to ask would start it."""
+    from importlib import metadata
+
     parts = []
-    for name in ("mujoco", "rclpy", "numpy", "warp", "mujoco_warp"):
+    for name, dist in (
+        ("mujoco", "mujoco"),
+        ("rclpy", "ros-jazzy-rclpy"),
+        ("numpy", "numpy"),
+        ("warp", "warp-lang"),
+        ("mujoco_warp", "mujoco-warp"),
+    ):
         try:
-            module = __import__(name)
-            parts.append(f"{name} {getattr(module, '__version__', '?')}")
-        except Exception:
+            parts.append(f"{name} {metadata.version(dist)}")
+        except metadata.PackageNotFoundError:
             continue
     return ", ".join(parts)
 

@@ -102,6 +102,19 @@ def test_fleet_published_is_the_workers_count_interpolated_between_their_diagnos
     assert math.isnan(published.total(0.25))  # world_8's worker had not reported yet: no figure
 
 
+def test_fleet_and_ros_stack_headers_name_each_librarys_version():
+    """The header of fleet.py and ros_stack.py said `rclpy ?` (rclpy has no __version__)."""
+    from importlib import metadata
+
+    header = benchmark("fleet")._versions()
+    for name, dist in (("mujoco", "mujoco"), ("numpy", "numpy"), ("rclpy", "ros-jazzy-rclpy")):
+        try:
+            assert f"{name} {metadata.version(dist)}" in header, header
+        except metadata.PackageNotFoundError:  # not installed: left out, never a '?'
+            assert f"{name} " not in header, header
+    assert "?" not in header, header
+
+
 def test_a_paced_runs_rtf_leaves_out_what_runs_after_the_loop():
     """timed_run's after-hook (view.py's screenshot, the browser's kill) is not loop time: the
     RTF counted it, and a 3 s run with a screenshot read 0.335."""
