@@ -106,23 +106,6 @@ def _wait(predicate, timeout: float, what: str):
     return value
 
 
-def _enter(browser, focus: str, text: str, done, timeout: float, what: str) -> None:
-    """Type `text` and Enter into the field the script `focus` selects, until `done()`; once
-    more if `timeout` passes without it: on the loaded 2-core machine keys sent while the page
-    re-renders can be lost (a CI run once picked world 3 and the panel stayed on world 0).
-    Only once more: typing again every 3 s, tried first, ran this test for 375 s in a CI run."""
-    keys = [{"type": kind, "value": key} for key in text + "\ue007" for kind in ("keyDown", "keyUp")]
-    for attempt in (1, 2):
-        browser.session_call("POST", "/execute/sync", {"script": focus, "args": []})
-        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
-        try:
-            _wait(done, timeout, what)
-            return
-        except TimeoutError:
-            if attempt == 2:
-                raise
-
-
 def test_the_view_shows_the_robots_a_picked_worlds_status_and_keeps_up(tmp_path):
     from rclpy.context import Context
     from rclpy.node import Node
@@ -156,7 +139,10 @@ def test_the_view_shows_the_robots_a_picked_worlds_status_and_keeps_up(tmp_path)
         arm = (r > 120) & (r - g > 40) & (g - b > 30)  # the arm's orange-brown links, lit or shaded
         assert arm[:, : shot.shape[1] * 2 // 3].sum() > 300, "no robot in the screenshot"  # left of the panel
         # pick world 3 by its number: the panel names it and says why it is not fine
-        _enter(browser, PICK, "3", lambda: "world_3 (world 3): bad command" in browser.text(), 20, f"world 3's status\n{browser.text()}")
+        browser.session_call("POST", "/execute/sync", {"script": PICK, "args": []})
+        keys = [{"type": kind, "value": key} for key in "3\ue007" for kind in ("keyDown", "keyUp")]
+        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        _wait(lambda: "world_3 (world 3): bad command" in browser.text(), 20, f"world 3's status\n{browser.text()}")
         no_image = f"return document.querySelectorAll(\"{CAMERA_IMAGE}\").length"
         assert browser.session_call("POST", "/execute/sync", {"script": no_image, "args": []}) == 0  # the arm has no camera
         # the page keeps up: the sim time it shows advances with the fleet (RTF 1)
@@ -192,7 +178,10 @@ def test_the_view_shows_the_picked_worlds_camera_image(tmp_path):
         browser = Browser()
         browser.session_call("POST", "/url", {"url": f"http://localhost:{port}"})
         _wait(lambda: "front_camera (world 0)" in browser.text(), 30, f"the camera image's label\n{browser.text()}")
-        _enter(browser, PICK, "1", lambda: "front_camera (world 1)" in browser.text(), 20, f"world 1's camera\n{browser.text()}")
+        browser.session_call("POST", "/execute/sync", {"script": PICK, "args": []})
+        keys = [{"type": kind, "value": key} for key in "1\ue007" for kind in ("keyDown", "keyUp")]
+        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        _wait(lambda: "front_camera (world 1)" in browser.text(), 20, f"world 1's camera\n{browser.text()}")
 
         def image() -> list[np.ndarray] | None:  # the <img> on the page, as drawn: world 1's frame once it came
             found = browser.session_call("POST", "/element", {"using": "css selector", "value": CAMERA_IMAGE})
@@ -241,7 +230,10 @@ def test_a_recording_in_the_view_shows_the_robots_and_scrubs(tmp_path):
         r, g, b = shot[..., 0], shot[..., 1], shot[..., 2]
         assert ((r > 120) & (r - g > 40) & (g - b > 30))[:, : shot.shape[1] * 2 // 3].sum() > 300, "no robot in the screenshot"
         # scrub: the slider's number field takes 0.5 s, and the page shows that moment
-        _enter(browser, SLIDER, "0.5", lambda: re.search(r"sim time 0\.5\d s of", browser.text()), 20, "the scrubbed time")  # the frame at 0.5 s
+        browser.session_call("POST", "/execute/sync", {"script": SLIDER, "args": []})
+        keys = [{"type": kind, "value": key} for key in "0.5\ue007" for kind in ("keyDown", "keyUp")]
+        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        _wait(lambda: re.search(r"sim time 0\.5\d s of", browser.text()), 20, "the scrubbed time")  # the frame at 0.5 s
     finally:
         proc.terminate()
         proc.wait(timeout=20)
