@@ -21,6 +21,7 @@ from batchsim import backends, controllers  # batchsim.controllers.load_controll
 from batchsim.backends import Backend, BackendUnavailable, backend_class, resolve
 from batchsim.backends.sharded import ShardedSystem
 from batchsim.failures import set_log_dir
+from batchsim.fleet import FleetError, is_fleet_file, load_fleet
 from batchsim.hardware import (
     BatchedSystem,
     CallbackReturn,
@@ -42,6 +43,7 @@ __all__ = [
     "BatchedSystem",
     "CallbackReturn",
     "ConfigurationError",
+    "FleetError",
     "LifecycleError",
     "LifecycleState",
     "ModelError",
@@ -62,7 +64,7 @@ __all__ = [
 
 
 def make(
-    model: str | Path | RobotSpec,
+    model: str | Path | RobotSpec | Mapping[str, Any],
     nworld: int = 1,
     backend: str | Backend | backends.Registered = "auto",
     *,
@@ -79,7 +81,9 @@ def make(
 
     Args:
       model: a shipped model's name ("arm", "car", "quadruped"), a path to an MJCF file,
-        or a RobotSpec from `batchsim.load`.
+        a RobotSpec from `batchsim.load`, or a fleet: a fleet file (`.yaml`) or its mapping
+        (`{"robots": [...]}`), several robots in every world (batchsim.fleet), each
+        robot's interfaces prefixed `<robot>/` and listed in `sim.spec.robots`.
       nworld: number of worlds.
       backend: "cpu", "mjx", "warp", or "auto" (picks one for nworld and the hardware), or a
         name given to `batchsim.backends.register`.
@@ -116,6 +120,10 @@ def make(
         if ros2_control is not None or keyframe is not None:
             raise ValueError("a RobotSpec is already loaded: give ros2_control= and keyframe= to batchsim.load")
         spec = model
+    elif is_fleet_file(model):
+        if ros2_control is not None or keyframe is not None:
+            raise ValueError("a fleet names each robot's ros2_control and keyframe in its file, not make()")
+        spec = load_fleet(model)
     else:
         spec = load(model, ros2_control=ros2_control, keyframe=keyframe)
     for warning in spec.warnings:  # what the description asks for and batchsim does not act on

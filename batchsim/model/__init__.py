@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from batchsim.model.description import Description, read_description
 from batchsim.model.interfaces import floating_base, initial_command
-from batchsim.model.mjcf import load, load_string, model_names, model_path
+from batchsim.model.mjcf import load, load_string, load_with_mjspec, model_names, model_path
 from batchsim.model.spec import (
     ROS2_PLUGIN,
     ROS2_PLUGIN_KEYS,
@@ -27,6 +27,7 @@ from batchsim.model.spec import (
     Joint,
     MimicCommand,
     ModelError,
+    RobotPart,
     RobotSpec,
     RosPluginConfig,
     Sensor,
@@ -47,6 +48,7 @@ __all__ = [
     "Joint",
     "MimicCommand",
     "ModelError",
+    "RobotPart",
     "RobotSpec",
     "RosPluginConfig",
     "Sensor",
@@ -57,6 +59,7 @@ __all__ = [
     "initial_command",
     "load",
     "load_string",
+    "load_with_mjspec",
     "model_names",
     "model_path",
     "read_description",

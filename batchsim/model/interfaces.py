@@ -384,7 +384,7 @@ def initial_command(spec: RobotSpec, qpos: np.ndarray | None = None) -> np.ndarr
             out[c] = initial.qpos[cmd.qposadr]
         elif cmd.mode is not CommandMode.DIRECT:
             continue
-        elif spec.initial.ctrl_given:
+        elif spec.initial.gives_ctrl(cmd.actuator_id):
             out[c] = (spec.initial.ctrl[cmd.actuator_id] - cmd.offset) / cmd.scale
         elif cmd.kind is InterfaceKind.POSITION:
             # the ctrl at which a position servo pushes neither way: gain * ctrl + bias1 * length = 0

@@ -82,15 +82,45 @@ def load(
       ModelError: a missing file, malformed XML, a model MuJoCo rejects, an unknown
         keyframe; one line.
     """
+    return _load(model, ros2_control=ros2_control, keyframe=keyframe, mujoco_inputs=mujoco_inputs, scene=scene)[0]
+
+
+def load_with_mjspec(
+    model: str | Path,
+    *,
+    ros2_control: str | Path | None = None,
+    keyframe: str | int | None = None,
+    mujoco_inputs: str | Path | None = None,
+    scene: str | Path | None = None,
+) -> tuple[RobotSpec, mujoco.MjSpec]:
+    """`load`, and the MjSpec the model compiled from (the extension and ros2_control blocks
+    removed, assets resolved from the file's folder): what a fleet world attaches a robot from
+    (batchsim.fleet). The MjSpec is the caller's own."""
+    spec, mjspec = _load(
+        model, ros2_control=ros2_control, keyframe=keyframe, mujoco_inputs=mujoco_inputs, scene=scene, keep=True
+    )
+    assert mjspec is not None
+    return spec, mjspec
+
+
+def _load(
+    model: str | Path,
+    *,
+    ros2_control: str | Path | None,
+    keyframe: str | int | None,
+    mujoco_inputs: str | Path | None,
+    scene: str | Path | None,
+    keep: bool = False,
+) -> tuple[RobotSpec, mujoco.MjSpec | None]:
     if is_urdf(model):
         generated = mjcf_from_urdf(model, inputs=mujoco_inputs, scene=scene)
-        spec = load_string(
+        spec, mjspec = _load_string(
             generated.mjcf, name=generated.where, ros2_control=str(model) if ros2_control is None else ros2_control,
-            keyframe=keyframe, generated=True,
+            keyframe=keyframe, generated=True, keep=keep,
         )  # fmt: skip
         spec.warnings += generated.warnings
         spec.path = Path(generated.where)  # the URDF it was made from (spec.xml holds the MJCF)
-        return spec
+        return spec, mjspec
     if mujoco_inputs is not None or scene is not None:
         raise ModelError(f"{model}: mujoco inputs and a scene are for a URDF model, not an MJCF")
     path = model_path(str(model))
@@ -100,7 +130,7 @@ def load(
         raise ModelError(f"{path}: {e.strerror}") from None
     except UnicodeDecodeError as e:
         raise ModelError(f"{path}: {not_text(e)}") from None
-    return load_string(text, path=path, ros2_control=ros2_control, keyframe=keyframe)
+    return _load_string(text, path=path, ros2_control=ros2_control, keyframe=keyframe, keep=keep)
 
 
 def load_string(
@@ -115,6 +145,22 @@ def load_string(
     """Load an MJCF given as text; `path`, if given, names it and anchors relative files
     (meshes, includes) as if MuJoCo had loaded the file itself; else `name` names it.
     `generated`: made from the URDF `ros2_control` names, whose `<lidar>`s it already holds."""
+    return _load_string(
+        text, path=path, ros2_control=ros2_control, keyframe=keyframe, name=name, generated=generated
+    )[0]
+
+
+def _load_string(
+    text: str,
+    *,
+    path: Path | None = None,
+    ros2_control: str | Path | None = None,
+    keyframe: str | int | None = None,
+    name: str | None = None,
+    generated: bool = False,
+    keep: bool = False,
+) -> tuple[RobotSpec, mujoco.MjSpec | None]:
+    """load_string, and with `keep` a copy of the MjSpec compiled (the caller's own), else None."""
     where = str(path) if path else (name or "<string>")
     root = parse_xml(text, where)
     if root.tag == "robot":
@@ -151,6 +197,7 @@ def load_string(
             mjspec = mujoco.MjSpec.from_file(str(path), include={**overrides, **main})
         else:
             mjspec = mujoco.MjSpec.from_file(str(path))
+        kept = mjspec.copy() if keep else None  # compile() binds the spec to its model: a fleet attaches a copy
         mjmodel = mjspec.compile()
     except ValueError as e:
         raise ModelError(f"{where}: {_one_line(str(e))}") from None
@@ -169,7 +216,7 @@ def load_string(
     except ModelError as e:
         raise ModelError(f"{where}: {e}") from None
     spec.sensor_declarations = declarations
-    return spec
+    return spec, kept
 
 
 def _declared(description: Description, lidars: bool = True) -> SensorDeclarations:

@@ -197,8 +197,16 @@ class InitialState:
     mocap_pos: np.ndarray  # (nmocap, 3)
     mocap_quat: np.ndarray  # (nmocap, 4)
     keyframe: str | None = None  # the keyframe's name (or "#<index>" for an unnamed one); None: qpos0
-    ctrl_given: bool = False  # the keyframe gives ctrl: the initial command holds it
+    # the keyframe gives ctrl: the initial command holds it; a world of several robots
+    # (batchsim.fleet) says it per actuator, (nu,) bool, as each robot's own keyframe does
+    ctrl_given: bool | np.ndarray = False
     initial_values: bool = False  # ros2_control initial_value set some joints' qpos
+
+    def gives_ctrl(self, actuator: int) -> bool:
+        """Whether the keyframe gives actuator `actuator`'s ctrl (then its command starts there)."""
+        if isinstance(self.ctrl_given, np.ndarray):
+            return bool(self.ctrl_given[actuator])
+        return bool(self.ctrl_given)
 
     @property
     def is_qpos0(self) -> bool:
@@ -253,6 +261,52 @@ class InitialState:
         mujoco.mj_forward(m, d)
 
 
+@dataclasses.dataclass(frozen=True)
+class RobotPart:
+    """One robot of a world that holds several (batchsim.fleet): which of the world's interfaces,
+    sensors, joints and bodies are its own, as ros2_control exports one hardware component.
+
+    Every name in the world's RobotSpec is prefixed `<robot>/` (MjSpec attach's prefix), so two
+    copies of one model are two robots; `local` strips it again for the robot's own namespace.
+
+    Attributes:
+      name: the robot's name, its namespace inside the world (`/world_3/<name>/...`).
+      model: what it was loaded from (a shipped name or a file), for messages and `info`.
+      state: (nstate_r,) int64, its columns of the world's `state`, in its own order.
+      commands: (ncommand_r,) int64, its columns of the world's `command`.
+      sensors: its MJCF sensors' names in the world's spec (prefixed).
+      joints: its 1-DOF joints' names in the world's spec (prefixed).
+      bodies: (first, count): its bodies are `first .. first + count - 1` of the world's model.
+      floating_base: its own free joint, or None for a fixed base.
+      pose: (x, y, z, yaw) where it was placed in the world.
+      controllers: its controller_manager YAML, or None (the model's default).
+      sensor_config: its sensors/plugins YAML, or None.
+      spec: the robot loaded alone (unprefixed names, its own model): what its description says.
+    """
+
+    name: str
+    model: str
+    state: np.ndarray
+    commands: np.ndarray
+    sensors: tuple[str, ...]
+    joints: tuple[str, ...]
+    bodies: tuple[int, int]
+    floating_base: FloatingBase | None
+    pose: tuple[float, float, float, float]
+    controllers: Path | None = None
+    sensor_config: Path | None = None
+    spec: RobotSpec | None = None
+
+    @property
+    def prefix(self) -> str:
+        """What its names carry in the world's spec: `<name>/`."""
+        return f"{self.name}/"
+
+    def local(self, name: str) -> str:
+        """A world name of this robot's (`arm_a/joint1/position`) as the robot alone names it."""
+        return name.removeprefix(self.prefix)
+
+
 @dataclasses.dataclass
 class RobotSpec:
     """A compiled model and the interfaces batchsim exposes of it.
@@ -283,6 +337,8 @@ class RobotSpec:
         each actuator's (under its joint's name, or its own for a tendon or site), then the
         hinge and slide joints no actuator drives, as (name, qposadr, dofadr); an actuator
         with no joint of its name has addresses -1.
+      robots: the robots of a world composed from a fleet file (batchsim.fleet), in the order
+        their interfaces appear; empty for a model that is one robot.
     """
 
     name: str
@@ -304,6 +360,15 @@ class RobotSpec:
     transmissions: list[Transmission] = dataclasses.field(default_factory=list)
     actuator_commands: list[CommandInterface] | None = None
     actuator_joints: list[tuple[str, int, int]] = dataclasses.field(default_factory=list)
+    robots: list[RobotPart] = dataclasses.field(default_factory=list)
+
+    def robot(self, name: str) -> RobotPart:
+        """The robot of that name (a world of several, batchsim.fleet); KeyError naming the robots."""
+        for r in self.robots:
+            if r.name == name:
+                return r
+        known = ", ".join(r.name for r in self.robots) or "none: the model is one robot"
+        raise KeyError(f"no robot named {name!r}; robots: {known}")
 
     @property
     def state_interfaces(self) -> list[str]:

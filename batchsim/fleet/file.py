@@ -1,0 +1,288 @@
+"""The fleet file: what a world holds (an environment and the robots in it), parsed and checked
+without compiling anything.
+
+```yaml
+environment: warehouse.xml          # optional MJCF: floor, shelves, objects (paths: from this file)
+robots:
+  - name: amr_1                     # its namespace inside the world: a ROS name token
+    model: rover                    # a shipped name, an MJCF (a Menagerie scene or robot file), a URDF
+    pose: [0.0, 0.0, 0.0, 0.0]      # x, y, z, yaw (radians) in the world; default the origin
+    controllers: amr.yaml           # optional: else the model's default controllers
+    sensors: amr_sensors.yaml       # optional: cameras, lidars, noise (batchsim.sensors)
+    ros2_control: amr.urdf          # optional: the description whose blocks narrow its interfaces
+    keyframe: home                  # optional: the robot's own keyframe to start in
+  - name: amr_{k}                   # `count` robots, k = 1 .. count, placed by a rule:
+    model: rover
+    count: 6
+    grid: {origin: [0, 0, 0], spacing: [1.5, 1.5], columns: 3, yaw: 0.0}
+```
+
+A Python mapping of the same shape works too (`batchsim.make({...}, nworld)`); relative paths
+in it are taken from the working directory. Strings live here only: every fault is one
+`FleetError` naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from batchsim.model.spec import ModelError
+
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_ROBOT_KEYS = ("name", "model", "pose", "controllers", "sensors", "ros2_control", "keyframe", "count", "grid")
+_GRID_KEYS = ("origin", "spacing", "columns", "yaw")
+_TOP_KEYS = ("environment", "robots", "name")
+
+
+class FleetError(ModelError):
+    """A fleet file or mapping that cannot be used: one line, naming the file and the key."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotEntry:
+    """One robot of a world, as the fleet file places it.
+
+    Attributes:
+      name: its namespace inside the world (a ROS name token), unique in the world.
+      model: a shipped model's name or a file (MJCF or URDF/xacro; relative to the fleet file).
+      pose: (x, y, z, yaw) in the world frame, yaw in radians about +z.
+      controllers: its controller_manager YAML, or None: the model's default controllers.
+      sensors: its sensors/plugins YAML (batchsim.sensors), or None.
+      ros2_control: the description whose `<ros2_control>` blocks narrow its interfaces, or None.
+      keyframe: its own keyframe to start in (name or index), or None: `home` where it has one.
+      key: where it is declared, for messages: `robots[2]` (`robots[2] (amr_3)` for one of a count).
+      grid: the key of the grid rule that placed it (`robots[2].grid`), or None for a pose.
+    """
+
+    name: str
+    model: str
+    pose: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    controllers: Path | None = None
+    sensors: Path | None = None
+    ros2_control: str | None = None
+    keyframe: str | int | None = None
+    key: str = ""
+    grid: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class FleetFile:
+    """What every world of a fleet holds.
+
+    Attributes:
+      name: the world model's name (`name:`, else the file's stem, else "fleet").
+      path: the fleet file, or None for a mapping.
+      environment: the environment MJCF, or None: an empty world (a floor is the robots' own).
+      robots: the robots, in the order their interfaces are exported.
+    """
+
+    name: str
+    path: Path | None
+    environment: Path | None
+    robots: tuple[RobotEntry, ...]
+
+    @property
+    def where(self) -> str:
+        """The file for messages (`<fleet>` for a mapping)."""
+        return str(self.path) if self.path is not None else "<fleet>"
+
+    def robot(self, name: str) -> RobotEntry:
+        for r in self.robots:
+            if r.name == name:
+                return r
+        raise FleetError(f"{self.where}: no robot named {name!r} (robots: {', '.join(r.name for r in self.robots)})")
+
+
+def is_fleet_file(model: Any) -> bool:
+    """Whether `model` is a fleet: a mapping with `robots`, or a .yaml/.yml file."""
+    if isinstance(model, Mapping):
+        return "robots" in model
+    return isinstance(model, str | Path) and Path(str(model)).suffix.lower() in (".yaml", ".yml")
+
+
+def read_fleet(source: str | Path | Mapping[str, Any]) -> FleetFile:
+    """A fleet file (YAML) or its mapping, checked: every key known, every robot placed.
+
+    Raises:
+      FleetError: a missing or malformed file, an unknown key, a robot without a name or model,
+        a name that is no ROS name or is given twice, a bad pose or grid, a count of 0.
+    """
+    if isinstance(source, Mapping):
+        path, data, base = None, source, Path.cwd()
+    else:
+        path = Path(source).expanduser()
+        try:
+            text = path.read_text()
+        except OSError as e:
+            raise FleetError(f"{path}: {e.strerror or e}") from None
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            at = f" (line {mark.line + 1})" if mark is not None else ""
+            raise FleetError(f"{path}: not valid YAML{at}: {getattr(e, 'problem', None) or e}") from None
+        base = path.parent
+    where = str(path) if path is not None else "<fleet>"
+    if not isinstance(data, Mapping):
+        raise FleetError(f"{where}: a fleet file is a mapping with a `robots:` list, got {type(data).__name__}")
+    _known(data, _TOP_KEYS, where, "")
+    robots = data.get("robots")
+    if not isinstance(robots, list) or not robots:
+        raise FleetError(f"{where}: robots: a list of at least one robot (name, model, pose)")
+    environment = data.get("environment")
+    env_path = None
+    if environment is not None:
+        if not isinstance(environment, str | Path) or not str(environment):
+            raise FleetError(f"{where}: environment: an MJCF file, got {environment!r}")
+        env_path = _file(base, environment)
+        if not env_path.is_file():
+            raise FleetError(f"{where}: environment: no such file {str(env_path)!r}")
+    entries: list[RobotEntry] = []
+    for k, item in enumerate(robots):
+        entries += _robots(item, f"robots[{k}]", where, base)
+    seen: dict[str, str] = {}
+    for r in entries:
+        if r.name in seen:
+            raise FleetError(f"{where}: {r.key}: the name {r.name!r} is taken by {seen[r.name]}: each robot needs its own")
+        seen[r.name] = r.key
+    name = data.get("name") or (path.stem if path is not None else "fleet")
+    if not isinstance(name, str):
+        raise FleetError(f"{where}: name: a string, got {name!r}")
+    return FleetFile(name=name, path=path, environment=env_path, robots=tuple(entries))
+
+
+def _robots(item: Any, key: str, where: str, base: Path) -> list[RobotEntry]:
+    """The robots one `robots:` item declares: one, or `count` placed on a grid."""
+    if not isinstance(item, Mapping):
+        raise FleetError(f"{where}: {key}: a mapping with name and model, got {item!r}")
+    _known(item, _ROBOT_KEYS, where, key)
+    for needed in ("name", "model"):
+        if needed not in item or item[needed] in (None, ""):
+            raise FleetError(f"{where}: {key}: {needed} is missing")
+    name, model = item["name"], item["model"]
+    if not isinstance(name, str) or not isinstance(model, str | Path):
+        raise FleetError(f"{where}: {key}: name and model are strings")
+    count = item.get("count", 1)
+    if not isinstance(count, int) or isinstance(count, bool) or count < 1:
+        raise FleetError(f"{where}: {key}.count: a whole number of robots, at least 1, got {count!r}")
+    if "pose" in item and "grid" in item:
+        raise FleetError(f"{where}: {key}: give a pose or a grid, not both")
+    if count > 1 and "grid" not in item:
+        raise FleetError(f"{where}: {key}: {count} robots need a placement rule: grid: {{origin, spacing, columns}}")
+    if count > 1 and "{k}" not in name:
+        raise FleetError(f"{where}: {key}.name: {name!r} names {count} robots: put {{k}} in it (e.g. 'amr_{{k}}')")
+    poses = (
+        _grid(item["grid"], count, where, f"{key}.grid")
+        if "grid" in item
+        else [_pose(item.get("pose", (0.0, 0.0, 0.0, 0.0)), where, f"{key}.pose")]
+    )
+    files = {
+        field: _file(base, item[field]) if item.get(field) not in (None, "") else None
+        for field in ("controllers", "sensors")
+    }
+    for field, file in files.items():
+        if file is not None and str(file).lower() != "none" and not file.is_file():
+            raise FleetError(f"{where}: {key}.{field}: no such file {str(file)!r}")
+    ros2_control = item.get("ros2_control")
+    if ros2_control is not None:
+        ros2_control = _file_with_args(base, str(ros2_control))
+    model_text = str(model)
+    if _looks_like_file(model_text):
+        model_text = _file_with_args(base, model_text)
+    keyframe = item.get("keyframe")
+    if keyframe is not None and not isinstance(keyframe, str | int):
+        raise FleetError(f"{where}: {key}.keyframe: a keyframe's name or index, got {keyframe!r}")
+    out = []
+    for k, pose in enumerate(poses, start=1):
+        robot_name = name.replace("{k}", str(k))
+        if not _NAME.match(robot_name):
+            raise FleetError(
+                f"{where}: {key}.name: {robot_name!r} is not a valid ROS name: use letters, digits and '_', "
+                "not starting with a digit"
+            )
+        out.append(
+            RobotEntry(
+                name=robot_name,
+                model=model_text,
+                pose=pose,
+                controllers=files["controllers"],
+                sensors=files["sensors"],
+                ros2_control=ros2_control,
+                keyframe=keyframe,
+                key=key if count == 1 else f"{key} ({robot_name})",
+                grid=f"{key}.grid" if "grid" in item else None,
+            )
+        )
+    return out
+
+
+def _known(item: Mapping[str, Any], keys: Sequence[str], where: str, key: str) -> None:
+    unknown = sorted(str(k) for k in item if k not in keys)
+    if unknown:
+        at = f"{key}." if key else ""
+        raise FleetError(f"{where}: {at}{unknown[0]}: unknown key (known: {', '.join(keys)})")
+
+
+def _numbers(value: Any, n: Sequence[int], where: str, key: str, what: str) -> list[float]:
+    if not isinstance(value, list | tuple) or len(value) not in n:
+        raise FleetError(f"{where}: {key}: {what}, got {value!r}")
+    try:
+        out = [float(v) for v in value]
+    except (TypeError, ValueError):
+        raise FleetError(f"{where}: {key}: {what}, got {value!r}") from None
+    if not all(math.isfinite(v) for v in out):
+        raise FleetError(f"{where}: {key}: finite numbers, got {value!r}")
+    return out
+
+
+def _pose(value: Any, where: str, key: str) -> tuple[float, float, float, float]:
+    x, y, z, yaw = (_numbers(value, (3, 4), where, key, "[x, y, z, yaw] (yaw in radians, optional)") + [0.0])[:4]
+    return (x, y, z, yaw)
+
+
+def _grid(value: Any, count: int, where: str, key: str) -> list[tuple[float, float, float, float]]:
+    """`count` poses, row by row: origin + (column * spacing_x, row * spacing_y)."""
+    if not isinstance(value, Mapping):
+        raise FleetError(f"{where}: {key}: a mapping with origin, spacing and columns")
+    _known(value, _GRID_KEYS, where, key)
+    origin = (_numbers(value.get("origin", [0.0, 0.0, 0.0]), (2, 3), where, f"{key}.origin", "[x, y] or [x, y, z]")
+              + [0.0])[:3]  # fmt: skip
+    if "spacing" not in value:
+        raise FleetError(f"{where}: {key}.spacing is missing: [dx, dy] between neighbours, in metres")
+    dx, dy = _numbers(value["spacing"], (2,), where, f"{key}.spacing", "[dx, dy] in metres")
+    columns = value.get("columns", count)
+    if not isinstance(columns, int) or isinstance(columns, bool) or columns < 1:
+        raise FleetError(f"{where}: {key}.columns: a whole number, at least 1, got {columns!r}")
+    yaw = value.get("yaw", 0.0)
+    if not isinstance(yaw, int | float) or isinstance(yaw, bool) or not math.isfinite(yaw):
+        raise FleetError(f"{where}: {key}.yaw: radians, got {yaw!r}")
+    if count > 1 and (abs(dx) < 1e-9 and columns > 1 or abs(dy) < 1e-9 and count > columns):
+        raise FleetError(f"{where}: {key}.spacing: {value['spacing']!r} puts several robots on one spot")
+    return [
+        (origin[0] + (k % columns) * dx, origin[1] + (k // columns) * dy, origin[2], float(yaw))
+        for k in range(count)
+    ]
+
+
+def _looks_like_file(text: str) -> bool:
+    first = text.split()[0] if text.split() else text
+    return "/" in first or Path(first).suffix.lower() in (".xml", ".mjcf", ".urdf", ".xacro")
+
+
+def _file(base: Path, value: Any) -> Path:
+    path = Path(str(value)).expanduser()
+    return path if path.is_absolute() or str(value).lower() == "none" else base / path
+
+
+def _file_with_args(base: Path, text: str) -> str:
+    """A file (relative to `base`) that xacro arguments may follow: `arm.urdf.xacro prefix:=a_`."""
+    first, _, rest = text.strip().partition(" ")
+    path = _file(base, first)
+    return f"{path} {rest}".strip()
