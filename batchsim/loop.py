@@ -213,10 +213,13 @@ class SimLoop:
         """Reset all or the listed worlds and tell every participant (`on_reset`).
 
         Call it from the loop thread (a participant's update or idle), as the bridge does
-        for its services; the system is never touched from another thread.
+        for its services; the system is never touched from another thread. `worlds` as
+        `sim.reset` takes it (indices, or a (nworld,) bool mask); participants get (k,) indices.
         """
         self.sim.reset(worlds)
-        rows = None if worlds is None else np.asarray(worlds, dtype=np.intp).reshape(-1)
+        rows = None if worlds is None else np.asarray(worlds).reshape(-1)
+        if rows is not None:  # a mask's worlds are where it is True (as integers it would read 0s and 1s)
+            rows = np.flatnonzero(rows) if rows.dtype == bool else rows.astype(np.intp)
         for p in self.participants:
             hook = getattr(p, "on_reset", None)
             if hook is not None:

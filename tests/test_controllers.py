@@ -514,6 +514,32 @@ def test_loop_reset_reaches_every_controller_and_the_reset_world_holds_its_reset
     assert spy.resets == [[1], [0, 1, 2]] and not jtc.executing.any()
 
 
+def test_loop_reset_by_mask_tells_participants_the_masked_worlds():
+    """Issue 42: a (nworld,) bool mask resets the masked worlds, and the participants heard
+    the mask as integers ([0 0 1 1]): they get the world indices, as for a list."""
+
+    class Heard:
+        def __init__(self):
+            self.resets: list[list[int]] = []
+
+        def update(self, sim, time, period):
+            pass
+
+        def on_reset(self, sim, worlds):
+            self.resets.append(worlds.tolist())
+
+    sim = batchsim.make("arm", 4, "cpu", nthread=1)
+    sim.configure()
+    sim.activate()
+    heard, spy = Heard(), ResetSpy(sim.spec, 4)
+    loop = SimLoop(sim, rtf=0, participants=[heard, ControllerManager([spy], update_rate=100.0)])
+    loop.reset(np.array([False, False, True, True]))
+    loop.reset([1, 3])
+    assert heard.resets == [[2, 3], [1, 3]]
+    assert spy.resets == [[2, 3], [1, 3]]  # and so the controllers, through the manager
+    sim.shutdown()
+
+
 def test_a_world_whose_time_goes_backwards_is_not_taken_for_reset():
     spec = batchsim.load("arm")
     sim = FakeSim(spec, 2, np.random.default_rng(1))
