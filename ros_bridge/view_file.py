@@ -22,8 +22,8 @@ from mcap.reader import NonSeekingReader
 from mcap_ros2.decoder import DecoderFactory
 
 from ros_bridge.naming import frame
+from ros_bridge.recording_file import ReplayError, check_file
 from ros_bridge.view_plan import GEOMETRY, ViewSpec, geometry_from_bytes
-from ros_bridge.worker.replay import ReplayError, check_file
 from ros_bridge.worker.view import FleetScene, qmul, rotate
 from ros_bridge.world_status import from_values, status_text
 

@@ -19,6 +19,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from conftest import need
 
 import batchsim
 from batchsim import startup
@@ -365,6 +366,24 @@ def test_controllers_are_reachable_after_import_batchsim():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd="/", timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "load_controllers"
+
+
+def test_view_of_a_file_needs_no_rclpy(tmp_path):
+    """Issue 42: `batchsim view FILE` without ROS 2 said to install [view], which brings no
+    rclpy: the view of a file imported rclpy for the replay's error class and through the worker
+    package. Where rclpy does not import, a file that is not a recording is named as such."""
+    need("mcap", "batchsim view needs the record extra")
+    need("viser", "batchsim view needs the view extra")
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a recording\n")
+    code = (
+        "import runpy, sys\n"
+        "sys.modules['rclpy'] = None  # as where ROS 2 is not installed: importing it fails\n"
+        f"sys.argv = ['batchsim', 'view', {str(notes)!r}]\n"
+        "runpy.run_module('batchsim.cli', run_name='__main__', alter_sys=True)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert one_error_line(out) == f"batchsim: error: {notes} is not an MCAP file (it does not start with MCAP's magic bytes)"
 
 
 def test_install_hint_is_a_command_a_user_can_run():

@@ -15,8 +15,8 @@ def view(argv: Sequence[str]) -> int:
     if not 0 < args.view_port < 65536:
         raise UsageError(f"--view-port must be in 1..65535, got {args.view_port}")
     try:
+        from ros_bridge.recording_file import ReplayError
         from ros_bridge.view_file import serve
-        from ros_bridge.worker.replay import ReplayError
     except ModuleNotFoundError as e:
         extra = "record" if (e.name or "").startswith("mcap") else "view"
         raise UsageError(f"batchsim view needs {e.name}: {startup.install_command(extra)}") from None

@@ -15,6 +15,16 @@ type_check.py  a remote endpoint built from another definition of our types, nam
 conflicts.py   another process already serving these worlds?
 """
 
-from ros_bridge.worker.core import Worker
+from typing import Any
 
 __all__ = ["Worker"]
+
+
+def __getattr__(name: str) -> Any:
+    # Worker, and rclpy with it, on first use: view.py (the web view's process) and
+    # ros_bridge/view_file.py import from this package where ROS 2 is not installed
+    if name == "Worker":
+        from ros_bridge.worker.core import Worker
+
+        return Worker
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

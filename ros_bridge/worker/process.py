@@ -17,7 +17,6 @@ from typing import Any
 
 from batchsim.memory import Memory
 from ros_bridge.plan import FleetPlan
-from ros_bridge.worker.core import Worker
 
 
 def die_with_parent() -> None:
@@ -30,6 +29,8 @@ def die_with_parent() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ros_bridge.worker.core import Worker  # rclpy: here, so that view.py takes die_with_parent without it
+
     argv = list(sys.argv[1:] if argv is None else argv)
     index, wake_fd, status_fd, notify_fd = (int(a) for a in argv[:4])
     check = "--check" in argv

@@ -32,34 +32,12 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 
+from ros_bridge.recording_file import ReplayError, check_file
 from ros_bridge.worker.messages import clock_payload, message_type
 
-MAGIC = b"\x89MCAP0\r\n"
 CLOCK_RATE = 100.0  # Hz of the /clock made up for a recording without one
 DRAIN_TIMEOUT = 5.0  # s the replay waits at its end for subscribers to acknowledge the last messages
 FLEET = ("/clock", "/tf", "/tf_static")
-
-
-class ReplayError(ValueError):
-    """A file that cannot be replayed, or a selection it does not hold: one line."""
-
-
-def check_file(path: str) -> bool:
-    """ReplayError unless `path` is an MCAP file; True if it is complete (its closing magic is there)."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(len(MAGIC))
-            f.seek(0, 2)
-            size = f.tell()
-            f.seek(max(0, size - len(MAGIC)))
-            tail = f.read(len(MAGIC))
-    except IsADirectoryError:
-        raise ReplayError(f"{path} is a directory, not an MCAP file") from None
-    except OSError as e:
-        raise ReplayError(f"{path}: {e.strerror}") from None
-    if head != MAGIC:
-        raise ReplayError(f"{path} is not an MCAP file (it does not start with MCAP's magic bytes)")
-    return size > 2 * len(MAGIC) and tail == MAGIC
 
 
 def _qos(channel: Channel) -> QoSProfile:
