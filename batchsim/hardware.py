@@ -68,6 +68,14 @@ from batchsim.varying import Varying
 
 S = LifecycleState
 _FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
+# an option's type: how a message names it, and the values it takes (NumPy's scalars too; a
+# bool is no integer or number here, though Python's bool is an int)
+_OPTION_KINDS: dict[type, tuple[str, tuple[type, ...]]] = {
+    bool: ("a bool", (bool, np.bool_)),
+    int: ("an integer", (int, np.integer)),
+    float: ("a number", (int, float, np.integer, np.floating)),
+    str: ("a string", (str,)),
+}
 
 
 class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceIO, EngineHooks, SystemInterface):
@@ -92,6 +100,12 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
     name: ClassVar[str] = ""
     #: keyword options the backend's constructor takes, with their defaults
     OPTIONS: ClassVar[dict[str, Any]] = {}
+    #: the type of each option whose default is None (which also stays allowed): bool, int,
+    #: float or str, or object for one the backend resolves itself (a device); every other option
+    #: takes its default's type
+    OPTION_TYPES: ClassVar[dict[str, type]] = {}
+    #: the least value of the numeric options that have one
+    OPTION_MINIMA: ClassVar[dict[str, float]] = {}
     #: whether one render or scan covers every world at the cost of any subset (one GPU launch)
     sensors_batched: ClassVar[bool] = False
     #: whether the first control period compiles (mjx) or captures (warp) the step's program:
@@ -106,10 +120,7 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         super().__init__()
         if int(nworld) != nworld or nworld < 1:
             raise ValueError(f"nworld must be a positive integer, got {nworld!r}")
-        unknown = sorted(set(options) - set(self.OPTIONS))
-        if unknown:
-            known = ", ".join(self.OPTIONS) or "none"
-            raise ValueError(f"unknown option {unknown[0]!r} for backend {self.name} (options: {known})")
+        self.check_options(options)
         self.spec = spec
         self.nworld = int(nworld)
         self.options = {**self.OPTIONS, **options}
@@ -157,6 +168,27 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         self._sensor_config: SensorConfig | None = None
         self._shown_poses = None  # body_poses()' last, per world (batchsim.body_poses)
         self._sensors: SensorSuite | None = None
+
+    @classmethod
+    def check_options(cls, options: Mapping[str, Any]) -> None:
+        """ValueError, one line, for an option the backend does not take, a value not of the
+        option's type (OPTION_TYPES, else its default's) or below its least (OPTION_MINIMA): at
+        construction, where configure would fail on it naming no option (int("four"))."""
+        unknown = sorted(set(options) - set(cls.OPTIONS))
+        if unknown:
+            known = ", ".join(cls.OPTIONS) or "none"
+            raise ValueError(f"unknown option {unknown[0]!r} for backend {cls.name} (options: {known})")
+        for option, value in options.items():
+            default = cls.OPTIONS[option]
+            kind = cls.OPTION_TYPES.get(option, type(default))
+            if kind not in _OPTION_KINDS or (value is None and default is None):
+                continue  # object: the backend resolves it (a device), naming what it has
+            what, takes = _OPTION_KINDS[kind]
+            if not isinstance(value, takes) or (kind is not bool and isinstance(value, bool | np.bool_)):
+                raise ValueError(f"option {option} of backend {cls.name} must be {what}, got {value!r}")
+            least = cls.OPTION_MINIMA.get(option)
+            if least is not None and not value >= least:  # NaN too
+                raise ValueError(f"option {option} of backend {cls.name} must be >= {least:g}, got {value!r}")
 
     @property
     def readings(self) -> np.ndarray:

@@ -225,6 +225,60 @@ def test_unknown_backend_and_option():
         batchsim.make("arm", 1, "cpu", threads=2)
 
 
+_PACKAGE = {"cpu": "mujoco", "mjx": "jax", "warp": "mujoco_warp"}
+
+
+@pytest.mark.parametrize(
+    "backend, option, value, must",
+    [
+        ("cpu", "nthread", "four", "an integer"),
+        ("cpu", "nthread", 2.5, "an integer"),
+        ("cpu", "nthread", True, "an integer"),
+        ("cpu", "nthread", -1, ">= 0"),
+        ("cpu", "deterministic", "yes", "a bool"),
+        ("mjx", "deterministic", 1, "a bool"),
+        ("warp", "nconmax", "many", "an integer"),
+        ("warp", "njmax", -5, ">= 0"),
+        ("warp", "max_data_bytes", "2G", "a number"),
+        ("warp", "max_data_bytes", 0, ">= 1"),
+        ("warp", "max_data_bytes", float("nan"), ">= 1"),
+        ("warp", "graph", "no", "a bool"),
+    ],
+)
+def test_a_backend_option_of_the_wrong_type_or_range_is_named_at_make(backend, option, value, must):
+    """Issue 42: options were checked by name only; nthread="four" failed at configure with
+    "invalid literal for int()", naming no option. make() names it, its backend and the value."""
+    need(_PACKAGE[backend])
+    with pytest.raises(ValueError) as e:
+        batchsim.make("arm", 1, backend, **{option: value})
+    assert str(e.value) == f"option {option} of backend {backend} must be {must}, got {value!r}"
+
+
+@pytest.mark.parametrize(
+    "backend, options",
+    [
+        ("cpu", {"nthread": np.int64(2), "deterministic": np.True_}),
+        ("mjx", {"device": "cpu", "deterministic": True}),
+        ("warp", {"nconmax": None, "njmax": 64, "max_data_bytes": 2e9, "device": "cpu", "graph": False}),
+    ],
+)
+def test_backend_options_of_the_right_types_are_taken(backend, options):
+    """What the checks let through: NumPy's scalars, None where the default is None, a device by name."""
+    need(_PACKAGE[backend])
+    sim = batchsim.make("arm", 1, backend, **options)
+    assert {k: sim.options[k] for k in options} == options
+
+
+@pytest.mark.parametrize("backend", list(_PACKAGE))
+def test_every_option_whose_default_is_none_declares_its_type(backend):
+    """None says nothing of what else an option takes: each such option of a shipped backend
+    says it (OPTION_TYPES), so that make() checks it too."""
+    need(_PACKAGE[backend])
+    cls = batchsim.backends.backend_class(batchsim.backends.parse(backend))
+    undeclared = [o for o, default in cls.OPTIONS.items() if default is None and o not in cls.OPTION_TYPES]
+    assert not undeclared, f"the {backend} backend declares no type for {undeclared}"
+
+
 # ---------------------------------------------------------------- the command
 
 

@@ -56,6 +56,7 @@ class CpuSystem(BatchedSystem):
 
     name: ClassVar[str] = "cpu"
     OPTIONS: ClassVar[dict[str, Any]] = {"nthread": 0, "deterministic": True}
+    OPTION_MINIMA: ClassVar[dict[str, float]] = {"nthread": 0}
     physics_memory = staticmethod(footprint.cpu)
     logs_failures: ClassVar[bool] = True  # C MuJoCo logs a world's failure itself (MUJOCO_LOG.TXT)
 

@@ -227,6 +227,7 @@ class MjxSystem(MjxFields, MjxDeviceIO, DeviceSystem):
 
     name: ClassVar[str] = "mjx"
     OPTIONS: ClassVar[dict[str, Any]] = {"device": None, "deterministic": False}
+    OPTION_TYPES: ClassVar[dict[str, type]] = {"device": object}  # _resolve_device takes a name or a jax.Device
     physics_memory = staticmethod(footprint.mjx)
     reads_torque_sensors: ClassVar[bool] = False  # its cfrc_int leaves out what C MuJoCo's torque sensors read
 

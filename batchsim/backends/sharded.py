@@ -118,6 +118,7 @@ class ShardedSystem(BatchedSystem):
         self.processes = bool(processes)
         if not 1 <= len(self.devices) <= self.nworld:
             raise OptionError("", f"{self.nworld} worlds cannot be split over {len(self.devices)} devices")
+        backend.check_options(options)  # once, here, before any shard (a process's error would come back late)
         self.world_ranges = split_worlds(self.nworld, len(self.devices))
         self.sensors_batched = backend.sensors_batched
         self.reads_torque_sensors = backend.reads_torque_sensors  # type: ignore[misc]

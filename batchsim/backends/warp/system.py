@@ -87,6 +87,13 @@ class WarpSystem(
         "graph": True,
         "deterministic": False,
     }
+    OPTION_TYPES: ClassVar[dict[str, type]] = {
+        "nconmax": int,
+        "njmax": int,
+        "max_data_bytes": float,
+        "device": object,  # _resolve_device takes a name or a warp Device
+    }
+    OPTION_MINIMA: ClassVar[dict[str, float]] = {"nconmax": 0, "njmax": 0, "max_data_bytes": 1}
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__(spec, nworld, **options)
@@ -95,8 +102,6 @@ class WarpSystem(
             sized = rollout_sizes(self.model)
         self.nconmax = int(self.options["nconmax"] if self.options["nconmax"] is not None else sized[0])
         self.njmax = int(self.options["njmax"] if self.options["njmax"] is not None else sized[1])
-        if self.nconmax < 0 or self.njmax < 0:
-            raise ValueError(f"nconmax and njmax must be >= 0, got {self.nconmax} and {self.njmax}")
         self._cuda = self.device.is_cuda
         # The host arrays a user sees become pinned memory that the device copies into
         # directly: read() then costs one DMA per array and no host-side copy or conversion.
