@@ -152,6 +152,9 @@ class Controller:
         self._command_names = spec.command_interfaces
         self._state_names = spec.state_interfaces
         self.time = 0.0  # the loop time of the last update
+        # the robot's namespace inside a world of several (`arm_a/`, batchsim.controllers.robots),
+        # for topics ros2_control puts at the controller_manager's namespace: "" for a world of one
+        self.namespace = ""
 
     # --- interface resolution, at configuration time ---
     def check_joints(self, key: str, joints: Sequence[str]) -> None:

@@ -73,8 +73,9 @@ class JointStateBroadcaster(Controller):
             out[:, rows] = state[:, cols]
 
     def topics(self) -> ControllerTopics:
-        """`<ns>/joint_states` (with use_local_topics `<ns>/<controller>/joint_states`)."""
-        topic = f"{self.name}/joint_states" if self.use_local_topics else "joint_states"
+        """`<ns>/joint_states` (with use_local_topics `<ns>/<controller>/joint_states`); a robot of a
+        world of several: `<ns>/<robot>/joint_states`."""
+        topic = f"{self.name}/joint_states" if self.use_local_topics else f"{self.namespace}joint_states"
         fields = {"position": self.position, "velocity": self.velocity, "effort": self.effort}
         return ControllerTopics(
             self.name,

@@ -17,6 +17,7 @@ from typing import Any
 
 from batchsim.fleet.compose import compose, overlaps, robot_of_body
 from batchsim.fleet.file import FleetError, FleetFile, RobotEntry, is_fleet_file, read_fleet
+from batchsim.fleet.view import robot_view
 from batchsim.model.spec import RobotSpec
 
 __all__ = [
@@ -29,6 +30,7 @@ __all__ = [
     "overlaps",
     "read_fleet",
     "robot_of_body",
+    "robot_view",
 ]
 
 

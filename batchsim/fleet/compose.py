@@ -106,7 +106,8 @@ def compose(fleet: FleetFile) -> RobotSpec:
         _copy_visual(world, mjspec)
         if differ:
             warnings.append(
-                f"{entry.name}: its {', '.join(differ)} differ from the world's, which it steps with"
+                f"{entry.name}: its option {', '.join(differ)} {'differs' if len(differ) == 1 else 'differ'} from the "
+                "world's, which it steps with"
             )
         if spec.ros is not None:
             warnings.append(f"{entry.name}: its mujoco.ros2 block is not used in a fleet (the fleet names its topics)")

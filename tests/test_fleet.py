@@ -1,0 +1,298 @@
+"""Several robots in one world (batchsim.fleet): composition, the contract on every backend,
+parity with raw mj_step, contacts between robots, per-robot controllers, and bad fleet files."""
+
+from __future__ import annotations
+
+import math
+import tarfile
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+import batchsim
+from batchsim import FleetError, Status
+from batchsim.controllers.robots import load_fleet_controllers
+from batchsim.fleet import load_fleet, read_fleet, robot_view
+from batchsim.loop import SimLoop
+
+ROBOTS = Path(__file__).resolve().parents[2] / "shared" / "robots"
+TWO_ARMS = {
+    "robots": [
+        {"name": "arm_a", "model": "arm", "pose": [0.0, 0.0, 0.0, 0.0]},
+        {"name": "arm_b", "model": "arm", "pose": [1.5, 0.0, 0.0, math.pi]},
+    ]
+}
+ARM_AND_ROVER = {
+    "robots": [
+        {"name": "arm", "model": "arm", "pose": [0.0, 0.0, 0.0, 0.0]},
+        {"name": "amr", "model": "rover", "pose": [0.0, 2.0, 0.0, math.pi / 2]},
+    ]
+}
+
+
+@pytest.fixture(scope="module")
+def menagerie(tmp_path_factory) -> Path:
+    """The shared Menagerie robots, unpacked."""
+    if not ROBOTS.is_dir():
+        pytest.skip(f"{ROBOTS} is not beside the checkout")
+    root = tmp_path_factory.mktemp("menagerie")
+    for archive in ("universal_robots_ur5e", "unitree_go2"):
+        with tarfile.open(ROBOTS / f"{archive}.tar.xz") as tar:
+            tar.extractall(root, filter="data")
+    return root
+
+
+def active(model, backend: str, nworld: int = 4) -> batchsim.BatchedSystem:
+    sim = batchsim.make(model, nworld, backend)
+    sim.configure()
+    sim.activate()
+    return sim
+
+
+# ---------------------------------------------------------------- composition
+
+
+def test_two_copies_of_one_model_are_two_robots_with_their_own_names_and_columns():
+    spec = load_fleet(TWO_ARMS)
+    alone = batchsim.load("arm")
+    assert [r.name for r in spec.robots] == ["arm_a", "arm_b"]
+    assert spec.command_interfaces == [f"arm_a/{n}" for n in alone.command_interfaces] + [
+        f"arm_b/{n}" for n in alone.command_interfaces
+    ]
+    for r in spec.robots:
+        assert [spec.state_interfaces[c] for c in r.state] == [r.prefix + n for n in alone.state_interfaces]
+        assert [spec.command_interfaces[c] for c in r.commands] == [r.prefix + n for n in alone.command_interfaces]
+        assert set(r.sensors) == {r.prefix + s.name for s in alone.sensors}
+        first, n = r.bodies
+        assert all(spec.mjmodel.body(b).name.startswith(r.prefix) for b in range(first, first + n))
+    # the robot's own scene (the arm file's floor and light) is left out: the world has one floor
+    m = spec.mjmodel
+    floors = [m.geom(g).name for g in range(m.ngeom) if m.geom(g).name.endswith("floor")]
+    assert floors == ["floor"]
+
+
+def test_each_robot_starts_in_its_own_keyframe_at_its_pose(menagerie):
+    spec = load_fleet(
+        {
+            "robots": [
+                {"name": "ur", "model": str(menagerie / "universal_robots_ur5e/scene.xml"), "pose": [0, 0, 0, 0]},
+                {"name": "dog", "model": str(menagerie / "unitree_go2/scene.xml"), "pose": [1.0, 2.0, 0.0, math.pi / 2]},
+            ]
+        }
+    )
+    ur, dog = batchsim.load(menagerie / "universal_robots_ur5e/scene.xml"), batchsim.load(menagerie / "unitree_go2/scene.xml")
+    r_ur, r_dog = spec.robots
+    q = spec.initial.qpos
+    n_ur = ur.mjmodel.nq
+    assert np.allclose(q[:n_ur], ur.initial.qpos)  # the UR5e's `home`
+    base = r_dog.floating_base
+    assert base is not None and base.body == "dog/base"
+    # the Go2's `home` puts its base 0.27 m up; the fleet pose carries it to (1, 2) turned 90 degrees
+    assert np.allclose(q[base.qposadr : base.qposadr + 3], [1.0, 2.0, dog.initial.qpos[2]])
+    assert np.allclose(q[base.qposadr + 3 : base.qposadr + 7], [math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)])
+    assert np.allclose(q[base.qposadr + 7 :], dog.initial.qpos[7:])
+    # the UR5e's keyframe gives ctrl, so its commands start there; the Go2's motors start at 0
+    sim = active(spec, "cpu", 1)
+    assert np.allclose(sim.command[0, r_ur.commands], ur.initial.ctrl)
+    assert "ur: keyframe 'home'" in spec.initial.keyframe and "dog: keyframe 'home'" in spec.initial.keyframe
+    sim.shutdown()
+
+
+def test_a_robot_view_names_only_its_own_joints_and_sensors_locally():
+    spec = load_fleet(ARM_AND_ROVER)
+    arm, amr = spec.robots
+    view = robot_view(spec, amr)
+    assert [j.name for j in view.joints] == ["left_wheel_joint", "right_wheel_joint"]
+    assert len(view.state) == len(spec.state)  # the world's columns, so indices stay the world's
+    assert view.state_interfaces[amr.state[0]] == spec.state_interfaces[amr.state[0]].removeprefix("amr/")
+    assert view.state_interfaces[arm.state[0]] == spec.state_interfaces[arm.state[0]]  # the arm's keep their prefix
+    assert view.floating_base is not None and view.floating_base.body == "base"
+
+
+# ---------------------------------------------------------------- the contract, on every backend
+
+
+def test_the_contract_on_a_world_of_two_robots(backend):
+    sim = active(TWO_ARMS, backend)
+    a, b = sim.spec.robots
+    n = 4
+    assert sim.state.shape == (n, len(sim.export_state_interfaces()))
+    assert sim.command.shape == (n, 12)
+    names = sim.export_state_interfaces()
+    pos_a, pos_b = names.index("arm_a/joint1/position"), names.index("arm_b/joint1/position")
+    sim.command[:, a.commands[0]] = 0.4  # arm_a's joint1 only
+    sim.command[:, b.commands[0]] = -0.2
+    for _ in range(40):
+        sim.write()
+        sim.step(10)
+    sim.read()
+    assert np.allclose(sim.state[:, pos_a], 0.4, atol=0.03)
+    assert np.allclose(sim.state[:, pos_b], -0.2, atol=0.03)
+    before = sim.state.copy()
+    sim.reset(worlds=[1, 3])
+    assert np.array_equal(sim.state[[0, 2]], before[[0, 2]])
+    assert np.allclose(sim.state[[1, 3], pos_a], 0.0) and np.allclose(sim.state[[1, 3], pos_b], 0.0)
+    # a NaN in one robot's row of one world: that world's command is refused, no other's
+    sim.command[2, b.commands[1]] = np.nan
+    sim.write()
+    assert sim.status[2] & Status.BAD_COMMAND and not (np.delete(sim.status, 2) & Status.BAD_COMMAND).any()
+    sim.shutdown()
+
+
+def test_cpu_world_of_robots_equals_raw_mj_step_of_its_model():
+    sim = active(ARM_AND_ROVER, "cpu", 2)
+    m = sim.spec.mjmodel
+    d = mujoco.MjData(m)
+    sim.spec.initial.apply(m, d)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        command = rng.uniform(-0.5, 0.5, sim.command.shape[1])
+        sim.command[:] = command
+        sim.write()
+        d.ctrl[[c.actuator_id for c in sim.spec.commands]] = command
+        sim.step(5)
+        for _ in range(5):
+            mujoco.mj_step(m, d)
+    qpos, qvel = sim.qstate([1])
+    assert np.array_equal(qpos[0], d.qpos) and np.array_equal(qvel[0], d.qvel)
+    sim.shutdown()
+
+
+def test_a_robot_in_a_world_of_robots_moves_as_it_does_alone():
+    """Two arms that never touch: each follows the trajectory the arm alone follows."""
+    world, alone = active(TWO_ARMS, "cpu", 1), active("arm", "cpu", 1)
+    b = world.spec.robots[1]
+    target = np.linspace(-0.3, 0.3, 6)
+    world.command[0, b.commands] = target
+    alone.command[0] = target
+    for _ in range(30):
+        for sim in (world, alone):
+            sim.write()
+            sim.step(10)
+            sim.read()
+    assert np.allclose(world.state[0, b.state], alone.state[0], atol=1e-6)
+    world.shutdown()
+    alone.shutdown()
+
+
+def test_robots_driven_into_each_other_stop_with_contact_force():
+    fleet = {
+        "robots": [
+            {"name": "left", "model": "rover", "pose": [0.0, 0.0, 0.0, 0.0]},
+            {"name": "right", "model": "rover", "pose": [1.2, 0.0, 0.0, math.pi]},
+        ]
+    }
+    sim = active(fleet, "cpu", 1)
+    manager = load_fleet_controllers(sim.spec, 1)
+    loop = SimLoop(sim, control_rate=100, rtf=0, participants=[manager])
+    for _ in range(400):  # 4 s, both driving forward at each other (cmd_vel times out after 0.5 s)
+        for name in ("left", "right"):
+            manager[f"{name}/diff_drive_controller"].set_cmd_vel(0, 0.6, 0.0)
+        loop.run_period()
+    spec, m = sim.spec, sim.spec.mjmodel
+    left, right = (r.floating_base for r in spec.robots)
+    qpos, qvel = sim.qstate([0])
+    gap = qpos[0, right.qposadr] - qpos[0, left.qposadr]
+    assert 0.3 < gap < 0.6, gap  # 2.4 m of driving would have crossed them: they met and stopped
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = qpos[0], qvel[0]
+    mujoco.mj_forward(m, d)
+    force = np.zeros(6)
+    touching = 0.0
+    for i in range(d.ncon):
+        c = d.contact[i]
+        b1, b2 = int(m.geom_bodyid[c.geom1]), int(m.geom_bodyid[c.geom2])
+        names = {m.body(b1).name.split("/")[0], m.body(b2).name.split("/")[0]}
+        if names == {"left", "right"}:
+            mujoco.mj_contactForce(m, d, i, force)
+            touching = max(touching, abs(force[0]))
+    assert touching > 0.1
+    sim.shutdown()
+
+
+# ---------------------------------------------------------------- per-robot controllers
+
+
+def test_each_robot_has_its_own_controllers_and_a_goal_moves_only_its_robot():
+    sim = active(TWO_ARMS, "cpu", 2)
+    manager = load_fleet_controllers(sim.spec, 2)
+    assert "arm_a/joint_trajectory_controller" in manager.controllers
+    jtc_b = manager["arm_b/joint_trajectory_controller"]
+    assert jtc_b.command_interfaces[0] == "arm_b/joint1/position"
+    loop = SimLoop(sim, control_rate=100, rtf=0, duration=1.0, participants=[manager])
+    joints = [f"joint{k}" for k in range(1, 7)]
+    jtc_b.set_trajectory(1, joints, [0.5], [[0.3, 0.2, 0.1, 0.0, 0.0, 0.0]])
+    loop.run()
+    a, b = sim.spec.robots
+    names = sim.export_state_interfaces()
+    j1 = names.index("arm_b/joint1/position")
+    assert abs(sim.state[1, j1] - 0.3) < 0.02
+    assert abs(sim.state[0, j1]) < 0.01  # the other world
+    assert np.abs(sim.state[:, a.state[:6:3]]).max() < 0.01 or np.abs(sim.state[:, [names.index(f"arm_a/joint{k}/position") for k in range(1, 7)]]).max() < 0.01
+    # switching robot b's trajectory controller off in world 1 touches nothing of robot a's
+    result = manager.switch([1], deactivate=["arm_b/joint_trajectory_controller"])
+    assert result.ok
+    assert manager.active("arm_a/joint_trajectory_controller").all()
+    assert list(manager.active("arm_b/joint_trajectory_controller")) == [True, False]
+    sim.shutdown()
+
+
+def test_a_controllers_file_naming_a_joint_the_robot_lacks_names_the_robot(tmp_path):
+    yaml_file = tmp_path / "amr.yaml"
+    yaml_file.write_text(
+        "controller_manager:\n  ros__parameters:\n    update_rate: 100\n"
+        "    fwd:\n      type: forward_command_controller/ForwardCommandController\n"
+        "fwd:\n  ros__parameters:\n    joints: [joint1]\n    interface_name: position\n"
+    )
+    fleet = {"robots": [{"name": "amr", "model": "rover", "controllers": str(yaml_file)}, {"name": "arm", "model": "arm", "pose": [2, 0, 0]}]}
+    sim = batchsim.make(fleet, 1, "cpu")
+    with pytest.raises(batchsim.ConfigurationError, match=r"robot amr.*joint1"):
+        load_fleet_controllers(sim.spec, 1)
+
+
+# ---------------------------------------------------------------- bad fleet files
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("robots:\n  - {name: a, model: arm}\n  - {name: a, model: arm, pose: [2, 0, 0]}\n", r"robots\[1\]: the name 'a' is taken by robots\[0\]"),
+        ("robots:\n  - {name: 3arm, model: arm}\n", r"robots\[0\]\.name: '3arm' is not a valid ROS name"),
+        ("robots:\n  - {name: a}\n", r"robots\[0\]: model is missing"),
+        ("robots:\n  - {name: a, model: arm, count: 0}\n", r"robots\[0\]\.count: a whole number of robots, at least 1, got 0"),
+        ("robots:\n  - {name: a, model: arm, speed: 3}\n", r"robots\[0\]\.speed: unknown key"),
+        ("robots:\n  - {name: a, model: arm, pose: [1, 2]}\n", r"robots\[0\]\.pose: \[x, y, z, yaw\]"),
+        ("robots: []\n", r"robots: a list of at least one robot"),
+        ("robots:\n  - {name: a, model: arm, controllers: nowhere.yaml}\n", r"robots\[0\]\.controllers: no such file"),
+        ("robots:\n  - {name: 'a_{k}', model: rover, count: 3}\n", r"3 robots need a placement rule"),
+        ("robots: [\n", r"not valid YAML \(line"),
+    ],
+)
+def test_a_bad_fleet_file_is_one_line_naming_the_file_and_key(tmp_path, text, match):
+    path = tmp_path / "fleet.yaml"
+    path.write_text(text)
+    with pytest.raises(FleetError, match=match) as e:
+        read_fleet(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_missing_model_names_the_robot(tmp_path):
+    path = tmp_path / "fleet.yaml"
+    path.write_text("robots:\n  - {name: a, model: arm}\n  - {name: b, model: nosuch.xml, pose: [2, 0, 0]}\n")
+    with pytest.raises(FleetError, match=r"robots\[1\] \(b\): \S*nosuch.xml: no such file"):
+        load_fleet(path)
+
+
+def test_a_grid_that_places_robots_into_each_other_is_refused(tmp_path):
+    path = tmp_path / "fleet.yaml"
+    path.write_text("robots:\n  - {name: 'amr_{k}', model: rover, count: 2, grid: {spacing: [0.2, 1.0], columns: 2}}\n")
+    with pytest.raises(FleetError, match=r"robots\[0\]\.grid: its spacing places amr_1 and amr_2 overlap"):
+        load_fleet(path)
+
+
+def test_robots_placed_by_hand_into_each_other_are_a_warning_naming_both_and_the_depth():
+    spec = load_fleet({"robots": [{"name": "a", "model": "rover"}, {"name": "b", "model": "rover", "pose": [0.1, 0, 0]}]})
+    overlap = [w for w in spec.warnings if "overlap" in w]
+    assert overlap and "robots a and b overlap at their start pose by" in overlap[0] and " mm " in overlap[0]
