@@ -317,6 +317,20 @@ def test_write_while_unconfigured_does_nothing_as_ros2_control_does():
     assert sim.write() is ReturnType.OK and sim.read() is ReturnType.OK
 
 
+def test_read_and_write_say_ok_outside_inactive_and_active_on_every_backend(backend):
+    """Issue 42 asked for ERROR from write() while UNCONFIGURED; ros2_control has answered OK
+    there since ros2_control#1279 (System::read and ::write, lifecycleStateThatRequiresNoAction;
+    jazzy's HardwareComponent alike): OK, doing nothing, in UNKNOWN, UNCONFIGURED and FINALIZED,
+    ERROR only in a transition state, which the contract has none of. Every backend, a fleet
+    over several devices too (its shards gone once FINALIZED), answers so."""
+    sim = batchsim.make("arm", 2, backend)
+    assert sim.write() is ReturnType.OK and sim.read() is ReturnType.OK  # UNCONFIGURED
+    sim.configure()
+    assert sim.write() is ReturnType.OK and sim.read() is ReturnType.OK  # INACTIVE: read, nothing written
+    assert sim.shutdown() is S.FINALIZED
+    assert sim.write() is ReturnType.OK and sim.read() is ReturnType.OK
+
+
 # ---------------------------------------------------------------- reset
 
 
