@@ -57,6 +57,7 @@ __all__ = [
     "VariationError",
     "controllers",
     "load",
+    "load_fleet",
     "make",
     "model_names",
     "set_log_dir",

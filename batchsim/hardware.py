@@ -94,6 +94,8 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         world frame, linear velocity (3) in the world frame, angular velocity (3) in the
         body frame; refreshed by read(), frozen with the rest of a frozen world's readings.
         None for a model without a floating base.
+      base_states: (nworld, nbase, 13) float64, every floating base so (`spec.floating_bases`:
+        the model's own, or each robot's of a fleet's world), a view of the same readings.
     """
 
     #: the registry name of the backend ("cpu", "mjx", "warp")
@@ -207,11 +209,11 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
     def _bind_readings(self, readings: np.ndarray) -> None:
         """Make `readings` (nworld, len(_columns)) the array read() fills; `state`,
         `base_state` and the PIDs' feedback are views of its columns."""
-        nstate = len(self.spec.state)
-        nbase = 13 if self.spec.floating_base is not None else 0
+        nstate, nbase = len(self.spec.state), 13 * len(self.spec.floating_bases)
         self._readings = readings
         self.state = readings[:, :nstate]
-        self.base_state = readings[:, nstate : nstate + nbase] if nbase else None
+        self.base_state = readings[:, nstate : nstate + 13] if self.spec.floating_base is not None else None
+        self.base_states = readings[:, nstate : nstate + nbase].reshape(len(readings), -1, 13)
         self._feedback = readings[:, readings.shape[1] - self._nfeedback :]
 
     def _bind_sensordata(self, sensordata: np.ndarray) -> None:

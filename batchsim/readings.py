@@ -3,7 +3,7 @@
 One block per fleet, `BatchedSystem.readings` `(nworld, ncolumn)`, in this order:
 
 - the state interfaces (`RobotSpec.state`);
-- the floating base's 7 qpos and 6 qvel entries (`base_columns`; none without a base);
+- each floating base's 7 qpos and 6 qvel entries (`base_columns`; none without a base);
 - mujoco_ros2_control's actuator states: position, velocity and effort of each joint on
   `RobotSpec.actuator_joints` that has an address (`actuator_columns`), those not already
   among the columns above (`layout`): a motor on a joint reads what the joint's own state
@@ -24,13 +24,13 @@ from batchsim.types import StateSource
 
 
 def base_columns(spec: RobotSpec) -> list[StateColumn]:
-    """The floating base's 7 qpos and 6 qvel entries as read columns (none without a base)."""
-    base = spec.floating_base
-    if base is None:
-        return []
-    pose = [StateColumn(f"{base.joint}/qpos{k}", StateSource.QPOS, base.qposadr + k) for k in range(7)]
-    twist = [StateColumn(f"{base.joint}/qvel{k}", StateSource.QVEL, base.dofadr + k) for k in range(6)]
-    return pose + twist
+    """Each floating base's 7 qpos and 6 qvel entries as read columns, 13 a base (none
+    without one; a fleet's world: each robot's that has one, `spec.floating_bases`)."""
+    out = []
+    for base in spec.floating_bases:
+        out += [StateColumn(f"{base.joint}/qpos{k}", StateSource.QPOS, base.qposadr + k) for k in range(7)]
+        out += [StateColumn(f"{base.joint}/qvel{k}", StateSource.QVEL, base.dofadr + k) for k in range(6)]
+    return out
 
 
 def actuator_columns(spec: RobotSpec) -> list[StateColumn]:

@@ -38,6 +38,30 @@ class ControllerSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class ManagerScope:
+    """One controller_manager of a world: the world's own (`prefix` ""), or in a world of several
+    robots (batchsim.fleet) each robot's, at `<ns>/<robot>/controller_manager`, which shows and
+    switches that robot's controllers and interfaces by the names the robot gives them.
+
+    Attributes:
+      prefix: `<robot>/`, or "" for a world of one robot.
+      hardware: its hardware component's name (the robot's, else the model's).
+      controllers: indices into ManagerSpec.controllers (and `cm.active`'s columns).
+      command_interfaces, state_interfaces: its interfaces, by the world's names.
+    """
+
+    prefix: str
+    hardware: str
+    controllers: tuple[int, ...]
+    command_interfaces: tuple[str, ...]
+    state_interfaces: tuple[str, ...]
+
+    def local(self, name: str) -> str:
+        """A world name as this scope's clients see it."""
+        return name.removeprefix(self.prefix)
+
+
+@dataclasses.dataclass(frozen=True)
 class ManagerSpec:
     """What every world's `<ns>/controller_manager/...` services serve
     (ros_bridge/worker/controller_manager.py). Which controller is active in which world
@@ -48,6 +72,7 @@ class ManagerSpec:
       types: (plugin name, base class) of every controller type batchsim can load.
       command_interfaces, state_interfaces: the system's.
       hardware: the hardware component's name (the `<ros2_control>` block's, else the model's).
+      scopes: the controller_managers every world serves: one, or one per robot (ManagerScope).
     """
 
     controllers: tuple[ControllerSpec, ...]
@@ -55,7 +80,7 @@ class ManagerSpec:
     command_interfaces: tuple[str, ...]
     state_interfaces: tuple[str, ...]
     hardware: str
-
+    scopes: tuple[ManagerScope, ...] = ()
 
 
 def manager_spec(sim: BatchedSystem, manager: ControllerManager, control_rate: float) -> ManagerSpec:
@@ -69,12 +94,31 @@ def manager_spec(sim: BatchedSystem, manager: ControllerManager, control_rate: f
         )
         for c in manager.describe()
     )
+    spec = sim.spec
+    if spec.robots:
+        scopes = tuple(
+            ManagerScope(
+                r.prefix,
+                r.name,
+                tuple(k for k, c in enumerate(controllers) if c.name.startswith(r.prefix)),
+                tuple(spec.command_interfaces[c] for c in r.commands),
+                tuple(spec.state_interfaces[c] for c in r.state),
+            )
+            for r in spec.robots
+        )
+    else:
+        scopes = (
+            ManagerScope(
+                "", spec.name, tuple(range(len(controllers))), tuple(spec.command_interfaces), tuple(spec.state_interfaces)
+            ),
+        )
     return ManagerSpec(
         controllers=controllers,
         types=tuple(manager.controller_types()),
-        command_interfaces=tuple(sim.spec.command_interfaces),
-        state_interfaces=tuple(sim.spec.state_interfaces),
-        hardware=sim.spec.name,
+        command_interfaces=tuple(spec.command_interfaces),
+        state_interfaces=tuple(spec.state_interfaces),
+        hardware=spec.name,
+        scopes=scopes,
     )
 
 

@@ -26,6 +26,7 @@ from batchsim.controllers.trajectory import DEFAULT_MAX_POINTS
 from batchsim.hardware import BatchedSystem
 from batchsim.loop import OptionError
 from batchsim.memory import Layout, ring_arrays
+from batchsim.model import RobotSpec
 from batchsim.types import split_worlds
 from ros_bridge.action_plan import (
     ACTION_MONITOR_RATE,
@@ -100,7 +101,10 @@ class FleetPlan:
       qos_depth, reliability: every topic's QoS.
       control_rate: Hz.
       interfaces: command interface names, in column order.
-      actuator_topics: per column, the `actuators/<name>/command` token.
+      actuator_topics: per column, the `actuators/<name>/command` token (the robot's own name of
+        the actuator, in a world of several robots).
+      actuator_robots: per column, the robot's prefix the topic is under (`<robot>/actuators/...`),
+        "" for a world of one robot; empty: all "".
       owners: per column, the controller that claimed it, or "".
       channels, outputs, inputs: see above.
       lockstep: workers nudge the loop when a command arrives.
@@ -136,6 +140,7 @@ class FleetPlan:
     clock: bool
     startup_check: float
     all_topics: bool = False
+    actuator_robots: list[str] = dataclasses.field(default_factory=list)
     ros_args: tuple[str, ...] = ()  # after --ros-args, for every worker's rclpy.init
     sensors: SensorPlan | None = None
     tf: TfSpec | None = None
@@ -212,6 +217,22 @@ FLAG_FROZEN = 4  # diverged or overflowed: frozen until reset
 
 
 
+def _robot_prefix(spec: RobotSpec, name: str) -> str:
+    """The prefix of the robot a world name belongs to (a fleet's world), else ""."""
+    return next((r.prefix for r in spec.robots if name.startswith(r.prefix)), "")
+
+
+def _actuator_tokens(spec: RobotSpec) -> list[str]:
+    """Each command column's actuator as a ROS token, made distinct within its robot."""
+    prefixes = [_robot_prefix(spec, c.actuator) for c in spec.commands]
+    out = [""] * len(spec.commands)
+    for prefix in dict.fromkeys(prefixes):
+        cols = [c for c, p in enumerate(prefixes) if p == prefix]
+        for c, token in zip(cols, ros_names([spec.commands[c].actuator.removeprefix(prefix) for c in cols]), strict=True):
+            out[c] = token
+    return out
+
+
 def build_plan(
     sim: BatchedSystem,
     control_rate: float,
@@ -251,8 +272,9 @@ def build_plan(
         for c, name in enumerate(spec.command_interfaces):
             owners[c] = manager.owner.get(name, "")
 
-    replaced = any(t.replaces_joint_states for t in topics)
-    outputs += robot_outputs(sim, channel, publish_every, sensor_every, joint_states=not replaced)
+    # the robots (a world of one: "") whose joint_states a joint state broadcaster publishes
+    replaced = {c.namespace for c, t in zip(manager, topics, strict=True) if t.replaces_joint_states} if manager else set()
+    outputs += robot_outputs(sim, channel, publish_every, sensor_every, replaced=replaced)
 
     # the controllers' outputs and inputs
     inputs: list[Input] = []
@@ -321,7 +343,8 @@ def build_plan(
         reliability=reliability,
         control_rate=control_rate,
         interfaces=list(spec.command_interfaces),
-        actuator_topics=ros_names([c.actuator for c in spec.commands]),
+        actuator_topics=_actuator_tokens(spec),
+        actuator_robots=[_robot_prefix(spec, c.actuator) for c in spec.commands],
         owners=owners,
         channels=channels,
         outputs=outputs,

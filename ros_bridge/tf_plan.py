@@ -14,6 +14,8 @@ import numpy as np
 
 from batchsim.hardware import BatchedSystem
 from batchsim.model.frames import FrameTree, frame_tree, initial_transforms, relative_transforms
+from batchsim.model import RobotPart
+from batchsim.model.from_urdf import is_urdf
 from batchsim.model.urdf import generate_urdf, robot_description
 
 FLEET_FRAME = "world"  # the fixed frame every world's tf tree hangs from
@@ -44,6 +46,10 @@ class TfSpec:
       mjcf: the MJCF the simulation compiled (mujoco_robot_description, as mujoco_ros2_control
         publishes the one it generates from a URDF).
       bodies: the body ids whose poses the channel holds, in its order (the view draws from them).
+      robot_descriptions: in a world of several robots (batchsim.fleet), each robot's URDF as
+        (prefix, text), published at `<ns>/<robot>/robot_description`; its links are the robot's
+        own body names, which tf carries as `<ns>/<robot>/<body>` (robot_state_publisher's
+        frame_prefix `<ns>/<robot>/`).
     """
 
     moving: tuple[tuple[str, str], ...]
@@ -57,6 +63,7 @@ class TfSpec:
     every: int = 1
     mjcf: str = ""
     bodies: tuple[int, ...] = ()
+    robot_descriptions: tuple[tuple[str, str], ...] = ()
 
     def moving_transforms(self, poses: np.ndarray) -> np.ndarray:
         """(n, 7 * nmoving) parent->child transforms (translation xyz, rotation xyzw) of the
@@ -113,7 +120,20 @@ def tf_spec(
         every=every,
         mjcf=sim.spec.xml,
         bodies=tuple(int(b) for b in bodies),
+        robot_descriptions=tuple(_robot_description(r) for r in sim.spec.robots),
     )
+
+
+def _robot_description(robot: RobotPart) -> tuple[str, str]:
+    """A fleet robot's URDF: its own file where it is one, else the one generated from its MJCF."""
+    spec = robot.spec
+    assert spec is not None
+    if spec.path is not None and is_urdf(str(spec.path)):
+        return robot.prefix, robot_description(spec, robot.model)
+    urdf = generate_urdf(spec)
+    for line in urdf.warnings:
+        log.warning("batchsim: %srobot_description: %s", robot.prefix, line)
+    return robot.prefix, urdf.text
 
 
 

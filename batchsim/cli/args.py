@@ -47,6 +47,12 @@ def run_parser() -> argparse.ArgumentParser:
         default=None,
         help="shipped model name or MJCF path (default: the --ros2-control file's mujoco_model param, else arm)",
     )
+    p.add_argument(
+        "--fleet",
+        default=None,
+        metavar="FILE",
+        help="a fleet file (YAML): an environment and several robots in every world, each its own namespace",
+    )
     concrete = ", ".join(b for b in batchsim.backends.names() if b != "auto")  # registered ones too
     p.add_argument("--backend", default="auto", help=f"{concrete} or auto (default auto: picked for the hardware)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds")
@@ -219,6 +225,7 @@ def batchsim_version(installed_version: Callable[[str], str] = importlib.metadat
 def info_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="batchsim info", description="List a model's interfaces and sensors.")
     p.add_argument("model", nargs="?", help="shipped model name or MJCF path (default: as batchsim's --model)")
+    p.add_argument("--fleet", default=None, metavar="FILE", help="a fleet file: each robot's interfaces, sensors and controllers")
     p.add_argument("--worlds", type=int, default=16, help="world count the backend choice is for")
     p.add_argument("--backend", default="auto")
     p.add_argument("--ros2-control", default=None)
@@ -260,7 +267,13 @@ def _urdf_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", default=None, metavar="FILE", help="URDF model: an MJCF scene file to add (lights, floor)")
 
 
+#: flags that describe one robot: a fleet file says them per robot
+_ROBOT_FLAGS = ("model", "ros2_control", "keyframe", "mujoco_inputs", "scene")
+
+
 def _load(args: argparse.Namespace) -> batchsim.RobotSpec:
+    if getattr(args, "fleet", None) is not None:
+        return batchsim.load_fleet(args.fleet)
     return batchsim.load(
         args.model, ros2_control=args.ros2_control, keyframe=args.keyframe, mujoco_inputs=args.mujoco_inputs, scene=args.scene
     )
@@ -327,7 +340,8 @@ def check_args(args: argparse.Namespace) -> None:
         value = getattr(args, name)
         if value is not None and value < 1:
             raise UsageError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
-    args.model = default_model(args.model, args.ros2_control)
+    check_fleet_args(args)
+    args.model = default_model(args.model, args.ros2_control) if args.fleet is None else args.fleet
     model = Path(args.model).expanduser()
     if str(args.model) not in model_names() and model.is_dir():
         raise UsageError(f"--model {args.model}: is a directory, not an MJCF file")
@@ -375,6 +389,22 @@ def check_args(args: argparse.Namespace) -> None:
             except ValueError as e:  # NamingError; an OptionError names its flag through named()
                 named = getattr(e, "named", None)
                 raise UsageError(named("--namespace") if named else str(e)) from None
+
+
+def check_fleet_args(args: argparse.Namespace) -> None:
+    """--fleet names every robot's model, description, keyframe and controllers in its file:
+    the flags that say them for one robot are refused beside it, naming the file's key."""
+    if args.fleet is None:
+        return
+    for flag in _ROBOT_FLAGS:
+        if getattr(args, flag, None) is not None:
+            dashed = "--" + flag.replace("_", "-")
+            raise UsageError(f"{dashed}: a fleet names each robot's in its file (robots[k].{flag}); drop {dashed} or --fleet")
+    controllers = getattr(args, "controllers", None)
+    if controllers is not None and controllers.lower() != "none":
+        raise UsageError("--controllers: a fleet names each robot's in its file (robots[k].controllers); --controllers none runs none")
+    if not Path(args.fleet).expanduser().is_file():
+        raise UsageError(f"--fleet {args.fleet}: no such file")
 
 
 def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:

@@ -10,7 +10,9 @@ import numpy as np
 from batchsim.backends import resolve
 from batchsim.base_velocity import BaseVelocity
 from batchsim.cli.args import (
+    UsageError,
     _load,
+    check_fleet_args,
     default_model,
     info_parser,
 )  # fmt: skip
@@ -23,6 +25,9 @@ from batchsim.variation.report import changes, describe
 
 def info(argv: Sequence[str]) -> int:
     args = info_parser().parse_args(argv)
+    if args.fleet is not None and args.model is not None:
+        raise UsageError(f"batchsim info: give a model or --fleet, not both ({args.model!r} and --fleet {args.fleet})")
+    check_fleet_args(args)
     args.model = default_model(args.model, args.ros2_control)
     sensors = SensorConfig.from_flags(args.sensors)
     spec = _load(args)
@@ -46,6 +51,8 @@ def info(argv: Sequence[str]) -> int:
             f"mujoco.ros2 ros_namespace={r.ros_namespace!r} topic_queue_size={r.topic_queue_size} "
             f"topic_reliability={r.topic_reliability}"
         )
+    if spec.robots:
+        out += robot_lines(spec, args.worlds)
     out.append(f"\nstate interfaces ({len(spec.state)})")
     out += [f"  {i:3d}  {c.name}" for i, c in enumerate(spec.state)]
     out.append(f"\ncommand interfaces ({len(spec.commands)})")
@@ -96,6 +103,29 @@ def info(argv: Sequence[str]) -> int:
         out += [f"  {p}" for p in spec.problems]
     print("\n".join(out))
     return 0
+
+
+def robot_lines(spec: RobotSpec, nworld: int) -> list[str]:
+    """`batchsim info --fleet`: each robot, where it stands, its interfaces, sensors and controllers."""
+    from batchsim.controllers.robots import load_fleet_controllers, robot_controllers_file
+
+    manager = load_fleet_controllers(spec, nworld)
+    out = [f"\nrobots ({len(spec.robots)})"]
+    for r in spec.robots:
+        x, y, z, yaw = r.pose
+        base = r.floating_base
+        source = robot_controllers_file(r)
+        out.append(
+            f"  {r.name}: {r.model} at ({x:g}, {y:g}, {z:g}) yaw {yaw:g} rad, "
+            + (f"floating base {r.local(base.body)!r}" if base else "fixed base")
+            + f"; {len(r.state)} state and {len(r.commands)} command interfaces, {len(r.sensors)} sensors"
+        )
+        out.append("    commands  " + (", ".join(spec.command_interfaces[c].removeprefix(r.prefix) for c in r.commands) or "none"))
+        if r.sensors:
+            out.append("    sensors   " + ", ".join(r.local(s) for s in r.sensors))
+        names = [c.removeprefix(r.prefix) for c in (manager.controllers if manager else ()) if c.startswith(r.prefix)]
+        out.append(f"    controllers ({source if source else 'none'}): {', '.join(names) or 'none'}")
+    return out
 
 
 def randomization_lines(spec: RobotSpec, source: str, first: int, count: int) -> list[str]:

@@ -24,6 +24,7 @@ from batchsim.cli.args import (
     split_ros_args,
 )  # fmt: skip
 from batchsim.controllers import ControllerManager, default_controllers, load_controllers
+from batchsim.controllers.robots import load_fleet_controllers
 from batchsim.hardware import BatchedSystem, ConfigurationError
 from batchsim.loop import LoopStats, OptionError, RateError, SimLoop, format_stats, whole_ratio
 from batchsim.model import model_names
@@ -53,7 +54,7 @@ def build(args: argparse.Namespace, progress: startup.Progress | None = None) ->
         camera_resolution=args.camera_resolution,
         seed=args.noise_seed,
     )
-    with progress.stage(f"loading {args.model}"):
+    with progress.stage(f"loading {args.fleet or args.model}"):
         spec = _load(args)
     chosen, _ = resolve(args.backend, spec, args.worlds)
     if not args.skip_memory_check:
@@ -137,6 +138,9 @@ def setup_controllers(sim: BatchedSystem, args: argparse.Namespace) -> tuple[Con
     source = args.controllers
     if source is not None and source.lower() == "none":
         return None, None
+    if sim.spec.robots:  # a fleet: each robot's own YAML (batchsim.controllers.robots)
+        manager = load_fleet_controllers(sim.spec, sim.nworld)
+        return manager, _checked_rate(sim, args, manager)
     if source is None:
         if str(args.model) not in model_names():
             return None, None
@@ -144,7 +148,12 @@ def setup_controllers(sim: BatchedSystem, args: argparse.Namespace) -> tuple[Con
         if source is None:
             return None, None
     manager = load_controllers(source, sim.spec, sim.nworld)
-    rate = manager.update_rate
+    return manager, _checked_rate(sim, args, manager)
+
+
+def _checked_rate(sim: BatchedSystem, args: argparse.Namespace, manager: ControllerManager | None) -> float | None:
+    """The manager's update_rate, once it is a whole number of physics steps."""
+    rate = manager.update_rate if manager is not None else None
     if rate is not None and args.control_rate is None:
         try:
             whole_ratio(1.0 / sim.dt, rate)
@@ -153,7 +162,7 @@ def setup_controllers(sim: BatchedSystem, args: argparse.Namespace) -> tuple[Con
                 f"{manager.source}: controller_manager: update_rate: {rate:g} Hz is not a whole number of "
                 f"physics steps of {sim.dt:g} s (the model's timestep): {e.hint}"
             ) from None
-    return manager, rate
+    return rate
 
 
 #: library option names whose flag is not `--<option with dashes>`

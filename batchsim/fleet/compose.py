@@ -269,7 +269,7 @@ def _world_spec(
             )
         )
     start.ctrl_given = given
-    start.keyframe = "; ".join(labels)
+    start.label = "; ".join(labels)
     transmitted = any(spec.actuator_commands is not None for _, spec, _ in loaded)
     world = RobotSpec(
         name=fleet.name,

@@ -201,6 +201,8 @@ class InitialState:
     # (batchsim.fleet) says it per actuator, (nu,) bool, as each robot's own keyframe does
     ctrl_given: bool | np.ndarray = False
     initial_values: bool = False  # ros2_control initial_value set some joints' qpos
+    # a world of several robots (batchsim.fleet): what each robot's start was taken from
+    label: str | None = None
 
     def gives_ctrl(self, actuator: int) -> bool:
         """Whether the keyframe gives actuator `actuator`'s ctrl (then its command starts there)."""
@@ -211,12 +213,14 @@ class InitialState:
     @property
     def is_qpos0(self) -> bool:
         """The model's own defaults, as mj_resetData leaves an MjData: no keyframe, no initial_value."""
-        return self.keyframe is None and not self.initial_values
+        return self.keyframe is None and not self.initial_values and self.label is None
 
     @property
     def source(self) -> str:
         """What it was taken from, for `batchsim info` and messages: `qpos0` or `keyframe 'home'`,
-        then ` with ros2_control initial_value` where those were applied."""
+        then ` with ros2_control initial_value` where those were applied; per robot in a fleet's world."""
+        if self.label is not None:
+            return self.label
         taken = "qpos0" if self.keyframe is None else f"keyframe {self.keyframe}"
         return taken + (" with ros2_control initial_value" if self.initial_values else "")
 
@@ -361,6 +365,13 @@ class RobotSpec:
     actuator_commands: list[CommandInterface] | None = None
     actuator_joints: list[tuple[str, int, int]] = dataclasses.field(default_factory=list)
     robots: list[RobotPart] = dataclasses.field(default_factory=list)
+
+    @property
+    def floating_bases(self) -> list[FloatingBase]:
+        """Every floating base read(): the model's own, or each robot's of a fleet's world, in order."""
+        if self.floating_base is not None:
+            return [self.floating_base]
+        return [r.floating_base for r in self.robots if r.floating_base is not None]
 
     def robot(self, name: str) -> RobotPart:
         """The robot of that name (a world of several, batchsim.fleet); KeyError naming the robots."""

@@ -11,6 +11,8 @@ transform, so one tf tree holds every world and RViz shows them all in `world`:
   stack that listens to its own namespace (nav2's multi-robot setups remap tf so);
 - `/<ns>/robot_description` (std_msgs/String, transient local): the URDF, whose link
   names are the frames without their prefix (RViz's RobotModel takes `<ns>` as TF Prefix);
+- `/<ns>/<robot>/robot_description` (likewise) in a world of several robots: each robot's URDF,
+  its links that robot's bodies, as tf names them `<ns>/<robot>/<body>`;
 - `/<ns>/mujoco_robot_description` (likewise): the MJCF the simulation compiled, as
   mujoco_ros2_control publishes the one it generates from a URDF.
 
@@ -120,6 +122,8 @@ class TfPublishers:
             kinds = ("robot_description", "mujoco_robot_description")
             for kind in ("tf", "tf_static", *kinds) if ns else kinds:
                 self._on_request[topic_name(ns, kind)] = (kind, row)
+            for prefix, _ in spec.robot_descriptions:  # each robot's of a world of several
+                self._on_request[topic_name(ns, f"{prefix}robot_description")] = (prefix, row)
         self._keep: list[Any] = []  # publishers of latched messages
         if all_topics:
             for topic in list(self._on_request):
@@ -150,7 +154,10 @@ class TfPublishers:
             self._keep.append(pub)
         else:
             pub = self.node.create_publisher(String, topic, STATIC_QOS)
-            pub.publish(String(data=self.spec.description if kind == "robot_description" else self.spec.mjcf))
+            text = dict(self.spec.robot_descriptions).get(kind)  # a robot's, keyed by its prefix
+            if text is None:
+                text = self.spec.description if kind == "robot_description" else self.spec.mjcf
+            pub.publish(String(data=text))
             self._keep.append(pub)
 
     def refresh(self) -> None:
