@@ -4,7 +4,11 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install install-cpu run test quick lint bench
+.PHONY: install install-cpu run test quick lint bench cell warehouse
+
+# MuJoCo Menagerie's robots for the fleet examples: a checkout of yours (make cell
+# MENAGERIE=~/mujoco_menagerie), else the copies beside this checkout, unpacked once
+MENAGERIE ?= $(CURDIR)/.menagerie
 
 $(STAMP): pyproject.toml
 	@echo "make: installing batchsim with every extra into $(VENV): MuJoCo, ROS 2 from PyPI, JAX (mjx, ~380 MB)"
@@ -42,6 +46,17 @@ test: $(STAMP)
 quick:
 	@test -x $(VENV)/bin/pytest || $(MAKE) install
 	@$(PY) -m pytest -q -n 2 -m "not ros" -k "not mjx and not warp and not devices" $(PYTEST_ARGS)
+
+$(CURDIR)/.menagerie/universal_robots_ur5e/ur5e.xml:
+	@mkdir -p .menagerie
+	@for a in ../shared/robots/*.tar.xz; do tar -xJf "$$a" -C .menagerie || exit 1; done
+
+# two UR5e from Menagerie across a table, 4 worlds; 8 rovers among shelves, 16 worlds
+cell: $(STAMP) $(MENAGERIE)/universal_robots_ur5e/ur5e.xml
+	MENAGERIE=$(MENAGERIE) $(VENV)/bin/batchsim --fleet examples/fleets/cell.yaml --worlds 4
+
+warehouse: $(STAMP)
+	$(VENV)/bin/batchsim --fleet examples/fleets/warehouse.yaml --worlds 16
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check batchsim ros_bridge benchmarks tests examples

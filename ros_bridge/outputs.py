@@ -188,7 +188,9 @@ def robot_outputs(
         )
         outputs.append(
             OutputSpec(
-                f"{r.prefix}odom", "nav_msgs/msg/Odometry", fields, frame_id=f"{{ns}}/{r.prefix}odom",
+                # the pose is in the world's root frame: `odom` for a world of one floating-base robot
+                # (REP 105), `world` for a world of several (batchsim.model.frames)
+                f"{r.prefix}odom", "nav_msgs/msg/Odometry", fields, frame_id="{ns}/world" if r.prefix else "{ns}/odom",
                 child_frame_id=f"{{ns}}/{r.base_body}", every=publish_every,
             )
         )  # fmt: skip

@@ -96,7 +96,7 @@ def test_each_robot_starts_in_its_own_keyframe_at_its_pose(menagerie):
     # the UR5e's keyframe gives ctrl, so its commands start there; the Go2's motors start at 0
     sim = active(spec, "cpu", 1)
     assert np.allclose(sim.command[0, r_ur.commands], ur.initial.ctrl)
-    assert "ur: keyframe 'home'" in spec.initial.keyframe and "dog: keyframe 'home'" in spec.initial.keyframe
+    assert spec.initial.source == "ur: keyframe 'home'; dog: keyframe 'home'"
     sim.shutdown()
 
 

@@ -195,9 +195,16 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--controllers",
         default=None,
-        help="ros2_control controller_manager YAML; none: no controllers (default: the shipped model's own)",
+        type=_controllers,
+        help="ros2_control controller_manager YAML; none: no controllers; default: the shipped model's own "
+        "(a fleet: each robot's, from its file)",
     )
     return p
+
+
+def _controllers(text: str) -> str | None:
+    """--controllers: a file, `none`, or `default` (as if not given: it overrides an earlier one)."""
+    return None if text.lower() == "default" else text
 
 
 def version_line() -> str:
@@ -402,7 +409,10 @@ def check_fleet_args(args: argparse.Namespace) -> None:
             raise UsageError(f"{dashed}: a fleet names each robot's in its file (robots[k].{flag}); drop {dashed} or --fleet")
     controllers = getattr(args, "controllers", None)
     if controllers is not None and controllers.lower() != "none":
-        raise UsageError("--controllers: a fleet names each robot's in its file (robots[k].controllers); --controllers none runs none")
+        raise UsageError(
+            "--controllers: a fleet names each robot's in its file (robots[k].controllers); "
+            "--controllers none runs none"
+        )
     if not Path(args.fleet).expanduser().is_file():
         raise UsageError(f"--fleet {args.fleet}: no such file")
 

@@ -43,7 +43,7 @@ def info(argv: Sequence[str]) -> int:
         f"timestep   {m.opt.timestep:g} s   nq {m.nq}  nv {m.nv}  nu {m.nu}",
         f"backend    {chosen.value} for {args.worlds} worlds ({reason})",
         f"starts in  {spec.initial.source}   (keyframes: {keys})",
-        f"base       {f'free joint {base.joint!r} of body {base.body!r}' if base else 'fixed (no floating base)'}",
+        f"base       {f'free joint {base.joint!r} of body {base.body!r}' if base else 'per robot (below)' if spec.robots else 'fixed (no floating base)'}",
     ]
     if spec.ros is not None:
         r = spec.ros

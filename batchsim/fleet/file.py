@@ -18,7 +18,8 @@ robots:
 ```
 
 A Python mapping of the same shape works too (`batchsim.make({...}, nworld)`); relative paths
-in it are taken from the working directory. Strings live here only: every fault is one
+in it are taken from the working directory. Paths may name environment variables
+(`model: ${MENAGERIE}/universal_robots_ur5e/ur5e.xml`). Strings live here only: every fault is one
 `FleetError` naming the file and the key.
 """
 
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -36,6 +38,7 @@ import yaml
 from batchsim.model.spec import ModelError
 
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_VARIABLE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}|\$([A-Za-z_][A-Za-z0-9_]*)")
 _ROBOT_KEYS = ("name", "model", "pose", "controllers", "sensors", "ros2_control", "keyframe", "count", "grid")
 _GRID_KEYS = ("origin", "spacing", "columns", "yaw")
 _TOP_KEYS = ("environment", "robots", "name")
@@ -141,7 +144,7 @@ def read_fleet(source: str | Path | Mapping[str, Any]) -> FleetFile:
     if environment is not None:
         if not isinstance(environment, str | Path) or not str(environment):
             raise FleetError(f"{where}: environment: an MJCF file, got {environment!r}")
-        env_path = _file(base, environment)
+        env_path = _file(base, _expand(str(environment), where, "environment"))
         if not env_path.is_file():
             raise FleetError(f"{where}: environment: no such file {str(env_path)!r}")
     entries: list[RobotEntry] = []
@@ -184,7 +187,7 @@ def _robots(item: Any, key: str, where: str, base: Path) -> list[RobotEntry]:
         else [_pose(item.get("pose", (0.0, 0.0, 0.0, 0.0)), where, f"{key}.pose")]
     )
     files = {
-        field: _file(base, item[field]) if item.get(field) not in (None, "") else None
+        field: _file(base, _expand(str(item[field]), where, f"{key}.{field}")) if item.get(field) not in (None, "") else None
         for field in ("controllers", "sensors")
     }
     for field, file in files.items():
@@ -192,8 +195,8 @@ def _robots(item: Any, key: str, where: str, base: Path) -> list[RobotEntry]:
             raise FleetError(f"{where}: {key}.{field}: no such file {str(file)!r}")
     ros2_control = item.get("ros2_control")
     if ros2_control is not None:
-        ros2_control = _file_with_args(base, str(ros2_control))
-    model_text = str(model)
+        ros2_control = _file_with_args(base, _expand(str(ros2_control), where, f"{key}.ros2_control"))
+    model_text = _expand(str(model), where, f"{key}.model")
     if _looks_like_file(model_text):
         model_text = _file_with_args(base, model_text)
     keyframe = item.get("keyframe")
@@ -274,6 +277,16 @@ def _grid(value: Any, count: int, where: str, key: str) -> list[tuple[float, flo
 def _looks_like_file(text: str) -> bool:
     first = text.split()[0] if text.split() else text
     return "/" in first or Path(first).suffix.lower() in (".xml", ".mjcf", ".urdf", ".xacro")
+
+
+def _expand(text: str, where: str, key: str) -> str:
+    """`$VAR` and `${VAR}` from the environment (a Menagerie checkout: `${MENAGERIE}/...`);
+    FleetError naming an unset one."""
+    for name in _VARIABLE.findall(text):
+        var = name[0] or name[1]
+        if var not in os.environ:
+            raise FleetError(f"{where}: {key}: ${{{var}}} is not set (export {var}=... before running)")
+    return os.path.expandvars(text)
 
 
 def _file(base: Path, value: Any) -> Path:
