@@ -13,8 +13,8 @@ from collections.abc import Callable
 import numpy as np
 
 from batchsim.hardware import BatchedSystem
-from batchsim.model.frames import FrameTree, frame_tree, initial_transforms, relative_transforms
 from batchsim.model import RobotPart
+from batchsim.model.frames import FrameTree, frame_tree, initial_transforms, relative_transforms
 from batchsim.model.from_urdf import is_urdf
 from batchsim.model.urdf import generate_urdf, robot_description
 
