@@ -1,0 +1,276 @@
+"""Several robots in one world (batchsim.fleet): what sharing a world costs, and a warehouse over ROS 2.
+
+    .venv/bin/python benchmarks/fleet_robots.py physics --backend cpu --robots 8 --total 128
+    .venv/bin/python benchmarks/fleet_robots.py ros --worlds 16 --rate 50 --seconds 20
+
+physics: a world of K robots against K worlds of one robot, the same total robots on the same
+backend in one run, each through the contract (`write(); step(nstep)` in a loop, read every
+period): robot-steps/s = worlds x K x steps / s, and their ratio. The robots stand on a grid 3 m
+apart, so contacts between robots are few (the case the issue's >= 0.8 goal is for); `--model`
+picks the robot (rover: contacts with the floor, arm: none). On a GPU backend the first
+periods compile and are not timed.
+
+ros: `batchsim --fleet FILE --worlds N --rtf 1 --publish-rate R` (default the warehouse) in a
+process of its own on a private ROS domain (discovery on this host only), and one subscriber
+process that counts, raw, every robot's joint_states, the odom (the simulation's ground truth)
+of every robot with a floating base, and every world's tf: received against worlds x robots x rate x RTF held, over a window of
+wall seconds after a warm-up; the RTF held is the status line's, once a second (median and
+worst). Nothing is asserted: speed is measured here, never in tests.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import re
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+
+
+# --- physics: K robots in a world against K worlds of one ---
+def fleet_of(model: str, k: int, spacing: float = 3.0) -> dict:
+    columns = max(1, int(np.ceil(np.sqrt(k))))
+    return {
+        "robots": [
+            {"name": "r_{k}", "model": model, "count": k, "grid": {"spacing": [spacing, spacing], "columns": columns}}
+        ]
+        if k > 1
+        else [{"name": "r_1", "model": model}]
+    }
+
+
+def robot_steps_per_second(sim, robots: int, nstep: int, seconds: float, warmup: int) -> tuple[float, float, float]:
+    """(robot-steps/s, median period ms, worst period ms) of write/step/read, flat out."""
+    for _ in range(warmup):  # a GPU backend compiles (mjx) or captures (warp) here
+        sim.write()
+        sim.step(nstep)
+        sim.read()
+    periods = []
+    start = time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        t = time.perf_counter()
+        sim.write()
+        sim.step(nstep)
+        sim.read()
+        periods.append(time.perf_counter() - t)
+    elapsed = sum(periods)
+    rate = sim.nworld * robots * nstep * len(periods) / elapsed
+    return rate, 1e3 * statistics.median(periods), 1e3 * max(periods)
+
+
+def physics(opts: argparse.Namespace) -> None:
+    import batchsim
+
+    print(f"# {_machine()}; {_versions()}; backend {opts.backend}, model {opts.model}, {opts.total} robots in all")
+    print(f"{'layout':28s} {'worlds':>6s} {'robots/world':>12s} {'robot-steps/s':>14s} {'median ms':>10s} {'worst ms':>9s}")
+    for k in opts.robots:
+        nworld = max(1, opts.total // k)
+        rows = {}
+        for label, model, n, per in (
+            (f"{nworld} worlds x {k} robots", fleet_of(opts.model, k), nworld, k),
+            (f"{nworld * k} worlds x 1 robot", opts.model, nworld * k, 1),
+        ):
+            sim = batchsim.make(model, n, opts.backend)
+            sim.configure()
+            sim.activate()
+            rate, median, worst = robot_steps_per_second(sim, per, opts.nstep, opts.seconds, opts.warmup)
+            sim.shutdown()
+            rows[per] = rate
+            print(f"{label:28s} {n:6d} {per:12d} {rate:14.0f} {median:10.3f} {worst:9.3f}", flush=True)
+        print(f"ratio {k} robots a world / 1 robot a world: {rows[k] / rows[1]:.3f}", flush=True)
+
+
+# --- ros: the warehouse, every robot's topics counted in another process ---
+def subscriber(domain: int, worlds: int, robot_names: str, odom_names: str) -> None:
+    """Count every robot's joint_states, the odom of those with a floating base, and every
+    world's tf, raw; print `count <wall> <joint_states> <odom> <tf>` every 0.25 s and `heard
+    <wall>` once every topic was heard, until stdin closes."""
+    robots, with_odom = robot_names.split(","), [n for n in odom_names.split(",") if n]
+    os.environ.update(LOCALHOST)
+    import rclpy
+    from nav_msgs.msg import Odometry
+    from rclpy.context import Context
+    from rclpy.experimental import EventsExecutor
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import JointState
+    from tf2_msgs.msg import TFMessage
+
+    context = Context()
+    rclpy.init(context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    node = Node("fleet_robots_benchmark", context=context)
+    counts = {
+        "js": np.zeros(worlds * len(robots), np.int64),
+        "odom": np.zeros(worlds * len(with_odom), np.int64),
+        "tf": np.zeros(worlds, np.int64),
+    }
+
+    def counter(kind: str, k: int):
+        def callback(msg: bytes) -> None:
+            counts[kind][k] += 1
+
+        return callback
+
+    for w in range(worlds):
+        node.create_subscription(TFMessage, f"/world_{w}/tf", counter("tf", w), 100, raw=True)
+        for r, name in enumerate(robots):
+            node.create_subscription(JointState, f"/world_{w}/{name}/joint_states", counter("js", w * len(robots) + r), 10, raw=True)
+        for r, name in enumerate(with_odom):
+            node.create_subscription(Odometry, f"/world_{w}/{name}/odom", counter("odom", w * len(with_odom) + r), 10, raw=True)
+    executor = EventsExecutor(context=context)
+    executor.add_node(node)
+    stop = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    heard, next_report = False, time.time()
+    while not stop.is_set():
+        executor.spin_once(timeout_sec=0.05)
+        now = time.time()
+        if not heard and all(c.all() for c in counts.values() if c.size):
+            heard = True
+            print(f"heard {now:.3f}", flush=True)
+        if now >= next_report:
+            next_report = now + 0.25
+            print(f"count {now:.3f} {counts['js'].sum()} {counts['odom'].sum()} {counts['tf'].sum()}", flush=True)
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+def _lines(proc: subprocess.Popen, sink: list[str]) -> threading.Thread:
+    def read() -> None:
+        for line in proc.stdout:
+            sink.append(line.rstrip("\n"))
+
+    t = threading.Thread(target=read, daemon=True)
+    t.start()
+    return t
+
+
+def ros(opts: argparse.Namespace) -> None:
+    from batchsim.fleet import load_fleet
+
+    spec = load_fleet(opts.fleet)
+    names = [r.name for r in spec.robots]
+    with_odom = [r.name for r in spec.robots if r.floating_base is not None]
+    extra = os.environ.get("PYTHONPATH")
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(opts.domain), "PYTHONPATH": str(ROOT) + (os.pathsep + extra if extra else "")}
+    print(
+        f"# {_machine()}; {_versions()}; {opts.fleet}: {opts.worlds} worlds x {len(names)} robots on {opts.backend}, "
+        f"publish {opts.rate:g} Hz"
+    )
+    sub = subprocess.Popen(
+        [sys.executable, __file__, "--subscriber", str(opts.domain), str(opts.worlds), ",".join(names), ",".join(with_odom)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    sub_lines: list[str] = []
+    _lines(sub, sub_lines)
+    fleet = subprocess.Popen(
+        [
+            sys.executable, "-m", "batchsim.cli", "--fleet", str(opts.fleet),
+            "--worlds", str(opts.worlds), "--rtf", "1", "--publish-rate", str(opts.rate), "--status-every", "1",
+            "--backend", opts.backend, *opts.extra,
+        ],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    fleet_lines: list[str] = []
+    t = threading.Thread(target=lambda: [fleet_lines.append(x.rstrip("\n")) for x in fleet.stderr], daemon=True)
+    t.start()
+    started = None
+    deadline = time.time() + 300
+    while started is None and time.time() < deadline:
+        if fleet.poll() is not None:
+            raise SystemExit("batchsim ended:\n" + "\n".join(fleet_lines[-20:]))
+        if any(line.startswith(f"batchsim: {opts.worlds} x ") for line in fleet_lines):
+            started = time.time()
+        time.sleep(0.1)
+    heard = None
+    while heard is None and time.time() < started + 120:
+        heard = next((float(x.split()[1]) for x in sub_lines if x.startswith("heard ")), None)
+        time.sleep(0.1)
+    time.sleep(opts.warmup)
+    n0 = len(fleet_lines)
+    c0 = _last_count(sub_lines)
+    time.sleep(opts.seconds)
+    c1 = _last_count(sub_lines)
+    rtfs = [float(m.group(1)) for x in fleet_lines[n0:] if (m := re.search(r"rtf\s+([0-9.]+)", x))]
+    fleet.send_signal(2)
+    fleet.wait(30)
+    sub.stdin.close()
+    sub.wait(30)
+    window = c1[0] - c0[0]
+    rtf = statistics.median(rtfs) if rtfs else float("nan")
+    print(f"heard every robot's joint_states, odom and tf {heard - started:.1f} s after the start line" if heard else "not every topic was heard")
+    print(f"rtf held: median {rtf:.3f}, worst second {min(rtfs) if rtfs else float('nan'):.3f} ({len(rtfs)} status lines)")
+    kinds = (("joint_states", opts.worlds * len(names)), ("odom", opts.worlds * len(with_odom)), ("tf", opts.worlds))
+    for k, (name, n) in enumerate(kinds):
+        if not n:
+            continue
+        got = c1[k + 1] - c0[k + 1]
+        expected = n * opts.rate * rtf * window
+        print(f"{name:12s} received {got / window:9.0f}/s of {expected / window:9.0f}/s expected ({got / expected:.4f})")
+
+
+def _last_count(lines: list[str]) -> tuple[float, int, int, int]:
+    for x in reversed(lines):
+        if x.startswith("count "):
+            _, t, js, odom, tf = x.split()
+            return float(t), int(js), int(odom), int(tf)
+    raise SystemExit("the subscriber reported nothing")
+
+
+def _machine() -> str:
+    return f"{platform.node()} {os.cpu_count()} cores, {platform.processor() or platform.machine()}, {time.strftime('%Y-%m-%d')}"
+
+
+def _versions() -> str:
+    from importlib import metadata
+
+    parts = []
+    for name, dist in (("mujoco", "mujoco"), ("rclpy", "ros-jazzy-rclpy"), ("numpy", "numpy"), ("mujoco_warp", "mujoco-warp")):
+        try:
+            parts.append(f"{name} {metadata.version(dist)}")
+        except metadata.PackageNotFoundError:
+            continue
+    return ", ".join(parts)
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--subscriber":
+        subscriber(int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5])
+        return
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="what", required=True)
+    ph = sub.add_parser("physics")
+    ph.add_argument("--backend", default="cpu")
+    ph.add_argument("--model", default="rover")
+    ph.add_argument("--robots", type=lambda s: [int(x) for x in s.split(",")], default=[4, 8], help="robots per world, comma-separated")
+    ph.add_argument("--total", type=int, default=128, help="robots in all")
+    ph.add_argument("--nstep", type=int, default=5, help="physics steps per control period")
+    ph.add_argument("--seconds", type=float, default=5.0)
+    ph.add_argument("--warmup", type=int, default=5)
+    r = sub.add_parser("ros")
+    r.add_argument("--fleet", default=str(ROOT / "examples/fleets/warehouse.yaml"))
+    r.add_argument("--worlds", type=int, default=16)
+    r.add_argument("--rate", type=float, default=50.0, help="publish rate, Hz")
+    r.add_argument("--backend", default="cpu")
+    r.add_argument("--seconds", type=float, default=20.0)
+    r.add_argument("--warmup", type=float, default=5.0)
+    r.add_argument("--domain", type=int, default=73)
+    r.add_argument("extra", nargs="*", help="more batchsim flags, after --")
+    opts = p.parse_args()
+    physics(opts) if opts.what == "physics" else ros(opts)
+
+
+if __name__ == "__main__":
+    main()
