@@ -78,6 +78,13 @@ def test_a_yaml_block_is_read_as_shown(line, text, tmp_path):
             for joint, values in joints.items():
                 _, warnings = PidGains.from_params(values, f"pid_gains.{mode}.{joint}")
                 assert not warnings, warnings
+    elif "\nrobots:" in "\n" + text:  # a fleet file: its environment beside it as a floor of its own
+        from batchsim.fleet import load_fleet
+
+        (tmp_path / "warehouse.xml").write_text('<mujoco><worldbody><geom type="plane" size="5 5 .1"/></worldbody></mujoco>')
+        (tmp_path / "arm.yaml").write_text(Path(batchsim.controllers.default_controllers("arm")).read_text())
+        spec = load_fleet(path)
+        assert len(spec.robots) >= 2 and all(r.state.size for r in spec.robots)
     elif text.startswith("randomize:"):  # shown for the arm (its links, joints, position servos)
         sim = batchsim.make("arm", 3, "cpu", randomize=str(path))
         sim.configure()
