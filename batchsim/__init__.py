@@ -157,9 +157,17 @@ def make(
 
 
 def _configure_inputs(sim: BatchedSystem, sensors: Any, randomize: Any, world_offset: int) -> None:
-    """What make() hands a new system before configure: its sensors and its per-world variation."""
+    """What make() hands a new system before configure: its sensors and its per-world variation
+    (with a fleet's robots placed at random per world, batchsim.fleet)."""
     if sensors is not None:
         sim.set_sensor_config(sensors)
+    if sim.spec.placements:
+        import dataclasses
+
+        from batchsim.variation import load as load_variation
+
+        given = load_variation(randomize) if randomize is not None else Variation()
+        randomize = dataclasses.replace(given, placements=given.placements + tuple(sim.spec.placements))
     if randomize is not None or world_offset:
         sim.set_variation(randomize, first_world=world_offset)
 

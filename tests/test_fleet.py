@@ -267,7 +267,7 @@ def test_a_controllers_file_naming_a_joint_the_robot_lacks_names_the_robot(tmp_p
         ("robots: []\n", r"robots: a list of at least one robot"),
         ("robots:\n  - {name: a, model: arm, controllers: nowhere.yaml}\n", r"robots\[0\]\.controllers: no such file"),
         ("robots:\n  - {name: 'a_{k}', model: rover, count: 3}\n", r"3 robots need a placement rule"),
-        ("robots: [\n", r"not valid YAML \(line"),
+        ("robots: [\n", r"fleet.yaml:\d+:\d+: malformed YAML"),
     ],
 )
 def test_a_bad_fleet_file_is_one_line_naming_the_file_and_key(tmp_path, text, match):
@@ -296,3 +296,44 @@ def test_robots_placed_by_hand_into_each_other_are_a_warning_naming_both_and_the
     spec = load_fleet({"robots": [{"name": "a", "model": "rover"}, {"name": "b", "model": "rover", "pose": [0.1, 0, 0]}]})
     overlap = [w for w in spec.warnings if "overlap" in w]
     assert overlap and "robots a and b overlap at their start pose by" in overlap[0] and " mm " in overlap[0]
+
+
+# ---------------------------------------------------------------- random placement per world
+
+RANDOM_CARTS = {
+    "robots": [
+        {"name": "arm", "model": "arm"},
+        {"name": "cart_{k}", "model": "rover", "count": 4, "random": {"area": [1.0, -2.0, 4.0, 2.0], "min_distance": 0.8}},
+    ]
+}
+
+
+def _cart_positions(sim) -> np.ndarray:
+    sim.read()
+    return sim.base_states[:, :, :2].copy()
+
+
+def test_robots_placed_at_random_differ_per_world_keep_apart_and_repeat_by_world_number():
+    sim = active(RANDOM_CARTS, "cpu", 4)
+    xy = _cart_positions(sim)
+    assert not np.allclose(xy[0], xy[1])
+    assert ((xy >= [1.0, -2.0]) & (xy <= [4.0, 2.0])).all()
+    for w in range(4):
+        gaps = np.linalg.norm(xy[w][:, None] - xy[w][None], axis=-1) + np.eye(4) * 9
+        assert gaps.min() >= 0.8
+    sim.reset([2])  # a reset keeps the world's draw (redraw_on_reset is the randomization's)
+    assert np.allclose(_cart_positions(sim), xy)
+    sim.shutdown()
+    alone = batchsim.make(RANDOM_CARTS, 1, "cpu", world_offset=2)  # world 2, reproduced alone
+    alone.configure()
+    assert np.allclose(_cart_positions(alone)[0], xy[2])
+    alone.shutdown()
+
+
+def test_a_random_rule_for_a_fixed_base_or_too_small_an_area_is_refused():
+    fixed = {"robots": [{"name": "a_{k}", "model": "arm", "count": 2, "random": {"area": [0, 0, 5, 5]}}]}
+    with pytest.raises(FleetError, match=r"robots\[0\]\.random: places a robot by its free joint, and a_1 \(arm\) has a fixed base"):
+        load_fleet(fixed)
+    crowded = {"robots": [{"name": "c_{k}", "model": "rover", "count": 20, "random": {"area": [0, 0, 2, 2], "min_distance": 1.0}}]}
+    with pytest.raises(FleetError, match=r"robots\[0\]\.random: 20 robots 1 m apart do not fit in 2 x 2 m"):
+        read_fleet(crowded)

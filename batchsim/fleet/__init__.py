@@ -15,10 +15,15 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from batchsim.fleet.compose import compose, overlaps, robot_of_body
 from batchsim.fleet.file import FleetError, FleetFile, RobotEntry, is_fleet_file, read_fleet
 from batchsim.fleet.view import robot_view
 from batchsim.model.spec import RobotSpec
+
+#: worlds whose random placements load_fleet draws to check that every rule finds room
+PLACEMENT_CHECK = 64
 
 __all__ = [
     "FleetError",
@@ -46,5 +51,16 @@ def load_fleet(source: str | Path | Mapping[str, Any] | FleetFile) -> RobotSpec:
         if ra.grid is not None and ra.grid == rb.grid:
             raise FleetError(f"{fleet.where}: {ra.grid}: its spacing places {line.removeprefix('robots ')}: widen it")
         spec.warnings.append(line)
+    if spec.placements:  # every rule finds room in the first worlds' draws, or the file is refused
+        from batchsim.variation import Bound, Variation
+
+        worlds = np.arange(PLACEMENT_CHECK)
+        placed = Bound(Variation(placements=spec.placements), spec.mjmodel).placed(worlds, np.zeros_like(worlds))
+        if not placed.all():
+            rule = spec.placements[0].where
+            raise FleetError(
+                f"{rule}: found no spot min_distance from the others for every robot in {int((~placed).sum())} of "
+                f"the first {PLACEMENT_CHECK} worlds: widen the area or lower min_distance"
+            )
     logging.getLogger("batchsim").debug("fleet %s: %d robots", fleet.where, len(spec.robots))
     return spec

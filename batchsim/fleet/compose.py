@@ -38,6 +38,7 @@ from batchsim.model.spec import (
     Transmission,
 )
 from batchsim.types import StateSource
+from batchsim.variation.spec import Placement
 
 #: the MjSpec option fields a world shares: each robot's are set to the world's before attach
 _OPTION_FIELDS = (
@@ -270,6 +271,7 @@ def _world_spec(
         )
     start.ctrl_given = given
     start.label = "; ".join(labels)
+    placements = _placements(fleet, parts)
     transmitted = any(spec.actuator_commands is not None for _, spec, _ in loaded)
     world = RobotSpec(
         name=fleet.name,
@@ -291,8 +293,28 @@ def _world_spec(
         actuator_commands=actuator_commands if transmitted else None,
         actuator_joints=actuator_joints,
         robots=parts,
+        placements=placements,
     )
     return world
+
+
+def _placements(fleet: FleetFile, parts: list[RobotPart]) -> tuple[Placement, ...]:
+    """The fleet's random placement rules, each over the free joints of the robots it places."""
+    rules: dict[str, list[int]] = {}
+    for entry, part in zip(fleet.robots, parts, strict=True):
+        if entry.random is None:
+            continue
+        if part.floating_base is None:
+            raise FleetError(
+                f"{fleet.where}: {entry.random.key}: places a robot by its free joint, and {entry.name} ({entry.model}) "
+                "has a fixed base: give it a pose or a grid"
+            )
+        rules.setdefault(entry.random.key, []).append(part.floating_base.qposadr)
+    by_key = {e.random.key: e.random for e in fleet.robots if e.random is not None}
+    return tuple(
+        Placement(tuple(adr), by_key[key].area, by_key[key].yaw, by_key[key].min_distance, f"{fleet.where}: {key}")
+        for key, adr in rules.items()
+    )
 
 
 def _offsets(

@@ -15,6 +15,10 @@ robots:
     model: rover
     count: 6
     grid: {origin: [0, 0, 0], spacing: [1.5, 1.5], columns: 3, yaw: 0.0}
+  - name: cart_{k}                  # or at random, drawn per world from the seed (a floating base only):
+    model: rover
+    count: 4
+    random: {area: [-3, -3, 3, 3], yaw: [-3.14, 3.14], min_distance: 0.8}
 ```
 
 A Python mapping of the same shape works too (`batchsim.make({...}, nworld)`); relative paths
@@ -33,19 +37,40 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from batchsim.model.params import ParamsError, read_yaml
 from batchsim.model.spec import ModelError
 
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _VARIABLE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}|\$([A-Za-z_][A-Za-z0-9_]*)")
-_ROBOT_KEYS = ("name", "model", "pose", "controllers", "sensors", "ros2_control", "keyframe", "count", "grid")
+_ROBOT_KEYS = ("name", "model", "pose", "controllers", "sensors", "ros2_control", "keyframe", "count", "grid", "random")
 _GRID_KEYS = ("origin", "spacing", "columns", "yaw")
+_RANDOM_KEYS = ("area", "yaw", "min_distance", "z")
 _TOP_KEYS = ("environment", "robots", "name")
 
 
 class FleetError(ModelError):
     """A fleet file or mapping that cannot be used: one line, naming the file and the key."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RandomPlacement:
+    """Robots placed at random in each world, from the randomization's seed and the world's
+    number (batchsim.variation's draws): x, y uniform in `area`, yaw uniform in `yaw`, at
+    least `min_distance` apart (metres, between base origins), z as `z`.
+
+    Attributes:
+      key: where it is declared (`robots[1].random`), for messages.
+      area: (xmin, ymin, xmax, ymax) in the world frame.
+      yaw: (low, high) radians.
+      min_distance: metres between any two robots the rule places.
+      z: the height of every robot's pose.
+    """
+
+    key: str
+    area: tuple[float, float, float, float]
+    yaw: tuple[float, float]
+    min_distance: float
+    z: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +87,7 @@ class RobotEntry:
       keyframe: its own keyframe to start in (name or index), or None: `home` where it has one.
       key: where it is declared, for messages: `robots[2]` (`robots[2] (amr_3)` for one of a count).
       grid: the key of the grid rule that placed it (`robots[2].grid`), or None for a pose.
+      random: the rule that places it at random in each world, or None.
     """
 
     name: str
@@ -73,6 +99,7 @@ class RobotEntry:
     keyframe: str | int | None = None
     key: str = ""
     grid: str | None = None
+    random: RandomPlacement | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,15 +149,9 @@ def read_fleet(source: str | Path | Mapping[str, Any]) -> FleetFile:
     else:
         path = Path(source).expanduser()
         try:
-            text = path.read_text()
-        except OSError as e:
-            raise FleetError(f"{path}: {e.strerror or e}") from None
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            mark = getattr(e, "problem_mark", None)
-            at = f" (line {mark.line + 1})" if mark is not None else ""
-            raise FleetError(f"{path}: not valid YAML{at}: {getattr(e, 'problem', None) or e}") from None
+            data = read_yaml(path)  # the project's one YAML loader: a missing file, a malformed one, named
+        except ParamsError as e:
+            raise FleetError(str(e)) from None
         base = path.parent
     where = str(path) if path is not None else "<fleet>"
     if not isinstance(data, Mapping):
@@ -175,17 +196,23 @@ def _robots(item: Any, key: str, where: str, base: Path) -> list[RobotEntry]:
     count = item.get("count", 1)
     if not isinstance(count, int) or isinstance(count, bool) or count < 1:
         raise FleetError(f"{where}: {key}.count: a whole number of robots, at least 1, got {count!r}")
-    if "pose" in item and "grid" in item:
-        raise FleetError(f"{where}: {key}: give a pose or a grid, not both")
-    if count > 1 and "grid" not in item:
-        raise FleetError(f"{where}: {key}: {count} robots need a placement rule: grid: {{origin, spacing, columns}}")
+    rules = [k for k in ("pose", "grid", "random") if k in item]
+    if len(rules) > 1:
+        raise FleetError(f"{where}: {key}: give one of pose, grid and random, not {' and '.join(rules)}")
+    if count > 1 and not {"grid", "random"} & set(rules):
+        raise FleetError(
+            f"{where}: {key}: {count} robots need a placement rule: grid: {{origin, spacing, columns}} "
+            "or random: {area, min_distance}"
+        )
     if count > 1 and "{k}" not in name:
         raise FleetError(f"{where}: {key}.name: {name!r} names {count} robots: put {{k}} in it (e.g. 'amr_{{k}}')")
-    poses = (
-        _grid(item["grid"], count, where, f"{key}.grid")
-        if "grid" in item
-        else [_pose(item.get("pose", (0.0, 0.0, 0.0, 0.0)), where, f"{key}.pose")]
-    )
+    random = _random(item["random"], count, where, f"{key}.random") if "random" in item else None
+    if random is not None:  # where they stand in the world's model; each world draws its own
+        poses = _spread(random, count)
+    elif "grid" in item:
+        poses = _grid(item["grid"], count, where, f"{key}.grid")
+    else:
+        poses = [_pose(item.get("pose", (0.0, 0.0, 0.0, 0.0)), where, f"{key}.pose")]
     files = {
         field: _file(base, _expand(str(item[field]), where, f"{key}.{field}")) if item.get(field) not in (None, "") else None
         for field in ("controllers", "sensors")
@@ -221,6 +248,7 @@ def _robots(item: Any, key: str, where: str, base: Path) -> list[RobotEntry]:
                 keyframe=keyframe,
                 key=key if count == 1 else f"{key} ({robot_name})",
                 grid=f"{key}.grid" if "grid" in item else None,
+                random=random,
             )
         )
     return out
@@ -270,6 +298,46 @@ def _grid(value: Any, count: int, where: str, key: str) -> list[tuple[float, flo
         raise FleetError(f"{where}: {key}.spacing: {value['spacing']!r} puts several robots on one spot")
     return [
         (origin[0] + (k % columns) * dx, origin[1] + (k // columns) * dy, origin[2], float(yaw))
+        for k in range(count)
+    ]
+
+
+def _random(value: Any, count: int, where: str, key: str) -> RandomPlacement:
+    if not isinstance(value, Mapping):
+        raise FleetError(f"{where}: {key}: a mapping with area and min_distance")
+    _known(value, _RANDOM_KEYS, where, key)
+    if "area" not in value:
+        raise FleetError(f"{where}: {key}.area is missing: [xmin, ymin, xmax, ymax] in metres")
+    x0, y0, x1, y1 = _numbers(value["area"], (4,), where, f"{key}.area", "[xmin, ymin, xmax, ymax] in metres")
+    if not (x1 > x0 and y1 > y0):
+        raise FleetError(f"{where}: {key}.area: {value['area']!r} is empty (xmax > xmin and ymax > ymin)")
+    lo, hi = _numbers(value.get("yaw", [-math.pi, math.pi]), (2,), where, f"{key}.yaw", "[low, high] in radians")
+    if hi < lo:
+        raise FleetError(f"{where}: {key}.yaw: {hi:g} is below {lo:g}")
+    d = value.get("min_distance", 0.0)
+    if not isinstance(d, int | float) or isinstance(d, bool) or not (math.isfinite(d) and d >= 0):
+        raise FleetError(f"{where}: {key}.min_distance: metres >= 0, got {d!r}")
+    z = value.get("z", 0.0)
+    if not isinstance(z, int | float) or isinstance(z, bool) or not math.isfinite(z):
+        raise FleetError(f"{where}: {key}.z: metres, got {z!r}")
+    # discs of diameter min_distance dropped at random cover at most ~55 % of a plane (random
+    # sequential adsorption jams there); the area's border lets half a disc out
+    room = (x1 - x0 + d) * (y1 - y0 + d) * 0.5 / (math.pi / 4 * d * d) if d > 0 else math.inf
+    if count > room:
+        raise FleetError(
+            f"{where}: {key}: {count} robots {d:g} m apart do not fit in {x1 - x0:g} x {y1 - y0:g} m "
+            "(widen the area or lower min_distance)"
+        )
+    return RandomPlacement(key, (x0, y0, x1, y1), (lo, hi), float(d), float(z))
+
+
+def _spread(rule: RandomPlacement, count: int) -> list[tuple[float, float, float, float]]:
+    """`count` poses on a grid filling the rule's area: where the world's model puts them."""
+    x0, y0, x1, y1 = rule.area
+    columns = max(1, math.ceil(math.sqrt(count * (x1 - x0) / (y1 - y0))))
+    rows = math.ceil(count / columns)
+    return [
+        (x0 + (x1 - x0) * (k % columns + 0.5) / columns, y0 + (y1 - y0) * (k // columns + 0.5) / rows, rule.z, 0.0)
         for k in range(count)
     ]
 

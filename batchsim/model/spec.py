@@ -343,6 +343,8 @@ class RobotSpec:
         with no joint of its name has addresses -1.
       robots: the robots of a world composed from a fleet file (batchsim.fleet), in the order
         their interfaces appear; empty for a model that is one robot.
+      placements: robots a fleet file places at random per world (batchsim.variation.Placement):
+        `batchsim.make` adds them to the worlds' variation.
     """
 
     name: str
@@ -365,6 +367,7 @@ class RobotSpec:
     actuator_commands: list[CommandInterface] | None = None
     actuator_joints: list[tuple[str, int, int]] = dataclasses.field(default_factory=list)
     robots: list[RobotPart] = dataclasses.field(default_factory=list)
+    placements: tuple = ()  # of batchsim.variation.Placement
 
     @property
     def floating_bases(self) -> list[FloatingBase]:

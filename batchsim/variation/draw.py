@@ -23,6 +23,7 @@ from batchsim.variation.spec import (
     FieldVariation,
     Operation,
     Per,
+    Placement,
     Variation,
     VariationError,
 )
@@ -60,6 +61,24 @@ _NDOF = {int(mujoco.mjtJoint.mjJNT_FREE): 6, int(mujoco.mjtJoint.mjJNT_BALL): 3}
 _NQPOS = {int(mujoco.mjtJoint.mjJNT_FREE): 7, int(mujoco.mjtJoint.mjJNT_BALL): 4}
 _SLIDING = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
 _START_STREAM = "start_pose"
+#: candidates a random placement draws for each robot before taking the farthest
+PLACEMENT_TRIES = 64
+_UNIT = Draw(Distribution.UNIFORM, 0.0, 1.0)
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n, 4) Hamilton products a * b of (w, x, y, z) quaternions."""
+    aw, ax, ay, az = a.T
+    bw, bx, by, bz = b.T
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=1,
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,6 +129,7 @@ class Bound:
             self.fields.append("body_subtreemass")
             self.where["body_subtreemass"] = self.where["body_mass"] + " (body_subtreemass follows body_mass)"
         self._start = None if variation.start_pose is None else self._resolve_start()
+        self._placements = [(p, self._free_joints(p)) for p in variation.placements]
 
     # --- drawing ---
     def draw(self, worlds: np.ndarray, counters: np.ndarray) -> dict[str, np.ndarray]:
@@ -157,18 +177,67 @@ class Bound:
     def start_qpos(self, worlds: np.ndarray, counters: np.ndarray, qpos: np.ndarray) -> np.ndarray | None:
         """(n, nq) start positions: `qpos` (nq,) with each listed world's noise added to the
         varied joints, clipped to their ranges; None without start-pose noise."""
-        if self._start is None:
+        if self._start is None and not self._placements:
             return None
-        adr, low, high = self._start
-        pose = self.variation.start_pose
-        assert pose is not None
         n = len(worlds)
-        noise = self._sample(
-            pose.draw, counter_rng.stream_id(_START_STREAM), np.asarray(worlds, np.int64), counters, len(adr)
-        )
+        worlds = np.asarray(worlds, np.int64)
         out = np.broadcast_to(np.asarray(qpos, np.float64), (n, len(qpos))).copy()
-        out[:, adr] = np.clip(out[:, adr] + noise, low, high)
+        if self._start is not None:
+            adr, low, high = self._start
+            pose = self.variation.start_pose
+            assert pose is not None
+            noise = self._sample(pose.draw, counter_rng.stream_id(_START_STREAM), worlds, counters, len(adr))
+            out[:, adr] = np.clip(out[:, adr] + noise, low, high)
+        for placement, adr in self._placements:
+            self._place(placement, adr, worlds, counters, out)
         return out
+
+    def placed(self, worlds: np.ndarray, counters: np.ndarray) -> np.ndarray:
+        """(n,) bool: whether every placement rule found room for its robots in each world (a
+        world where one did not has some closer than min_distance)."""
+        qpos = np.zeros(self._m.nq)
+        ok = np.ones(len(worlds), bool)
+        for placement, adr in self._placements:
+            ok &= self._place(placement, adr, np.asarray(worlds, np.int64), counters, np.tile(qpos, (len(worlds), 1)))
+        return ok
+
+    def _place(
+        self, placement: Placement, adr: np.ndarray, worlds: np.ndarray, counters: np.ndarray, out: np.ndarray
+    ) -> np.ndarray:
+        """Each world's robots of `placement` into `out` (n, nq): PLACEMENT_TRIES candidates a
+        robot, the first at least min_distance from those placed before it (else the farthest);
+        (n,) bool, whether every robot of a world found such a spot."""
+        n, k, tries = len(worlds), len(adr), PLACEMENT_TRIES
+        u = self._sample(_UNIT, counter_rng.stream_id(f"placement {placement.where}"), worlds, counters, k * tries * 3)
+        u = u.reshape(n, k, tries, 3)
+        x0, y0, x1, y1 = placement.area
+        xy = np.stack([x0 + (x1 - x0) * u[..., 0], y0 + (y1 - y0) * u[..., 1]], axis=-1)  # (n, k, tries, 2)
+        yaw = placement.yaw[0] + (placement.yaw[1] - placement.yaw[0]) * u[..., 2]
+        chosen = np.zeros((n, k), np.intp)
+        ok = np.ones(n, bool)
+        rows = np.arange(n)
+        for r in range(1, k):  # robot r against the robots placed before it, every world at once
+            placed = xy[rows[:, None], np.arange(r)[None, :], chosen[:, :r]]  # (n, r, 2)
+            gaps = np.linalg.norm(xy[:, r, :, None, :] - placed[:, None, :, :], axis=-1).min(axis=2)  # (n, tries)
+            fits = gaps >= placement.min_distance
+            first = np.where(fits.any(axis=1), fits.argmax(axis=1), gaps.argmax(axis=1))
+            ok &= fits.any(axis=1)
+            chosen[:, r] = first
+        pick = (rows[:, None], np.arange(k)[None, :], chosen)
+        for r, a in enumerate(adr):
+            out[:, a : a + 2] = xy[pick][:, r]
+            half = 0.5 * yaw[pick][:, r]
+            turn = np.stack([np.cos(half), np.zeros(n), np.zeros(n), np.sin(half)], axis=1)
+            out[:, a + 3 : a + 7] = _quat_mul(turn, out[:, a + 3 : a + 7])
+        return ok
+
+    def _free_joints(self, placement: Placement) -> np.ndarray:
+        m = self._m
+        free = {int(m.jnt_qposadr[j]) for j in range(m.njnt) if int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE)}
+        for adr in placement.qposadr:
+            if adr not in free:
+                raise VariationError(f"{placement.where}: qpos[{adr}] is no free joint's: only a floating base is placed")
+        return np.array(placement.qposadr, np.int64)
 
     def _sample(
         self, draw: Draw, stream: np.uint64, worlds: np.ndarray, counters: np.ndarray, size: int

@@ -136,6 +136,27 @@ class StartPose:
 
 
 @dataclasses.dataclass(frozen=True)
+class Placement:
+    """Robots placed at random per world by their free joints (a fleet file's `random:` rule,
+    batchsim.fleet): x, y uniform in `area`, a yaw uniform in `yaw` turning each robot's start
+    orientation, at least `min_distance` apart; z and the rest of the pose as the start pose.
+
+    Attributes:
+      qposadr: each free joint's address in qpos.
+      area: (xmin, ymin, xmax, ymax), metres.
+      yaw: (low, high), radians.
+      min_distance: metres between any two of these robots' free-joint origins.
+      where: the rule, for messages.
+    """
+
+    qposadr: tuple[int, ...]
+    area: tuple[float, float, float, float]
+    yaw: tuple[float, float]
+    min_distance: float
+    where: str
+
+
+@dataclasses.dataclass(frozen=True)
 class Variation:
     """What varies per world: parsed from a file or mapping by `parse`.
 
@@ -145,6 +166,7 @@ class Variation:
       fields: the field entries, applied in order.
       start_pose: noise around the start pose, or None.
       source: the file (or "<mapping>"), for messages.
+      placements: robots placed at random per world (a fleet file's, not the YAML's).
     """
 
     seed: int = 0
@@ -152,10 +174,11 @@ class Variation:
     fields: tuple[FieldVariation, ...] = ()
     start_pose: StartPose | None = None
     source: str = "<mapping>"
+    placements: tuple[Placement, ...] = ()
 
     @property
     def active(self) -> bool:
-        return bool(self.fields) or self.start_pose is not None
+        return bool(self.fields) or self.start_pose is not None or bool(self.placements)
 
     def field_names(self) -> list[str]:
         """Every field an entry names (also included), in order, once each."""
