@@ -337,3 +337,18 @@ def test_a_random_rule_for_a_fixed_base_or_too_small_an_area_is_refused():
     crowded = {"robots": [{"name": "c_{k}", "model": "rover", "count": 20, "random": {"area": [0, 0, 2, 2], "min_distance": 1.0}}]}
     with pytest.raises(FleetError, match=r"robots\[0\]\.random: 20 robots 1 m apart do not fit in 2 x 2 m"):
         read_fleet(crowded)
+
+
+def test_a_controllers_file_for_a_robot_not_in_the_world_is_refused_naming_the_key(tmp_path):
+    arm_yaml = Path(batchsim.controllers.default_controllers("arm")).read_text()
+    namespaced = tmp_path / "arms.yaml"  # written for a robot amr_9, given to arm_b
+    namespaced.write_text(arm_yaml.replace("controller_manager:", "/amr_9/controller_manager:", 1))
+    fleet = {"robots": [{"name": "arm_a", "model": "arm"}, {"name": "arm_b", "model": "arm", "pose": [2, 0, 0], "controllers": str(namespaced)}]}
+    sim = batchsim.make(fleet, 1, "cpu")
+    with pytest.raises(batchsim.ConfigurationError, match=r"/amr_9/controller_manager: names the namespace 'amr_9' \(no robot of the world\)"):
+        load_fleet_controllers(sim.spec, 1)
+    own = tmp_path / "arm_b.yaml"  # its own namespace is fine
+    own.write_text(arm_yaml.replace("controller_manager:", "/arm_b/controller_manager:", 1))
+    fleet["robots"][1]["controllers"] = str(own)
+    manager = load_fleet_controllers(batchsim.make(fleet, 1, "cpu").spec, 1)
+    assert "arm_b/joint_trajectory_controller" in manager.controllers

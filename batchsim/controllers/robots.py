@@ -16,6 +16,7 @@ never touch each other's. The bridge serves one controller_manager per robot fro
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 from batchsim.controllers.base import Controller, Params
@@ -23,6 +24,7 @@ from batchsim.controllers.config import CONTROLLER_TYPES, ManagerConfig, default
 from batchsim.controllers.manager import ControllerManager
 from batchsim.fleet.view import robot_view
 from batchsim.model.mjcf import model_names
+from batchsim.model.params import ParamsError, read_yaml
 from batchsim.model.spec import RobotPart, RobotSpec
 from batchsim.types import ConfigurationError
 
@@ -55,6 +57,7 @@ def load_fleet_controllers(world: RobotSpec, nworld: int) -> ControllerManager |
         source = robot_controllers_file(robot)
         if source is None:
             continue
+        _check_namespaces(source, robot, world)
         config = parse(source)
         sources.append(config.source)
         if config.update_rate is not None:
@@ -78,6 +81,27 @@ def load_fleet_controllers(world: RobotSpec, nworld: int) -> ControllerManager |
         spec=world,
         types=CONTROLLER_TYPES,
     )
+
+
+def _check_namespaces(source: Path, robot: RobotPart, world: RobotSpec) -> None:
+    """A robot's YAML whose nodes are namespaced (`/amr_1/controller_manager:`, as multi-robot
+    launch files write them) must name this robot: another robot's, or one not in the world, is
+    refused naming the key, so a file meant for amr_2 never configures amr_1 unnoticed."""
+    try:
+        doc = read_yaml(source)
+    except ParamsError as e:
+        raise ConfigurationError(str(e)) from None
+    if not isinstance(doc, Mapping):
+        return  # parse() names what is wrong with it
+    for key in doc:
+        tokens = [t for t in str(key).strip("/").split("/")[:-1] if t and t != "**"]
+        if tokens and tokens[-1] != robot.name:
+            names = ", ".join(r.name for r in world.robots)
+            other = "another robot's" if tokens[-1] in {r.name for r in world.robots} else "no robot of the world"
+            raise ConfigurationError(
+                f"{source}: {key}: names the namespace {'/'.join(tokens)!r} ({other}), but the file is robot "
+                f"{robot.name}'s controllers (robots: {names})"
+            )
 
 
 def _build(
