@@ -105,6 +105,7 @@ class FleetPlan:
         the actuator, in a world of several robots).
       actuator_robots: per column, the robot's prefix the topic is under (`<robot>/actuators/...`),
         "" for a world of one robot; empty: all "".
+      robots: the robots every world holds (a fleet file's), named in /diagnostics; empty for one.
       owners: per column, the controller that claimed it, or "".
       channels, outputs, inputs: see above.
       lockstep: workers nudge the loop when a command arrives.
@@ -141,6 +142,7 @@ class FleetPlan:
     startup_check: float
     all_topics: bool = False
     actuator_robots: list[str] = dataclasses.field(default_factory=list)
+    robots: tuple[str, ...] = ()  # a fleet file's robots in every world (batchsim.fleet), for /diagnostics
     ros_args: tuple[str, ...] = ()  # after --ros-args, for every worker's rclpy.init
     sensors: SensorPlan | None = None
     tf: TfSpec | None = None
@@ -345,6 +347,7 @@ def build_plan(
         interfaces=list(spec.command_interfaces),
         actuator_topics=_actuator_tokens(spec),
         actuator_robots=[_robot_prefix(spec, c.actuator) for c in spec.commands],
+        robots=tuple(r.name for r in spec.robots),
         owners=owners,
         channels=channels,
         outputs=outputs,

@@ -352,3 +352,16 @@ def test_a_controllers_file_for_a_robot_not_in_the_world_is_refused_naming_the_k
     fleet["robots"][1]["controllers"] = str(own)
     manager = load_fleet_controllers(batchsim.make(fleet, 1, "cpu").spec, 1)
     assert "arm_b/joint_trajectory_controller" in manager.controllers
+
+
+def test_the_vector_env_shows_a_world_of_several_robots_as_one_world():
+    pytest.importorskip("gymnasium")
+    import batchsim.vector
+
+    env = batchsim.vector.make(ARM_AND_ROVER, 3, "cpu")
+    obs, _ = env.reset(seed=0)
+    sim = env.sim
+    assert env.single_action_space.shape == (len(sim.spec.commands),)  # every robot's commands
+    obs, reward, terminated, truncated, _ = env.step(np.zeros((3, *env.single_action_space.shape)))
+    assert obs.shape[0] == 3 and np.isfinite(obs).all()
+    env.close()

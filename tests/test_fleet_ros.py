@@ -89,6 +89,12 @@ def test_each_robot_has_its_own_joint_states_named_as_the_robot_names_them(fleet
     assert list(fleet.js[(2, "rover")].msg.name) == ["left_wheel_joint", "right_wheel_joint"]
 
 
+def test_diagnostics_name_each_worlds_robots(fleet):
+    diag = fleet.diagnostics()
+    fleet.wait(lambda: diag.world("world_1") is not None, 20, "world 1's diagnostics")
+    assert diag.value("world_1", "robots") == "arm_a, arm_b, rover"
+
+
 def test_each_robot_has_its_own_controller_manager(fleet, ros):
     assert _states(fleet, ros, 3, "arm_b") == {
         "joint_state_broadcaster": "active", JTC: "active", "wrist_ft_broadcaster": "active"

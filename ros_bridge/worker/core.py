@@ -143,7 +143,7 @@ class Worker:
         if plan.clock and self.index == 0:
             self._clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
         workers = [worlds_label(plan.namespaces, lo, hi) for lo, hi in plan.ranges]
-        self.diagnostics = Diagnostics(node, self.memory, self.lo, self.hi, self.namespaces, workers)
+        self.diagnostics = Diagnostics(node, self.memory, self.lo, self.hi, self.namespaces, workers, plan.robots)
         self.intake = Intake(node, qos, lambda: self.snapshot.period, self.diagnostics, self.throttle)
         self._on_request: dict[str, tuple[Output, int]] = {}
         for spec in plan.outputs:

@@ -3,7 +3,7 @@
 Every rejection is written to shared memory (count, period and last reason per world, for
 the physics process's status line) and counted per world, topic and reason here; the
 controllers' own rejections in the loop arrive through the `hrej` block. /diagnostics
-(diagnostic_msgs/DiagnosticArray) carries one status per world: its status bits, whether
+(diagnostic_msgs/DiagnosticArray) carries one status per world: its robots (a fleet file's world), its status bits, whether
 it is frozen or its commands timed out, its rejection counts, and the messages published per
 state topic (`published joint_states`: how many went out, counted where they are published,
 for benchmarks/fleet.py to set against what subscribers received) and those due but missed
@@ -35,10 +35,19 @@ class Diagnostics:
     """Rejections and /diagnostics for worlds [lo, hi) named `namespaces`."""
 
     def __init__(
-        self, node: Node, memory: Memory, lo: int, hi: int, namespaces: list[str], workers: list[str] | None = None
+        self,
+        node: Node,
+        memory: Memory,
+        lo: int,
+        hi: int,
+        namespaces: list[str],
+        workers: list[str] | None = None,
+        robots: tuple[str, ...] = (),
     ):
-        """`workers`: every worker's worlds, as the log names them (`/world_0 .. /world_63`)."""
+        """`workers`: every worker's worlds, as the log names them (`/world_0 .. /world_63`);
+        `robots`: the robots of each world of a fleet file (batchsim.fleet), named in its status."""
         self.lo, self.hi = lo, hi
+        self._robots = [KeyValue(key="robots", value=", ".join(robots))] if robots else []
         self.workers = workers or []
         self.hung = memory["worker.hung"]
         self.memory = memory
@@ -139,7 +148,8 @@ class Diagnostics:
                     + [KeyValue(key=f"rejected {topic} {reason}", value=str(n)) for (topic, reason), n in rejected[row]]
                     + [KeyValue(key=key, value=str(counts[row])) for key, counts in published]
                     + [KeyValue(key=key, value=str(counts[row])) for key, counts in missed if counts[row]]
-                    + ([KeyValue(key="randomized", value=read_line(self.memory, w))] if self.randomized else []),
+                    + ([KeyValue(key="randomized", value=read_line(self.memory, w))] if self.randomized else [])
+                    + self._robots,
                 )
             )
         now = wallclock.time()
