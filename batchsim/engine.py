@@ -8,6 +8,7 @@ back in the order asked for), as mujoco.batch's ids must be.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from concurrent.futures import Future
 from typing import Any
 
@@ -154,3 +155,40 @@ class EngineHooks:
 
     def _close_sensors(self) -> None:
         """Free renderers and ray-casting buffers (before _close)."""
+
+
+# an option's type: how a message names it, and the values it takes (NumPy's scalars too; a
+# bool is no integer or number here, though Python's bool is an int)
+_OPTION_KINDS: dict[type, tuple[str, tuple[type, ...]]] = {
+    bool: ("a bool", (bool, np.bool_)),
+    int: ("an integer", (int, np.integer)),
+    float: ("a number", (int, float, np.integer, np.floating)),
+    str: ("a string", (str,)),
+}
+
+
+def check_options(
+    backend: str,
+    declared: Mapping[str, Any],
+    types: Mapping[str, type],
+    minima: Mapping[str, float],
+    options: Mapping[str, Any],
+) -> None:
+    """ValueError, one line, for an option `backend` does not take (`declared`: name -> default),
+    a value not of the option's type (`types`, else its default's) or below its least (`minima`):
+    at construction, where configure would fail on it naming no option (int("four"))."""
+    unknown = sorted(set(options) - set(declared))
+    if unknown:
+        known = ", ".join(declared) or "none"
+        raise ValueError(f"unknown option {unknown[0]!r} for backend {backend} (options: {known})")
+    for option, value in options.items():
+        default = declared[option]
+        kind = types.get(option, type(default))
+        if kind not in _OPTION_KINDS or (value is None and default is None):
+            continue  # object: the backend resolves it (a device), naming what it has
+        what, takes = _OPTION_KINDS[kind]
+        if not isinstance(value, takes) or (kind is not bool and isinstance(value, bool | np.bool_)):
+            raise ValueError(f"option {option} of backend {backend} must be {what}, got {value!r}")
+        least = minima.get(option)
+        if least is not None and not value >= least:  # NaN too
+            raise ValueError(f"option {option} of backend {backend} must be >= {least:g}, got {value!r}")

@@ -43,7 +43,7 @@ from batchsim.actuation import Actuation
 from batchsim.base_velocity import BaseDriving
 from batchsim.body_poses import BodyPoses
 from batchsim.device_io import DeviceIO
-from batchsim.engine import EngineHooks
+from batchsim.engine import EngineHooks, check_options
 from batchsim.external_wrench import Wrenching
 from batchsim.failures import FailureLog, ensure_log_dir
 from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState, SystemInterface
@@ -68,14 +68,7 @@ from batchsim.varying import Varying
 
 S = LifecycleState
 _FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
-# an option's type: how a message names it, and the values it takes (NumPy's scalars too; a
-# bool is no integer or number here, though Python's bool is an int)
-_OPTION_KINDS: dict[type, tuple[str, tuple[type, ...]]] = {
-    bool: ("a bool", (bool, np.bool_)),
-    int: ("an integer", (int, np.integer)),
-    float: ("a number", (int, float, np.integer, np.floating)),
-    str: ("a string", (str,)),
-}
+
 
 
 class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceIO, EngineHooks, SystemInterface):
@@ -173,24 +166,9 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
 
     @classmethod
     def check_options(cls, options: Mapping[str, Any]) -> None:
-        """ValueError, one line, for an option the backend does not take, a value not of the
-        option's type (OPTION_TYPES, else its default's) or below its least (OPTION_MINIMA): at
-        construction, where configure would fail on it naming no option (int("four"))."""
-        unknown = sorted(set(options) - set(cls.OPTIONS))
-        if unknown:
-            known = ", ".join(cls.OPTIONS) or "none"
-            raise ValueError(f"unknown option {unknown[0]!r} for backend {cls.name} (options: {known})")
-        for option, value in options.items():
-            default = cls.OPTIONS[option]
-            kind = cls.OPTION_TYPES.get(option, type(default))
-            if kind not in _OPTION_KINDS or (value is None and default is None):
-                continue  # object: the backend resolves it (a device), naming what it has
-            what, takes = _OPTION_KINDS[kind]
-            if not isinstance(value, takes) or (kind is not bool and isinstance(value, bool | np.bool_)):
-                raise ValueError(f"option {option} of backend {cls.name} must be {what}, got {value!r}")
-            least = cls.OPTION_MINIMA.get(option)
-            if least is not None and not value >= least:  # NaN too
-                raise ValueError(f"option {option} of backend {cls.name} must be >= {least:g}, got {value!r}")
+        """ValueError, one line, for an option the backend does not take or a value not of its
+        type or below its least (batchsim.engine.check_options), at construction."""
+        check_options(cls.name, cls.OPTIONS, cls.OPTION_TYPES, cls.OPTION_MINIMA, options)
 
     @property
     def readings(self) -> np.ndarray:

@@ -104,7 +104,7 @@ class FleetPlan:
       actuator_topics: per column, the `actuators/<name>/command` token (the robot's own name of
         the actuator, in a world of several robots).
       actuator_robots: per column, the robot's prefix the topic is under (`<robot>/actuators/...`),
-        "" for a world of one robot; empty: all "".
+        "" for a world of one robot (given empty: all "").
       robots: the robots every world holds (a fleet file's), named in /diagnostics; empty for one.
       owners: per column, the controller that claimed it, or "".
       channels, outputs, inputs: see above.
@@ -156,6 +156,7 @@ class FleetPlan:
     memory_name: str | None = None
 
     def __post_init__(self) -> None:
+        self.actuator_robots = self.actuator_robots or [""] * len(self.actuator_topics)
         n, ncmd, nw = self.nworld, len(self.interfaces), len(self.ranges)
         arrays: list[tuple[str, tuple[int, ...], str]] = [
             *snapshot_arrays(n, [ch.width for ch in self.channels]),  # protocol/snapshot.py

@@ -163,8 +163,7 @@ class Worker:
             w = self.lo + row
             topic = topic_name(ns, "commands")
             self.intake.subscribe(w, Float64MultiArray, topic, self._vector_callback(w, topic, interfaces, owners))
-            robots = plan.actuator_robots or [""] * len(plan.actuator_topics)
-            for c, (token, robot) in enumerate(zip(plan.actuator_topics, robots, strict=True)):
+            for c, (token, robot) in enumerate(zip(plan.actuator_topics, plan.actuator_robots, strict=True)):
                 topic = topic_name(ns, f"{robot}actuators/{token}/command")
                 if plan.all_topics:
                     self.intake.subscribe(w, Float64, topic, self._single_callback(w, c, topic, interfaces, owners))
