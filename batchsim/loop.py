@@ -3,7 +3,8 @@ real-time factor. It is controller_manager's loop, batched over worlds.
 
 Participants (controllers, the ROS bridge) plug in through `Participant.update`, called
 every control period between `read()` and `write()`, exactly where ros2_control calls
-controllers. Nothing here imports rclpy: the bridge is one participant among others.
+controllers, and its other hooks (after write(), beside the steps, while paused, after a
+reset). Nothing here imports rclpy: the bridge is one participant among others.
 """
 
 from __future__ import annotations
@@ -11,11 +12,12 @@ from __future__ import annotations
 import dataclasses
 import gc
 import logging
+import operator
 import os
 import threading
 import time as wallclock
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import Any
 
 import numpy as np
 
@@ -69,17 +71,85 @@ def whole_ratio(base_rate: float, rate: float) -> int:
     return n
 
 
-class Participant(Protocol):
-    """Something that runs once per control period, between read() and write()."""
+class Participant:
+    """Something the loop runs once per control period, on the loop thread, in the order of
+    `SimLoop.participants`: the controller manager, the ROS bridge, a recorder, a sensor feed.
 
-    def update(self, sim: BatchedSystem, time: float, period: float) -> None: ...
+    Subclass it and override the hooks you need; every one is a no-op here. One period
+    (`SimLoop.run_period`) runs read(), every `update`, write(), every `after_write`, then
+    the period's physics steps with every `while_stepping` beside them. While the loop is
+    paused, `idle` runs in place of the periods; `on_reset` runs after `SimLoop.reset`.
 
-    # Optional, looked up with getattr: `after_write(sim, time, period)` runs right after
-    # write(); `while_stepping(sim, time, period)` runs while the period's physics steps on a
-    # device (BatchedSystem.step's `meanwhile`: host work only, the system not called; just
-    # before the steps on the cpu backend); `idle(sim, time)` runs instead of update() while the loop is paused;
-    # `on_reset(sim, worlds)` runs after SimLoop.reset reset worlds (None: all), in the
-    # loop thread, so participants never have to infer a reset from the state.
+    A participant that is no subclass works too: an object with `update` and any of the
+    other hooks by the same names (duck-typed). The loop keeps `participants` a plain list,
+    which the bridge inserts into, and takes each participant as it is: it looks up which
+    hooks each one has once, whenever the list changed since the last period (an insert,
+    an append, a new list), and then calls them as plain methods, skipping this base's
+    no-ops. A change takes effect from the next period.
+    """
+
+    def update(self, sim: BatchedSystem, time: float, period: float) -> None:
+        """Every control period, between read() and write(), where ros2_control runs its
+        controllers: read `sim.state` (fresh from this period's read()), write `sim.command`
+        (applied by the write() that follows). `time` is the period's start in sim time,
+        `period` its length (shorter for a last, partial period of `step_physics`). It may
+        call `SimLoop.reset` (the bridge's reset services do)."""
+
+    def after_write(self, sim: BatchedSystem, time: float, period: float) -> None:
+        """Every period, right after write() and before the physics steps: see what write()
+        made of the commands (`sim.status`'s BAD_COMMAND bits; the bridge re-marks the
+        commands it rejected). It may call the system; `sim.command` is already applied."""
+
+    def while_stepping(self, sim: BatchedSystem, time: float, period: float) -> None:
+        """Every period, while the period's physics steps (BatchedSystem.step's `meanwhile`):
+        on a device (warp, mjx, a fleet of shards) after the steps are launched and before
+        they are waited for, elsewhere just before them. Host work only (the bridge's
+        snapshot of what read() filled, a controller's work for its next update): it must
+        not call the system, and what read() filled and `sim.command` stay as they are
+        meanwhile. A participant that does not override it gives the system no `meanwhile`
+        to run. Every participant's runs even if one raises; the first error is raised once
+        the period is counted."""
+
+    def idle(self, sim: BatchedSystem, time: float) -> None:
+        """While the loop is paused and no step is pending, about every 2 ms, in place of the
+        periods: serve requests (a step, a reset, a resume). `time` is the loop's sim time,
+        which does not advance. It may call `SimLoop.reset`."""
+
+    def on_reset(self, sim: BatchedSystem, worlds: np.ndarray | None) -> None:
+        """Right after `SimLoop.reset` reset worlds, on the loop thread: `worlds` (k,) intp
+        indices (a mask's worlds where it was True), None for every world. Drop those
+        worlds' goals and per-world state; nothing needs to infer a reset from the state
+        (a world whose time goes backwards)."""
+
+
+def _overrides(p: object, hook: str) -> bool:
+    """Whether participant `p` has `hook` (a method, or an attribute of its own) other than
+    Participant's no-op."""
+    found = getattr(p, hook, None)
+    return found is not None and getattr(found, "__func__", None) is not getattr(Participant, hook)
+
+
+class _Hooks:
+    """Which participants run which hook, in the participants' order (SimLoop._hooks)."""
+
+    __slots__ = ("participants", "after_write", "while_stepping", "idle", "on_reset", "_by_identity")
+
+    def __init__(self, participants: Sequence[Any]):
+        self.participants = list(participants)  # a copy of the list it was made from; update() runs on each
+        self.after_write = tuple(p for p in self.participants if _overrides(p, "after_write"))
+        self.while_stepping = tuple(p for p in self.participants if _overrides(p, "while_stepping"))
+        self.idle = tuple(p for p in self.participants if _overrides(p, "idle"))
+        self.on_reset = tuple(p for p in self.participants if _overrides(p, "on_reset"))
+        # list == tests each pair for identity first, then with __eq__: an identity test, in
+        # C, unless a participant has an __eq__ of its own
+        self._by_identity = any(type(p).__eq__ is not object.__eq__ for p in self.participants)
+
+    def made_from(self, participants: list[Any]) -> bool:
+        """Whether `participants` holds the same objects, in the same order, as when made."""
+        if self._by_identity:
+            ps = self.participants
+            return len(ps) == len(participants) and all(map(operator.is_, ps, participants))
+        return participants == self.participants
 
 
 @dataclasses.dataclass
@@ -105,7 +175,9 @@ class SimLoop:
         number of physics steps. None: the nearest to DEFAULT_CONTROL_RATE.
       rtf: real-time factor to hold; 0 runs as fast as possible.
       duration: stop after this much simulated time (seconds); None runs until stop().
-      participants: called every period between read() and write().
+      participants: run every period (Participant: `update` between read() and write(),
+        and the other hooks); `self.participants` is a plain list of them, which may change
+        between periods (the bridge inserts itself first).
       thread_priority: while it paces a real-time factor, the thread running the loop asks
         for SCHED_FIFO at this priority (1-99) from its second period on, as ros2_control's
         controller_manager does (batchsim/realtime.py); 0 (the default here; the command's
@@ -156,7 +228,8 @@ class SimLoop:
         self.control_rate = 1.0 / self.period
         self.rtf = float(rtf)
         self.duration = duration
-        self.participants = list(participants)
+        self.participants: list[Any] = list(participants)  # Participant or duck-typed alike
+        self._plan = _Hooks(())  # which participants run which hook (_hooks)
         self.thread_priority = int(thread_priority)
         self.cpu_affinity = tuple(int(c) for c in cpu_affinity)
         self.sim_time = 0.0
@@ -220,10 +293,15 @@ class SimLoop:
         rows = None if worlds is None else np.asarray(worlds).reshape(-1)
         if rows is not None:  # a mask's worlds are where it is True (as integers it would read 0s and 1s)
             rows = np.flatnonzero(rows) if rows.dtype == bool else rows.astype(np.intp)
-        for p in self.participants:
-            hook = getattr(p, "on_reset", None)
-            if hook is not None:
-                hook(self.sim, rows)
+        for p in self._hooks().on_reset:
+            p.on_reset(self.sim, rows)
+
+    def _hooks(self) -> _Hooks:
+        """Which participants run which hook: looked up again only when `participants`
+        changed since (by identity), so that a period calls each hook as a plain method."""
+        if not self._plan.made_from(self.participants):
+            self._plan = _Hooks(self.participants)
+        return self._plan
 
     # --- the loop ---
     def run_period(self, nstep: int | None = None) -> None:
@@ -232,26 +310,22 @@ class SimLoop:
         sim = self.sim
         nstep = self.substeps if nstep is None else nstep
         t, period = self.sim_time, self.period if nstep == self.substeps else nstep * sim.dt
+        plan = self._hooks()
         if sim.read(t, period) is ReturnType.ERROR:
             raise RuntimeError("read() failed")
-        for p in self.participants:
+        for p in plan.participants:
             p.update(sim, t, period)
         sim.write(t, period)
-        meanwhile = []
-        for p in self.participants:  # optional: e.g. the bridge re-marks commands it rejected
-            after = getattr(p, "after_write", None)
-            if after is not None:
-                after(sim, t, period)
-            during = getattr(p, "while_stepping", None)
-            if during is not None:
-                meanwhile.append(during)
+        for p in plan.after_write:  # e.g. the bridge re-marks commands it rejected
+            p.after_write(sim, t, period)
         errors: list[Exception] = []
+        meanwhile = plan.while_stepping
         if meanwhile:  # e.g. the bridge's snapshot, under the device's steps
 
             def hooks() -> None:
-                for during in meanwhile:  # every one runs; the first error is raised once the period is counted
+                for p in meanwhile:  # every one runs; the first error is raised once the period is counted
                     try:
-                        during(sim, t, period)
+                        p.while_stepping(sim, t, period)
                     except Exception as e:
                         errors.append(e)
 
@@ -322,10 +396,8 @@ class SimLoop:
         return self.stats
 
     def _idle_participants(self) -> None:
-        for p in self.participants:
-            idle = getattr(p, "idle", None)
-            if idle is not None:
-                idle(self.sim, self.sim_time)
+        for p in self._hooks().idle:
+            p.idle(self.sim, self.sim_time)
 
     def _update_stats(self, wall: float, sim_elapsed: float, steps: int) -> None:
         status = self.sim.status

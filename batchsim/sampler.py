@@ -38,6 +38,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from batchsim.loop import Participant
+
 if TYPE_CHECKING:
     from batchsim.hardware import BatchedSystem, PendingFrames
 
@@ -66,7 +68,7 @@ class Sample:
     ranges: np.ndarray | None = None
 
 
-class SensorSampler:
+class SensorSampler(Participant):
     """Produces cameras and lidars inside the loop (a `batchsim.loop` participant).
 
     Args:

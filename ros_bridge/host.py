@@ -28,7 +28,7 @@ import numpy as np
 from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import Input, MessageKind
 from batchsim.hardware import BatchedSystem, Status
-from batchsim.loop import SimLoop
+from batchsim.loop import Participant, SimLoop
 from batchsim.memory import Memory, Ring
 from batchsim.realtime import with_siblings
 from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
@@ -64,7 +64,7 @@ _BAD = np.uint8(Status.BAD_COMMAND)
 _FROZEN = np.uint8(Status.DIVERGED | Status.OVERFLOW)
 
 
-class BridgeHost:
+class BridgeHost(Participant):
     """The bridge's loop participant: shared memory, workers, and the loop's hooks.
 
     Args:

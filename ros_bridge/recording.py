@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from batchsim.loop import OptionError, SimLoop
+from batchsim.loop import OptionError, Participant, SimLoop
 from ros_bridge.options import RecordOptions
 from ros_bridge.outputs import OutputSpec
 from ros_bridge.protocol.recording import RecordWriter, put_answer, recording_arrays, take_request
@@ -155,7 +155,7 @@ def path_problem(path: str) -> str | None:
     return None
 
 
-class Recording:
+class Recording(Participant):
     """The loop's side of recording: the ring writer, the recorder process, the service's mailbox.
 
     Args:

@@ -43,6 +43,7 @@ import enum
 import numpy as np
 
 from batchsim.hardware import BatchedSystem
+from batchsim.loop import Participant
 from batchsim.sampler import Sample, SensorSampler
 from batchsim.sensors import Camera, CameraMode, Lidar
 from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_INFO, WANT_RGB, SensorBlock
@@ -176,7 +177,7 @@ def sensor_plan(sim: BatchedSystem) -> SensorPlan | None:
     return SensorPlan(cameras, lidars, batched=sim.sensors_batched)
 
 
-class SensorFeed:
+class SensorFeed(Participant):
     """The physics side of the sensor topics: a loop participant after the bridge host.
 
     Each period: the workers' want bits become `sim.sensors.want/unwant`; the sampler

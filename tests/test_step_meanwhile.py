@@ -18,7 +18,7 @@ import pytest
 
 import batchsim
 from batchsim.controllers import default_controllers, load_controllers
-from batchsim.loop import SimLoop
+from batchsim.loop import Participant, SimLoop
 
 FORCED = os.environ.get("BATCHSIM_FORCE_BACKENDS") == "1"
 HAVE_WARP = importlib.util.find_spec("mujoco_warp") is not None or FORCED
@@ -228,6 +228,44 @@ def test_a_failing_while_stepping_hook_leaves_the_loops_clock_with_the_engine():
     assert other.ran == 1 and loop.stats.periods == 1
     sim.read()
     np.testing.assert_allclose(sim.time, loop.sim_time)
+    sim.shutdown()
+
+
+def test_participants_subclass_participant_or_are_duck_typed_and_the_list_may_change(monkeypatch):
+    """Participant's hooks are no-ops the loop skips (no while_stepping: the system gets no
+    `meanwhile`); a duck-typed object's hooks run as a subclass's; a participant appended or
+    replaced in the plain list runs from the next period."""
+    sim = active("cpu")
+    calls: list[str] = []
+    meanwhile: list[bool] = []
+    step = sim.step
+    monkeypatch.setattr(sim, "step", lambda nstep, meanwhile=None, step=step, seen=meanwhile: (seen.append(meanwhile is not None), step(nstep, meanwhile))[1])
+
+    class Sub(Participant):
+        def update(self, sim, time, period):
+            calls.append("sub.update")
+
+    class Duck:
+        def update(self, sim, time, period):
+            calls.append("duck.update")
+
+        def after_write(self, sim, time, period):
+            calls.append("duck.after_write")
+
+        def while_stepping(self, sim, time, period):
+            calls.append("duck.while_stepping")
+
+    loop = SimLoop(sim, control_rate=100.0, rtf=0.0, participants=[Sub()])
+    loop.run_period()
+    assert calls == ["sub.update"] and meanwhile == [False]
+    loop.participants.append(Duck())
+    calls.clear()
+    loop.run_period()
+    assert calls == ["sub.update", "duck.update", "duck.after_write", "duck.while_stepping"] and meanwhile[-1]
+    loop.participants[1] = Sub()
+    calls.clear()
+    loop.run_period()
+    assert calls == ["sub.update", "sub.update"] and not meanwhile[-1]
     sim.shutdown()
 
 

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from batchsim.controllers.base import Controller
+from batchsim.loop import Participant
 from batchsim.model import RobotSpec
 from batchsim.types import AnyCase
 
@@ -112,7 +113,7 @@ class HardwareInterfaces:
     state_interfaces: tuple[InterfaceInfo, ...]
 
 
-class ControllerManager:
+class ControllerManager(Participant):
     """ros2_control's controller_manager over every world: a SimLoop participant.
 
     `update(sim, time, period)` runs every controller that is active in some world, in the
