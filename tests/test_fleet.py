@@ -365,3 +365,25 @@ def test_the_vector_env_shows_a_world_of_several_robots_as_one_world():
     obs, reward, terminated, truncated, _ = env.step(np.zeros((3, *env.single_action_space.shape)))
     assert obs.shape[0] == 3 and np.isfinite(obs).all()
     env.close()
+
+
+def test_a_reset_of_one_robot_restores_only_it_in_only_that_world():
+    from batchsim.fleet.reset import reset_robot
+
+    sim = active(ARM_AND_ROVER, "cpu", 3)
+    arm, rover = sim.spec.robots
+    sim.command[:, arm.commands] = 0.4
+    sim.command[:, rover.commands] = 1.0  # wheel torques: the rovers drive off
+    for _ in range(50):
+        sim.write()
+        sim.step(10)
+    qpos, qvel = sim.qstate()
+    reset_robot(sim, rover, [1])
+    after, after_v = sim.qstate()
+    q0, nq = rover.qpos
+    assert np.allclose(after[1, q0 : q0 + nq], sim.spec.initial.qpos[q0 : q0 + nq])  # the rover is home
+    assert np.array_equal(np.delete(after[1], np.s_[q0 : q0 + nq]), np.delete(qpos[1], np.s_[q0 : q0 + nq]))  # the arm is not
+    assert np.array_equal(after[[0, 2]], qpos[[0, 2]]) and np.array_equal(after_v[[0, 2]], qvel[[0, 2]])
+    assert np.allclose(sim.command[1, rover.commands], 0.0) and np.allclose(sim.command[1, arm.commands], 0.4)
+    assert np.allclose(sim.command[[0, 2]][:, rover.commands], 1.0)
+    sim.shutdown()

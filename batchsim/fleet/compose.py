@@ -260,6 +260,9 @@ def _world_spec(
                 sensors=tuple(p + s.name for s in spec.sensors),
                 joints=tuple(p + j.name for j in spec.joints),
                 bodies=(off.body, off.nbody),
+                qpos=(off.qpos, spec.mjmodel.nq),
+                dofs=(off.dof, spec.mjmodel.nv),
+                actuators=(off.actuator, spec.mjmodel.nu),
                 floating_base=None
                 if base is None
                 else FloatingBase(p + base.joint, p + base.body, base.qposadr + off.qpos, base.dofadr + off.dof),

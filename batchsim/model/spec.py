@@ -281,6 +281,8 @@ class RobotPart:
       sensors: its MJCF sensors' names in the world's spec (prefixed).
       joints: its 1-DOF joints' names in the world's spec (prefixed).
       bodies: (first, count): its bodies are `first .. first + count - 1` of the world's model.
+      qpos, dofs, actuators: (first, count) likewise: its block of the world's qpos, of qvel
+        (and qfrc_*), and of its actuators (ctrl): what a reset of this robot alone restores.
       floating_base: its own free joint, or None for a fixed base.
       pose: (x, y, z, yaw) where it was placed in the world.
       controllers: its controller_manager YAML, or None (the model's default).
@@ -295,6 +297,9 @@ class RobotPart:
     sensors: tuple[str, ...]
     joints: tuple[str, ...]
     bodies: tuple[int, int]
+    qpos: tuple[int, int]
+    dofs: tuple[int, int]
+    actuators: tuple[int, int]
     floating_base: FloatingBase | None
     pose: tuple[float, float, float, float]
     controllers: Path | None = None
