@@ -61,6 +61,7 @@ from batchsim.types import (
     Status,
     StepFailures,
     check_nstep,
+    worlds_index,
 )
 from batchsim.types import Frames as Frames  # re-exported here
 from batchsim.types import PendingFrames as PendingFrames
@@ -450,28 +451,10 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         return (self.status & _FROZEN_BITS) != 0
 
     def _worlds(self, worlds: Sequence[int] | np.ndarray | None) -> np.ndarray | None:
-        """World indices as given, (k,) int64, in the caller's order; None for all.
-
-        Raises ValueError for a world out of range, a world listed twice, or a mask of the
-        wrong shape.
-        """
-        if worlds is None:
-            return None
-        rows = np.asarray(worlds)
-        if rows.dtype == bool:
-            if rows.shape != (self.nworld,):
-                raise ValueError(f"a world mask must have shape ({self.nworld},), got {rows.shape}")
-            return np.flatnonzero(rows)
-        if rows.size and not np.issubdtype(rows.dtype, np.integer):
-            raise ValueError(f"worlds must be integers or a ({self.nworld},) bool mask, got {rows.dtype}")
-        rows = rows.astype(np.int64).reshape(-1)
-        bad = rows[(rows < 0) | (rows >= self.nworld)]
-        if bad.size:
-            raise ValueError(f"world {bad[0]} is out of range: worlds are 0..{self.nworld - 1}")
-        unique, counts = np.unique(rows, return_counts=True)
-        if unique.size < rows.size:
-            raise ValueError(f"world {unique[counts > 1][0]} is listed more than once")
-        return rows
+        """World indices as given, (k,) int64, in the caller's order; None for all
+        (batchsim.types.worlds_index: ValueError for a world out of range, a world listed
+        twice, a mask of the wrong shape, values that are not integers)."""
+        return worlds_index(worlds, self.nworld)
 
     def _finish_gather(self, readings: np.ndarray | None = None) -> None:
         """Finish readings gathered from the engine (batchsim.readings.Finish: the columns

@@ -23,6 +23,7 @@ import numpy as np
 
 from batchsim import realtime
 from batchsim.hardware import BatchedSystem, ReturnType, Status
+from batchsim.types import worlds_index
 
 DEFAULT_CONTROL_RATE = 100.0  # Hz
 log = logging.getLogger("batchsim")
@@ -116,7 +117,7 @@ class Participant:
         which does not advance. It may call `SimLoop.reset`."""
 
     def on_reset(self, sim: BatchedSystem, worlds: np.ndarray | None) -> None:
-        """Right after `SimLoop.reset` reset worlds, on the loop thread: `worlds` (k,) intp
+        """Right after `SimLoop.reset` reset worlds, on the loop thread: `worlds` (k,) int64
         indices (a mask's worlds where it was True), None for every world. Drop those
         worlds' goals and per-world state; nothing needs to infer a reset from the state
         (a world whose time goes backwards)."""
@@ -287,12 +288,10 @@ class SimLoop:
 
         Call it from the loop thread (a participant's update or idle), as the bridge does
         for its services; the system is never touched from another thread. `worlds` as
-        `sim.reset` takes it (indices, or a (nworld,) bool mask); participants get (k,) indices.
+        `sim.reset` takes it (indices, or a (nworld,) bool mask); participants get (k,) int64 indices.
         """
         self.sim.reset(worlds)
-        rows = None if worlds is None else np.asarray(worlds).reshape(-1)
-        if rows is not None:  # a mask's worlds are where it is True (as integers it would read 0s and 1s)
-            rows = np.flatnonzero(rows) if rows.dtype == bool else rows.astype(np.intp)
+        rows = worlds_index(worlds, self.sim.nworld)  # as reset read them: a mask's True worlds
         for p in self._hooks().on_reset:
             p.on_reset(self.sim, rows)
 

@@ -192,6 +192,45 @@ def check_nstep(nstep: Any) -> None:
         raise ValueError(f"nstep must be a whole number of physics steps >= 1, got {nstep!r}")
 
 
+def world_out_of_range(world: Any, nworld: int, what: str = "") -> str:
+    """The message for a world index not in 0..nworld - 1, led by `what: ` when given (the
+    controller's name): worlds_index's, and a controller's for one world or one entry of a
+    batched input."""
+    if isinstance(world, np.generic):  # 4, not np.int64(4)
+        world = world.item()
+    return f"{what + ': ' if what else ''}world {world!r} is out of range: worlds are 0..{nworld - 1}"
+
+
+def worlds_index(worlds: Sequence[int] | np.ndarray | int | None, nworld: int, *, what: str = "") -> np.ndarray | None:
+    """The worlds a call lists (`worlds=` of the contract, SimLoop.reset, switch_controller)
+    as (k,) int64 indices in the caller's order; None for None (every world).
+
+    `worlds` is integers (a sequence, an array of any shape, or one), or a (nworld,) bool mask
+    (its True worlds, in world order). ValueError, led by `what: ` when given, for a mask of
+    another shape, values that are not integers (1.5, and 2.0 too), a world out of range, or a
+    world listed twice.
+    """
+    if worlds is None:
+        return None
+    rows = np.asarray(worlds)
+    lead = f"{what}: " if what else ""
+    if rows.dtype == bool:
+        if rows.shape != (nworld,):
+            raise ValueError(f"{lead}a world mask must have shape ({nworld},), got {rows.shape}")
+        return np.flatnonzero(rows)
+    if rows.size and not np.issubdtype(rows.dtype, np.integer):
+        raise ValueError(f"{lead}worlds must be integers or a ({nworld},) bool mask, got {rows.dtype}")
+    rows = rows.astype(np.int64).reshape(-1)
+    bad = rows[(rows < 0) | (rows >= nworld)]
+    if bad.size:
+        raise ValueError(world_out_of_range(bad[0], nworld, what))
+    if rows.size > 1:
+        unique, counts = np.unique(rows, return_counts=True)
+        if unique.size < rows.size:
+            raise ValueError(f"{lead}world {unique[counts > 1][0]} is listed more than once")
+    return rows
+
+
 def split_worlds(nworld: int, parts: int) -> list[range]:
     """`parts` contiguous ranges of `nworld` worlds, as even as can be (sizes differ by one at
     most): range i ends at world round(nworld * (i + 1) / parts), halves rounded up.

@@ -419,6 +419,28 @@ def test_a_world_listed_twice_is_an_error(arm):
     np.testing.assert_array_equal(arm.command, before)
 
 
+def test_worlds_index_is_the_one_reading_of_a_world_list():
+    """batchsim.types.worlds_index: what the contract's `worlds=`, SimLoop.reset and
+    switch_controller take, with one set of checks and messages (issue 42)."""
+    from batchsim.types import worlds_index
+
+    assert worlds_index(None, 4) is None
+    np.testing.assert_array_equal(worlds_index([3, 1], 4), [3, 1])  # the caller's order
+    np.testing.assert_array_equal(worlds_index(np.array([True, False, True, False]), 4), [0, 2])
+    np.testing.assert_array_equal(worlds_index(2, 4), [2])
+    assert worlds_index([], 4).dtype == np.int64 and worlds_index([], 4).size == 0
+    for worlds, message in [
+        ([4], "^world 4 is out of range: worlds are 0..3$"),
+        ([1, 2, 1], "^world 1 is listed more than once$"),
+        (np.array([True, False]), r"^a world mask must have shape \(4,\), got \(2,\)$"),
+        ([1.5], r"^worlds must be integers or a \(4,\) bool mask, got float64$"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            worlds_index(worlds, 4)
+    with pytest.raises(ValueError, match="^jtc: world -1 is out of range"):
+        worlds_index([-1], 4, what="jtc")
+
+
 # ---------------------------------------------------------------- determinism
 
 

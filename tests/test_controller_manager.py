@@ -214,6 +214,20 @@ def test_queries_for_the_services():
         manager.switch([5], deactivate=[JTC], strictness=2)
 
 
+def test_switch_reads_its_worlds_as_the_contract_does():
+    """A mask, indices in any order (reported ascending); the contract's errors: a world out of
+    range, listed twice, or not an integer (issue 42: one reading of world lists)."""
+    sim, manager, loop = running(3)
+    off = manager.switch([2, 0], deactivate=[JTC], strictness=2)
+    assert off.ok and off.deactivated[JTC].tolist() == [0, 2]
+    on = manager.switch(np.array([True, False, True]), activate=[JTC], strictness=2)
+    assert on.ok and on.activated[JTC].tolist() == [0, 2]
+    for worlds, message in [([3], "world 3 is out of range"), ([1, 1], "world 1 is listed more than once"), ([0.5], "must be integers")]:
+        with pytest.raises(ValueError, match=message):
+            manager.switch(worlds, deactivate=[JTC], strictness=2)
+    assert manager.active(JTC).all()
+
+
 def test_a_fully_inactive_controller_is_not_updated(tmp_path):
     sim, manager, loop = both(tmp_path)
     jtc = manager[JTC]

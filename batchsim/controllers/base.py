@@ -17,6 +17,7 @@ import numpy as np
 from batchsim.controllers.topics import ControllerTopics
 from batchsim.hardware import ConfigurationError
 from batchsim.model import RobotSpec
+from batchsim.types import world_out_of_range
 
 _MISSING = object()
 
@@ -213,22 +214,26 @@ class Controller:
         return ControllerTopics(self.name)
 
     def _world(self, world: int) -> int:
+        """The one world of a per-world call (`set_trajectory(world, ...)`), as an int;
+        ValueError naming the controller for a world out of range or not whole."""
         if isinstance(world, bool) or int(world) != world or not 0 <= world < self.nworld:
-            raise ValueError(self._out_of_range(world))
+            raise ValueError(world_out_of_range(world, self.nworld, self.name))
         return int(world)
 
-    def _out_of_range(self, world: Any) -> str:
-        return f"{self.name}: world {world!r} is out of range: worlds are 0..{self.nworld - 1}"
-
     def _batch_worlds(self, worlds: Any) -> tuple[np.ndarray, dict[int, str]]:
-        """(n,) world indices of a batched input, and {index: reason} for those out of range (set to 0)."""
+        """(n,) world indices of a batched input, and {index: reason} for those out of range (set to 0).
+
+        Not batchsim.types.worlds_index, deliberately: these are the worlds of n inputs, not a
+        list of worlds. Each entry is judged alone (a bad one is refused with its reason, the
+        others are applied), a world may come twice (the later input wins: last_per_world),
+        and a float world is one more entry to judge (NaN or 2.5 refused, 2.0 taken)."""
         given = np.asarray(worlds).reshape(-1)
         if given.dtype.kind not in "iuf":
             raise ValueError(f"{self.name}: worlds must be integers, got {given.dtype}")
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(given) & (given == np.round(given)) & (given >= 0) & (given < self.nworld)
         rows = np.where(ok, given, 0).astype(np.int64)
-        return rows, {int(k): self._out_of_range(given[k].item()) for k in np.flatnonzero(~ok)}
+        return rows, {int(k): world_out_of_range(given[k], self.nworld, self.name) for k in np.flatnonzero(~ok)}
 
 
 def rows_all(x: np.ndarray) -> np.ndarray:

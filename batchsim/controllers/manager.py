@@ -23,7 +23,7 @@ import numpy as np
 from batchsim.controllers.base import Controller
 from batchsim.loop import Participant
 from batchsim.model import RobotSpec
-from batchsim.types import AnyCase
+from batchsim.types import AnyCase, worlds_index
 
 #: every batchsim controller is a plain (not chainable) ros2_control controller
 CONTROLLER_BASE_CLASS = "controller_interface::ControllerInterface"
@@ -253,11 +253,7 @@ class ControllerManager(Participant):
 
         SimLoop.reset calls it; so must anything else that resets worlds under the manager.
         """
-        rows = (
-            np.arange(sim.nworld)
-            if worlds is None
-            else np.unique(np.asarray(worlds, dtype=np.intp).reshape(-1))
-        )
+        rows = _ascending(worlds, sim.nworld)
         for c in self.controllers.values():
             c.reset(sim, rows)
 
@@ -435,14 +431,7 @@ class ControllerManager(Participant):
         return SwitchResult(False, problems[-1] + "; no controller is switched (STRICT)")
 
     def _worlds(self, worlds: Sequence[int] | np.ndarray | None) -> np.ndarray:
-        if worlds is None:
-            return np.arange(self.nworld)
-        given = np.asarray(worlds).reshape(-1)
-        if given.dtype == bool and given.shape == (self.nworld,):
-            return np.flatnonzero(given)
-        if given.size and (given.dtype.kind not in "iu" or given.min() < 0 or given.max() >= self.nworld):
-            raise ValueError(f"worlds must be integers in 0..{self.nworld - 1}, got {given.tolist()}")
-        return np.unique(given.astype(np.intp))
+        return _ascending(worlds, self.nworld)
 
     # --- queries, as plain data for the ROS services ---
     def describe(self) -> list[ControllerInfo]:
@@ -486,3 +475,10 @@ class ControllerManager(Participant):
             # config.py builds managers, so it is imported here rather than at the top
             from batchsim.controllers.config import CONTROLLER_TYPES as types
         return [(name, CONTROLLER_BASE_CLASS) for name in types]
+
+
+def _ascending(worlds: Sequence[int] | np.ndarray | None, nworld: int) -> np.ndarray:
+    """The listed worlds (batchsim.types.worlds_index; None: every world) in ascending order,
+    as switch reports them and the controllers' reset gets them."""
+    rows = worlds_index(worlds, nworld)
+    return np.arange(nworld) if rows is None else np.sort(rows)

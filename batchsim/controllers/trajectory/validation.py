@@ -19,6 +19,7 @@ from batchsim.controllers.base import rows_all
 from batchsim.controllers.topics import TrajectoryBatch
 from batchsim.controllers.trajectory.splines import coefficients, spline_of
 from batchsim.hardware import MAX_COMMAND
+from batchsim.types import world_out_of_range
 
 
 @dataclasses.dataclass
@@ -265,10 +266,7 @@ def check(
     last_time = b.times[np.maximum(b.offsets[1:] - 1, 0)] if npoint else np.zeros(n)
     # (failing trajectories, reason for one of them): the first that fails names the reason
     checks = [
-        (
-            b.bad_world,
-            lambda k: f"world {b.worlds_given[k].item()!r} is out of range: worlds are 0..{nworld - 1}",
-        ),
+        (b.bad_world, lambda k: world_out_of_range(b.worlds_given[k], nworld)),
         (~np.isfinite(b.start_time), lambda k: f"start time must be finite, got {b.start_time[k]}"),
         (
             # upstream rejects an action goal with no points; an empty topic trajectory stops the world
