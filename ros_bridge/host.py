@@ -31,6 +31,7 @@ from batchsim.hardware import BatchedSystem, Status
 from batchsim.loop import Participant, SimLoop
 from batchsim.memory import Memory, Ring
 from batchsim.realtime import with_siblings
+from batchsim.types import FROZEN
 from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
 from ros_bridge.manager_link import ManagerLink
 from ros_bridge.naming import topic_name
@@ -61,7 +62,7 @@ from ros_bridge.trajectory_inputs import TrajectoryInputs
 
 IDLE_TICK = 0.02  # s between two in-process worker ticks while paused
 _BAD = np.uint8(Status.BAD_COMMAND)
-_FROZEN = np.uint8(Status.DIVERGED | Status.OVERFLOW)
+_FROZEN = np.uint8(FROZEN)
 
 
 class BridgeHost(Participant):

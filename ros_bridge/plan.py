@@ -214,9 +214,15 @@ class FleetPlan:
         return self.namespaces[index]
 
 
+# The bridge's own per-world byte beside the contract's Status bits: the snapshot's and the
+# recording ring's `flags` (protocol/snapshot.py, protocol/recording.py), which the workers,
+# the recorder and the view read. Not Status bits under other names, and kept apart on
+# purpose: FLAG_BAD is the bridge's rejection alone (Status.BAD_COMMAND is write()'s too),
+# FLAG_TIMED_OUT has no Status bit, and FLAG_FROZEN is the host's one-bit summary of
+# `status & batchsim.types.FROZEN`, made once per snapshot. Their values are the protocol's.
 FLAG_BAD = 1  # the bridge rejected this world's last command
 FLAG_TIMED_OUT = 2  # --command-timeout: the world went safe
-FLAG_FROZEN = 4  # diverged or overflowed: frozen until reset
+FLAG_FROZEN = 4  # diverged or overflowed (status & FROZEN): frozen until reset
 
 
 

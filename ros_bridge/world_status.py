@@ -11,7 +11,7 @@ import enum
 import functools
 from collections.abc import Mapping
 
-from batchsim.hardware import Status
+from batchsim.types import FROZEN, Status
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT
 
 FROZEN_NOTE = " (frozen until reset: its state topics stopped)"
@@ -42,7 +42,7 @@ def problems(bits: int, flags: int) -> tuple[str, ...]:
 
 
 def level(bits: int, flags: int) -> Level:
-    if bits & (Status.DIVERGED | Status.OVERFLOW):
+    if bits & FROZEN:
         return Level.ERROR
     return Level.WARN if problems(bits, flags) else Level.OK
 
@@ -80,7 +80,7 @@ def from_values(kv: Mapping[str, str]) -> tuple[int, int]:
 def status_text(bits: int, flags: int) -> str:
     """One world's state, as the view's panel says it."""
     parts = []
-    if flags & FLAG_FROZEN or bits & (Status.DIVERGED | Status.OVERFLOW):
+    if flags & FLAG_FROZEN or bits & FROZEN:
         why = "diverged" if bits & Status.DIVERGED else "contact buffer overflow"
         parts.append(f"frozen ({why}) until reset")
     if flags & FLAG_BAD or bits & Status.BAD_COMMAND:

@@ -37,6 +37,7 @@ import viser
 
 from batchsim.hardware import Status
 from batchsim.memory import Memory
+from batchsim.types import FROZEN
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, FleetPlan
 from ros_bridge.protocol.sensor_blocks import WANT_RGB, SensorBlock
 from ros_bridge.protocol.snapshot import Snapshot, read_snapshot
@@ -153,7 +154,7 @@ class FleetScene:
         if key == self._colors_key:
             return
         self._colors_key = key
-        frozen = ((flags & FLAG_FROZEN) != 0) | ((status & int(Status.DIVERGED | Status.OVERFLOW)) != 0)
+        frozen = ((flags & FLAG_FROZEN) != 0) | ((status & int(FROZEN)) != 0)
         bad = ((flags & FLAG_BAD) != 0) | ((status & int(Status.BAD_COMMAND)) != 0)
         timeout = (flags & FLAG_TIMED_OUT) != 0
         for rgb, handle in zip(self.base_rgb, self.handles, strict=True):
