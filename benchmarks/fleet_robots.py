@@ -4,7 +4,8 @@
     .venv/bin/python benchmarks/fleet_robots.py ros --worlds 16 --rate 50 --seconds 20
 
 physics: a world of K robots against K worlds of one robot, the same total robots on the same
-backend in one run, each through the contract (`write(); step(nstep)` in a loop, read every
+backend in one run, both composed from fleet files (one floor, the robot's own scene left out),
+in interleaved rounds (the best of each shown), each through the contract (`write(); step(nstep)` in a loop, read every
 period): robot-steps/s = worlds x K x steps / s, and their ratio. The robots stand on a grid 3 m
 apart, so contacts between robots are few (the case the issue's >= 0.8 goal is for); `--model`
 picks the robot (rover: contacts with the floor, arm: none). On a GPU backend the first
@@ -72,23 +73,32 @@ def robot_steps_per_second(sim, robots: int, nstep: int, seconds: float, warmup:
 def physics(opts: argparse.Namespace) -> None:
     import batchsim
 
-    print(f"# {_machine()}; {_versions()}; backend {opts.backend}, model {opts.model}, {opts.total} robots in all")
+    print(
+        f"# {_machine()}; {_versions()}; backend {opts.backend}, model {opts.model}, {opts.total} robots in all, "
+        f"best of {opts.rounds} interleaved rounds"
+    )
     print(f"{'layout':28s} {'worlds':>6s} {'robots/world':>12s} {'robot-steps/s':>14s} {'median ms':>10s} {'worst ms':>9s}")
     for k in opts.robots:
         nworld = max(1, opts.total // k)
-        rows = {}
-        for label, model, n, per in (
-            (f"{nworld} worlds x {k} robots", fleet_of(opts.model, k), nworld, k),
-            (f"{nworld * k} worlds x 1 robot", opts.model, nworld * k, 1),
-        ):
-            sim = batchsim.make(model, n, opts.backend)
-            sim.configure()
-            sim.activate()
-            rate, median, worst = robot_steps_per_second(sim, per, opts.nstep, opts.seconds, opts.warmup)
-            sim.shutdown()
-            rows[per] = rate
+        # both layouts composed alike (the default floor, the robot's own scene left out), so
+        # the only difference is whether the robots share worlds
+        layouts = [(f"{nworld} worlds x {k} robots", nworld, k), (f"{nworld * k} worlds x 1 robot", nworld * k, 1)]
+        sims = {}
+        for _, n, per in layouts:
+            sims[per] = batchsim.make(fleet_of(opts.model, per), n, opts.backend)
+            sims[per].configure()
+            sims[per].activate()
+        best: dict[int, tuple[float, float, float]] = {}
+        for _ in range(opts.rounds):
+            for _, _, per in layouts:
+                found = robot_steps_per_second(sims[per], per, opts.nstep, opts.seconds, opts.warmup)
+                if per not in best or found[0] > best[per][0]:
+                    best[per] = found
+        for label, n, per in layouts:
+            rate, median, worst = best[per]
             print(f"{label:28s} {n:6d} {per:12d} {rate:14.0f} {median:10.3f} {worst:9.3f}", flush=True)
-        print(f"ratio {k} robots a world / 1 robot a world: {rows[k] / rows[1]:.3f}", flush=True)
+            sims[per].shutdown()
+        print(f"ratio {k} robots a world / 1 robot a world: {best[k][0] / best[1][0]:.3f}", flush=True)
 
 
 # --- ros: the warehouse, every robot's topics counted in another process ---
@@ -257,7 +267,8 @@ def main() -> None:
     ph.add_argument("--robots", type=lambda s: [int(x) for x in s.split(",")], default=[4, 8], help="robots per world, comma-separated")
     ph.add_argument("--total", type=int, default=128, help="robots in all")
     ph.add_argument("--nstep", type=int, default=5, help="physics steps per control period")
-    ph.add_argument("--seconds", type=float, default=5.0)
+    ph.add_argument("--seconds", type=float, default=3.0, help="each round's length")
+    ph.add_argument("--rounds", type=int, default=3, help="interleaved rounds per layout (the best is shown)")
     ph.add_argument("--warmup", type=int, default=5)
     r = sub.add_parser("ros")
     r.add_argument("--fleet", default=str(ROOT / "examples/fleets/warehouse.yaml"))
