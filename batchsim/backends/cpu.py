@@ -197,7 +197,7 @@ class CpuSystem(BatchedSystem):
             self._batch.expand(field)[worlds] = values[worlds]
 
     def _reset(self, worlds: np.ndarray | None) -> None:
-        ids = None if worlds is None else worlds.astype(np.int32)
+        ids = None if worlds is None else np.sort(worlds).astype(np.int32)  # mujoco.batch takes them ascending
         if self._unfilled is not None:
             self._unfilled[slice(None) if worlds is None else worlds] = False
         initial = self.spec.initial
