@@ -10,6 +10,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from conftest import need
 
 import batchsim
 from batchsim import FleetError, Status
@@ -355,7 +356,7 @@ def test_a_controllers_file_for_a_robot_not_in_the_world_is_refused_naming_the_k
 
 
 def test_the_vector_env_shows_a_world_of_several_robots_as_one_world():
-    pytest.importorskip("gymnasium")
+    need("gymnasium")
     import batchsim.vector
 
     env = batchsim.vector.make(ARM_AND_ROVER, 3, "cpu")
