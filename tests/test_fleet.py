@@ -388,3 +388,11 @@ def test_a_reset_of_one_robot_restores_only_it_in_only_that_world():
     assert np.allclose(sim.command[1, rover.commands], 0.0) and np.allclose(sim.command[1, arm.commands], 0.4)
     assert np.allclose(sim.command[[0, 2]][:, rover.commands], 1.0)
     sim.shutdown()
+
+
+def test_each_robots_lidar_publishes_under_its_own_namespace_as_it_alone_would():
+    one = batchsim.make({"robots": [{"name": "amr", "model": "rover"}]}, 1, "cpu")
+    assert one.sensors.lidars["amr/base_scan"].topic == "amr/scan"  # not the world's `scan`
+    two = batchsim.make({"robots": [{"name": "a", "model": "rover"}, {"name": "b", "model": "rover", "pose": [2, 0, 0]}]}, 1, "cpu")
+    assert [ld.topic for ld in two.sensors.lidars.values()] == ["a/scan", "b/scan"]
+    assert batchsim.make("rover", 1, "cpu").sensors.lidars["base_scan"].topic == "scan"

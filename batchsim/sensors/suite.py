@@ -14,6 +14,7 @@ counts) keep one (nworld,) bool mask per sensor; `wanted(name)` is that mask, an
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import fnmatch
 from collections.abc import Iterable, Sequence
@@ -176,7 +177,7 @@ class SensorSuite:
             config = _with_ros2_control(config, m, declarations)
         where = config.source
         cameras = _cameras(m, config, where)
-        lidars = _lidars(m, declarations, config, where)
+        lidars = _lidars(m, declarations, config, where, tuple(r.prefix for r in spec.robots))
         clash = set(cameras) & set(lidars)
         if clash:
             raise SensorConfigError(f"{where}: {sorted(clash)[0]!r} names both a camera and a lidar")
@@ -267,7 +268,9 @@ def _site(m: mujoco.MjModel, site: str, what: str) -> int:
     return sid
 
 
-def _lidars(m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, where: str) -> dict[str, lid.Lidar]:
+def _lidars(
+    m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, where: str, robots: tuple[str, ...] = ()
+) -> dict[str, lid.Lidar]:
     lidars: dict[str, lid.Lidar] = {}
 
     def add(ld: lid.Lidar, what: str) -> None:
@@ -413,18 +416,23 @@ def _lidars(m: mujoco.MjModel, decl: SensorDeclarations, config: SensorConfig, w
             ),
             what,
         )
-    return _default_topics(lidars, where)
+    return _default_topics(lidars, where, robots)
 
 
-def _default_topics(lidars: dict[str, lid.Lidar], where: str) -> dict[str, lid.Lidar]:
+def _default_topics(lidars: dict[str, lid.Lidar], where: str, robots: tuple[str, ...] = ()) -> dict[str, lid.Lidar]:
     """Lidars without a configured topic publish on `scan` (2D) or `points` (3D), as mujoco_ros2_control's,
-    or on `<lidar>/scan`, `<lidar>/points` where several would share one; a clash left is an error."""
+    or on `<lidar>/scan`, `<lidar>/points` where several would share one; in a world of several
+    robots (`robots`: their prefixes, batchsim.fleet) each robot's under its own namespace, as it
+    alone would (`amr_1/scan`). A clash left is an error."""
+    prefix = {name: next((p for p in robots if name.startswith(p)), "") for name in lidars}
     base = {name: "points" if ld.is_3d else "scan" for name, ld in lidars.items() if not ld.topic}
-    count = {b: list(base.values()).count(b) for b in set(base.values())}
-    out = {
-        name: ld if ld.topic else dataclasses.replace(ld, topic=base[name] if count[base[name]] == 1 else f"{name}/{base[name]}")
-        for name, ld in lidars.items()
-    }
+    count = collections.Counter((prefix[name], b) for name, b in base.items())
+
+    def topic(name: str) -> str:
+        p, b = prefix[name], base[name]
+        return p + b if count[(p, b)] == 1 else f"{name}/{b}"
+
+    out = {name: ld if ld.topic else dataclasses.replace(ld, topic=topic(name)) for name, ld in lidars.items()}
     seen: dict[str, str] = {}
     for name, ld in out.items():
         if ld.topic in seen:
