@@ -356,6 +356,28 @@ def test_reset_touches_only_listed_worlds(arm):
     arm.reset()
 
 
+def test_reset_takes_the_worlds_in_any_order(arm):
+    """reset([3, 1]) resets worlds 1 and 3, as reset([1, 3]) does: the contract takes worlds in
+    any order (cpu's mujoco.batch wants its ids ascending, and raised for these; found by a
+    review). Only those two worlds change, and each goes back to the initial state."""
+    arm.reset()
+    initial = arm.state.copy()
+    arm.command[:] = np.linspace(0.1, 0.4, NWORLD)[:, None]
+    for _ in range(20):
+        arm.write()
+        arm.step(10)
+    arm.read()
+    before, time_before = arm.state.copy(), arm.time.copy()
+    assert not np.allclose(before[[1, 3]], initial[[1, 3]])
+    arm.reset([3, 1])
+    np.testing.assert_array_equal(arm.state[[0, 2]], before[[0, 2]])
+    np.testing.assert_array_equal(arm.time[[0, 2]], time_before[[0, 2]])
+    np.testing.assert_allclose(arm.state[[1, 3]], initial[[1, 3]], atol=1e-9)
+    np.testing.assert_allclose(arm.time[[1, 3]], 0.0)
+    assert np.allclose(arm.command[[1, 3]], 0.0) and np.allclose(arm.command[[0, 2], 0], [0.1, 0.3])
+    arm.reset()
+
+
 def test_set_qstate_teleports_only_the_listed_worlds(arm):
     """qstate/set_qstate (mujoco_ros2_control's reset_world overrides and set_free_joint_state):
     whole qpos/qvel rows in the caller's order; state shows them at once; nothing else moves."""

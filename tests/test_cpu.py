@@ -87,22 +87,3 @@ def test_divergences_are_logged_by_world_and_mujoco_keeps_its_log_where_asked(tm
     assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
     mujoco_lines = (logs / "MUJOCO_LOG.TXT").read_text().splitlines()
     assert sum("Nan, Inf or huge value in QACC" in line for line in mujoco_lines) == 8
-
-
-def test_a_reset_lists_worlds_in_any_order():
-    """The contract takes worlds in the caller's order; mujoco.batch wants its ids ascending."""
-    import batchsim
-
-    sim = batchsim.make("arm", 4, "cpu")
-    sim.configure()
-    sim.activate()
-    sim.command[:] = 0.3
-    for _ in range(10):
-        sim.write()
-        sim.step(10)
-    sim.read()
-    before = sim.state.copy()
-    sim.reset([3, 1])
-    assert np.array_equal(sim.state[[0, 2]], before[[0, 2]])
-    assert np.allclose(sim.time[[1, 3]], 0.0) and not np.allclose(sim.state[[1, 3]], before[[1, 3]])
-    sim.shutdown()
