@@ -36,7 +36,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+# fleet.py's: the subscriber's executor, the child processes' PYTHONPATH, the versions line
+from fleet import LOCALHOST, _pythonpath, _versions, executor_until_stdin_closes  # noqa: E402
 
 
 # --- physics: K robots in a world against K worlds of one ---
@@ -111,7 +112,6 @@ def subscriber(domain: int, worlds: int, robot_names: str, odom_names: str) -> N
     import rclpy
     from nav_msgs.msg import Odometry
     from rclpy.context import Context
-    from rclpy.experimental import EventsExecutor
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import JointState
@@ -138,10 +138,7 @@ def subscriber(domain: int, worlds: int, robot_names: str, odom_names: str) -> N
             node.create_subscription(JointState, f"/world_{w}/{name}/joint_states", counter("js", w * len(robots) + r), 10, raw=True)
         for r, name in enumerate(with_odom):
             node.create_subscription(Odometry, f"/world_{w}/{name}/odom", counter("odom", w * len(with_odom) + r), 10, raw=True)
-    executor = EventsExecutor(context=context)
-    executor.add_node(node)
-    stop = threading.Event()
-    threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    executor, stop = executor_until_stdin_closes(context, node)
     heard, next_report = False, time.time()
     while not stop.is_set():
         executor.spin_once(timeout_sec=0.05)
@@ -173,8 +170,7 @@ def ros(opts: argparse.Namespace) -> None:
     spec = load_fleet(opts.fleet)
     names = [r.name for r in spec.robots]
     with_odom = [r.name for r in spec.robots if r.floating_base is not None]
-    extra = os.environ.get("PYTHONPATH")
-    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(opts.domain), "PYTHONPATH": str(ROOT) + (os.pathsep + extra if extra else "")}
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(opts.domain), "PYTHONPATH": _pythonpath()}
     print(
         f"# {_machine()}; {_versions()}; {opts.fleet}: {opts.worlds} worlds x {len(names)} robots on {opts.backend}, "
         f"publish {opts.rate:g} Hz"
@@ -241,18 +237,6 @@ def _last_count(lines: list[str]) -> tuple[float, int, int, int]:
 
 def _machine() -> str:
     return f"{platform.node()} {os.cpu_count()} cores, {platform.processor() or platform.machine()}, {time.strftime('%Y-%m-%d')}"
-
-
-def _versions() -> str:
-    from importlib import metadata
-
-    parts = []
-    for name, dist in (("mujoco", "mujoco"), ("rclpy", "ros-jazzy-rclpy"), ("numpy", "numpy"), ("mujoco_warp", "mujoco-warp")):
-        try:
-            parts.append(f"{name} {metadata.version(dist)}")
-        except metadata.PackageNotFoundError:
-            continue
-    return ", ".join(parts)
 
 
 def main() -> None:
