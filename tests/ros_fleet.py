@@ -38,6 +38,28 @@ from rclpy.signals import SignalHandlerOptions  # noqa: E402
 LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 
 
+def stack_messages() -> dict[str, Any]:
+    """The message modules of the ROS stack's tests (tf, actions, controller_manager), imported
+    here: a missing interface package fails those tests, never skips them."""
+    import control_msgs.action
+    import controller_manager_msgs.srv
+    import tf2_msgs.msg
+    from builtin_interfaces.msg import Duration
+    from nav_msgs.msg import Odometry
+    from rclpy.action import ActionClient
+    from rclpy.qos import DurabilityPolicy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    return dict(
+        Duration=Duration, ActionClient=ActionClient, QoSProfile=QoSProfile, DurabilityPolicy=DurabilityPolicy,
+        JointState=JointState, String=String, JointTrajectory=JointTrajectory, JointTrajectoryPoint=JointTrajectoryPoint,
+        FJT=control_msgs.action.FollowJointTrajectory, srv=controller_manager_msgs.srv, TFMessage=tf2_msgs.msg.TFMessage,
+        Odometry=Odometry,
+    )  # fmt: skip
+
+
 _DOMAIN_LOCKS = Path(tempfile.gettempdir()) / "batchsim-ros-domains"
 _held: dict[int, int] = {}  # domain -> the locked file's descriptor, for as long as it is in use
 

@@ -17,7 +17,7 @@ from conftest import need
 rclpy = need("rclpy")  # skips where ROS is absent, fails instead under BATCHSIM_FORCE_BACKENDS=1
 
 import yaml  # noqa: E402
-from ros_fleet import Fleet, domain_id  # noqa: E402
+from ros_fleet import Fleet, domain_id, stack_messages  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -28,24 +28,7 @@ ROBOTS = ("arm_a", "arm_b", "rover")
 
 @pytest.fixture(scope="module")
 def ros():
-    """The message modules, imported here: a missing package fails these tests, never skips them."""
-    import control_msgs.action
-    import controller_manager_msgs.srv
-    import tf2_msgs.msg
-    from builtin_interfaces.msg import Duration
-    from nav_msgs.msg import Odometry
-    from rclpy.action import ActionClient
-    from rclpy.qos import DurabilityPolicy, QoSProfile
-    from sensor_msgs.msg import JointState
-    from std_msgs.msg import String
-    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
-
-    return dict(
-        Duration=Duration, ActionClient=ActionClient, QoSProfile=QoSProfile, DurabilityPolicy=DurabilityPolicy,
-        JointState=JointState, String=String, JointTrajectory=JointTrajectory, JointTrajectoryPoint=JointTrajectoryPoint,
-        FJT=control_msgs.action.FollowJointTrajectory, srv=controller_manager_msgs.srv, TFMessage=tf2_msgs.msg.TFMessage,
-        Odometry=Odometry,
-    )  # fmt: skip
+    return stack_messages()
 
 
 @pytest.fixture(scope="module")

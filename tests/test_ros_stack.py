@@ -15,7 +15,7 @@ import xml.etree.ElementTree as ET
 import mujoco
 import numpy as np
 import pytest
-from ros_fleet import Fleet, domain_id
+from ros_fleet import Fleet, domain_id, stack_messages
 
 from batchsim.controllers import default_controllers
 from batchsim.model import load
@@ -28,22 +28,7 @@ JTC = "joint_trajectory_controller"
 
 @pytest.fixture(scope="module")
 def ros():
-    """The message modules, imported here: a missing package fails these tests, never skips them."""
-    import control_msgs.action  # noqa: F401
-    import controller_manager_msgs.srv  # noqa: F401
-    import tf2_msgs.msg  # noqa: F401
-    from builtin_interfaces.msg import Duration
-    from rclpy.action import ActionClient
-    from rclpy.qos import DurabilityPolicy, QoSProfile
-    from sensor_msgs.msg import JointState
-    from std_msgs.msg import String
-    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
-
-    return dict(
-        Duration=Duration, ActionClient=ActionClient, QoSProfile=QoSProfile, DurabilityPolicy=DurabilityPolicy,
-        JointState=JointState, String=String, JointTrajectory=JointTrajectory, JointTrajectoryPoint=JointTrajectoryPoint,
-        FJT=control_msgs.action.FollowJointTrajectory, srv=controller_manager_msgs.srv, TFMessage=tf2_msgs.msg.TFMessage,
-    )  # fmt: skip
+    return stack_messages()
 
 
 @pytest.fixture(scope="module")
