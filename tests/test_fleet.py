@@ -396,3 +396,18 @@ def test_each_robots_lidar_publishes_under_its_own_namespace_as_it_alone_would()
     two = batchsim.make({"robots": [{"name": "a", "model": "rover"}, {"name": "b", "model": "rover", "pose": [2, 0, 0]}]}, 1, "cpu")
     assert [ld.topic for ld in two.sensors.lidars.values()] == ["a/scan", "b/scan"]
     assert batchsim.make("rover", 1, "cpu").sensors.lidars["base_scan"].topic == "scan"
+
+
+def test_a_robot_whose_elements_hang_on_its_files_static_bodies_is_refused_in_one_line(tmp_path):
+    """A fleet leaves a robot file's static bodies out with its scene; a weld to a mocap handle
+    there went silently (and sensors on such sites gave an IndexError)."""
+    robot = tmp_path / "welded.xml"
+    robot.write_text(
+        '<mujoco model="r"><worldbody>'
+        '<body name="handle" mocap="true" pos="0 0 1"><geom type="sphere" size="0.02" contype="0" conaffinity="0"/></body>'
+        '<body name="link" pos="0 0 0.5"><joint name="j" type="hinge" axis="0 1 0"/>'
+        '<geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/></body></worldbody>'
+        '<equality><weld body1="handle" body2="link"/></equality><actuator><motor name="j" joint="j"/></actuator></mujoco>'
+    )
+    with pytest.raises(FleetError, match=r"robots\[0\] \(w\): its 1 equality refer to bodies or sites of \S+welded.xml that hold no joint"):
+        load_fleet({"robots": [{"name": "w", "model": str(robot)}]})

@@ -101,6 +101,13 @@ def compose(fleet: FleetFile) -> RobotSpec:
         except ModelError as e:
             raise FleetError(f"{fleet.where}: {entry.key} ({entry.name}): {e}") from None
         nbody = _keep_robot(mjspec)
+        lost = _lost(mjspec, spec.mjmodel)
+        if lost:
+            raise FleetError(
+                f"{fleet.where}: {entry.key} ({entry.name}): its {', '.join(lost)} refer to bodies or sites of "
+                f"{entry.model} that hold no joint, which a fleet leaves out with the file's scene: give the robot "
+                "a file of its own bodies, or put those elements on its moving bodies"
+            )
         if k == 0 and fleet.environment is None:
             _copy_options(mjspec, world)  # an empty world steps as its first robot does
         differ = _copy_options(world, mjspec)
@@ -156,6 +163,18 @@ def _keep_robot(mjspec: mujoco.MjSpec) -> int:
         for element in list(getattr(mjspec.worldbody, kind)):
             mjspec.delete(element)
     return len(mjspec.bodies) - 1
+
+
+def _lost(mjspec: mujoco.MjSpec, alone: mujoco.MjModel) -> list[str]:
+    """What the robot's file loses with its scene (its sensors, actuators, equalities or
+    tendons on a static body or site, mocap bodies), as "2 sensors", by compiling what is kept."""
+    kept = mjspec.copy().compile()
+    counts = (("sensor", "nsensor"), ("actuator", "nu"), ("equality", "neq"), ("tendon", "ntendon"), ("joint", "njnt"))
+    return [
+        f"{getattr(alone, n) - getattr(kept, n)} {what}{'s' if getattr(alone, n) - getattr(kept, n) > 1 else ''}"
+        for what, n in counts
+        if getattr(kept, n) < getattr(alone, n)
+    ]
 
 
 def _holds_joint(body: mujoco.MjsBody) -> bool:
