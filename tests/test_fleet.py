@@ -411,3 +411,9 @@ def test_a_robot_whose_elements_hang_on_its_files_static_bodies_is_refused_in_on
     )
     with pytest.raises(FleetError, match=r"robots\[0\] \(w\): its 1 equality refer to bodies or sites of \S+welded.xml that hold no joint"):
         load_fleet({"robots": [{"name": "w", "model": str(robot)}]})
+
+
+def test_a_robots_own_sensors_file_is_refused_rather_than_ignored(tmp_path):
+    (tmp_path / "s.yaml").write_text("sensors:\n  camera_rate: 30\n")
+    with pytest.raises(FleetError, match=r"robots\[0\]\.sensors: a robot's own sensors file is not applied yet"):
+        read_fleet({"robots": [{"name": "a", "model": "rover", "sensors": str(tmp_path / "s.yaml")}]})

@@ -8,7 +8,7 @@ robots:
     model: rover                    # a shipped name, an MJCF (a Menagerie scene or robot file), a URDF
     pose: [0.0, 0.0, 0.0, 0.0]      # x, y, z, yaw (radians) in the world; default the origin
     controllers: amr.yaml           # optional: else the model's default controllers
-    sensors: amr_sensors.yaml       # optional: cameras, lidars, noise (batchsim.sensors)
+    sensors: amr_sensors.yaml       # not applied yet: refused (give --sensors, by world names)
     ros2_control: amr.urdf          # optional: the description whose blocks narrow its interfaces
     keyframe: home                  # optional: the robot's own keyframe to start in
   - name: amr_{k}                   # `count` robots, k = 1 .. count, placed by a rule:
@@ -190,6 +190,11 @@ def _robots(item: Any, key: str, where: str, base: Path) -> list[RobotEntry]:
     for needed in ("name", "model"):
         if needed not in item or item[needed] in (None, ""):
             raise FleetError(f"{where}: {key}: {needed} is missing")
+    if item.get("sensors") not in (None, ""):  # read but never applied would be silence: refuse it
+        raise FleetError(
+            f"{where}: {key}.sensors: a robot's own sensors file is not applied yet; give it to the whole fleet "
+            "with --sensors (or make(sensors=)), naming its cameras, lidars and sensors as the world does (amr_1/front_camera)"
+        )
     name, model = item["name"], item["model"]
     if not isinstance(name, str) or not isinstance(model, str | Path):
         raise FleetError(f"{where}: {key}: name and model are strings")
