@@ -16,6 +16,7 @@ import batchsim
 from batchsim import FleetError, Status
 from batchsim.controllers.robots import load_fleet_controllers
 from batchsim.fleet import load_fleet, read_fleet, robot_view
+from batchsim.fleet.view import OTHER
 from batchsim.loop import SimLoop
 
 ROBOTS = Path(__file__).resolve().parents[2] / "shared" / "robots"
@@ -108,7 +109,8 @@ def test_a_robot_view_names_only_its_own_joints_and_sensors_locally():
     assert [j.name for j in view.joints] == ["left_wheel_joint", "right_wheel_joint"]
     assert len(view.state) == len(spec.state)  # the world's columns, so indices stay the world's
     assert view.state_interfaces[amr.state[0]] == spec.state_interfaces[amr.state[0]].removeprefix("amr/")
-    assert view.state_interfaces[arm.state[0]] == spec.state_interfaces[arm.state[0]]  # the arm's keep their prefix
+    # the arm's are out of the rover's reach: no name its YAML gives finds them
+    assert view.state_interfaces[arm.state[0]] == OTHER + spec.state_interfaces[arm.state[0]]
     assert view.floating_base is not None and view.floating_base.body == "base"
 
 
@@ -417,3 +419,14 @@ def test_a_robots_own_sensors_file_is_refused_rather_than_ignored(tmp_path):
     (tmp_path / "s.yaml").write_text("sensors:\n  camera_rate: 30\n")
     with pytest.raises(FleetError, match=r"robots\[0\]\.sensors: a robot's own sensors file is not applied yet"):
         read_fleet({"robots": [{"name": "a", "model": "rover", "sensors": str(tmp_path / "s.yaml")}]})
+
+
+def test_a_robots_controllers_cannot_name_another_robots_joint(tmp_path):
+    """`b/joint1` in robot a's YAML was taken: a's broadcaster published b's joint, and a
+    forward command controller gave a KeyError (found by a review)."""
+    arm_yaml = Path(batchsim.controllers.default_controllers("arm")).read_text()
+    path = tmp_path / "a.yaml"
+    path.write_text(arm_yaml + "joint_state_broadcaster:\n  ros__parameters:\n    joints: [joint1, b/joint1]\n")
+    fleet = {"robots": [{"name": "a", "model": "arm", "controllers": str(path)}, {"name": "b", "model": "arm", "pose": [2, 0, 0]}]}
+    with pytest.raises(batchsim.ConfigurationError, match=r"b/joint1"):
+        load_fleet_controllers(batchsim.make(fleet, 1, "cpu").spec, 1)

@@ -6,11 +6,15 @@ import dataclasses
 
 from batchsim.model.spec import RobotPart, RobotSpec
 
+#: what the other robots' interfaces are called in a robot's view: no name a YAML gives
+#: (`b/joint1`) reaches them, so a robot's controllers can never claim or read another's
+OTHER = "(another robot's) "
+
 
 def robot_view(world: RobotSpec, robot: RobotPart) -> RobotSpec:
     """The world's spec as `robot` names it: its joints, sensors and floating base only, with
     their local names; the state and command lists whole, in the world's order (so columns are
-    the world's), the robot's own entries with local names and the others' as they are."""
+    the world's), the robot's own entries with local names and the others' behind OTHER."""
 
     def own(name: str | None) -> bool:
         return bool(name) and name.startswith(robot.prefix)
@@ -22,11 +26,11 @@ def robot_view(world: RobotSpec, robot: RobotPart) -> RobotSpec:
     return dataclasses.replace(
         world,
         joints=[dataclasses.replace(j, name=robot.local(j.name)) for j in world.joints if own(j.name)],
-        state=[dataclasses.replace(c, name=local(c.name)) if own(c.name) else c for c in world.state],
+        state=[dataclasses.replace(c, name=local(c.name) if own(c.name) else OTHER + c.name) for c in world.state],
         commands=[
             dataclasses.replace(c, name=local(c.name), actuator=local(c.actuator), joint=local(c.joint))
             if own(c.name)
-            else c
+            else dataclasses.replace(c, name=OTHER + c.name)
             for c in world.commands
         ],
         sensors=[
