@@ -43,6 +43,9 @@ DESCRIPTION = "robot_description"
 READY_TIMEOUT = 60.0  # s the recorder may take to come up (imports, templates) with --record
 FINISH_TIMEOUT = 30.0  # s the recorder may take to drain the ring and close the file at the end
 WATCH = 0.25  # s between two looks at the recorder process
+# s after which a request is dropped: well inside the service's wait (SERVICE_WAIT), so a request
+# carried out is answered in time, and one answered "did not answer in time" never runs later
+STALE_REQUEST = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,6 +180,7 @@ class Recording(Participant):
         self._answered = 0
         self._used: set[str] = set()
         self._said = False  # the recorder said how it ended
+        self._ready = False  # the recorder said it has the file open
         self._geometry: bytes | None = None  # the robots' geoms, for the file (view_plan.py)
         self._next_watch = 0.0
         self._sensor_bits = np.array(self.spec.sensors, np.uint8)  # (nsensor,) or (0,)
@@ -200,10 +204,16 @@ class Recording(Participant):
         )
         os.close(write)
         os.set_blocking(read, False)
-        self._status, self._buffer, self.path, self._said = read, b"", path, False
+        self._status, self._buffer, self.path, self._said, self._ready = read, b"", path, False, False
         self.memory["rec.pos"][1] = self.memory["rec.pos"][0]  # nothing left from a recorder that was killed
         self._used.add(path)
         self.memory["rec.dropped"][0] = 0
+        # the ring takes periods from now on, while the recorder comes up (a second or more):
+        # a recording stopped before its recorder said ready still holds start..stop
+        self.writer.skip_to_newest()
+        self.memory["rec.want"][:] = 0
+        self.memory["rec.want"][list(self.spec.channels)] = 1
+        self.memory["rec.on"][0] = 1
         if self._geometry is None and self.plan.tf is not None:  # for `batchsim view FILE`
             self._geometry = recording_geometry(self.loop.sim, self.plan.tf)
         self._proc.stdin.write(pickle.dumps((self.plan, os.path.abspath(path), self._geometry)))
@@ -211,7 +221,7 @@ class Recording(Participant):
         if wait:
             deadline = wallclock.monotonic() + READY_TIMEOUT
             while (
-                self._proc is not None and not self.memory["rec.on"][0] and wallclock.monotonic() < deadline
+                self._proc is not None and not self._ready and wallclock.monotonic() < deadline
             ):
                 select.select([read], [], [], 0.1)
                 self._watch()
@@ -290,8 +300,11 @@ class Recording(Participant):
     def _serve(self) -> None:
         request = take_request(self.memory, self._answered)
         if request is not None:
-            ticket, on = request
-            ok, message = self.start(self._next_path()) if on else self.stop()
+            ticket, on, age = request
+            if age > STALE_REQUEST:  # its service answered "did not answer in time": nothing starts or stops
+                ok, message = False, f"a request {age:.1f} s old (the loop was starting or busy) was dropped"
+            else:
+                ok, message = self.start(self._next_path()) if on else self.stop()
             put_answer(self.memory, ticket, ok, message)
             self._answered = ticket
         if self._proc is not None:
@@ -325,10 +338,7 @@ class Recording(Participant):
         for line in lines:
             text = line.decode(errors="replace")
             if text == "ready":
-                self.writer.skip_to_newest()
-                self.memory["rec.want"][:] = 0
-                self.memory["rec.want"][list(self.spec.channels)] = 1
-                self.memory["rec.on"][0] = 1
+                self._ready = True
             elif text:
                 self._said = True
                 print(f"batchsim: {text}", file=sys.stderr, flush=True)

@@ -510,3 +510,60 @@ def test_a_goal_canceled_in_the_ring_read_that_brought_it_is_canceled():
     finally:
         host.close()
         sim.shutdown()
+
+
+def test_a_recording_stopped_before_its_recorder_is_up_holds_the_periods_between(tmp_path):
+    """`/batchsim/record` answers at once and the recorder process takes a second or more to
+    come up. The ring took periods only once it said ready, so start, 1.5 s, stop on a loaded
+    machine gave a file of no messages (and a late `ready` turned writing on after the stop)."""
+    from mcap.reader import make_reader
+
+    from ros_bridge.recording import Recording
+
+    sim = active("cpu")
+    loop, host, plan, _ = _bridge(sim)
+    recording = Recording(plan, host.memory, loop)
+    loop.participants.insert(loop.participants.index(host) + 1, recording)
+    path = tmp_path / "early.mcap"
+    try:
+        assert recording.start(str(path))[0]
+        for _ in range(5):  # in a few ms: the recorder is still importing
+            loop.run_period()
+        recording.stop(timeout=60)
+        assert not host.memory["rec.on"][0]
+        loop.run_period()  # after the stop: not in the file
+    finally:
+        recording.close()
+        host.close()
+        sim.shutdown()
+    with open(path, "rb") as f:
+        topics = [channel.topic for _, channel, _ in make_reader(f).iter_messages()]
+    assert topics.count("/world_0/joint_states") == 5, sorted(set(topics))
+
+
+def test_a_record_request_older_than_its_services_wait_is_dropped_not_carried_out_late(tmp_path, monkeypatch):
+    """Asked during start-up (the first period may compile for a minute), `/batchsim/record`
+    answered "did not answer in time" and the loop started the recording later anyway."""
+    from ros_bridge.protocol.recording import answer, put_request
+    from ros_bridge.recording import Recording
+
+    monkeypatch.chdir(tmp_path)  # where a dated recording would go
+    sim = active("cpu")
+    loop, host, plan, _ = _bridge(sim)
+    recording = Recording(plan, host.memory, loop)
+    loop.participants.insert(loop.participants.index(host) + 1, recording)
+    m = host.memory
+    try:
+        put_request(m, 1, True)
+        m["rec.req"][2] -= 5_000_000_000  # asked 5 s ago: its service gave up after 2
+        loop.run_period()
+        ok, message = answer(m, 1)
+        assert not ok and "dropped" in message and not m["rec.on"][0]
+        put_request(m, 2, True)  # a fresh one starts
+        loop.run_period()
+        assert answer(m, 2)[0] and m["rec.on"][0]
+    finally:
+        recording.close()
+        host.close()
+        sim.shutdown()
+    assert len(list(tmp_path.glob("*.mcap"))) == 1

@@ -11,7 +11,8 @@ has passed it. The writer never waits on the reader (the loop must not slow down
 where `--rtf 0` asks for every period as fast as the recorder takes them): a period that
 finds the ring full is counted in `rec.dropped` and skipped.
 
-`rec.on` says a recorder is attached and ready (set by the physics process); `rec.want`
+`rec.on` says a recording runs (set by the physics process from the start it is asked
+for, before the recorder is up: the ring holds the periods until it reads them); `rec.want`
 says which channels the recorder needs written into the snapshot (snapshot.py ORs it
 into the workers' demand). A recording is started and stopped through a mailbox:
 worker 0's `/batchsim/record` service writes `rec.req` (ticket, on), the physics process
@@ -20,6 +21,7 @@ answers in `rec.ans` (ticket, ok) and `rec.msg` (its message).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -48,7 +50,7 @@ def recording_arrays(
         ("rec.pos", (2,), "i8"),
         ("rec.dropped", (1,), "i8"),
         ("rec.want", (max(1, nchannel),), "u1"),
-        ("rec.req", (2,), "i8"),  # ticket, 1 to start / 0 to stop
+        ("rec.req", (3,), "i8"),  # ticket, 1 to start / 0 to stop, when it was asked (monotonic ns)
         ("rec.ans", (2,), "i8"),  # ticket answered, 1 when it succeeded
         ("rec.msg", (MESSAGE,), "u1"),
         ("rec.meta", (slots, 4), "f8"),  # snapshot n, period, sim time, forced
@@ -155,13 +157,16 @@ class RecordReader:
 def put_request(memory: Memory, ticket: int, on: bool) -> None:
     """Worker 0: ask for a recording to start (`on`) or stop."""
     memory["rec.req"][1] = int(on)
+    memory["rec.req"][2] = time.monotonic_ns()  # CLOCK_MONOTONIC: one clock for every process of the host
     memory["rec.req"][0] = ticket
 
 
-def take_request(memory: Memory, answered: int) -> tuple[int, bool] | None:
-    """The physics process: a request newer than `answered`, as (ticket, on)."""
+def take_request(memory: Memory, answered: int) -> tuple[int, bool, float] | None:
+    """The physics process: a request newer than `answered`, as (ticket, on, its age in s)."""
     ticket = int(memory["rec.req"][0])
-    return (ticket, bool(memory["rec.req"][1])) if ticket > answered else None
+    if ticket <= answered:
+        return None
+    return ticket, bool(memory["rec.req"][1]), (time.monotonic_ns() - int(memory["rec.req"][2])) * 1e-9
 
 
 def put_answer(memory: Memory, ticket: int, ok: bool, message: str) -> None:

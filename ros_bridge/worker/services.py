@@ -130,7 +130,8 @@ def _record_service(requests: LoopRequests) -> Callable[[Any, Any], Any]:
         deadline = wallclock.monotonic() + SERVICE_WAIT
         while (answer := recorded(memory, ticket)) is None and wallclock.monotonic() < deadline:
             wallclock.sleep(0.01)
-        response.success, response.message = answer if answer is not None else (False, "the loop did not answer in time")
+        late = (False, "the loop did not answer in time (starting or busy): nothing was started or stopped")
+        response.success, response.message = answer if answer is not None else late
         return response
 
     return record
