@@ -8,10 +8,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 import xml.etree.ElementTree as ET
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from batchsim.controllers.topics import Transform
 from batchsim.hardware import BatchedSystem
 from batchsim.model import RobotPart
 from batchsim.model.frames import FrameTree, frame_tree, initial_transforms, relative_transforms
@@ -50,6 +51,13 @@ class TfSpec:
         (prefix, text), published at `<ns>/<robot>/robot_description`; its links are the robot's
         own body names, which tf carries as `<ns>/<robot>/<body>` (robot_state_publisher's
         frame_prefix `<ns>/<robot>/`).
+      controller_moving: (parent, child) of the transforms controllers move (a diff drive's
+        `odom -> base_link`), after the body transforms in `moving`'s order; the channel
+        holds them after the bodies' poses, parent-relative already (7 values each).
+      anchors: (parent, child) of fixed transforms that differ per world: the world's root to
+        a controller's frame that is no frame of the tree (a robot's `odom`, where the robot
+        started in that world), so every frame a controller names is in the world's tree.
+      anchor_values: (nworld, nanchor, 7) their translation xyz and rotation xyzw.
     """
 
     moving: tuple[tuple[str, str], ...]
@@ -64,13 +72,34 @@ class TfSpec:
     mjcf: str = ""
     bodies: tuple[int, ...] = ()
     robot_descriptions: tuple[tuple[str, str], ...] = ()
+    controller_moving: tuple[tuple[str, str], ...] = ()
+    anchors: tuple[tuple[str, str], ...] = ()
+    anchor_values: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0, 7)))
+
+    @property
+    def all_moving(self) -> tuple[tuple[str, str], ...]:
+        """(parent, child) of every moving transform, in `moving_transforms`' order."""
+        return self.moving + self.controller_moving
 
     def moving_transforms(self, poses: np.ndarray) -> np.ndarray:
-        """(n, 7 * nmoving) parent->child transforms (translation xyz, rotation xyzw) of the
-        moving frames from `poses`, rows of the channel (n, 7 * nbody)."""
-        p = np.asarray(poses).reshape(len(poses), -1, 7)
+        """(n, 7 * (nmoving + ncontroller)) parent->child transforms (translation xyz, rotation
+        xyzw) of the moving frames from `poses`, rows of the channel, then the controllers'."""
+        poses = np.asarray(poses)
+        nbody = len(self.bodies)
+        p = poses[:, : 7 * nbody].reshape(len(poses), nbody, 7)
         t, r = relative_transforms(self.joins, p[..., :3], p[..., 3:])
-        return np.concatenate([t, r], axis=2).reshape(len(poses), -1)
+        bodies = np.concatenate([t, r], axis=2).reshape(len(poses), -1)
+        return np.concatenate([bodies, poses[:, 7 * nbody :]], axis=1) if self.controller_moving else bodies
+
+    def static_of(self, worlds) -> list[list[tuple[str, str, np.ndarray]]]:
+        """Per world of `worlds` (indices), its fixed transforms as (parent, child, value):
+        the tree's, then its anchors."""
+        fixed = list(zip(self.static, self.static_values, strict=True))
+        return [
+            [(a, b, v) for (a, b), v in fixed]
+            + [(a, b, v) for (a, b), v in zip(self.anchors, self.anchor_values[w], strict=True)]
+            for w in worlds
+        ]
 
 
 def tf_spec(
@@ -78,11 +107,12 @@ def tf_spec(
     every: int,
     channel: Callable[[str, int, Callable[[np.ndarray], None]], int],
     source: str | None = None,
+    transforms: Sequence[Transform] = (),
 ) -> TfSpec:
     """The tf tree of `sim`'s robot, its moving transforms filled from the engine's body
     poses (forward kinematics of every world at once) into one channel. `source`: the
     user's robot description (`--ros2-control`), published when it is a URDF whose links
-    are the tree's frames."""
+    are the tree's frames. `transforms`: the controllers' (batchsim.controllers.topics)."""
     tree = frame_tree(sim.spec)
     sim.body_poses()  # the engine's kinematics bound now: the first tf is the current state
     moving = np.flatnonzero(~tree.static)
@@ -97,14 +127,20 @@ def tf_spec(
         parent_body=np.searchsorted(bodies, tree.parent_body[moving]),
     )
 
+    pairs = list(zip(tree.parents, tree.names, strict=True))
+    description, extra = _description(sim, tree, source)
+    frames = {tree.root, *tree.names, *(link for _, link, _, _ in extra)}
+    moved, anchors, anchor_values = controller_frames(sim, tree.root, frames, transforms)
+    width = 7 * len(bodies)
+
     def fill_tf(out: np.ndarray) -> None:  # one pass from the engine's rows where it keeps them
-        v = out.reshape(nworld, len(bodies), 7)
+        v = out[:, :width].reshape(nworld, len(bodies), 7)
         sim.body_poses_into(v[:, :, :3], v[:, :, 3:], bodies)
+        for k, t in enumerate(moved):  # the controllers' own, after the bodies'
+            out[:, width + 7 * k : width + 7 * k + 7] = t.read()
 
     fill_tf.reads_engine = True  # type: ignore[attr-defined]  # the bridge writes it before the steps, never beside them
 
-    pairs = list(zip(tree.parents, tree.names, strict=True))
-    description, extra = _description(sim, tree, source)
     static = [pairs[k] for k in fixed] + [(body, link) for body, link, _, _ in extra]
     values = [np.concatenate([t0[fixed], r0[fixed]], axis=1)]
     values += [np.concatenate([pos, quat[[1, 2, 3, 0]]])[None] for _, _, pos, quat in extra]
@@ -112,7 +148,7 @@ def tf_spec(
         moving=tuple(pairs[k] for k in moving),
         static=tuple(static),
         static_values=np.concatenate(values, axis=0),
-        channel=channel("tf", 7 * len(bodies), fill_tf),
+        channel=channel("tf", width + 7 * len(moved), fill_tf),
         joins=joins,
         root=tree.root,
         fleet_frame=FLEET_FRAME,
@@ -121,7 +157,59 @@ def tf_spec(
         mjcf=sim.spec.xml,
         bodies=tuple(int(b) for b in bodies),
         robot_descriptions=tuple(_robot_description(r) for r in sim.spec.robots),
+        controller_moving=tuple((_in_world(t.parent), _in_world(t.child)) for t in moved),
+        anchors=anchors,
+        anchor_values=anchor_values,
     )
+
+
+def _in_world(frame_id: str) -> str:
+    """A controller's frame id (`{ns}/amr_2/odom`) as TfSpec names frames (`amr_2/odom`)."""
+    return frame_id.removeprefix("{ns}/")
+
+
+def controller_frames(
+    sim: BatchedSystem, root: str, frames: set[str], transforms: Sequence[Transform]
+) -> tuple[list[Transform], tuple[tuple[str, str], ...], np.ndarray]:
+    """Which controller transforms tf carries, and the anchors their parents hang from.
+
+    A transform whose child is a frame of the tree already (a diff drive's base_frame_id
+    naming the robot's base body, which the simulation's ground truth moves) is left out
+    with a warning: a frame has one parent in tf. A parent that is no frame of the tree
+    (`amr_2/odom`) is anchored to the world's root where the robot's floating base stands
+    now (its start pose in each world: x, y and yaw, at the height it was placed at), or at
+    the root itself for a robot without one."""
+    moved: list[Transform] = []
+    children: set[str] = set()
+    for t in transforms:
+        parent, child = _in_world(t.parent), _in_world(t.child)
+        if "{ns}" in parent or "{ns}" in child:
+            log.warning("batchsim: tf: %s -> %s: a frame id with {ns} inside it: not put on tf", t.parent, t.child)
+        elif child in frames or child in children:
+            log.warning(
+                "batchsim: tf: %s -> %s is left out: %s has a parent in tf already (the simulation's "
+                "ground truth moves the robot's bodies): give the controller's child frame "
+                "(base_frame_id) a name of its own, e.g. base_link",
+                parent, child, child,
+            )  # fmt: skip
+        else:
+            moved.append(t)
+            children.add(child)
+    anchored = sorted({_in_world(t.parent) for t in moved} - frames - children)
+    bases = {b.joint: k for k, b in enumerate(sim.spec.floating_bases)}
+    values = np.zeros((sim.nworld, len(anchored), 7))
+    values[..., 6] = 1.0  # identity
+    for k, frame_name in enumerate(anchored):
+        robot = next((r for r in sim.spec.robots if frame_name.startswith(r.prefix)), None)
+        base = robot.floating_base if robot is not None else sim.spec.floating_base
+        if base is not None and base.joint in bases:  # level, on the ground the robot was placed on
+            state = sim.base_states[:, bases[base.joint]]
+            w, x, y, z = state[:, 3], state[:, 4], state[:, 5], state[:, 6]
+            yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+            values[:, k, :2] = state[:, :2]
+            values[:, k, 2] = robot.pose[2] if robot is not None else 0.0
+            values[:, k, 5], values[:, k, 6] = np.sin(yaw / 2), np.cos(yaw / 2)
+    return moved, tuple((root, a) for a in anchored), values
 
 
 def _robot_description(robot: RobotPart) -> tuple[str, str]:

@@ -138,7 +138,8 @@ def test_every_robot_of_a_world_is_in_its_one_tf_tree_and_odom_names_frames_in_i
     tf = fleet.latest(ros["TFMessage"], "/world_2/tf")
     static = fleet.latest(ros["TFMessage"], "/world_2/tf_static", qos=latched)
     odom = fleet.latest(ros["Odometry"], "/world_2/rover/odom")
-    fleet.wait(lambda: tf.msg is not None and odom.msg is not None, 30, "tf and odom")
+    wheel = fleet.latest(ros["Odometry"], "/world_2/rover/diff_drive_controller/odom")  # the wheels' odometry
+    fleet.wait(lambda: tf.msg is not None and odom.msg is not None and wheel.msg is not None, 30, "tf and odom")
     time.sleep(0.5)
     parent = {t.child_frame_id: t.header.frame_id for t in tf.msg.transforms}
     if static.msg is not None:
@@ -155,4 +156,8 @@ def test_every_robot_of_a_world_is_in_its_one_tf_tree_and_odom_names_frames_in_i
         assert ancestors(frame)[-2:] == ["world_2/world", "world"], (frame, ancestors(frame))
     assert "world_2/world" in ancestors(odom.msg.child_frame_id)
     assert odom.msg.header.frame_id == "world_2/world"
+    # the diff drive's frames: its odom -> base_link on tf (enable_odom_tf), its odom where the
+    # rover started (tf_static); every frame id a robot's messages name is in the world's tree
+    assert (wheel.msg.header.frame_id, wheel.msg.child_frame_id) == ("world_2/rover/odom", "world_2/rover/base_link")
+    assert ancestors("world_2/rover/base_link")[-3:] == ["world_2/rover/odom", "world_2/world", "world"]
     assert abs(odom.msg.pose.pose.position.y - 2.0) < 0.05  # the rover stands where the fleet file put it

@@ -410,7 +410,7 @@ def test_mujoco_ros2_control_style_configuration_drives_the_robot_over_ros(tmp_p
         pose = fleet.latest(ros.PoseStamped, "/world_1/pose_broadcaster/pose")
         fleet.wait(lambda: all(s.count > 2 for s in js) and pose.count > 0, 30, "joint_states and the pose")
         names = list(js[1].msg.name)
-        assert pose.msg.header.frame_id == "base" and pose.msg.pose.position.x == pytest.approx(0.9, abs=0.01)
+        assert pose.msg.header.frame_id == "world_1/base" and pose.msg.pose.position.x == pytest.approx(0.9, abs=0.01)
         target = ros.Float64MultiArray(data=[0.6, -0.5])
         j1, j2 = names.index("joint1"), names.index("joint2")
         fleet.publish_until(

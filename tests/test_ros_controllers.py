@@ -192,6 +192,6 @@ def test_car_over_ros_cmd_vel_and_odometry(tmp_path):
 
         fleet.wait(driving, timeout=20, what="world 1 driving")
         msg = odom1.msg
-        assert (msg.header.frame_id, msg.child_frame_id) == ("odom", "base_link")
+        assert (msg.header.frame_id, msg.child_frame_id) == ("world_1/odom", "world_1/base_link")  # tf's names
         assert msg.twist.twist.linear.x == pytest.approx(0.5, abs=0.1)
         assert abs(odom0.msg.pose.pose.position.x) < 1e-3  # world 0 got no cmd_vel

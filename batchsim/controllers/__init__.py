@@ -45,7 +45,7 @@ from batchsim.controllers.manager import (
     SwitchResult,
 )
 from batchsim.controllers.pose_broadcaster import PoseBroadcaster
-from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch
+from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch, Transform
 from batchsim.controllers.trajectory import JointTrajectoryController
 
 __all__ = [
@@ -77,6 +77,7 @@ __all__ = [
     "Strictness",
     "SwitchResult",
     "TrajectoryBatch",
+    "Transform",
     "build",
     "default_controllers",
     "load_controllers",

@@ -142,6 +142,8 @@ class Controller:
     TYPE: ClassVar[str] = ""
     #: stock parameters accepted for compatibility that batchsim does not act on
     ACCEPTED: ClassVar[tuple[str, ...]] = ("update_rate", "is_async")
+    #: attributes that hold a frame id (the broadcasters' `frame_id`, the diff drive's two)
+    FRAME_ATTRIBUTES: ClassVar[tuple[str, ...]] = ("frame_id", "odom_frame_id", "base_frame_id")
 
     def __init__(self, name: str, params: Params, spec: RobotSpec, nworld: int):
         self.name = name
@@ -156,6 +158,15 @@ class Controller:
         # the robot's namespace inside a world of several (`arm_a/`, batchsim.controllers.robots),
         # for topics ros2_control puts at the controller_manager's namespace: "" for a world of one
         self.namespace = ""
+
+    def name_frames(self, robot_prefix: str = "") -> None:
+        """Its frame ids as tf names them: `{ns}/<robot prefix><frame>`, the bridge putting the
+        world's namespace for `{ns}` (`world_3/odom`, `world_3/amr_2/odom`; `odom` in a
+        root-namespace world). A frame id that holds `{ns}` already stays as given."""
+        for attr in self.FRAME_ATTRIBUTES:
+            frame = getattr(self, attr, None)
+            if isinstance(frame, str) and frame and "{ns}" not in frame:
+                setattr(self, attr, f"{{ns}}/{robot_prefix}{frame}")
 
     # --- interface resolution, at configuration time ---
     def check_joints(self, key: str, joints: Sequence[str]) -> None:

@@ -227,6 +227,7 @@ def build(config: ManagerConfig, spec: RobotSpec, nworld: int) -> ControllerMana
     for c in config.controllers:
         params = Params(c.params, where=config.source, controller=c.name)
         controller = CONTROLLER_TYPES[c.type](c.name, params, spec, nworld)
+        controller.name_frames()  # `<ns>/<frame>`, as tf names the world's frames
         warnings += params.warnings
         for key in params.unused(controller.ACCEPTED):
             warnings.append(

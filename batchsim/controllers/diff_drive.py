@@ -32,7 +32,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from batchsim.controllers.base import Controller, Params, last_per_world
-from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output
+from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, Transform
 from batchsim.hardware import MAX_COMMAND
 from batchsim.model import InterfaceKind, RobotSpec
 
@@ -394,6 +394,11 @@ class DiffDriveController(Controller):
                 "angular": np.stack([zeros, zeros, twist[:, 1]], axis=1),
             }
 
+        def odom_transform() -> np.ndarray:  # enable_odom_tf: odom -> base_link on tf
+            pose = self.odom_pose
+            return np.concatenate([pose[:, :2], np.zeros((self.nworld, 1)), self.odom_quaternion], axis=1)
+
+        transforms = (Transform(self.odom_frame_id, self.base_frame_id, odom_transform),) if self.enable_odom_tf else ()
         pose_cov, twist_cov = np.zeros(36), np.zeros(36)
         pose_cov[::7] = self.pose_covariance_diagonal
         twist_cov[::7] = self.twist_covariance_diagonal
@@ -411,6 +416,7 @@ class DiffDriveController(Controller):
                     covariance={"pose": tuple(pose_cov), "twist": tuple(twist_cov)},
                 ),
             ),
+            transforms=transforms,
         )
 
     @property

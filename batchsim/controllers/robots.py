@@ -38,10 +38,6 @@ def robot_controllers_file(robot: RobotPart) -> Path | None:
     return None
 
 
-#: controller attributes that hold a frame id of the robot's (the broadcasters', the diff drive's)
-_FRAME_PARAMS = ("frame_id", "odom_frame_id", "base_frame_id")
-
-
 def load_fleet_controllers(world: RobotSpec, nworld: int) -> ControllerManager | None:
     """Every robot's controllers (its fleet entry's YAML, else its shipped model's default) in
     one manager over `nworld` worlds of `world`; None where no robot has any.
@@ -121,10 +117,7 @@ def _build(
         controller.command_interfaces = [robot.prefix + n for n in controller.command_interfaces]
         controller.state_interfaces = [robot.prefix + n for n in controller.state_interfaces]
         controller.namespace = robot.prefix
-        for attr in _FRAME_PARAMS:  # its frames are the robot's: `<ns>/<robot>/<frame>` (tf's names)
-            frame = getattr(controller, attr, None)
-            if isinstance(frame, str) and frame and "{ns}" not in frame:
-                setattr(controller, attr, f"{{ns}}/{robot.prefix}{frame}")
+        controller.name_frames(robot.prefix)  # its frames are the robot's: `<ns>/<robot>/<frame>`
         out.append(controller)
     return out
 

@@ -277,6 +277,22 @@ class Output:
 
 
 @dataclasses.dataclass(frozen=True)
+class Transform:
+    """A transform every world's tf carries, moved by a controller (the diff drive's
+    `odom -> base_link`, as its `enable_odom_tf` publishes it).
+
+    Attributes:
+      parent, child: frame ids; "{ns}" is replaced by the world's namespace.
+      read: returns (nworld, 7) float64, translation xyz and rotation xyzw of child in
+        parent; called once per publish period in the loop thread, after the controllers' update.
+    """
+
+    parent: str
+    child: str
+    read: Callable[[], np.ndarray]
+
+
+@dataclasses.dataclass(frozen=True)
 class Input:
     """Messages every world takes on `<ns>/<topic>`, applied in bulk in the loop thread.
 
@@ -317,6 +333,7 @@ class ControllerTopics:
       outputs, inputs: its per-world messages.
       replaces_joint_states: it publishes `<ns>/joint_states` itself (a joint state
         broadcaster), so the bridge's own joint_states stop.
+      transforms: what it puts on tf (the bridge publishes them with the world's own).
       action: the action it serves per world, or None. FOLLOW_JOINT_TRAJECTORY's goals go
         through its JOINT_TRAJECTORY input with a goal tag and tolerances; both kinds keep
         per-world `goal` and `outcome` arrays (GoalOutcome) and a `cancel(worlds, goals)`.
@@ -327,6 +344,7 @@ class ControllerTopics:
     inputs: tuple[Input, ...] = ()
     replaces_joint_states: bool = False
     action: ActionKind | None = None
+    transforms: tuple[Transform, ...] = ()
 
 
 def each_row(apply_one: Callable[[int, np.ndarray], Any]) -> Callable[[np.ndarray, np.ndarray], Rejections]:

@@ -186,7 +186,7 @@ class Worker:
         if plan.tf is not None:  # the plan has one only where tf2_msgs is there
             from ros_bridge.worker.tf import TfPublishers
 
-            self.tf = TfPublishers(node, plan.tf, self.namespaces, all_topics=plan.all_topics)
+            self.tf = TfPublishers(node, plan.tf, self.namespaces, self.lo, all_topics=plan.all_topics)
         if plan.sensors is not None:
             self.sensors = SensorPublishers(
                 node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, plan.all_topics, self.diagnostics.missed

@@ -82,7 +82,7 @@ class McapRecording:
             for out in self.outputs
         ]
         self.tf_spec = plan.tf
-        self.tf = TfTemplate(plan.tf, self.namespaces) if spec.tf and plan.tf.moving else None
+        self.tf = TfTemplate(plan.tf, self.namespaces) if spec.tf and plan.tf.all_moving else None
         self.tf_channel = (
             self.channel("/tf", "tf2_msgs/msg/TFMessage", depth=100) if self.tf is not None else -1
         )
@@ -164,7 +164,7 @@ class McapRecording:
             self._add(
                 channel,
                 t,
-                bytes(serialize_message(static_message(self.tf_spec, self.namespaces, sec, nanosec))),
+                bytes(serialize_message(static_message(self.tf_spec, self.namespaces, self.spec.worlds, sec, nanosec))),
             )
         if self.spec.description:
             data = bytes(serialize_message(String(data=self.tf_spec.description)))

@@ -24,6 +24,7 @@ serialized templates, as ros_bridge/worker/messages.py does for every other mess
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -67,11 +68,11 @@ class TfTemplate:
     """The moving transforms of some worlds as one serialized TFMessage, filled in bulk."""
 
     def __init__(self, spec: TfSpec, namespaces: list[str]):
-        nmoving = len(spec.moving)
-        markers = value_markers(7 * nmoving * len(namespaces)).reshape(len(namespaces), nmoving, 7)
+        moving = spec.all_moving
+        markers = value_markers(7 * len(moving) * len(namespaces)).reshape(len(namespaces), len(moving), 7)
         msg = TFMessage()
         for w, ns in enumerate(namespaces):
-            for k, (parent, child) in enumerate(spec.moving):
+            for k, (parent, child) in enumerate(moving):
                 msg.transforms.append(_transform(frame(ns, parent), frame(ns, child), markers[w, k]))
         data = bytes(serialize_message(msg))
         self.buf = np.frombuffer(data, np.uint8).copy()
@@ -86,14 +87,17 @@ class TfTemplate:
         return self.buf.tobytes()
 
 
-def static_message(spec: TfSpec, namespaces: list[str], sec: int = 0, nanosec: int = 0) -> TFMessage:
-    """Every fixed transform of these worlds, each world's root hung from the fleet frame."""
+def static_message(
+    spec: TfSpec, namespaces: list[str], worlds: Sequence[int], sec: int = 0, nanosec: int = 0
+) -> TFMessage:
+    """Every fixed transform of these worlds (`namespaces`, the world indices `worlds`), each
+    world's root hung from the fleet frame."""
     msg = TFMessage()
     identity = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-    for ns in namespaces:
+    for ns, fixed in zip(namespaces, spec.static_of(worlds), strict=True):
         if frame(ns, spec.root) != spec.fleet_frame:  # a root-namespace world's `world` body is the fleet frame
             msg.transforms.append(_transform(spec.fleet_frame, frame(ns, spec.root), identity))
-        for (parent, child), value in zip(spec.static, spec.static_values, strict=True):
+        for parent, child, value in fixed:
             msg.transforms.append(_transform(frame(ns, parent), frame(ns, child), value))
     for t in msg.transforms:
         t.header.stamp.sec, t.header.stamp.nanosec = sec, nanosec
@@ -101,17 +105,18 @@ def static_message(spec: TfSpec, namespaces: list[str], sec: int = 0, nanosec: i
 
 
 class TfPublishers:
-    """tf, tf_static and robot_description of worlds [lo, hi) named `namespaces`."""
+    """tf, tf_static and robot_description of worlds [lo, lo + len(namespaces)) named `namespaces`."""
 
-    def __init__(self, node: Node, spec: TfSpec, namespaces: list[str], *, all_topics: bool = False):
+    def __init__(self, node: Node, spec: TfSpec, namespaces: list[str], lo: int = 0, *, all_topics: bool = False):
         self.node = node
         self.spec = spec
         self.namespaces = namespaces
+        self.lo = lo
         self.channel = spec.channel
-        self.fleet = TfTemplate(spec, namespaces) if spec.moving else None
+        self.fleet = TfTemplate(spec, namespaces) if spec.all_moving else None
         self._fleet_pub = node.create_publisher(TFMessage, "/tf", DYNAMIC_QOS)
         self._fleet_static = node.create_publisher(TFMessage, "/tf_static", STATIC_QOS)
-        self._fleet_static.publish(static_message(spec, namespaces))
+        self._fleet_static.publish(static_message(spec, namespaces, range(lo, lo + len(namespaces))))
         self._world: list[Any] = [None] * len(namespaces)  # per world: (template, publisher)
         self._wanted: list[int] = []  # worlds with a /<ns>/tf subscriber
         self._fleet_wanted = False
@@ -146,11 +151,11 @@ class TfPublishers:
         kind, row = self._on_request.pop(topic)
         ns = self.namespaces[row]
         if kind == "tf":
-            if self.spec.moving:
+            if self.spec.all_moving:
                 self._world[row] = (TfTemplate(self.spec, [ns]), self.node.create_publisher(TFMessage, topic, DYNAMIC_QOS))
         elif kind == "tf_static":
             pub = self.node.create_publisher(TFMessage, topic, STATIC_QOS)
-            pub.publish(static_message(self.spec, [ns]))
+            pub.publish(static_message(self.spec, [ns], [self.lo + row]))
             self._keep.append(pub)
         else:
             pub = self.node.create_publisher(String, topic, STATIC_QOS)
