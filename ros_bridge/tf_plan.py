@@ -94,12 +94,10 @@ class TfSpec:
     def static_of(self, worlds) -> list[list[tuple[str, str, np.ndarray]]]:
         """Per world of `worlds` (indices), its fixed transforms as (parent, child, value):
         the tree's, then its anchors."""
-        fixed = list(zip(self.static, self.static_values, strict=True))
-        return [
-            [(a, b, v) for (a, b), v in fixed]
-            + [(a, b, v) for (a, b), v in zip(self.anchors, self.anchor_values[w], strict=True)]
-            for w in worlds
-        ]
+        fixed = [(a, b, v) for (a, b), v in zip(self.static, self.static_values, strict=True)]
+        if not self.anchors:
+            return [fixed for _ in worlds]
+        return [fixed + [(a, b, v) for (a, b), v in zip(self.anchors, self.anchor_values[w], strict=True)] for w in worlds]
 
 
 def tf_spec(
