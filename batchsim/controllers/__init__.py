@@ -45,7 +45,14 @@ from batchsim.controllers.manager import (
     SwitchResult,
 )
 from batchsim.controllers.pose_broadcaster import PoseBroadcaster
-from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, TrajectoryBatch, Transform
+from batchsim.controllers.topics import (
+    ControllerTopics,
+    Input,
+    MessageKind,
+    Output,
+    TrajectoryBatch,
+    Transform,
+)
 from batchsim.controllers.trajectory import JointTrajectoryController
 
 __all__ = [
