@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from batchsim.controllers.joint_names import JointOrder
+
 
 class MessageKind(enum.Enum):
     """The ROS message types the bridge builds from arrays, or parses into rows."""
@@ -95,7 +97,7 @@ class TrajectoryBatch:
     Trajectory k is for world `worlds[k]`; its points are rows `offsets[k]:offsets[k+1]` of
     the flat point arrays. Every per-joint array is in the controller's joint order
     (`JointTrajectoryController.joints`): the sender maps the message's joint_names onto it
-    and rejects unknown or repeated names itself, since it has the names.
+    (joint_names.JointOrder) and rejects unknown or repeated names itself, since it has the names.
 
     Attributes:
       worlds: (n,) int64, the world of each trajectory; a later trajectory for a world
@@ -191,20 +193,18 @@ def trajectory_batch(
     Returns the batch, the index of the message each trajectory came from, and the
     messages rejected here (an unknown or repeated joint name), with their reasons.
     """
-    order = {j: k for k, j in enumerate(joints)}
-    nj = len(joints)
+    order = JointOrder(joints)
+    nj = len(order)
     kept: list[int] = []
     rejected: Rejections = []
     cols: list[np.ndarray] = []
     for k, (_, names, *_rest) in enumerate(messages):
-        unknown = [n for n in names if n not in order]
-        if unknown:
-            rejected.append((k, f"unknown joint {unknown[0]!r} (controller joints: {', '.join(joints)})"))
-        elif len(set(names)) != len(names):
-            rejected.append((k, f"joint_names lists a joint twice: {list(names)}"))
+        try:
+            cols.append(order.columns(names))
+        except ValueError as e:
+            rejected.append((k, str(e)))
         else:
             kept.append(k)
-            cols.append(np.array([order[n] for n in names], dtype=np.intp))
     counts = np.array([len(messages[k][2]) for k in kept], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     npoint = int(offsets[-1])

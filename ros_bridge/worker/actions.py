@@ -46,6 +46,7 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.node import Node
 from rclpy.task import Future
 
+from batchsim.controllers.joint_names import JointOrder
 from batchsim.controllers.topics import GoalOutcome
 from batchsim.memory import Memory
 from ros_bridge.action_plan import (
@@ -58,7 +59,7 @@ from ros_bridge.action_plan import (
 from ros_bridge.naming import topic_name
 from ros_bridge.protocol.commands import RejectionWriter
 from ros_bridge.protocol.requests import Kind
-from ros_bridge.worker.messages import parse_trajectory, seconds, stamp_of
+from ros_bridge.worker.messages import Trajectory, parse_trajectory, seconds, stamp_of
 from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import LoopRequests
 
@@ -167,11 +168,13 @@ class ActionServers(OnRequest):
             self._tag += 1
             goal = _Goal(handle, self._tag, world, a, Future(), wallclock.monotonic())
         self._handles[id(handle)] = goal
+        request = handle.request
         if isinstance(spec, TrajectoryActionSpec):
-            problem = _check_trajectory_goal(spec, handle.request, self.time())
-            if problem is not None:
-                self.logger.error(f"{spec.controller} in world {world}: goal aborted: {problem[1]}")
-                goal.future.set_result((GoalOutcome.ABORTED, FJT(error_code=problem[0], error_string=problem[1])))
+            parsed = _parse_goal(spec, request, self.time())
+            if not isinstance(parsed, _TrajectoryGoal):
+                code, problem = parsed
+                self.logger.error(f"{spec.controller} in world {world}: goal aborted: {problem}")
+                goal.future.set_result((GoalOutcome.ABORTED, FJT(error_code=code, error_string=problem)))
                 handle.execute()
                 return
         with self._lock:
@@ -180,15 +183,8 @@ class ActionServers(OnRequest):
         self.demand[spec.channel] = 1  # at once: the worker's refresh re-reads demand only twice a second
         if old is not None:  # preempted, as upstream's preempt_active_goal
             self._finish(old, GoalOutcome.ABORTED, self._result(old, FJT.INVALID_GOAL, PREEMPTED))
-        request = handle.request
         if isinstance(spec, TrajectoryActionSpec):
-            nj = len(spec.joints)
-            path, final = np.zeros((nj, 3)), np.zeros((nj, 3))
-            for tolerances, out in ((request.path_tolerance, path), (request.goal_tolerance, final)):
-                for t in tolerances:
-                    out[spec.joints.index(t.name)] = (t.position, t.velocity, t.acceleration)
-            tolerances = (goal.tag, path, final, seconds(request.goal_time_tolerance))
-            self.submit(spec.input, world, parse_trajectory(request.trajectory), tolerances)
+            self.submit(spec.input, world, parsed.trajectory, (goal.tag, parsed.path, parsed.final, parsed.goal_time))
         else:
             command = request.command
             encoded = encode_gripper_goal(a, world, goal.tag, float(command.position), float(command.max_effort))
@@ -316,34 +312,49 @@ def _trajectory_outcome(spec: TrajectoryActionSpec, outcome: GoalOutcome, joint:
     return GoalOutcome.ABORTED, FJT(error_code=FJT.INVALID_GOAL, error_string="the world was reset")
 
 
-def _check_trajectory_goal(spec: TrajectoryActionSpec, request: Any, time: float) -> tuple[int, str] | None:
-    """(upstream's error code, the problem) of a FollowJointTrajectory goal, or None."""
+@dataclasses.dataclass(frozen=True)
+class _TrajectoryGoal:
+    """A FollowJointTrajectory goal as the loop takes it."""
+
+    trajectory: Trajectory  # in the message's joint order (TrajectoryIntake maps it)
+    path: np.ndarray  # (njoint, 3) path tolerances, the controller's joint order (0: its default)
+    final: np.ndarray  # (njoint, 3) goal tolerances, likewise
+    goal_time: float  # goal_time_tolerance, s
+
+
+def _parse_goal(spec: TrajectoryActionSpec, request: Any, time: float) -> _TrajectoryGoal | tuple[int, str]:
+    """A FollowJointTrajectory goal, parsed once; or (upstream's error code, the problem)."""
+    order = JointOrder(spec.joints)
     names = list(request.trajectory.joint_names)
     if not names:
         return FJT.INVALID_JOINTS, "empty joint_names on the goal's trajectory"
-    for name in names:
-        if name not in spec.joints:
-            return FJT.INVALID_JOINTS, f"joint {name!r} is not one of the controller's joints ({', '.join(spec.joints)})"
-    if len(set(names)) != len(names):
-        return FJT.INVALID_JOINTS, f"joint_names lists a joint twice: {names}"
+    problem = order.problem(names)
+    if problem is not None:
+        return FJT.INVALID_JOINTS, problem
+    tables = []
     for what, tolerances in (("path_tolerance", request.path_tolerance), ("goal_tolerance", request.goal_tolerance)):
+        table = np.zeros((len(order), 3))
         for t in tolerances:
-            if t.name not in spec.joints:
+            column = order.column(t.name)
+            if column is None:
                 return FJT.INVALID_JOINTS, f"{what} names joint {t.name!r}, which the controller does not have"
-            if not all(np.isfinite((t.position, t.velocity, t.acceleration))):
+            values = (t.position, t.velocity, t.acceleration)
+            if not all(np.isfinite(values)):
                 return FJT.INVALID_GOAL, f"{what} of joint {t.name!r} is not finite"
+            table[column] = values
+        tables.append(table)
     if spec.max_points and len(request.trajectory.points) > spec.max_points:
         return FJT.INVALID_GOAL, f"{len(request.trajectory.points)} points, more than {spec.max_points}"
     try:
-        parse_trajectory(request.trajectory)
+        trajectory = parse_trajectory(request.trajectory)
     except (ValueError, TypeError) as e:
         return FJT.INVALID_GOAL, str(e)
-    start = seconds(request.trajectory.header.stamp)
-    if start != 0.0 and request.trajectory.points:
-        end = start + seconds(request.trajectory.points[-1].time_from_start)
+    times, start = trajectory[1], trajectory[5]
+    if start != 0.0 and len(times):
+        end = start + float(times[-1])
         if end < time:
             return (
                 FJT.OLD_HEADER_TIMESTAMP,
                 f"the trajectory starts at {start:.3f} s and ends at {end:.3f} s, before the sim time {time:.3f} s",
             )
-    return None
+    return _TrajectoryGoal(trajectory, *tables, seconds(request.goal_time_tolerance))

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from batchsim.controllers.base import rows_all
+from batchsim.controllers.joint_names import JointOrder
 from batchsim.controllers.topics import TrajectoryBatch
 from batchsim.controllers.trajectory.splines import coefficients, spline_of
 from batchsim.hardware import MAX_COMMAND
@@ -177,16 +178,14 @@ def one_trajectory(
     (see JointTrajectoryController.set_trajectory); ValueError for an unknown or repeated
     joint name or a table of the wrong shape."""
     names = list(joint_names)
-    unknown = [n for n in names if n not in joints]
-    if unknown:
-        raise ValueError(f"{name}: unknown joint {unknown[0]!r} (controller joints: {', '.join(joints)})")
-    if len(set(names)) != len(names):
-        raise ValueError(f"{name}: joint_names lists a joint twice: {names}")
+    order = JointOrder(joints)
+    try:
+        cols = order.columns(names)
+    except ValueError as e:
+        raise ValueError(f"{name}: {e}") from None
+    mask = order.mask(cols)
     t = np.asarray(times, dtype=np.float64).reshape(-1)
     n, nj = t.size, len(joints)
-    cols = np.array([list(joints).index(j) for j in names], dtype=np.intp)
-    mask = np.zeros(nj, bool)
-    mask[cols] = True
 
     def table(values: Any, what: str, required: bool) -> np.ndarray | None:
         if values is None or (np.size(values) == 0 and not required):
