@@ -1,7 +1,10 @@
 """The bridge's options, typed: what `batchsim`'s ROS flags become, and what Python callers pass.
 
-No rclpy here. Errors (batchsim.loop.OptionError) name the option as Python spells it
-(`publish_rate`); the command line maps them onto its flags (`--publish-rate`).
+Each option a flag sets names its flag here, beside its default (`_flag`, the field's
+metadata): batchsim.cli.args builds the flag with that default and the options from the
+parsed flags, so a default is said once. No rclpy here. Errors (batchsim.loop.OptionError)
+name the option as Python spells it (`publish_rate`); the command line names its flag
+(`--publish-rate`).
 """
 
 from __future__ import annotations
@@ -10,6 +13,8 @@ import dataclasses
 import enum
 import math
 import os
+from collections.abc import Callable
+from typing import Any
 
 from batchsim.loop import OptionError, RateError, whole_ratio
 from batchsim.types import AnyCase
@@ -19,6 +24,13 @@ from ros_bridge.naming import DEFAULT_TEMPLATE
 INPROCESS_WORLDS = 64
 #: worlds per worker the default aims at, on a host with cores to spare
 WORLDS_PER_WORKER = 128
+
+
+def _flag(flag: str, parse: Callable[[Any], Any] | None = None) -> dict[str, Any]:
+    """A field's metadata: the `batchsim` flag that sets the option (a bool's flag is a switch:
+    `--no-...` turns off an option that is on by default) and what makes the flag's value the
+    option's (None: taken as it is)."""
+    return {"flag": flag, "parse": parse}
 
 
 class Reliability(AnyCase, enum.Enum):
@@ -41,9 +53,9 @@ class RecordOptions:
       worlds: the worlds (indices 0..nworld-1) recorded; None: all.
     """
 
-    path: str | None = None
-    topics: tuple[str, ...] | None = None
-    worlds: tuple[int, ...] | None = None
+    path: str | None = dataclasses.field(default=None, metadata=_flag("--record"))
+    topics: tuple[str, ...] | None = dataclasses.field(default=None, metadata=_flag("--record-topics"))
+    worlds: tuple[int, ...] | None = dataclasses.field(default=None, metadata=_flag("--record-worlds"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,8 +63,8 @@ class ViewOptions:
     """Where the fleet's web view (ros_bridge/view_plan.py) is served: `host` (127.0.0.1: this
     machine only; 0.0.0.0: every interface) and `port` (the next free one if it is taken)."""
 
-    host: str = "127.0.0.1"
-    port: int = 8080
+    host: str = dataclasses.field(default="127.0.0.1", metadata=_flag("--view-host"))
+    port: int = dataclasses.field(default=8080, metadata=_flag("--view-port"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,24 +101,24 @@ class BridgeOptions:
       view: serve the fleet's web view (ros_bridge/view_plan.py) there; None: no view.
     """
 
-    namespace: str = DEFAULT_TEMPLATE
-    publish_rate: float | None = None
-    sensor_rate: float | None = None
-    qos_depth: int | None = None
-    reliability: Reliability | None = None
-    command_timeout: float | None = None
-    lockstep: bool = False
-    lockstep_timeout: float = 1.0
-    workers: int | None = None
-    world_offset: int = 0
-    clock: bool = True
+    namespace: str = dataclasses.field(default=DEFAULT_TEMPLATE, metadata=_flag("--namespace"))
+    publish_rate: float | None = dataclasses.field(default=None, metadata=_flag("--publish-rate"))
+    sensor_rate: float | None = dataclasses.field(default=None, metadata=_flag("--sensor-rate"))
+    qos_depth: int | None = dataclasses.field(default=None, metadata=_flag("--qos-depth"))
+    reliability: Reliability | None = dataclasses.field(default=None, metadata=_flag("--reliability", Reliability))
+    command_timeout: float | None = dataclasses.field(default=None, metadata=_flag("--command-timeout"))
+    lockstep: bool = dataclasses.field(default=False, metadata=_flag("--lockstep"))
+    lockstep_timeout: float = dataclasses.field(default=1.0, metadata=_flag("--lockstep-timeout"))
+    workers: int | None = dataclasses.field(default=None, metadata=_flag("--bridge-workers"))
+    world_offset: int = dataclasses.field(default=0, metadata=_flag("--world-offset"))
+    clock: bool = dataclasses.field(default=True, metadata=_flag("--no-clock"))
     startup_check: float = 1.0
-    all_topics: bool = False
-    tf: bool = True
-    description: str | None = None
-    ros_args: tuple[str, ...] = ()
-    record: RecordOptions | None = dataclasses.field(default_factory=RecordOptions)
-    view: ViewOptions | None = None
+    all_topics: bool = dataclasses.field(default=False, metadata=_flag("--all-topics"))
+    tf: bool = dataclasses.field(default=True, metadata=_flag("--no-tf"))
+    description: str | None = dataclasses.field(default=None, metadata=_flag("--ros2-control"))
+    ros_args: tuple[str, ...] = dataclasses.field(default=(), metadata=_flag("--ros-args", tuple))
+    record: RecordOptions | None = dataclasses.field(default_factory=RecordOptions)  # its own fields' flags
+    view: ViewOptions | None = None  # `--view`: ViewOptions from its fields' flags
 
     def check(self) -> None:
         """OptionError for a value no fleet can run with (rates are checked against the loop later)."""

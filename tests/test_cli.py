@@ -439,6 +439,26 @@ def test_ros_args_are_split_off_as_ros_executables_do():
     assert split_ros_args(["--worlds", "2", "--", "x"]) == (["--worlds", "2", "--", "x"], [])
 
 
+def test_the_bridge_flags_are_the_bridge_options_with_their_defaults():
+    """ros_bridge.options declares each option's flag and default once: no flag given is
+    BridgeOptions() (a recording only on request, no view); each flag sets its option."""
+    from batchsim.cli.args import bridge_options, option_flag, run_parser
+    from ros_bridge.options import BridgeOptions, Reliability, ViewOptions
+
+    def options(*argv: str):
+        args = run_parser().parse_args(list(argv))
+        args.ros_args = ["-p", "a:=1"] if argv else []
+        return bridge_options(args)
+
+    assert options() == BridgeOptions()
+    given = options("--bridge-workers", "3", "--no-clock", "--no-tf", "--reliability", "best_effort", "--lockstep",
+                    "--record-worlds", "0,2-3", "--view", "--view-port", "9000", "--ros2-control", "r.urdf")  # fmt: skip
+    assert (given.workers, given.clock, given.tf, given.reliability, given.lockstep) == (3, False, False, Reliability.BEST_EFFORT, True)
+    assert given.record.worlds == (0, 2, 3) and given.view == ViewOptions(port=9000)
+    assert (given.description, given.ros_args) == ("r.urdf", ("-p", "a:=1"))
+    assert option_flag("workers") == "--bridge-workers" and option_flag("control_rate") == "--control-rate"
+
+
 def test_the_status_line_in_a_log_comes_every_10_s_unless_told():
     """Issue 23: in a log (stderr not a terminal) a status line a second is noise."""
     import io

@@ -19,7 +19,9 @@ from batchsim.cli import description_topic
 from batchsim.cli.args import (
     UsageError,
     _load,
+    bridge_options,
     check_args,
+    option_flag,
     run_parser,
     split_ros_args,
 )  # fmt: skip
@@ -168,51 +170,18 @@ def _checked_rate(sim: BatchedSystem, args: argparse.Namespace, manager: Control
 #: library option names whose flag is not `--<option with dashes>`
 
 
-_FLAGS = {"workers": "--bridge-workers"}
-
-
-def _flag(option: str) -> str:
-    return _FLAGS.get(option, "--" + option.replace("_", "-"))
-
-
 def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manager: ControllerManager | None = None):
     """The ROS 2 bridge for this run, serving `manager`'s controllers too.
 
     Errors name the flags; another process already serving these worlds or /clock is a
     UsageError (exit 2) naming that process's node."""
     try:
-        from ros_bridge.bridge import (
-            BridgeOptions,
-            ConflictKind,
-            FleetConflict,
-            Reliability,
-            WorkerError,
-            start_bridge,
-        )
-        from ros_bridge.options import RecordOptions, ViewOptions
+        from ros_bridge.bridge import ConflictKind, FleetConflict, WorkerError, start_bridge
     except ModuleNotFoundError as e:
         raise UsageError(
             f"ROS 2 is not installed ({e.name} is missing): {startup.install_command('ros')}, or pass --no-ros"
         ) from None
-    options = BridgeOptions(
-        namespace=args.namespace,
-        publish_rate=args.publish_rate,
-        sensor_rate=args.sensor_rate,
-        qos_depth=args.qos_depth,
-        reliability=Reliability(args.reliability) if args.reliability else None,
-        command_timeout=args.command_timeout,
-        lockstep=args.lockstep,
-        lockstep_timeout=args.lockstep_timeout,
-        workers=args.bridge_workers,
-        world_offset=args.world_offset,
-        clock=not args.no_clock,
-        all_topics=args.all_topics,
-        tf=not args.no_tf,
-        description=args.ros2_control,
-        ros_args=tuple(args.ros_args),
-        record=RecordOptions(args.record, args.record_topics, args.record_worlds),
-        view=ViewOptions(args.view_host, args.view_port) if args.view else None,
-    )
+    options = bridge_options(args)
     from ros_bridge.interfaces import missing_line
 
     missing = missing_line()
@@ -221,7 +190,7 @@ def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manag
     try:
         return start_bridge(sim, loop, options, manager)
     except OptionError as e:
-        raise UsageError(e.named(_flag(e.option))) from None
+        raise UsageError(e.named(option_flag(e.option))) from None
     except FleetConflict as e:
         namespace = e.kind is ConflictKind.NAMESPACE
         hint = "--world-offset, --namespace or another ROS_DOMAIN_ID" if namespace else "--no-clock on all but one"
@@ -333,7 +302,7 @@ def run(argv: Sequence[str]) -> int:
                 cpu_affinity=args.cpu_affinity,
             )
         except OptionError as e:
-            raise UsageError(e.named(_flag(e.option))) from None
+            raise UsageError(e.named(option_flag(e.option))) from None
         if manager is not None:
             for warning in manager.warnings:
                 print(f"batchsim: warning: {warning}", file=sys.stderr)
