@@ -442,7 +442,8 @@ def test_ros_args_are_split_off_as_ros_executables_do():
 def test_the_bridge_flags_are_the_bridge_options_with_their_defaults():
     """ros_bridge.options declares each option's flag and default once: no flag given is
     BridgeOptions() (a recording only on request, no view); each flag sets its option."""
-    from batchsim.cli.args import bridge_options, option_flag, run_parser
+    from batchsim.cli.args import run_parser
+    from batchsim.cli.bridge_flags import bridge_options, option_flag
     from ros_bridge.options import BridgeOptions, Reliability, ViewOptions
 
     def options(*argv: str):

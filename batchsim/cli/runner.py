@@ -19,12 +19,11 @@ from batchsim.cli import description_topic
 from batchsim.cli.args import (
     UsageError,
     _load,
-    bridge_options,
     check_args,
-    option_flag,
     run_parser,
     split_ros_args,
 )  # fmt: skip
+from batchsim.cli.bridge_flags import bridge_options, option_flag
 from batchsim.controllers import ControllerManager, default_controllers, load_controllers
 from batchsim.controllers.robots import load_fleet_controllers
 from batchsim.hardware import BatchedSystem, ConfigurationError
