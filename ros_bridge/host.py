@@ -39,12 +39,12 @@ from ros_bridge.plan import (
     FLAG_BAD,
     FLAG_FROZEN,
     FLAG_TIMED_OUT,
-    SERVICE_SLOTS,
     ChannelFill,
     FleetPlan,
     describe,
 )
 from ros_bridge.protocol.commands import RejectionWriter, SlotReader
+from ros_bridge.protocol.goals import Refusal, RefusalWriter
 from ros_bridge.protocol.requests import (
     Kind,
     decode_document,
@@ -52,6 +52,7 @@ from ros_bridge.protocol.requests import (
     decode_ticket,
     decode_trajectories,
 )
+from ros_bridge.protocol.services import put_answer
 from ros_bridge.protocol.snapshot import demanded, reset_snapshots, write_snapshot
 from ros_bridge.protocol.world_params import ParamWriter
 from ros_bridge.simulation import SimulationRequests
@@ -120,6 +121,7 @@ class BridgeHost(Participant):
         kinds, slots = [spec.kind for spec in plan.inputs], [spec.slots for spec in plan.inputs]
         self.trajectories = TrajectoryInputs(m, kinds, slots, self.inputs, self._refused, n)
         self.rejections = RejectionWriter(m, "hrej")
+        self.refusals = RefusalWriter(m) if "goal.refused" in m else None  # action goals (protocol/goals.py)
         self.params = ParamWriter.start(m, plan, sim)  # each world's draw, for /diagnostics; again after resets
         self._worker_rejections = m["rej.count"]
         self._worker_rejections_seen = self._worker_rejections.copy()
@@ -416,7 +418,7 @@ class BridgeHost(Participant):
         for k, reason in refused:
             w = int(worlds[k])
             where = topic_name(self.namespaces[w], topic)
-            self.rejections.put(w, self._period, f"{where}: {reason}")
+            self.rejections.put(w, self._period, where, reason)
             self.throttle.warn((where, "refused"), f"rejected command on {where}: {reason}")
             if good is not None and rejected is not None:
                 good[w] = False
@@ -430,21 +432,12 @@ class BridgeHost(Participant):
         controller = self.manager_link.manager[self.plan.actions[index].controller]
         refused = controller.set_goals(np.array([world]), np.array([goal]), np.array([position]), np.array([max_effort]))
         for _, reason in refused:
-            self.rejections.put(world, self._period, f"{controller.name}/gripper_cmd: {reason}")
-            self.memory["goal.refused"][world] = goal
+            self.rejections.put(world, self._period, f"{controller.name}/gripper_cmd", reason)
+            self.refusals.refuse([world], [goal], Refusal.INVALID, [reason])
 
     def _done(self, worker: int, ticket: int, time: float, ok: bool, message: str = "") -> None:
-        """Answer `worker`'s request `ticket` (its slot of svc.*, the ticket written last)."""
-        m = self.memory
-        slot = ticket % SERVICE_SLOTS
-        m["svc.ok"][worker, slot] = int(ok)
-        answer = m["svc.msg"][worker, slot]
-        text = message.encode()[: len(answer)]
-        answer[:] = 0
-        answer[: len(text)] = np.frombuffer(text, np.uint8)
-        m["svc.time"][worker, slot] = time
-        m["svc.ticket"][worker, slot] = ticket
-        m["svc.done"][worker] = max(int(m["svc.done"][worker]), ticket)
+        """Answer `worker`'s request `ticket` (protocol/services.py) and wake it."""
+        put_answer(self.memory, worker, ticket, time, ok, message)
         self.workers.wake(worker)
 
     # --- publishing ---

@@ -41,7 +41,9 @@ from ros_bridge.naming import ros_names, world_namespaces, worlds_label
 from ros_bridge.options import BridgeOptions, Reliability
 from ros_bridge.outputs import ChannelFill, Field, OutputSpec, robot_outputs
 from ros_bridge.protocol.commands import rejection_arrays, slot_arrays
+from ros_bridge.protocol.goals import refusal_arrays
 from ros_bridge.protocol.requests import trajectory_bytes, wrench_arrays
+from ros_bridge.protocol.services import service_arrays
 from ros_bridge.protocol.snapshot import snapshot_arrays
 from ros_bridge.protocol.world_params import param_arrays
 from ros_bridge.recording import RecordSpec, record_spec
@@ -53,8 +55,6 @@ from ros_bridge.view_plan import ViewSpec, view_spec
 ON_REQUEST_PARTS = ("/controller_state/",)
 RING_BASE = 1 << 18  # bytes of each worker's ring, plus RING_PER_WORLD per world it serves
 RING_PER_WORLD = 8 << 10
-SERVICE_MESSAGE = 1024  # bytes of a service answer's message the loop hands back
-SERVICE_SLOTS = 16  # answers kept per worker: at most this many of its requests may wait at once
 
 
 @dataclasses.dataclass(frozen=True)
@@ -161,14 +161,7 @@ class FleetPlan:
         arrays: list[tuple[str, tuple[int, ...], str]] = [
             *snapshot_arrays(n, [ch.width for ch in self.channels]),  # protocol/snapshot.py
             ("demand", (nw, max(1, len(self.channels))), "u1"),  # per worker: channels it publishes
-            ("svc.issued", (nw,), "i8"),  # per worker: its last service ticket
-            ("svc.done", (nw,), "i8"),  # per worker: the newest ticket the loop carried out
-            # per worker, the answers to its last SERVICE_SLOTS tickets, in slot ticket % SERVICE_SLOTS
-            # (several services may wait at once: a step_simulation while a set_pause is answered)
-            ("svc.ticket", (nw, SERVICE_SLOTS), "i8"),  # the ticket a slot answers, written last
-            ("svc.time", (nw, SERVICE_SLOTS), "f8"),  # the sim time when the loop carried it out
-            ("svc.ok", (nw, SERVICE_SLOTS), "i8"),  # 1 when it succeeded
-            ("svc.msg", (nw, SERVICE_SLOTS, SERVICE_MESSAGE), "u1"),  # the answer's message, utf-8, NUL-padded
+            *service_arrays(nw),  # protocol/services.py
             ("beat", (nw,), "i8"),  # per worker: ticks served
             ("worker.hung", (nw,), "f8"),  # per worker: since when (epoch s) it has not ticked; 0: it does
         ]
@@ -183,8 +176,8 @@ class FleetPlan:
             arrays += self.sensors.arrays(n)
         if self.manager is not None:
             arrays.append(("cm.active", (n, max(1, len(self.manager.controllers))), "u1"))
-        if self.actions:  # per world: the last goal tag a controller refused (its reason in hrej)
-            arrays.append(("goal.refused", (n,), "i8"))
+        if self.actions:  # per world: the last goal the loop refused, and why
+            arrays += refusal_arrays(n)  # protocol/goals.py
         if self.wrench_service:
             arrays += wrench_arrays(nw)
         if self.recording is not None:

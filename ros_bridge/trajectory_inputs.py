@@ -15,6 +15,8 @@ lockstep gate, and when the same read holds a controller switch (which resets it
 before the steps: what came before it must be there to be dropped) or a goal's cancel (served
 after the read's trajectories, so that it finds the goal it cancels). A batch not yet handed
 over when the next period, the gate or a pause comes is handed over then, first: none is lost.
+A goal's trajectory a reset drops before its controller had it is refused (protocol/goals.py),
+as is one its controller refuses, so that its worker aborts the goal at once.
 
 A controller's verdicts on a batch handed over while the device steps reach BAD_COMMAND in the
 next update (`verdicts`), as though the trajectories had arrived then: accepted ones count as the
@@ -29,6 +31,7 @@ import numpy as np
 
 from batchsim.controllers.topics import Input, MessageKind, Rejections, TrajectoryBatch
 from batchsim.memory import Memory
+from ros_bridge.protocol.goals import Refusal, RefusalWriter
 from ros_bridge.protocol.requests import concatenate
 
 #: (input index, its worlds, the controller's rejections, good, rejected): the bridge's refusal bookkeeping
@@ -39,7 +42,8 @@ class TrajectoryInputs:
     """The trajectory batches a period took from the rings, until their controllers have them.
 
     Args:
-      memory: the bridge's shared memory (each input's `<slots>.seq` arrival counters, `goal.refused`).
+      memory: the bridge's shared memory (each input's `<slots>.seq` arrival counters; the goal
+        refusals, where the fleet serves actions).
       kinds, slots: per plan input, its MessageKind and its slots' name.
       inputs: per plan input, the controller's Input (its `apply`).
       refused: the bridge's bookkeeping of a controller's rejections (logged, counted, BAD_COMMAND).
@@ -55,7 +59,7 @@ class TrajectoryInputs:
         refused: Refused,
         nworld: int,
     ):
-        self._memory = memory
+        self._refusals = RefusalWriter(memory) if "goal.refused" in memory else None
         self._inputs = list(inputs)
         self._refused = refused
         # arrival counters the workers move when a batch is in the ring
@@ -99,6 +103,7 @@ class TrajectoryInputs:
                     np.zeros(len(batch), bool) if reset_rows is None else ~np.isin(batch.worlds, reset_rows)
                 )
                 if not keep.all():
+                    self._dropped(batch, keep)
                     batch = batch.select(keep)
             if len(batch):
                 self._waiting.append((index, batch))
@@ -126,8 +131,10 @@ class TrajectoryInputs:
                 good[batch.worlds] = True
             self._refused(index, batch.worlds, refused, good, rejected)
             if batch.goals is not None and refused:  # goals the controller refused: their workers answer
-                at = np.array([k for k, _ in refused], dtype=np.intp)
-                self._memory["goal.refused"][batch.worlds[at]] = batch.goals[at]
+                goals = [(k, reason) for k, reason in refused if batch.goals[k]]
+                if goals:
+                    at = np.array([k for k, _ in goals], dtype=np.intp)
+                    self._refusals.refuse(batch.worlds[at], batch.goals[at], Refusal.INVALID, [r for _, r in goals])
 
     def verdicts(self, good: np.ndarray, rejected: np.ndarray) -> None:
         """Into this update's arrays: the verdicts of the hand-overs since the last update."""
@@ -149,7 +156,9 @@ class TrajectoryInputs:
         kept = []
         for index, batch in self._waiting:
             keep = np.zeros(len(batch), bool) if every else ~np.isin(batch.worlds, rows)
-            batch = batch if keep.all() else batch.select(keep)
+            if not keep.all():
+                self._dropped(batch, keep)
+                batch = batch.select(keep)
             if len(batch):
                 kept.append((index, batch))
         self._waiting = kept
@@ -158,6 +167,14 @@ class TrajectoryInputs:
             self.taken[i][rows] = counter[rows]
         self._good[rows] = False
         self._rejected[rows] = False
+
+    def _dropped(self, batch: TrajectoryBatch, keep: np.ndarray) -> None:
+        """The goals among the trajectories a reset drops (not `keep`) are refused: their workers
+        abort them now, as the controller aborts the goal a reset world was running."""
+        if batch.goals is not None:
+            at = np.flatnonzero(~keep & (np.asarray(batch.goals) != 0))
+            if at.size:
+                self._refusals.refuse(batch.worlds[at], batch.goals[at], Refusal.RESET)
 
     def ready(self) -> np.ndarray | bool:
         """Lockstep: (nworld,) bool, the worlds with a trajectory on every trajectory input since

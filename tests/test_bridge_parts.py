@@ -25,6 +25,7 @@ from ros_bridge.protocol.commands import (
     SlotWriter,
     check_single,
     check_vector,
+    rejection_arrays,
     slot_arrays,
 )
 from ros_bridge.protocol.requests import (
@@ -125,15 +126,17 @@ def test_slots_deliver_each_command_once_and_a_new_writer_replays_nothing():
 
 
 def test_rejections_keep_a_count_and_the_last_reason_per_world():
-    memory = Memory.create(Layout([("rej.count", (2,), "i8"), ("rej.period", (2,), "i8"), ("rej.text", (2, 240), "u1")]), shared=False)
+    memory = Memory.create(Layout(rejection_arrays("rej", 2)), shared=False)
     rejections = RejectionWriter(memory, "rej")
-    rejections.put(1, 7, "/world_1/commands: 2 values, expected 6")
-    rejections.put(1, 9, "/world_1/commands: value nan is not finite")
+    rejections.put(1, 7, "/world_1/commands", "2 values, expected 6")
+    rejections.put(1, 9, "/world_1/commands", "value nan is not finite: a: b")
     assert int(rejections.count[1]) == 2 and int(rejections.period[1]) == 9
-    assert rejections.reason(1) == "/world_1/commands: value nan is not finite"
+    assert rejections.reason(1) == "/world_1/commands: value nan is not finite: a: b"
+    assert rejections.topic(1) == "/world_1/commands"
     assert rejections.reason(0) == "" and int(rejections.count[0]) == 0
-    rejections.put(0, 1, "x" * 1000)  # clipped, never spilling into the next world's field
+    rejections.put(0, 1, "/world_0/commands", "x" * 1000, count=3)  # clipped, never spilling into the next world's field
     assert len(rejections.reason(0)) == 239 and rejections.reason(1).startswith("/world_1")
+    assert rejections.topic(0) == "/world_0/commands" and int(rejections.count[0]) == 3
 
 
 # --- the log throttle ---

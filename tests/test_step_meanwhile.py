@@ -388,9 +388,10 @@ def test_a_reset_before_the_hand_over_drops_the_reset_worlds_waiting_trajectorie
     served after the ring was read) drops its worlds' trajectories, as it drops a queued one."""
     from batchsim.controllers.topics import Input, MessageKind
     from batchsim.memory import Layout, Memory
+    from ros_bridge.protocol.goals import refusal_arrays
     from ros_bridge.trajectory_inputs import TrajectoryInputs
 
-    memory = Memory.create(Layout([("traj.seq", (4,), "int64"), ("goal.refused", (4,), "int64")]), shared=False)
+    memory = Memory.create(Layout([("traj.seq", (4,), "int64"), *refusal_arrays(4)]), shared=False)
     got = []
 
     def apply(batch):
@@ -419,6 +420,43 @@ def test_a_reset_before_the_hand_over_drops_the_reset_worlds_waiting_trajectorie
         trajectories.forget(slice(None))  # every world reset
         trajectories.hand_over(beside_steps=True)
         assert got == [[0, 3]]
+    finally:
+        memory.close()
+
+
+def test_a_goal_the_loop_does_not_take_is_refused_with_its_reason_or_the_reset():
+    """A FollowJointTrajectory goal its controller refuses reaches its worker as Refusal.INVALID
+    with the controller's reason; one a reset drops before the hand-over as Refusal.RESET, where
+    its worker used to wait UNSEEN_TIMEOUT (5 s) and abort it as 'not taken'. A refused topic
+    trajectory (tag 0) marks nothing."""
+    from batchsim.controllers.topics import Input, MessageKind
+    from batchsim.memory import Layout, Memory
+    from ros_bridge.protocol.goals import Refusal, RefusalReader, refusal_arrays
+    from ros_bridge.trajectory_inputs import TrajectoryInputs
+
+    memory = Memory.create(Layout([("traj.seq", (4,), "int64"), *refusal_arrays(4)]), shared=False)
+
+    def apply(batch):
+        return [(k, "jtc: the trajectory lacks joint 'j1': it is: not partial") for k in range(len(batch)) if batch.worlds[k] in (1, 2)]
+
+    def goals(worlds, tags):
+        batch = _trajectory_batch(worlds, 2, 0.1)
+        batch.goals = np.asarray(tags, np.int64)
+        return batch
+
+    inputs = [Input("t", MessageKind.JOINT_TRAJECTORY, apply)]
+    trajectories = TrajectoryInputs(memory, [MessageKind.JOINT_TRAJECTORY], ["traj"], inputs, lambda *a: None, 4)
+    reader = RefusalReader(memory)
+    try:
+        trajectories.take({0: [goals([0, 1, 2], [11, 12, 0])]}, None, False, None, None, later=False)
+        assert reader.refused(0, 11) is None  # taken
+        assert reader.refused(1, 12) == (Refusal.INVALID, "jtc: the trajectory lacks joint 'j1': it is: not partial")
+        assert memory["goal.refused"][2] == 0  # a topic trajectory's refusal is the bridge's rejection alone
+        trajectories.take({0: [goals([0, 3], [13, 14])]}, None, False, None, None, later=True)
+        trajectories.forget(np.array([3]))  # world 3 reset before the hand-over
+        assert reader.refused(3, 14) == (Refusal.RESET, "the world was reset")
+        trajectories.take({0: [goals([1], [15])]}, np.array([1]), True, None, None, later=False)  # with its reset
+        assert reader.refused(1, 15) == (Refusal.RESET, "the world was reset") and reader.refused(0, 13) is None
     finally:
         memory.close()
 

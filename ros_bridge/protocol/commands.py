@@ -7,8 +7,8 @@ control period: a slot whose counter moved since the last period holds a new com
 flood of messages costs the loop one comparison per period, a slow or dead worker never
 stalls it, and a restarted worker that continues the counters never replays old commands.
 
-Rejections are counted per world with the reason (`RejectionWriter`), for BAD_COMMAND and
-/diagnostics.
+Rejections are counted per world with the topic and reason of the last (`RejectionWriter`:
+a worker's in `rej`, the loop's controllers' in `hrej`), for BAD_COMMAND and /diagnostics.
 """
 
 from __future__ import annotations
@@ -21,8 +21,10 @@ import numpy as np
 
 from batchsim.hardware import MAX_COMMAND
 from batchsim.memory import Memory
+from ros_bridge.protocol.text import put_text, text_of
 
-TEXT = 240  # bytes of the last rejection's reason kept per world
+TEXT = 240  # bytes of the last rejection's line ("<topic>: <reason>") kept per world
+TOPIC = 240  # bytes of the last rejection's topic kept per world
 
 
 class Problem(enum.Enum):
@@ -133,27 +135,37 @@ class SlotReader:
 
 
 def rejection_arrays(name: str, nworld: int) -> list[tuple[str, tuple[int, ...], str]]:
-    """Layout entries of one writer's rejections: count, period of the last, its reason."""
-    return [(f"{name}.count", (nworld,), "i8"), (f"{name}.period", (nworld,), "i8"), (f"{name}.text", (nworld, TEXT), "u1")]
+    """Layout entries of one writer's rejections: count, period of the last, its line and topic."""
+    return [
+        (f"{name}.count", (nworld,), "i8"),
+        (f"{name}.period", (nworld,), "i8"),
+        (f"{name}.text", (nworld, TEXT), "u1"),
+        (f"{name}.topic", (nworld, TOPIC), "u1"),
+    ]
 
 
 class RejectionWriter:
-    """Per-world rejection counters and the last reason, written by one side only."""
+    """Per-world rejection counters and the last rejection, written by one side only (and read
+    by the others: `reason`, `topic`)."""
 
     def __init__(self, memory: Memory, name: str):
         self.count = memory[f"{name}.count"]
         self.period = memory[f"{name}.period"]
         self.text = memory[f"{name}.text"]
+        self.topics = memory[f"{name}.topic"]
 
-    def put(self, world: int, period: int, reason: str) -> None:
-        data = reason.encode("utf-8", "replace")[: TEXT - 1]
-        row = self.text[world]
-        row[: len(data)] = np.frombuffer(data, np.uint8)
-        row[len(data) :] = 0
+    def put(self, world: int, period: int, topic: str, reason: str, count: int = 1) -> None:
+        """`count` messages for `world` on `topic` were rejected, the last for `reason`."""
+        put_text(self.topics[world, :-1], topic)  # a NUL left at the end
+        put_text(self.text[world, :-1], f"{topic}: {reason}")
         self.period[world] = period
-        self.count[world] += 1
+        self.count[world] += count
 
     def reason(self, world: int) -> str:
-        row = self.text[world]
-        end = np.flatnonzero(row == 0)
-        return bytes(row[: end[0] if end.size else TEXT]).decode("utf-8", "replace")
+        """The last rejection, as the log and /diagnostics say it: "<topic>: <reason>"."""
+        return text_of(self.text[world])
+
+    def topic(self, world: int) -> str:
+        """The topic of the last rejection."""
+        return text_of(self.topics[world])
+

@@ -28,6 +28,7 @@ import numpy as np
 
 from batchsim.memory import Memory
 from ros_bridge.protocol.snapshot import HEADERS, channel_rows
+from ros_bridge.protocol.text import put_text, text_of
 
 RING_BYTES = 32 << 20  # the ring's size, at most (pages are taken only as a recording writes them)
 MIN_SLOTS, MAX_SLOTS = 16, 4096
@@ -170,9 +171,7 @@ def take_request(memory: Memory, answered: int) -> tuple[int, bool, float] | Non
 
 
 def put_answer(memory: Memory, ticket: int, ok: bool, message: str) -> None:
-    text = message.encode()[:MESSAGE]
-    memory["rec.msg"][:] = 0
-    memory["rec.msg"][: len(text)] = np.frombuffer(text, np.uint8)
+    put_text(memory["rec.msg"], message)
     memory["rec.ans"][1] = int(ok)
     memory["rec.ans"][0] = ticket
 
@@ -181,4 +180,4 @@ def answer(memory: Memory, ticket: int) -> tuple[bool, str] | None:
     """Worker 0: the answer to `ticket`, once given."""
     if int(memory["rec.ans"][0]) != ticket:
         return None
-    return bool(memory["rec.ans"][1]), memory["rec.msg"].tobytes().rstrip(b"\0").decode(errors="replace")
+    return bool(memory["rec.ans"][1]), text_of(memory["rec.msg"])

@@ -15,6 +15,7 @@ import numpy as np
 from batchsim.hardware import BatchedSystem
 from batchsim.memory import Memory
 from batchsim.variation.report import changes
+from ros_bridge.protocol.text import text_of
 
 TEXT = 768  # bytes of a world's line, utf-8, NUL-padded (longer lines end in "...")
 
@@ -71,5 +72,4 @@ class ParamWriter:
 
 def read_line(memory: Memory, world: int) -> str:
     """A worker's side: world `world`'s line ("" before the physics process wrote it)."""
-    raw = memory["wp.text"][world].tobytes()
-    return raw.split(b"\0", 1)[0].decode(errors="replace")
+    return text_of(memory["wp.text"][world])

@@ -57,7 +57,7 @@ from ros_bridge.action_plan import (
     encode_gripper_goal,
 )
 from ros_bridge.naming import topic_name
-from ros_bridge.protocol.commands import RejectionWriter
+from ros_bridge.protocol.goals import RefusalReader
 from ros_bridge.protocol.requests import Kind
 from ros_bridge.worker.messages import Trajectory, parse_trajectory, seconds, stamp_of
 from ros_bridge.worker.on_request import OnRequest
@@ -108,9 +108,8 @@ class ActionServers(OnRequest):
         self.requests = requests
         self.logger = node.get_logger()
         self.active = memory["cm.active"]
-        self.refused = memory["goal.refused"]
+        self.refusals = RefusalReader(memory)
         self.demand = memory["demand"][index]  # this worker's channel demand (the loop copies those)
-        self.host_rejections = RejectionWriter(memory, "hrej")
         self.submit = submit
         self.time = time
         self.lo = lo
@@ -228,9 +227,9 @@ class ActionServers(OnRequest):
             for world, goal in list(goals.items()):
                 row = values[world - self.lo]
                 if int(row[0]) != goal.tag:
-                    if int(self.refused[world]) == goal.tag:
-                        reason = self.host_rejections.reason(world).partition(": ")[2] or "refused by the controller"
-                        self._finish(goal, GoalOutcome.ABORTED, self._result(goal, FJT.INVALID_GOAL, reason, row))
+                    refusal = self.refusals.refused(world, goal.tag)
+                    if refusal is not None:
+                        self._finish(goal, GoalOutcome.ABORTED, self._result(goal, FJT.INVALID_GOAL, refusal[1], row))
                     elif goal.seen:
                         text = "replaced by a command on the controller's topic"
                         self._finish(goal, GoalOutcome.ABORTED, self._result(goal, FJT.INVALID_GOAL, text, row))

@@ -114,7 +114,6 @@ class Worker:
         self._outputs: list[Output] = []
         self._active: list[Output] = []  # outputs with a subscriber on some world
         self._beat = memory["beat"]
-        self._svc_done = memory["svc.done"]
         self._running = False
         self._thread: threading.Thread | None = None
         self._due = {"refresh": 0.0, "diag": 0.0}
@@ -272,7 +271,7 @@ class Worker:
                 break  # services, the beat and housekeeping go on; the rest at the next tick
         if self.sensors is not None:
             self.sensors.publish()
-        done = int(self._svc_done[self.index])
+        done = self.requests.tickets.done()
         if done != self._last_done:
             self._last_done = done
             self.requests.notify()

@@ -67,13 +67,12 @@ class Diagnostics:
 
     def reject(self, world: int, period: int, topic: str, problem: Problem, reason: str) -> None:
         """One command for `world` on `topic` was refused."""
-        self.rejections.put(world, period, f"{topic}: {reason}")
+        self.rejections.put(world, period, topic, reason)
         self.count(world - self.lo, topic, problem, 1)
 
     def dropped(self, world: int, period: int, topic: str, count: int, reason: str) -> None:
         """`count` messages for `world` on `topic` were dropped unread (a flood)."""
-        self.rejections.put(world, period, f"{topic}: {reason}")
-        self.rejections.count[world] += count - 1
+        self.rejections.put(world, period, topic, reason, count)
         self.count(world - self.lo, topic, Problem.FLOOD, count)
 
     def count(self, row: int, topic: str, problem: Problem, count: int) -> None:
@@ -119,8 +118,7 @@ class Diagnostics:
         # what the controllers refused in the loop since the last round, on its last topic
         host_counts = host.count[self.lo : self.hi].copy()
         for row in np.flatnonzero(host_counts != self._host_seen).tolist():
-            topic = host.reason(self.lo + row).partition(": ")[0]
-            self.count(row, topic, Problem.INVALID, int(host_counts[row] - self._host_seen[row]))
+            self.count(row, host.topic(self.lo + row), Problem.INVALID, int(host_counts[row] - self._host_seen[row]))
         self._host_seen = host_counts
         with self._lock:
             rejected = [sorted(c.items()) for c in self._rejected]

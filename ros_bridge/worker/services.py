@@ -1,15 +1,14 @@
 """Requests a worker hands the loop through its ring, and the services that wait for them.
 
 A request carries a ticket; the loop carries it out between two periods and writes its
-answer (whether it succeeded, a message, the sim time) into the ticket's slot of shared
-memory (`svc.*`, plan.py); the service answers then, or says the loop did not answer within
-its wait. Services: per world `<ns>/reset`; on worker 0 `/batchsim/{reset,pause,step,record}`
+answer (whether it succeeded, a message, the sim time) into shared memory
+(ros_bridge/protocol/services.py); the service answers then, or says the loop did not answer
+within its wait. Services: per world `<ns>/reset`; on worker 0 `/batchsim/{reset,pause,step,record}`
 (record through its own mailbox, ros_bridge/protocol/recording.py).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 import time as wallclock
 from collections.abc import Callable
@@ -20,32 +19,24 @@ from std_srvs.srv import SetBool, Trigger
 
 from batchsim.memory import Memory, Ring
 from ros_bridge.naming import topic_name
-from ros_bridge.plan import SERVICE_SLOTS
 from ros_bridge.protocol.recording import answer as recorded
 from ros_bridge.protocol.recording import put_request
 from ros_bridge.protocol.requests import Kind, encode_reset, encode_ticket
+from ros_bridge.protocol.services import Answer, Tickets
 
 SERVICE_WAIT = 2.0  # s a service waits for the loop to carry out its request
-
-
-@dataclasses.dataclass(frozen=True)
-class Answer:
-    """The loop's answer to one request."""
-
-    ok: bool
-    message: str
-    time: float  # the sim time at which the loop carried it out
 
 
 class LoopRequests:
     """Worker `index`'s side of the request ring: put a request, wait for the loop to do it.
 
-    `notify()` must be called (by the worker's tick) whenever `svc.done` may have moved.
+    `notify()` must be called (by the worker's tick) whenever `tickets.done()` may have moved.
     """
 
     def __init__(self, memory: Memory, index: int, ring: Ring, ring_lock: threading.Lock, nudge: Callable[[], None]):
         self.memory = memory
         self.index = index
+        self.tickets = Tickets(memory, index)
         self.ring = ring
         self.ring_lock = ring_lock
         self.nudge = nudge
@@ -54,12 +45,11 @@ class LoopRequests:
 
     def put(self, kind: Kind, encode: Callable[[int], bytes]) -> int | None:
         """Queue a request; its ticket, or None when the ring is full (the loop is far behind)."""
-        issued = self.memory["svc.issued"]
         with self.ring_lock:
-            ticket = int(issued[self.index]) + 1
+            ticket = self.tickets.next()
             if not self.ring.put(kind, encode(ticket)):
                 return None
-            issued[self.index] = ticket
+            self.tickets.issued(ticket)
         self.nudge()
         return ticket
 
@@ -69,20 +59,12 @@ class LoopRequests:
             return None
         deadline = wallclock.monotonic() + timeout
         with self._cond:
-            while (answer := self.answer(ticket)) is None:
+            while (answer := self.tickets.answer(ticket)) is None:
                 left = deadline - wallclock.monotonic()
                 if left <= 0 or not self.running:
                     return None
                 self._cond.wait(min(left, 0.05))
         return answer
-
-    def answer(self, ticket: int) -> Answer | None:
-        """The loop's answer to `ticket` if it has given it, without waiting."""
-        m, slot = self.memory, ticket % SERVICE_SLOTS
-        if int(m["svc.ticket"][self.index, slot]) != ticket:
-            return None
-        message = m["svc.msg"][self.index, slot].tobytes().rstrip(b"\0").decode(errors="replace")
-        return Answer(bool(m["svc.ok"][self.index, slot]), message, float(m["svc.time"][self.index, slot]))
 
     def notify(self) -> None:
         with self._cond:
