@@ -44,6 +44,7 @@ from ros_bridge.plan import (
     describe,
 )
 from ros_bridge.protocol.commands import RejectionWriter, SlotReader
+from ros_bridge.protocol.demand import demanded
 from ros_bridge.protocol.goals import Refusal, RefusalWriter
 from ros_bridge.protocol.requests import (
     Kind,
@@ -53,7 +54,7 @@ from ros_bridge.protocol.requests import (
     decode_trajectories,
 )
 from ros_bridge.protocol.services import put_answer
-from ros_bridge.protocol.snapshot import demanded, reset_snapshots, write_snapshot
+from ros_bridge.protocol.snapshot import reset_snapshots, write_snapshot
 from ros_bridge.protocol.world_params import ParamWriter
 from ros_bridge.simulation import SimulationRequests
 from ros_bridge.supervisor import Supervisor

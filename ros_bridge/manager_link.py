@@ -1,8 +1,8 @@
 """The loop's side of every world's controller_manager services. No rclpy here.
 
 The workers answer list_controllers, list_hardware_interfaces and list_controller_types
-from the plan (ManagerSpec) and from `cm.active` in shared memory, which this module
-keeps equal to the ControllerManager's per-world active masks. switch_controller comes
+from the plan (ManagerSpec) and from which controllers are active in each world
+(protocol/active.py), which this module keeps equal to the ControllerManager's masks. switch_controller comes
 through a worker's ring as a SWITCH request; `switch` carries it out between two
 periods and says what to answer.
 """
@@ -16,6 +16,7 @@ import numpy as np
 from batchsim.controllers import ControllerManager
 from batchsim.hardware import BatchedSystem
 from batchsim.memory import Memory
+from ros_bridge.protocol.active import ActiveWriter
 from ros_bridge.protocol.requests import decode_switch
 
 
@@ -123,21 +124,22 @@ def manager_spec(sim: BatchedSystem, manager: ControllerManager, control_rate: f
 
 
 class ManagerLink:
-    """Keeps `cm.active` equal to `manager`'s active masks; carries out switch requests.
+    """Keeps the shared active masks (protocol/active.py) equal to `manager`'s; carries out
+    switch requests.
 
     Args:
       manager: the controllers.
-      memory: the bridge's shared memory (with `cm.active`, (nworld, ncontroller) u1).
+      memory: the bridge's shared memory.
       world_names: per world, its name for messages (the namespace).
     """
 
     def __init__(self, manager: ControllerManager, memory: Memory, world_names: list[str]):
         self.manager = manager
-        self.active = memory["cm.active"]
+        self.active = ActiveWriter(memory)
         self.names = [c.name for c in manager]
         self.world_names = world_names
         for k, name in enumerate(self.names):
-            self.active[:, k] = manager.active(name)
+            self.active.set(k, slice(None), manager.active(name))
 
     def switch(self, payload: np.ndarray) -> tuple[int, int, bool, str]:
         """A SWITCH request: (ticket, world, ok, message) to answer with."""
@@ -148,7 +150,7 @@ class ManagerLink:
             return ticket, world, False, str(e)
         index = {n: k for k, n in enumerate(self.names)}
         for name, worlds in result.deactivated.items():
-            self.active[worlds, index[name]] = 0
+            self.active.set(index[name], worlds, False)
         for name, worlds in result.activated.items():
-            self.active[worlds, index[name]] = 1
+            self.active.set(index[name], worlds, True)
         return ticket, world, result.ok, result.message

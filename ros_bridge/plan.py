@@ -40,9 +40,13 @@ from ros_bridge.manager_link import ManagerSpec, manager_spec
 from ros_bridge.naming import ros_names, world_namespaces, worlds_label
 from ros_bridge.options import BridgeOptions, Reliability
 from ros_bridge.outputs import ChannelFill, Field, OutputSpec, robot_outputs
+from ros_bridge.protocol.active import active_arrays
 from ros_bridge.protocol.commands import rejection_arrays, slot_arrays
+from ros_bridge.protocol.demand import demand_arrays
 from ros_bridge.protocol.goals import refusal_arrays
+from ros_bridge.protocol.liveness import liveness_arrays
 from ros_bridge.protocol.requests import trajectory_bytes, wrench_arrays
+from ros_bridge.protocol.sensor_blocks import camera_request_arrays
 from ros_bridge.protocol.services import service_arrays
 from ros_bridge.protocol.snapshot import snapshot_arrays
 from ros_bridge.protocol.world_params import param_arrays
@@ -160,10 +164,9 @@ class FleetPlan:
         n, ncmd, nw = self.nworld, len(self.interfaces), len(self.ranges)
         arrays: list[tuple[str, tuple[int, ...], str]] = [
             *snapshot_arrays(n, [ch.width for ch in self.channels]),  # protocol/snapshot.py
-            ("demand", (nw, max(1, len(self.channels))), "u1"),  # per worker: channels it publishes
+            *demand_arrays(nw, len(self.channels), self.view is not None),  # protocol/demand.py
             *service_arrays(nw),  # protocol/services.py
-            ("beat", (nw,), "i8"),  # per worker: ticks served
-            ("worker.hung", (nw,), "f8"),  # per worker: since when (epoch s) it has not ticked; 0: it does
+            *liveness_arrays(nw),  # protocol/liveness.py
         ]
         arrays += slot_arrays("cmd", n, ncmd, per_column=True)
         for spec in self.inputs:
@@ -175,17 +178,15 @@ class FleetPlan:
         if self.sensors is not None:
             arrays += self.sensors.arrays(n)
         if self.manager is not None:
-            arrays.append(("cm.active", (n, max(1, len(self.manager.controllers))), "u1"))
+            arrays += active_arrays(n, len(self.manager.controllers))  # protocol/active.py
         if self.actions:  # per world: the last goal the loop refused, and why
             arrays += refusal_arrays(n)  # protocol/goals.py
         if self.wrench_service:
             arrays += wrench_arrays(nw)
         if self.recording is not None:
             arrays += self.recording.arrays(len(self.channels))
-        if self.view is not None:  # the channels the view reads while it runs (snapshot.py)
-            arrays.append(("view.want", (max(1, len(self.channels)),), "u1"))
-            if self.sensors is not None and self.sensors.cameras:  # (world, camera) it shows, -1: none (view_plan.py)
-                arrays.append(("view.camera", (2,), "i8"))
+        if self.view is not None and self.sensors is not None and self.sensors.cameras:
+            arrays += camera_request_arrays()  # the camera image the view shows (protocol/sensor_blocks.py)
         if self.randomized:
             arrays += param_arrays(n)
         # room for two of the largest trajectories an input takes (a record may take at most

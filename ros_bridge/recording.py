@@ -34,7 +34,14 @@ import numpy as np
 from batchsim.loop import OptionError, Participant, SimLoop
 from ros_bridge.options import RecordOptions
 from ros_bridge.outputs import OutputSpec
-from ros_bridge.protocol.recording import RecordWriter, put_answer, recording_arrays, take_request
+from ros_bridge.protocol.recording import (
+    RecordWriter,
+    put_answer,
+    recording,
+    recording_arrays,
+    set_recording,
+    take_request,
+)
 from ros_bridge.sensor_topics import SensorPlan
 from ros_bridge.view_plan import recording_geometry
 
@@ -205,15 +212,11 @@ class Recording(Participant):
         os.close(write)
         os.set_blocking(read, False)
         self._status, self._buffer, self.path, self._said, self._ready = read, b"", path, False, False
-        self.memory["rec.pos"][1] = self.memory["rec.pos"][0]  # nothing left from a recorder that was killed
         self._used.add(path)
-        self.memory["rec.dropped"][0] = 0
         # the ring takes periods from now on, while the recorder comes up (a second or more):
         # a recording stopped before its recorder said ready still holds start..stop
-        self.writer.skip_to_newest()
-        self.memory["rec.want"][:] = 0
-        self.memory["rec.want"][list(self.spec.channels)] = 1
-        self.memory["rec.on"][0] = 1
+        self.writer.restart()
+        set_recording(self.memory, self.spec.channels)
         if self._geometry is None and self.plan.tf is not None:  # for `batchsim view FILE`
             self._geometry = recording_geometry(self.loop.sim, self.plan.tf)
         self._proc.stdin.write(pickle.dumps((self.plan, os.path.abspath(path), self._geometry)))
@@ -231,8 +234,7 @@ class Recording(Participant):
         """Stop writing into the ring and ask the recorder to finish the file (waiting up to `timeout` s)."""
         if self._proc is None:
             return False, "not recording"
-        self.memory["rec.on"][0] = 0
-        self.memory["rec.want"][:] = 0
+        set_recording(self.memory, None)
         try:
             self._proc.stdin.close()  # EOF: drain the ring, write the summary, exit
         except OSError:
@@ -261,7 +263,7 @@ class Recording(Participant):
     def while_stepping(self, sim, time: float, period: float) -> None:
         """This period's snapshot into the ring: after the host's (it runs first), which on a GPU
         writes it here too, beside the steps."""
-        if not self.memory["rec.on"][0]:
+        if not recording(self.memory):
             return
         if self.loop.rtf == 0:  # as fast as possible, every period: as fast as the recorder takes them
             while self.writer.full() and self._proc is not None:
@@ -271,14 +273,14 @@ class Recording(Participant):
 
     def idle(self, sim, time: float) -> None:
         self._serve()
-        if self.memory["rec.on"][0]:
+        if recording(self.memory):
             self.writer.put_newest()
 
     # --- cameras and lidars (sensor_topics.py's SensorFeed asks, in the loop thread) ---
     def want_sensors(self, want: np.ndarray) -> None:
         """While recording, OR the recorded camera and lidar topics' WANT bits into the
         recorded worlds' rows of `want` ((nworld, nsensor), the workers' want bits)."""
-        if self._sensor_bits.any() and self.memory["rec.on"][0]:
+        if self._sensor_bits.any() and recording(self.memory):
             want[self._worlds] |= self._sensor_bits
 
     def hold_sensor(self, column: int, seq: np.ndarray, worlds: np.ndarray) -> None:
@@ -291,7 +293,7 @@ class Recording(Participant):
         seen = self.memory["rec.sensors.seen"]
         while (
             self._proc is not None
-            and self.memory["rec.on"][0]
+            and recording(self.memory)
             and (seq[self._worlds[rows]] != seen[rows, column]).any()
         ):
             wallclock.sleep(0.0005)
@@ -349,8 +351,7 @@ class Recording(Participant):
             self._finished(None if self._said else silent + " up to its last complete chunk")
 
     def _finished(self, line: str | None) -> None:
-        self.memory["rec.on"][0] = 0
-        self.memory["rec.want"][:] = 0
+        set_recording(self.memory, None)
         if line:
             print(line, file=sys.stderr, flush=True)
         if self._status is not None:

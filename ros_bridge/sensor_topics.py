@@ -21,9 +21,9 @@ Shared memory, per camera k and lidar k (`SensorPlan.arrays`):
                                      a worker publishes a world's sample once, when its seq moved
     {cam,lid}{k}.time (nworld,) f8   per world: the sim time of its sample (the stamp)
     {cam,lid}{k}.parts (nworld,) u1  per world: which arrays its last sample wrote (PART_BITS)
-    (the blocks' writer and reader, and the WANT_* bits: ros_bridge/protocol/sensor_blocks.py)
     sensors.want (nworld, nsensor) u1  per world and sensor (cameras, then lidars): WANT_* bits of
                                      the topics with a subscriber; each worker writes its worlds'
+    (the blocks' and the want bits' writers and readers: ros_bridge/protocol/sensor_blocks.py)
 
 The physics side (`SensorFeed`, a loop participant right after the bridge host) turns the
 want bits into `sim.sensors.want/unwant` each period and runs a `SensorSampler`, which
@@ -46,7 +46,14 @@ from batchsim.hardware import BatchedSystem
 from batchsim.loop import Participant
 from batchsim.sampler import Sample, SensorSampler
 from batchsim.sensors import Camera, CameraMode, Lidar
-from ros_bridge.protocol.sensor_blocks import WANT_DEPTH, WANT_INFO, WANT_RGB, SensorBlock
+from ros_bridge.protocol.sensor_blocks import (
+    WANT_DEPTH,
+    WANT_INFO,
+    WANT_RGB,
+    SensorBlock,
+    want_arrays,
+    wanted,
+)
 
 
 class TopicKind(enum.Enum):
@@ -145,7 +152,7 @@ class SensorPlan:
 
     def arrays(self, nworld: int) -> list[tuple[str, tuple[int, ...], str]]:
         """The Layout entries of the sensor blocks for `nworld` worlds."""
-        out: list[tuple[str, tuple[int, ...], str]] = [("sensors.want", (nworld, max(1, self.nsensor)), "u1")]
+        out = want_arrays(nworld, self.nsensor)
         for k, topics in enumerate(self.cameras):
             cam = topics.camera
             out += [
@@ -199,17 +206,17 @@ class SensorFeed(Participant):
         self.plan = plan
         self.recording = recording
         self.askers = [a for a in (recording, view) if a is not None]  # each ORs its want bits in
-        self.want = memory["sensors.want"]
+        self.memory = memory
         self.names = [c.camera.name for c in plan.cameras] + [ld.lidar.name for ld in plan.lidars]
         self.blocks = {name: plan.block(memory, s) for s, name in enumerate(self.names)}
         self.column = {name: s for s, name in enumerate(self.names)}
-        self._wanted = np.zeros_like(self.want)
+        self._wanted = np.zeros_like(wanted(memory))
         self.sampler = SensorSampler(sim, [self._write])
         # cameras and lidars the bridge does not publish (a polled camera) stay unwanted
         self.sampler.produced = {name: n for name, n in self.sampler.produced.items() if name in self.column}
 
     def update(self, sim: BatchedSystem, time: float, period: float) -> None:
-        want = self.want.copy()
+        want = wanted(self.memory)
         for asker in self.askers:
             asker.want_sensors(want)
         changed = np.flatnonzero((want != self._wanted).any(axis=0))

@@ -25,6 +25,7 @@ from typing import Any
 from batchsim.memory import Memory
 from ros_bridge.naming import worlds_label
 from ros_bridge.plan import FleetPlan
+from ros_bridge.protocol import liveness
 from ros_bridge.registry import ConflictKind, Registry
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.transport import PROFILES_FILE, TransportProfile
@@ -313,19 +314,19 @@ class Supervisor:
 
     def _watch(self, j: int, p: _Process, now: float) -> None:
         """A live worker that stopped ticking: reported, then killed (and restarted as one that died)."""
-        beat = int(self.memory["beat"][j])
+        beat = liveness.beat(self.memory, j)
         if beat != p.beat:
             p.beat, p.beat_at = beat, now
             if p.hung_since:
                 p.hung_since = 0.0
-                self.memory["worker.hung"][j] = 0.0
+                liveness.mark_hung(self.memory, j, 0.0)
                 self.throttle.warn(("worker", j, "answers"), f"bridge worker {j} answers again")
             return
         silent = now - p.beat_at
         lo, hi = self.plan.ranges[j]
         if silent >= HUNG_AFTER and not p.hung_since:
             p.hung_since = now
-            self.memory["worker.hung"][j] = wallclock.time() - silent
+            liveness.mark_hung(self.memory, j, wallclock.time() - silent)
             self.throttle.warn(
                 ("worker", j, "hung"),
                 f"bridge worker {j} (pid {p.popen.pid}) has not answered for {silent:.1f} s (busy or hung): "
@@ -334,7 +335,7 @@ class Supervisor:
         elif silent >= HUNG_RESTART:
             self.throttle.warn(("worker", j, "killed"), f"bridge worker {j} did not answer for {silent:.0f} s: killed")
             p.popen.kill()  # the next look restarts it, as one that died
-            self.memory["worker.hung"][j] = 0.0
+            liveness.mark_hung(self.memory, j, 0.0)
             p.beat_at = now
 
     def _worlds(self, lo: int, hi: int) -> str:

@@ -29,7 +29,7 @@ import numpy as np
 
 from batchsim.hardware import BatchedSystem
 from batchsim.model.frames import frame_tree
-from ros_bridge.protocol.sensor_blocks import WANT_RGB
+from ros_bridge.protocol.sensor_blocks import WANT_RGB, CameraRequest
 
 GEOMETRY = "batchsim/view_geometry.npz"  # a recording's attachment: the robots' geoms (`batchsim view FILE`)
 VISIBLE_GROUPS = 3  # MuJoCo's viewer shows geom groups 0, 1 and 2 by default
@@ -196,19 +196,19 @@ def recording_geometry(sim: BatchedSystem, tf) -> bytes:
 
 
 class ViewCamera:
-    """The physics side of the view's camera image: `view.camera` ((2,) i8 in `memory`: the
-    world and the camera index the page shows, -1 while it shows none), written by the view
-    process, becomes WANT_RGB in that world's camera column of the want bits."""
+    """The physics side of the view's camera image: the view process's request
+    (protocol/sensor_blocks.py's CameraRequest: the world and camera the page shows) becomes
+    WANT_RGB in that world's camera column of the want bits."""
 
     def __init__(self, memory) -> None:
-        self.request = memory["view.camera"]
-        self.request[:] = -1  # nothing until the page asks (a new segment reads as world 0)
+        self.request = CameraRequest(memory)
+        self.request.clear()  # nothing until the page asks (a new segment reads as world 0)
 
     def want_sensors(self, want: np.ndarray) -> None:
         """OR the view's camera into `want` ((nworld, nsensor), the workers' want bits)."""
-        world, camera = self.request.tolist()
-        if 0 <= world < want.shape[0] and 0 <= camera < want.shape[1]:
-            want[world, camera] |= WANT_RGB
+        asked = self.request.asked()
+        if asked is not None and asked[0] < want.shape[0] and asked[1] < want.shape[1]:
+            want[asked] |= WANT_RGB
 
 
 class ViewProcess:
@@ -237,7 +237,7 @@ class ViewProcess:
 
     def close(self) -> None:
         if self.camera is not None:
-            self.camera.request[:] = -1
+            self.camera.request.clear()
         if self._proc.poll() is None:
             self._proc.terminate()
             try:

@@ -12,9 +12,9 @@ where `--rtf 0` asks for every period as fast as the recorder takes them): a per
 finds the ring full is counted in `rec.dropped` and skipped.
 
 `rec.on` says a recording runs (set by the physics process from the start it is asked
-for, before the recorder is up: the ring holds the periods until it reads them); `rec.want`
-says which channels the recorder needs written into the snapshot (snapshot.py ORs it
-into the workers' demand). A recording is started and stopped through a mailbox:
+for, before the recorder is up: the ring holds the periods until it reads them; cleared by
+either side when it ends: `set_recording`, `recording`); `rec.want` says which channels the
+recorder needs written into the snapshot (demand.py ORs it into the workers' demand). A recording is started and stopped through a mailbox:
 worker 0's `/batchsim/record` service writes `rec.req` (ticket, on), the physics process
 answers in `rec.ans` (ticket, ok) and `rec.msg` (its message).
 """
@@ -27,6 +27,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from batchsim.memory import Memory
+from ros_bridge.protocol.demand import ChannelDemand
 from ros_bridge.protocol.snapshot import HEADERS, channel_rows
 from ros_bridge.protocol.text import put_text, text_of
 
@@ -102,8 +103,11 @@ class RecordWriter:
         m["rec.pos"][0] = k + 1
         return True
 
-    def skip_to_newest(self) -> None:
-        """Start with the next snapshot (not one written before the recording began)."""
+    def restart(self) -> None:
+        """A new recording: the ring emptied (of what a killed recorder left), none dropped yet,
+        and the next snapshot its first (not one written before the recording began)."""
+        self.m["rec.pos"][1] = self.m["rec.pos"][0]
+        self.m["rec.dropped"][0] = 0
         self._last = int(self.m["latest"][0])
 
 
@@ -139,6 +143,10 @@ class RecordReader:
         pos = self.m["rec.pos"]
         return int(pos[0]) - int(pos[1])
 
+    def dropped(self) -> int:
+        """Periods the writer found no room for."""
+        return int(self.m["rec.dropped"][0])
+
     def take(self, most: int = 256) -> list[RecordedPeriod]:
         """Up to `most` periods (copies), and the ring's room for them handed back."""
         m = self.m
@@ -153,6 +161,26 @@ class RecordReader:
             )
         m["rec.pos"][1] = read + len(out)
         return out
+
+
+def set_recording(memory: Memory, channels: Sequence[int] | None) -> None:
+    """A recording runs from now, the snapshot writing `channels` for it; None: none runs."""
+    if channels is None:
+        memory["rec.on"][0] = 0
+        ChannelDemand(memory, "rec.want").clear()
+    else:
+        ChannelDemand(memory, "rec.want").set(channels)
+        memory["rec.on"][0] = 1
+
+
+def recording(memory: Memory) -> bool:
+    """Whether a recording runs."""
+    return bool(memory["rec.on"][0])
+
+
+def next_ticket(memory: Memory) -> int:
+    """Worker 0: the ticket of its next request."""
+    return int(memory["rec.req"][0]) + 1
 
 
 def put_request(memory: Memory, ticket: int, on: bool) -> None:

@@ -1,7 +1,9 @@
 """The sensor blocks: one camera's or lidar's images or scans of every world in shared
-memory, seqlocked per world (the writer in the loop's process, the reader in a worker),
-and the want bits the workers set per world and sensor. No rclpy here. The layout of
-the arrays is ros_bridge/sensor_topics.py's (`SensorPlan.arrays`).
+memory, seqlocked per world (the writer in the loop's process, the reader in a worker);
+and what is asked of them: the want bits the workers set per world and sensor
+(`sensors.want`: `WantWriter`, read by the loop with `wanted`) and the camera image the web
+view shows (`view.camera`: `CameraRequest`). No rclpy here. The layout of the blocks is
+ros_bridge/sensor_topics.py's (`SensorPlan.arrays`).
 
 Each reader keeps its own `seen` (the seq it last took, per world): the workers one each for
 their worlds, a recording (ros_bridge/worker/sensor_recording.py) one for the recorded
@@ -72,6 +74,54 @@ class SensorBlock:
             data = {p: a[whole] for p, a in data.items()}
         seen[rows] = before[rows]
         return rows, parts, time, data
+
+
+def want_arrays(nworld: int, nsensor: int) -> list[tuple[str, tuple[int, ...], str]]:
+    """Per world and sensor (cameras, then lidars): the WANT_* bits of its topics someone subscribes to."""
+    return [("sensors.want", (nworld, max(1, nsensor)), "u1")]
+
+
+class WantWriter:
+    """A worker's side: the want bits of its worlds [lo, hi)."""
+
+    def __init__(self, memory, lo: int, hi: int):
+        self._want = memory["sensors.want"][lo:hi]
+
+    @property
+    def nsensor(self) -> int:
+        return self._want.shape[1]
+
+    def put(self, bits: np.ndarray) -> None:
+        """(hi - lo, nsensor) WANT_* bits, written at once."""
+        self._want[:] = bits
+
+
+def wanted(memory) -> np.ndarray:
+    """The loop's side: (nworld, nsensor) u1, a copy of every world's want bits."""
+    return memory["sensors.want"].copy()
+
+
+def camera_request_arrays() -> list[tuple[str, tuple[int, ...], str]]:
+    """The (world, camera index) whose image the web view shows; -1 while it shows none."""
+    return [("view.camera", (2,), "i8")]
+
+
+class CameraRequest:
+    """The view process asks (`ask`, `clear`); the loop reads (`asked`) and renders that
+    camera of that world as though someone subscribed to its image."""
+
+    def __init__(self, memory):
+        self._request = memory["view.camera"]
+
+    def ask(self, world: int, camera: int) -> None:
+        self._request[:] = (world, camera)
+
+    def clear(self) -> None:
+        self._request[:] = -1
+
+    def asked(self) -> tuple[int, int] | None:
+        world, camera = self._request.tolist()
+        return None if world < 0 or camera < 0 else (world, camera)
 
 
 def gaps(before: np.ndarray, after: np.ndarray) -> np.ndarray:

@@ -9,8 +9,8 @@ is written and 2n+2 when done, then `latest` says n. A channel's rows go into th
 own SLOTS slots, its w-th write into slot w % SLOTS (`cseq[c, slot]`: 2w+1 while written,
 2w+2 when done), so a snapshot that does not write a channel leaves its last rows alone. A reader
 copies and checks the seqs again: it retries a header being rewritten and never keeps a
-torn row. Each channel (ros_bridge/outputs.py) is written only when some worker publishes
-from it this period (`demand`, a recording's `rec.want`, the view's `view.want`).
+torn row. Each channel (ros_bridge/outputs.py) is written only when someone reads it this
+period: a worker's subscribers or goals, a recording, the view (protocol/demand.py).
 
 A worker woken late (`catch_up`) reads the oldest snapshot it has not seen that holds a
 channel, then the next: joint_states at 25 Hz in a 100 Hz loop are in one snapshot of four,
@@ -33,6 +33,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from batchsim.memory import Memory
+from ros_bridge.protocol.demand import demanded
 
 # A 512-world worker is now and then late by more than 0.1 s (publishing its worlds, their
 # /diagnostics): 16 headers and 3 slots held 110 ms of a 25 Hz channel, 32 and 6 hold 230 ms
@@ -72,16 +73,6 @@ def channel_rows(memory: Memory, n: int, c: int) -> np.ndarray | None:
     if int(memory["written"][b, c]) != n:
         return None
     return memory[f"ch{c}"][int(memory["cwrite"][b, c]) % SLOTS]
-
-
-def demanded(memory: Memory) -> np.ndarray:
-    """(nchannel,) bool: the channels someone reads: a worker (for its subscribers), a
-    recording (protocol/recording.py) or the view."""
-    demand = memory["demand"].any(axis=0)
-    for extra in ("rec.want", "view.want"):
-        if extra in memory:
-            demand = demand | memory[extra].astype(bool)
-    return demand
 
 
 def write_snapshot(

@@ -57,6 +57,8 @@ from ros_bridge.action_plan import (
     encode_gripper_goal,
 )
 from ros_bridge.naming import topic_name
+from ros_bridge.protocol.active import ActiveReader
+from ros_bridge.protocol.demand import ChannelDemand
 from ros_bridge.protocol.goals import RefusalReader
 from ros_bridge.protocol.requests import Kind
 from ros_bridge.worker.messages import Trajectory, parse_trajectory, seconds, stamp_of
@@ -107,9 +109,9 @@ class ActionServers(OnRequest):
         self.specs = specs
         self.requests = requests
         self.logger = node.get_logger()
-        self.active = memory["cm.active"]
+        self.active = ActiveReader(memory)
         self.refusals = RefusalReader(memory)
-        self.demand = memory["demand"][index]  # this worker's channel demand (the loop copies those)
+        self.demand = ChannelDemand(memory, "demand", index)  # the channels the loop copies for this worker
         self.submit = submit
         self.time = time
         self.lo = lo
@@ -156,7 +158,7 @@ class ActionServers(OnRequest):
     # --- the executor thread ---
     def _goal(self, a: int, world: int) -> GoalResponse:
         spec = self.specs[a]
-        if not self.active[world, spec.controller_index]:
+        if not self.active.active(world, spec.controller_index):
             self.logger.error(f"{spec.controller} in world {world}: can't accept new action goals: controller is not running")
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
@@ -179,7 +181,7 @@ class ActionServers(OnRequest):
         with self._lock:
             old = self.inflight[a].get(world)
             self.inflight[a][world] = goal
-        self.demand[spec.channel] = 1  # at once: the worker's refresh re-reads demand only twice a second
+        self.demand.add(spec.channel)  # at once: the worker's refresh re-reads demand only twice a second
         if old is not None:  # preempted, as upstream's preempt_active_goal
             self._finish(old, GoalOutcome.ABORTED, self._result(old, FJT.INVALID_GOAL, PREEMPTED))
         if isinstance(spec, TrajectoryActionSpec):

@@ -7,7 +7,7 @@ switching only its controllers, by the names its own YAML gives them (ManagerSco
 
 - list_controllers, list_hardware_interfaces, list_hardware_components,
   list_controller_types: answered here, from the plan (ManagerSpec) and the per-world
-  active masks the loop keeps in shared memory (`cm.active`);
+  active masks the loop keeps in shared memory (ros_bridge/protocol/active.py);
 - switch_controller: handed to the loop as a SWITCH request (ros_bridge/manager_link.py);
   the answer (ros2_control's `ok` and `message`) waits until the loop carried it out;
 Each world's services are created when a client of one of them appears in the ROS graph
@@ -42,6 +42,7 @@ from rclpy.node import Node
 from batchsim.memory import Memory
 from ros_bridge.manager_link import ManagerScope, ManagerSpec
 from ros_bridge.naming import topic_name
+from ros_bridge.protocol.active import ActiveReader
 from ros_bridge.protocol.requests import Kind, encode_switch
 from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import LoopRequests
@@ -53,7 +54,7 @@ class ControllerManagerServices(OnRequest):
     def __init__(self, node: Node, spec: ManagerSpec, memory: Memory, requests: LoopRequests, namespaces: list[str], lo: int):
         super().__init__()
         self.spec = spec
-        self.active = memory["cm.active"]
+        self.active = ActiveReader(memory)
         self.requests = requests
         self.logger = node.get_logger()
         self._services: list[Any] = []
@@ -80,12 +81,12 @@ class ControllerManagerServices(OnRequest):
 
     def _claimed(self, world: int) -> dict[str, str]:
         """command interface -> the controller active in `world` that claims it (world names)."""
-        active = self.active[world]
+        active = self.active.row(world)
         return {i: c.name for k, c in enumerate(self.spec.controllers) if active[k] for i in c.command_interfaces}
 
     def _list_controllers(self, at: tuple[int, ManagerScope], where: str, request: Any, response: Any) -> Any:
         world, scope = at
-        active = self.active[world]
+        active = self.active.row(world)
         local = scope.local
         for k in scope.controllers:
             c, on = self.spec.controllers[k], bool(active[k])

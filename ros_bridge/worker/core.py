@@ -51,6 +51,8 @@ from ros_bridge.naming import topic_name, worlds_label
 from ros_bridge.options import Reliability
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.protocol.commands import Problem, SlotWriter, check_single, check_vector
+from ros_bridge.protocol.demand import ChannelDemand
+from ros_bridge.protocol.liveness import Beat
 from ros_bridge.protocol.snapshot import HEADERS, Snapshot, read_snapshot
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.worker.conflicts import check_conflicts
@@ -113,7 +115,8 @@ class Worker:
         self.trajectories = TrajectoryIntake(plan, memory, self.ring, self._ring_lock, self._reject, self._nudge)
         self._outputs: list[Output] = []
         self._active: list[Output] = []  # outputs with a subscriber on some world
-        self._beat = memory["beat"]
+        self._beat = Beat(memory, index)
+        self._demand = ChannelDemand(memory, "demand", index)
         self._running = False
         self._thread: threading.Thread | None = None
         self._due = {"refresh": 0.0, "diag": 0.0}
@@ -256,7 +259,7 @@ class Worker:
 
     def tick(self) -> None:
         """Publish the newest snapshot if it is new; answer services; housekeeping."""
-        self._beat[self.index] += 1
+        self._beat.tick()
         until = wallclock.monotonic() + CATCH_UP
         for _ in range(HEADERS):  # woken late: each missed snapshot holding a channel, in order
             snap = read_snapshot(self.memory, len(self.plan.channels), self.lo, self.hi, self.snapshot, catch_up=True)
@@ -320,15 +323,14 @@ class Worker:
         the state before it commands (lockstep) is not left waiting for the next period."""
         snap = self.snapshot
         sec, nanosec = stamp_of(snap.time)
-        demand = np.zeros(len(self.plan.channels), dtype=np.uint8)
+        demand: set[int] = set()  # the channels this worker's subscribers and goals need
         active = []
         for out in self._outputs:
             before = set(out.rows)
             out.rows = [r for r, p in enumerate(out.publishers) if p is not None and p.get_subscription_count() > 0]
             if out.rows:
                 active.append(out)
-                for c in out.spec.channels:
-                    demand[c] = 1
+                demand.update(out.spec.channels)
                 new = [r for r in out.rows if r not in before]
                 if new and snap.n >= 0:
                     self._publish_rows(out, snap, new, sec, nanosec)
@@ -338,11 +340,10 @@ class Worker:
         if self.tf is not None:
             self.tf.refresh()
             if self.tf.wanted:
-                demand[self.tf.channel] = 1
+                demand.add(self.tf.channel)
         if self.actions is not None:
-            demand[self.actions.channels()] = 1
-        if len(demand):
-            self.memory["demand"][self.index, : len(demand)] = demand
+            demand.update(self.actions.channels())
+        self._demand.set(demand)
         if self._clock_pub is not None:
             count = self._clock_pub.get_subscription_count()
             if count > self._clock_subscribers and snap.n >= 0:

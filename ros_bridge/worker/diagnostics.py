@@ -27,6 +27,7 @@ from rclpy.qos import QoSProfile
 from batchsim.memory import Memory
 from ros_bridge import world_status
 from ros_bridge.protocol.commands import Problem, RejectionWriter
+from ros_bridge.protocol.liveness import hung
 from ros_bridge.protocol.world_params import read_line
 from ros_bridge.worker.messages import stamp_of
 
@@ -49,7 +50,7 @@ class Diagnostics:
         self.lo, self.hi = lo, hi
         self._robots = [KeyValue(key="robots", value=", ".join(robots))] if robots else []
         self.workers = workers or []
-        self.hung = memory["worker.hung"]
+        self.hung = hung(memory)
         self.memory = memory
         self.randomized = "wp.text" in memory  # each world's draw (ros_bridge/protocol/world_params.py)
         self.namespaces = namespaces

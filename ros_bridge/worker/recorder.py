@@ -36,7 +36,7 @@ from std_msgs.msg import String
 from batchsim.memory import Memory
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
-from ros_bridge.protocol.recording import RecordedPeriod, RecordReader
+from ros_bridge.protocol.recording import RecordedPeriod, RecordReader, set_recording
 from ros_bridge.view_plan import GEOMETRY
 from ros_bridge.worker.mcap_file import BlockWriter
 from ros_bridge.worker.messages import clock_payload, stamp_of
@@ -225,14 +225,13 @@ def main(argv: list[str] | None = None) -> int:
         sensors.take()
         recording.finish()
         stream.close()
-        dropped = int(memory["rec.dropped"][0])
+        dropped = reader.dropped()
         lost = f"; {dropped} periods dropped (the recorder fell behind the loop)" if dropped else ""
         lost += sensors.closing()
         status.write(f"recording: {recording.messages} messages in {path}{lost}\n")
         return 0
     except OSError as e:  # a full disk, a path that went away: the recording stops, the loop goes on
-        memory["rec.on"][0] = 0
-        memory["rec.want"][:] = 0
+        set_recording(memory, None)
         reason = e.strerror or str(e)
         status.write(f"warning: recording stopped: {path}: {reason}; the simulation goes on\n")
         return 1

@@ -23,7 +23,7 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2
 
 from ros_bridge.naming import topic_name
-from ros_bridge.protocol.sensor_blocks import PART_BITS, gaps
+from ros_bridge.protocol.sensor_blocks import PART_BITS, WantWriter, gaps
 from ros_bridge.sensor_topics import SensorPlan, SensorTopic, TopicKind
 from ros_bridge.worker.messages import stamp_of
 from ros_bridge.worker.sensor_messages import Framing, topic_framing
@@ -92,7 +92,7 @@ class SensorPublishers:
         count_missed: Callable[[str, np.ndarray, np.ndarray], None] | None = None,
     ):
         self.lo, self.hi, self.plan = lo, hi, plan
-        self.want = memory["sensors.want"]
+        self.want = WantWriter(memory, lo, hi)
         self.published = 0
         self.count_missed = count_missed
         n = hi - lo
@@ -135,11 +135,11 @@ class SensorPublishers:
 
     def refresh(self) -> None:
         """Subscriber counts -> this worker's rows of the want bits."""
-        want = np.zeros((self.hi - self.lo, self.want.shape[1]), np.int64)
+        want = np.zeros((self.hi - self.lo, self.want.nsensor), np.int64)
         for s, topics in enumerate(self.topics):
             for t, topic in topics:
                 want[:, s] |= topic.refresh() * t.want
-        self.want[self.lo : self.hi] = want
+        self.want.put(want)
 
     def publish(self) -> None:
         """Publish every sample written since the last call, once, where someone subscribes:

@@ -20,7 +20,7 @@ from std_srvs.srv import SetBool, Trigger
 from batchsim.memory import Memory, Ring
 from ros_bridge.naming import topic_name
 from ros_bridge.protocol.recording import answer as recorded
-from ros_bridge.protocol.recording import put_request
+from ros_bridge.protocol.recording import next_ticket, put_request
 from ros_bridge.protocol.requests import Kind, encode_reset, encode_ticket
 from ros_bridge.protocol.services import Answer, Tickets
 
@@ -107,7 +107,7 @@ def _record_service(requests: LoopRequests) -> Callable[[Any, Any], Any]:
     memory = requests.memory
 
     def record(request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
-        ticket = int(memory["rec.req"][0]) + 1
+        ticket = next_ticket(memory)
         put_request(memory, ticket, bool(request.data))
         deadline = wallclock.monotonic() + SERVICE_WAIT
         while (answer := recorded(memory, ticket)) is None and wallclock.monotonic() < deadline:

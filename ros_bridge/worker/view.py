@@ -39,7 +39,8 @@ from batchsim.hardware import Status
 from batchsim.memory import Memory
 from batchsim.types import FROZEN
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, FleetPlan
-from ros_bridge.protocol.sensor_blocks import WANT_RGB, SensorBlock
+from ros_bridge.protocol.demand import ChannelDemand
+from ros_bridge.protocol.sensor_blocks import WANT_RGB, CameraRequest, SensorBlock
 from ros_bridge.protocol.snapshot import Snapshot, read_snapshot
 from ros_bridge.view_plan import ViewSpec
 from ros_bridge.worker.process import die_with_parent
@@ -184,20 +185,20 @@ class FleetView:
         self.history: collections.deque = collections.deque()
         self.scene.picker.on_update(lambda _: self.history.clear())
         self.blocks = [SensorBlock(memory, f"cam{k}", ("rgb",)) for k in range(len(cameras))]
+        self.camera = CameraRequest(memory) if self.blocks else None  # the image the loop renders for us
         self.seen = np.full(1, -1, np.int64)  # the seq of the shown world's frame last taken
         self.shown = (-1, -1)  # (world, camera) of the image
 
     def want(self, on: bool) -> None:
         """Ask the loop for the channels the view reads (the tf poses, the joint positions);
         off, for no camera image either."""
-        want = self.memory["view.want"]
-        want[:] = 0
+        want = ChannelDemand(self.memory, "view.want")
         if on:
-            want[self.spec.channel] = 1
-            if self.spec.joints is not None:
-                want[self.spec.joints[0]] = 1
-        elif self.blocks:
-            self.memory["view.camera"][:] = -1
+            want.set([self.spec.channel] + ([self.spec.joints[0]] if self.spec.joints is not None else []))
+        else:
+            want.clear()
+        if not on and self.blocks:
+            self.camera.clear()
             self.shown = (-1, -1)
 
     def update(self) -> None:
@@ -217,7 +218,7 @@ class FleetView:
         w, k = self.scene.picked, self.scene.camera
         block = self.blocks[k]
         if (w, k) != self.shown:  # only frames rendered from now: an older one may be long stale
-            self.memory["view.camera"][:] = (w, k)
+            self.camera.ask(w, k)
             self.shown = (w, k)
             self.seen[0] = block.seq[w]
             self.scene.image.image = self.scene.blank(k)
