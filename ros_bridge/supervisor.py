@@ -5,9 +5,9 @@ Worker 0 starts first: it checks the ROS graph for another fleet serving these w
 /clock. A worker that dies is noticed within SUPERVISE seconds, the log names its worlds,
 and it is restarted on the same shared memory (its counters continue, so nothing is
 replayed); one that dies again soon after is restarted with a back-off. A worker that
-stops answering (its tick counter `beat` stands still: stopped, deadlocked) is noticed
-after HUNG_AFTER seconds, logged naming its worlds and shown in the other workers'
-/diagnostics (`worker.hung`), and killed and restarted if it has not come back after
+stops answering (its tick counter stands still: stopped, deadlocked; protocol/liveness.py) is
+noticed after HUNG_AFTER seconds, logged naming its worlds and shown in the other workers'
+/diagnostics, and killed and restarted if it has not come back after
 HUNG_RESTART seconds. A worker that is merely slow still ticks, and is left alone.
 """
 

@@ -1,4 +1,6 @@
-"""The `batchsim` command (args.py: flags and their checks; info.py: `batchsim info`; runner.py: the run).
+"""The `batchsim` command: args.py (flags and their checks; bridge_flags.py, the bridge's, from
+ros_bridge/options.py), runner.py (the run), info.py (`batchsim info`), replay.py and view.py
+(`batchsim replay`, `batchsim view`), description_topic.py (`--robot-description-topic`).
 
     batchsim --worlds 16                     16 arms, over ROS 2, in real time
     batchsim --worlds 64 --model quadruped --rtf 0 --no-ros

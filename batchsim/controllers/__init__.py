@@ -4,8 +4,8 @@
     loop = SimLoop(sim, control_rate=manager.update_rate, participants=[manager])
     manager["arm_controller"].set_trajectory(5, joints, times, positions)
 
-The YAML is ros2_control's controller_manager file; the ROS topics of each controller are
-bound in ros_bridge/controllers.py.
+The YAML is ros2_control's controller_manager file. A controller declares its ROS topics
+and actions as data (topics.py); the ROS bridge (ros_bridge/) binds them for every world.
 """
 
 from __future__ import annotations

@@ -9,6 +9,11 @@
     ros2_control.py  what the blocks make of a model: narrowing, actuators by name, PIDs, sensors
     params.py        ROS 2 parameter files (pids_config_file, controllers YAML)
     interfaces.py    discovery: joints, actuators and sensors as ros2_control interfaces; keyframes
+    transmissions.py a description's ros2_control <transmission>s
+    from_urdf.py     a URDF-only robot compiled to MJCF, as mujoco_ros2_control's tool does
+    lidars.py        the lidars an MJCF declares that MuJoCo does not compile
+    frames.py        the tf tree: a frame per body, the parent->child transforms
+    urdf.py          robot_description from the MJCF
 """
 
 from __future__ import annotations

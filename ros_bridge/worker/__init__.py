@@ -1,18 +1,26 @@
 """The bridge workers: the only rclpy code of batchsim.
 
 core.py        the Worker: one rclpy context and node serving a range of worlds
-process.py     its process (`python -m ros_bridge.worker ...`, started by ros_bridge/host.py)
+process.py     its process (`python -m ros_bridge.worker ...`, __main__.py; started by ros_bridge/supervisor.py)
 snapshot.py    the loop's snapshot, read; per-world outputs over it
 messages.py    messages built in bulk as CDR bytes; incoming ones parsed into rows
+intake.py      bounded intake: a flood on one world's topic costs that world only
 trajectories.py  trajectories from topics and action goals, batched to the loop
+on_request.py, graph_scan.py  per-world entities created when a client appears in the ROS graph
 tf.py          tf, tf_static, robot_description
 actions.py     FollowJointTrajectory and GripperCommand servers
 controller_manager.py  every world's controller_manager services
-sensors.py, sensor_messages.py   camera images and lidar scans
 services.py    requests to the loop (reset, pause, step, switch) and the services that wait for them
+simulation.py, wrench.py  mujoco_ros2_control's simulation services and ExternalWrenchPlugin service
+sensors.py, sensor_messages.py   camera images and lidar scans
 diagnostics.py rejected commands and /diagnostics
 type_check.py  a remote endpoint built from another definition of our types, named
 conflicts.py   another process already serving these worlds?
+description_topic.py  the robot description taken from a topic (`--robot-description-topic`)
+recorder.py    the recorder process (MCAP): mcap_file.py, schemas.py, sensor_recording.py, status_recording.py
+replay.py      `batchsim replay FILE`
+view.py        the web view's process
+stacks.py      where a worker's threads spend their time (BATCHSIM_WORKER_STACKS)
 """
 
 from typing import Any

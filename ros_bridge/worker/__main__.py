@@ -1,4 +1,4 @@
-"""`python -m ros_bridge.worker INDEX WAKE_FD STATUS_FD NOTIFY_FD [--check]` (started by host.py)."""
+"""`python -m ros_bridge.worker INDEX WAKE_FD STATUS_FD NOTIFY_FD [--check]` (started by supervisor.py)."""
 
 import os
 import sys

@@ -1,6 +1,6 @@
 """A bridge worker's process: `python -m ros_bridge.worker INDEX WAKE_FD STATUS_FD NOTIFY_FD [--check]`.
 
-host.py starts one per range of worlds and hands it the plan on standard input; it
+supervisor.py starts one per range of worlds and hands it the plan on standard input; it
 reports `ready`, `conflict KIND MESSAGE` or `error ...` on STATUS_FD, then serves until
 WAKE_FD reaches EOF (the physics process went) or carries `q`.
 """
