@@ -21,9 +21,7 @@ at 100 Hz), and before the channel's SLOTS-th next write (a 25 Hz channel: 230 m
 further behind than BACKLOG such snapshots cannot catch up (a fleet flat out, a worker with
 more worlds than it can publish): it skips to the oldest snapshot holding a channel that no
 later one holds, so that what it publishes stays fresh. A due snapshot lost either way is
-counted (`missed joint_states` in /diagnostics). (Until 2026-11-26 a late reader always
-skipped: a worker late by more than one 25 Hz period published the newest joint_states only,
-and 4096 arms on a GPU host published 0.970-0.975 of theirs.)
+counted (`missed joint_states` in /diagnostics).
 """
 
 from __future__ import annotations
@@ -36,7 +34,7 @@ from batchsim.memory import Memory
 from ros_bridge.protocol.demand import demanded
 
 # A 512-world worker is now and then late by more than 0.1 s (publishing its worlds, their
-# /diagnostics): 16 headers and 3 slots held 110 ms of a 25 Hz channel, 32 and 6 hold 230 ms
+# /diagnostics): 32 headers and 6 slots hold 230 ms of a 25 Hz channel
 HEADERS = 32  # snapshot headers kept: a reader HEADERS - 2 periods late still finds one
 BACKLOG = 8  # snapshots holding a channel a late reader publishes one by one; beyond, it skips
 SLOTS = 6  # each channel's rows kept: a channel's newest and the SLOTS - 1 before it

@@ -1,4 +1,4 @@
-"""Each randomized world's draw, as text the workers put in /diagnostics (issue 26). No rclpy.
+"""Each randomized world's draw, as text the workers put in /diagnostics. No rclpy.
 
 The physics process writes one line per world whose draw changed (at start, and after a
 reset that redraws): its seed and draw number, how to reproduce it alone, and the values that
