@@ -119,7 +119,7 @@ class WrenchServices(OnRequest):
         if ticket is None:
             return False, "the loop is too far behind"
         deadline = wallclock.monotonic() + SERVICE_WAIT
-        while (answer := requests.answer(ticket)) is None:
+        while (answer := requests.tickets.answer(ticket)) is None:
             if wallclock.monotonic() > deadline or not requests.running:
                 return False, "the simulation loop did not answer in time"
             await _NextCycle()
