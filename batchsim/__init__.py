@@ -158,7 +158,12 @@ def make(
 
 def _configure_inputs(sim: BatchedSystem, sensors: Any, randomize: Any, world_offset: int) -> None:
     """What make() hands a new system before configure: its sensors and its per-world variation
-    (with a fleet's robots placed at random per world, batchsim.fleet)."""
+    (with a fleet's robots placed at random per world, batchsim.fleet). A fleet's robots' own
+    sensors files (`spec.sensor_config`) are applied, `sensors` laid over them (batchsim.fleet.sensors)."""
+    if sim.spec.sensor_config is not None:
+        from batchsim.fleet.sensors import merged
+
+        sensors = merged(sim.spec, sensors)
     if sensors is not None:
         sim.set_sensor_config(sensors)
     if sim.spec.placements:

@@ -415,10 +415,159 @@ def test_a_robot_whose_elements_hang_on_its_files_static_bodies_is_refused_in_on
         load_fleet({"robots": [{"name": "w", "model": str(robot)}]})
 
 
-def test_a_robots_own_sensors_file_is_refused_rather_than_ignored(tmp_path):
-    (tmp_path / "s.yaml").write_text("sensors:\n  camera_rate: 30\n")
-    with pytest.raises(FleetError, match=r"robots\[0\]\.sensors: a robot's own sensors file is not applied yet"):
-        read_fleet({"robots": [{"name": "a", "model": "rover", "sensors": str(tmp_path / "s.yaml")}]})
+# ---------------------------------------------------------------- a robot's own sensors file
+
+#: rover a's file: its camera at its own size and topic, noise on its wheels' positions
+OWN_CAMERA_AND_NOISE = """sensors:
+  cameras:
+    front_camera: {width: 64, height: 48, image_topic: cam/rgb, frame_name: /cam_optical}
+  noise:
+    "*_wheel_joint/position": {stddev: 0.01}
+"""
+
+
+def two_rovers(tmp_path, a: str | None, b: str | None) -> dict:
+    """A fleet of rovers `a` and `b`, each with its own sensors file where given (its text)."""
+    robots = []
+    for name, text, pose in (("a", a, [0, 0, 0]), ("b", b, [2, 0, 0])):
+        robot = {"name": name, "model": "rover", "pose": pose}
+        if text is not None:
+            (tmp_path / f"{name}.yaml").write_text(text)
+            robot["sensors"] = str(tmp_path / f"{name}.yaml")
+        robots.append(robot)
+    return {"robots": robots}
+
+
+def noisy(sim) -> list[str]:
+    """The state interfaces read() puts noise on."""
+    sim.write()
+    sim.step(5)
+    sim.read()
+    return [sim.spec.state[c].name for c in np.flatnonzero((sim.state != sim.true_state).any(axis=0))]
+
+
+def test_each_robots_own_sensors_file_gives_it_what_the_file_asks_and_the_other_robot_nothing(tmp_path):
+    """Issue 43: `sensors:` under a robot was refused (a robot's own sensors file is not
+    applied yet); now each file applies to its robot, named as the world names it."""
+    fleet = two_rovers(tmp_path, OWN_CAMERA_AND_NOISE, "sensors:\n  camera_resolution: [32, 24]\n")
+    assert [r.sensors for r in read_fleet(fleet).robots] == [tmp_path / "a.yaml", tmp_path / "b.yaml"]
+    sim = active(fleet, "cpu", 2)
+    cams = sim.sensors.cameras
+    assert {n: (c.width, c.height) for n, c in cams.items()} == {"a/front_camera": (64, 48), "b/front_camera": (32, 24)}
+    a, b = cams["a/front_camera"], cams["b/front_camera"]
+    # a's topic and frame under its namespace, as alone under the world's; b's its defaults
+    assert (a.image_topic, a.depth_topic, a.frame_id) == ("a/cam/rgb", "a/front_camera/depth/image_raw", "a/cam_optical")
+    assert (b.image_topic, b.frame_id) == ("b/front_camera/image_raw", "b/front_camera")
+    assert noisy(sim) == ["a/left_wheel_joint/position", "a/right_wheel_joint/position"]  # b's wheels: none
+    assert [ld.topic for ld in sim.sensors.lidars.values()] == ["a/scan", "b/scan"]
+    assert sim.render("b/front_camera").rgb.shape == (2, 24, 32, 3)
+    sim.shutdown()
+
+
+def test_a_robots_file_gives_it_in_a_fleet_what_it_gives_it_alone(tmp_path):
+    (tmp_path / "amr.yaml").write_text(OWN_CAMERA_AND_NOISE)
+    alone = batchsim.make("rover", 2, "cpu", sensors=tmp_path / "amr.yaml")
+    alone.configure()
+    alone.activate()
+    fleet = two_rovers(tmp_path, OWN_CAMERA_AND_NOISE, None)
+    sim = active(fleet, "cpu", 2)
+    mine, theirs = alone.sensors.camera("front_camera"), sim.sensors.camera("a/front_camera")
+    assert (theirs.width, theirs.height) == (mine.width, mine.height) == (64, 48)
+    assert theirs.info == mine.info  # the intrinsics
+    assert (sim.sensors.camera("b/front_camera").width, sim.sensors.camera("b/front_camera").height) == (320, 240)
+    names = noisy(alone)
+    assert noisy(sim) == ["a/" + n for n in names] and names == ["left_wheel_joint/position", "right_wheel_joint/position"]
+    # one seed, one stream over the noisy values: the fleet's first robot draws what it draws alone
+    columns = [sim.spec.state_interfaces.index("a/" + n) for n in names]
+    own = [alone.spec.state_interfaces.index(n) for n in names]
+    assert np.array_equal(sim.state[:, columns] - sim.true_state[:, columns], alone.state[:, own] - alone.true_state[:, own])
+    alone.shutdown()
+    sim.shutdown()
+
+
+def test_the_whole_fleets_sensors_are_laid_over_each_robots_own(tmp_path):
+    """`sensors=` (`--sensors`) names the world's cameras; it wins where both set a key."""
+    fleet = two_rovers(tmp_path, OWN_CAMERA_AND_NOISE, "sensors:\n  camera_resolution: [32, 24]\n  camera_rate: 7\n")
+    user = {"sensors": {"camera_resolution": [16, 12], "cameras": {"a/front_camera": {"height": 20}}, "camera_rate": 9}}
+    sim = batchsim.make(fleet, 1, "cpu", sensors=user)
+    # a's own width beats the fleet's size as a camera's own width beats --camera-resolution alone
+    assert {n: (c.width, c.height) for n, c in sim.sensors.cameras.items()} == {"a/front_camera": (64, 20), "b/front_camera": (16, 12)}
+    assert sim.sensors.camera_rate == 9.0
+    assert batchsim.make(fleet, 1, "cpu").sensors.camera_rate == 7.0  # b's, the world's one rate
+    assert any("camera_rate 7 is the world's" in w and "a takes it too" in w for w in load_fleet(fleet).sensor_config.warnings)
+
+
+def test_the_command_line_applies_each_robots_file_under_the_fleets(tmp_path):
+    from batchsim.cli import runner
+    from batchsim.cli.args import run_parser
+
+    (tmp_path / "a.yaml").write_text(OWN_CAMERA_AND_NOISE)
+    (tmp_path / "fleet.yaml").write_text(
+        "robots:\n  - {name: a, model: rover, sensors: a.yaml}\n  - {name: b, model: rover, pose: [2, 0, 0]}\n"
+    )
+    (tmp_path / "all.yaml").write_text("sensors:\n  cameras:\n    b/front_camera: {width: 100}\n")
+    argv = ["--fleet", str(tmp_path / "fleet.yaml"), "--worlds", "1", "--backend", "cpu", "--no-ros"]
+    for extra, sizes in (([], [(64, 48), (320, 240)]), (["--sensors", str(tmp_path / "all.yaml")], [(64, 48), (100, 240)])):
+        sim = runner.build(run_parser().parse_args(argv + extra))
+        assert [(c.width, c.height) for c in sim.sensors.cameras.values()] == sizes
+        sim.shutdown()
+
+
+def test_a_robots_plugins_move_under_its_prefix_and_one_per_world(tmp_path):
+    plugin = (
+        "/**:\n  ros__parameters:\n    mujoco_plugins:\n      base_velocity_plugin:\n"
+        "        type: mujoco_ros2_control_plugins/BaseVelocityPlugin\n        body: base\n        cmd_vel_topic: /cmd_vel\n"
+    )
+    sim = batchsim.make(two_rovers(tmp_path, None, plugin), 1, "cpu")
+    sim.configure()
+    config = sim.base_velocity.config
+    assert (config.body, config.cmd_vel_topic) == ("b/base", "b/cmd_vel")  # b's base, on /world_3/b/cmd_vel
+    sim.shutdown()
+    with pytest.raises(FleetError, match=r"robots\[0\]\.sensors \(a\): \S+a\.yaml: /\*\*\.ros__parameters\.mujoco_plugins\."
+                       r"base_velocity_plugin and robots\[1\]\.sensors \(b\): \S+b\.yaml: \S+ each ask for a BaseVelocityPlugin"):
+        load_fleet(two_rovers(tmp_path, plugin, plugin))
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("sensors:\n  cameras:\n    rear_camera: {width: 64}\n", r"a\.yaml: camera 'rear_camera' is not in the model \(cameras: front_camera\)"),
+        ("sensors:\n  noise:\n    'arm_joint*': {stddev: 0.1}\n", r"a\.yaml: noise pattern 'arm_joint\*' matches no state interface"),
+        ("sensors:\n  lidars:\n    top: {site: mast, horizontal: {samples: 4, max_angle: 1}}\n", r"sensors\.lidars\.top: the model has no site 'mast'"),
+        ("/**:\n  ros__parameters:\n    mujoco_plugins:\n      l: {type: mujoco_ros2_control_plugins/Mujoco3dLidarPlugin, scan: {topic: s}}\n",
+         r"mujoco_3d_lidar_plugin sensor 'scan' is not in the model \(lidar plugin sensors: base_scan\)"),
+        ("/**:\n  ros__parameters:\n    mujoco_plugins:\n      v: {type: mujoco_ros2_control_plugins/BaseVelocityPlugin, body: chassis}\n",
+         r"mujoco_plugins\.v\.body: no body 'chassis' in the model \(bodies: base, left_wheel, right_wheel\)"),
+        ("sensors: [\n", r"a\.yaml:2:1: malformed YAML"),
+        (b"sensors:\n  seed: \xff\n", r"a\.yaml: cannot be read: not UTF-8 text"),
+    ],
+)
+def test_a_bad_robot_sensors_file_is_one_line_naming_its_file_and_key(tmp_path, text, message):
+    path = tmp_path / "a.yaml"
+    path.write_bytes(text) if isinstance(text, bytes) else path.write_text(text)
+    fleet = {"robots": [{"name": "a", "model": "rover", "sensors": str(path)}]}
+    with pytest.raises(FleetError, match=r"^<fleet>: robots\[0\]\.sensors \(a\): .*" + message) as e:
+        batchsim.make(fleet, 1, "cpu")
+    assert "\n" not in str(e.value)
+
+
+def test_robots_files_that_set_a_worlds_one_setting_apart_are_refused_naming_both(tmp_path):
+    with pytest.raises(FleetError, match=r"robots\[0\]\.sensors \(a\): \S+a\.yaml sets seed 1 and robots\[1\]\.sensors \(b\): "
+                       r"\S+b\.yaml sets seed 2: a world has one noise seed"):
+        load_fleet(two_rovers(tmp_path, "sensors:\n  seed: 1\n", "sensors:\n  seed: 2\n"))
+
+
+def test_a_camera_of_the_robot_files_scene_is_named_as_left_out(tmp_path):
+    robot = tmp_path / "r.xml"
+    robot.write_text(
+        '<mujoco model="r"><worldbody><camera name="overview" pos="0 0 3"/>'
+        '<body name="link"><joint name="j" type="hinge"/><geom type="sphere" size="0.1"/></body></worldbody>'
+        '<actuator><motor name="j" joint="j"/></actuator></mujoco>'
+    )
+    (tmp_path / "s.yaml").write_text("sensors:\n  cameras:\n    overview: {width: 32}\n")
+    with pytest.raises(FleetError, match=r"robots\[0\]\.sensors \(w\): \S+s\.yaml: camera 'overview' is on a body of \S+r\.xml "
+                       "that holds no joint, which a fleet leaves out"):
+        load_fleet({"robots": [{"name": "w", "model": str(robot), "sensors": str(tmp_path / "s.yaml")}]})
 
 
 def test_a_robots_controllers_cannot_name_another_robots_joint(tmp_path):

@@ -3,6 +3,8 @@
     file.py      the fleet file (YAML or a mapping): environment, robots, poses, grids; checked
     compose.py   one world's RobotSpec from it: each robot attached under `<robot>/`, its
                  interfaces, sensors and bodies recorded per robot (RobotSpec.robots)
+    sensors.py   each robot's own sensors file (cameras, lidars, noise, plugins), checked against
+                 the robot alone and named as the world names it; merged into RobotSpec.sensor_config
     reset.py     one robot of a world reset alone, the others left as they are
     view.py      the world's spec as one robot names it (its controllers see only their robot)
 

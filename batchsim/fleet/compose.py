@@ -22,6 +22,8 @@ import mujoco
 import numpy as np
 
 from batchsim.fleet.file import FleetError, FleetFile, RobotEntry
+from batchsim.fleet.sensors import check as check_sensors
+from batchsim.fleet.sensors import robot_sensors
 from batchsim.model.lidars import LidarElement, PluginLidar, SensorDeclarations
 from batchsim.model.mjcf import load_with_mjspec
 from batchsim.model.spec import (
@@ -90,7 +92,9 @@ def compose(fleet: FleetFile) -> RobotSpec:
 
     Raises:
       FleetError: a robot whose model cannot be loaded (naming the robot's key), an environment
-        MuJoCo rejects, robots a grid places into each other.
+        MuJoCo rejects, robots a grid places into each other, a robot's sensors file that
+        names what the robot lacks or asks for a world's one setting another robot's file
+        sets otherwise (batchsim.fleet.sensors).
     """
     world = _environment(fleet)
     loaded: list[tuple[RobotEntry, RobotSpec, int]] = []
@@ -129,7 +133,9 @@ def compose(fleet: FleetFile) -> RobotSpec:
         m = world.compile()
     except ValueError as e:
         raise FleetError(f"{fleet.where}: MuJoCo cannot compile the world: {_one_line(str(e))}") from None
-    return _world_spec(fleet, m, world.to_xml(), loaded, warnings)
+    spec = _world_spec(fleet, m, world.to_xml(), loaded, warnings)
+    spec.sensor_config = check_sensors(spec, fleet.robots, fleet.where)  # each robot's own file, in world names
+    return spec
 
 
 def _environment(fleet: FleetFile) -> mujoco.MjSpec:
@@ -288,6 +294,7 @@ def _world_spec(
                 pose=entry.pose,
                 controllers=entry.controllers,
                 sensor_config=entry.sensors,
+                sensor_settings=robot_sensors(fleet.where, entry, spec, m),
                 spec=spec,
             )
         )

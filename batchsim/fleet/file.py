@@ -8,7 +8,7 @@ robots:
     model: rover                    # a shipped name, an MJCF (a Menagerie scene or robot file), a URDF
     pose: [0.0, 0.0, 0.0, 0.0]      # x, y, z, yaw (radians) in the world; default the origin
     controllers: amr.yaml           # optional: else the model's default controllers
-    sensors: amr_sensors.yaml       # not applied yet: refused (give --sensors, by world names)
+    sensors: amr_sensors.yaml       # optional: its sensors/plugins YAML, as for the robot alone
     ros2_control: amr.urdf          # optional: the description whose blocks narrow its interfaces
     keyframe: home                  # optional: the robot's own keyframe to start in
   - name: amr_{k}                   # `count` robots, k = 1 .. count, placed by a rule:
@@ -82,7 +82,8 @@ class RobotEntry:
       model: a shipped model's name or a file (MJCF or URDF/xacro; relative to the fleet file).
       pose: (x, y, z, yaw) in the world frame, yaw in radians about +z.
       controllers: its controller_manager YAML, or None: the model's default controllers.
-      sensors: its sensors/plugins YAML (batchsim.sensors), or None.
+      sensors: its sensors/plugins YAML (batchsim.sensors), written for the robot alone, or
+        None; batchsim.fleet.sensors names it as the world does.
       ros2_control: the description whose `<ros2_control>` blocks narrow its interfaces, or None.
       keyframe: its own keyframe to start in (name or index), or None: `home` where it has one.
       key: where it is declared, for messages: `robots[2]` (`robots[2] (amr_3)` for one of a count).
@@ -190,11 +191,6 @@ def _robots(item: Any, key: str, where: str, base: Path) -> list[RobotEntry]:
     for needed in ("name", "model"):
         if needed not in item or item[needed] in (None, ""):
             raise FleetError(f"{where}: {key}: {needed} is missing")
-    if item.get("sensors") not in (None, ""):  # read but never applied would be silence: refuse it
-        raise FleetError(
-            f"{where}: {key}.sensors: a robot's own sensors file is not applied yet; give it to the whole fleet "
-            "with --sensors (or make(sensors=)), naming its cameras, lidars and sensors as the world does (amr_1/front_camera)"
-        )
     name, model = item["name"], item["model"]
     if not isinstance(name, str) or not isinstance(model, str | Path):
         raise FleetError(f"{where}: {key}: name and model are strings")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -287,6 +288,8 @@ class RobotPart:
       pose: (x, y, z, yaw) where it was placed in the world.
       controllers: its controller_manager YAML, or None (the model's default).
       sensor_config: its sensors/plugins YAML, or None.
+      sensor_settings: that file read, checked against the robot alone and named as the world
+        names it (batchsim.fleet.sensors), or None.
       spec: the robot loaded alone (unprefixed names, its own model): what its description says.
     """
 
@@ -304,6 +307,7 @@ class RobotPart:
     pose: tuple[float, float, float, float]
     controllers: Path | None = None
     sensor_config: Path | None = None
+    sensor_settings: Any = None  # a batchsim.sensors.SensorConfig: the model is a floor below the sensors
     spec: RobotSpec | None = None
 
     @property
@@ -350,6 +354,9 @@ class RobotSpec:
         their interfaces appear; empty for a model that is one robot.
       placements: robots a fleet file places at random per world (batchsim.variation.Placement):
         `batchsim.make` adds them to the worlds' variation.
+      sensor_config: the cameras, lidars, noise and plugins a fleet's robots' own sensors files
+        ask for, merged and named as the world names them (batchsim.fleet.sensors), or None:
+        `batchsim.make` applies it, with a `sensors=` given for the whole fleet laid over it.
     """
 
     name: str
@@ -373,6 +380,7 @@ class RobotSpec:
     actuator_joints: list[tuple[str, int, int]] = dataclasses.field(default_factory=list)
     robots: list[RobotPart] = dataclasses.field(default_factory=list)
     placements: tuple = ()  # of batchsim.variation.Placement
+    sensor_config: Any = None  # a batchsim.sensors.SensorConfig: the model is a floor below the sensors
 
     @property
     def floating_bases(self) -> list[FloatingBase]:
