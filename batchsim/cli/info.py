@@ -74,6 +74,10 @@ def info(argv: Sequence[str]) -> int:
     out += [
         f"  {s.name:24s} {s.type_name:14s} dim {s.dim}  ({', '.join(s.fields)})" for s in spec.sensors
     ]
+    if spec.sensor_config is not None:  # a fleet's robots' own sensors files, --sensors laid over them
+        from batchsim.fleet.sensors import merged
+
+        sensors = merged(spec, sensors)
     suite = SensorSuite.build(spec, args.worlds, sensors)
     out += sensor_lines(suite)
     plugin = suite.config.base_velocity
