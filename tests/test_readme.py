@@ -83,8 +83,11 @@ def test_a_yaml_block_is_read_as_shown(line, text, tmp_path):
 
         (tmp_path / "warehouse.xml").write_text('<mujoco><worldbody><geom type="plane" size="5 5 .1"/></worldbody></mujoco>')
         (tmp_path / "arm.yaml").write_text(Path(batchsim.controllers.default_controllers("arm")).read_text())
+        (tmp_path / "amr_sensors.yaml").write_text("sensors:\n  camera_resolution: [64, 48]\n")  # as for a rover alone
         spec = load_fleet(path)
         assert len(spec.robots) >= 2 and all(r.state.size for r in spec.robots)
+        sized = [r for r in spec.robots if r.sensor_config is not None]
+        assert sized and all(spec.sensor_config.cameras[r.prefix + "front_camera"].width == 64 for r in sized)
     elif text.startswith("randomize:"):  # shown for the arm (its links, joints, position servos)
         sim = batchsim.make("arm", 3, "cpu", randomize=str(path))
         sim.configure()
