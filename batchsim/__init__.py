@@ -20,21 +20,15 @@ import numpy as np
 from batchsim import backends, controllers  # batchsim.controllers.load_controllers after `import batchsim`
 from batchsim.backends import Backend, BackendUnavailable, backend_class, resolve
 from batchsim.backends.sharded import ShardedSystem
-from batchsim.failures import set_log_dir
+from batchsim.contract import Contract
+from batchsim.engine import Engine
 from batchsim.fleet import FleetError, is_fleet_file, load_fleet
-from batchsim.hardware import (
-    BatchedSystem,
-    CallbackReturn,
-    ConfigurationError,
-    LifecycleError,
-    LifecycleState,
-    ReturnType,
-    Status,
-    SystemInterface,
-)
-from batchsim.loop import OptionError
+from batchsim.hardware import BatchedSystem
+from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState, SystemInterface
 from batchsim.model import ModelError, RobotSpec, load, model_names
+from batchsim.parts.failures import set_log_dir
 from batchsim.sensors import SensorConfig, SensorConfigError
+from batchsim.types import ConfigurationError, OptionError, ReturnType, Status
 from batchsim.variation import Variation, VariationError
 
 __all__ = [
@@ -43,6 +37,8 @@ __all__ = [
     "BatchedSystem",
     "CallbackReturn",
     "ConfigurationError",
+    "Contract",
+    "Engine",
     "FleetError",
     "LifecycleError",
     "LifecycleState",
@@ -77,7 +73,7 @@ def make(
     randomize: Variation | str | Path | Mapping[str, Any] | None = None,
     world_offset: int = 0,
     **options: Any,
-) -> BatchedSystem:
+) -> Contract:
     """Build `nworld` worlds of `model` on `backend`, initialized (UNCONFIGURED).
 
     Args:
@@ -96,7 +92,7 @@ def make(
       devices: spread the worlds over several devices of a GPU backend (mjx, warp): "all",
         or a list of device indices (0, 1: the backend's GPUs in order) or names ("cuda:1",
         "cpu"). The worlds are split into contiguous ranges, one per device, behind the one
-        contract (batchsim/backends/sharded.py). None: one device (the `device` option).
+        contract (batchsim/backends/sharded/system.py). None: one device (the `device` option).
       processes: with several devices, run each device's share in a process of its own
         (the fleet's arrays in shared memory): the shards' host work then runs on several
         cores, which is what scales on several GPUs, but their device arrays stay in those
@@ -115,7 +111,8 @@ def make(
         not take are ignored, and `sim.reason` says so.
 
     Returns:
-      The system, in UNCONFIGURED; call configure() and activate() to run it.
+      The system, in UNCONFIGURED; call configure() and activate() to run it: a BatchedSystem
+      owning the backend's engine, or with several devices a ShardedSystem over one each.
     """
     if isinstance(model, RobotSpec):
         if ros2_control is not None or keyframe is not None:
@@ -140,7 +137,7 @@ def make(
     if devices is not None:
         chosen_devices = _devices(cls, devices)
         if len(chosen_devices) > 1:
-            sim = ShardedSystem(cls, spec, nworld, chosen_devices, processes=processes, **options)
+            sim = ShardedSystem(cls, build, spec, nworld, chosen_devices, processes=processes, **options)
             how = "a process each" if processes else "a thread each"
             sim.reason = f"{reason}; {len(chosen_devices)} devices, {how}: {', '.join(map(str, chosen_devices))}"
             sim.initialize()
@@ -149,14 +146,21 @@ def make(
         options = {**options, "device": chosen_devices[0]}
     elif processes:
         raise OptionError("", "processes=True is for a fleet over several devices: give devices= too")
-    sim = cls(spec, nworld, **options)
+    sim = build(spec, nworld, cls, **options)
     sim.reason = reason
     sim.initialize()
     _configure_inputs(sim, sensors, randomize, world_offset)
     return sim
 
 
-def _configure_inputs(sim: BatchedSystem, sensors: Any, randomize: Any, world_offset: int) -> None:
+def build(spec: RobotSpec, nworld: int, engine: type[Engine], **options: Any) -> BatchedSystem:
+    """`nworld` worlds of `spec` on a new `engine(spec, nworld, **options)`, the system not yet
+    initialized (UNKNOWN): what make() builds on one device, and each device's shard of a fleet
+    over several (batchsim.backends.sharded)."""
+    return BatchedSystem(spec, nworld, engine(spec, nworld, **options))
+
+
+def _configure_inputs(sim: Contract, sensors: Any, randomize: Any, world_offset: int) -> None:
     """What make() hands a new system before configure: its sensors and its per-world variation
     (with a fleet's robots placed at random per world, batchsim.fleet). A fleet's robots' own
     sensors files (`spec.sensor_config`) are applied, `sensors` laid over them (batchsim.fleet.sensors)."""
@@ -177,7 +181,7 @@ def _configure_inputs(sim: BatchedSystem, sensors: Any, randomize: Any, world_of
         sim.set_variation(randomize, first_world=world_offset)
 
 
-def _devices(cls: type[BatchedSystem], devices: Sequence[int | str] | str) -> list[Any]:
+def _devices(cls: type[Engine], devices: Sequence[int | str] | str) -> list[Any]:
     """The `device` option of each shard: "all" is every device the backend has; an index
     picks from them; a name is the backend's own."""
     available = getattr(cls, "available_devices", None)

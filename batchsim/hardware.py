@@ -1,6 +1,19 @@
 """The contract: a batched mirror of ros2_control's `hardware_interface::SystemInterface`.
 
-`BatchedSystem` is the contract every backend honours, for `nworld` copies of one robot:
+`BatchedSystem(spec, nworld, engine)` is the one concrete system: `nworld` copies of one robot
+(or of one fleet's world of several, batchsim.fleet) on one engine (batchsim.engine: cpu, mjx,
+warp, or one registered). It does every check and all the bookkeeping, so every engine behaves
+the same, and owns named parts (`parts`), each built with what it needs:
+
+- `readings` (batchsim.parts.readings): the host arrays read() fills, their views (`state`,
+  `base_state`, `sensordata`, `time`) and the frozen rule;
+- `actuation` (batchsim.parts.actuation): commands -> ctrl beyond a copy (PIDs, scaling, mimics);
+- `sensing` (batchsim.parts.sensing): cameras, lidars, sensor noise;
+- `poses` (batchsim.parts.poses): every body's pose, tf's source;
+- `draws` (batchsim.variation.worlds): each world's randomized model fields and start pose;
+- `base_drive`, `wrenches` (batchsim.plugins): mujoco_ros2_control's two plugins.
+
+What a user sees (batchsim.contract.Contract lists it whole):
 
 - `export_state_interfaces()` / `export_command_interfaces()`: ros2_control names.
 - `state` `(nworld, nstate)` float64, refreshed by `read(time, period)`.
@@ -8,75 +21,66 @@
   `write` does nothing unless ACTIVE.
 - `step(nstep)`, `reset(worlds=None)`, `status` `(nworld,)` bitmask of `Status`,
   `sensordata[name]` `(nworld, dim)`, `time` `(nworld,)` float64 on every backend.
-- `render(camera, worlds=None)` -> `(rgb (n, H, W, 3) uint8, depth (n, H, W) float32)`,
-  `scan(lidar, worlds=None)` -> `(n, nray) float32`, `sensors` (batchsim.sensors): cameras,
-  lidars and sensor noise; `true_state` / `true_sensordata` without the noise.
-- `body_poses(worlds=None)` -> `(xpos (n, nbody, 3), xquat (n, nbody, 4) w, x, y, z)` float64, on demand;
-  `body_poses_into(xpos_out, xquat_out, bodies)`: tf's per-period copy (batchsim.body_poses).
-- `set_base_velocity(command, worlds=None)`: mujoco_ros2_control's BaseVelocityPlugin
-  (batchsim.base_velocity); `apply_wrench(wrenches, worlds=None)`: its ExternalWrenchPlugin.
-- `set_variation(variation)`, `world_params()`: per-world randomization (batchsim.varying);
-  `device_state()`, `write_device(command)`: state and commands on the engine's device (batchsim.device_io).
+- `render`, `scan`, `sensors`, `true_state`, `true_sensordata`; `body_poses`, `body_poses_into`;
+  `set_base_velocity`, `apply_wrench`; `set_variation`, `world_params`; `qstate`, `set_qstate`;
+  `device_arrays`, `device_state`, `write_device` for users who stay on the engine's device.
 
 A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule on
 every backend: until `reset` lists it, it reads the noise-free values `read()` would have shown
-just before the `step()` call in which it failed (state, base_state, sensordata, time), with no
-fresh sensor noise, and the failure is logged once, naming the world and why (batchsim.failures).
-
-A backend subclasses `BatchedSystem` and implements the engine hooks (batchsim.engine: `_open`,
-`_close`, `_ctrl_host`, `_upload_ctrl`, `_read`, `_step`, `_reset`, `_body_poses`, `_pose_rows`, `_qstate`,
-`_set_qstate`, and `_park` where the engine cannot skip a world); everything a user sees,
-checks and bookkeeping included, lives here so that every backend behaves the same.
-
-Beside it: batchsim.lifecycle (ros2_control's lifecycle table), batchsim.types (enums, constants,
-shaped records), batchsim.sensing (cameras, lidars, noise), batchsim.engine (the hooks).
+just before the `step()` call in which it failed, with no fresh sensor noise, and the failure is
+logged once, naming the world and why (batchsim.parts.failures).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, ClassVar
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from batchsim.actuation import Actuation
-from batchsim.base_velocity import BaseDriving
-from batchsim.body_poses import BodyPoses
-from batchsim.device_io import DeviceIO
-from batchsim.engine import EngineHooks, check_options
-from batchsim.external_wrench import Wrenching
-from batchsim.failures import FailureLog, ensure_log_dir
-from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState, SystemInterface
+from batchsim.backends import varying_backends
+from batchsim.engine import Engine, EngineBuffers, Meanwhile
+from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState
 from batchsim.model import RobotSpec, initial_command
-from batchsim.readings import Finish, as_slice, layout
-from batchsim.sensing import Sensing
-from batchsim.sensors import SensorConfig, SensorSuite
+from batchsim.parts.actuation import Actuation
+from batchsim.parts.face import RUNNING, FaceParts, SystemFace
+from batchsim.parts.failures import FailureLog, ensure_log_dir
+from batchsim.parts.poses import BodyPoses
+from batchsim.parts.readings import Readings
+from batchsim.parts.sensing import Sensing
+from batchsim.plugins import BaseDrive, Wrenches
 from batchsim.types import (
-    FROZEN,
     MAX_COMMAND,
     ConfigurationError,
     ReturnType,
-    SensorData,
-    StateSource,
     Status,
     StepFailures,
+    as_slice,
     check_nstep,
     worlds_index,
 )
-from batchsim.types import Frames as Frames  # re-exported here
-from batchsim.types import PendingFrames as PendingFrames
-from batchsim.varying import Varying
+from batchsim.variation import Bound, Variation
+from batchsim.variation.worlds import WorldDraws
 
 S = LifecycleState
-_FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds per read()
 
 
+@dataclasses.dataclass
+class Parts(FaceParts):
+    """What a BatchedSystem is made of beside its engine, each part built with what it needs:
+    the face's parts and each world's draws."""
 
-class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceIO, EngineHooks, SystemInterface):
-    """`nworld` copies of one robot behind ros2_control's SystemInterface.
+    draws: WorldDraws
+
+
+class BatchedSystem(SystemFace):
+    """`nworld` copies of one robot on `engine`, behind ros2_control's SystemInterface.
 
     Attributes (valid from on_configure on):
       nworld: number of worlds.
+      engine: the Engine it owns; parts: its Parts.
       state: (nworld, nstate) float64, the state interfaces, refreshed by read().
       command: (nworld, ncommand) float64, the command interfaces, applied by write().
       status: (nworld,) uint8 bitmask of Status, current after step() and write().
@@ -90,125 +94,68 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         None for a model without a floating base.
       base_states: (nworld, nbase, 13) float64, every floating base so (`spec.floating_bases`:
         the model's own, or each robot's of a fleet's world), a view of the same readings.
+      name, options, and the engine's capabilities (`compiles_first_period`, `sensors_batched`,
+        `reads_torque_sensors`, `logs_failures`, `steps_on_device`, `device_dtype`), copied.
     """
 
-    #: the registry name of the backend ("cpu", "mjx", "warp")
-    name: ClassVar[str] = ""
-    #: keyword options the backend's constructor takes, with their defaults
-    OPTIONS: ClassVar[dict[str, Any]] = {}
-    #: the type of each option whose default is None (which also stays allowed): bool, int,
-    #: float or str, or object for one the backend resolves itself (a device); every other option
-    #: takes its default's type
-    OPTION_TYPES: ClassVar[dict[str, type]] = {}
-    #: the least value of the numeric options that have one
-    OPTION_MINIMA: ClassVar[dict[str, float]] = {}
-    #: whether one render or scan covers every world at the cost of any subset (one GPU launch)
-    sensors_batched: ClassVar[bool] = False
-    #: whether the first control period compiles (mjx) or captures (warp) the step's program:
-    #: the command line runs one under a progress line before the run starts
-    compiles_first_period: ClassVar[bool] = False
-    #: whether the engine logs a world's failure itself (C MuJoCo's MUJOCO_LOG.TXT): the first line names it
-    logs_failures: ClassVar[bool] = False
-    #: whether MJCF torque sensors read what C MuJoCo's do (MJX's cfrc_int: 0 where C reads a motor's torque)
-    reads_torque_sensors: ClassVar[bool] = True
-
-    def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
-        super().__init__()
-        if int(nworld) != nworld or nworld < 1:
-            raise ValueError(f"nworld must be a positive integer, got {nworld!r}")
-        self.check_options(options)
-        self.spec = spec
-        self.nworld = int(nworld)
-        self.options = {**self.OPTIONS, **options}
-        self.reason = ""  # why this backend was chosen, for `batchsim info` and the status line
-        m = spec.mjmodel
-        self.model = m
-        self.dt = float(m.opt.timestep)
-
-        ncommand = len(spec.commands)
-        # commands -> ctrl beyond a plain copy: PIDs on motors, scaled grippers, mimic joints
-        self._actuation = Actuation(spec, self.nworld)
-        # what read() gathers (batchsim.readings): the state interfaces, the floating base's pose
-        # and twist, the actuator states not among them, the joint positions/velocities the PIDs measure
-        feedback = self._actuation.feedback_columns
-        self._columns, self._actuator_columns = layout(spec, feedback)
-        self._nfeedback = len(feedback)
-        self._bind_readings(np.zeros((self.nworld, len(self._columns))))
-        self._command = np.zeros((self.nworld, ncommand))
-        self.status = np.zeros(self.nworld, np.uint8)
-        self.time = np.zeros(self.nworld)
+    def __init__(self, spec: RobotSpec, nworld: int, engine: Engine):
+        super().__init__(spec, nworld)
+        if engine.nworld != nworld or engine.spec is not spec:
+            raise ValueError(f"the engine was made for {engine.nworld} worlds of {engine.spec.name}, not {nworld} of {spec.name}")
+        self.engine = engine
+        self.name, self.options = engine.name, engine.options
+        for capability in ("compiles_first_period", "sensors_batched", "reads_torque_sensors", "logs_failures",
+                           "steps_on_device", "device_dtype"):  # fmt: skip
+            setattr(self, capability, getattr(engine, capability))
+        actuation = Actuation(spec, self.nworld)
+        readings = Readings(spec, self.nworld, actuation.feedback_columns)
         self._initial_command = initial_command(spec)
-        self._command[:] = self._initial_command
-        self._bind_sensordata(np.zeros((self.nworld, m.nsensordata)))
-        # state columns gathered per source field: (state columns, field indices)
-        self._gather: list[tuple[str, np.ndarray, np.ndarray]] = []
-        for source in StateSource:
-            cols = [i for i, c in enumerate(self._columns) if c.source is source]
-            if cols:
-                idx = [self._columns[i].index for i in cols]
-                self._gather.append((source.value, as_slice(cols), as_slice(idx)))
-        self._finish = Finish(spec, self._columns)
         self._ctrl_index = np.array([c.actuator_id for c in spec.commands], dtype=np.intp)
-        self._ctrl_cols = as_slice(self._ctrl_index.tolist())  # a slice where it can be: faster
+        self._ctrl_cols = as_slice(self._ctrl_index)  # a slice where it can be: faster
+        command = np.tile(self._initial_command, (self.nworld, 1)).reshape(self.nworld, len(spec.commands))
+        self._bind(readings, engine.bind(self._buffers(readings, command)))
+        frozen = lambda: self.frozen  # noqa: E731  (the parts ask the system, whose status changes)
+        self.parts = Parts(
+            readings=readings,
+            actuation=actuation,
+            sensing=Sensing(spec, self.nworld, readings, engine, frozen),
+            poses=BodyPoses(spec, self.nworld, engine, frozen, hold_frozen=engine.pose_rows_hold_frozen),
+            draws=WorldDraws(
+                spec, self.nworld, engine.name, engine.variable_fields(self.model), lambda f: varying_backends(f, self.model)
+            ),
+            base_drive=BaseDrive(self.model, self.nworld, engine.stage_base_velocity),
+            wrenches=Wrenches(self.model, self.nworld, engine.stage_xfrc, lambda worlds: self.body_poses(worlds)),
+        )
         self._opened = False
-        # what frozen worlds show until reset: their readings from the start of the failing step()
-        self._held_readings = np.zeros_like(self._readings)
-        self._held_sensordata = np.zeros_like(self._sensor_host)
-        self._held_time = np.zeros_like(self.time)
-        self._none_frozen = np.zeros(self.nworld, bool)
-        self._none_frozen.setflags(write=False)
-        # whether the host readings are the engine's current values (read() since the last step())
-        self._readings_current = False
         self._failure_log = FailureLog(self.name, self.nworld, mujoco_logs=self.logs_failures)
         ensure_log_dir()  # MuJoCo's own log out of the working directory, unless placed already
-        self._sensor_config: SensorConfig | None = None
-        self._shown_poses = None  # body_poses()' last, per world (batchsim.body_poses)
-        self._sensors: SensorSuite | None = None
 
-    @classmethod
-    def check_options(cls, options: Mapping[str, Any]) -> None:
-        """ValueError, one line, for an option the backend does not take or a value not of its
-        type or below its least (batchsim.engine.check_options), at construction."""
-        check_options(cls.name, cls.OPTIONS, cls.OPTION_TYPES, cls.OPTION_MINIMA, options)
+    def _buffers(self, readings: Readings, command: np.ndarray) -> EngineBuffers:
+        r = readings
+        return EngineBuffers(r.array, r.sensor_array, r.time, command, self.status, r.columns, self._ctrl_index)
 
-    @property
-    def readings(self) -> np.ndarray:
-        """(nworld, ncolumn) float64: all that read() fills, in one block laid out as
-        batchsim.readings says. For copying a fleet's readings whole; edit nothing in it."""
-        return self._readings
+    def _bind(self, readings: Readings, buffers: EngineBuffers) -> None:
+        """Make `buffers` (the engine's answer to `bind`) the arrays read() fills and write() takes."""
+        self._engine_buffers = buffers
+        readings.bind(buffers.readings, buffers.sensordata, buffers.time)
+        self._command = buffers.command
 
-    @property
-    def actuator_states(self) -> np.ndarray:
-        """(nworld, 3 * n) float64: position, velocity and effort blocks of the n
-        `spec.actuator_joints` with an address (mujoco_actuators_states), as the last read()
-        left them, without sensor noise. A view where they are columns of their own, else a
-        copy (the usual case: a motor's joint reads them as its state interfaces)."""
-        return self._noise_free()[0][:, self._actuator_columns]
-
-    def _bind_readings(self, readings: np.ndarray) -> None:
-        """Make `readings` (nworld, len(_columns)) the array read() fills; `state`,
-        `base_state` and the PIDs' feedback are views of its columns."""
-        nstate, nbase = len(self.spec.state), 13 * len(self.spec.floating_bases)
-        self._readings = readings
-        self.state = readings[:, :nstate]
-        self.base_state = readings[:, nstate : nstate + 13] if self.spec.floating_base is not None else None
-        self.base_states = readings[:, nstate : nstate + nbase].reshape(len(readings), -1, 13)
-        self._feedback = readings[:, readings.shape[1] - self._nfeedback :]
-
-    def _bind_sensordata(self, sensordata: np.ndarray) -> None:
-        """Make `sensordata` (nworld, nsensordata) the array read() fills; `self.sensordata`
-        holds a view of it per sensor."""
-        self._sensor_host = sensordata
-        self.sensordata = SensorData(sensordata, self.spec.sensors)
-
-    # --- interfaces ---
-    def export_state_interfaces(self) -> list[str]:
-        """State interface names, `"<joint>/<interface>"` and `"<sensor>/<field>"`, in column order."""
-        return self.spec.state_interfaces
-
-    def export_command_interfaces(self) -> list[str]:
-        """Command interface names, `"<joint>/<interface>"`, in column order."""
-        return self.spec.command_interfaces
+    def share_host_arrays(self, readings: np.ndarray, sensordata: np.ndarray, command: np.ndarray) -> None:
+        """Make `readings` (nworld, ncolumn), `sensordata` (nworld, nsensordata) and `command`
+        (nworld, ncommand), C-contiguous float64, the arrays read() fills and write() takes its
+        commands from, in place of this system's own (`command` gets its current rows): a fleet's
+        shard (batchsim.backends.sharded) then reads into the fleet's arrays and copies nothing.
+        Before configure(); the caller keeps the arrays alive."""
+        self._require("share its host arrays", frozenset({S.UNKNOWN, S.UNCONFIGURED}))
+        r = self.parts.readings
+        mine = {"readings": r.array, "sensordata": r.sensor_array, "command": self._command}
+        for name, array in zip(mine, (readings, sensordata, command), strict=True):
+            like = mine[name]
+            if array.shape != like.shape or array.dtype != np.float64 or not array.flags.c_contiguous:
+                raise ValueError(f"{name} must be C-contiguous float64 {like.shape}, got {array.dtype} {array.shape}")
+        command[:] = self._command
+        buffers = dataclasses.replace(self._engine_buffers, readings=readings, sensordata=sensordata, command=command)
+        self._bind(r, self.engine.bind(buffers))
 
     # --- lifecycle ---
     def on_configure(self, previous_state: LifecycleState) -> CallbackReturn:
@@ -216,7 +163,8 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
             raise ConfigurationError(f"{self.spec.name}: " + "; ".join(self.spec.problems))
         self.sensors  # noqa: B018  (resolved now, so that a bad lidar or noise name fails configure)
         if not self._opened:
-            self._open()
+            bound = self.parts.draws.bound
+            self.engine.open(held_base=self.parts.base_drive.held_base, varied=tuple(bound.fields) if bound else ())
             self._opened = True
         self.reset()
         return CallbackReturn.SUCCESS
@@ -235,18 +183,18 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
 
     def _release(self) -> None:
         if self._opened:
-            self._close_sensors()
-            self._close()
+            self.engine.close_sensors()
+            self.engine.close()
             self._opened = False
 
     # --- read / write ---
     def read(self, time: float | None = None, period: float | None = None) -> ReturnType:
         """Refresh `state`, `base_state`, `sensordata` and `time` from the simulation (INACTIVE
         or ACTIVE). Frozen worlds show what they read before the step() in which they failed."""
-        if self._lifecycle not in (S.INACTIVE, S.ACTIVE):
+        if self._lifecycle not in RUNNING:
             return ReturnType.OK
         self._refresh()
-        self._add_noise()
+        self.parts.sensing.add_noise()
         return ReturnType.OK
 
     def write(self, time: float | None = None, period: float | None = None) -> ReturnType:
@@ -257,77 +205,38 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         """
         if self._lifecycle is not S.ACTIVE:
             return ReturnType.OK
-        command = self._command
-        rejected = self._apply_commands() if self._actuation.trivial else None
+        command, actuation = self._command, self.parts.actuation
+        rejected = self.engine.apply_commands() if actuation.trivial else None
         if rejected is None:
-            ctrl = self._ctrl_host()
+            ctrl = self.engine.ctrl()
             rows = None  # every world's row is good
             # MuJoCo itself zeroes ctrl beyond mjMAXVAL; reject it here, per world, with a status
             # bit. Fast path: two reductions, no temporaries (a NaN makes both comparisons fail).
             if command.size and not (command.min() > -MAX_COMMAND and command.max() < MAX_COMMAND):
                 rejected = ~(np.abs(command) < MAX_COMMAND).all(axis=1)
                 rows = np.flatnonzero(~rejected)
-            if not self._actuation.trivial:
-                self._actuate(ctrl, rows)
+            if not actuation.trivial:
+                actuation.apply(ctrl, command, self.parts.readings.feedback, self.time, rows)
             elif rows is None:
                 ctrl[:, self._ctrl_cols] = command
             else:
                 ctrl[np.ix_(rows, self._ctrl_index)] = command[rows]
-            self._upload_ctrl()
+            self.engine.upload_ctrl()
         if rejected is not None and rejected.any():
             self.status[~rejected] &= ~np.uint8(Status.BAD_COMMAND)
             self.status[rejected] |= np.uint8(Status.BAD_COMMAND)
         elif self.status.any():
             self.status &= ~np.uint8(Status.BAD_COMMAND)
-        self._drive_base()  # the BaseVelocityPlugin's target, if any: held from the next step()
-        self._apply_wrenches()  # the ExternalWrenchPlugin's xfrc_applied, if any wrench runs
+        frozen = self.frozen
+        self.parts.base_drive.drive(self.time, frozen)  # the BaseVelocityPlugin's target, if any
+        self.parts.wrenches.stage(self.time, frozen)  # the ExternalWrenchPlugin's xfrc_applied, if any runs
         return ReturnType.OK
-
-    def _apply_commands(self) -> np.ndarray | None:
-        """write()'s engine hook for commands that are plain copies into actuators: check each
-        world's row of `command` (NaN, inf, beyond MAX_COMMAND), apply the good rows to ctrl on
-        the engine (parked worlds keep zero) and return the rejected rows, (nworld,) bool. None:
-        the engine has no such path, and write() checks and applies on the host."""
-        return None
-
-    def _actuate(self, ctrl: np.ndarray, rows: np.ndarray | None) -> None:
-        """write()'s hook for the non-trivial command path (batchsim.actuation): PIDs on motors,
-        scaled grippers, mimic joints, interfaces sharing an actuator; rows None: every world."""
-        self._actuation.apply(ctrl, self._command, self._feedback, self.time, rows)
 
     def perform_command_mode_switch(self, start: Sequence[str], stop: Sequence[str] = ()) -> None:
         """Make the `start` command interfaces the ones that drive their actuators, where
         several share one (position and velocity PIDs on one motor), as ros2_control's
         `perform_command_mode_switch`; position is active until told otherwise."""
-        self._actuation.switch(start, stop)
-
-    @property
-    def command(self) -> np.ndarray:
-        """(nworld, ncommand) float64: the commands the next write() applies. Edit in place."""
-        return self._command
-
-    @command.setter
-    def command(self, value: Any) -> None:
-        self.set_command(value)
-
-    def set_command(self, command: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
-        """Copy `command` into `self.command` for all or the listed worlds; `(ncommand,)` broadcasts.
-
-        `command` is `(nworld, ncommand)`, or `(len(worlds), ncommand)` with row i for
-        `worlds[i]`, in the order given (a `(nworld,)` bool mask lists worlds in order).
-        Raises ValueError naming the expected and actual shapes, a world out of range, or a
-        world listed twice.
-        """
-        command = np.asarray(command, dtype=np.float64)
-        rows = self._worlds(worlds)
-        n = self.nworld if rows is None else len(rows)
-        ncommand = len(self.spec.commands)
-        if command.shape not in ((ncommand,), (n, ncommand)):
-            raise ValueError(
-                f"command must have shape ({n}, {ncommand}) or ({ncommand},), got {command.shape}"
-                + (f"; command interfaces: {', '.join(self.spec.command_interfaces)}" if ncommand else "")
-            )
-        self._command[slice(None) if rows is None else rows] = command
+        self.parts.actuation.switch(start, stop)
 
     # --- stepping ---
     def step(self, nstep: int = 1, meanwhile: Callable[[], None] | None = None) -> None:
@@ -343,35 +252,33 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         the device's; elsewhere just before them. It must not call the system; what read()
         filled and `command` stay as they are until step() returns.
         """
-        self._require("step", frozenset({S.INACTIVE, S.ACTIVE}))
+        self._require("step", RUNNING)
         check_nstep(nstep)
         self._failure_log.flush()
-        self._meanwhile, self._meanwhile_error = meanwhile, None
+        once = Meanwhile(meanwhile)
         if not self.steps_on_device:
-            self._while_stepping()
+            once()
+        readings = self.parts.readings
+        start = (*self.parts.sensing.noise_free(), self.time) if readings.current else None
         try:
-            failures = self._step(int(nstep))
-            self._while_stepping()  # where the engine's path did not (Warp's CPU device steps on the host)
+            failures = self.engine.step(int(nstep), once, start)
+            once()  # where the engine's path did not (Warp's CPU device steps on the host)
         except BaseException as e:  # the engine's failure first; meanwhile's, if any, is its context
-            if self._meanwhile_error is not None and e.__context__ is None:
-                e.__context__ = self._meanwhile_error
-            self._meanwhile_error = None
+            if once.error is not None and e.__context__ is None:
+                e.__context__ = once.error
             raise
-        finally:
-            self._meanwhile = None
-        self._readings_current = False
+        readings.current = False
         if failures is not None and failures.worlds.size:
             self._freeze(failures)
-        self._raise_meanwhile_error()
+        if once.error is not None:
+            raise once.error
 
     def _freeze(self, failures: StepFailures) -> None:
         """Hold what the failed worlds read before the failing step, mark them, park them, say so."""
         worlds = failures.worlds
-        self._held_readings[worlds] = failures.readings
-        self._held_sensordata[worlds] = failures.sensordata
-        self._held_time[worlds] = failures.time
+        self.parts.readings.hold(failures)
         self.status[worlds] |= failures.status.astype(np.uint8)
-        self._park(worlds)
+        self.engine.park(worlds)
         what = ["diverged" if s & Status.DIVERGED else "overflowed" for s in failures.status]
         self._failure_log.report(worlds, what, failures.reasons, failures.time)
 
@@ -387,33 +294,43 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         self._require("reset", frozenset({S.UNCONFIGURED, S.INACTIVE, S.ACTIVE}))
         if not self._opened:
             raise LifecycleError("cannot reset: the system is UNCONFIGURED; configure it first")
-        rows = self._worlds(worlds)
+        rows = worlds_index(worlds, self.nworld)
         sel = np.arange(self.nworld) if rows is None else rows
+        engine, parts = self.engine, self.parts
         self.status[sel] = 0  # first: the engine's reset sees them unfrozen
-        self._vary(sel)  # their randomized model fields first: the engine's reset sees those too
-        self._reset(rows)
-        start = self._vary_start(sel)  # start-pose noise: (n, ncommand) commands holding it, or None
+        parts.draws.draw(sel, engine.set_model_fields)  # their model fields first: the engine's reset sees them
+        engine.reset(rows)
+        start = parts.draws.draw_start(sel)  # start-pose noise: (n, ncommand) commands holding it, or None
         self._command[sel] = self._initial_command if start is None else start
-        ctrl = self._ctrl_host()
+        ctrl = engine.ctrl()
         ctrl[sel] = self.spec.initial.ctrl
-        if self._actuation.trivial:
+        if parts.actuation.trivial:
             ctrl[np.ix_(sel, self._ctrl_index)] = self._command[sel]
         else:
-            self._actuation.reset(sel, ctrl, self._command)
-        self._upload_ctrl()
-        self._place_start(sel)  # the drawn start pose, with the ctrl that holds it in place
-        self._reset_base(sel)
-        self._reset_wrenches(sel)
+            parts.actuation.reset(sel, ctrl, self._command)
+        engine.upload_ctrl()
+        parts.draws.place_start(sel, engine.set_qstate)  # the drawn start pose, with the ctrl that holds it
+        parts.base_drive.reset(sel)
+        parts.wrenches.reset(sel)
         self._refresh()
-        self._add_noise()
+        parts.sensing.add_noise()
+
+    def _refresh(self) -> None:
+        """The engine's current readings into the host arrays, finished, then frozen worlds' held ones."""
+        readings = self.parts.readings
+        self.engine.read()
+        readings.finish(readings.array)
+        readings.current = True
+        if self.status.any():
+            readings.show_held(self.frozen)
 
     # --- the whole joint state (mujoco_ros2_control's reset_world overrides, set_free_joint_state) ---
     def qstate(self, worlds: Sequence[int] | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """MuJoCo's `qpos` `(n, nq)` and `qvel` `(n, nv)` of all or the listed worlds (in the order
         given), float64 arrays of the caller's own: every joint, free joints included."""
-        self._require("read the joint state", frozenset({S.INACTIVE, S.ACTIVE}))
-        rows = self._worlds(worlds)
-        qpos, qvel = self._qstate(np.arange(self.nworld) if rows is None else rows)
+        self._require("read the joint state", RUNNING)
+        rows = worlds_index(worlds, self.nworld)
+        qpos, qvel = self.engine.qstate(np.arange(self.nworld) if rows is None else rows)
         return qpos.astype(np.float64), qvel.astype(np.float64)
 
     def set_qstate(self, worlds: Sequence[int] | np.ndarray | None, qpos: Any, qvel: Any) -> None:
@@ -424,72 +341,127 @@ class BatchedSystem(BaseDriving, BodyPoses, Wrenching, Sensing, Varying, DeviceI
         Raises:
           ValueError: a wrong shape, a non-finite value, or a frozen world (reset it first).
         """
-        self._require("write the joint state", frozenset({S.INACTIVE, S.ACTIVE}))
-        rows = self._worlds(worlds)
-        sel = np.arange(self.nworld) if rows is None else rows
-        m = self.model
-        qpos = np.asarray(qpos, dtype=np.float64)
-        qvel = np.asarray(qvel, dtype=np.float64)
-        for name, value, width in (("qpos", qpos, m.nq), ("qvel", qvel, m.nv)):
-            if value.shape != (len(sel), width):
-                raise ValueError(f"{name} must have shape ({len(sel)}, {width}), got {value.shape}")
-            if not np.isfinite(value).all():
-                raise ValueError(f"{name} holds NaN or infinity")
-        frozen = sel[self.frozen[sel]]
-        if frozen.size:
-            raise ValueError(f"world {frozen[0]} is frozen (it diverged or overflowed): reset it first")
-        self._set_qstate(sel, qpos, qvel)
+        self._require("write the joint state", RUNNING)
+        sel, qpos, qvel = self._checked_qstate(worlds, qpos, qvel)
+        self.engine.set_qstate(sel, qpos, qvel)
         self._refresh()
-        self._add_noise()
+        self.parts.sensing.add_noise()
 
-    # --- bookkeeping: frozen worlds, world lists, the host arrays ---
+    # --- per-world randomization (batchsim.variation.worlds) ---
+    def set_variation(self, variation: Variation | str | Path | Mapping[str, Any] | None, first_world: int = 0) -> None:
+        """Vary the model per world from configure on: a Variation, a YAML file or its mapping
+        (batchsim.variation.spec); None: every world the same.
+
+        Args:
+          first_world: the number of this system's world 0 in the fleet (`--world-offset`, or a
+            shard's first world): world i draws as world `first_world + i` of any fleet does.
+
+        Raises:
+          VariationError: the file, or a name in it, does not fit the model (one line, file and key).
+          ConfigurationError: a field this backend cannot vary per world, naming those that can.
+          LifecycleError: the system is configured already.
+        """
+        if self._opened or self.lifecycle_state is not S.UNCONFIGURED:
+            raise LifecycleError("set the variation before configure(): the worlds draw when they are allocated")
+        self.parts.draws.set(variation, first_world)
+
     @property
-    def frozen(self) -> np.ndarray:
-        """(nworld,) bool: the worlds step() leaves alone until they are reset."""
-        if not self.status.any():  # the usual case, on every read() and step(): no allocation
-            return self._none_frozen
-        return (self.status & _FROZEN_BITS) != 0
+    def variation(self) -> Variation | None:
+        """The Variation the worlds draw from, or None."""
+        bound = self.parts.draws.bound
+        return None if bound is None else bound.variation
 
-    def _worlds(self, worlds: Sequence[int] | np.ndarray | None) -> np.ndarray | None:
-        """World indices as given, (k,) int64, in the caller's order; None for all
-        (batchsim.types.worlds_index: ValueError for a world out of range, a world listed
-        twice, a mask of the wrong shape, values that are not integers)."""
-        return worlds_index(worlds, self.nworld)
+    @property
+    def variation_bound(self) -> Bound | None:
+        """The variation as resolved against this model (what a draw writes, and how), or None."""
+        return self.parts.draws.bound
 
-    def _finish_gather(self, readings: np.ndarray | None = None) -> None:
-        """Finish readings gathered from the engine (batchsim.readings.Finish: the columns
-        read negated, transmissions' joints): `readings` (k, ncolumn), or None: `_readings`
-        right after `_read()`. Called once per gather, never on rows already finished."""
-        self._finish(self._readings if readings is None else readings)
+    def world_params(self, worlds: Sequence[int] | np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Each world's current values of every varied field: field -> `(n, *shape)` float64 copies,
+        for all or the listed worlds; `start_qpos` `(n, nq)` too where start-pose noise is drawn.
+        Empty without a variation. Valid from configure on."""
+        if self.parts.draws.bound is not None and not self._opened:
+            raise LifecycleError("world_params(): the worlds draw at configure(); configure first")
+        return self.parts.draws.world_params(worlds_index(worlds, self.nworld))
 
-    def _refresh(self) -> None:
-        """The engine's current readings into the host arrays, signed, then frozen worlds' held ones."""
-        self._read()
-        self._finish_gather()
-        self._readings_current = True
-        self._show_held()
+    def reseed(self, seed: int) -> None:
+        """Draw from `seed` from now on, as a new run would: every world's next reset is its
+        first draw again (a gymnasium `reset(seed=...)`). Nothing changes until a reset."""
+        self.parts.draws.reseed(seed)
 
-    def _show_held(self) -> None:
-        """Frozen worlds' rows of the host arrays: what they hold (noise-free)."""
-        if not self.status.any():  # the usual case: nothing held
+    def draw_numbers(self) -> np.ndarray:
+        """(nworld,) int64: how many times each world has drawn since its first (0 at start)."""
+        return self.parts.draws.draw_numbers()
+
+    # --- for users who stay on the engine's device ---
+    def device_arrays(self) -> dict[str, Any]:
+        """The engine's live qpos, qvel, qfrc_actuator, sensordata, ctrl `(nworld, ...)` and time
+        `(nworld,)` arrays, zero copy (the engine's docstring says how long each stays valid):
+        Warp arrays on warp, JAX arrays on mjx, the batch's float64 NumPy arrays on cpu."""
+        return self.engine.device_arrays()
+
+    @property
+    def data(self) -> Any:
+        """mjx: the simulation's own `mjx.Data`, batched over worlds (the engine's `data`); a Data
+        of the same structure assigned replaces the simulation's state."""
+        return self.engine.data  # type: ignore[attr-defined]
+
+    @data.setter
+    def data(self, value: Any) -> None:
+        self.engine.data = value  # type: ignore[attr-defined]
+
+    def device_state(self) -> Any:
+        """`(nworld, nstate)` the state interfaces, gathered now on the engine's device, signed as
+        `state` is (`export_state_interfaces()` order), without sensor noise; rows of frozen
+        worlds are parked and meaningless until reset. warp reuses one buffer: the next call
+        overwrites it.
+
+        Raises:
+          ConfigurationError: interfaces that pass through transmissions (computed on the host).
+        """
+        self._require("read the device state", RUNNING)
+        if self.spec.transmissions:
+            raise ConfigurationError(
+                "device_state(): the transmissions' joint interfaces are computed on the host: use read() and state"
+            )
+        if self.engine.device_is_host:  # the engine's device is the host: the state, gathered and signed now
+            self._refresh()
+            return self.parts.readings.state
+        return self.engine.device_state(np.array([c.sign for c in self.spec.state], np.float32))
+
+    def write_device(self, command: Any) -> None:
+        """Apply `command` `(nworld, ncommand)` (any DLPack array, float32 or float64, on the
+        engine's device) to every world's ctrl on the device, as write() applies `self.command`;
+        parked (frozen) worlds keep a zero ctrl. No BAD_COMMAND check (the values never reach
+        the host): a NaN reaches MuJoCo, which diverges that world, frozen as always. ACTIVE only.
+
+        Raises:
+          ConfigurationError: commands that do not map one to one onto actuators (PIDs, scaled
+            grippers, mimic joints, transmissions: they run on the host; use command and write()).
+        """
+        self._require("write commands on the device", frozenset({S.ACTIVE}))
+        if not self.parts.actuation.trivial:
+            raise ConfigurationError(
+                "write_device(): these command interfaces are not plain copies into actuators "
+                "(PIDs, scaling, mimic joints or transmissions run on the host): use command and write()"
+            )
+        shape = tuple(getattr(command, "shape", ()))
+        want = (self.nworld, len(self.spec.commands))
+        if shape != want:
+            raise ValueError(f"command must have shape {want}, got {shape}")
+        if self.engine.device_is_host:
+            self._command[:] = np.asarray(command)
+            self.write()
             return
-        frozen = self.frozen
-        if frozen.any():
-            self._readings[frozen] = self._held_readings[frozen]
-            self._sensor_host[frozen] = self._held_sensordata[frozen]
-            self.time[frozen] = self._held_time[frozen]
+        self.engine.write_device(command)
 
-    def _gather_fields(
-        self,
-        fields: Mapping[str, np.ndarray],
-        readings: np.ndarray,
-        sensordata: np.ndarray,
-        time: np.ndarray,
-    ) -> None:
-        """Host engine fields (`READ_FIELDS` `(nworld, ...)` and `time` `(nworld,)`) into
-        readings `(nworld, ncolumn)`, sensordata `(nworld, nsensordata)` and time `(nworld,)`."""
-        for source, cols, idx in self._gather:
-            readings[:, cols] = fields[source][:, idx]
-        sensordata[:] = fields["sensordata"]
-        time[:] = fields["time"]
+    def __getattr__(self, name: str) -> Any:
+        """What the engine states beyond the contract, read through the system: warp's `nconmax`
+        and `njmax`, a device engine's `device`, cpu's `nthread`."""
+        if name.startswith("_") or name in ("engine", "parts"):
+            raise AttributeError(name)
+        try:
+            return getattr(self.__dict__["engine"], name)
+        except (KeyError, AttributeError):
+            raise AttributeError(f"{type(self).__name__} on {self.__dict__.get('name', '?')} has no attribute {name!r}") from None
 

@@ -12,12 +12,15 @@ import dataclasses
 import enum
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Future
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from batchsim.sensors import SensorSuite
+
+class _AddsNoise(Protocol):
+    """What PendingFrames needs of the sensor suite (batchsim.sensors.SensorSuite)."""
+
+    def add_noise(self, name: str, values: np.ndarray, worlds: np.ndarray) -> None: ...
 
 
 class AnyCase:
@@ -73,6 +76,20 @@ class StateSource(enum.Enum):
 READ_FIELDS = tuple(s.value for s in StateSource)
 
 
+class OptionError(ValueError):
+    """A bad option value. `option` is its Python name (`control_rate`); str() reads
+    `"<option> <detail>"`, and `named(flag)` the same with the command line's name for it.
+    An empty `option` is a problem of no single option: the message is the detail alone."""
+
+    def __init__(self, option: str, detail: str):
+        super().__init__(f"{option} {detail}" if option else detail)
+        self.option = option
+        self.detail = detail
+
+    def named(self, name: str) -> str:
+        return f"{name} {self.detail}" if self.option else self.detail
+
+
 class ConfigurationError(ValueError):
     """The model or its ros2_control block asks for something the simulation cannot serve."""
 
@@ -112,7 +129,7 @@ class SensorData(Mapping[str, np.ndarray]):
 
 @dataclasses.dataclass
 class StepFailures:
-    """The worlds that failed during one `_step(nstep)` call, as a backend reports them.
+    """The worlds that failed during one `Engine.step` call, as an engine reports them.
 
     Attributes:
       worlds: (k,) int64, the worlds; none of them was frozen before the call.
@@ -122,6 +139,8 @@ class StepFailures:
         they were at the start of the call.
       sensordata: (k, nsensordata) float64, likewise.
       time: (k,) float64, likewise.
+      finished: whether `readings` are finished as read() shows them (taken from the `start`
+        the contract handed the engine), else a raw gather the contract finishes.
     """
 
     worlds: np.ndarray
@@ -130,6 +149,16 @@ class StepFailures:
     readings: np.ndarray
     sensordata: np.ndarray
     time: np.ndarray
+    finished: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class HeldBase:
+    """The free joint whose planar velocity the BaseVelocityPlugin holds (batchsim.plugins): its
+    qpos address (7 entries) and its dof address (6)."""
+
+    qposadr: int
+    dofadr: int
 
 
 class Frames(NamedTuple):
@@ -159,7 +188,7 @@ class PendingFrames:
         future: Future,
         camera: str,
         worlds: np.ndarray,
-        suite: SensorSuite,
+        suite: _AddsNoise,
         order: np.ndarray | None = None,
     ):
         self.camera = camera
@@ -239,3 +268,16 @@ def split_worlds(nworld: int, parts: int) -> list[range]:
         raise ValueError(f"{nworld} worlds cannot be split into {parts} ranges")
     edges = [(2 * i * nworld + parts) // (2 * parts) for i in range(parts + 1)]
     return [range(lo, hi) for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def as_slice(index: Sequence[int] | np.ndarray) -> slice | np.ndarray:
+    """Indices that step evenly upward as the equal slice (a copy through a slice skips the gather
+    an index array makes: half the time at (4096, 6) of a (4096, 36) array), else as an index
+    array."""
+    index = np.asarray(index, dtype=np.intp).reshape(-1)
+    if len(index) == 0 or index[0] < 0:
+        return index
+    step = int(index[1] - index[0]) if len(index) > 1 else 1
+    if step < 1 or (np.diff(index) != step).any():
+        return index
+    return slice(int(index[0]), int(index[-1]) + 1, step)

@@ -18,7 +18,7 @@ with a fresh draw of its randomized conditions where the variation says `redraw_
 
 By default arrays are host NumPy arrays on every backend: the contract's read() and write()
 path, one download and one upload per step. With `device=True` observations stay on the
-engine's device and actions are taken there (batchsim.device_io: `device_state()`,
+engine's device and actions are taken there (the contract's `device_state()` and
 `write_device()`): the backend's own arrays (warp: `wp.array`, mjx: `jax.Array`, float32),
 DLPack-capable (`torch.from_dlpack(obs)`); only the rewards and the done flags, `(nworld,)`
 each, come to the host, where the resets are decided. Next-step and disabled autoreset only
@@ -37,13 +37,14 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 import batchsim
-from batchsim.hardware import FROZEN, BatchedSystem
+from batchsim.contract import Contract
 from batchsim.model import CommandMode, InterfaceKind
+from batchsim.types import FROZEN
 
 #: reward(obs (n, nstate), action (n, ncommand), sim) -> (n,) float
-Reward = Callable[[np.ndarray, np.ndarray, BatchedSystem], np.ndarray]
+Reward = Callable[[np.ndarray, np.ndarray, Contract], np.ndarray]
 #: terminated(obs (n, nstate), sim) -> (n,) bool
-Terminated = Callable[[np.ndarray, BatchedSystem], np.ndarray]
+Terminated = Callable[[np.ndarray, Contract], np.ndarray]
 
 
 class BatchsimVectorEnv(VectorEnv):
@@ -61,7 +62,7 @@ class BatchsimVectorEnv(VectorEnv):
 
     def __init__(
         self,
-        sim: BatchedSystem,
+        sim: Contract,
         *,
         reward: Reward | None = None,
         terminated: Terminated | None = None,
@@ -91,9 +92,7 @@ class BatchsimVectorEnv(VectorEnv):
             )
         self.metadata = {"autoreset_mode": self.autoreset_mode}
         nstate, ncommand = len(sim.export_state_interfaces()), len(sim.export_command_interfaces())
-        dtype = (
-            np.float32 if self.device and sim.compiles_first_period else np.float64
-        )  # the GPU engines' float32
+        dtype = sim.device_dtype if self.device else np.float64  # the GPU engines' float32
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (nstate,), dtype)
         low, high = command_bounds(sim)
         self.single_action_space = gym.spaces.Box(low, high, (ncommand,), np.float64)
@@ -178,7 +177,7 @@ class WorldEnv(gym.Env):
 
     metadata: dict[str, Any] = {"render_modes": []}
 
-    def __init__(self, sim: BatchedSystem, **env_options: Any):
+    def __init__(self, sim: Contract, **env_options: Any):
         if sim.nworld != 1:
             raise ValueError(f"a WorldEnv is one world; this system has {sim.nworld}")
         self._vector = BatchsimVectorEnv(sim, autoreset_mode=AutoresetMode.DISABLED, **env_options)
@@ -186,7 +185,7 @@ class WorldEnv(gym.Env):
         self.action_space = self._vector.single_action_space
 
     @property
-    def sim(self) -> BatchedSystem:
+    def sim(self) -> Contract:
         return self._vector.sim
 
     def reset(
@@ -213,7 +212,7 @@ def _host(values: Any, dtype: Any) -> np.ndarray:
     return np.array(values, dtype=dtype)
 
 
-def command_bounds(sim: BatchedSystem) -> tuple[np.ndarray, np.ndarray]:
+def command_bounds(sim: Contract) -> tuple[np.ndarray, np.ndarray]:
     """(ncommand,) low and high of each command interface: the actuator's ctrlrange (through the
     interface's scale and offset) where it is limited, else a position interface's joint range
     (ros2_control's position limits) where the joint is limited; else infinite."""

@@ -168,7 +168,7 @@ def raw_together(model: str, backend: str, devices: list, per_device: int, secon
     """Steps/s of the raw loop on each of `devices` at once, one process per device (each
     seeing only its own GPU, as batchsim's shard processes do), timed over the same window:
     what the devices give together, beside the sum of what each gives alone."""
-    from batchsim.backends.shards import device_env
+    from batchsim.backends.sharded.shards import device_env
 
     procs = []
     for d in devices:

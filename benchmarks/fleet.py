@@ -234,7 +234,7 @@ class Published:
 def keep_off(proc: subprocess.Popen, reserved: tuple[int, ...]) -> None:
     """Keep a helper process off the loop's cores (`--cpu-affinity`) and their other hardware
     threads, as batchsim keeps its workers, and as a user's taskset would."""
-    from batchsim.realtime import with_siblings
+    from batchsim.loop.realtime import with_siblings
 
     if reserved:
         os.sched_setaffinity(proc.pid, set(os.sched_getaffinity(0)) - with_siblings(reserved))

@@ -21,7 +21,7 @@ def paced_fleet(opts: argparse.Namespace, bridge_options: Any) -> Iterator[tuple
     import batchsim
     from batchsim.controllers import default_controllers, load_controllers
     from batchsim.loop import SimLoop
-    from batchsim.realtime import DEFAULT_THREAD_PRIORITY
+    from batchsim.loop.realtime import DEFAULT_THREAD_PRIORITY
     from ros_bridge.bridge import start_bridge
 
     options: dict[str, Any] = {}

@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 
 import batchsim
-from batchsim.external_wrench import ExternalWrench
+from batchsim.plugins.external_wrench import ExternalWrench
 
 DEMOS = Path(__file__).resolve().parent.parent / "tests" / "upstream" / "mujoco_ros2_control_demos"
 SCENE = DEMOS / "demo_resources" / "scenes" / "scene_mobile_base.xml"

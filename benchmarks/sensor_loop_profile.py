@@ -47,7 +47,7 @@ from sensors import CAMERA, LIDAR, MODEL, make, size_arg, write_json  # noqa: E4
 from throughput import device_name, versions  # noqa: E402
 
 import batchsim.backends.host_sensors as host_sensors  # noqa: E402
-from batchsim.sampler import SensorSampler  # noqa: E402
+from batchsim.loop.sampler import SensorSampler  # noqa: E402
 from batchsim.types import PendingFrames  # noqa: E402
 
 CONFIGS = ("physics", "lidar", "camera", "camera+lidar", "camera+lidar sync")

@@ -75,7 +75,7 @@ from fleet import Batchsim, _pythonpath  # noqa: E402 (its process handling and 
 from throughput import device_name, versions  # noqa: E402
 
 import batchsim  # noqa: E402
-from batchsim.sampler import SensorSampler  # noqa: E402
+from batchsim.loop.sampler import SensorSampler  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 LOCALHOST = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}

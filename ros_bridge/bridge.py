@@ -40,9 +40,9 @@ import atexit
 import sys
 from collections.abc import Sequence
 
+from batchsim.contract import Contract
 from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import Output
-from batchsim.hardware import BatchedSystem
 from batchsim.loop import SimLoop
 from ros_bridge.host import BridgeHost
 from ros_bridge.options import BridgeOptions, Reliability, default_workers
@@ -57,7 +57,7 @@ __all__ = ["BridgeHost", "BridgeOptions", "ConflictKind", "FleetConflict", "Reli
 
 
 def start_bridge(
-    sim: BatchedSystem,
+    sim: Contract,
     loop: SimLoop,
     options: BridgeOptions | None = None,
     manager: ControllerManager | None = None,

@@ -7,7 +7,7 @@ Per control period, in the loop thread:
                 slots, command timeouts, BAD_COMMAND bookkeeping (then the controllers, write())
     after_write BAD_COMMAND re-marked; a snapshot (time, status, the channels a worker publishes) to shared memory,
                 workers woken: here if a channel due reads the engine (tf), else in
-    while_stepping, beside the device's steps (BatchedSystem.step's `meanwhile`)
+    while_stepping, beside the device's steps (Contract.step's `meanwhile`)
     gate        with lockstep: publish the state the period starts from, wait until every world's command arrived
     idle        while paused: requests, resets published at once, steps answered
 
@@ -25,13 +25,13 @@ from typing import Any
 
 import numpy as np
 
+from batchsim.contract import Contract
 from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import Input, MessageKind
-from batchsim.hardware import BatchedSystem, Status
 from batchsim.loop import Participant, SimLoop
+from batchsim.loop.realtime import with_siblings
 from batchsim.memory import Memory, Ring
-from batchsim.realtime import with_siblings
-from batchsim.types import FROZEN
+from batchsim.types import FROZEN, Status
 from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
 from ros_bridge.manager_link import ManagerLink
 from ros_bridge.naming import topic_name
@@ -85,7 +85,7 @@ class BridgeHost(Participant):
 
     def __init__(
         self,
-        sim: BatchedSystem,
+        sim: Contract,
         loop: SimLoop,
         plan: FleetPlan,
         fills: Sequence[ChannelFill],
@@ -201,7 +201,7 @@ class BridgeHost(Participant):
         return text[:-1] + f", {workers})" if workers else text
 
     # --- the loop thread ---
-    def update(self, sim: BatchedSystem, time: float, period: float) -> None:
+    def update(self, sim: Contract, time: float, period: float) -> None:
         """Requests, commands, timeouts, BAD_COMMAND; the controllers run after this."""
         self._flush(write=False)  # a step that failed before while_stepping: read() has moved on since
         self.workers.supervise()
@@ -235,7 +235,7 @@ class BridgeHost(Participant):
         # hold every interface, every period applies theirs
         self.bad = rejected | (np.zeros_like(self.bad) if self.all_claimed else self.bad & ~good)
 
-    def after_write(self, sim: BatchedSystem, time: float, period: float) -> None:
+    def after_write(self, sim: Contract, time: float, period: float) -> None:
         """write() clears BAD_COMMAND for the rows it applied: keep the bridge's; publish: now
         if a channel due reads the engine (tf), else while the device steps (while_stepping)."""
         if self.bad.any():
@@ -248,7 +248,7 @@ class BridgeHost(Participant):
                 return
         self._period += 1
 
-    def while_stepping(self, sim: BatchedSystem, time: float, period: float) -> None:
+    def while_stepping(self, sim: Contract, time: float, period: float) -> None:
         """The period's snapshot, from host copies only, then the trajectories its update took
         to their controllers, while the device steps (SimLoop)."""
         self._flush(write=True)
@@ -270,7 +270,7 @@ class BridgeHost(Participant):
             wanted[c] and (self._force or any(k % e == 0 for e in self._channel_every[c])) for c in self._engine_channels
         )
 
-    def idle(self, sim: BatchedSystem, time: float) -> None:
+    def idle(self, sim: Contract, time: float) -> None:
         """While paused: requests; a reset or a finished step is published at once."""
         self._flush(write=True)
         refused = np.zeros(self.nworld, dtype=bool)  # trajectories refused beside the last steps: shown now
@@ -336,7 +336,7 @@ class BridgeHost(Participant):
         )
         return True
 
-    def on_reset(self, sim: BatchedSystem, worlds: np.ndarray | None) -> None:
+    def on_reset(self, sim: Contract, worlds: np.ndarray | None) -> None:
         """Worlds were reset (SimLoop.reset): forget their pending commands and timeouts;
         publish at once."""
         self.commands.drop(worlds)
@@ -352,7 +352,7 @@ class BridgeHost(Participant):
 
     # --- requests through the rings ---
     def _serve_requests(
-        self, sim: BatchedSystem, good: np.ndarray | None, rejected: np.ndarray | None, later: bool = False
+        self, sim: Contract, good: np.ndarray | None, rejected: np.ndarray | None, later: bool = False
     ) -> bool:
         """Carry out what the workers' rings hold; True if there was anything. Trajectories go to
         their controllers now, or `later`: while the device steps (now if a switch or a cancel came

@@ -13,8 +13,8 @@ import dataclasses
 
 import numpy as np
 
+from batchsim.contract import Contract
 from batchsim.controllers import ControllerManager
-from batchsim.hardware import BatchedSystem
 from batchsim.memory import Memory
 from ros_bridge.protocol.active import ActiveWriter
 from ros_bridge.protocol.requests import decode_switch
@@ -84,7 +84,7 @@ class ManagerSpec:
     scopes: tuple[ManagerScope, ...] = ()
 
 
-def manager_spec(sim: BatchedSystem, manager: ControllerManager, control_rate: float) -> ManagerSpec:
+def manager_spec(sim: Contract, manager: ControllerManager, control_rate: float) -> ManagerSpec:
     controllers = tuple(
         ControllerSpec(
             c.name,

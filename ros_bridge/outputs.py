@@ -16,9 +16,9 @@ from collections.abc import Callable, Container, Sequence
 import mujoco
 import numpy as np
 
-from batchsim.hardware import BatchedSystem
+from batchsim.contract import Contract
 from batchsim.model import RobotSpec, Sensor
-from batchsim.readings import actuator_state_index
+from batchsim.parts.readings import actuator_state_index
 from ros_bridge.naming import ros_names
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
@@ -117,7 +117,7 @@ def _robots(spec: RobotSpec) -> list[_Robot]:
 
 
 def robot_outputs(
-    sim: BatchedSystem, channel: Channel, publish_every: int, sensor_every: int, *, replaced: Container[str] = ()
+    sim: Contract, channel: Channel, publish_every: int, sensor_every: int, *, replaced: Container[str] = ()
 ) -> list[OutputSpec]:
     """The outputs of `sim`'s joints, sensors and floating base: per robot of a world of several
     (`<robot>/joint_states`, ...), else the world's own; `replaced`: the robots' prefixes ("" for
@@ -197,7 +197,7 @@ def robot_outputs(
     return outputs
 
 
-def _base_fill(sim: BatchedSystem, k: int) -> ChannelFill:
+def _base_fill(sim: Contract, k: int) -> ChannelFill:
     def fill_base(out: np.ndarray) -> None:
         base = sim.base_states[:, k]  # pose, world-frame linear and body-frame angular velocity
         out[:, 0:7] = base[:, 0:7]

@@ -19,14 +19,14 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from batchsim.base_velocity import HELD_DOFS, command_problem
+from batchsim.contract import Contract
 from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import OUTPUT_FIELDS, ActionKind, Input, MessageKind, Output
 from batchsim.controllers.trajectory import DEFAULT_MAX_POINTS
-from batchsim.hardware import BatchedSystem
 from batchsim.loop import OptionError
 from batchsim.memory import Layout, ring_arrays
 from batchsim.model import RobotSpec
+from batchsim.plugins.base_velocity import HELD_DOFS, command_problem
 from batchsim.types import split_worlds
 from ros_bridge.action_plan import (
     ACTION_MONITOR_RATE,
@@ -121,7 +121,7 @@ class FleetPlan:
       manager: the controller_manager services' data, or None without controllers.
       actions: the FollowJointTrajectory and GripperCommand actions (ros_bridge/action_plan.py).
       wrench_service: the ExternalWrenchPlugin's service under each world's namespace
-        (`external_wrench/apply_wrench`, batchsim.external_wrench), or "" without the plugin.
+        (`external_wrench/apply_wrench`, batchsim.plugins.external_wrench), or "" without the plugin.
       recording: what a recording writes (ros_bridge/recording.py), or None without recording.
       view: what the web view draws and where it serves (ros_bridge/view_plan.py), or None.
       layout, memory_name: the shared arrays.
@@ -237,7 +237,7 @@ def _actuator_tokens(spec: RobotSpec) -> list[str]:
 
 
 def build_plan(
-    sim: BatchedSystem,
+    sim: Contract,
     control_rate: float,
     options: BridgeOptions,
     manager: ControllerManager | None,
@@ -371,8 +371,8 @@ def build_plan(
     return plan, fills, inputs
 
 
-def _base_velocity_input(sim: BatchedSystem) -> Input:
-    """The BaseVelocityPlugin's cmd_vel (batchsim.base_velocity) as an input: a Twist's (or
+def _base_velocity_input(sim: Contract) -> Input:
+    """The BaseVelocityPlugin's cmd_vel (batchsim.plugins.base_velocity) as an input: a Twist's (or
     TwistStamped's) linear.x, linear.y and angular.z become the world's command, stamped with
     its sim time when the loop takes it (the plugin ignores a TwistStamped's own stamp too)."""
     config = sim.base_velocity.config

@@ -42,9 +42,9 @@ import enum
 
 import numpy as np
 
-from batchsim.hardware import BatchedSystem
+from batchsim.contract import Contract
 from batchsim.loop import Participant
-from batchsim.sampler import Sample, SensorSampler
+from batchsim.loop.sampler import Sample, SensorSampler
 from batchsim.sensors import Camera, CameraMode, Lidar
 from ros_bridge.protocol.sensor_blocks import (
     WANT_DEPTH,
@@ -173,7 +173,7 @@ class SensorPlan:
         return out
 
 
-def sensor_plan(sim: BatchedSystem) -> SensorPlan | None:
+def sensor_plan(sim: Contract) -> SensorPlan | None:
     """The streaming cameras and the lidars of `sim` as topics; None when it has neither.
     (A polled camera renders when triggered, which no topic does: it gets none.)"""
     suite = sim.sensors
@@ -202,7 +202,7 @@ class SensorFeed(Participant):
       sampler: the SensorSampler; `sampler.produced` counts world-frames and world-scans.
     """
 
-    def __init__(self, sim: BatchedSystem, memory, plan: SensorPlan, recording=None, view=None):
+    def __init__(self, sim: Contract, memory, plan: SensorPlan, recording=None, view=None):
         self.plan = plan
         self.recording = recording
         self.askers = [a for a in (recording, view) if a is not None]  # each ORs its want bits in
@@ -215,7 +215,7 @@ class SensorFeed(Participant):
         # cameras and lidars the bridge does not publish (a polled camera) stay unwanted
         self.sampler.produced = {name: n for name, n in self.sampler.produced.items() if name in self.column}
 
-    def update(self, sim: BatchedSystem, time: float, period: float) -> None:
+    def update(self, sim: Contract, time: float, period: float) -> None:
         want = wanted(self.memory)
         for asker in self.askers:
             asker.want_sensors(want)

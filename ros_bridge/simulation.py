@@ -17,11 +17,11 @@ from collections.abc import Callable
 import mujoco
 import numpy as np
 
-from batchsim.external_wrench import ExternalWrench
-from batchsim.hardware import BatchedSystem
+from batchsim.contract import Contract
 from batchsim.loop import SimLoop
 from batchsim.memory import Memory
 from batchsim.model import InitialState, initial_command
+from batchsim.plugins.external_wrench import ExternalWrench
 from ros_bridge.protocol.requests import mark_wrench_done
 
 #: answer(worker, ticket, sim time, ok, message)
@@ -38,7 +38,7 @@ class SimulationRequests:
 
     def __init__(
         self,
-        sim: BatchedSystem,
+        sim: Contract,
         loop: SimLoop,
         answer: Answer,
         memory: Memory | None = None,

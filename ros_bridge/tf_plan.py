@@ -12,8 +12,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from batchsim.contract import Contract
 from batchsim.controllers.topics import Transform
-from batchsim.hardware import BatchedSystem
 from batchsim.model import RobotPart
 from batchsim.model.frames import FrameTree, frame_tree, initial_transforms, relative_transforms
 from batchsim.model.from_urdf import is_urdf
@@ -101,7 +101,7 @@ class TfSpec:
 
 
 def tf_spec(
-    sim: BatchedSystem,
+    sim: Contract,
     every: int,
     channel: Callable[[str, int, Callable[[np.ndarray], None]], int],
     source: str | None = None,
@@ -167,7 +167,7 @@ def _in_world(frame_id: str) -> str:
 
 
 def controller_frames(
-    sim: BatchedSystem, root: str, frames: set[str], transforms: Sequence[Transform]
+    sim: Contract, root: str, frames: set[str], transforms: Sequence[Transform]
 ) -> tuple[list[Transform], tuple[tuple[str, str], ...], np.ndarray]:
     """Which controller transforms tf carries, and the anchors their parents hang from.
 
@@ -224,7 +224,7 @@ def _robot_description(robot: RobotPart) -> tuple[str, str]:
 
 
 
-def _description(sim: BatchedSystem, tree, source: str | None) -> tuple[str, list]:
+def _description(sim: Contract, tree, source: str | None) -> tuple[str, list]:
     """The user's URDF if its links are frames of the tree (so RViz finds a transform for
     each), else the one generated from the MJCF (with a warning saying why), and the
     generated one's links that are no body (Urdf.extra_frames: tf_static carries them)."""

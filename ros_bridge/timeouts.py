@@ -8,7 +8,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from batchsim.hardware import BatchedSystem
+from batchsim.contract import Contract
 from batchsim.model import InterfaceKind
 
 
@@ -19,7 +19,7 @@ class CommandTimeouts:
       timed_out: (nworld,) bool, the worlds holding safe commands now.
     """
 
-    def __init__(self, sim: BatchedSystem, timeout: float | None, free: np.ndarray, namespaces: Sequence[str], warn: Callable[[str, str], None]):
+    def __init__(self, sim: Contract, timeout: float | None, free: np.ndarray, namespaces: Sequence[str], warn: Callable[[str, str], None]):
         self.timeout = timeout
         self.free = free  # (ncommand,) bool: the interfaces no controller owns
         self.namespaces = namespaces
@@ -38,7 +38,7 @@ class CommandTimeouts:
         self.last_command[worlds] = np.inf
         self.timed_out[worlds] = False
 
-    def check(self, sim: BatchedSystem, time: float) -> None:
+    def check(self, sim: Contract, time: float) -> None:
         """Put the worlds that just went stale on safe commands, and say so."""
         if self.timeout is None:
             return
@@ -62,7 +62,7 @@ class CommandTimeouts:
         )
 
 
-def safe_plan(sim: BatchedSystem) -> tuple[list[int], list[int], list[int]]:
+def safe_plan(sim: Contract) -> tuple[list[int], list[int], list[int]]:
     """Where each command goes on a command timeout: position interfaces to the measured
     joint position (state column), velocity and effort to zero."""
     spec = sim.spec

@@ -30,7 +30,7 @@ import tempfile
 from collections.abc import MutableMapping
 from pathlib import Path
 
-from batchsim.sampler import MAX_PENDING
+from batchsim.loop.sampler import MAX_PENDING
 from ros_bridge.sensor_topics import SensorPlan
 
 PROFILES_FILE = "FASTRTPS_DEFAULT_PROFILES_FILE"  # what Fast DDS 2.x (ROS 2 Jazzy) reads

@@ -27,7 +27,7 @@ import time as wallclock
 import mujoco
 import numpy as np
 
-from batchsim.hardware import BatchedSystem
+from batchsim.contract import Contract
 from batchsim.model.frames import frame_tree
 from ros_bridge.protocol.sensor_blocks import WANT_RGB, CameraRequest
 
@@ -136,7 +136,7 @@ def _pose_in(m: mujoco.MjModel, body: int, anchors: set[int]) -> tuple[int, np.n
     return body, pos, quat
 
 
-def view_spec(sim: BatchedSystem, tf_channel: int, tf_bodies: tuple[int, ...], host: str, port: int,
+def view_spec(sim: Contract, tf_channel: int, tf_bodies: tuple[int, ...], host: str, port: int,
               joints: tuple[int, tuple[int, ...], tuple[str, ...]] | None = None) -> ViewSpec:  # fmt: skip
     """The visible geoms of `sim`'s model, each anchored to a body of the tf channel (`tf_bodies`, its body ids)."""
     m = sim.model
@@ -189,7 +189,7 @@ def geometry_from_bytes(data: bytes, host: str, port: int) -> tuple[ViewSpec, li
     return ViewSpec(geoms, -1, float(z["spacing"]), host, port), json.loads(str(z["frames"]))
 
 
-def recording_geometry(sim: BatchedSystem, tf) -> bytes:
+def recording_geometry(sim: Contract, tf) -> bytes:
     """What a recording of `sim` carries for the view: its geoms, anchored to tf's frames."""
     tree = frame_tree(sim.spec)
     return geometry_bytes(view_spec(sim, tf.channel, tf.bodies, "", 0), [tree.frame(b) for b in tf.bodies])

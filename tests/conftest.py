@@ -31,11 +31,11 @@ os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), f"batchsim-jax-cache-{os.getuid()}"))
 
 import pytest  # noqa: E402
-from reference_backend import ReferenceSystem  # noqa: E402
+from reference_backend import ReferenceEngine  # noqa: E402
 
 import batchsim  # noqa: E402
 
-batchsim.backends.register("ref", ReferenceSystem)  # a backend from outside batchsim: this one line
+batchsim.backends.register("ref", ReferenceEngine)  # a backend from outside batchsim: this one line
 
 # backend -> the module its optional packages provide
 BACKENDS = {"cpu": "mujoco", "mjx": "jax", "warp": "mujoco_warp", "mjx-2dev": "jax", "warp-2dev": "mujoco_warp"}

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 from conftest import need
-from reference_backend import ReferenceSystem
+from reference_backend import ReferenceEngine
 
 import batchsim
 from batchsim import backends, cli
@@ -25,10 +25,10 @@ def registry(monkeypatch):
 
 def test_a_registered_backend_is_taken_by_name_wherever_a_backend_is(capsys):
     ref = parse("REF")
-    assert isinstance(ref, Registered) and ref.cls is ReferenceSystem and ref.value == "ref"
+    assert isinstance(ref, Registered) and ref.cls is ReferenceEngine and ref.value == "ref"
     assert backends.names() == ["auto", "cpu", "mjx", "warp", "ref"]
     sim = batchsim.make("arm", 2, "Ref")
-    assert isinstance(sim, ReferenceSystem) and sim.reason == "requested"
+    assert isinstance(sim.engine, ReferenceEngine) and sim.reason == "requested"
     assert backends.resolve("ref", sim.spec, 2) == (ref, "requested")
     # an unknown name: the same one line, the registered names among the choices
     with pytest.raises(OptionError, match=r"^unknown backend 'nope' \(choose from auto, cpu, mjx, warp, ref\)$"):
@@ -45,31 +45,31 @@ def test_a_registered_backend_is_taken_by_name_wherever_a_backend_is(capsys):
 
 
 def test_register_refuses_a_name_that_would_be_ambiguous(registry):
-    class Other(ReferenceSystem):
+    class Other(ReferenceEngine):
         name = "other"
 
     with pytest.raises(ValueError, match="'CPU' is one of batchsim's own"):
         register("CPU", Other)
     with pytest.raises(ValueError, match=r"Other.name is 'other'; it must be the name registered"):
         register("another", Other)
-    with pytest.raises(ValueError, match="is not a batchsim.BatchedSystem subclass"):
+    with pytest.raises(ValueError, match="is not a batchsim.engine.Engine subclass"):
         register("other", object)  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="'ref' is registered already, as ReferenceSystem"):
-        register("ref", type("Impostor", (ReferenceSystem,), {}))
-    register("ref", ReferenceSystem)  # the same class again: nothing changes
+    with pytest.raises(ValueError, match="'ref' is registered already, as ReferenceEngine"):
+        register("ref", type("Impostor", (ReferenceEngine,), {}))
+    register("ref", ReferenceEngine)  # the same class again: nothing changes
     register("Other", Other, extra="other")
     assert parse("other") == Registered("other", Other, "other")
 
 
 def test_the_memory_check_asks_the_backends_class(registry, capsys):
     spec = batchsim.load("arm")
-    per_world = ReferenceSystem.physics_memory(spec.mjmodel).per_world
+    per_world = ReferenceEngine.physics_memory(spec.mjmodel).per_world
     estimate = backends.estimate_memory(spec, "ref", 1000, ros=False)
     assert per_world > 0 and estimate.physics_per_world > per_world  # and the contract's host arrays
     assert estimate.device == 0 and estimate.host > 1000 * estimate.physics_per_world
     assert estimate.backend == "ref"
 
-    class Unstated(ReferenceSystem):  # a backend that states no estimate runs unchecked, and is told so
+    class Unstated(ReferenceEngine):  # a backend that states no estimate runs unchecked, and is told so
         name = "unstated"
         physics_memory = None
 
@@ -90,4 +90,4 @@ def test_the_shipped_backends_state_whether_their_first_period_compiles(backend,
     (the contract suite checks that a fleet over several devices says what its shards say)."""
     need(package)
     assert backend_class(backend).compiles_first_period is compiles
-    assert ReferenceSystem.compiles_first_period is False
+    assert ReferenceEngine.compiles_first_period is False

@@ -1,4 +1,4 @@
-"""mujoco_ros2_control's BaseVelocityPlugin (batchsim.base_velocity) through the Python API, no ROS:
+"""mujoco_ros2_control's BaseVelocityPlugin (batchsim.plugins.base_velocity) through the Python API, no ROS:
 its params read from the plugin YAML, and the override on every backend.
 
 The model is upstream's unit-test setup (test_base_velocity_plugin.cpp: a free body, no gravity)
@@ -24,7 +24,7 @@ import pytest
 from conftest import need
 
 import batchsim
-from batchsim.base_velocity import PLUGIN_TYPE
+from batchsim.plugins.base_velocity import PLUGIN_TYPE
 from batchsim.sensors import SensorConfig, SensorConfigError
 
 DEMOS = Path(__file__).parent / "upstream" / "mujoco_ros2_control_demos"

@@ -39,6 +39,19 @@ def arm(backend):
     sim.shutdown()
 
 
+# ---------------------------------------------------------------- the Contract
+
+
+def test_every_backend_is_a_contract(backend):
+    """make() gives a batchsim.Contract on every backend: BatchedSystem over one engine, or a
+    fleet over devices composed of one per device, never a subclass that switches features off."""
+    sim = batchsim.make("arm", 2, backend)
+    assert isinstance(sim, batchsim.Contract)
+    sharded = isinstance(sim, batchsim.backends.sharded.ShardedSystem)  # mjx-2dev, warp-2proc: the composite
+    assert isinstance(sim, batchsim.BatchedSystem) != sharded
+    sim.shutdown()
+
+
 # ---------------------------------------------------------------- lifecycle
 
 
@@ -223,7 +236,7 @@ def test_device_arrays_show_what_write_and_read_show(arm):
     arm.write()
     arrays = arm.device_arrays()
     ctrl = host(arrays["ctrl"])  # position servos: ctrl is the command, column for column
-    assert np.allclose(ctrl[:, arm._ctrl_cols], arm.command, atol=1e-6)
+    assert np.allclose(ctrl[:, arm.ctrl_index], arm.command, atol=1e-6)
     arm.step(10)
     arm.read()
     arrays = arm.device_arrays()  # step() may have replaced them (mjx donates its buffers)
@@ -257,7 +270,7 @@ def test_a_reset_keeps_the_other_worlds_device_written_commands(one_device_backe
         sim.write()
         sim.write_device(on_device(sim, np.full(sim.command.shape, 0.25, np.float32)))
         sim.reset(worlds=[0])
-        ctrl = host(sim.device_arrays()["ctrl"])[:, sim._ctrl_cols]
+        ctrl = host(sim.device_arrays()["ctrl"])[:, sim.ctrl_index]
         assert np.allclose(ctrl[1:], 0.25, atol=1e-6), ctrl
     finally:
         sim.shutdown()
@@ -819,7 +832,7 @@ def test_reset_returns_to_the_initial_state_not_qpos0(backend):
 def test_failure_lines_are_rate_limited_and_counted(monkeypatch, caplog):
     """BURST lines per WINDOW, the rest counted: at once in the same breath, or once the window
     is over when they came later; none is lost and none said twice."""
-    from batchsim import failures
+    from batchsim.parts import failures
 
     now = [100.0]
     monkeypatch.setattr(failures.wallclock, "monotonic", lambda: now[0])

@@ -23,9 +23,9 @@ from batchsim.controllers import (
     default_controllers,
     load_controllers,
 )
-from batchsim.hardware import ConfigurationError
 from batchsim.loop import SimLoop
 from batchsim.model import InterfaceKind
+from batchsim.types import ConfigurationError
 
 ARM_JOINTS = [f"joint{i}" for i in range(1, 7)]
 
@@ -238,9 +238,9 @@ def test_a_yaml_in_the_style_of_the_ros2_control_docs_loads():
 
 
 def test_columns_that_step_evenly_are_read_through_a_slice_that_gives_what_the_index_gives():
-    """Controllers copy state columns through `as_slice` (a gather through an index array took
+    """Controllers copy state columns through `batchsim.types.as_slice` (a gather through an index array took
     twice as long at 4096 rows): a slice only where the columns step evenly upward."""
-    from batchsim.controllers.base import as_slice
+    from batchsim.types import as_slice
 
     state = np.arange(40.0).reshape(4, 10)
     sliced = ([0, 1, 2], [1, 4, 7], [5])

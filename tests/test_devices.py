@@ -1,8 +1,8 @@
-"""One fleet over several devices (batchsim/backends/sharded.py), on CPU devices.
+"""One fleet over several devices (batchsim/backends/sharded/system.py), on CPU devices.
 
 The contract suite runs on the multi-device path too (conftest's `mjx-2dev`, `warp-2dev`);
 these are the parts only a sharded system has, with its shards in threads and in processes
-of their own (`processes=True`, batchsim/backends/shards.py).
+of their own (`processes=True`, batchsim/backends/sharded/shards.py).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import batchsim
-from batchsim.backends.shards import CALLS, ShardOp, ShardProcessError, serve
+from batchsim.backends.sharded.shards import CALLS, ShardOp, ShardProcessError, serve
 from batchsim.hardware import BatchedSystem
 from batchsim.loop import OptionError
 from batchsim.types import split_worlds
@@ -308,7 +308,7 @@ def test_a_bad_command_in_one_shard_process_marks_that_world_only():
 def test_a_waiting_side_polls_only_where_there_are_cores_to_spare(monkeypatch):
     """The fleet and its shard processes poll for messages (no wake-up latency) only where
     each polling process leaves a core to spare; a fleet that polls works as one that sleeps."""
-    from batchsim.backends import shards
+    from batchsim.backends.sharded import shards
 
     monkeypatch.setattr(shards.os, "sched_getaffinity", lambda pid: set(range(5)))
     assert shards.spin_budget(2) == 0.0  # 3 polling processes need 6 cores

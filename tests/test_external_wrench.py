@@ -1,4 +1,4 @@
-"""mujoco_ros2_control's ExternalWrenchPlugin (batchsim.external_wrench) through the Python API, no
+"""mujoco_ros2_control's ExternalWrenchPlugin (batchsim.plugins.external_wrench) through the Python API, no
 ROS: its params read from the plugin YAML, the wrenches on every backend, the loop's side of the
 apply_wrench service (ros_bridge/simulation.py) and the service's names in the bridge's plan.
 
@@ -24,7 +24,7 @@ import pytest
 from conftest import need
 
 import batchsim
-from batchsim.external_wrench import PLUGIN_TYPE, ExternalWrench, ExternalWrenches
+from batchsim.plugins.external_wrench import PLUGIN_TYPE, ExternalWrench, ExternalWrenches
 from batchsim.sensors import SensorConfig, SensorConfigError
 
 DEMOS = Path(__file__).parent / "upstream" / "mujoco_ros2_control_demos"

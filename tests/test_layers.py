@@ -1,7 +1,9 @@
-"""The layering DESIGN.md draws, checked on the sources: imports point down only (no cycle
-at import time), rclpy and the ROS message packages only in the bridge workers, JAX and
-Warp only in the backends, the core never imports the bridge (the command line, the top
-floor, composes both), and no module over 500 lines. Read with `ast`, nothing imported."""
+"""The layering DESIGN.md draws, checked on the sources: imports point down only (no cycle,
+counting every import a module names, in functions and `if TYPE_CHECKING:` blocks too, between
+modules and between batchsim's rooms), rclpy and the ROS message packages only in the bridge
+workers, JAX and Warp only in the backends, the engines never import the contract, the core
+never imports the bridge (the command line, the top floor, composes both), and no module over
+500 lines. Read with `ast`, nothing imported."""
 
 from __future__ import annotations
 
@@ -106,12 +108,8 @@ def test_the_model_is_a_floor_below_sensors_backends_and_the_loop():
     assert offenders == []
 
 
-def test_no_import_cycle():
-    """Tarjan's strongly connected components over what each module's import runs."""
-    graph = {
-        name: sorted({m for m in _imports(name, path, at_import_time=True) if m in MODULES and m != name})
-        for name, path in MODULES.items()
-    }
+def _cycles(graph: dict[str, list[str]]) -> list[list[str]]:
+    """Tarjan's strongly connected components of more than one node: the import cycles."""
     index: dict[str, int] = {}
     low: dict[str, int] = {}
     stack: list[str] = []
@@ -142,7 +140,77 @@ def test_no_import_cycle():
     for v in graph:
         if v not in index:
             visit(v)
-    assert cycles == []
+    return cycles
+
+
+def _graph(*, at_import_time: bool) -> dict[str, list[str]]:
+    return {
+        name: sorted({m for m in _imports(name, path, at_import_time=at_import_time) if m in MODULES and m != name})
+        for name, path in MODULES.items()
+    }
+
+
+def test_no_import_cycle_at_import_time():
+    assert _cycles(_graph(at_import_time=True)) == []
+
+
+def test_no_import_cycle_at_all():
+    """Counting every import a module names (in functions, under TYPE_CHECKING): a reader and a
+    drawing of the imports see what the code needs, and none of it runs back up."""
+    assert _cycles(_graph(at_import_time=False)) == []
+
+
+def _room(module: str) -> str:
+    """The room of a batchsim module, as a drawing of batchsim/ shows it: a subpackage as one
+    room (batchsim.backends), a module at the root as its own (batchsim.hardware)."""
+    parts = module.split(".")
+    if len(parts) == 1:
+        return module
+    if (ROOT / "batchsim" / parts[1]).is_dir():
+        return ".".join(parts[:2])
+    return module
+
+
+def test_batchsims_rooms_import_each_other_in_no_cycle():
+    """batchsim/ drawn with its folders as rooms: no room imports one that imports it back
+    (the contract above its parts and engines, the loop above the contract, ...)."""
+    rooms: dict[str, set[str]] = {}
+    for name, targets in _graph(at_import_time=False).items():
+        if name.startswith("batchsim") and name != "batchsim":
+            here = _room(name)
+            rooms.setdefault(here, set())
+            rooms[here] |= {_room(t) for t in targets if t.startswith("batchsim.") and _room(t) != here}
+    assert _cycles({room: sorted(targets & set(rooms)) for room, targets in rooms.items()}) == []
+
+
+def test_the_engines_never_import_the_contract():
+    """Imports point down: the contract owns an engine (batchsim.engine); no backend imports
+    batchsim.hardware, the one concrete system, nor anything that does (the loop, the fleet files)."""
+    above = ("batchsim.hardware", "batchsim.loop", "batchsim.cli", "batchsim.controllers", "batchsim.fleet")
+    offenders = [
+        f"{MODULES[name].relative_to(ROOT)} imports {imp}"
+        for name in MODULES
+        if name.startswith("batchsim.backends")
+        for imp in _imports(name, MODULES[name], at_import_time=False)
+        if imp == "batchsim" or imp.startswith(above)
+    ]
+    assert offenders == []
+
+
+def test_the_wheels_packages_are_the_folders_with_an_init():
+    """setup.py finds the packages: every folder of batchsim/ and ros_bridge/ with an __init__.py
+    (batchsim.models aside, which lives in models/), and no folder of modules without one."""
+    from setuptools import find_packages
+
+    found = set(find_packages(str(ROOT), include=["batchsim*", "ros_bridge*"]))
+    folders = {
+        ".".join(d.relative_to(ROOT).parts)
+        for pkg in PACKAGES
+        for d in [ROOT / pkg, *(ROOT / pkg).rglob("*")]
+        if d.is_dir() and any(d.glob("*.py")) and "definitions" not in d.parts and "__pycache__" not in d.parts
+    }
+    assert found == folders
+    assert all((ROOT / p.replace(".", "/") / "__init__.py").exists() for p in found)
 
 
 def test_no_module_over_500_lines():

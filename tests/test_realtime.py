@@ -1,4 +1,4 @@
-"""The loop thread's real-time scheduling (batchsim/realtime.py), as controller_manager sets its own:
+"""The loop thread's real-time scheduling (batchsim/loop/realtime.py), as controller_manager sets its own:
 SCHED_FIFO while it paces a real-time factor, from its second period on, never for the threads
 it starts, given up when it falls behind, and back to what it was when run() returns."""
 
@@ -15,8 +15,7 @@ import time
 import pytest
 
 import batchsim
-from batchsim import realtime
-from batchsim.loop import SimLoop
+from batchsim.loop import SimLoop, realtime
 
 pytestmark = [
     pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="Linux scheduling"),
@@ -212,7 +211,7 @@ def test_cpu_affinity_names_only_cores_this_process_may_run_on(monkeypatch):
 def test_the_cores_kept_for_the_loop_include_their_hardware_threads(tmp_path):
     """A bridge worker on the loop core's SMT sibling shares its execution units and caches:
     --cpu-affinity keeps the workers (and fleet.py's subscribers) off the siblings too."""
-    from batchsim.realtime import with_siblings
+    from batchsim.loop.realtime import with_siblings
 
     for cpu, siblings in ((0, "0,8"), (8, "0,8"), (1, "1-2"), (3, "3")):
         (tmp_path / f"cpu{cpu}" / "topology").mkdir(parents=True)

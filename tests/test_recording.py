@@ -102,7 +102,7 @@ def test_a_recordings_status_holds_each_change_and_the_view_reads_it_back():
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.serialization import deserialize_message
 
-    from batchsim.hardware import Status
+    from batchsim.types import Status
     from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN
     from ros_bridge.view_file import Recording as ViewRecording
     from ros_bridge.worker.status_recording import StatusRecording

@@ -24,7 +24,7 @@ from arrays import host
 
 import batchsim
 from batchsim import ModelError, SensorConfigError
-from batchsim.sampler import SensorSampler
+from batchsim.loop.sampler import SensorSampler
 from batchsim.sensors import LidarKind, SensorConfig
 from batchsim.sensors.camera import project
 

@@ -1,4 +1,4 @@
-"""The messages between a fleet and a shard process (batchsim/backends/shard_messages.py),
+"""The messages between a fleet and a shard process (batchsim/backends/sharded/messages.py),
 both ends in one process on two threads: a control period's operations go through the
 control row alone, anything else on the socket, and a sleeping side is woken."""
 
@@ -12,8 +12,8 @@ from multiprocessing.connection import Connection
 import numpy as np
 import pytest
 
-from batchsim.backends.shard_messages import Bell, FleetEnd, ShardEnd, control_array
-from batchsim.backends.shards import PERIOD_OPS, ShardOp
+from batchsim.backends.sharded.messages import Bell, FleetEnd, ShardEnd, control_array
+from batchsim.backends.sharded.shards import PERIOD_OPS, ShardOp
 from batchsim.memory import Layout, Memory
 
 

@@ -124,16 +124,16 @@ def test_the_bridges_snapshot_is_written_beside_the_steps_and_shows_the_periods_
     wanted = [position.channel] + ([plan.tf.channel] if tf_wanted else [])
     host.memory["demand"][:, wanted] = 1
     stepping = {"now": False}
-    engine_step = sim._step
+    engine_step = sim.engine.step
 
-    def step(nstep):
+    def step(nstep, meanwhile, start):
         stepping["now"] = True
         try:
-            return engine_step(nstep)
+            return engine_step(nstep, meanwhile, start)
         finally:
             stepping["now"] = False
 
-    monkeypatch.setattr(sim, "_step", step)
+    monkeypatch.setattr(sim.engine, "step", step)
     written_while_stepping = []
     write = host_module.write_snapshot
 

@@ -1,4 +1,4 @@
-"""Per-world randomization (issue 26): batchsim/variation and the contract's batchsim/varying.py.
+"""Per-world randomization (issue 26): batchsim/variation and the contract's batchsim/variation/worlds.py.
 
 Draws depend only on (seed, world, draw number); a world's draw is reproduced alone; cpu, mjx
 and warp take the same values and agree on the physics they give; the values really change
@@ -12,9 +12,10 @@ import pytest
 
 import batchsim
 from batchsim.cli import main
-from batchsim.hardware import ConfigurationError, LifecycleError
+from batchsim.lifecycle import LifecycleError
+from batchsim.types import ConfigurationError
 from batchsim.variation import Bound, VariationError, load
-from batchsim.varying import START_QPOS
+from batchsim.variation.worlds import START_QPOS
 
 VARIATION = {
     "seed": 11,

@@ -136,7 +136,7 @@ def _host(x):
 @pytest.mark.parametrize("backend", ["mjx", "warp"])
 def test_the_device_path_is_the_host_path_without_the_copies(backend):
     """device=True: observations are the backend's own device arrays and actions go in as
-    device arrays (batchsim.device_io); the episodes are the host path's, bit for bit."""
+    device arrays (device_state, write_device); the episodes are the host path's, bit for bit."""
 
     def device_reward(obs, action, sim):
         return -((_host(obs)[:, 0] - _host(action)[:, 0]) ** 2)

@@ -1,12 +1,14 @@
-"""Backends: one class each, registered by name. `resolve()` picks one for `auto`.
+"""Backends: one engine class each (batchsim.engine.Engine), registered by name; `resolve()`
+picks one for `auto`. The contract (batchsim.hardware.BatchedSystem) owns the engine `make()`
+builds; engines never import the contract.
 
-A new backend is one module here with a `BatchedSystem` subclass, plus one line in
-`_REGISTRY`; it is done when the contract suite in tests/ passes on it unchanged. A backend
-that lives outside batchsim is one class and one `register("name", TheClass)` call.
+A new backend is one module here with an Engine subclass, plus one line in `_REGISTRY`; it is
+done when the contract suite in tests/ passes on it unchanged. An engine that lives outside
+batchsim is one class and one `register("name", TheEngine)` call.
 
 The class states what it can do; nothing outside this package asks for a backend by name:
-`compiles_first_period`, `sensors_batched`, `reads_torque_sensors`, `OPTIONS`
-(batchsim.hardware), `available_devices()` and `device_memory(device)` (static methods,
+`compiles_first_period`, `sensors_batched`, `reads_torque_sensors`, `device_dtype`, `OPTIONS`
+(batchsim.engine), `available_devices()` and `device_memory(device)` (static methods,
 where it runs on devices: mjx, warp),
 `unsupported(spec)` (a classmethod: why it cannot simulate a model, or None) and
 `physics_memory(m, nthread=, nconmax=, njmax=)` (a static method: what its physics takes,
@@ -23,11 +25,10 @@ from pathlib import Path
 
 import mujoco
 
-from batchsim.hardware import BatchedSystem, ConfigurationError
-from batchsim.loop import OptionError
+from batchsim.engine import Engine
 from batchsim.model import RobotSpec
 from batchsim.startup import MemoryEstimate, PhysicsMemory, fleet_memory, install_command
-from batchsim.types import AnyCase
+from batchsim.types import AnyCase, ConfigurationError, OptionError
 
 
 class Backend(AnyCase, enum.Enum):
@@ -50,13 +51,13 @@ class Registered:
 
     Attributes:
       value: its name, lower case (as a `Backend` member's value).
-      cls: its BatchedSystem subclass, whose `name` is `value`.
+      cls: its Engine subclass, whose `name` is `value`.
       extra: the pip extra that brings its packages, as the shipped registry lines name theirs;
         None: none.
     """
 
     value: str
-    cls: type[BatchedSystem]
+    cls: type[Engine]
     extra: str | None = None
 
 
@@ -65,9 +66,9 @@ Choice = Backend | Registered
 
 # backend -> (module, class, the pip extra that brings its packages)
 _REGISTRY: dict[Backend, tuple[str, str, str | None]] = {
-    Backend.CPU: ("batchsim.backends.cpu", "CpuSystem", None),
-    Backend.MJX: ("batchsim.backends.mjx", "MjxSystem", "mjx"),
-    Backend.WARP: ("batchsim.backends.warp", "WarpSystem", "warp"),
+    Backend.CPU: ("batchsim.backends.cpu", "CpuEngine", None),
+    Backend.MJX: ("batchsim.backends.mjx", "MjxEngine", "mjx"),
+    Backend.WARP: ("batchsim.backends.warp", "WarpEngine", "warp"),
 }
 # name -> backend, for those made known with register(), in the order they were
 _REGISTERED: dict[str, Registered] = {}
@@ -83,7 +84,7 @@ class BackendUnavailable(ImportError):
     """A backend whose optional packages are not installed."""
 
 
-def register(name: str, cls: type[BatchedSystem], extra: str | None = None) -> None:
+def register(name: str, cls: type[Engine], extra: str | None = None) -> None:
     """Make `cls` a backend: `batchsim.make(model, n, name)`, the command line's `--backend
     name` (in this process) and `resolve` take `name` from now on, and the choices an unknown
     name is told list it.
@@ -91,18 +92,18 @@ def register(name: str, cls: type[BatchedSystem], extra: str | None = None) -> N
     Args:
       name: the backend's name, any case; it must be `cls.name` (the name its log lines and
         messages give) and not a shipped backend's or `auto`.
-      cls: a BatchedSystem subclass implementing the engine hooks (batchsim.engine) and
-        stating its capabilities (this package's docstring); done when the contract suite
+      cls: an Engine subclass (batchsim.engine) stating its capabilities (this package's
+        docstring); done when the contract suite
         (tests/test_contract.py) passes on it unchanged.
       extra: the pip extra that brings its packages, if any, as the shipped ones name theirs.
 
     Raises:
-      ValueError: a name that is taken or not the class's own, or a class that is not a
-        BatchedSystem. Registering the same class under its name again changes nothing.
+      ValueError: a name that is taken or not the class's own, or a class that is not an
+        Engine. Registering the same class under its name again changes nothing.
     """
     key = str(name).lower()
-    if not (isinstance(cls, type) and issubclass(cls, BatchedSystem)):
-        raise ValueError(f"backend {name!r}: {cls!r} is not a batchsim.BatchedSystem subclass")
+    if not (isinstance(cls, type) and issubclass(cls, Engine)):
+        raise ValueError(f"backend {name!r}: {cls!r} is not a batchsim.engine.Engine subclass")
     if key in (b.value for b in Backend):
         raise ValueError(f"backend {name!r} is one of batchsim's own: register another name")
     if cls.name != key:
@@ -133,8 +134,8 @@ def parse(value: str | Choice) -> Choice:
     raise OptionError("", f"unknown backend {value!r} (choose from {', '.join(names())})") from None
 
 
-def backend_class(backend: Choice) -> type[BatchedSystem]:
-    """The class of a concrete backend, importing its heavy packages only now."""
+def backend_class(backend: Choice) -> type[Engine]:
+    """The engine class of a concrete backend, importing its heavy packages only now."""
     if isinstance(backend, Registered):
         return backend.cls
     if backend not in _REGISTRY:
@@ -158,7 +159,7 @@ class UnsupportedModel(ConfigurationError):
 
 
 def unsupported_error(backend: str, spec: RobotSpec, feature: str) -> UnsupportedModel:
-    """The error a backend raises from its constructor (so from make()) for a model it cannot run."""
+    """The error an engine raises from its constructor (so from make()) for a model it cannot run."""
     can = [other.value for other in _concrete() if other.value != backend and _supports(other, spec)]
     return UnsupportedModel(
         f"{spec.name}: the {backend} backend cannot simulate this model ({feature}); "
@@ -176,7 +177,7 @@ def _supports(backend: Choice, spec: RobotSpec) -> bool:
 
 
 def varying_backends(field: str, m: mujoco.MjModel) -> list[str]:
-    """The installed backends that can give `field` per-world values (batchsim.varying)."""
+    """The installed backends that can give `field` per-world values (batchsim.variation.worlds)."""
     return [
         b.value
         for b in _concrete()

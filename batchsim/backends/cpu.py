@@ -1,4 +1,4 @@
-"""The `cpu` backend: MuJoCo 4's threaded batch, `mujoco.batch.Batch`, in exact float64.
+"""The `cpu` engine: MuJoCo 4's threaded batch, `mujoco.batch.Batch`, in exact float64.
 
 Host arrays are the batch's own live bindings, so write() and read() copy nothing but
 the interface columns. Results are bit-identical to a loop of `mujoco.mj_step` over one
@@ -20,6 +20,7 @@ the contract's "before the last substep" when it follows a step().
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any, ClassVar
 
@@ -29,10 +30,11 @@ from mujoco import batch as mjbatch
 
 from batchsim.backends import footprint
 from batchsim.backends.host_sensors import HostSensors
-from batchsim.base_velocity import HELD_DOFS, world_velocity
-from batchsim.failures import warning_text
-from batchsim.hardware import BatchedSystem, Status, StepFailures
+from batchsim.engine import Engine
+from batchsim.parts.failures import warning_text
+from batchsim.plugins.base_velocity import HELD_DOFS, world_velocity
 from batchsim.sensors import Camera, Lidar
+from batchsim.types import HeldBase, Status, StepFailures
 
 _W = mujoco.mjtWarning
 # MuJoCo warnings that mean a world's numbers can no longer be trusted (mjWARN_INERTIA is
@@ -44,7 +46,7 @@ assert _OVERFLOW_WARNINGS.stop == _DIVERGED_WARNINGS.start
 _DEVICE_ARRAYS = ("qpos", "qvel", "qfrc_actuator", "sensordata", "time")
 
 
-class CpuSystem(BatchedSystem):
+class CpuEngine(Engine):
     """`nworld` worlds on `mujoco.batch.Batch`, stepped on `nthread` threads.
 
     Options:
@@ -60,7 +62,7 @@ class CpuSystem(BatchedSystem):
     physics_memory = staticmethod(footprint.cpu)
     logs_failures: ClassVar[bool] = True  # C MuJoCo logs a world's failure itself (MUJOCO_LOG.TXT)
 
-    def _open(self) -> None:
+    def open(self, *, held_base: HeldBase | None = None, varied: tuple[str, ...] = ()) -> None:
         nthread = int(self.options["nthread"]) or min(self.nworld, os.cpu_count() or 1)
         self._batch = mjbatch.Batch(self.model, self.nworld, nthread=nthread)
         b = self._batch
@@ -70,26 +72,30 @@ class CpuSystem(BatchedSystem):
         self._warning_count = b.warning[:, :, 1]
         self.nthread = b.nthread
         # readings at the start of a step() that follows another without a read() in between
-        self._start = (np.empty_like(self._readings), np.empty_like(self._sensor_host), np.empty_like(self.time))
-        self._held: np.ndarray | None = None  # the base velocity's target (batchsim.base_velocity)
+        self._start = self.buffers.empty_like()
+        self._held_base = held_base
+        self._held: np.ndarray | None = None  # the base velocity's target (batchsim.plugins.base_velocity)
 
-    def _close(self) -> None:
+    def close(self) -> None:
         del self._batch, self._fields, self._ctrl, self._warnings, self._warning_count, self._start
         self._poses = self._unfilled = None
 
-    def _ctrl_host(self) -> np.ndarray:
+    def ctrl(self) -> np.ndarray:
         return self._ctrl
 
-    def _read(self) -> None:
-        self._gather_fields(self._fields, self._readings, self._sensor_host, self.time)
+    def read(self) -> None:
+        self.buffers.gather(self._fields)
 
-    def _step(self, nstep: int) -> StepFailures | None:
-        frozen = self.frozen
-        if self._readings_current:  # read() ran since the last step: its rows, noise-free, are the start
-            start = (*self._noise_free(), self.time)
-        else:
+    def step(
+        self,
+        nstep: int,
+        meanwhile: Callable[[], None],
+        start: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    ) -> StepFailures | None:
+        frozen = self.buffers.frozen
+        if start is None:  # no read() since the last step: gather the start now
             start = self._start
-            self._gather_fields(self._fields, *start)
+            self.buffers.gather(self._fields, start)
         errors: dict[int, str] = {}
         if self._unfilled is not None:  # the stepped worlds' bound poses get filled by this call
             self._unfilled &= frozen
@@ -104,16 +110,16 @@ class CpuSystem(BatchedSystem):
                 errors = {int(w): self._batch.error(int(w)) for w in e.ids}
         return self._failures(frozen, errors, start)
 
-    def _stage_base_velocity(self, target: np.ndarray) -> None:
+    def stage_base_velocity(self, target: np.ndarray) -> None:
         self._held = target.copy()
 
-    def _stage_xfrc(self, worlds: np.ndarray, xfrc: np.ndarray) -> None:
+    def stage_xfrc(self, worlds: np.ndarray, xfrc: np.ndarray) -> None:
         self._batch.bind("xfrc_applied")[worlds] = xfrc  # a state field: the rows themselves, bound once
 
     def _step_held(self, ids: np.ndarray | None, nstep: int) -> dict[int, str]:
         """`nstep` substeps of the worlds `ids` (None: all), one batch call each, the base's planar
-        velocity written into qvel before each (batchsim.base_velocity); the worlds that raised."""
-        drive = self.base_velocity
+        velocity written into qvel before each (batchsim.plugins.base_velocity); the worlds that raised."""
+        drive = self._held_base
         qpos, qvel = self._fields["qpos"], self._fields["qvel"]
         held = world_velocity(qpos[:, drive.qposadr + 3 : drive.qposadr + 7], self._held)
         rows = np.flatnonzero(~np.isnan(held[:, 0]))
@@ -165,10 +171,8 @@ class CpuSystem(BatchedSystem):
             status[k] = Status.OVERFLOW if overflow else Status.DIVERGED
             reasons.append(warning_text(warning, int(self._warnings[w, warning, 0])))
         readings, sensordata, time = start
-        held = readings[worlds]
-        if readings is self._start[0]:
-            self._finish_gather(held)  # an engine gather, unsigned like _read()'s; read()'s rows are signed
-        return StepFailures(worlds, status, reasons, held, sensordata[worlds], time[worlds])
+        finished = readings is not self._start[0]  # read()'s rows are finished; a gather of ours is raw
+        return StepFailures(worlds, status, reasons, readings[worlds], sensordata[worlds], time[worlds], finished)
 
     def device_arrays(self) -> dict[str, np.ndarray]:
         """The batch's live arrays, zero copy, as the GPU backends hand out theirs: qpos, qvel,
@@ -178,25 +182,16 @@ class CpuSystem(BatchedSystem):
         """
         return {**self._fields, "ctrl": self._ctrl}
 
-    # --- the device path (batchsim.device_io): this engine's device is the host ---
-    def _device_state(self) -> np.ndarray:
-        self._refresh()  # the batch's fields, gathered and signed now, noise-free
-        return self._readings[:, : len(self.spec.state)]
-
-    def _write_device(self, command: Any) -> None:
-        self._command[:] = np.asarray(command)
-        self.write()
-
     @classmethod
     def variable_fields(cls, m: mujoco.MjModel) -> frozenset[str]:
         """What mujoco.batch expands per simulation (its MODEL_FIELDS), asset data aside."""
         return frozenset(f for f in mjbatch.MODEL_FIELDS if f.startswith("opt.") or isinstance(getattr(m, f, None), np.ndarray))
 
-    def _set_model_fields(self, worlds: np.ndarray, params: dict[str, np.ndarray]) -> None:
+    def set_model_fields(self, worlds: np.ndarray, params: dict[str, np.ndarray]) -> None:
         for field, values in params.items():
             self._batch.expand(field)[worlds] = values[worlds]
 
-    def _reset(self, worlds: np.ndarray | None) -> None:
+    def reset(self, worlds: np.ndarray | None) -> None:
         ids = None if worlds is None else np.sort(worlds).astype(np.int32)  # mujoco.batch takes them ascending
         if self._unfilled is not None:
             self._unfilled[slice(None) if worlds is None else worlds] = False
@@ -218,7 +213,7 @@ class CpuSystem(BatchedSystem):
     _poses: tuple[np.ndarray, np.ndarray] | None = None
     _unfilled: np.ndarray | None = None  # (nworld,) bool: rows the batch has not filled since binding
 
-    def _body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def body_poses(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self._poses is None:
             # bound only when asked for: a bound output is copied out of every world at every call
             self._poses = (self._batch.bind("xpos"), self._batch.bind("xquat"))
@@ -231,16 +226,16 @@ class CpuSystem(BatchedSystem):
                 self._kinematics_now(worlds, self._unfilled[worlds], xpos, xquat)
         return xpos, xquat
 
-    def _pose_rows(self) -> tuple[np.ndarray, np.ndarray] | None:
+    def pose_rows(self) -> tuple[np.ndarray, np.ndarray] | None:
         if self._poses is None or (self._unfilled is not None and self._unfilled.any()):
-            return None  # not bound yet, or rows the batch has not filled: _body_poses computes them
+            return None  # not bound yet, or rows the batch has not filled: body_poses computes them
         self._unfilled = None
         return self._poses
 
-    def _qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def qstate(self, worlds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self._fields["qpos"][worlds], self._fields["qvel"][worlds]  # fancy indexing: copies
 
-    def _set_qstate(self, worlds: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+    def set_qstate(self, worlds: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
         self._fields["qpos"][worlds] = qpos
         self._fields["qvel"][worlds] = qvel
         self._batch.forward(ids=np.sort(worlds).astype(np.int32))  # poses and sensordata of the new state
@@ -262,19 +257,19 @@ class CpuSystem(BatchedSystem):
             self._host = HostSensors(self.model, self._batch)
         return self._host
 
-    def _render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
+    def render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
         return self._host_sensors().frames(camera, worlds, copy)
 
-    def _prepare_rendering(self, cameras: list[Camera]) -> None:
+    def prepare_rendering(self, cameras: list[Camera]) -> None:
         self._host_sensors().prepare(cameras)
 
-    def _render_frames_later(self, camera: Camera, worlds: np.ndarray) -> Future:
+    def render_frames_later(self, camera: Camera, worlds: np.ndarray) -> Future:
         return self._host_sensors().submit(camera, worlds)  # drawn on the render thread while the caller steps on
 
-    def _cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
+    def cast_rays(self, lidar: Lidar, worlds: np.ndarray) -> np.ndarray:
         return self._host_sensors().cast(lidar, worlds)
 
-    def _close_sensors(self) -> None:
+    def close_sensors(self) -> None:
         if self._host is not None:
             self._host.close()
             self._host = None

@@ -1,15 +1,15 @@
-"""What the device backends (`mjx`, `warp`) share: one base class, no JAX or Warp here.
+"""What the device engines (`mjx`, `warp`) share: one base class, no JAX or Warp here.
 
 Both step every world at once in float32 on an accelerator (or JAX's and Warp's CPU
 devices), so they cannot skip a frozen world as cpu does: a world that fails is *parked*,
 reset on the device with its ctrl held at zero, while read() shows what it held (the
-contract's rule, in `batchsim.hardware`). Failures are found on the device, once per
+contract's rule, batchsim.parts.readings). Failures are found on the device, once per
 control period, and come back as one integer per world (`failure_code`), with the MuJoCo
 warning and the entry of the first bad value, so that the log line reads as cpu's does.
 
-A backend built on this class implements `_put_model` (the model on the device, raising
-NotImplementedError for a feature the engine lacks), `_reset_on_device`, and the
-contract's engine hooks (`_open`, `_close`, `_ctrl_host`, `_upload_ctrl`, `_read`, `_step`).
+An engine built on this class implements `_put_model` (the model on the device, raising
+NotImplementedError for a feature the engine lacks), `_reset_on_device`, and the Engine's own
+calls (`open`, `close`, `ctrl`, `upload_ctrl`, `read`, `step`).
 """
 
 from __future__ import annotations
@@ -20,9 +20,10 @@ import mujoco
 import numpy as np
 
 from batchsim.backends import unsupported_error
-from batchsim.failures import warning_text
-from batchsim.hardware import BatchedSystem, LifecycleState, Status
+from batchsim.engine import Engine
 from batchsim.model import RobotSpec
+from batchsim.parts.failures import warning_text
+from batchsim.types import Status
 
 #: the live arrays `device_arrays()` hands out, `(nworld, ...)` each, `time` `(nworld,)`
 DEVICE_ARRAYS = ("qpos", "qvel", "qfrc_actuator", "sensordata", "ctrl", "time")
@@ -59,15 +60,17 @@ def code_status(codes: np.ndarray) -> np.ndarray:
     return (np.asarray(codes).astype(np.int64) & ((1 << STATUS_BITS) - 1)).astype(np.uint8)
 
 
-class DeviceSystem(BatchedSystem):
-    """The base of the backends that step every world on a device, in float32.
+class DeviceEngine(Engine):
+    """The base of the engines that step every world on a device, in float32.
 
-    Attributes (beyond BatchedSystem's):
+    Attributes (beyond Engine's):
       device: the engine's device (a JAX or Warp device object).
     """
 
     compiles_first_period = True  # jax.jit compiles, Warp captures its graph, on the first period
     steps_on_device = True  # step()'s `meanwhile` runs between the period's launch and its wait
+    device_dtype = np.float32
+    device_is_host = False
 
     def __init__(self, spec: RobotSpec, nworld: int, **options: Any):
         super().__init__(spec, nworld, **options)
@@ -86,28 +89,7 @@ class DeviceSystem(BatchedSystem):
             return _feature(e)
         return None
 
-    def share_host_arrays(self, readings: np.ndarray, sensordata: np.ndarray, command: np.ndarray) -> None:
-        """Make `readings` (nworld, ncolumn), `sensordata` (nworld, nsensordata) and `command`
-        (nworld, ncommand), C-contiguous float64, the arrays read() fills and write() takes
-        its commands from, in place of this system's own (`command` gets its current rows):
-        a fleet's shard (batchsim/backends/shards.py) then reads into the fleet's arrays and
-        copies nothing. Before configure(); the caller keeps the arrays alive."""
-        self._require("share its host arrays", frozenset({LifecycleState.UNKNOWN, LifecycleState.UNCONFIGURED}))
-        mine = {"readings": self._readings, "sensordata": self._sensor_host, "command": self._command}
-        for name, array in zip(mine, (readings, sensordata, command), strict=True):
-            like = mine[name]
-            if array.shape != like.shape or array.dtype != np.float64 or not array.flags.c_contiguous:
-                raise ValueError(f"{name} must be C-contiguous float64 {like.shape}, got {array.dtype} {array.shape}")
-        command[:] = self._command
-        self._command = command
-        self._bind_readings(readings)
-        self._bind_sensordata(sensordata)
-        self._follow_host_arrays()
-
-    def _follow_host_arrays(self) -> None:
-        """share_host_arrays' hook: the engine's own host buffers follow the shared arrays."""
-
-    # --- what each device backend supplies ---
+    # --- what each device engine supplies ---
     @staticmethod
     def _resolve_device(option: Any) -> Any:
         """The device for the `device` option (None: the engine's default)."""
@@ -129,12 +111,12 @@ class DeviceSystem(BatchedSystem):
         self.spec.initial.apply(self.model, mjd)
         return mjd
 
-    def _reset(self, worlds: np.ndarray | None) -> None:
+    def reset(self, worlds: np.ndarray | None) -> None:
         self._reset_on_device(worlds)  # status is clear: they are live again
 
-    def _park(self, worlds: np.ndarray) -> None:
+    def park(self, worlds: np.ndarray) -> None:
         self._reset_on_device(worlds)
-        self._upload_ctrl()  # frozen rows go up as zero
+        self.upload_ctrl()  # frozen rows go up as zero
 
     def _failure_reasons(self, codes: np.ndarray, overflow: Any = None) -> list[str]:
         """One reason per failed world from its failure code; `overflow(i)` says why the i-th

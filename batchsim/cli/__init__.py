@@ -29,12 +29,13 @@ from batchsim.cli.info import info, sensor_lines
 from batchsim.cli.replay import replay
 from batchsim.cli.runner import StatusLine, build, run, setup_controllers, start_ros
 from batchsim.cli.view import view
-from batchsim.hardware import ConfigurationError, LifecycleError
+from batchsim.lifecycle import LifecycleError
 from batchsim.loop import OptionError, RateError
 from batchsim.model import ModelError
 from batchsim.model.params import ParamsError
 from batchsim.sensors import DeclarationError, SensorConfigError
 from batchsim.startup import MemoryCheckError
+from batchsim.types import ConfigurationError
 from batchsim.variation import VariationError
 
 __all__ = [

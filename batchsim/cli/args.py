@@ -19,10 +19,10 @@ import mujoco
 import batchsim
 from batchsim import startup
 from batchsim.cli.bridge_flags import add_bridge_flags, add_option, add_view_flags, world_list
+from batchsim.loop.realtime import DEFAULT_THREAD_PRIORITY
 from batchsim.model import model_names
 from batchsim.model.description import model_file, read_description
 from batchsim.model.from_urdf import is_urdf
-from batchsim.realtime import DEFAULT_THREAD_PRIORITY
 from ros_bridge.options import BridgeOptions  # no rclpy: the options and their flags
 
 EXIT_USAGE = 2

@@ -8,7 +8,6 @@ from typing import Any
 import numpy as np
 
 from batchsim.backends import resolve
-from batchsim.base_velocity import BaseVelocity
 from batchsim.cli.args import (
     UsageError,
     _load,
@@ -17,6 +16,7 @@ from batchsim.cli.args import (
     info_parser,
 )  # fmt: skip
 from batchsim.model import CommandMode, RobotSpec
+from batchsim.plugins.base_velocity import BaseVelocity
 from batchsim.sensors import SensorConfig, SensorSuite
 from batchsim.variation import Bound
 from batchsim.variation import load as load_variation

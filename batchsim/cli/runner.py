@@ -24,16 +24,17 @@ from batchsim.cli.args import (
     split_ros_args,
 )  # fmt: skip
 from batchsim.cli.bridge_flags import bridge_options, option_flag
+from batchsim.contract import Contract
 from batchsim.controllers import ControllerManager, default_controllers, load_controllers
 from batchsim.controllers.robots import load_fleet_controllers
-from batchsim.hardware import BatchedSystem, ConfigurationError
 from batchsim.loop import LoopStats, OptionError, RateError, SimLoop, format_stats, whole_ratio
 from batchsim.model import model_names
 from batchsim.sensors import SensorConfig
+from batchsim.types import ConfigurationError
 from ros_bridge.options import default_workers
 
 
-def build(args: argparse.Namespace, progress: startup.Progress | None = None) -> BatchedSystem:
+def build(args: argparse.Namespace, progress: startup.Progress | None = None) -> Contract:
     """The configured, active system: the model loaded, the memory checked, the worlds made."""
     progress = progress if progress is not None else startup.Progress()
     options: dict[str, Any] = {}
@@ -107,7 +108,7 @@ def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Ch
             print(f"batchsim: warning: {warning}", file=sys.stderr, flush=True)
 
 
-def compile_programs(sim: BatchedSystem, loop: SimLoop, progress: startup.Progress) -> None:
+def compile_programs(sim: Contract, loop: SimLoop, progress: startup.Progress) -> None:
     """mjx compiles, and warp captures, its program on the first control period, and its
     render and ray programs on the first image and scan: run one of each now, under a
     progress stage, and reset, so the first status line means the fleet runs (a rover
@@ -129,7 +130,7 @@ def compile_programs(sim: BatchedSystem, loop: SimLoop, progress: startup.Progre
         sim.reset()
 
 
-def setup_controllers(sim: BatchedSystem, args: argparse.Namespace) -> tuple[ControllerManager | None, float | None]:
+def setup_controllers(sim: Contract, args: argparse.Namespace) -> tuple[ControllerManager | None, float | None]:
     """The run's controllers and the control rate their YAML's update_rate asks for.
 
     --controllers names a controller_manager YAML; without it a shipped model gets its
@@ -152,7 +153,7 @@ def setup_controllers(sim: BatchedSystem, args: argparse.Namespace) -> tuple[Con
     return manager, _checked_rate(sim, args, manager)
 
 
-def _checked_rate(sim: BatchedSystem, args: argparse.Namespace, manager: ControllerManager | None) -> float | None:
+def _checked_rate(sim: Contract, args: argparse.Namespace, manager: ControllerManager | None) -> float | None:
     """The manager's update_rate, once it is a whole number of physics steps."""
     rate = manager.update_rate if manager is not None else None
     if rate is not None and args.control_rate is None:
@@ -169,7 +170,7 @@ def _checked_rate(sim: BatchedSystem, args: argparse.Namespace, manager: Control
 #: library option names whose flag is not `--<option with dashes>`
 
 
-def start_ros(sim: BatchedSystem, loop: SimLoop, args: argparse.Namespace, manager: ControllerManager | None = None):
+def start_ros(sim: Contract, loop: SimLoop, args: argparse.Namespace, manager: ControllerManager | None = None):
     """The ROS 2 bridge for this run, serving `manager`'s controllers too.
 
     Errors name the flags; another process already serving these worlds or /clock is a

@@ -15,9 +15,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from batchsim.controllers.topics import ControllerTopics
-from batchsim.hardware import ConfigurationError
 from batchsim.model import RobotSpec
-from batchsim.types import world_out_of_range
+from batchsim.types import ConfigurationError, world_out_of_range
 
 _MISSING = object()
 
@@ -252,18 +251,6 @@ def rows_all(x: np.ndarray) -> np.ndarray:
     first: a reduction along short rows is ten times slower, and usually every row passes."""
     return np.ones(len(x), bool) if x.all() else x.all(axis=1)
 
-
-def as_slice(index: np.ndarray) -> slice | np.ndarray:
-    """An index array that steps evenly upward (columns of one joint interface, usually) as
-    the equal slice, else as it is. A copy through a slice skips the gather that an index
-    array makes: half the time at (4096, 6) of a (4096, 36) state."""
-    index = np.asarray(index, dtype=np.intp)
-    if len(index) == 0 or index[0] < 0:
-        return index
-    step = int(index[1] - index[0]) if len(index) > 1 else 1
-    if step < 1 or (np.diff(index) != step).any():
-        return index
-    return slice(int(index[0]), int(index[-1]) + 1, step)
 
 
 def rows_any(x: np.ndarray) -> np.ndarray:

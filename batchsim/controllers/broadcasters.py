@@ -11,9 +11,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from batchsim.controllers.base import Controller, Params, as_slice
+from batchsim.controllers.base import Controller, Params
 from batchsim.controllers.topics import ControllerTopics, MessageKind, Output
 from batchsim.model import RobotSpec
+from batchsim.types import as_slice
 
 JOINT_INTERFACES = ("position", "velocity", "effort")
 

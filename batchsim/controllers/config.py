@@ -41,49 +41,12 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from batchsim.controllers.base import Controller, Params
-from batchsim.controllers.broadcasters import (
-    ForceTorqueSensorBroadcaster,
-    IMUSensorBroadcaster,
-    JointStateBroadcaster,
-)
-from batchsim.controllers.diff_drive import DiffDriveController
-from batchsim.controllers.forward_command import (
-    ForwardCommandController,
-    JointGroupEffortController,
-    JointGroupPositionController,
-    JointGroupVelocityController,
-)
-from batchsim.controllers.gripper import (
-    EffortGripperActionController,
-    GripperActionController,
-    ParallelGripperActionController,
-)
+from batchsim.controllers.base import Params
 from batchsim.controllers.manager import ControllerManager
-from batchsim.controllers.pose_broadcaster import PoseBroadcaster
-from batchsim.controllers.trajectory import JointTrajectoryController
-from batchsim.hardware import ConfigurationError
+from batchsim.controllers.types import CONTROLLER_TYPES
 from batchsim.model import RobotSpec
 from batchsim.model.params import ParamsError, load_yaml
-
-CONTROLLER_TYPES: dict[str, type[Controller]] = {
-    c.TYPE: c
-    for c in (
-        JointStateBroadcaster,
-        ForwardCommandController,
-        JointGroupPositionController,
-        JointGroupVelocityController,
-        JointGroupEffortController,
-        JointTrajectoryController,
-        DiffDriveController,
-        IMUSensorBroadcaster,
-        ForceTorqueSensorBroadcaster,
-        PoseBroadcaster,
-        GripperActionController,
-        ParallelGripperActionController,
-        EffortGripperActionController,
-    )
-}
+from batchsim.types import ConfigurationError
 
 # keys of a controller's entry in the controller_manager block besides `type`
 _MANAGER_ENTRY_KEYS = ("type", "params_file", "fallback_controllers")

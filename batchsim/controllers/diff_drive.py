@@ -33,8 +33,8 @@ import numpy as np
 
 from batchsim.controllers.base import Controller, Params, last_per_world
 from batchsim.controllers.topics import ControllerTopics, Input, MessageKind, Output, Transform
-from batchsim.hardware import MAX_COMMAND
 from batchsim.model import InterfaceKind, RobotSpec
+from batchsim.types import MAX_COMMAND
 
 
 class _Limiter:

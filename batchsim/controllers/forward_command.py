@@ -15,8 +15,8 @@ import numpy as np
 
 from batchsim.controllers.base import Controller, Params, last_per_world, rows_all
 from batchsim.controllers.topics import ControllerTopics, Input, MessageKind
-from batchsim.hardware import MAX_COMMAND
 from batchsim.model import RobotSpec
+from batchsim.types import MAX_COMMAND
 
 
 class ForwardCommandController(Controller):

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from batchsim.controllers.base import Controller
+from batchsim.controllers.types import CONTROLLER_TYPES
 from batchsim.loop import Participant
 from batchsim.model import RobotSpec
 from batchsim.types import AnyCase, worlds_index
@@ -470,10 +471,7 @@ class ControllerManager(Participant):
 
     def controller_types(self) -> list[tuple[str, str]]:
         """(plugin name, base class name) of every controller type the YAML may name."""
-        types = self._types
-        if types is None:
-            # config.py builds managers, so it is imported here rather than at the top
-            from batchsim.controllers.config import CONTROLLER_TYPES as types
+        types = CONTROLLER_TYPES if self._types is None else self._types
         return [(name, CONTROLLER_BASE_CLASS) for name in types]
 
 

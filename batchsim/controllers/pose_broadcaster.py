@@ -7,9 +7,10 @@ from typing import Any, ClassVar
 import mujoco
 import numpy as np
 
-from batchsim.controllers.base import Controller, Params, as_slice
+from batchsim.controllers.base import Controller, Params
 from batchsim.controllers.topics import ControllerTopics, MessageKind, Output
 from batchsim.model import RobotSpec
+from batchsim.types import as_slice
 
 _FIELDS = ("position.x", "position.y", "position.z", "orientation.x", "orientation.y", "orientation.z", "orientation.w")
 

@@ -67,7 +67,7 @@ class Transmission:
 
     An actuator is named as mujoco_ros2_control names them: a MuJoCo joint driven by an
     actuator, or an actuator's own name. `joints[k]` and `actuators[k]` are paired: a
-    joint's state is gathered where its actuator's is, then mapped (batchsim.transmissions).
+    joint's state is gathered where its actuator's is, then mapped (batchsim.parts.transmissions).
     """
 
     name: str

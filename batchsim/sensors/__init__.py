@@ -7,9 +7,10 @@
     suite.py    SensorSuite: all of it resolved against a model, and which worlds want what
 
 Lidars declared in the MJCF (`<lidar>`, mujoco.plugin.lidar, rangefinder groups) are read by
-batchsim/model/lidars.py, with the rest of the model. The system's side is `BatchedSystem.render`, `.scan` and `.sensors` (batchsim.hardware); the loop
-participant that produces what is wanted is batchsim/sampler.py, beside loop.py; rendering and
-ray casting on the host (cpu, mjx) is batchsim/backends/host_sensors.py.
+batchsim/model/lidars.py, with the rest of the model. The system's side is its sensing part
+(batchsim/parts/sensing.py: `render`, `scan`, `sensors`); the loop participant that produces what
+is wanted is batchsim/loop/sampler.py; rendering and ray casting on the host (cpu, mjx) is
+batchsim/backends/host_sensors.py.
 """
 
 from __future__ import annotations

@@ -14,9 +14,9 @@ mujoco_ros2_control's plugin parameters (under any node's `ros__parameters.mujoc
 
 as upstream's plugins read them (mujoco_ros2_control_plugins/src/*.cpp); older spellings are
 read too (`camera_type` for `policy`, `publish_rate` and `topic` for the lidar's). The base
-velocity plugin's params (`body`, `cmd_vel_topic`, ...) become `base_velocity`
-(batchsim.base_velocity), the external wrench plugin's (`force_arrow_scale`,
-`torque_arrow_scale`) `external_wrench` (batchsim.external_wrench): the system runs both.
+velocity plugin's params (`body`, `cmd_vel_topic`, ...) become `base_velocity`, the external
+wrench plugin's (`force_arrow_scale`, `torque_arrow_scale`) `external_wrench`: the system runs
+both, and batchsim.plugins.config parses them.
 Plugins batchsim does not run (the heartbeat and free-joint state plugins, or any other type)
 are named in `warnings`, which `batchsim` and `batchsim info` print, with what to use instead.
 The same camera and lidar params given as `<param>`s of a
@@ -54,24 +54,14 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from batchsim.base_velocity import PLUGIN_TYPE as BASE_VELOCITY_PLUGIN
-from batchsim.base_velocity import BaseVelocityConfig
-from batchsim.external_wrench import PLUGIN_TYPE as EXTERNAL_WRENCH_PLUGIN
-from batchsim.external_wrench import ExternalWrenchConfig
 from batchsim.model.params import ParamsError, load_yaml, nest_dotted
+from batchsim.plugins import BaseVelocityConfig, ExternalWrenchConfig
+from batchsim.plugins.config import NOT_RUN, RUN, parse_plugin
 from batchsim.sensors.noise import Noise
 
 CAMERA_PLUGIN = "mujoco_ros2_control_plugins/CameraPlugin"
 RANGEFINDER_PLUGIN = "mujoco_ros2_control_plugins/RangefinderLidarPlugin"
 LIDAR3D_PLUGIN = "mujoco_ros2_control_plugins/Mujoco3dLidarPlugin"
-
-HEARTBEAT_PLUGIN = "mujoco_ros2_control_plugins/HeartbeatPublisherPlugin"
-FREE_JOINT_STATE_PLUGIN = "mujoco_ros2_control_plugins/FreeJointStatePublisherPlugin"
-#: plugins batchsim does not run, and what a user has instead
-NOT_RUN = {
-    HEARTBEAT_PLUGIN: "no mujoco_heartbeat topic: /clock and /diagnostics show the simulation is alive",
-    FREE_JOINT_STATE_PLUGIN: "no free_joint_states topic: free bodies' poses are on /tf (and odom for the robot's base)",
-}
 
 _CAMERA_KEYS = (
     "policy", "frame_name", "image_topic", "depth_topic", "info_topic", "trigger_service_name",
@@ -157,8 +147,8 @@ class SensorConfig:
       plugin_lidars: per-sensor overrides of mujoco.plugin.lidar sensors, by sensor name.
       dense_lidars: lidars cast in bulk from sites, batchsim's own.
       noise: noise by name pattern (state interfaces, MJCF sensors, cameras, lidars).
-      base_velocity: the BaseVelocityPlugin's params, or None (batchsim.base_velocity).
-      external_wrench: the ExternalWrenchPlugin's params, or None (batchsim.external_wrench).
+      base_velocity: the BaseVelocityPlugin's params, or None (batchsim.plugins).
+      external_wrench: the ExternalWrenchPlugin's params, or None (batchsim.plugins).
       warnings: what was read and ignored (plugins of other types).
     """
 
@@ -311,24 +301,24 @@ class SensorConfig:
             elif kind == LIDAR3D_PLUGIN:
                 for key, value in rest.items():
                     self.plugin_lidars[str(key)] = _settings(LidarSettings, _LIDAR3D_KEYS, value, f"{at}.{key}")
-            elif kind == BASE_VELOCITY_PLUGIN:
-                self._read_once("base_velocity", BaseVelocityConfig, kind, str(name), rest, at)
-            elif kind == EXTERNAL_WRENCH_PLUGIN:
-                self._read_once("external_wrench", ExternalWrenchConfig, kind, str(name), rest, at)
+            elif kind in RUN:
+                self._read_once(kind, str(name), rest, at)
             elif kind in NOT_RUN:
                 self.warnings.append(f"{at}: {kind} is not run by batchsim: {NOT_RUN[kind]}")
             else:
                 self.warnings.append(f"{at}: plugin type {kind!r} is unknown to batchsim: not run")
 
-    def _read_once(self, field: str, config: Any, kind: str, name: str, params: Mapping[str, Any], at: str) -> None:
-        """A plugin of type `kind` the system runs one instance of: its params into `field` (`config.parse`)."""
-        given = getattr(self, field)
+    def _read_once(self, kind: str, name: str, params: Mapping[str, Any], at: str) -> None:
+        """A plugin of type `kind` the system runs one instance of (batchsim.plugins.config): its
+        params into its field."""
+        given = getattr(self, RUN[kind][0])
         if given is not None and given.name != name:  # the same instance in a later file replaces it
             raise SensorConfigError(f"{at}: a second {kind.rpartition('/')[2]} ({given.where} is one): batchsim runs one")
         try:
-            setattr(self, field, config.parse(name, params, at))
+            field, config = parse_plugin(kind, name, params, at)
         except ValueError as e:
             raise SensorConfigError(str(e)) from None
+        setattr(self, field, config)
 
     def _read_block(self, block: Any, where: str) -> None:
         if not isinstance(block, Mapping):

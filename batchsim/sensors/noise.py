@@ -21,12 +21,12 @@ from typing import Any
 
 import numpy as np
 
-from batchsim.counter_rng import bits as _bits
-from batchsim.counter_rng import element_offsets as _element_offsets
-from batchsim.counter_rng import normal32 as _normal
-from batchsim.counter_rng import stream_id as stream_id
-from batchsim.counter_rng import uniform64
-from batchsim.counter_rng import world_keys as _world_keys
+from batchsim.variation.counter_rng import bits as _bits
+from batchsim.variation.counter_rng import element_offsets as _element_offsets
+from batchsim.variation.counter_rng import normal32 as _normal
+from batchsim.variation.counter_rng import stream_id as stream_id
+from batchsim.variation.counter_rng import uniform64
+from batchsim.variation.counter_rng import world_keys as _world_keys
 
 _BIAS_TICK = np.uint64(0xFFFFFFFFFFFFFFFF)  # the tick a world's bias is drawn at, once
 _DROPOUT_SALT = np.uint64(0x5DEECE66D)

@@ -1,4 +1,7 @@
-"""Per-world randomization: what varies per world (spec), and each world's draw (draw).
+"""Per-world randomization: what varies per world (spec.py), each world's draw (draw.py), the
+system's part that holds every world's draws and applies them at reset (worlds.py), what was
+drawn, as a table (report.py), and the seeded counter hash draws and sensor noise come from
+(counter_rng.py).
 
     variation = batchsim.variation.load("randomize.yaml")   # or a mapping
     sim = batchsim.make("arm", 1024, "warp", randomize=variation)
@@ -6,7 +9,7 @@
 
 World i's draw depends only on the seed and i (counter-based, as sensor noise is), so a run
 repeats, and a world's conditions do not change with the fleet's size. The contract applies
-the draws (batchsim.varying) through each backend's batched model fields.
+the draws (worlds.py) through each engine's batched model fields.
 """
 
 from batchsim.variation.draw import Bound, nominal, subtree_mass

@@ -16,7 +16,7 @@ import difflib
 import mujoco
 import numpy as np
 
-from batchsim import counter_rng
+from batchsim.variation import counter_rng
 from batchsim.variation.spec import (
     Distribution,
     Draw,

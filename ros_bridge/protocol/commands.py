@@ -19,8 +19,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from batchsim.hardware import MAX_COMMAND
 from batchsim.memory import Memory
+from batchsim.types import MAX_COMMAND
 from ros_bridge.protocol.text import put_text, text_of
 
 TEXT = 240  # bytes of the last rejection's line ("<topic>: <reason>") kept per world

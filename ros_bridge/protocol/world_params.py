@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from batchsim.hardware import BatchedSystem
+from batchsim.contract import Contract
 from batchsim.memory import Memory
 from batchsim.variation.report import changes
 from ros_bridge.protocol.text import text_of
@@ -38,7 +38,7 @@ class ParamWriter:
         self.source = source
 
     @classmethod
-    def start(cls, memory: Memory, plan: Any, sim: BatchedSystem) -> ParamWriter:
+    def start(cls, memory: Memory, plan: Any, sim: Contract) -> ParamWriter:
         """The writer of a fleet's plan (ros_bridge.plan.FleetPlan), every world's line written."""
         if not plan.randomized:
             return cls(None, plan.world_offset, "")
@@ -46,7 +46,7 @@ class ParamWriter:
         writer.refresh(sim)
         return writer
 
-    def refresh(self, sim: BatchedSystem) -> None:
+    def refresh(self, sim: Contract) -> None:
         variation = sim.variation
         if variation is None or self.draw is None:
             return

@@ -35,9 +35,8 @@ from typing import Any
 import numpy as np
 import viser
 
-from batchsim.hardware import Status
 from batchsim.memory import Memory
-from batchsim.types import FROZEN
+from batchsim.types import FROZEN, Status
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, FleetPlan
 from ros_bridge.protocol.demand import ChannelDemand
 from ros_bridge.protocol.sensor_blocks import WANT_RGB, CameraRequest, SensorBlock

@@ -7,7 +7,7 @@ would), so one robot in the root namespace serves `/<plugin name>/apply_wrench`,
 `<ns>` here serves `/<ns>/<plugin name>/apply_wrench`. Each world's is created when a client of
 it appears (on_request.py).
 
-A request is checked whole by the loop (ros_bridge/simulation.py, batchsim.external_wrench),
+A request is checked whole by the loop (ros_bridge/simulation.py, batchsim.plugins.external_wrench),
 answered at once when it is refused (upstream's words: "Body 'x' not found in MuJoCo model."),
 and otherwise when its longest wrench has run: upstream's callback sleeps that long in wall
 time; here the wait is in sim time, whatever the real-time factor, until the loop marks the
@@ -46,7 +46,7 @@ class _NextCycle:
 
 
 def wrench_entries(request: Any) -> list[dict]:
-    """ExternalWrench[] as plain data (batchsim.external_wrench.ExternalWrench's fields)."""
+    """ExternalWrench[] as plain data (batchsim.plugins.external_wrench.ExternalWrench's fields)."""
     out = []
     for e in request.wrenches.external_wrenches:
         f, t, p = e.wrench.wrench.force, e.wrench.wrench.torque, e.application_point

@@ -3,7 +3,7 @@
 One control period is one captured graph: the `nstep` physics steps, the float64 clock and
 a per-world check kernel, captured once per `nstep` and launched with one call (Warp replays
 graphs on its CPU device too). Commands go up and state comes down once per period
-(`write`, `read`), through pinned host buffers allocated once at configure; nothing crosses
+(`write`, `read`), through pinned host buffers allocated once, when the contract binds them; nothing crosses
 the bus per physics step.
 
 Failures are data, as in MuJoCo Warp itself: a world whose qpos, qvel or qacc goes
@@ -29,10 +29,20 @@ per step as mj_step adds them, copied into MuJoCo Warp's float32 `d.time` each p
 who stay on the device.
 
 Modules, one job each:
-  system.py   WarpSystem: the engine hooks, the period's graph, its start kept and restored
-  kernels.py  the Warp kernels of a control period (checks, ctrl, gathers, clock, resets)
-  buffers.py  buffer sizing from a CPU rollout, the overflow tables, growth and its memory
-  sensors.py  cameras and lidars: MuJoCo Warp's rendering and ray casting, graphed
+  engine.py     WarpEngine: the Engine's calls, conducted over the helpers it owns; failures
+                gathered, buffers grown
+  worlds.py     DeviceWorlds (Model, Data and per-world arrays, shared by the helpers) and Graphs
+  host.py       the pinned host arrays (bind), and page-locking a fleet's shared memory
+  transfers.py  Transfers: write()'s commands up and read()'s gather down, graphed
+  period.py     Period: a control period's program and graph, its start kept and restored
+  reset.py      Reset: worlds back to the initial state, graphed
+  poses.py      Poses: body poses for the host
+  wrench.py     Wrenches: external wrenches staged for the next period
+  device_io.py  DeviceIO: the device path (device_state, write_device)
+  fields.py     per-world model fields in MuJoCo Warp's batched model arrays
+  sensors.py    Sensors: cameras and lidars, MuJoCo Warp's rendering and ray casting, graphed
+  kernels.py    the Warp kernels of a control period (checks, ctrl, gathers, clock, resets)
+  buffers.py    buffer sizing from a CPU rollout, the overflow tables, growth and its memory
 """
 
 from __future__ import annotations
@@ -47,6 +57,6 @@ if wp.config.log_level <= wp.LOG_INFO:
     wp.config.log_level = wp.LOG_WARNING
 
 from batchsim.backends.warp.buffers import rollout_sizes  # noqa: E402
-from batchsim.backends.warp.system import WarpSystem  # noqa: E402
+from batchsim.backends.warp.engine import WarpEngine  # noqa: E402
 
-__all__ = ["WarpSystem", "rollout_sizes"]
+__all__ = ["WarpEngine", "rollout_sizes"]

@@ -1,6 +1,6 @@
 """MuJoCo Warp's contact and constraint buffers: their first size, from a short CPU rollout of
-the model; what overflowed and which option's buffers hold it; how far to grow them, and
-whether the memory allows it.
+the model; what overflowed and which option's buffers hold it; how far to grow them, whether
+the memory allows it, and the grown Data with every world carried over.
 """
 
 from __future__ import annotations
@@ -14,6 +14,8 @@ import mujoco
 import mujoco_warp as mjw
 import numpy as np
 import warp as wp
+
+from batchsim.backends.device import DEVICE_ARRAYS
 
 _O = mjw.OverflowType
 # Buffers that, once full, drop contacts or constraints: the world's results are wrong.
@@ -47,6 +49,9 @@ GROWS = {"nconmax": 0, "njmax": 0}
 for _kind, (_what, _option) in OVERFLOWS.items():
     if _option is not None:
         GROWS[_option] |= int(_kind)
+
+# the whole integration state, carried into grown buffers
+_INTEGRATION = int(mjw.State.PHYSICS | mjw.State.USER | mjw.State.WARMSTART)  # no PLUGIN in Warp
 
 # growth: at least this factor, at most that, per re-allocation
 _GROW_MIN, _GROW_MAX = 2.0, 8.0
@@ -196,3 +201,16 @@ def overflow_reason(bits: int, cannot_grow: str) -> str:
     if any(option for _, option in kinds) and cannot_grow:
         said += f"; {cannot_grow}"
     return said or "a buffer overflowed"
+
+
+def grown_data(mw: Any, m: mujoco.MjModel, old: Any, nworld: int, nconmax: int, njmax: int) -> Any:
+    """A new Data of `nworld` worlds with these buffers, every world's integration state carried
+    over from `old` (on the current device); the arrays device_arrays() hands out
+    (DEVICE_ARRAYS) are `old`'s own objects, values kept, so users may hold them."""
+    state = wp.zeros((nworld, mujoco.mj_stateSize(m, _INTEGRATION)), dtype=wp.float32)
+    mjw.get_state(mw, old, state, _INTEGRATION)
+    new = mjw.make_data(m, nworld=nworld, nconmax=nconmax, njmax=njmax)
+    mjw.set_state(mw, new, state, _INTEGRATION)
+    for field in DEVICE_ARRAYS:  # same values; keep the arrays users may hold
+        setattr(new, field, getattr(old, field))
+    return new

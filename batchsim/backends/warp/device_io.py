@@ -1,5 +1,6 @@
-"""The device path on MuJoCo Warp (batchsim.device_io): the state gathered and signed into a
-float32 device buffer, commands written into the simulation's ctrl, by kernels; no host copy."""
+"""The device path on MuJoCo Warp (`DeviceIO`: the engine's `device_state` and `write_device`): the
+state gathered and signed into a float32 device buffer, commands written into the simulation's
+ctrl, by kernels; no host copy."""
 
 from __future__ import annotations
 
@@ -7,6 +8,9 @@ from typing import Any
 
 import numpy as np
 import warp as wp
+
+from batchsim.backends.warp.transfers import Transfers
+from batchsim.backends.warp.worlds import DeviceWorlds
 
 
 @wp.kernel
@@ -39,48 +43,50 @@ def command_to_ctrl(
         ctrl_out[w, actuator[c]] = x
 
 
-class WarpDeviceIO:
-    """Mixed into WarpSystem: `_device_state` and `_write_device`."""
+class DeviceIO:
+    """The state gathered and signed on the device, into one buffer kept for it, and commands
+    written into ctrl there."""
 
-    _device_buffers: tuple[Any, Any] | None = None  # (state out, signs)
+    def __init__(self, worlds: DeviceWorlds, transfers: Transfers):
+        self._worlds, self._transfers = worlds, transfers
+        self._out: wp.array | None = None  # (nworld, nstate) float32
+        self._sign: wp.array | None = None  # (nstate,) float32, uploaded from _sign_host
+        self._sign_host: np.ndarray | None = None
 
-    def _buffers(self) -> tuple[Any, Any]:
-        if self._device_buffers is None:
-            state = self.spec.state
-            with wp.ScopedDevice(self.device):
-                self._device_buffers = (
-                    wp.zeros((self.nworld, len(state)), dtype=wp.float32),
-                    wp.array(np.array([c.sign for c in state], np.float32), dtype=wp.float32),
-                )
-        return self._device_buffers
-
-    def _device_state(self) -> wp.array:
-        out, sign = self._buffers()
-        with wp.ScopedDevice(self.device):
-            self._gather_on_device(self._state_dev, self._sensor_dev, self._time_dev)
+    def state(self, sign: np.ndarray) -> wp.array:
+        """`(nworld, len(sign))` the first state columns, each times its sign, gathered now."""
+        w, t = self._worlds, self._transfers
+        with wp.ScopedDevice(w.device):
+            if self._out is None:
+                self._out = wp.zeros((w.nworld, len(sign)), dtype=wp.float32)
+            if self._sign_host is None or not np.array_equal(self._sign_host, sign):
+                self._sign_host = np.array(sign, np.float32)
+                self._sign = wp.array(self._sign_host, dtype=wp.float32)
+            out = self._out
+            t.gather(t.state_dev, t.sensor_dev, t.time_dev)
             wp.launch(
                 signed_columns,
                 dim=out.shape,
-                inputs=[self._state_dev, sign],
+                inputs=[t.state_dev, self._sign],
                 outputs=[out],
-                device=self.device,
+                device=w.device,
             )
         return out
 
-    def _write_device(self, command: Any) -> None:
-        with wp.ScopedDevice(self.device):
+    def write(self, command: Any) -> None:
+        """ctrl[:, the commands' actuators] = `command` (any DLPack array on the device, float32 or
+        float64), and the kept copy of ctrl; parked worlds' ctrl stays zero."""
+        w, t = self._worlds, self._transfers
+        with wp.ScopedDevice(w.device):
             source = command if isinstance(command, wp.array) else wp.from_dlpack(command)
-            if source.device != self.device:
-                raise ValueError(
-                    f"command is on {source.device}, the worlds on {self.device}: put it there first"
-                )
+            if source.device != w.device:
+                raise ValueError(f"command is on {source.device}, the worlds on {w.device}: put it there first")
             if source.dtype not in (wp.float32, wp.float64):
                 raise ValueError(f"command must be float32 or float64, got {source.dtype.__name__}")
             wp.launch(
                 command_to_ctrl,
                 dim=source.shape,
-                inputs=[source, self._actuator_dev, self._parked_dev],
-                outputs=[self._ctrl_dev, self._d.ctrl],
-                device=self.device,
+                inputs=[source, t.actuator, w.parked],
+                outputs=[t.ctrl_dev, w.d.ctrl],
+                device=w.device,
             )
-        self._ctrl_behind = self._cuda  # the host's ctrl lags the kept copy (the CPU device wrote it)

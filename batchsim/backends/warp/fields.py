@@ -1,4 +1,4 @@
-"""Per-world model fields on MuJoCo Warp (batchsim.varying): its batched model arrays.
+"""Per-world model fields on MuJoCo Warp (batchsim.variation.worlds): its batched model arrays.
 
 MuJoCo Warp's Model arrays whose spec starts with `*` (and those of its Option) take a leading
 batch dimension, read as `field[worldid % field.shape[0]]` by every kernel: one row is the
@@ -46,34 +46,29 @@ _MODEL_FIELDS = _batched(mjw_types.Model)
 _OPTION_FIELDS = frozenset(f"opt.{name}" for name in _batched(mjw_types.Option))
 
 
-class WarpFields:
-    """Mixed into WarpSystem: `variable_fields` and the `_set_model_fields` hook."""
+def batched_fields(m: mujoco.MjModel) -> frozenset[str]:
+    """MuJoCo Warp's batched Model and Option arrays that mirror an MjModel field of `m`."""
+    own = {f for f in _MODEL_FIELDS if isinstance(getattr(m, f, None), np.ndarray)}
+    return frozenset(own | {f for f in _OPTION_FIELDS if hasattr(m.opt, f[4:])})
 
-    _m: Any
-    nworld: int
-    device: Any
 
-    @classmethod
-    def variable_fields(cls, m: mujoco.MjModel) -> frozenset[str]:
-        """MuJoCo Warp's batched Model and Option arrays that mirror an MjModel field of `m`."""
-        own = {f for f in _MODEL_FIELDS if isinstance(getattr(m, f, None), np.ndarray)}
-        return frozenset(own | {f for f in _OPTION_FIELDS if hasattr(m.opt, f[4:])})
-
-    def _set_model_fields(self, worlds: np.ndarray, params: dict[str, np.ndarray]) -> None:
-        with wp.ScopedDevice(self.device):
-            for field, values in params.items():
-                owner, name = (self._m.opt, field[4:]) if field.startswith("opt.") else (self._m, field)
-                array, redrawn = getattr(owner, name), worlds
-                if array.shape[0] != self.nworld:  # the first draw: a row per world, before any capture
-                    host = values.astype(np.float32).reshape(len(values), *array.shape[1:], *_inner(array))
-                    setattr(owner, name, wp.array(host, dtype=array.dtype))
-                    redrawn = worlds[:1]  # and world 0's row scattered, to compile the redraw's kernel now
-                    array = getattr(owner, name)
-                rows = values[redrawn].astype(np.float32).reshape(len(redrawn), *array.shape[1:], *_inner(array))
-                src = wp.array(rows, dtype=array.dtype)
-                index = wp.array(redrawn.astype(np.int32), dtype=wp.int32)
-                kernel = scatter_rows if array.ndim == 1 else scatter_rows_2d
-                wp.launch(kernel, dim=src.shape, inputs=[src, index], outputs=[array], device=self.device)
+def set_world_fields(mw: Any, nworld: int, device: Any, worlds: np.ndarray, params: dict[str, np.ndarray]) -> None:
+    """`params[field][worlds]` into the Warp Model `mw`'s arrays of those fields (field ->
+    (nworld, *shape) float64), on `device`: a field's first draw gives it a row per world."""
+    with wp.ScopedDevice(device):
+        for field, values in params.items():
+            owner, name = (mw.opt, field[4:]) if field.startswith("opt.") else (mw, field)
+            array, redrawn = getattr(owner, name), worlds
+            if array.shape[0] != nworld:  # the first draw: a row per world, before any capture
+                host = values.astype(np.float32).reshape(len(values), *array.shape[1:], *_inner(array))
+                setattr(owner, name, wp.array(host, dtype=array.dtype))
+                redrawn = worlds[:1]  # and world 0's row scattered, to compile the redraw's kernel now
+                array = getattr(owner, name)
+            rows = values[redrawn].astype(np.float32).reshape(len(redrawn), *array.shape[1:], *_inner(array))
+            src = wp.array(rows, dtype=array.dtype)
+            index = wp.array(redrawn.astype(np.int32), dtype=wp.int32)
+            kernel = scatter_rows if array.ndim == 1 else scatter_rows_2d
+            wp.launch(kernel, dim=src.shape, inputs=[src, index], outputs=[array], device=device)
 
 
 def _inner(array: wp.array) -> tuple[int, ...]:

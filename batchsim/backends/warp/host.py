@@ -1,18 +1,19 @@
-"""The host side of WarpSystem's arrays, mixed into it: the host arrays a user sees are
-pinned (page-locked) memory that the device copies into directly, so read() costs one DMA
-per array and no host copy.
+"""The host side of the warp engine's arrays: the host arrays the contract reads and writes are
+pinned (page-locked) memory that the device copies into directly, so read() costs one DMA per
+array and no host copy. `WarpEngine.bind` makes them (`pin`).
 
-A fleet's shard (DeviceSystem.share_host_arrays) reads into the fleet's arrays instead:
-its rows of a shared-memory segment, or of the fleet's own memory when the shards are
-threads. That memory is page-locked here too, the whole buffer once per process
-(cuMemHostRegister, CU_MEMHOSTREGISTER_PORTABLE: every device's context sees it as
-pinned), and unlocked when the last system reading into it is gone. Where the driver
-refuses, the copies still work, through the driver's pageable path (slower).
+A fleet's shard (batchsim.backends.sharded) reads into the fleet's arrays instead, binding
+them a second time (`follow`): its rows of a shared-memory segment, or of the fleet's own
+memory when the shards are threads. That memory is page-locked here too, the whole buffer
+once per process (cuMemHostRegister, CU_MEMHOSTREGISTER_PORTABLE: every device's context
+sees it as pinned), and unlocked when the last engine reading into it is gone. Where the
+driver refuses, the copies still work, through the driver's pageable path (slower).
 """
 
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import logging
 import threading
 import weakref
@@ -21,37 +22,63 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from batchsim.engine import EngineBuffers
+
 log = logging.getLogger("batchsim.warp")
 
 PAGE = 4096
 _PORTABLE = 0x01  # CU_MEMHOSTREGISTER_PORTABLE
+_SHARED = ("readings", "sensordata", "time", "command")  # the EngineBuffers arrays the device copies
 
 
-class WarpHost:
-    """`_host_array` and share_host_arrays' hook for WarpSystem, whose `device`, `_cuda`,
-    `_readings` and `_sensor_host` it uses."""
+def host_array(shape: tuple[int, ...], dtype: Any, cuda: bool) -> wp.array:
+    """A zeroed host array: pinned (page-locked) where the device is a GPU."""
+    return wp.zeros(shape, dtype=dtype, device="cpu", pinned=cuda)
 
-    def _host_array(self, shape: tuple[int, ...], dtype: Any) -> wp.array:
-        """A zeroed host array: pinned (page-locked) when the device is a GPU."""
-        return wp.zeros(shape, dtype=dtype, device="cpu", pinned=self._cuda)  # type: ignore[attr-defined]
 
-    def _follow_host_arrays(self) -> None:
-        # read() copies (a GPU) or gathers (Warp's CPU device) straight into the shared arrays,
-        # and write() takes the commands straight from them
-        self._state_wp = self._wrap(self._readings)  # type: ignore[attr-defined]
-        self._command_wp = self._wrap(self._command)  # type: ignore[attr-defined]
-        if self._sensor_host.size:  # type: ignore[attr-defined]
-            self._sensor_wp = self._wrap(self._sensor_host)  # type: ignore[attr-defined]
+@dataclasses.dataclass
+class HostArrays:
+    """EngineBuffers' readings, sensordata, time and command as Warp host arrays (float64), the
+    ends of the device's copies (the arrays themselves on Warp's CPU device, whose kernels
+    read and write them)."""
 
-    def _wrap(self, array: np.ndarray) -> wp.array:
-        """A Warp host array over `array`'s memory, page-locked for the device where it can be."""
-        locked = lock_pages(array, self.device) if self._cuda else None  # type: ignore[attr-defined]
-        if locked is not None:
-            unlock = weakref.finalize(self, unlock_pages, locked, self.device)  # type: ignore[attr-defined]
-            unlock.atexit = False  # a process's end unlocks everything: no driver call as it tears down
-        return wp.array(
-            ptr=array.ctypes.data, dtype=wp.float64, shape=array.shape, device="cpu", pinned=locked is not None
-        )
+    readings: wp.array
+    sensordata: wp.array
+    time: wp.array
+    command: wp.array
+
+
+def pin(buffers: EngineBuffers, cuda: bool) -> tuple[HostArrays, EngineBuffers]:
+    """Pinned arrays (on a GPU) holding `buffers`' values, and the buffers made of their views."""
+    host = HostArrays(*(host_array(getattr(buffers, f).shape, wp.float64, cuda) for f in _SHARED))
+    views = {}
+    for field in _SHARED:
+        views[field] = getattr(host, field).numpy()
+        views[field][:] = getattr(buffers, field)
+    return host, dataclasses.replace(buffers, **views)
+
+
+def follow(host: HostArrays, buffers: EngineBuffers, device: Any, owner: object) -> HostArrays:
+    """`host` with the arrays of `buffers` that are not its own (a fleet's) wrapped in their place,
+    page-locked for `device` (a GPU) while `owner` lives: read() copies (a GPU) or gathers (Warp's
+    CPU device) straight into them, and write() takes the commands straight from them."""
+    arrays = {}
+    for field in _SHARED:
+        mine, given = getattr(host, field), getattr(buffers, field)
+        ours = given.ctypes.data == mine.ptr and given.shape == tuple(mine.shape)
+        arrays[field] = mine if ours or not given.size else _wrap(given, device, owner)
+    return HostArrays(**arrays)
+
+
+def _wrap(array: np.ndarray, device: Any, owner: object) -> wp.array:
+    """A Warp host array over `array`'s memory, page-locked for the device where it can be."""
+    locked = lock_pages(array, device) if device.is_cuda else None
+    if locked is not None:
+        unlock = weakref.finalize(owner, unlock_pages, locked, device)
+        unlock.atexit = False  # a process's end unlocks everything: no driver call as it tears down
+    return wp.array(
+        ptr=array.ctypes.data, dtype=wp.float64, shape=array.shape, device="cpu", pinned=locked is not None
+    )
 
 
 # ---------------------------------------------------------------- page-locking, per process

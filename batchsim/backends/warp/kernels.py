@@ -84,7 +84,7 @@ def apply_commands(
 ):
     """write()'s check and narrowing on the device, for commands that are plain copies into
     actuators: a world whose row holds NaN, inf or a value beyond `limit` is rejected (as
-    hardware.write's host check rejects it) and keeps its ctrl; the others' values go, as
+    the contract's write() rejects it on the host) and keeps its ctrl; the others' values go, as
     float32, into ctrl[w, actuator[j]] and into the kept copy of ctrl the host path uploads
     from. Parked worlds keep their zero ctrl."""
     w = wp.tid()
@@ -108,7 +108,7 @@ def rotate_base_velocity(
     qposadr: wp.int32,
     held_out: wp.array2d(dtype=wp.float32),
 ):
-    """held_out[w]: the base velocity's target (batchsim.base_velocity's world_velocity, inlined):
+    """held_out[w]: the base velocity's target (batchsim.plugins.base_velocity's world_velocity, inlined):
     body-frame vx, vy rotated into the world by the base's quaternion at qpos[w, qposadr + 3:7],
     then wz; a NaN row stays NaN."""
     w = wp.tid()

@@ -1,8 +1,9 @@
-"""Resetting worlds on MuJoCo Warp: `mjw.reset_data` on a mask, then the initial state's rows.
+"""Resetting worlds on MuJoCo Warp (`Reset`): `mjw.reset_data` on a mask, then the initial
+state's rows.
 
 MuJoCo Warp's `reset_data` defines its kernels inside the function, so every call hashes
 them again in Python: on an H100, resetting 819 of 8192 humanoids took 12-15 ms, most of it
-that. The reset is captured in a graph once (beside the periods' graphs, dropped with them
+that. The reset is captured in a graph once (among the engine's graphs, dropped with them
 when the buffers grow) and replayed: the mask is the only thing that changes, written into
 the same device array before each replay. The first reset runs uncaptured: it loads the
 kernels' modules, which a capture must not do. On a CUDA device only: `reset_data` allocates
@@ -11,56 +12,80 @@ temporaries, which a graph on Warp's CPU device cannot free afterwards (the proc
 
 from __future__ import annotations
 
-from typing import Any
-
+import mujoco
 import mujoco_warp as mjw
 import numpy as np
 import warp as wp
 
 from batchsim.backends.warp.kernels import set_clock, set_rows
+from batchsim.backends.warp.worlds import DeviceWorlds, Graphs
 
-RESET = "reset"  # its key among the system's graphs
+RESET = "reset"  # its key among the engine's graphs
+
+# what a reset world is set to beyond reset_data's defaults: the initial state (a keyframe,
+# initial values) and mj_forward's derived fields of it
+_INITIAL_FIELDS = (
+    ("qpos", wp.float32),
+    ("qvel", wp.float32),
+    ("act", wp.float32),
+    ("ctrl", wp.float32),
+    ("qfrc_actuator", wp.float32),
+    ("sensordata", wp.float32),
+    ("mocap_pos", wp.vec3),
+    ("mocap_quat", wp.quat),
+    ("xpos", wp.vec3),  # body poses of the initial state, as cpu's reset computes them
+    ("xquat", wp.quat),
+)
 
 
-class WarpReset:
-    """Mixed into WarpSystem: `_reset_on_device`."""
+class Reset:
+    """Puts worlds at the initial state `mjd` (an MjData, mj_forward run), on the device."""
 
-    _graphs: dict[Any, Any]
-    _reset_loaded = False  # whether the reset's kernels have run once (modules loaded)
+    def __init__(self, worlds: DeviceWorlds, graphs: Graphs, mjd: mujoco.MjData):
+        self._worlds, self._graphs = worlds, graphs
+        self._time0 = float(mjd.time)
+        self._rows = {
+            field: wp.array(np.asarray(getattr(mjd, field), np.float32), dtype=dtype)
+            for field, dtype in _INITIAL_FIELDS
+            if getattr(mjd, field).size
+        }
+        self._loaded = False  # whether the reset's kernels have run once (modules loaded)
 
-    def _reset_on_device(self, worlds: np.ndarray | None) -> None:
-        mask = np.ones(self.nworld, bool) if worlds is None else np.isin(np.arange(self.nworld), worlds)
-        with wp.ScopedDevice(self.device):
-            self._mask_dev.assign(mask)
-            if not (self._cuda and self.options["graph"] and self._reset_loaded):
-                self._reset_kernels()
-                self._reset_loaded = True
+    def __call__(self, worlds: np.ndarray | None, frozen: np.ndarray) -> None:
+        """Reset `worlds` (None: all); park the `frozen` ones ((nworld,) bool), unpark the others."""
+        w = self._worlds
+        mask = np.ones(w.nworld, bool) if worlds is None else np.isin(np.arange(w.nworld), worlds)
+        with wp.ScopedDevice(w.device):
+            w.mask.assign(mask)
+            graphs = self._graphs
+            if not (w.cuda and graphs.enabled and self._loaded):
+                self._program()
+                self._loaded = True
             else:
-                graph = self._graphs.get(RESET)
+                graph = graphs.get(RESET)
                 if graph is None:
-                    with wp.ScopedCapture(device=self.device) as capture:
-                        self._reset_kernels()
-                    graph = self._graphs[RESET] = capture.graph
+                    graph = graphs.capture(RESET, self._program)
                 wp.capture_launch(graph)
-            self._parked_dev.assign(self.frozen.astype(np.int32))
+            w.parked.assign(frozen.astype(np.int32))
 
-    def _reset_kernels(self) -> None:
+    def _program(self) -> None:
         """The masked worlds to MuJoCo's defaults, then the initial state and mj_forward's
         qfrc_actuator and sensordata of it (as on cpu), and their clocks."""
-        d = self._d
-        mjw.reset_data(self._m, d, reset=self._mask_dev)
-        for field, row in self._initial_rows.items():
+        w = self._worlds
+        d = w.d
+        mjw.reset_data(w.m, d, reset=w.mask)
+        for field, row in self._rows.items():
             wp.launch(
                 set_rows,
-                dim=(self.nworld, row.shape[0]),
-                inputs=[self._mask_dev, row],
+                dim=(w.nworld, row.shape[0]),
+                inputs=[w.mask, row],
                 outputs=[getattr(d, field)],
-                device=self.device,
+                device=w.device,
             )
         wp.launch(
             set_clock,
-            dim=self.nworld,
-            inputs=[self._mask_dev, self._time0],
-            outputs=[self._clock, d.time],
-            device=self.device,
+            dim=w.nworld,
+            inputs=[w.mask, self._time0],
+            outputs=[w.clock, d.time],
+            device=w.device,
         )

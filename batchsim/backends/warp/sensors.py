@@ -1,11 +1,11 @@
-"""Cameras and lidars on MuJoCo Warp: its ray-traced rendering and ray casting, every world in
-one launch, each camera's or lidar's launches captured in a graph and replayed.
+"""Cameras and lidars on MuJoCo Warp (`Sensors`): its ray-traced rendering and ray casting, every
+world in one launch, each camera's or lidar's launches captured in a graph and replayed.
 """
 
 from __future__ import annotations
 
 import contextlib
-from typing import Any, ClassVar
+from typing import Any
 
 import mujoco
 import mujoco_warp as mjw
@@ -13,143 +13,140 @@ import numpy as np
 import warp as wp
 from mujoco_warp._src import types as _warp_types  # vec6, the geom-group mask rays() takes
 
+from batchsim.backends.warp.host import host_array
 from batchsim.backends.warp.kernels import CPU_GRAPHS
-from batchsim.sensors import Camera, Lidar, LidarKind
+from batchsim.backends.warp.worlds import DeviceWorlds, Graphs
+from batchsim.sensors import Camera, Lidar
 
 
-class WarpSensors:
-    """WarpSystem's sensor hooks (BatchedSystem's `_render_frames`, `_cast_ranges` and their
-    kin), mixed in ahead of DeviceSystem. They use the system's `_m`, `_d` (MuJoCo Warp's Model
-    and Data), `model`, `nworld`, `device`, `_cuda`, `options["graph"]` and `_host_array`;
-    the system drops `_sensor_graphs` when its buffers grow.
+class Sensors:
+    """The engine's cameras and lidars: their render contexts, ray buffers and graphs, made on
+    first use and kept until the engine closes its sensors.
+
+    Attributes:
+      graphs: each camera's and lidar's launches, captured (they take the Data's arrays: the
+        engine clears them when its buffers grow).
     """
 
-    sensors_batched: ClassVar[bool] = True  # every world in one launch, whichever are asked for
-    _render_contexts: dict[str, Any] | None = None  # per camera: (render context, rgb, depth, host rgb, host depth)
-    _lidar_buffers: dict[str, Any] | None = None  # per lidar: its rays and results, on the device and host
-    # per camera or lidar: its launches captured in a graph (they take this Data's arrays:
-    # dropped when the buffers grow)
-    _sensor_graphs: dict[str, Any] | None = None
-    _com_pos: bool | None = None  # whether a camera or light tracks a centre of mass (com_pos needed)
+    def __init__(self, worlds: DeviceWorlds, capture: bool):
+        self._worlds = worlds
+        self.graphs = Graphs(worlds.device, capture)
+        self._cameras: dict[str, Any] = {}  # per camera: (render context, rgb, depth, host rgb, host depth)
+        self._lidars: dict[str, dict[str, wp.array]] = {}  # per lidar: its rays and results, on the device and host
+        m = worlds.model
+        modes = (int(mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM), int(mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODYCOM))
+        # whether a camera or light tracks a centre of mass (com_pos needed)
+        self._com_pos = bool(np.isin(m.cam_mode, modes).any() or np.isin(m.light_mode, modes).any())
 
-    def _sensor_kinematics(self, cameras: bool) -> None:
+    def _kinematics(self, cameras: bool) -> None:
         """Positions of bodies, geoms and sites (and cameras, lights) from the current qpos.
 
         After a step they describe the state before its last substep, and after a reset they
         are stale; images and scans show the current state, as on cpu.
         """
-        m, d = self._m, self._d
+        w = self._worlds
+        m, d = w.m, w.d
         mjw.kinematics(m, d)
         if cameras:
-            if self._com_pos is None:
-                modes = (int(mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM), int(mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODYCOM))
-                self._com_pos = bool(np.isin(self.model.cam_mode, modes).any() or np.isin(self.model.light_mode, modes).any())
             if self._com_pos:
                 mjw.com_pos(m, d)
             mjw.camlight(m, d)
 
-    def _run_sensor(self, name: str, program: Any) -> None:
+    def _run(self, key: str, program: Any) -> None:
         """Run `program` (a camera's or lidar's launches, on buffers fixed until they grow). With
         graphs on, it runs eagerly the first time (kernels compile, the renderer specializes),
         is captured then, and is replayed after: one launch per call, not ten launches'
         argument packing in Python (a render of 1 world at 4x4 on Warp's CPU device: 1.1 ms a
         call launched one by one, 30 us replayed)."""
-        if not self.options["graph"]:
+        graphs = self.graphs
+        if not graphs.enabled:
             program()
             return
-        if self._sensor_graphs is None:
-            self._sensor_graphs = {}
-        serial = CPU_GRAPHS if not self._cuda else contextlib.nullcontext()
+        serial = CPU_GRAPHS if not graphs.cuda else contextlib.nullcontext()
         with serial:
-            graph = self._sensor_graphs.get(name)
+            graph = graphs.get(key)
             if graph is None:
                 program()
-                with wp.ScopedCapture(device=self.device) as capture:
-                    program()
-                self._sensor_graphs[name] = capture.graph
+                graphs.capture(key, program)
             else:
                 wp.capture_launch(graph)
 
-    def _device_frames(self, camera: Camera) -> tuple[wp.array, wp.array]:
+    def device_frames(self, camera: Camera) -> tuple[wp.array, wp.array]:
         """Every world's images of `camera` on the device: (nworld, H, W, 3) uint8 and (nworld, H, W)
         float32 Warp arrays, overwritten by the next render of this camera."""
-        if self._render_contexts is None:
-            self._render_contexts = {}
-        entry = self._render_contexts.get(camera.name)
-        with wp.ScopedDevice(self.device):
+        w = self._worlds
+        entry = self._cameras.get(camera.name)
+        with wp.ScopedDevice(w.device):
             if entry is None:
                 rc = mjw.create_render_context(
-                    self.model,
-                    nworld=self.nworld,
+                    w.model,
+                    nworld=w.nworld,
                     cam_res=[(camera.width, camera.height)],
                     render_rgb=True,
                     render_depth=True,
                     cam_active=[camera.id],
                 )
-                shape = (self.nworld, camera.height, camera.width)
-                entry = self._render_contexts[camera.name] = (
+                shape = (w.nworld, camera.height, camera.width)
+                entry = self._cameras[camera.name] = (
                     rc,
                     wp.zeros((*shape, 3), dtype=wp.uint8),
                     wp.zeros(shape, dtype=wp.float32),
-                    self._host_array((*shape, 3), wp.uint8),
-                    self._host_array(shape, wp.float32),
+                    host_array((*shape, 3), wp.uint8, w.cuda),
+                    host_array(shape, wp.float32, w.cuda),
                 )
             rc, rgb, depth = entry[:3]
 
             def program() -> None:
-                self._sensor_kinematics(cameras=True)
-                mjw.refit_bvh(self._m, self._d, rc)
-                mjw.render(self._m, self._d, rc)
+                self._kinematics(cameras=True)
+                mjw.refit_bvh(w.m, w.d, rc)
+                mjw.render(w.m, w.d, rc)
                 wp.launch(_unpack_frames, dim=depth.shape, inputs=[rc.rgb_data, rc.depth_data], outputs=[rgb, depth])
 
-            self._run_sensor(f"camera {camera.name}", program)
+            self._run(f"camera {camera.name}", program)
         return rgb, depth
 
-    def _render_frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
-        rgb, depth = self._device_frames(camera)
-        host_rgb, host_depth = self._render_contexts[camera.name][3:]
-        with wp.ScopedDevice(self.device):
-            if self._cuda:
+    def frames(self, camera: Camera, worlds: np.ndarray, copy: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Host (n, H, W, 3) uint8 and (n, H, W) float32 images of `camera` in `worlds` (ascending)."""
+        w = self._worlds
+        rgb, depth = self.device_frames(camera)
+        host_rgb, host_depth = self._cameras[camera.name][3:]
+        with wp.ScopedDevice(w.device):
+            if w.cuda:
                 wp.copy(host_rgb, rgb)
                 wp.copy(host_depth, depth)
             else:
                 host_rgb, host_depth = rgb, depth
-            wp.synchronize_device(self.device)
+            wp.synchronize_device(w.device)
         rgb_np, depth_np = host_rgb.numpy(), host_depth.numpy()
-        if len(worlds) == self.nworld:  # every world: the buffers themselves, or one copy of them
+        if len(worlds) == w.nworld:  # every world: the buffers themselves, or one copy of them
             return (rgb_np.copy(), depth_np.copy()) if copy else (rgb_np, depth_np)
         return rgb_np[worlds], depth_np[worlds]  # fancy indexing: a copy
 
-    def _device_ranges(self, lidar: Lidar) -> wp.array:
-        """Every world's (nworld, nray) float32 REP 117 ranges on the device, overwritten by the next
-        scan of this lidar; a rangefinder lidar's are its sensordata's, uploaded."""
-        if lidar.kind is LidarKind.RANGEFINDER:
-            return wp.array(self._ranges(lidar, np.arange(self.nworld)), dtype=wp.float32, device=self.device)
-        return self._lidar_cast(lidar)["ranges"]
-
-    def _cast_ranges(self, lidar: Lidar, worlds: np.ndarray, copy: bool) -> np.ndarray:
-        b = self._lidar_cast(lidar)
+    def ranges(self, lidar: Lidar, worlds: np.ndarray, copy: bool) -> np.ndarray:
+        """Host (n, nray) float32 REP 117 ranges of a ray-casting `lidar` in `worlds`, cast now."""
+        w = self._worlds
+        b = self.cast(lidar)
         host = b["host"]
-        with wp.ScopedDevice(self.device):
-            if self._cuda:
+        with wp.ScopedDevice(w.device):
+            if w.cuda:
                 wp.copy(host, b["ranges"])  # one copy, into pinned memory: a DMA
             else:
                 host = b["ranges"]
-            wp.synchronize_device(self.device)
+            wp.synchronize_device(w.device)
         ranges = host.numpy()
-        if len(worlds) < self.nworld:
+        if len(worlds) < w.nworld:
             return ranges[worlds]  # fancy indexing: a copy
         return ranges.copy() if copy else ranges
 
-    def _lidar_cast(self, lidar: Lidar) -> dict[str, wp.array]:
-        """Cast `lidar`'s rays in every world now; its buffers, "ranges" holding the REP 117 ranges."""
-        if self._lidar_buffers is None:
-            self._lidar_buffers = {}
-        buffers = self._lidar_buffers.get(lidar.name)
-        shape = (self.nworld, lidar.nray)
-        with wp.ScopedDevice(self.device):
+    def cast(self, lidar: Lidar) -> dict[str, wp.array]:
+        """Cast `lidar`'s rays in every world now; its buffers, "ranges" holding the (nworld, nray)
+        REP 117 ranges on the device, overwritten by the next scan of this lidar."""
+        w = self._worlds
+        buffers = self._lidars.get(lidar.name)
+        shape = (w.nworld, lidar.nray)
+        with wp.ScopedDevice(w.device):
             if buffers is None:
-                buffers = self._lidar_buffers[lidar.name] = {
+                buffers = self._lidars[lidar.name] = {
                     "directions": wp.array(lidar.directions.astype(np.float32), dtype=wp.vec3),
                     "exclude": wp.full(lidar.nray, lidar.body_id, dtype=wp.int32),
                     "pnt": wp.zeros(shape, dtype=wp.vec3),
@@ -158,20 +155,21 @@ class WarpSensors:
                     "geomid": wp.zeros(shape, dtype=wp.int32),
                     "normal": wp.zeros(shape, dtype=wp.vec3),
                     "ranges": wp.zeros(shape, dtype=wp.float32),
-                    "host": self._host_array(shape, wp.float32),
+                    "host": host_array(shape, wp.float32, w.cuda),
                 }
             b = buffers
             everything = _warp_types.vec6(-1.0, -1.0, -1.0, -1.0, -1.0, -1.0)  # every geom group
 
             def program() -> None:
-                self._sensor_kinematics(cameras=False)
+                self._kinematics(cameras=False)
+                d = w.d
                 wp.launch(
                     _lidar_rays,
                     dim=shape,
-                    inputs=[self._d.site_xpos, self._d.site_xmat, lidar.site_id, b["directions"]],
+                    inputs=[d.site_xpos, d.site_xmat, lidar.site_id, b["directions"]],
                     outputs=[b["pnt"], b["vec"]],
                 )
-                mjw.rays(self._m, self._d, b["pnt"], b["vec"], everything, True, b["exclude"], b["dist"], b["geomid"], b["normal"])
+                mjw.rays(w.m, d, b["pnt"], b["vec"], everything, True, b["exclude"], b["dist"], b["geomid"], b["normal"])
                 # REP 117 on the device: the host gets float32 ranges in one copy, nothing left to convert
                 wp.launch(
                     _lidar_ranges,
@@ -180,11 +178,8 @@ class WarpSensors:
                     outputs=[b["ranges"]],
                 )
 
-            self._run_sensor(f"lidar {lidar.name}", program)
+            self._run(f"lidar {lidar.name}", program)
         return b
-
-    def _close_sensors(self) -> None:
-        self._render_contexts = self._lidar_buffers = self._sensor_graphs = None
 
 
 @wp.kernel

@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from batchsim.controllers.base import Controller, Params, as_slice
+from batchsim.controllers.base import Controller, Params
 from batchsim.controllers.topics import (
     ActionKind,
     ControllerTopics,
@@ -28,6 +28,7 @@ from batchsim.controllers.trajectory.timeline import Timeline
 from batchsim.controllers.trajectory.validation import CommandBound, check, one_trajectory, unpack
 from batchsim.model import RobotSpec
 from batchsim.pid import PidBank
+from batchsim.types import as_slice
 
 # the combinations of command interfaces the stock controller accepts
 COMMAND_COMBINATIONS = (
@@ -115,7 +116,7 @@ class JointTrajectoryController(Controller):
         )
 
         nj = len(self.joints)
-        # state columns, as slices where they step evenly (batchsim.controllers.base.as_slice)
+        # state columns, as slices where they step evenly (batchsim.types.as_slice)
         self._pos_cols = as_slice(self.state_columns("state_interfaces", [f"{j}/position" for j in self.joints]))
         self._vel_cols = (
             as_slice(self.state_columns("state_interfaces", [f"{j}/velocity" for j in self.joints]))

@@ -19,8 +19,7 @@ from batchsim.controllers.base import rows_all
 from batchsim.controllers.joint_names import JointOrder
 from batchsim.controllers.topics import TrajectoryBatch
 from batchsim.controllers.trajectory.splines import coefficients, spline_of
-from batchsim.hardware import MAX_COMMAND
-from batchsim.types import world_out_of_range
+from batchsim.types import MAX_COMMAND, world_out_of_range
 
 
 @dataclasses.dataclass

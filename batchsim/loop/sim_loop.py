@@ -21,26 +21,12 @@ from typing import Any
 
 import numpy as np
 
-from batchsim import realtime
-from batchsim.hardware import BatchedSystem, ReturnType, Status
-from batchsim.types import worlds_index
+from batchsim.contract import Contract
+from batchsim.loop import realtime
+from batchsim.types import OptionError, ReturnType, Status, worlds_index
 
 DEFAULT_CONTROL_RATE = 100.0  # Hz
 log = logging.getLogger("batchsim")
-
-
-class OptionError(ValueError):
-    """A bad option value. `option` is its Python name (`control_rate`); str() reads
-    `"<option> <detail>"`, and `named(flag)` the same with the command line's name for it.
-    An empty `option` is a problem of no single option: the message is the detail alone."""
-
-    def __init__(self, option: str, detail: str):
-        super().__init__(f"{option} {detail}" if option else detail)
-        self.option = option
-        self.detail = detail
-
-    def named(self, name: str) -> str:
-        return f"{name} {self.detail}" if self.option else self.detail
 
 
 class RateError(ValueError):
@@ -89,20 +75,20 @@ class Participant:
     no-ops. A change takes effect from the next period.
     """
 
-    def update(self, sim: BatchedSystem, time: float, period: float) -> None:
+    def update(self, sim: Contract, time: float, period: float) -> None:
         """Every control period, between read() and write(), where ros2_control runs its
         controllers: read `sim.state` (fresh from this period's read()), write `sim.command`
         (applied by the write() that follows). `time` is the period's start in sim time,
         `period` its length (shorter for a last, partial period of `step_physics`). It may
         call `SimLoop.reset` (the bridge's reset services do)."""
 
-    def after_write(self, sim: BatchedSystem, time: float, period: float) -> None:
+    def after_write(self, sim: Contract, time: float, period: float) -> None:
         """Every period, right after write() and before the physics steps: see what write()
         made of the commands (`sim.status`'s BAD_COMMAND bits; the bridge re-marks the
         commands it rejected). It may call the system; `sim.command` is already applied."""
 
-    def while_stepping(self, sim: BatchedSystem, time: float, period: float) -> None:
-        """Every period, while the period's physics steps (BatchedSystem.step's `meanwhile`):
+    def while_stepping(self, sim: Contract, time: float, period: float) -> None:
+        """Every period, while the period's physics steps (Contract.step's `meanwhile`):
         on a device (warp, mjx, a fleet of shards) after the steps are launched and before
         they are waited for, elsewhere just before them. Host work only (the bridge's
         snapshot of what read() filled, a controller's work for its next update): it must
@@ -111,12 +97,12 @@ class Participant:
         to run. Every participant's runs even if one raises; the first error is raised once
         the period is counted."""
 
-    def idle(self, sim: BatchedSystem, time: float) -> None:
+    def idle(self, sim: Contract, time: float) -> None:
         """While the loop is paused and no step is pending, about every 2 ms, in place of the
         periods: serve requests (a step, a reset, a resume). `time` is the loop's sim time,
         which does not advance. It may call `SimLoop.reset`."""
 
-    def on_reset(self, sim: BatchedSystem, worlds: np.ndarray | None) -> None:
+    def on_reset(self, sim: Contract, worlds: np.ndarray | None) -> None:
         """Right after `SimLoop.reset` reset worlds, on the loop thread: `worlds` (k,) int64
         indices (a mask's worlds where it was True), None for every world. Drop those
         worlds' goals and per-world state; nothing needs to infer a reset from the state
@@ -181,7 +167,7 @@ class SimLoop:
         between periods (the bridge inserts itself first).
       thread_priority: while it paces a real-time factor, the thread running the loop asks
         for SCHED_FIFO at this priority (1-99) from its second period on, as ros2_control's
-        controller_manager does (batchsim/realtime.py); 0 (the default here; the command's
+        controller_manager does (batchsim/loop/realtime.py); 0 (the default here; the command's
         is 50) leaves its scheduling alone. A loop that falls half a second behind gives it
         up (a thread of that policy running flat out would starve its core).
       cpu_affinity: likewise, the cores the loop's thread is pinned to (none: any).
@@ -191,7 +177,7 @@ class SimLoop:
 
     def __init__(
         self,
-        sim: BatchedSystem,
+        sim: Contract,
         *,
         control_rate: float | None = None,
         rtf: float = 1.0,
@@ -410,7 +396,7 @@ class SimLoop:
 
 
 class _Scheduling:
-    """The loop thread's real-time scheduling (batchsim/realtime.py) over one run()."""
+    """The loop thread's real-time scheduling (batchsim/loop/realtime.py) over one run()."""
 
     def __init__(self, loop: SimLoop):
         self.loop = loop

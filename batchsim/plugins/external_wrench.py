@@ -18,17 +18,17 @@ dropped after the update at which now >= end, so a zero duration acts for one co
 
 Here, for `nworld` worlds at once:
 
-- `ExternalWrenchConfig`: the plugin's params, read from its YAML by batchsim.sensors.config.
+- `ExternalWrenchConfig`: the plugin's params, read from its YAML (batchsim.plugins.config).
   force_arrow_scale and torque_arrow_scale size upstream's `~/wrench_markers` arrows, which
   batchsim does not publish; the instance name names the service (`service`).
 - `ExternalWrench`: one wrench of a request, its vectors `(3,)` or one row per listed world.
 - `ExternalWrenches`: the running wrenches of every world, one row each, and the xfrc_applied
   rows of an update, computed for all of them at once (`xfrc`).
-- `Wrenching`, mixed into BatchedSystem: `apply_wrench()`, `wrench_running()`,
+- `Wrenches`, the system's part: `apply_wrench()`, `wrench_running()`,
   `external_wrenches`. write() computes the xfrc_applied rows of every world with a wrench (and
   zero rows for those whose last one ended) on the host, from `body_poses()` (the kinematics of
   the state before the last physics substep, as upstream's snapshot of mjData), and stages them
-  (the engine hook `_stage_xfrc`); the engine holds them through the step() calls that follow.
+  (`Engine.stage_xfrc`); the engine holds them through the step() calls that follow.
   reset() drops the listed worlds' wrenches; a world that freezes drops its own at the next write().
 
 The ROS side: ros_bridge/worker/wrench.py serves `<ns>/<plugin name>/apply_wrench`, and
@@ -40,18 +40,13 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import mujoco
 import numpy as np
 
-from batchsim.lifecycle import LifecycleState
 from batchsim.types import MAX_COMMAND, check_plugin_runs
-
-if TYPE_CHECKING:  # batchsim.sensors imports this module: no import cycle at run time
-    from batchsim.sensors import SensorConfig
 
 PLUGIN_TYPE = "mujoco_ros2_control_plugins/ExternalWrenchPlugin"
 SERVICE = "apply_wrench"  # relative, on the plugin's sub-node: <ns>/<plugin name>/apply_wrench
@@ -205,50 +200,37 @@ def _rows(value: Any, width: int | None, n: int, what: str) -> np.ndarray:
     return np.broadcast_to(array, (n, *shape))
 
 
-class Wrenching:
-    """The contract's side of the plugin, mixed into BatchedSystem: it uses the system's `model`,
-    `nworld`, `time`, `frozen`, `body_poses`, `_require`, `_worlds`, `_sensor_config` and the
-    engine hook `_stage_xfrc`; hardware.py calls `_apply_wrenches` from write() and
-    `_reset_wrenches` from reset()."""
+class Wrenches:
+    """The plugin's part of the system (batchsim.hardware): `store` (the running wrenches, None
+    before the first), what apply_wrench() records, and what write() and reset() stage on the
+    engine (`stage(worlds, xfrc)`: Engine.stage_xfrc). `poses(worlds)` gives the listed worlds'
+    body orientations (the system's body_poses). `runs`: whether the system can apply them (a
+    fleet over several devices cannot)."""
 
-    #: whether this system can apply external wrenches (a fleet over several devices cannot)
-    applies_wrenches: ClassVar[bool] = True
-    _wrenches: ExternalWrenches | None = None
-    _wrenched: np.ndarray | None = None  # (nworld,) bool: worlds whose engine xfrc_applied is not zero
-    _requests = 0  # apply_wrench() calls so far
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        nworld: int,
+        stage: Callable[[np.ndarray, np.ndarray], None],
+        poses: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+        *,
+        runs: bool = True,
+    ):
+        self._model, self._nworld, self._stage, self._poses, self.runs = model, nworld, stage, poses, runs
+        self.store: ExternalWrenches | None = None
+        self._wrenched = np.zeros(nworld, bool)  # worlds whose engine xfrc_applied is not zero
+        self._requests = 0  # apply_wrench() calls so far
 
-    @property
-    def external_wrenches(self) -> ExternalWrenches | None:
-        """The running wrenches (batchsim.external_wrench), or None before the first apply_wrench()."""
-        return self._wrenches
+    def configure(self, config: ExternalWrenchConfig | None) -> None:
+        """The plugin's params from the sensor configuration (None: not configured)."""
+        check_plugin_runs(config, self.runs, "ExternalWrenchPlugin")
 
-    def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
-        super().set_sensor_config(config)  # type: ignore[misc]
-        plugin = self._sensor_config.external_wrench  # type: ignore[attr-defined]
-        check_plugin_runs(plugin, self.applies_wrenches, "ExternalWrenchPlugin")
-
-    def apply_wrench(
-        self, wrenches: ExternalWrench | Sequence[ExternalWrench], worlds: Sequence[int] | np.ndarray | None = None
-    ) -> int:
-        """Apply wrenches in all or the listed worlds from the next write() on, as one
-        apply_wrench request does in each: every vector in its body's frame, rotated with the
-        body at each write(), the force acting at `point`; each lasts its `duration` of sim time
-        from `time` as read() last showed it. Checked whole before anything is applied.
-
-        Returns the request's number, for `wrench_running`.
-
-        Raises:
-          ValueError: a body not in the model (upstream's words: "Body 'x' not found in MuJoCo
-            model."), a wrong shape, a value not finite or beyond MAX_COMMAND, a frozen world, a
-            world out of range or listed twice, or a system that cannot apply wrenches.
-        """
-        configured = frozenset({LifecycleState.INACTIVE, LifecycleState.ACTIVE})
-        self._require("apply external wrenches", configured)  # type: ignore[attr-defined]
-        if not self.applies_wrenches:
+    def apply(self, wrenches: ExternalWrench | Sequence[ExternalWrench], sel: np.ndarray, time: np.ndarray, frozen: np.ndarray) -> int:
+        """apply_wrench() in worlds `sel` `(n,)` at their sim `time` `(n,)`; `frozen` `(n,)` bool.
+        Checked whole before anything is applied; the request's number."""
+        if not self.runs:
             raise ValueError("external wrenches are not applied on a fleet spread over several devices: use one")
-        rows = self._worlds(worlds)  # type: ignore[attr-defined]
-        sel = np.arange(self.nworld) if rows is None else rows  # type: ignore[attr-defined]
-        n, m = len(sel), self.model  # type: ignore[attr-defined]
+        n, m = len(sel), self._model
         wrenches = [wrenches] if isinstance(wrenches, ExternalWrench) else list(wrenches)
         parts: dict[str, list[np.ndarray]] = {name: [] for name in ExternalWrenches._FIELDS}
         for i, w in enumerate(wrenches):
@@ -270,58 +252,53 @@ class Wrenching:
                 parts[name].append(values[name])
             parts["world"].append(sel)
             parts["body"].append(np.full(n, body, np.int64))
-            parts["end"].append(self.time[sel] + values["duration"])  # type: ignore[attr-defined]
-        frozen = sel[self.frozen[sel]]  # type: ignore[attr-defined]
-        if frozen.size:
-            raise ValueError(f"world {frozen[0]} is frozen (it diverged or overflowed): reset it first")
+            parts["end"].append(time + values["duration"])
+        if frozen.any():
+            raise ValueError(f"world {sel[frozen][0]} is frozen (it diverged or overflowed): reset it first")
         self._requests += 1
         if wrenches:
-            if self._wrenches is None:
-                self._wrenches = ExternalWrenches()
-                self._wrenched = np.zeros(self.nworld, bool)  # type: ignore[attr-defined]
+            if self.store is None:
+                self.store = ExternalWrenches()
             rows_of = {name: np.concatenate(arrays) for name, arrays in parts.items() if name != "request"}
             count = len(rows_of["world"])
-            self._wrenches.add(**rows_of, request=np.full(count, self._requests, np.int64))
+            self.store.add(**rows_of, request=np.full(count, self._requests, np.int64))
         return self._requests
 
-    def wrench_running(self, requests: Any) -> np.ndarray:
-        """Whether each request (apply_wrench()'s numbers, any shape) still has a wrench running
-        in some world: bool, the shape of `requests`."""
-        running = np.zeros(0, np.int64) if self._wrenches is None else self._wrenches.request
+    def running(self, requests: Any) -> np.ndarray:
+        """Whether each request (apply()'s numbers, any shape) still has a wrench running in some
+        world: bool, the shape of `requests`."""
+        running = np.zeros(0, np.int64) if self.store is None else self.store.request
         return np.isin(np.asarray(requests, np.int64), running)
 
-    def _apply_wrenches(self) -> None:
-        """write()'s part: the xfrc_applied rows of the wrenched worlds to the engine, then the
-        wrenches that ran out dropped (upstream's update)."""
-        store = self._wrenches
+    def stage(self, time: np.ndarray, frozen: np.ndarray) -> None:
+        """write()'s part: the xfrc_applied rows of the wrenched worlds at their sim `time` to the
+        engine, then the wrenches that ran out dropped (upstream's update)."""
+        store = self.store
         if store is None:
             return
-        frozen = self.frozen  # type: ignore[attr-defined]
         if store.count and frozen.any():
             store.keep(~frozen[store.world])  # a frozen world's wrenches end with it
         active = np.unique(store.world)
         rows = np.union1d(active, np.flatnonzero(self._wrenched))
         if not rows.size:
             return
-        xfrc = np.zeros((rows.size, self.model.nbody, 6))  # type: ignore[attr-defined]
+        xfrc = np.zeros((rows.size, self._model.nbody, 6))
         if active.size:
-            poses = self.body_poses(active)  # type: ignore[attr-defined]
-            xquat = poses[1][np.searchsorted(active, store.world), store.body]
-            ipos = self.model.body_ipos[store.body]  # type: ignore[attr-defined]
-            store.xfrc(self.time, xquat, ipos, xfrc, np.searchsorted(rows, store.world))  # type: ignore[attr-defined]
-            store.expire(self.time)  # type: ignore[attr-defined]
-        self._stage_xfrc(rows, xfrc)  # type: ignore[attr-defined]
+            xquat = self._poses(active)[1][np.searchsorted(active, store.world), store.body]
+            ipos = self._model.body_ipos[store.body]
+            store.xfrc(time, xquat, ipos, xfrc, np.searchsorted(rows, store.world))
+            store.expire(time)
+        self._stage(rows, xfrc)
         self._wrenched[:] = False
         self._wrenched[active] = True
 
-    def _reset_wrenches(self, worlds: np.ndarray) -> None:
+    def reset(self, worlds: np.ndarray) -> None:
         """reset()'s part: the worlds' wrenches dropped, their xfrc_applied zero."""
-        store = self._wrenches
+        store = self.store
         if store is None:
             return
         store.keep(~np.isin(store.world, worlds))
         rows = worlds[self._wrenched[worlds]]
         if rows.size:
-            self._stage_xfrc(np.sort(rows), np.zeros((rows.size, self.model.nbody, 6)))  # type: ignore[attr-defined]
+            self._stage(np.sort(rows), np.zeros((rows.size, self._model.nbody, 6)))
             self._wrenched[rows] = False
-

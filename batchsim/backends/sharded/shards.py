@@ -1,4 +1,4 @@
-"""The shards of a fleet over several devices (batchsim/backends/sharded.py): one backend
+"""The shards of a fleet over several devices (batchsim/backends/sharded/system.py): one backend
 system per device, in this process on a thread, or in a process of its own.
 
 Both kinds serve the same operations (`serve`): `write` takes the shard's rows of the
@@ -12,9 +12,9 @@ its readings where the fleet's arrays already are, and the fleet copies nothing.
     shard.started()                      # after starting every shard: they start at once
     shard.submit(ShardOp.STEP, 10).result()  # every shard's submit first, then every result
 
-A process shard runs `main(FDS)` of this module in a new Python: one request, one reply,
+A process shard runs `main(FDS)` of batchsim/backends/sharded/process.py in a new Python: one request, one reply,
 a control period's through a control row in the fleet's shared memory, the rest pickled on
-a socket pair (batchsim/backends/shard_messages.py). A reply carries the shard's log
+a socket pair (batchsim/backends/sharded/messages.py). A reply carries the shard's log
 records, which the fleet's process logs as its own, so a failed world's line looks the same
 whatever the shard's kind. A shard process exits when the fleet's process closes the socket
 or dies.
@@ -36,11 +36,13 @@ from typing import Any
 
 import numpy as np
 
-from batchsim.backends.fleet_rows import FleetRows
-from batchsim.backends.shard_messages import POLL, Bell, FleetEnd, Records, ShardEnd, picklable
-from batchsim.hardware import BatchedSystem, Frames, LifecycleState
+from batchsim.backends.sharded.messages import POLL, Bell, FleetEnd
+from batchsim.backends.sharded.rows import FleetRows
+from batchsim.contract import Contract
+from batchsim.lifecycle import LifecycleState
 from batchsim.memory import Memory
 from batchsim.model import RobotSpec
+from batchsim.types import Frames
 
 
 class ShardOp(enum.Enum):
@@ -85,6 +87,8 @@ CALLS = frozenset(ShardOp) - {
 START_TIMEOUT = 300.0  # s: a shard process importing its backend and building its model
 # through the control row, unpickled
 PERIOD_OPS = (ShardOp.WRITE, ShardOp.STEP, ShardOp.READ, ShardOp.POSES, ShardOp.READ_POSES)
+# the shard process's program (batchsim/backends/sharded/process.py), its fds as arguments
+PROCESS_MAIN = "import sys; from batchsim.backends.sharded.process import main; sys.exit(main(sys.argv[1:]))"
 # s: how long a waiting side (the fleet for a reply, a shard for its next request) polls
 # before it sleeps. A sleeping process wakes tens to hundreds of microseconds after its
 # message arrives (more in a virtual machine, whose idle cores halt); with four such wake-ups
@@ -104,7 +108,7 @@ def spin_budget(nshard: int) -> float:
     return SPIN if cores >= 2 * (nshard + 1) else 0.0
 
 
-def serve(system: BatchedSystem, rows: FleetRows, op: ShardOp, args: tuple, kwargs: dict) -> Any:
+def serve(system: Contract, rows: FleetRows, op: ShardOp, args: tuple, kwargs: dict) -> Any:
     """Run one operation of a shard on its system, moving what it needs through `rows`."""
     if op is ShardOp.WRITE:
         rows.take_command(system)
@@ -157,7 +161,7 @@ class LocalShard:
       system: the shard's backend system (device arrays, rendering on the device).
     """
 
-    def __init__(self, system: BatchedSystem, rows: FleetRows, pool: ThreadPoolExecutor):
+    def __init__(self, system: Contract, rows: FleetRows, pool: ThreadPoolExecutor):
         self.system = system
         self.rows = rows
         self._pool = pool
@@ -199,6 +203,8 @@ class ProcessShard:
     """A shard in a process of its own, on one device; the fleet's arrays in shared memory.
 
     Args:
+      build: the function that builds the shard's system, as "module:name" (the fleet's `build`,
+        imported by name in the shard process: `batchsim:build`).
       backend: the backend's name ("warp", "mjx").
       spec: the robot (pickled to the shard process).
       rows: the fleet's worlds this shard runs.
@@ -221,6 +227,7 @@ class ProcessShard:
 
     def __init__(
         self,
+        build: str,
         backend: str,
         spec: RobotSpec,
         rows: range,
@@ -245,12 +252,12 @@ class ProcessShard:
         ours, theirs = socket.socketpair()
         to_shard, to_fleet = Bell.pair(), Bell.pair()
         env, local_device = device_env(device)
-        root = str(Path(__file__).resolve().parents[2])
+        root = str(Path(__file__).resolve().parents[3])
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         theirs_fds = (theirs.fileno(), to_shard.read_fd, to_fleet.write_fd)
         try:
             self._popen = subprocess.Popen(
-                [sys.executable, "-c", _MAIN, *map(str, theirs_fds)],
+                [sys.executable, "-c", PROCESS_MAIN, *map(str, theirs_fds)],
                 pass_fds=theirs_fds,
                 env=env,
                 stdin=subprocess.DEVNULL,
@@ -264,9 +271,10 @@ class ProcessShard:
         inbox, outbox = Bell(to_fleet.read_fd, -1), Bell(-1, to_shard.write_fd)
         self._end = FleetEnd(memory["control"][slot], self._conn, inbox, outbox, PERIOD_OPS, self.spin)
         self._pending = False
-        from batchsim.failures import mujoco_log
+        from batchsim.parts.failures import mujoco_log
 
         start = {
+            "build": build,
             "backend": backend,
             "spec": spec,
             "rows": (rows.start, rows.stop),
@@ -383,69 +391,3 @@ def device_env(device: str) -> tuple[dict[str, str], str]:
     k = int(index or 0)
     env["CUDA_VISIBLE_DEVICES"] = visible[k] if k < len(visible) else str(k)
     return env, f"{platform}:0"
-
-
-# ---------------------------------------------------------------- the shard process
-
-_MAIN = "import sys; from batchsim.backends.shards import main; sys.exit(main(sys.argv[1:]))"
-
-
-def main(argv: list[str]) -> int:
-    """The shard process: argv is its socket's, its inbox bell's and its outbox bell's fds."""
-    conn = Connection(int(argv[0]))
-    inbox, outbox = Bell(int(argv[1]), -1), Bell(-1, int(argv[2]))
-    records = Records()
-    root = logging.getLogger()
-    root.addHandler(records)
-    root.setLevel(logging.INFO)
-    system: BatchedSystem | None = None
-    memory: Memory | None = None
-    try:
-        start = conn.recv()
-        try:
-            from batchsim.backends import Backend, backend_class
-            from batchsim.failures import set_log_dir
-
-            if start["log_dir"] is not None:
-                set_log_dir(start["log_dir"])
-            if start.get("cpus"):
-                os.sched_setaffinity(0, start["cpus"])
-            memory = Memory.attach(start["layout"], start["memory"])
-            cls = backend_class(Backend.parse(start["backend"]))
-            rows = range(*start["rows"])
-            system = cls(start["spec"], len(rows), **{**start["options"], "device": start["device"]})
-            system.number_worlds_as(rows.start, start["fleet_size"])
-            fleet_rows = FleetRows(memory, rows)
-            fleet_rows.share(system)
-            conn.send((True, {"options": system.options}, int(system.lifecycle_state), records.take(), 0.0))
-        except Exception as e:
-            conn.send((False, picklable(e), None, records.take(), 0.0))
-            return 1
-        end = ShardEnd(memory["control"][start["slot"]], conn, inbox, outbox, PERIOD_OPS, start["spin"])
-        while True:
-            try:
-                request = end.next(POLL)
-            except EOFError:
-                return 0
-            if request is None:
-                continue
-            op, args, kwargs = request
-            begin = time.perf_counter()
-            try:
-                value = serve(system, fleet_rows, op, args, kwargs)
-                end.answer(True, value, int(system.lifecycle_state), records.take(), time.perf_counter() - begin, begin)
-            except Exception as e:
-                end.answer(False, e, int(system.lifecycle_state), records.take(), 0.0)
-    except (EOFError, BrokenPipeError, ConnectionResetError, KeyboardInterrupt):
-        return 0
-    finally:
-        if system is not None and system.lifecycle_state not in (
-            LifecycleState.UNKNOWN,
-            LifecycleState.FINALIZED,
-        ):
-            try:
-                system.shutdown()
-            except Exception:
-                pass
-        if memory is not None:
-            memory.close()

@@ -12,7 +12,7 @@ the RobotSpec (`CommandInterface.mode`, `scale`, `offset`, `RobotSpec.mimics`):
 - several interfaces on one actuator (position and velocity PIDs on one motor): one is
   active at a time, as in ros2_control's `perform_command_mode_switch`; position first;
 - a joint behind a transmission: its commands become its actuators' first
-  (`batchsim.transmissions.CommandMap`), and those go through the rules above.
+  (`batchsim.parts.transmissions.CommandMap`), and those go through the rules above.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from collections.abc import Iterable
 import numpy as np
 
 from batchsim.model import CommandMode, RobotSpec, StateColumn
+from batchsim.parts.transmissions import CommandMap
 from batchsim.pid import PidBank
-from batchsim.transmissions import CommandMap
 from batchsim.types import StateSource
 
 

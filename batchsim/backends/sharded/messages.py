@@ -1,4 +1,4 @@
-"""The messages between a fleet and one of its shard processes (batchsim/backends/shards.py):
+"""The messages between a fleet and one of its shard processes (batchsim/backends/sharded/shards.py):
 both ends of the protocol, side by side.
 
 Each shard has a control row in the fleet's shared memory (`control`, CONTROL int64 per

@@ -1,4 +1,4 @@
-"""The arrays a fleet over several devices shares with its shards (batchsim/backends/sharded.py,
+"""The arrays a fleet over several devices shares with its shards (batchsim/backends/sharded/system.py,
 shards.py), and one shard's rows of them: local memory when the shards are threads, a
 shared-memory segment when they are processes.
 
@@ -9,9 +9,9 @@ shared-memory segment when they are processes.
 
 from __future__ import annotations
 
-from batchsim.backends.device import DeviceSystem
-from batchsim.backends.shard_messages import control_array
-from batchsim.hardware import BatchedSystem
+from typing import Any
+
+from batchsim.backends.sharded.messages import control_array
 from batchsim.memory import Layout, Memory
 
 
@@ -40,8 +40,8 @@ def fleet_layout(
 class FleetRows:
     """One shard's rows of the fleet's arrays, and the copies between them and its system.
 
-    A device backend's system reads its readings into these rows and takes its commands
-    from them (`share`, DeviceSystem.share_host_arrays): those copies are then none. The
+    A shard's system reads its readings into these rows and takes its commands from them
+    (`share`, BatchedSystem.share_host_arrays): those copies are then none. The
     8192 humanoids of one GPU read 9.1 MB a period, whose copy took a shard process 0.7 ms
     of its 0.87 ms read (4 H200s, benchmarks/RESULTS.md, GPU session 4)."""
 
@@ -55,19 +55,18 @@ class FleetRows:
         self.xpos = memory["xpos"][sel]
         self.xquat = memory["xquat"][sel]
 
-    def share(self, system: BatchedSystem) -> None:
+    def share(self, system: Any) -> None:
         """Make these rows `system`'s own readings, sensordata and command (before configure)."""
-        if isinstance(system, DeviceSystem):
-            system.share_host_arrays(self.readings, self.sensordata, self.command)
+        system.share_host_arrays(self.readings, self.sensordata, self.command)
 
-    def take_command(self, system: BatchedSystem) -> None:
+    def take_command(self, system: Any) -> None:
         if system.command is not self.command:
             system.command[:] = self.command
 
-    def give_status(self, system: BatchedSystem) -> None:
+    def give_status(self, system: Any) -> None:
         self.status[:] = system.status
 
-    def give_readings(self, system: BatchedSystem) -> None:
+    def give_readings(self, system: Any) -> None:
         # whole blocks, one copy each (the same robot: the same columns on both sides)
         if system.readings is not self.readings:
             self.readings[:] = system.readings
@@ -75,10 +74,10 @@ class FleetRows:
         self.time[:] = system.time
         self.status[:] = system.status
 
-    def give_command(self, system: BatchedSystem) -> None:
+    def give_command(self, system: Any) -> None:
         if system.command is not self.command:
             self.command[:] = system.command
 
-    def give_poses(self, system: BatchedSystem) -> None:
+    def give_poses(self, system: Any) -> None:
         """Every world's body poses (as system.body_poses() gives them) into these rows."""
         system.body_poses_into(self.xpos, self.xquat)

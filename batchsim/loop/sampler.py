@@ -10,7 +10,7 @@ Where a render or scan costs in proportion to the worlds it covers (cpu, mjx), t
 are spread over the sensor's period: with a 10 Hz camera and a 100 Hz loop, world w is
 rendered in the periods k with k % 10 == w % 10, so no period carries the whole fleet's
 images (its worst period, not only its mean, stays in budget). Where one launch covers
-every world at the same cost (warp: `BatchedSystem.sensors_batched`), all wanted worlds are
+every world at the same cost (warp: `Contract.sensors_batched`), all wanted worlds are
 produced together, and it is the sensors that are spread: a period runs one such launch,
 the earliest deadline first, and a sensor due in the same period waits for a later one as
 long as it can without missing its next reading (a 30 Hz camera and a 10 Hz lidar at a
@@ -38,10 +38,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from batchsim.loop import Participant
+from batchsim.loop.sim_loop import Participant
 
 if TYPE_CHECKING:
-    from batchsim.hardware import BatchedSystem, PendingFrames
+    from batchsim.contract import Contract
+    from batchsim.types import PendingFrames
 
 MAX_PENDING = 4  # renders in flight at once; one is a control period's share of a camera's worlds
 
@@ -80,7 +81,7 @@ class SensorSampler(Participant):
       produced: how many world-frames (or world-scans) each sensor has handed out.
     """
 
-    def __init__(self, sim: BatchedSystem, listeners: list[Callable[[Sample], None]] | None = None):
+    def __init__(self, sim: Contract, listeners: list[Callable[[Sample], None]] | None = None):
         suite = sim.sensors
         self.listeners = list(listeners or [])
         self.latest: dict[str, Sample] = {}
@@ -93,7 +94,7 @@ class SensorSampler(Participant):
         self._pending: collections.deque[tuple[float, PendingFrames]] = collections.deque()  # oldest first
         sim.prepare_rendering()  # the render thread's GL context now, not in a control period
 
-    def update(self, sim: BatchedSystem, time: float, period: float) -> None:
+    def update(self, sim: Contract, time: float, period: float) -> None:
         suite = sim.sensors
         batched = []  # (deadline, name, mask) of the batched sensors due now
         for name, every in self._period.items():
@@ -138,7 +139,7 @@ class SensorSampler(Participant):
         while self._pending:
             self._deliver(*self._pending.popleft())
 
-    def _produce(self, sim: BatchedSystem, name: str, worlds: np.ndarray, time: float) -> None:
+    def _produce(self, sim: Contract, name: str, worlds: np.ndarray, time: float) -> None:
         if name in sim.sensors.cameras:
             if self._spread:
                 self._pending.append((time, sim.render_async(name, worlds)))

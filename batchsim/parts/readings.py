@@ -1,4 +1,5 @@
-"""What read() gathers beyond the state interfaces, and how it is laid out.
+"""What read() shows: the host arrays it fills, how they are laid out, and what a frozen world
+shows instead (the contract's part `Readings`).
 
 One block per fleet, `BatchedSystem.readings` `(nworld, ncolumn)`, in this order:
 
@@ -11,7 +12,11 @@ One block per fleet, `BatchedSystem.readings` `(nworld, ncolumn)`, in this order
   float64 columns a world came down twice);
 - the joint positions and velocities the PIDs measure (`Actuation.feedback_columns`).
 
-After each gather, `finish` negates the columns read negated and maps transmissions' joints.
+After each gather, `Finish` negates the columns read negated and maps transmissions' joints.
+
+A world that fails (diverges, or overflows a buffer that cannot grow) is frozen, by one rule on
+every backend: until a reset lists it, it reads the noise-free values read() would have shown
+just before the step() call in which it failed (state, base_state, sensordata, time).
 """
 
 from __future__ import annotations
@@ -19,8 +24,8 @@ from __future__ import annotations
 import numpy as np
 
 from batchsim.model import RobotSpec, StateColumn
-from batchsim.transmissions import StateMap
-from batchsim.types import StateSource
+from batchsim.parts.transmissions import StateMap
+from batchsim.types import SensorData, StateSource, StepFailures, as_slice
 
 
 def base_columns(spec: RobotSpec) -> list[StateColumn]:
@@ -77,16 +82,6 @@ def actuator_state_index(spec: RobotSpec) -> np.ndarray:
     return np.concatenate([np.where(found, k * nfound + rank, -1) for k in range(3)]).astype(np.intp)
 
 
-def as_slice(index: list[int]) -> slice | np.ndarray:
-    """An index list as a slice when it is an arithmetic progression (a view, not a gather)."""
-    if not index:
-        return np.array(index, dtype=np.intp)
-    step = index[1] - index[0] if len(index) > 1 else 1
-    if step > 0 and all(b - a == step for a, b in zip(index, index[1:], strict=False)):
-        return slice(index[0], index[-1] + 1, step)
-    return np.array(index, dtype=np.intp)
-
-
 class Finish:
     """What every gather from the engine needs before it is shown: signs, then transmissions."""
 
@@ -99,3 +94,57 @@ class Finish:
             readings[:, self._negated] *= -1.0
         if self._transmissions:
             self._transmissions.apply(readings)
+
+
+class Readings:
+    """The host arrays read() fills and the views users see of them, for `nworld` worlds of `spec`.
+
+    Attributes:
+      columns: (ncolumn,) what each column of `array` is (`layout`).
+      array: (nworld, ncolumn) float64, every column read() fills, in one block.
+      state: (nworld, nstate) float64, the state interfaces: the first columns of `array`.
+      base_state: (nworld, 13) float64, the floating base (`spec.floating_base`): position (3)
+        and orientation quaternion (w, x, y, z) in the world frame, linear velocity (3) in the
+        world frame, angular velocity (3) in the body frame; None without a floating base.
+      base_states: (nworld, nbase, 13) float64, every floating base so (`spec.floating_bases`).
+      feedback: (nworld, nfeedback) float64, the joint values the PIDs measure (the last columns).
+      sensordata: SensorData over `sensor_array` (nworld, nsensordata) float64, per sensor.
+      time: (nworld,) float64.
+      actuator_columns: where `BatchedSystem.actuator_states`' columns are in `array`.
+    """
+
+    def __init__(self, spec: RobotSpec, nworld: int, feedback: list[StateColumn]):
+        self.spec = spec
+        self.columns, self.actuator_columns = layout(spec, feedback)
+        self._nfeedback = len(feedback)
+        self.finish = Finish(spec, self.columns)
+        self.bind(np.zeros((nworld, len(self.columns))), np.zeros((nworld, spec.mjmodel.nsensordata)), np.zeros(nworld))
+        # what frozen worlds show until reset: their readings from the start of the failing step()
+        self._held = (np.zeros_like(self.array), np.zeros_like(self.sensor_array), np.zeros_like(self.time))
+        # whether the host arrays hold the engine's current values (a read since the last step)
+        self.current = False
+
+    def bind(self, readings: np.ndarray, sensordata: np.ndarray, time: np.ndarray) -> None:
+        """Make these the arrays read() fills; every view follows them."""
+        nstate, nbase = len(self.spec.state), 13 * len(self.spec.floating_bases)
+        self.array = readings
+        self.state = readings[:, :nstate]
+        self.base_state = readings[:, nstate : nstate + 13] if self.spec.floating_base is not None else None
+        self.base_states = readings[:, nstate : nstate + nbase].reshape(len(readings), -1, 13)
+        self.feedback = readings[:, readings.shape[1] - self._nfeedback :]
+        self.sensor_array = sensordata
+        self.sensordata = SensorData(sensordata, self.spec.sensors)
+        self.time = time
+
+    def hold(self, failures: StepFailures) -> None:
+        """Keep what the failed worlds read before the failing step, to show until they are reset."""
+        if not failures.finished:
+            self.finish(failures.readings)  # an engine gather, raw as read()'s is
+        for held, value in zip(self._held, (failures.readings, failures.sensordata, failures.time), strict=True):
+            held[failures.worlds] = value
+
+    def show_held(self, frozen: np.ndarray) -> None:
+        """Frozen worlds' rows (`frozen` (nworld,) bool) of the host arrays: what they hold."""
+        if frozen.any():
+            for shown, held in zip((self.array, self.sensor_array, self.time), self._held, strict=True):
+                shown[frozen] = held[frozen]

@@ -12,11 +12,11 @@ cmd_timeout, or none yet, is zero velocity: the base is held still rather than l
 
 Here, for `nworld` worlds at once:
 
-- `BaseVelocityConfig`: the plugin's parameters, read from its YAML by batchsim.sensors.config.
+- `BaseVelocityConfig`: the plugin's parameters, read from its YAML (batchsim.plugins.config).
 - `BaseVelocity`: per world, the last command `(nworld, 3)` (body-frame vx, vy [m/s], wz
   [rad/s]) and the sim time it came; `target(time)` is what to hold: clamped, zero where stale.
-- `BaseDriving`, mixed into BatchedSystem: `base_velocity`, `set_base_velocity()`. write()
-  stages the target (`_stage_base_velocity`, batchsim.engine) and the backend holds it before
+- `BaseDrive`, the system's part: `base_velocity`, `set_base_velocity()`. write()
+  stages the target (`Engine.stage_base_velocity`) and the engine holds it before
   every physics substep of the step() calls that follow, as upstream's simulation re-applies
   its staged override before every mj_step, the rotation taken from the base's orientation at
   the start of each step() call (upstream: at its control update, which the loop runs right
@@ -32,17 +32,13 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import mujoco
 import numpy as np
 
-from batchsim.types import MAX_COMMAND, ConfigurationError, check_plugin_runs
-
-if TYPE_CHECKING:  # batchsim.sensors imports this module: no import cycle at run time
-    from batchsim.sensors import SensorConfig
+from batchsim.types import MAX_COMMAND, ConfigurationError, HeldBase, check_plugin_runs
 
 PLUGIN_TYPE = "mujoco_ros2_control_plugins/BaseVelocityPlugin"
 #: the free joint's qvel entries the override writes, from its first: world vx, vy; body wz
@@ -187,46 +183,36 @@ class BaseVelocity:
         return target
 
 
-class BaseDriving:
-    """The contract's side of the plugin, mixed into BatchedSystem: it uses the system's
-    `model`, `nworld`, `time`, `frozen`, `_worlds`, `_sensor_config` (batchsim.sensing) and
-    the engine hook `_stage_base_velocity`; hardware.py calls `_drive_base` from write() and
-    `_reset_base` from reset()."""
+class BaseDrive:
+    """The plugin's part of the system (batchsim.hardware): `velocity` (None without the plugin),
+    what set_base_velocity() records, and what write() and reset() stage on the engine
+    (`stage(target)`: Engine.stage_base_velocity). `runs`: whether the system can run it (a fleet
+    over several devices cannot)."""
 
-    #: whether this system can run the plugin (a fleet over several devices cannot)
-    drives_base: ClassVar[bool] = True
-    _base_velocity: BaseVelocity | None = None
-    _staged: np.ndarray | None = None  # (nworld, 3): the target the engine holds now
+    def __init__(self, model: mujoco.MjModel, nworld: int, stage: Callable[[np.ndarray], None], *, runs: bool = True):
+        self._model, self._nworld, self._stage, self._runs = model, nworld, stage, runs
+        self.velocity: BaseVelocity | None = None
+        self._staged: np.ndarray | None = None  # (nworld, 3): the target the engine holds now
+
+    def configure(self, config: BaseVelocityConfig | None) -> None:
+        """The plugin's params from the sensor configuration (None: no plugin)."""
+        check_plugin_runs(config, self._runs, "BaseVelocityPlugin")
+        self._staged = None
+        self.velocity = None if config is None else BaseVelocity(config, self._model, self._nworld)
 
     @property
-    def base_velocity(self) -> BaseVelocity | None:
-        """The BaseVelocityPlugin's per-world commands (batchsim.base_velocity), or None when the
-        sensor configuration has no such plugin."""
-        return self._base_velocity
+    def held_base(self) -> HeldBase | None:
+        """The free joint the engine holds (Engine.open's `held_base`), or None."""
+        v = self.velocity
+        return None if v is None else HeldBase(v.qposadr, v.dofadr)
 
-    def set_sensor_config(self, config: SensorConfig | str | Path | Mapping[str, Any]) -> None:
-        super().set_sensor_config(config)  # type: ignore[misc]
-        plugin = self._sensor_config.base_velocity  # type: ignore[attr-defined]
-        check_plugin_runs(plugin, self.drives_base, "BaseVelocityPlugin")
-        self._staged = None
-        self._base_velocity = None if plugin is None else BaseVelocity(plugin, self.model, self.nworld)  # type: ignore[attr-defined]
-
-    def set_base_velocity(self, command: Any, worlds: Sequence[int] | np.ndarray | None = None) -> None:
-        """Command the base's planar velocity in all or the listed worlds, as a cmd_vel message
-        does: `command` `(n, 3)` or `(3,)`, body-frame vx, vy [m/s] and wz [rad/s] (a Twist's
-        linear.x, linear.y, angular.z). Each world's is stamped with its sim time (`time`, as
-        read() last showed it): it holds for the plugin's cmd_timeout of sim time, then the base
-        is held still. Takes effect at the next write().
-
-        Raises:
-          ValueError: no BaseVelocityPlugin configured, a wrong shape, a value not finite or
-            beyond MAX_COMMAND, a world out of range or listed twice.
-        """
-        drive = self._base_velocity
+    def command(self, sel: np.ndarray, command: Any, time: np.ndarray) -> None:
+        """set_base_velocity() for worlds `sel` `(n,)` at their sim `time` `(n,)`: `command` `(n, 3)`
+        or `(3,)`, body-frame vx, vy [m/s] and wz [rad/s]. ValueError: no plugin, a wrong shape,
+        a value not finite or beyond MAX_COMMAND."""
+        drive = self.velocity
         if drive is None:
             raise ValueError("no BaseVelocityPlugin: give its mujoco_plugins YAML as the sensors configuration")
-        rows = self._worlds(worlds)  # type: ignore[attr-defined]
-        sel = np.arange(self.nworld) if rows is None else rows  # type: ignore[attr-defined]
         command = np.asarray(command, dtype=np.float64)
         if command.shape not in ((3,), (len(sel), 3)):
             n = len(sel)
@@ -235,26 +221,25 @@ class BaseDriving:
         problem = command_problem(command)
         if problem is not None:
             raise ValueError(problem)
-        drive.set(sel, command, self.time[sel])  # type: ignore[attr-defined]
+        drive.set(sel, command, time)
 
-    def _drive_base(self) -> None:
-        """write()'s part: the target of every world (NaN for frozen ones) to the engine."""
-        drive = self._base_velocity
+    def drive(self, time: np.ndarray, frozen: np.ndarray) -> None:
+        """write()'s part: the target of every world at its sim `time` (NaN for frozen ones) staged."""
+        drive = self.velocity
         if drive is None:
             return
-        target = drive.target(self.time)  # type: ignore[attr-defined]
-        frozen = self.frozen  # type: ignore[attr-defined]
+        target = drive.target(time)
         if frozen.any():
             target[frozen] = np.nan
         self._staged = target
-        self._stage_base_velocity(target)  # type: ignore[attr-defined]
+        self._stage(target)
 
-    def _reset_base(self, worlds: np.ndarray) -> None:
+    def reset(self, worlds: np.ndarray) -> None:
         """reset()'s part: the worlds' commands dropped and their override lifted until the next write()."""
-        drive = self._base_velocity
+        drive = self.velocity
         if drive is None:
             return
         drive.clear(worlds)
         if self._staged is not None:
             self._staged[worlds] = np.nan
-            self._stage_base_velocity(self._staged)  # type: ignore[attr-defined]
+            self._stage(self._staged)
