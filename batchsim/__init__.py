@@ -23,6 +23,7 @@ from batchsim.backends.sharded import ShardedSystem
 from batchsim.contract import Contract
 from batchsim.engine import Engine
 from batchsim.fleet import FleetError, is_fleet_file, load_fleet
+from batchsim.fleet.groups import FleetGroups, Group, read_groups
 from batchsim.hardware import BatchedSystem
 from batchsim.lifecycle import CallbackReturn, LifecycleError, LifecycleState, SystemInterface
 from batchsim.model import ModelError, RobotSpec, load, model_names
@@ -55,6 +56,7 @@ __all__ = [
     "load",
     "load_fleet",
     "make",
+    "make_groups",
     "model_names",
     "set_log_dir",
 ]
@@ -151,6 +153,28 @@ def make(
     sim.initialize()
     _configure_inputs(sim, sensors, randomize, world_offset)
     return sim
+
+
+def make_groups(
+    source: str | Path | Mapping[str, Any] | FleetGroups,
+    backend: str | Backend | backends.Registered = "auto",
+    *,
+    world_offset: int = 0,
+    **kwargs: Any,
+) -> list[tuple[Group, Contract]]:
+    """A fleet of several groups of worlds (batchsim.fleet.groups: a fleet file's `groups:`, each
+    its own robots and world count): one system per group, each made as make() makes one (the
+    same backend, sensors, randomization and options), its worlds numbered from the group's
+    first world of the fleet (world_offset + the groups before it), UNCONFIGURED.
+
+    Returns (group, system) pairs in the fleet's order. One loop steps them under one clock:
+    `SimLoop(first)` and `.join(SimLoop(each other))` (batchsim.loop).
+    """
+    fleet = source if isinstance(source, FleetGroups) else read_groups(source)
+    return [
+        (g, make(load_fleet(g.fleet), g.worlds, backend, world_offset=world_offset + g.first_world, **kwargs))
+        for g in fleet.groups
+    ]
 
 
 def build(spec: RobotSpec, nworld: int, engine: type[Engine], **options: Any) -> BatchedSystem:

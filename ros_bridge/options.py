@@ -85,6 +85,8 @@ class BridgeOptions:
       world_offset: the number of this process's first world (`world_{offset}` ...), for a
         fleet spread over several processes or hosts.
       clock: publish `/clock`; exactly one process of a fleet may.
+      fleet_services: serve `/batchsim/{reset,pause,step,record}` (worker 0); in a fleet of several
+        groups of worlds, only the first group's bridge does (its loop pauses, steps and resets them all).
       startup_check: wall seconds to watch the ROS graph at start for another process that
         already serves these namespaces or `/clock` (on another host: one on this host is
         found at once, ros_bridge/registry.py; with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -112,6 +114,7 @@ class BridgeOptions:
     workers: int | None = dataclasses.field(default=None, metadata=_flag("--bridge-workers"))
     world_offset: int = dataclasses.field(default=0, metadata=_flag("--world-offset"))
     clock: bool = dataclasses.field(default=True, metadata=_flag("--no-clock"))
+    fleet_services: bool = True
     startup_check: float = 1.0
     all_topics: bool = dataclasses.field(default=False, metadata=_flag("--all-topics"))
     tf: bool = dataclasses.field(default=True, metadata=_flag("--no-tf"))

@@ -114,6 +114,7 @@ class FleetPlan:
       channels, outputs, inputs: see above.
       lockstep: workers nudge the loop when a command arrives.
       clock: worker 0 publishes /clock.
+      fleet_services: worker 0 serves /batchsim/{reset,pause,step,record}.
       startup_check: seconds worker 0 watches the graph for another fleet at start.
       all_topics: create the on-request topics at start too.
       sensors: cameras and lidars (ros_bridge/sensor_topics.py), or None.
@@ -145,6 +146,7 @@ class FleetPlan:
     clock: bool
     startup_check: float
     all_topics: bool = False
+    fleet_services: bool = True
     actuator_robots: list[str] = dataclasses.field(default_factory=list)
     robots: tuple[str, ...] = ()  # a fleet file's robots in every world (batchsim.fleet), for /diagnostics
     ros_args: tuple[str, ...] = ()  # after --ros-args, for every worker's rclpy.init
@@ -358,6 +360,7 @@ def build_plan(
         clock=options.clock,
         startup_check=options.startup_check,
         all_topics=options.all_topics,
+        fleet_services=options.fleet_services,
         ros_args=tuple(options.ros_args),
         sensors=sensors,
         tf=tf,

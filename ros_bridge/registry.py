@@ -79,7 +79,7 @@ class Registry:
                         f"another process already publishes /clock (node /{other['node']}, pid {other['pid']}): "
                         "only one process of a fleet may",
                     )
-            path = self.directory / f"{os.getpid()}.json"
+            path = self.directory / f"{os.getpid()}_{node}.json"  # a process may serve several groups of worlds
             fd = os.open(path, os.O_CREAT | os.O_RDWR | os.O_TRUNC, 0o666)
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             os.write(fd, json.dumps({"pid": os.getpid(), "node": node, "clock": clock, "namespaces": namespaces}).encode())

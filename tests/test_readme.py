@@ -88,6 +88,16 @@ def test_a_yaml_block_is_read_as_shown(line, text, tmp_path):
         assert len(spec.robots) >= 2 and all(r.state.size for r in spec.robots)
         sized = [r for r in spec.robots if r.sensor_config is not None]
         assert sized and all(spec.sensor_config.cameras[r.prefix + "front_camera"].width == 64 for r in sized)
+    elif "\ngroups:" in "\n" + text:  # a fleet of groups: its fleet files and environment beside it, as shipped
+        from batchsim.fleet import load_fleet
+        from batchsim.fleet.groups import read_groups
+
+        fleets = Path(__file__).resolve().parent.parent / "examples" / "fleets"
+        for name in ("arm_and_rover.yaml", "warehouse.xml"):
+            (tmp_path / name).write_text((fleets / name).read_text())
+        groups = read_groups(path).groups
+        assert len(groups) >= 2 and all(len(load_fleet(g.fleet).robots) >= 2 for g in groups)
+        assert [g.first_world for g in groups] == [sum(h.worlds for h in groups[:k]) for k in range(len(groups))]
     elif text.startswith("randomize:"):  # shown for the arm (its links, joints, position servos)
         sim = batchsim.make("arm", 3, "cpu", randomize=str(path))
         sim.configure()

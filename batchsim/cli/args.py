@@ -19,6 +19,7 @@ import mujoco
 import batchsim
 from batchsim import startup
 from batchsim.cli.bridge_flags import add_bridge_flags, add_option, add_view_flags, world_list
+from batchsim.fleet.groups import has_groups, read_groups
 from batchsim.loop.realtime import DEFAULT_THREAD_PRIORITY
 from batchsim.model import model_names
 from batchsim.model.description import model_file, read_description
@@ -43,7 +44,7 @@ def run_parser() -> argparse.ArgumentParser:
         description="Run N copies of one MuJoCo robot, each on its own ROS 2 namespace.",
         epilog="`batchsim info MODEL` lists a model's interfaces and sensors.",
     )
-    p.add_argument("--worlds", type=int, default=16, help="number of worlds (default 16)")
+    p.add_argument("--worlds", type=int, default=None, help=f"number of worlds (default {DEFAULT_WORLDS}; a fleet of groups: each group's, from its file)")
     p.add_argument(
         "--model",
         default=None,
@@ -189,7 +190,7 @@ def info_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="batchsim info", description="List a model's interfaces and sensors.")
     p.add_argument("model", nargs="?", help="shipped model name or MJCF path (default: as batchsim's --model)")
     p.add_argument("--fleet", default=None, metavar="FILE", help="a fleet file: each robot's interfaces, sensors and controllers")
-    p.add_argument("--worlds", type=int, default=16, help="world count the backend choice is for")
+    p.add_argument("--worlds", type=int, default=None, help=f"world count the backend choice is for (default {DEFAULT_WORLDS})")
     p.add_argument("--backend", default="auto")
     p.add_argument("--ros2-control", default=None)
     p.add_argument("--keyframe", default=None)
@@ -228,6 +229,8 @@ def _urdf_flags(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     p.add_argument("--scene", default=None, metavar="FILE", help="URDF model: an MJCF scene file to add (lights, floor)")
 
+
+DEFAULT_WORLDS = 16
 
 #: flags that describe one robot: a fleet file says them per robot
 _ROBOT_FLAGS = ("model", "ros2_control", "keyframe", "mujoco_inputs", "scene")
@@ -339,7 +342,10 @@ def check_args(args: argparse.Namespace) -> None:
 def check_fleet_args(args: argparse.Namespace) -> None:
     """--fleet names every robot's model, description, keyframe and controllers in its file:
     the flags that say them for one robot are refused beside it, naming the file's key."""
+    args.groups = None
     if args.fleet is None:
+        if getattr(args, "worlds", 0) is None:
+            args.worlds = DEFAULT_WORLDS
         return
     for flag in _ROBOT_FLAGS:
         if getattr(args, flag, None) is not None:
@@ -353,6 +359,13 @@ def check_fleet_args(args: argparse.Namespace) -> None:
         )
     if not Path(args.fleet).expanduser().is_file():
         raise UsageError(f"--fleet {args.fleet}: no such file")
+    if has_groups(args.fleet):  # several groups of worlds, each its own fleet file's (batchsim.fleet.groups)
+        if getattr(args, "worlds", None) is not None:
+            raise UsageError("--worlds: a fleet of groups gives each group's worlds in its file (groups[k].worlds); drop --worlds")
+        args.groups = read_groups(args.fleet)
+        args.worlds = args.groups.nworld
+    elif getattr(args, "worlds", 0) is None:
+        args.worlds = DEFAULT_WORLDS
 
 
 def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:

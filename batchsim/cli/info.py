@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Sequence
 from typing import Any
 
@@ -15,6 +16,7 @@ from batchsim.cli.args import (
     default_model,
     info_parser,
 )  # fmt: skip
+from batchsim.fleet import load_fleet
 from batchsim.model import CommandMode, RobotSpec
 from batchsim.plugins.base_velocity import BaseVelocity
 from batchsim.sensors import SensorConfig, SensorSuite
@@ -30,18 +32,35 @@ def info(argv: Sequence[str]) -> int:
     check_fleet_args(args)
     args.model = default_model(args.model, args.ros2_control)
     sensors = SensorConfig.from_flags(args.sensors)
+    if args.groups is not None:  # a fleet of several groups of worlds: each group's world, in turn
+        if args.mjcf:
+            raise UsageError("--mjcf: a fleet of groups has one world model per group: give a group's fleet file")
+        out = [f"fleet      {args.groups.name}  ({args.groups.where}): {args.groups.nworld} worlds in {len(args.groups.groups)} groups"]
+        for g in args.groups.groups:
+            last = g.first_world + g.worlds - 1
+            out.append(f"\n=== group {g.name}: worlds {g.first_world}..{last} ({g.worlds}), {g.fleet.where}")
+            out += model_lines(args, load_fleet(g.fleet), g.worlds, sensors)
+        print("\n".join(out))
+        return 0
     spec = _load(args)
     if args.mjcf:
         print(spec.xml)
         return 0
-    chosen, reason = resolve(args.backend, spec, args.worlds)
+    print("\n".join(model_lines(args, spec, args.worlds, sensors)))
+    return 0
+
+
+def model_lines(args: argparse.Namespace, spec: RobotSpec, nworld: int, sensors: SensorConfig | None) -> list[str]:
+    """What `batchsim info` says of one world model in `nworld` worlds: its backend, start, robots,
+    interfaces, sensors, plugins, randomization, warnings and problems."""
+    chosen, reason = resolve(args.backend, spec, nworld)
     m = spec.mjmodel
     keys = ", ".join(repr(k) if k else f"#{i}" for i, k in enumerate(spec.keyframes)) or "none"
     base = spec.floating_base
     out = [
         f"model      {spec.name}  ({spec.path or 'string'})",
         f"timestep   {m.opt.timestep:g} s   nq {m.nq}  nv {m.nv}  nu {m.nu}",
-        f"backend    {chosen.value} for {args.worlds} worlds ({reason})",
+        f"backend    {chosen.value} for {nworld} worlds ({reason})",
         f"starts in  {spec.initial.source}   (keyframes: {keys})",
         f"base       {f'free joint {base.joint!r} of body {base.body!r}' if base else 'per robot (below)' if spec.robots else 'fixed (no floating base)'}",
     ]
@@ -52,7 +71,7 @@ def info(argv: Sequence[str]) -> int:
             f"topic_reliability={r.topic_reliability}"
         )
     if spec.robots:
-        out += robot_lines(spec, args.worlds)
+        out += robot_lines(spec, nworld)
     out.append(f"\nstate interfaces ({len(spec.state)})")
     out += [f"  {i:3d}  {c.name}" for i, c in enumerate(spec.state)]
     out.append(f"\ncommand interfaces ({len(spec.commands)})")
@@ -78,7 +97,7 @@ def info(argv: Sequence[str]) -> int:
         from batchsim.fleet.sensors import merged
 
         sensors = merged(spec, sensors)
-    suite = SensorSuite.build(spec, args.worlds, sensors)
+    suite = SensorSuite.build(spec, nworld, sensors)
     out += sensor_lines(suite)
     plugin = suite.config.base_velocity
     if plugin is not None:
@@ -97,7 +116,7 @@ def info(argv: Sequence[str]) -> int:
             "no ~/wrench_markers"
         )
     if args.randomize is not None:
-        out += randomization_lines(spec, args.randomize, args.world_offset, min(args.worlds, 4))
+        out += randomization_lines(spec, args.randomize, args.world_offset, min(nworld, 4))
     warnings = spec.warnings + suite.config.warnings
     if warnings:
         out.append("\nwarnings (not acted on)")
@@ -105,8 +124,7 @@ def info(argv: Sequence[str]) -> int:
     if spec.problems:
         out.append("\nproblems (configure will fail)")
         out += [f"  {p}" for p in spec.problems]
-    print("\n".join(out))
-    return 0
+    return out
 
 
 def robot_lines(spec: RobotSpec, nworld: int) -> list[str]:

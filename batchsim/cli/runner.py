@@ -10,6 +10,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any, TextIO
 
 import batchsim
@@ -27,16 +28,22 @@ from batchsim.cli.bridge_flags import bridge_options, option_flag
 from batchsim.contract import Contract
 from batchsim.controllers import ControllerManager, default_controllers, load_controllers
 from batchsim.controllers.robots import load_fleet_controllers
+from batchsim.fleet.groups import Group
 from batchsim.loop import LoopStats, OptionError, RateError, SimLoop, format_stats, whole_ratio
 from batchsim.model import model_names
 from batchsim.sensors import SensorConfig
 from batchsim.types import ConfigurationError
-from ros_bridge.options import default_workers
+from ros_bridge.options import BridgeOptions, default_workers
 
 
-def build(args: argparse.Namespace, progress: startup.Progress | None = None) -> Contract:
-    """The configured, active system: the model loaded, the memory checked, the worlds made."""
+def build(
+    args: argparse.Namespace, progress: startup.Progress | None = None, group: Group | None = None
+) -> Contract:
+    """The configured, active system: the model loaded, the memory checked, the worlds made; of
+    one group of a fleet of several (batchsim.fleet.groups), numbered from its first world."""
     progress = progress if progress is not None else startup.Progress()
+    nworld = args.worlds if group is None else group.worlds
+    offset = args.world_offset + (0 if group is None else group.first_world)
     options: dict[str, Any] = {}
     for flag, option in (("threads", "nthread"), ("nconmax", "nconmax"), ("njmax", "njmax")):
         if getattr(args, flag) is not None:
@@ -56,19 +63,19 @@ def build(args: argparse.Namespace, progress: startup.Progress | None = None) ->
         camera_resolution=args.camera_resolution,
         seed=args.noise_seed,
     )
-    with progress.stage(f"loading {args.fleet or args.model}"):
-        spec = _load(args)
-    chosen, _ = resolve(args.backend, spec, args.worlds)
+    with progress.stage(f"loading {args.fleet or args.model}" + (f" (group {group.name})" if group else "")):
+        spec = _load(args) if group is None else batchsim.load_fleet(group.fleet)
+    chosen, _ = resolve(args.backend, spec, nworld)
     if not args.skip_memory_check:
-        check_memory(args, spec, chosen)
-    with progress.stage(f"allocating {args.worlds} worlds on {chosen.value}"):
+        check_memory(args, spec, chosen, nworld)
+    with progress.stage(f"allocating {nworld} worlds on {chosen.value}" + (f" (group {group.name})" if group else "")):
         sim = batchsim.make(
             spec,
-            args.worlds,
+            nworld,
             args.backend,
             sensors=sensors,
             randomize=args.randomize,
-            world_offset=args.world_offset,
+            world_offset=offset,
             **options,
         )
         sim.configure()
@@ -78,8 +85,10 @@ def build(args: argparse.Namespace, progress: startup.Progress | None = None) ->
     return sim
 
 
-def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Choice) -> None:
-    """Refuse (MemoryCheckError, one line) a fleet the estimate says will not fit; warn near the edge."""
+def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Choice, nworld: int | None = None) -> None:
+    """Refuse (MemoryCheckError, one line) a fleet the estimate says will not fit; warn near the edge
+    (`nworld` worlds: a group's; default --worlds)."""
+    nworld = args.worlds if nworld is None else nworld
     cls = backend_class(backend)
     on_device, device_memory = False, None
     devices = getattr(cls, "available_devices", None)  # a backend that runs on devices says which
@@ -90,9 +99,9 @@ def check_memory(args: argparse.Namespace, spec: batchsim.RobotSpec, backend: Ch
     estimate = estimate_memory(
         spec,
         backend,
-        args.worlds,
+        nworld,
         ros=not args.no_ros,
-        ros_workers=args.bridge_workers if args.bridge_workers is not None else default_workers(args.worlds),
+        ros_workers=args.bridge_workers if args.bridge_workers is not None else default_workers(nworld),
         nthread=args.threads,
         on_device=on_device,
         nconmax=args.nconmax,
@@ -128,6 +137,35 @@ def compile_programs(sim: Contract, loop: SimLoop, progress: startup.Progress) -
         for lidar in lidars:
             sim.scan(lidar, device=True)
         sim.reset()
+
+
+def group_options(options: BridgeOptions, group: Group) -> BridgeOptions:
+    """The bridge options of one group of a fleet of several: its worlds numbered from its first,
+    /clock and the fleet's services the first group's alone, its recording in a file of its own
+    (`run.<group>.mcap` beside `run.mcap`), of the recorded worlds that are its, and its view on
+    the next port."""
+    first = group.first_world
+    record = options.record
+    if record is not None:
+        path = record.path
+        if path is not None and first > 0:
+            p = Path(path)
+            path = str(p.with_name(f"{p.stem}.{group.name}{p.suffix}"))
+        worlds = record.worlds  # the fleet's numbers: this group's, numbered from its first
+        if worlds is not None:
+            worlds = tuple(w - first for w in worlds if first <= w < first + group.worlds)
+        record = dataclasses.replace(record, path=path, worlds=worlds) if worlds != () else None
+    view = options.view
+    if view is not None and first > 0:
+        view = None
+    return dataclasses.replace(
+        options,
+        world_offset=options.world_offset + first,
+        clock=options.clock and first == 0,
+        fleet_services=first == 0,
+        record=record,
+        view=view,
+    )
 
 
 def setup_controllers(sim: Contract, args: argparse.Namespace) -> tuple[ControllerManager | None, float | None]:
@@ -170,11 +208,15 @@ def _checked_rate(sim: Contract, args: argparse.Namespace, manager: ControllerMa
 #: library option names whose flag is not `--<option with dashes>`
 
 
-def start_ros(sim: Contract, loop: SimLoop, args: argparse.Namespace, manager: ControllerManager | None = None):
-    """The ROS 2 bridge for this run, serving `manager`'s controllers too.
+def start_ros(
+    sim: Contract, loop: SimLoop, args: argparse.Namespace, manager: ControllerManager | None = None, group: Group | None = None
+):
+    """The ROS 2 bridge for this run (or this group of its worlds), serving `manager`'s controllers too.
 
     Errors name the flags; another process already serving these worlds or /clock is a
-    UsageError (exit 2) naming that process's node."""
+    UsageError (exit 2) naming that process's node. A group's worlds are numbered from its first
+    world; the first group's bridge alone publishes /clock and serves /batchsim/*; a recording
+    of a later group goes to a file of its own beside --record's (`run.<group>.mcap`)."""
     try:
         from ros_bridge.bridge import ConflictKind, FleetConflict, WorkerError, start_bridge
     except ModuleNotFoundError as e:
@@ -182,6 +224,8 @@ def start_ros(sim: Contract, loop: SimLoop, args: argparse.Namespace, manager: C
             f"ROS 2 is not installed ({e.name} is missing): {startup.install_command('ros')}, or pass --no-ros"
         ) from None
     options = bridge_options(args)
+    if group is not None:
+        options = group_options(options, group)
     from ros_bridge.interfaces import missing_line
 
     missing = missing_line()
@@ -277,6 +321,44 @@ class StatusLine:
                 self.stream.flush()
 
 
+@dataclasses.dataclass
+class Batch:
+    """One batch of a run: its system (the run's; a group's, in a fleet of several groups), its
+    controllers, its loop (the first batch's runs the others, SimLoop.join) and its bridge."""
+
+    group: Group | None
+    sim: Contract
+    manager: ControllerManager | None
+    loop: SimLoop
+    bridge: Any = None
+
+
+def build_batch(args: argparse.Namespace, progress: startup.Progress, group: Group | None, first: Batch | None) -> Batch:
+    """The system, controllers and loop of the run (or of one group, its loop joined to the
+    first group's); the bridge is started by the caller once every loop is joined."""
+    sim = build(args, progress, group)
+    manager, update_rate = setup_controllers(sim, args)
+    control_rate = args.control_rate if args.control_rate is not None else update_rate
+    try:
+        loop = SimLoop(
+            sim,
+            control_rate=control_rate if control_rate is not None or first is None else first.loop.control_rate,
+            rtf=args.rtf,
+            duration=args.duration,
+            thread_priority=args.thread_priority,
+            cpu_affinity=args.cpu_affinity,
+        )
+        if first is not None:
+            first.loop.join(loop)
+    except OptionError as e:
+        raise UsageError(e.named(option_flag(e.option))) from None
+    if manager is not None:
+        for warning in manager.warnings:
+            print(f"batchsim: warning: {warning}", file=sys.stderr)
+    compile_programs(sim, loop, progress)
+    return Batch(group, sim, manager, loop)
+
+
 def run(argv: Sequence[str]) -> int:
     # until the loop runs, SIGTERM ends the start as Ctrl-C does: what was started (bridge
     # workers, shared memory) is stopped and removed on the way out
@@ -288,31 +370,18 @@ def run(argv: Sequence[str]) -> int:
     with startup.StartupGuard(progress):
         description_topic.fetch(args, progress)
     check_args(args)
+    batches: list[Batch] = []
     with startup.StartupGuard(progress):
-        sim = build(args, progress)
-        manager, update_rate = setup_controllers(sim, args)
-        control_rate = args.control_rate if args.control_rate is not None else update_rate
-        try:
-            loop = SimLoop(
-                sim,
-                control_rate=control_rate,
-                rtf=args.rtf,
-                duration=args.duration,
-                thread_priority=args.thread_priority,
-                cpu_affinity=args.cpu_affinity,
-            )
-        except OptionError as e:
-            raise UsageError(e.named(option_flag(e.option))) from None
-        if manager is not None:
-            for warning in manager.warnings:
-                print(f"batchsim: warning: {warning}", file=sys.stderr)
-        compile_programs(sim, loop, progress)
-        bridge = None
-        if not args.no_ros:
-            with progress.stage(f"creating ROS 2 endpoints for {sim.nworld} worlds"):
-                bridge = start_ros(sim, loop, args, manager)
-        if manager is not None and manager not in loop.participants:
-            loop.participants.append(manager)
+        for group in args.groups.groups if args.groups is not None else (None,):
+            batches.append(build_batch(args, progress, group, batches[0] if batches else None))
+        for b in batches:
+            if not args.no_ros:
+                named = f" of group {b.group.name}" if b.group is not None else ""
+                with progress.stage(f"creating ROS 2 endpoints for {b.sim.nworld} worlds{named}"):
+                    b.bridge = start_ros(b.sim, b.loop, args, b.manager, b.group)
+            if b.manager is not None and b.manager not in b.loop.participants:
+                b.loop.participants.append(b.manager)
+    loop, first = batches[0].loop, batches[0].sim
 
     def on_signal(signum: int, frame: Any) -> None:
         loop.stop()
@@ -320,28 +389,40 @@ def run(argv: Sequence[str]) -> int:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
 
-    backend = f"{sim.name} ({sim.reason})"
-    print(
-        f"batchsim: {sim.nworld} x {sim.spec.name} on {backend}, control {loop.control_rate:g} Hz "
-        f"({loop.substeps} x {sim.dt:g} s), rtf {'max' if args.rtf == 0 else f'{args.rtf:g}'}"
-        + ("" if bridge is None else f", ROS 2 namespaces {bridge.describe()}")
-        + ("" if manager is None else f", controllers {', '.join(manager.controllers) or 'none'}"),
-        file=sys.stderr,
-        flush=True,
-    )
+    backend = f"{first.name} ({first.reason})"
+    print(f"batchsim: {_what(batches, loop, args)}", file=sys.stderr, flush=True)
     try:
-        with StatusLine(loop, sim.nworld, backend, quiet=args.quiet, every=args.status_every) as status:
+        with StatusLine(loop, loop.nworld, backend, quiet=args.quiet, every=args.status_every) as status:
             stats = loop.run(status.report)
     finally:
-        if bridge is not None:
-            bridge.close()
-        sim.shutdown()
+        for b in batches:
+            if b.bridge is not None:
+                b.bridge.close()
+            b.sim.shutdown()
     print(
-        f"batchsim: stopped at sim time {loop.sim_time:.3f} s; last: {format_stats(stats, sim.nworld, backend)}",
+        f"batchsim: stopped at sim time {loop.sim_time:.3f} s; last: {format_stats(stats, loop.nworld, backend)}",
         file=sys.stderr,
         flush=True,
     )
     return 0
+
+
+def _what(batches: list[Batch], loop: SimLoop, args: argparse.Namespace) -> str:
+    """The run's first line: what runs where, at what rate, and its namespaces and controllers."""
+    first = batches[0].sim
+    rtf = "max" if args.rtf == 0 else f"{args.rtf:g}"
+    where = f"on {first.name} ({first.reason}), control {loop.control_rate:g} Hz ({loop.substeps} x {first.dt:g} s), rtf {rtf}"
+
+    def served(b: Batch) -> str:
+        return ("" if b.bridge is None else f", ROS 2 namespaces {b.bridge.describe()}") + (
+            "" if b.manager is None else f", controllers {', '.join(b.manager.controllers) or 'none'}"
+        )
+
+    if len(batches) == 1:
+        b = batches[0]
+        return f"{b.sim.nworld} x {b.sim.spec.name} {where}{served(b)}"
+    groups = "; ".join(f"group {b.group.name}: {b.sim.nworld} x {b.sim.spec.name}{served(b)}" for b in batches if b.group)
+    return f"{loop.nworld} worlds in {len(batches)} groups {where}; {groups}"
 
 
 #: the errors a command line, a file or the machine causes (each one line naming its cause)

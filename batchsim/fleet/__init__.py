@@ -7,6 +7,8 @@
                  the robot alone and named as the world names it; merged into RobotSpec.sensor_config
     reset.py     one robot of a world reset alone, the others left as they are
     view.py      the world's spec as one robot names it (its controllers see only their robot)
+    groups.py    a fleet of several groups of worlds (`groups:`), each its own fleet file's world,
+                 numbered as one fleet (batchsim.make_groups, `batchsim --fleet`)
 
 `load_fleet(source)` reads, composes and checks a fleet: what `batchsim.make` and the command
 line's `--fleet` take.

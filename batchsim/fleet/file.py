@@ -132,21 +132,25 @@ class FleetFile:
 
 
 def is_fleet_file(model: Any) -> bool:
-    """Whether `model` is a fleet: a mapping with `robots`, or a .yaml/.yml file."""
+    """Whether `model` is a fleet: a FleetFile, a mapping with `robots`, or a .yaml/.yml file."""
+    if isinstance(model, FleetFile):
+        return True
     if isinstance(model, Mapping):
         return "robots" in model
     return isinstance(model, str | Path) and Path(str(model)).suffix.lower() in (".yaml", ".yml")
 
 
-def read_fleet(source: str | Path | Mapping[str, Any]) -> FleetFile:
-    """A fleet file (YAML) or its mapping, checked: every key known, every robot placed.
+def read_fleet(source: str | Path | Mapping[str, Any], *, base: Path | None = None) -> FleetFile:
+    """A fleet file (YAML) or its mapping, checked: every key known, every robot placed. A
+    mapping's relative paths are taken from `base` (default: the working directory; a group
+    written inline in a file of groups: that file's folder, batchsim.fleet.groups).
 
     Raises:
       FleetError: a missing or malformed file, an unknown key, a robot without a name or model,
         a name that is no ROS name or is given twice, a bad pose or grid, a count of 0.
     """
     if isinstance(source, Mapping):
-        path, data, base = None, source, Path.cwd()
+        path, data, base = None, source, base if base is not None else Path.cwd()
     else:
         path = Path(source).expanduser()
         try:
@@ -155,6 +159,11 @@ def read_fleet(source: str | Path | Mapping[str, Any]) -> FleetFile:
             raise FleetError(str(e)) from None
         base = path.parent
     where = str(path) if path is not None else "<fleet>"
+    if isinstance(data, Mapping) and "groups" in data and "robots" not in data:
+        raise FleetError(
+            f"{where}: groups: a fleet of several groups of worlds is several systems: batchsim --fleet FILE, "
+            "or batchsim.make_groups(FILE) in Python"
+        )
     if not isinstance(data, Mapping):
         raise FleetError(f"{where}: a fleet file is a mapping with a `robots:` list, got {type(data).__name__}")
     _known(data, _TOP_KEYS, where, "")

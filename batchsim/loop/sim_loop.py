@@ -1,6 +1,10 @@
 """The simulation loop: read, update, write, step, once per control period, paced to a
 real-time factor. It is controller_manager's loop, batched over worlds.
 
+A fleet of several groups of worlds (batchsim.fleet.groups: each group its own model, one system
+each) is one loop per group, joined (`SimLoop.join`): the first runs every group's period in
+turn under one clock, and pause, steps and stop are the fleet's.
+
 Participants (controllers, the ROS bridge) plug in through `Participant.update`, called
 every control period between `read()` and `write()`, exactly where ros2_control calls
 controllers, and its other hooks (after write(), beside the steps, while paused, after a
@@ -139,6 +143,17 @@ class _Hooks:
         return participants == self.participants
 
 
+class _Control:
+    """What a loop and the loops joined to it share: stop, pause, and the physics steps asked for
+    while paused (from other threads: signal handlers, ROS services)."""
+
+    def __init__(self) -> None:
+        self.stop = threading.Event()
+        self.paused = threading.Event()
+        self.pending_steps = 0
+        self.lock = threading.Lock()
+
+
 @dataclasses.dataclass
 class LoopStats:
     """What the status line shows, over the last reporting window."""
@@ -221,29 +236,50 @@ class SimLoop:
         self.cpu_affinity = tuple(int(c) for c in cpu_affinity)
         self.sim_time = 0.0
         self.stats = LoopStats()
-        self._stop = threading.Event()
-        self._paused = threading.Event()
-        self._pending_steps = 0  # physics steps asked for while paused
-        self._lock = threading.Lock()
+        self._control = _Control()
         self.gate: Callable[[float], bool] | None = None  # lockstep: wait for commands
+        #: the loops this one runs, itself first (`join`); `leader` is the one that runs it
+        self.members: list[SimLoop] = [self]
+        self.leader: SimLoop = self
+
+    def join(self, other: SimLoop) -> None:
+        """Run `other` (a loop over another group's system, made alike: the same control rate) in
+        this loop's periods from now on: every period runs this loop's, then each joined one's, at
+        one sim time; pause, steps and stop are shared (any of them pausing pauses all), and a
+        `reset()` of every world here resets every joined loop's too. `other` then never runs on
+        its own (`run()` is this loop's)."""
+        if other is self or other.leader is not other or len(other.members) > 1 or self.leader is not self:
+            raise ValueError("join() takes a loop of its own into a loop that runs itself")
+        if abs(other.period - self.period) > 1e-12:
+            raise OptionError(
+                "control_rate",
+                f"the groups of one fleet run at one control rate: {self.control_rate:g} Hz and {other.control_rate:g} Hz",
+            )
+        other._control, other.leader, other.sim_time = self._control, self, self.sim_time
+        self.members.append(other)
+
+    @property
+    def nworld(self) -> int:
+        """The worlds every member's system holds."""
+        return sum(m.sim.nworld for m in self.members)
 
     # --- control from other threads (signal handlers, ROS services) ---
     def stop(self) -> None:
-        self._stop.set()
+        self._control.stop.set()
 
     @property
     def stopped(self) -> bool:
-        return self._stop.is_set()
+        return self._control.stop.is_set()
 
     def pause(self, paused: bool) -> None:
         if paused:
-            self._paused.set()
+            self._control.paused.set()
         else:
-            self._paused.clear()
+            self._control.paused.clear()
 
     @property
     def paused(self) -> bool:
-        return self._paused.is_set()
+        return self._control.paused.is_set()
 
     def single_step(self) -> None:
         """While paused, advance one control period."""
@@ -254,19 +290,21 @@ class SimLoop:
         periods, and a last, shorter one for a remainder (controllers then see its shorter period)."""
         if nstep < 1:
             raise ValueError(f"step count must be >= 1, got {nstep}")
-        with self._lock:
-            self._pending_steps += int(nstep)
+        control = self._control
+        with control.lock:
+            control.pending_steps += int(nstep)
 
     @property
     def pending_steps(self) -> int:
         """Physics steps asked for (step_physics, single_step) and not yet run."""
-        return self._pending_steps
+        return self._control.pending_steps
 
     def abort_steps(self) -> int:
         """Forget the pending physics steps (a resume interrupts them, as mujoco_ros2_control's
         does); how many there were."""
-        with self._lock:
-            pending, self._pending_steps = self._pending_steps, 0
+        control = self._control
+        with control.lock:
+            pending, control.pending_steps = control.pending_steps, 0
         return pending
 
     def reset(self, worlds: Sequence[int] | np.ndarray | None = None) -> None:
@@ -275,7 +313,11 @@ class SimLoop:
         Call it from the loop thread (a participant's update or idle), as the bridge does
         for its services; the system is never touched from another thread. `worlds` as
         `sim.reset` takes it (indices, or a (nworld,) bool mask); participants get (k,) int64 indices.
+        Every world (None) of the loop that runs the others is every world of every joined loop.
         """
+        if worlds is None and len(self.members) > 1:
+            for member in self.members[1:]:
+                member.reset(None)
         self.sim.reset(worlds)
         rows = worlds_index(worlds, self.sim.nworld)  # as reset read them: a mask's True worlds
         for p in self._hooks().on_reset:
@@ -291,9 +333,14 @@ class SimLoop:
     # --- the loop ---
     def run_period(self, nstep: int | None = None) -> None:
         """One control period: read, participants, write, step (`nstep` physics steps: a shorter
-        period; default a whole one)."""
-        sim = self.sim
+        period; default a whole one); then each joined loop's, at the same sim time."""
         nstep = self.substeps if nstep is None else nstep
+        for member in self.members:
+            member._period(nstep)
+
+    def _period(self, nstep: int) -> None:
+        """This loop's own system and participants, one period of `nstep` physics steps."""
+        sim = self.sim
         t, period = self.sim_time, self.period if nstep == self.substeps else nstep * sim.dt
         plan = self._hooks()
         if sim.read(t, period) is ReturnType.ERROR:
@@ -323,7 +370,10 @@ class SimLoop:
             raise errors[0]
 
     def run(self, report: Callable[[LoopStats], None] | None = None, report_every: float = 1.0) -> LoopStats:
-        """Run until stop() or `duration`; call `report` about every `report_every` wall seconds."""
+        """Run until stop() or `duration`; call `report` about every `report_every` wall seconds.
+        Every joined loop runs in it (`join`); a joined loop's own run() is refused."""
+        if self.leader is not self:
+            raise RuntimeError("this loop is joined to another: that one's run() runs it")
         # flat out (rtf 0) the thread keeps its cores but never asks for SCHED_FIFO (it would starve them)
         scheduling = _Scheduling(self) if self.cpu_affinity or (self.rtf > 0 and self.thread_priority) else None
         try:
@@ -336,29 +386,30 @@ class SimLoop:
         start = wallclock.perf_counter()
         anchor_wall, anchor_sim = start, self.sim_time
         window_wall, window_sim, window_steps = start, self.sim_time, 0
-        nworld = self.sim.nworld
-        while not self._stop.is_set():
+        nworld = self.nworld
+        control = self._control
+        while not control.stop.is_set():
             if self.duration is not None and self.sim_time >= self.duration - 1e-9:
                 break
             nstep = None
-            if self._paused.is_set():
-                with self._lock:
-                    if self._pending_steps > 0:
-                        nstep = min(self.substeps, self._pending_steps)
+            if control.paused.is_set():
+                with control.lock:
+                    if control.pending_steps > 0:
+                        nstep = min(self.substeps, control.pending_steps)
                 if nstep is None:
                     self._idle_participants()
                     wallclock.sleep(0.002)
                     anchor_wall, anchor_sim = wallclock.perf_counter(), self.sim_time
                     continue
-            if self.gate is not None and not self.gate(self.sim_time):
+            if not all(m.gate is None or m.gate(self.sim_time) for m in self.members):
                 continue
             self.run_period(nstep)
             if scheduling is not None and not scheduling.asked:  # after the first period, which may compile
                 scheduling.elevate()
                 anchor_wall, anchor_sim = wallclock.perf_counter(), self.sim_time
             if nstep is not None:  # counted down once they ran (a resume may have dropped them meanwhile)
-                with self._lock:
-                    self._pending_steps = max(0, self._pending_steps - nstep)
+                with control.lock:
+                    control.pending_steps = max(0, control.pending_steps - nstep)
             window_steps += (nstep or self.substeps) * nworld
             now = wallclock.perf_counter()
             if self.rtf > 0:
@@ -381,11 +432,12 @@ class SimLoop:
         return self.stats
 
     def _idle_participants(self) -> None:
-        for p in self._hooks().idle:
-            p.idle(self.sim, self.sim_time)
+        for member in self.members:
+            for p in member._hooks().idle:
+                p.idle(member.sim, member.sim_time)
 
     def _update_stats(self, wall: float, sim_elapsed: float, steps: int) -> None:
-        status = self.sim.status
+        status = np.concatenate([m.sim.status for m in self.members]) if len(self.members) > 1 else self.sim.status
         s = self.stats
         s.sim_time = self.sim_time
         s.rtf = sim_elapsed / wall if wall > 0 else 0.0

@@ -193,7 +193,7 @@ class Worker:
             self.sensors = SensorPublishers(
                 node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, plan.all_topics, self.diagnostics.missed
             )
-        create_loop_services(node, self.requests, self.namespaces, self.lo, fleet=self.index == 0)
+        create_loop_services(node, self.requests, self.namespaces, self.lo, fleet=self.index == 0 and plan.fleet_services)
         if plan.actions:  # the plan has them only where control_msgs is there
             from ros_bridge.worker.actions import ActionServers
 
