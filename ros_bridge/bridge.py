@@ -17,6 +17,9 @@ Per world, under its namespace `<ns>` (`world_3` from the template `world_{i}`):
     <ns>/commands                      std_msgs/Float64MultiArray (subscribed), one value per
                                        command interface in `batchsim info` order
     <ns>/reset                         std_srvs/Trigger: reset this world only
+    <ns>/<robot>/reset, <ns>/<robot>/commands
+                                       in a world of several robots: reset one robot alone; its own
+                                       command vector (batchsim.fleet)
     <ns>/odom                          nav_msgs/Odometry: a floating base
     the controllers' topics            (batchsim/controllers/topics.py)
   created when someone asks (a subscriber, or a publisher for a command topic, appears):

@@ -6,8 +6,7 @@ Per control period, in the loop thread:
     update      the workers' requests (resets, pause, step; trajectory batches), new commands from their
                 slots, command timeouts, BAD_COMMAND bookkeeping (then the controllers, write())
     after_write BAD_COMMAND re-marked; a snapshot (time, status, the channels a worker publishes) to shared memory,
-                workers woken: here if a channel due reads the engine (tf), else in
-    while_stepping, beside the device's steps (Contract.step's `meanwhile`)
+                workers woken: here if a channel due reads the engine (tf), else beside the device's steps
     gate        with lockstep: publish the state the period starts from, wait until every world's command arrived
     idle        while paused: requests, resets published at once, steps answered
 
@@ -350,6 +349,17 @@ class BridgeHost(Participant):
         self._force = True
         self.params.refresh(sim)  # worlds drawn anew (a variation that redraws): their /diagnostics lines
 
+    def _forget_robot(self, world: int, robot: Any) -> None:
+        """One robot of `world` was reset: its commands, its controllers' inputs and goals dropped."""
+        rows = np.array([world])
+        self.commands.drop(rows, np.asarray(robot.commands))
+        mine = {i for i, spec in enumerate(self.plan.inputs) if spec.controller.startswith(robot.prefix)}
+        for reader in (self._input_readers[i] for i in mine if self._input_readers[i] is not None):
+            reader.drop(rows)
+        self.trajectories.forget(rows, mine)
+        if self.manager_link is not None:
+            self.manager_link.manager.reset_robot(self.sim, robot.name, rows)
+
     # --- requests through the rings ---
     def _serve_requests(
         self, sim: Contract, good: np.ndarray | None, rejected: np.ndarray | None, later: bool = False
@@ -390,6 +400,9 @@ class BridgeHost(Participant):
                     self._force = True  # published at once, paused or not
                 elif kind == Kind.APPLY_WRENCH:
                     self.simulation.apply_wrench(j, *decode_document(payload))
+                elif kind == Kind.RESET_ROBOT:
+                    self.simulation.reset_robot(j, *decode_document(payload), forget=self._forget_robot)
+                    self._force = True  # published at once, paused or not
                 elif kind == Kind.CANCEL and self.manager_link is not None:
                     cancels.append(decode_cancel(payload))
                     later = False

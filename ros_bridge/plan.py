@@ -110,6 +110,7 @@ class FleetPlan:
       actuator_robots: per column, the robot's prefix the topic is under (`<robot>/actuators/...`),
         "" for a world of one robot (given empty: all "").
       robots: the robots every world holds (a fleet file's), named in /diagnostics; empty for one.
+      robot_commands: per robot, its command columns: its `<ns>/<robot>/commands` vector's order.
       owners: per column, the controller that claimed it, or "".
       channels, outputs, inputs: see above.
       lockstep: workers nudge the loop when a command arrives.
@@ -149,6 +150,7 @@ class FleetPlan:
     fleet_services: bool = True
     actuator_robots: list[str] = dataclasses.field(default_factory=list)
     robots: tuple[str, ...] = ()  # a fleet file's robots in every world (batchsim.fleet), for /diagnostics
+    robot_commands: tuple[tuple[int, ...], ...] = ()  # per robot, its command columns
     ros_args: tuple[str, ...] = ()  # after --ros-args, for every worker's rclpy.init
     sensors: SensorPlan | None = None
     tf: TfSpec | None = None
@@ -352,6 +354,7 @@ def build_plan(
         actuator_topics=_actuator_tokens(spec),
         actuator_robots=[_robot_prefix(spec, c.actuator) for c in spec.commands],
         robots=tuple(r.name for r in spec.robots),
+        robot_commands=tuple(tuple(int(c) for c in r.commands) for r in spec.robots),
         owners=owners,
         channels=channels,
         outputs=outputs,

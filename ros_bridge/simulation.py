@@ -18,9 +18,11 @@ import mujoco
 import numpy as np
 
 from batchsim.contract import Contract
+from batchsim.fleet.reset import reset_robot
 from batchsim.loop import SimLoop
 from batchsim.memory import Memory
 from batchsim.model import InitialState, initial_command
+from batchsim.model.spec import RobotPart
 from batchsim.plugins.external_wrench import ExternalWrench
 from ros_bridge.protocol.requests import mark_wrench_done
 
@@ -138,6 +140,21 @@ class SimulationRequests:
         if joints or free:
             message += f" Applied {len(joints)} joint and {len(free)} free-joint override(s)."
         self.answer(worker, ticket, loop.sim_time, True, message)
+
+    def reset_robot(self, worker: int, ticket: int, world: int, request: dict, forget: Callable[[int, RobotPart], None]) -> None:
+        """`<ns>/<robot>/reset`: robot `request["robot"]` (its index among the world's robots) back
+        where it starts in `world`, every other robot and world as they are
+        (batchsim.fleet.reset); `forget(world, robot)` drops what the bridge and the robot's
+        controllers hold for it."""
+        sim = self.sim
+        robot = sim.spec.robots[int(request["robot"])]
+        try:
+            reset_robot(sim, robot, [world])
+        except ValueError as e:
+            self.answer(worker, ticket, self.loop.sim_time, False, str(e))
+            return
+        forget(world, robot)
+        self.answer(worker, ticket, self.loop.sim_time, True, f"reset robot {robot.name}")
 
     def set_free_joints(self, worker: int, ticket: int, world: int, request: dict) -> None:
         sim = self.sim

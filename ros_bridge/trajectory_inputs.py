@@ -149,13 +149,16 @@ class TrajectoryInputs:
         for i, taken in self.taken.items():
             self.seen[i] = taken.copy()
 
-    def forget(self, rows: slice | np.ndarray) -> None:
+    def forget(self, rows: slice | np.ndarray, inputs: set[int] | None = None) -> None:
         """Worlds were reset (`rows`: their indices, or slice(None): every world): their arrivals
-        are seen, their waiting trajectories and verdicts dropped."""
+        are seen, their waiting trajectories and verdicts dropped; with `inputs`, those of these
+        inputs only (one robot of the worlds was reset: its controllers' inputs)."""
         every = isinstance(rows, slice)
         kept = []
         for index, batch in self._waiting:
-            keep = np.zeros(len(batch), bool) if every else ~np.isin(batch.worlds, rows)
+            keep = np.ones(len(batch), bool) if inputs is not None and index not in inputs else (
+                np.zeros(len(batch), bool) if every else ~np.isin(batch.worlds, rows)
+            )
             if not keep.all():
                 self._dropped(batch, keep)
                 batch = batch.select(keep)
@@ -163,10 +166,12 @@ class TrajectoryInputs:
                 kept.append((index, batch))
         self._waiting = kept
         for i, counter in self.counters.items():
-            self.seen[i][rows] = counter[rows]
-            self.taken[i][rows] = counter[rows]
-        self._good[rows] = False
-        self._rejected[rows] = False
+            if inputs is None or i in inputs:
+                self.seen[i][rows] = counter[rows]
+                self.taken[i][rows] = counter[rows]
+        if inputs is None:
+            self._good[rows] = False
+            self._rejected[rows] = False
 
     def _dropped(self, batch: TrajectoryBatch, keep: np.ndarray) -> None:
         """The goals among the trajectories a reset drops (not `keep`) are refused: their workers

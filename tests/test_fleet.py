@@ -579,3 +579,29 @@ def test_a_robots_controllers_cannot_name_another_robots_joint(tmp_path):
     fleet = {"robots": [{"name": "a", "model": "arm", "controllers": str(path)}, {"name": "b", "model": "arm", "pose": [2, 0, 0]}]}
     with pytest.raises(batchsim.ConfigurationError, match=r"b/joint1"):
         load_fleet_controllers(batchsim.make(fleet, 1, "cpu").spec, 1)
+
+
+def test_a_robots_reset_drops_its_controllers_goals_only():
+    """ControllerManager.reset_robot (what `<ns>/<robot>/reset` runs beside reset_robot): robot a's
+    trajectory in world 0 is dropped, robot b's in world 0 and robot a's in world 1 run on."""
+    from batchsim.fleet.reset import reset_robot
+
+    sim = active(TWO_ARMS, "cpu", 2)
+    manager = load_fleet_controllers(sim.spec, 2)
+    loop = SimLoop(sim, control_rate=100, rtf=0, participants=[manager])
+    joints = [f"joint{k}" for k in range(1, 7)]
+    for robot in ("arm_a", "arm_b"):
+        for w in (0, 1):
+            manager[f"{robot}/joint_trajectory_controller"].set_trajectory(w, joints, [2.0], [[0.6, 0, 0, 0, 0, 0]])
+    for _ in range(20):
+        loop.run_period()
+    a = sim.spec.robots[0]
+    reset_robot(sim, a, [0])
+    manager.reset_robot(sim, "arm_a", [0])
+    for _ in range(200):
+        loop.run_period()
+    names = sim.export_state_interfaces()
+    j1 = {r: names.index(f"{r}/joint1/position") for r in ("arm_a", "arm_b")}
+    assert abs(sim.state[0, j1["arm_a"]]) < 0.02  # its goal dropped: held where the reset put it
+    assert abs(sim.state[0, j1["arm_b"]] - 0.6) < 0.03 and abs(sim.state[1, j1["arm_a"]] - 0.6) < 0.03
+    sim.shutdown()

@@ -161,3 +161,89 @@ def test_every_robot_of_a_world_is_in_its_one_tf_tree_and_odom_names_frames_in_i
     assert (wheel.msg.header.frame_id, wheel.msg.child_frame_id) == ("world_2/rover/odom", "world_2/rover/base_link")
     assert ancestors("world_2/rover/base_link")[-3:] == ["world_2/rover/odom", "world_2/world", "world"]
     assert abs(odom.msg.pose.pose.position.y - 2.0) < 0.05  # the rover stands where the fleet file put it
+
+
+# ---------------------------------------------------------------- each robot commanded and reset alone
+
+WHEELS = 2  # a rover's command interfaces: its two wheels' efforts
+
+
+@pytest.fixture(scope="module")
+def duel(tmp_path_factory, ros):
+    """2 worlds, no controllers: two rovers facing each other 1.2 m apart, and an arm to the side."""
+    import math
+
+    root = tmp_path_factory.mktemp("duel")
+    path = root / "duel.yaml"
+    path.write_text(
+        yaml.safe_dump(
+            {
+                "robots": [
+                    {"name": "left", "model": "rover", "pose": [0.0, 0.0, 0.0, 0.0]},
+                    {"name": "right", "model": "rover", "pose": [1.2, 0.0, 0.0, math.pi]},
+                    {"name": "arm", "model": "arm", "pose": [0.0, 3.0, 0.0, 0.0]},
+                ]
+            }
+        )
+    )
+    with Fleet(domain_id(101), ["--fleet", str(path), "--worlds", "2", "--backend", "cpu"], root / "batchsim.log") as f:
+        f.js = {(w, r): f.latest(ros["JointState"], f"/world_{w}/{r}/joint_states") for w in range(2) for r in ("arm", "left")}
+        f.odom = {(w, r): f.latest(ros["Odometry"], f"/world_{w}/{r}/odom") for w in range(2) for r in ("left", "right")}
+        f.wait(lambda: all(s.count > 0 for s in [*f.js.values(), *f.odom.values()]), 40, "joint_states and odom")
+        yield f
+
+
+def _x(duel, world: int, robot: str) -> float:
+    return duel.odom[(world, robot)].msg.pose.pose.position.x
+
+
+def test_two_robots_driven_into_each_other_over_ros_stop_pressed_together(duel):
+    """World 0's rovers driven at each other through their own command vectors
+    (`<ns>/<robot>/commands`): they meet and stop 0.3-0.6 m apart (2 m of driving would cross
+    them), pushing with their wheels' effort: the contact between two robots holds them."""
+    from std_msgs.msg import Float64MultiArray
+
+    push = Float64MultiArray(data=[0.5] * WHEELS)
+
+    def stopped() -> bool:
+        gap = _x(duel, 0, "right") - _x(duel, 0, "left")
+        speed = abs(duel.odom[(0, "left")].msg.twist.twist.linear.x)
+        return 0.3 < gap < 0.6 and speed < 0.01
+
+    deadline = time.monotonic() + 30
+    while not stopped():
+        for robot in ("left", "right"):
+            duel.publish(Float64MultiArray, f"/world_0/{robot}/commands", push)
+        assert time.monotonic() < deadline, (_x(duel, 0, "left"), _x(duel, 0, "right"))
+        time.sleep(0.05)
+    for _ in range(20):  # still pushing, still stopped, still apart
+        for robot in ("left", "right"):
+            duel.publish(Float64MultiArray, f"/world_0/{robot}/commands", push)
+        time.sleep(0.05)
+    assert stopped()
+    efforts = duel.js[(0, "left")].msg.effort
+    assert min(efforts) > 0.1, efforts  # the wheels push; the other robot holds them
+    assert abs(_x(duel, 1, "left")) < 0.05  # world 1's rovers never moved
+
+
+def test_a_robots_own_command_vector_and_reset_touch_only_it(duel):
+    """/world_1/arm/commands moves world 1's arm only; /world_1/arm/reset puts it back home while
+    world 1's rover, driven meanwhile, stays where it went, and world 0's arm never moved."""
+    from std_msgs.msg import Float64MultiArray
+    from std_srvs.srv import Trigger
+
+    def joint1(w: int) -> float:
+        return duel.js[(w, "arm")].msg.position[0]
+
+    away = Float64MultiArray(data=[0.8, 0.0, 0.0, 0.0, 0.0, 0.0])  # the arm's six positions, in its own order
+    duel.publish_until(Float64MultiArray, "/world_1/arm/commands", away, lambda: joint1(1) > 0.6, 30, "world 1's arm away")
+    start = _x(duel, 1, "left")
+    drive = Float64MultiArray(data=[0.3] * WHEELS)
+    duel.publish_until(Float64MultiArray, "/world_1/left/commands", drive, lambda: _x(duel, 1, "left") > start + 0.05, 30)
+    duel.publish(Float64MultiArray, "/world_1/left/commands", Float64MultiArray(data=[0.0] * WHEELS))
+    assert abs(joint1(0)) < 0.05  # world 0's arm: not commanded
+    answer = duel.call(Trigger, "/world_1/arm/reset", Trigger.Request())
+    assert answer.success and answer.message == "reset robot arm", answer.message
+    duel.wait(lambda: abs(joint1(1)) < 0.05, 20, "world 1's arm back home")
+    assert _x(duel, 1, "left") > start + 0.04  # the rover beside it was not reset
+    assert "batchsim: error" not in duel.log()

@@ -258,6 +258,15 @@ class ControllerManager(Participant):
         for c in self.controllers.values():
             c.reset(sim, rows)
 
+    def reset_robot(self, sim: Any, robot: str, worlds: Sequence[int] | np.ndarray) -> None:
+        """One robot of a world of several was reset alone in the listed worlds
+        (batchsim.fleet.reset): its controllers (`<robot>/...`) drop their goals there; the other
+        robots' run on."""
+        rows = _ascending(worlds, sim.nworld)
+        for name, c in self.controllers.items():
+            if name.startswith(f"{robot}/"):
+                c.reset(sim, rows)
+
     def _replan(self) -> None:
         """What update runs: (controller, its inactive worlds or None, its claimed columns)."""
         plan = []

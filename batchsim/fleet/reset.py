@@ -15,7 +15,8 @@ def reset_robot(sim: Any, robot: RobotPart, worlds: Sequence[int] | np.ndarray) 
     """Put `robot` back where it starts in the listed worlds: its block of qpos (its keyframe at
     its pose, or its random placement's draw) and of qvel, and its command columns holding that
     pose; every other robot, and every other world, is left as it is. The robot's controllers
-    are the manager's to reset (ControllerManager.reset_robot).
+    are the manager's to reset (ControllerManager.reset_robot); over ROS, `<ns>/<robot>/reset`
+    does both (ros_bridge/simulation.py).
 
     Raises:
       ValueError: a frozen world (it diverged: reset the whole world), a world out of range.

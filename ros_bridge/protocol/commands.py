@@ -99,6 +99,11 @@ class SlotWriter:
         self.value[world, column] = value
         self.seq[world, column] += 1
 
+    def put_columns(self, world: int, columns: np.ndarray, values: np.ndarray) -> None:
+        """Some columns of a world's row (one robot's of a world of several, `<ns>/<robot>/commands`)."""
+        self.value[world, columns] = values
+        self.seq[world, columns] += 1
+
 
 class SlotReader:
     """The loop's side: what arrived since the last `take`.
@@ -126,12 +131,16 @@ class SlotReader:
         self.seen = now
         return new, self.value
 
-    def drop(self, worlds: np.ndarray | None) -> None:
-        """Forget what arrived for all or the listed worlds (they were reset)."""
+    def drop(self, worlds: np.ndarray | None, columns: np.ndarray | None = None) -> None:
+        """Forget what arrived for all or the listed worlds (they were reset); with `columns`,
+        in those columns only (one robot of the worlds was reset)."""
         if worlds is None:
             self.seen = self.seq.copy()
-        else:
+        elif columns is None:
             self.seen[worlds] = self.seq[worlds]
+        else:
+            at = np.ix_(np.asarray(worlds), np.asarray(columns))
+            self.seen[at] = self.seq[at]
 
 
 def rejection_arrays(name: str, nworld: int) -> list[tuple[str, tuple[int, ...], str]]:

@@ -33,6 +33,7 @@ class Kind(enum.IntEnum):
     RESET_WORLD = 9  # mujoco_ros2_control's reset_world: a keyframe, joint and free-joint overrides
     SET_FREE_JOINTS = 10  # mujoco_ros2_control's set_free_joint_state
     APPLY_WRENCH = 11  # the ExternalWrenchPlugin's apply_wrench: answered at once, marked done when run
+    RESET_ROBOT = 12  # `<ns>/<robot>/reset`: one robot of a world of several back at its start
 
 
 _TRAJ = struct.Struct("<iiiiiiii")  # input, trajectories, points, joints, has velocities, accelerations, goals, 0
@@ -227,7 +228,8 @@ _DOC = struct.Struct("<qq")  # ticket, world (-1: every world)
 
 
 def encode_document(ticket: int, world: int, document: dict) -> bytes:
-    """A request whose arguments are a small JSON document (RESET_WORLD, SET_FREE_JOINTS, APPLY_WRENCH)."""
+    """A request whose arguments are a small JSON document (RESET_WORLD, SET_FREE_JOINTS, APPLY_WRENCH,
+    RESET_ROBOT: {"robot": its index among the world's robots})."""
     return _DOC.pack(ticket, world) + json.dumps(document).encode()
 
 

@@ -30,10 +30,8 @@ import select
 import sys
 import threading
 import time as wallclock
-from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, ShutdownException
@@ -50,16 +48,17 @@ from ros_bridge.interfaces import available
 from ros_bridge.naming import topic_name, worlds_label
 from ros_bridge.options import Reliability
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
-from ros_bridge.protocol.commands import Problem, SlotWriter, check_single, check_vector
+from ros_bridge.protocol.commands import Problem, SlotWriter
 from ros_bridge.protocol.demand import ChannelDemand
 from ros_bridge.protocol.liveness import Beat
 from ros_bridge.protocol.snapshot import HEADERS, Snapshot, read_snapshot
 from ros_bridge.throttle import LogThrottle
+from ros_bridge.worker.command_callbacks import CommandCallbacks
 from ros_bridge.worker.conflicts import check_conflicts
 from ros_bridge.worker.diagnostics import Diagnostics
 from ros_bridge.worker.graph_scan import GraphScan
 from ros_bridge.worker.intake import Intake
-from ros_bridge.worker.messages import MESSAGE_TYPES, clock_payload, parse_row, parse_trajectory, stamp_of
+from ros_bridge.worker.messages import MESSAGE_TYPES, clock_payload, stamp_of
 from ros_bridge.worker.sensors import SensorPublishers
 from ros_bridge.worker.services import LoopRequests, create_loop_services
 from ros_bridge.worker.snapshot import Output
@@ -113,6 +112,7 @@ class Worker:
         self._ring_lock = threading.Lock()
         self.requests = LoopRequests(memory, index, self.ring, self._ring_lock, self._nudge)
         self.trajectories = TrajectoryIntake(plan, memory, self.ring, self._ring_lock, self._reject, self._nudge)
+        self.callbacks = CommandCallbacks(plan, self.commands, self.trajectories, self._reject, self._nudge)
         self._outputs: list[Output] = []
         self._active: list[Output] = []  # outputs with a subscriber on some world
         self._beat = Beat(memory, index)
@@ -164,11 +164,14 @@ class Worker:
         for row, ns in enumerate(self.namespaces):
             w = self.lo + row
             topic = topic_name(ns, "commands")
-            self.intake.subscribe(w, Float64MultiArray, topic, self._vector_callback(w, topic, interfaces, owners))
+            self.intake.subscribe(w, Float64MultiArray, topic, self.callbacks.vector(w, topic, interfaces, owners))
+            for robot, columns in zip(plan.robots, plan.robot_commands, strict=True):  # each robot's own vector
+                topic = topic_name(ns, f"{robot}/commands")
+                self.intake.subscribe(w, Float64MultiArray, topic, self.callbacks.vector(w, topic, interfaces, owners, columns))
             for c, (token, robot) in enumerate(zip(plan.actuator_topics, plan.actuator_robots, strict=True)):
                 topic = topic_name(ns, f"{robot}actuators/{token}/command")
                 if plan.all_topics:
-                    self.intake.subscribe(w, Float64, topic, self._single_callback(w, c, topic, interfaces, owners))
+                    self.intake.subscribe(w, Float64, topic, self.callbacks.single(w, c, topic, interfaces, owners))
                 self._actuators[topic] = (w, -1 if plan.all_topics else c)
         self._actuator_list = ", ".join(plan.actuator_topics) or "none"
 
@@ -180,9 +183,9 @@ class Worker:
                 w = self.lo + row
                 topic = topic_name(ns, spec.topic)
                 if slots is None:
-                    callback = self._trajectory_callback(i, w, topic)
+                    callback = self.callbacks.trajectory(i, w, topic)
                 else:
-                    callback = self._input_callback(spec, slots, counter, w, topic)
+                    callback = self.callbacks.row(spec, slots, counter, w, topic)
                 self.intake.subscribe(w, msg_type, topic, callback)
 
         if plan.tf is not None:  # the plan has one only where tf2_msgs is there
@@ -193,7 +196,9 @@ class Worker:
             self.sensors = SensorPublishers(
                 node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, plan.all_topics, self.diagnostics.missed
             )
-        create_loop_services(node, self.requests, self.namespaces, self.lo, fleet=self.index == 0 and plan.fleet_services)
+        create_loop_services(
+            node, self.requests, self.namespaces, self.lo, fleet=self.index == 0 and plan.fleet_services, robots=plan.robots
+        )
         if plan.actions:  # the plan has them only where control_msgs is there
             from ros_bridge.worker.actions import ActionServers
 
@@ -374,7 +379,7 @@ class Worker:
         if act is not None:
             w, c = act
             if c >= 0 and node.count_publishers(name) > 0:
-                callback = self._single_callback(w, c, name, self.plan.interfaces, self.plan.owners)
+                callback = self.callbacks.single(w, c, name, self.plan.interfaces, self.plan.owners)
                 self.intake.subscribe(w, Float64, name, callback)
                 self._actuators[name] = (w, -1)  # subscribed
             return
@@ -433,57 +438,6 @@ class Worker:
     def _reject(self, world: int, topic: str, problem: Problem, reason: str) -> None:
         self.diagnostics.reject(world, self.snapshot.period, topic, problem, reason)
         self.throttle.warn((topic, problem), f"rejected command on {topic}: {reason}")
-
-    def _vector_callback(self, w: int, topic: str, interfaces: list[str], owners: list[str]) -> Callable[[Any], None]:
-        def callback(msg: Float64MultiArray) -> None:
-            row = np.frombuffer(msg.data, dtype=np.float64) if len(msg.data) else np.zeros(0)
-            problem = check_vector(row, interfaces, owners)
-            if problem is not None:
-                self._reject(w, topic, *problem)
-                return
-            self.commands.put_row(w, row)
-            self._nudge()
-
-        return callback
-
-    def _single_callback(self, w: int, c: int, topic: str, interfaces: list[str], owners: list[str]) -> Callable[[Any], None]:
-        def callback(msg: Float64) -> None:
-            problem = check_single(msg.data, c, interfaces, owners)
-            if problem is not None:
-                self._reject(w, topic, *problem)
-                return
-            self.commands.put(w, c, msg.data)
-            self._nudge()
-
-        return callback
-
-    def _input_callback(self, spec: Any, slots: SlotWriter, counter: np.ndarray, w: int, topic: str) -> Callable[[Any], None]:
-        def callback(msg: Any) -> None:
-            try:
-                row = parse_row(spec, msg)
-            except (ValueError, TypeError) as e:
-                self._reject(w, topic, Problem.MALFORMED, str(e))
-                return
-            slots.put_row(w, row)
-            self._nudge()
-
-        return callback
-
-    def _trajectory_callback(self, i: int, w: int, topic: str) -> Callable[[Any], None]:
-        spec = self.plan.inputs[i]
-
-        def callback(msg: Any) -> None:
-            try:
-                parsed = parse_trajectory(msg)
-            except (ValueError, TypeError) as e:
-                self._reject(w, topic, Problem.MALFORMED, str(e))
-                return
-            if spec.max_points and len(parsed[1]) > spec.max_points:
-                self._reject(w, topic, Problem.MALFORMED, f"{len(parsed[1])} points, more than {spec.max_points}")
-                return
-            self.trajectories.submit(i, w, parsed)
-
-        return callback
 
 
 @contextlib.contextmanager

@@ -3,7 +3,8 @@
 A request carries a ticket; the loop carries it out between two periods and writes its
 answer (whether it succeeded, a message, the sim time) into shared memory
 (ros_bridge/protocol/services.py); the service answers then, or says the loop did not answer
-within its wait. Services: per world `<ns>/reset`; on worker 0 `/batchsim/{reset,pause,step,record}`
+within its wait. Services: per world `<ns>/reset` (and `<ns>/<robot>/reset` per robot of a world of
+several); on worker 0 `/batchsim/{reset,pause,step,record}`
 (record through its own mailbox, ros_bridge/protocol/recording.py).
 """
 
@@ -21,7 +22,7 @@ from batchsim.memory import Memory, Ring
 from ros_bridge.naming import topic_name
 from ros_bridge.protocol.recording import answer as recorded
 from ros_bridge.protocol.recording import next_ticket, put_request
-from ros_bridge.protocol.requests import Kind, encode_reset, encode_ticket
+from ros_bridge.protocol.requests import Kind, encode_document, encode_reset, encode_ticket
 from ros_bridge.protocol.services import Answer, Tickets
 
 SERVICE_WAIT = 2.0  # s a service waits for the loop to carry out its request
@@ -71,10 +72,15 @@ class LoopRequests:
             self._cond.notify_all()
 
 
-def create_loop_services(node: Node, requests: LoopRequests, namespaces: list[str], lo: int, fleet: bool) -> None:
-    """`<ns>/reset` for each world; with `fleet`, `/batchsim/{reset,pause,step}` too."""
+def create_loop_services(
+    node: Node, requests: LoopRequests, namespaces: list[str], lo: int, fleet: bool, robots: tuple[str, ...] = ()
+) -> None:
+    """`<ns>/reset` for each world, and `<ns>/<robot>/reset` for each robot of a world of several;
+    with `fleet`, `/batchsim/{reset,pause,step}` too."""
     for row, ns in enumerate(namespaces):
         node.create_service(Trigger, topic_name(ns, "reset"), _reset_service(requests, [lo + row], topic_name(ns, "")))
+        for k, robot in enumerate(robots):
+            node.create_service(Trigger, topic_name(ns, f"{robot}/reset"), _robot_reset_service(requests, lo + row, k))
     if not fleet:
         return
     node.create_service(Trigger, "/batchsim/reset", _reset_service(requests, None, "all worlds"))
@@ -100,6 +106,18 @@ def create_loop_services(node: Node, requests: LoopRequests, namespaces: list[st
     node.create_service(Trigger, "/batchsim/step", step)
     if "rec.req" in requests.memory:
         node.create_service(SetBool, "/batchsim/record", _record_service(requests))
+
+
+def _robot_reset_service(requests: LoopRequests, world: int, robot: int) -> Callable[..., Any]:
+    """`<ns>/<robot>/reset`: that robot of that world back where it starts, the others as they are."""
+
+    def reset(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        answer = requests.wait(requests.put(Kind.RESET_ROBOT, lambda t: encode_document(t, world, {"robot": robot})))
+        response.success = answer is not None and answer.ok
+        response.message = "the loop did not answer in time" if answer is None else answer.message
+        return response
+
+    return reset
 
 
 def _record_service(requests: LoopRequests) -> Callable[[Any, Any], Any]:
