@@ -65,6 +65,8 @@ class EngineBuffers:
     ctrl_index: np.ndarray
 
     def __post_init__(self) -> None:
+        self._none_frozen = np.zeros(len(self.status), bool)
+        self._none_frozen.setflags(write=False)
         # readings columns gathered per source field: (field, readings columns, field indices)
         self._gather: list[tuple[str, Any, Any]] = []
         for source in StateSource:
@@ -79,6 +81,8 @@ class EngineBuffers:
     @property
     def frozen(self) -> np.ndarray:
         """(nworld,) bool: the worlds the contract holds frozen (diverged, overflowed) until reset."""
+        if not self.status.any():  # the usual case, every step: no allocation
+            return self._none_frozen
         return (self.status & _FROZEN_BITS) != 0
 
     def gather(

@@ -227,9 +227,11 @@ class BatchedSystem(SystemFace):
             self.status[rejected] |= np.uint8(Status.BAD_COMMAND)
         elif self.status.any():
             self.status &= ~np.uint8(Status.BAD_COMMAND)
-        frozen = self.frozen
-        self.parts.base_drive.drive(self.time, frozen)  # the BaseVelocityPlugin's target, if any
-        self.parts.wrenches.stage(self.time, frozen)  # the ExternalWrenchPlugin's xfrc_applied, if any runs
+        drive, wrenches = self.parts.base_drive, self.parts.wrenches
+        if drive.velocity is not None or wrenches.store is not None:  # the plugins' staging, where one runs
+            frozen = self.frozen
+            drive.drive(self.time, frozen)  # the BaseVelocityPlugin's target
+            wrenches.stage(self.time, frozen)  # the ExternalWrenchPlugin's xfrc_applied
         return ReturnType.OK
 
     def perform_command_mode_switch(self, start: Sequence[str], stop: Sequence[str] = ()) -> None:
