@@ -40,7 +40,8 @@ from typing import Any
 from batchsim.model.params import ParamsError, read_yaml
 from batchsim.model.spec import ModelError
 
-_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+#: a ROS name token: what a robot's (and a group's) name must be
+ROS_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _VARIABLE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}|\$([A-Za-z_][A-Za-z0-9_]*)")
 _ROBOT_KEYS = ("name", "model", "pose", "controllers", "sensors", "ros2_control", "keyframe", "count", "grid", "random")
 _GRID_KEYS = ("origin", "spacing", "columns", "yaw")
@@ -149,15 +150,7 @@ def read_fleet(source: str | Path | Mapping[str, Any], *, base: Path | None = No
       FleetError: a missing or malformed file, an unknown key, a robot without a name or model,
         a name that is no ROS name or is given twice, a bad pose or grid, a count of 0.
     """
-    if isinstance(source, Mapping):
-        path, data, base = None, source, base if base is not None else Path.cwd()
-    else:
-        path = Path(source).expanduser()
-        try:
-            data = read_yaml(path)  # the project's one YAML loader: a missing file, a malformed one, named
-        except ParamsError as e:
-            raise FleetError(str(e)) from None
-        base = path.parent
+    path, data, base = read_source(source, base)
     where = str(path) if path is not None else "<fleet>"
     if isinstance(data, Mapping) and "groups" in data and "robots" not in data:
         raise FleetError(
@@ -166,7 +159,7 @@ def read_fleet(source: str | Path | Mapping[str, Any], *, base: Path | None = No
         )
     if not isinstance(data, Mapping):
         raise FleetError(f"{where}: a fleet file is a mapping with a `robots:` list, got {type(data).__name__}")
-    _known(data, _TOP_KEYS, where, "")
+    check_keys(data, _TOP_KEYS, where, "")
     robots = data.get("robots")
     if not isinstance(robots, list) or not robots:
         raise FleetError(f"{where}: robots: a list of at least one robot (name, model, pose)")
@@ -192,11 +185,25 @@ def read_fleet(source: str | Path | Mapping[str, Any], *, base: Path | None = No
     return FleetFile(name=name, path=path, environment=env_path, robots=tuple(entries))
 
 
+def read_source(source: str | Path | Mapping[str, Any], base: Path | None = None) -> tuple[Path | None, Any, Path]:
+    """(the file or None, its contents, the folder its relative paths start from) of a fleet file
+    or mapping (a mapping's from `base`, else the working directory); FleetError for a file
+    missing or malformed, named."""
+    if isinstance(source, Mapping):
+        return None, source, base if base is not None else Path.cwd()
+    path = Path(source).expanduser()
+    try:
+        data = read_yaml(path)  # the project's one YAML loader: a missing file, a malformed one, named
+    except ParamsError as e:
+        raise FleetError(str(e)) from None
+    return path, data, path.parent
+
+
 def _robots(item: Any, key: str, where: str, base: Path) -> list[RobotEntry]:
     """The robots one `robots:` item declares: one, or `count` placed on a grid."""
     if not isinstance(item, Mapping):
         raise FleetError(f"{where}: {key}: a mapping with name and model, got {item!r}")
-    _known(item, _ROBOT_KEYS, where, key)
+    check_keys(item, _ROBOT_KEYS, where, key)
     for needed in ("name", "model"):
         if needed not in item or item[needed] in (None, ""):
             raise FleetError(f"{where}: {key}: {needed} is missing")
@@ -242,7 +249,7 @@ def _robots(item: Any, key: str, where: str, base: Path) -> list[RobotEntry]:
     out = []
     for k, pose in enumerate(poses, start=1):
         robot_name = name.replace("{k}", str(k))
-        if not _NAME.match(robot_name):
+        if not ROS_NAME.match(robot_name):
             raise FleetError(
                 f"{where}: {key}.name: {robot_name!r} is not a valid ROS name: use letters, digits and '_', "
                 "not starting with a digit"
@@ -264,7 +271,8 @@ def _robots(item: Any, key: str, where: str, base: Path) -> list[RobotEntry]:
     return out
 
 
-def _known(item: Mapping[str, Any], keys: Sequence[str], where: str, key: str) -> None:
+def check_keys(item: Mapping[str, Any], keys: Sequence[str], where: str, key: str) -> None:
+    """FleetError naming `where`, `key` and the first key of `item` not among `keys`."""
     unknown = sorted(str(k) for k in item if k not in keys)
     if unknown:
         at = f"{key}." if key else ""
@@ -292,7 +300,7 @@ def _grid(value: Any, count: int, where: str, key: str) -> list[tuple[float, flo
     """`count` poses, row by row: origin + (column * spacing_x, row * spacing_y)."""
     if not isinstance(value, Mapping):
         raise FleetError(f"{where}: {key}: a mapping with origin, spacing and columns")
-    _known(value, _GRID_KEYS, where, key)
+    check_keys(value, _GRID_KEYS, where, key)
     origin = (_numbers(value.get("origin", [0.0, 0.0, 0.0]), (2, 3), where, f"{key}.origin", "[x, y] or [x, y, z]")
               + [0.0])[:3]  # fmt: skip
     if "spacing" not in value:
@@ -315,7 +323,7 @@ def _grid(value: Any, count: int, where: str, key: str) -> list[tuple[float, flo
 def _random(value: Any, count: int, where: str, key: str) -> RandomPlacement:
     if not isinstance(value, Mapping):
         raise FleetError(f"{where}: {key}: a mapping with area and min_distance")
-    _known(value, _RANDOM_KEYS, where, key)
+    check_keys(value, _RANDOM_KEYS, where, key)
     if "area" not in value:
         raise FleetError(f"{where}: {key}.area is missing: [xmin, ymin, xmax, ymax] in metres")
     x0, y0, x1, y1 = _numbers(value["area"], (4,), where, f"{key}.area", "[xmin, ymin, xmax, ymax] in metres")

@@ -26,15 +26,13 @@ loop steps them all under one `/clock` (batchsim.loop.SimLoop.join). Every fault
 from __future__ import annotations
 
 import dataclasses
-import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from batchsim.fleet.file import FleetError, FleetFile, read_fleet
+from batchsim.fleet.file import ROS_NAME, FleetError, FleetFile, check_keys, read_fleet, read_source
 from batchsim.model.params import ParamsError, read_yaml
 
-_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _TOP_KEYS = ("name", "groups")
 _GROUP_KEYS = ("name", "worlds", "fleet", "environment", "robots")
 
@@ -112,21 +110,11 @@ def read_groups(source: str | Path | Mapping[str, Any]) -> FleetGroups:
         that is no ROS name or is given twice, a count of worlds below 1, a group with both or
         neither of `fleet` and `robots`, or anything its fleet file gets wrong (batchsim.fleet).
     """
-    if isinstance(source, Mapping):
-        path, data, base = None, source, Path.cwd()
-    else:
-        path = Path(source).expanduser()
-        try:
-            data = read_yaml(path)
-        except ParamsError as e:
-            raise FleetError(str(e)) from None
-        base = path.parent
+    path, data, base = read_source(source)
     where = str(path) if path is not None else "<fleet>"
     if not isinstance(data, Mapping):
         raise FleetError(f"{where}: a fleet file is a mapping, got {type(data).__name__}")
-    unknown = sorted(str(k) for k in data if k not in _TOP_KEYS)
-    if unknown:
-        raise FleetError(f"{where}: {unknown[0]}: unknown key beside groups (known: {', '.join(_TOP_KEYS)})")
+    check_keys(data, _TOP_KEYS, where, "")
     items = data.get("groups")
     if not isinstance(items, list) or not items:
         raise FleetError(f"{where}: groups: a list of at least one group (name, worlds, and fleet or robots)")
@@ -150,11 +138,9 @@ def read_groups(source: str | Path | Mapping[str, Any]) -> FleetGroups:
 def _group(item: Any, key: str, where: str, base: Path, first: int) -> Group:
     if not isinstance(item, Mapping):
         raise FleetError(f"{where}: {key}: a mapping with name, worlds, and fleet or robots, got {item!r}")
-    unknown = sorted(str(k) for k in item if k not in _GROUP_KEYS)
-    if unknown:
-        raise FleetError(f"{where}: {key}.{unknown[0]}: unknown key (known: {', '.join(_GROUP_KEYS)})")
+    check_keys(item, _GROUP_KEYS, where, key)
     name = item.get("name")
-    if not isinstance(name, str) or not _NAME.match(name):
+    if not isinstance(name, str) or not ROS_NAME.match(name):
         raise FleetError(
             f"{where}: {key}.name: {name!r} is not a valid ROS name: use letters, digits and '_', not starting with a digit"
         )
