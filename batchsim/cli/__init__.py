@@ -1,6 +1,6 @@
 """The `batchsim` command: args.py (flags and their checks; bridge_flags.py, the bridge's, from
 ros_bridge/options.py), runner.py (the run), info.py (`batchsim info`), replay.py and view.py
-(`batchsim replay`, `batchsim view`), description_topic.py (`--robot-description-topic`).
+(`batchsim replay`, `batchsim view`), evaluate.py (`batchsim evaluate`), description_topic.py (`--robot-description-topic`).
 
     batchsim --worlds 16                     16 arms, over ROS 2, in real time
     batchsim --worlds 64 --model quadruped --rtf 0 --no-ros
@@ -10,6 +10,7 @@ ros_bridge/options.py), runner.py (the run), info.py (`batchsim info`), replay.p
     batchsim replay run.mcap --worlds 3      republish a recording over ROS 2, with /clock
     batchsim --worlds 64 --view              the fleet in 3D in a browser, live
     batchsim view run.mcap                   a recording in the same page, scrubbed through
+    batchsim evaluate --controllers P.yaml   a policy controller's success across randomized worlds
 
 Errors a user can fix (a missing file, malformed XML, an unknown model, a bad flag, a
 fleet that will not fit in memory) print one line and exit with code 2. Start-up stages
@@ -25,6 +26,7 @@ from collections.abc import Sequence
 
 from batchsim.backends import BackendUnavailable
 from batchsim.cli.args import EXIT_USAGE, UsageError, check_args, default_model, run_parser, version_line
+from batchsim.cli.evaluate import evaluate
 from batchsim.cli.info import info, sensor_lines
 from batchsim.cli.replay import replay
 from batchsim.cli.runner import StatusLine, build, run, setup_controllers, start_ros
@@ -59,6 +61,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return replay(argv[1:])
         if argv and argv[0] == "view":
             return view(argv[1:])
+        if argv and argv[0] == "evaluate":
+            return evaluate(argv[1:])
         return run(argv)
     except USER_ERRORS as e:  # what the user can fix, as one line; an internal bug keeps its traceback
         print(f"batchsim: error: {e}", file=sys.stderr)

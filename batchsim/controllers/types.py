@@ -22,6 +22,7 @@ from batchsim.controllers.gripper import (
     GripperActionController,
     ParallelGripperActionController,
 )
+from batchsim.controllers.policy import PolicyController
 from batchsim.controllers.pose_broadcaster import PoseBroadcaster
 from batchsim.controllers.trajectory import JointTrajectoryController
 
@@ -41,5 +42,6 @@ CONTROLLER_TYPES: dict[str, type[Controller]] = {
         GripperActionController,
         ParallelGripperActionController,
         EffortGripperActionController,
+        PolicyController,
     )
 }
