@@ -105,5 +105,8 @@ def test_a_yaml_block_is_read_as_shown(line, text, tmp_path):
         assert {"body_mass", "geom_friction", "dof_damping", "actuator_gainprm", "opt.gravity", "start_qpos"} <= set(drawn)
         assert not np.array_equal(drawn["body_mass"][0], drawn["body_mass"][1])
         sim.shutdown()
+    elif "\n  ros__parameters:\n    model: arm_reach.onnx" in text:  # the shipped policy's block, as shipped
+        shipped = Path(__file__).resolve().parent.parent / "examples" / "policies" / "arm_reach.yaml"
+        assert read_yaml(path)["arm_reach_controller"] == read_yaml(shipped)["arm_reach_controller"]
     else:
         pytest.fail(f"README line {line}: a YAML block of a kind tests/test_readme.py does not know how to read")

@@ -51,7 +51,8 @@ class PolicyController(Controller):
 
     def __init__(self, name: str, params: Params, spec: RobotSpec, nworld: int):
         super().__init__(name, params, spec, nworld)
-        self.runtime = PolicyRuntime(model_path(params), f"{params.where}: controller {name!r}: model")
+        threads = int(params.number("inference_threads", 1, minimum=1))
+        self.runtime = PolicyRuntime(model_path(params), f"{params.where}: controller {name!r}: model", threads)
         start = spec.initial.qpos if spec.initial is not None else spec.mjmodel.qpos0
         start_pose = {j.name: float(start[j.qposadr]) for j in spec.joints}
         policy = read_spec(params, self.runtime.metadata, start_pose)

@@ -13,7 +13,8 @@ from batchsim.types import ConfigurationError
 
 
 class PolicyRuntime:
-    """The policy in `path` (`where`: the YAML file and key that name it, for messages).
+    """The policy in `path` (`where`: the YAML file and key that name it, for messages), run on
+    `threads` threads (ONNX Runtime's intra-op pool, not spinning between calls).
 
     Attributes:
       obs_size, action_size: the model's input and output widths (None where the model leaves
@@ -23,7 +24,7 @@ class PolicyRuntime:
       provider: the ONNX Runtime execution provider it runs on.
     """
 
-    def __init__(self, path: Path, where: str):
+    def __init__(self, path: Path, where: str, threads: int = 1):
         try:
             import onnxruntime as ort
         except ImportError:
@@ -37,6 +38,11 @@ class PolicyRuntime:
         ]
         options = ort.SessionOptions()
         options.log_severity_level = 3  # errors only: its warnings are not the user's
+        # one thread that never spins by default: a pool of spinning threads takes the cores the
+        # physics threads need, and a small batch gains nothing from it (benchmarks/policy.py)
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             self.session = ort.InferenceSession(str(path), options, providers=providers)
         except Exception as e:  # InvalidProtobuf, InvalidGraph, ...: one line, the first of its own

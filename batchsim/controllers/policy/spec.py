@@ -9,6 +9,7 @@ from the ONNX file's own metadata (an mjlab export's `joint_names`, `default_joi
         default_positions: [0.0, ...]     # the pose actions and joint_pos are relative to
                                           # (default: the export's, else the robot's start pose)
         policy_rate: 50.0                 # Hz, dividing the control rate (default: the control rate)
+        inference_threads: 1              # ONNX Runtime's threads (default 1: the physics has the others)
         observations: [joint_pos, joint_vel, command, actions]   # in order (default: the export's)
         terms:                            # per term: scale, clip [lo, hi], history, func
           joint_vel: {scale: 0.1}
