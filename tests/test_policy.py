@@ -422,3 +422,105 @@ def test_evaluate_refuses_a_yaml_without_a_policy_in_one_line(tmp_path, capsys):
     assert main(["evaluate", "--controllers", str(default_controllers("arm"))]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "policy controller" in err
+
+
+def test_a_terms_history_stacks_its_last_values_oldest_first_and_a_reset_refills_it(tmp_path):
+    # joint_pos with history 3 (the policy at the control rate): action_j = q_old + 10 q_mid + 100 q_new
+    weights = np.zeros((18, 6))
+    for k, c in enumerate((1.0, 10.0, 100.0)):
+        weights[6 * k : 6 * k + 6] = c * np.eye(6)
+    linear_policy(tmp_path / "policy.onnx", weights, np.zeros(6))
+    spec = f"model: policy.onnx\njoints: {ARM}\nobservations: [joint_pos_abs]\nterms:\n  joint_pos_abs: {{history: 3}}\naction: {{scale: 0.0}}\n"
+    # scale 0: the targets are the default pose, away from the start, so the joints move every period
+    spec += "default_positions: [0.5, -0.4, 0.6, 0.3, -0.5, 0.8]\n"
+    sim, manager, loop = running(controllers_yaml(tmp_path, spec), 2)
+    policy = manager["policy_controller"]
+    pos = columns(sim, [f"{j}/position" for j in ARM])
+    seen = []
+    for _ in range(4):
+        sim.read()
+        seen.append(sim.state[:, pos].copy())
+        loop.run_period()
+    q = seen
+    assert np.abs(q[3] - q[2]).min() > 1e-4 and np.abs(q[2] - q[1]).min() > 1e-5  # they moved
+    np.testing.assert_allclose(policy.actions, q[1] + 10 * q[2] + 100 * q[3], rtol=1e-5, atol=1e-5)
+    # a reset world's history is its next step, repeated (Isaac Lab's reset); the other keeps its own
+    manager.on_reset(sim, np.array([1]))
+    sim.read()
+    now = sim.state[:, pos].copy()
+    loop.run_period()
+    np.testing.assert_allclose(policy.actions[1], 111 * now[1], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(policy.actions[0], q[2][0] + 10 * q[3][0] + 100 * now[0], rtol=1e-5, atol=1e-5)
+
+
+def test_a_velocity_policy_reads_the_base_in_its_own_frame_takes_cmd_vel_and_drives_efforts(tmp_path):
+    import mujoco
+
+    from batchsim.controllers.topics import MessageKind
+
+    legs = [
+        f"{leg}_{j}" for leg in ("FL", "FR", "HL", "HR") for j in ("hip_abduction", "hip_flexion", "knee")
+    ]
+    rng = np.random.default_rng(5)
+    weights, bias = rng.normal(scale=0.3, size=(12, 12)), rng.normal(scale=0.1, size=12)
+    linear_policy(tmp_path / "policy.onnx", weights, bias)
+    spec = (
+        f"model: policy.onnx\njoints: {legs}\nobservations: [base_lin_vel, base_ang_vel, projected_gravity, velocity_commands]\n"
+        "action: {interface: effort, scale: 2.0}\ncommand: {kind: velocity}\n"
+    )
+    path = tmp_path / "policy.yaml"
+    path.write_text(
+        "controller_manager:\n  ros__parameters:\n    update_rate: 100\n"
+        "    policy_controller:\n      type: batchsim/PolicyController\n"
+        "policy_controller:\n  ros__parameters:\n" + textwrap.indent(spec, "    ")
+    )
+    sim = batchsim.make("quadruped", 3, "cpu", nthread=1)
+    sim.configure()
+    sim.activate()
+    manager = load_controllers(path, sim.spec, 3)
+    loop = SimLoop(sim, control_rate=100.0, rtf=0, participants=[manager])
+    policy = manager["policy_controller"]
+    (command,) = policy.topics().inputs
+    assert command.topic == "policy_controller/cmd_vel" and command.kind is MessageKind.TWIST
+    twists = np.array([[0.5, 0.1, 0, 0, 0, 0.3], [0.0, -0.2, 0, 0, 0, -0.1], [1.0, 0.0, 0, 0, 0, 0.0]])
+    assert command.apply(np.arange(3), twists) == []
+    for _ in range(30):  # it falls and tumbles under random efforts: the base moves and tilts
+        loop.run_period()
+    sim.read()
+    base = sim.base_state.copy()
+    expected_obs = []
+    for w in range(3):
+        conj = base[w, 3:7] * [1, -1, -1, -1]
+        lin, grav = np.zeros(3), np.zeros(3)
+        mujoco.mju_rotVecQuat(lin, base[w, 7:10], conj)
+        mujoco.mju_rotVecQuat(grav, np.array([0.0, 0.0, -1.0]), conj)
+        expected_obs.append(np.concatenate([lin, base[w, 10:13], grav, twists[w, [0, 1, 5]]]))
+    assert np.abs(np.array(expected_obs)[:, :3]).max() > 0.01  # it moves
+    expected = np.array(expected_obs, np.float32) @ weights.astype(np.float32) + bias.astype(np.float32)
+    loop.run_period()
+    np.testing.assert_allclose(policy.actions, expected, rtol=1e-4, atol=1e-4)
+    ci = sim.export_command_interfaces()
+    np.testing.assert_allclose(
+        sim.command[:, [ci.index(f"{j}/effort") for j in legs]], 2.0 * expected, rtol=1e-4, atol=1e-4
+    )
+
+
+def test_the_training_script_trains_and_exports_a_policy_the_controller_runs(tmp_path):
+    """A short run of examples/policies/train_arm_reach.py (the `train` extra: stable-baselines3
+    and PyTorch, not in `all`; skipped where they are absent)."""
+    pytest.importorskip("stable_baselines3")
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("train_arm_reach", EXAMPLES / "train_arm_reach.py")
+    train = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(train)
+    out = tmp_path / "arm_reach.onnx"
+    train.main(["--worlds", "8", "--steps", "1024", "--out", str(out)])
+    yaml = tmp_path / "arm_reach.yaml"
+    yaml.write_text((EXAMPLES / "arm_reach.yaml").read_text())
+    sim, manager, loop = running(yaml, 2)
+    policy = manager["arm_reach_controller"]
+    assert policy.runtime.metadata["observation_names"] == "joint_pos,joint_vel,command,actions"
+    assert policy.runtime.metadata["joint_names"] == ",".join(ARM)
+    loop.run_period()
+    assert np.isfinite(policy.actions).all() and policy.inferences == 1
