@@ -40,23 +40,42 @@ and once per fleet: `/clock` (every control period; worker 0 of the process that
 from __future__ import annotations
 
 import atexit
+import dataclasses
 import sys
 from collections.abc import Sequence
 
 from batchsim.contract import Contract
 from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import Output
-from batchsim.loop import SimLoop
+from batchsim.loop import OptionError, SimLoop
 from ros_bridge.host import BridgeHost
 from ros_bridge.options import BridgeOptions, Reliability, default_workers
-from ros_bridge.plan import build_plan
+from ros_bridge.plan import FleetPlan, build_plan
 from ros_bridge.recording import Recording
 from ros_bridge.registry import ConflictKind
 from ros_bridge.sensor_topics import SensorFeed
 from ros_bridge.supervisor import FleetConflict, WorkerError
-from ros_bridge.view_plan import ViewProcess
+from ros_bridge.view_plan import ViewCamera, ViewProcess, view_camera
 
-__all__ = ["BridgeHost", "BridgeOptions", "ConflictKind", "FleetConflict", "Reliability", "WorkerError", "start_bridge"]
+__all__ = [
+    "BridgeHost", "BridgeOptions", "BridgeParts", "ConflictKind", "FleetConflict", "Reliability", "WorkerError",
+    "join_bridges", "open_bridge", "start_bridge",
+]  # fmt: skip
+
+
+@dataclasses.dataclass
+class BridgeParts:
+    """A bridge `open_bridge` started: its `host` (the loop participant: `close()` ends it all),
+    its `recording` (ros_bridge/recording.py; None without one) and its view's camera request
+    (`camera`, view_plan.py; None without a view or a camera)."""
+
+    host: BridgeHost
+    recording: Recording | None = None
+    camera: ViewCamera | None = None
+
+    @property
+    def plan(self) -> FleetPlan:
+        return self.host.plan
 
 
 def start_bridge(
@@ -83,6 +102,22 @@ def start_bridge(
       FleetConflict: another process on the ROS domain serves these worlds or /clock.
       WorkerError: a worker could not start.
     """
+    parts = open_bridge(sim, loop, options, manager, outputs)
+    join_bridges([parts], [""])  # the recording from the first period, the view
+    return parts.host
+
+
+def open_bridge(
+    sim: Contract,
+    loop: SimLoop,
+    options: BridgeOptions | None = None,
+    manager: ControllerManager | None = None,
+    outputs: Sequence[Output] = (),
+) -> BridgeParts:
+    """`start_bridge`'s bridge, serving and attached to the loop, but neither recording nor viewed
+    yet: `join_bridges` starts those, for this bridge alone or for every group's of a fleet of
+    several groups (batchsim.fleet.groups), which are recorded and viewed together. Arguments
+    and errors: start_bridge's."""
     options = options or BridgeOptions()
     workers = options.workers if options.workers is not None else default_workers(sim.nworld)
     workers = min(workers, sim.nworld)
@@ -109,20 +144,53 @@ def start_bridge(
         recording = Recording(plan, host.memory, loop)
         host.on_close.append(recording.close)
         loop.participants.insert(loop.participants.index(host) + 1, recording)
-        if plan.recording.path is not None:
-            ok, message = recording.start(plan.recording.path, wait=True)
-            if not ok:
-                print(f"batchsim: warning: {message}", file=sys.stderr)
-    view = None
-    if plan.view is not None:  # the web view: a process of its own, reading the snapshot
-        view = ViewProcess(plan, host.memory)
-        host.on_close.append(view.close)
-        if view.url is not None:
-            print(f"batchsim: view: {view.url} (the fleet in 3D; a browser elsewhere: --view-host 0.0.0.0, or ssh -L)", file=sys.stderr)
+    # the web view's camera request: the picked world's camera, rendered as if subscribed
+    camera = view_camera(host.memory) if plan.view is not None else None
     if plan.sensors is not None:  # cameras and lidars: rendered and scanned right after the host's update
         # a recording wants its cameras too, and the view the camera of the world it shows
-        feed = SensorFeed(sim, host.memory, plan.sensors, recording, view.camera if view is not None else None)
+        feed = SensorFeed(sim, host.memory, plan.sensors, recording, camera)
         loop.participants.insert(loop.participants.index(host) + 1, feed)
     if manager is not None and manager not in loop.participants:
         loop.participants.append(manager)
-    return host
+    return BridgeParts(host, recording, camera)
+
+
+def join_bridges(bridges: Sequence[BridgeParts], names: Sequence[str]) -> ViewProcess | None:
+    """Record and view `bridges` together: one bridge's (`names` [""]), or every group's of a fleet
+    of several groups, the first group's first (`names`, the groups'). The first bridge's recording
+    leads the others' (ros_bridge/recording.py: one recorder, one file of every group's worlds),
+    recording from the first period where --record gave a file; one view process shows every
+    bridge's worlds (where the first bridge's options ask for the view). The view's process, or None.
+
+    Raises:
+      OptionError: `record_topics` names a topic no group of the recorded worlds publishes.
+    """
+    if len(names) != len(bridges):
+        raise ValueError(f"join_bridges: {len(names)} names for {len(bridges)} bridges")
+    first = bridges[0]
+    recordings = [b.recording for b in bridges if b.recording is not None]
+    if len(bridges) > 1:
+        unknown = [set(r.spec.unknown) for r in recordings]
+        missing = sorted(set.intersection(*unknown)) if unknown else []
+        if missing:
+            raise OptionError("record_topics", f"names {missing[0]!r}, which no group of the recorded worlds publishes")
+    leader = first.recording
+    if leader is not None:
+        followers = [(name, b.recording) for b, name in zip(bridges[1:], names[1:], strict=True) if b.recording is not None]
+        leader.lead([r for _, r in followers], [names[0], *(name for name, _ in followers)])
+        for b in bridges[1:]:  # whichever bridge closes first ends the recording, while every ring is there
+            b.host.on_close.insert(0, leader.close)
+        if leader.spec.path is not None:
+            ok, message = leader.start(leader.spec.path, wait=True)
+            if not ok:
+                print(f"batchsim: warning: {message}", file=sys.stderr)
+    view = None
+    if first.plan.view is not None:  # the web view: a process of its own, reading the snapshots
+        viewed = [b for b in bridges if b.plan.view is not None]
+        view = ViewProcess([b.plan for b in viewed], [b.camera for b in viewed])
+        first.host.on_close.append(view.close)
+        for b in bridges[1:]:  # whichever bridge closes first ends the view, while every snapshot is there
+            b.host.on_close.insert(0, view.close)
+        if view.url is not None:
+            print(f"batchsim: view: {view.url} (the fleet in 3D; a browser elsewhere: --view-host 0.0.0.0, or ssh -L)", file=sys.stderr)
+    return view

@@ -51,11 +51,16 @@ class RecordOptions:
         None: the default set (every state topic published from the start, /tf, /tf_static,
         /clock, robot_description).
       worlds: the worlds (indices 0..nworld-1) recorded; None: all.
+      group: one group's share of a fleet of several groups (batchsim.fleet.groups), recorded into
+        one file with the others' (ros_bridge/bridge.py's join_bridges): `topics` may name what only
+        another group publishes (join_bridges refuses a name no group publishes), and `worlds` may
+        be empty for the first group, whose recording leads the others' (it holds /clock).
     """
 
     path: str | None = dataclasses.field(default=None, metadata=_flag("--record"))
     topics: tuple[str, ...] | None = dataclasses.field(default=None, metadata=_flag("--record-topics"))
     worlds: tuple[int, ...] | None = dataclasses.field(default=None, metadata=_flag("--record-worlds"))
+    group: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

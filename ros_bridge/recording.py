@@ -14,6 +14,11 @@ Cameras and lidars are opt-in (`--record-topics front_camera/image_raw,scan,...`
 recording runs, their recorded topics are wanted for the recorded worlds as a subscriber
 would want them (`Recording.want_sensors`, asked by sensor_topics.py's SensorFeed), and the
 recorder reads the sensor blocks itself (ros_bridge/worker/sensor_recording.py).
+
+A fleet of several groups of worlds (batchsim.fleet.groups) is one recording too: each group's
+bridge has its own plan, shared memory and ring, and the first group's `Recording` leads the
+others' (`lead`): it starts and stops the one recorder and their rings with its own, answers the
+service, and hands the recorder every group's plan, which writes them all into one file.
 """
 
 from __future__ import annotations
@@ -76,6 +81,8 @@ class RecordSpec:
     # per camera and lidar (sensors.want's columns), the WANT_* bits of its recorded topics; () for none
     sensors: tuple[int, ...] = ()
     diagnostics: bool = False
+    # a group's (RecordOptions.group): the topics named that this group does not publish
+    unknown: tuple[str, ...] = ()
 
     def arrays(self, nchannel: int) -> list[tuple[str, tuple[int, ...], str]]:
         arrays = recording_arrays(nchannel, len(self.worlds), self.channels, self.widths)
@@ -94,13 +101,16 @@ def record_spec(
     sensors: SensorPlan | None = None,
 ) -> RecordSpec:
     """The recording `options` ask for; OptionError naming `record_topics` or `record_worlds`.
-    Cameras' and lidars' topics (`sensors`) only where `options.topics` names them."""
+    Cameras' and lidars' topics (`sensors`) only where `options.topics` names them. A group of a
+    fleet of several (`options.group`) keeps the names it does not publish in `unknown`, and
+    without a world of its own records the fleet's /clock alone."""
     by_name = {o.topic.strip("/"): i for i, o in enumerate(outputs)}
     by_sensor = {t.name: t for t in sensors.topics()} if sensors is not None else {}
     fleet = [t for t in FLEET_TOPICS if t != "/clock" or clock]
     if tf_channel is None:
         fleet = [t for t in fleet if not t.startswith("/tf")]
     names = [*by_name, *fleet, *([DESCRIPTION] if tf_channel is not None else [])]
+    unknown: list[str] = []
     if options.topics is None:
         chosen = [n for n, i in by_name.items() if not outputs[i].on_request] + [
             n for n in names if n not in by_name
@@ -110,6 +120,9 @@ def record_spec(
         for topic in options.topics:
             name = topic.strip()
             key = f"/{name.strip('/')}" if f"/{name.strip('/')}" in fleet else name.strip("/")
+            if key not in names and key not in by_sensor and options.group:
+                unknown.append(name)  # another group's, maybe: join_bridges asks them all
+                continue
             if key not in names and key not in by_sensor:
                 raise OptionError(
                     "record_topics",
@@ -122,8 +135,10 @@ def record_spec(
         raise OptionError(
             "record_worlds", f"names world {bad[0]}, which this fleet does not have (worlds 0..{nworld - 1})"
         )
-    if not worlds:
+    if not worlds and not options.group:
         raise OptionError("record_worlds", "names no world")
+    if not worlds:  # a fleet's first group, none of whose worlds is recorded: it leads, with /clock
+        chosen = [n for n in chosen if n == "/clock"]
     picked = tuple(by_name[n] for n in chosen if n in by_name)
     channels = sorted(
         {f.channel for i in picked for f in outputs[i].fields} | ({tf_channel} if "/tf" in chosen else set())
@@ -144,6 +159,7 @@ def record_spec(
         widths=tuple(widths[c] for c in channels),
         path=options.path,
         sensors=tuple(bits) if any(bits) else (),
+        unknown=tuple(unknown),
     )
 
 
@@ -172,6 +188,10 @@ class Recording(Participant):
       plan: the fleet's plan (its `recording` says what is recorded).
       memory: the shared arrays (the recorder attaches to them).
       loop: the loop (with `rtf` 0, a full ring waits for the recorder rather than drop periods).
+
+    In a fleet of several groups, the first group's recording leads the others' (`lead`): a
+    follower only fills its ring, which its leader starts and stops, and waits on its leader's
+    recorder where it waits.
     """
 
     def __init__(self, plan, memory, loop: SimLoop):
@@ -194,10 +214,53 @@ class Recording(Participant):
         self._worlds = np.array(self.spec.worlds, np.intp)
         self._row = np.full(plan.nworld, -1, np.intp)  # per world, its row among the recorded
         self._row[self._worlds] = np.arange(len(self._worlds))
+        self._leader: Recording = self
+        self._followers: list[Recording] = []
+        self._names: list[str] = [""]  # each group's name, this one's first ("": one group alone)
+
+    # --- a fleet of several groups: one recording ---
+    def lead(self, followers: Sequence[Recording], names: Sequence[str]) -> None:
+        """Record `followers` (the other groups' recordings of a fleet of several) into this one's
+        file: their rings start and stop with this one's and the recorder reads them all. `names`:
+        every group's name, this one's first (the file names each group's geometry after it)."""
+        if len(names) != 1 + len(followers):
+            raise ValueError(f"lead: {len(names)} names for {1 + len(followers)} groups")
+        self._followers, self._names = list(followers), list(names)
+        for follower in followers:
+            follower.follow(self)
+
+    def follow(self, leader: Recording) -> None:
+        """Be recorded by `leader`'s recorder (Recording.lead calls this)."""
+        self._leader = leader
+
+    def recorder_alive(self) -> bool:
+        """Whether the recorder of this recording (of its leader, for a follower) runs; its status
+        lines are read first, so a recorder that ended is seen."""
+        lead = self._leader
+        if lead._proc is not None:
+            lead._watch(force=True)
+        return lead._proc is not None
+
+    def geometry(self) -> bytes | None:
+        """The robots' geoms for the file (`batchsim view FILE`, view_plan.py); None without tf or worlds."""
+        if self._geometry is None and self.plan.tf is not None and self.spec.worlds:
+            self._geometry = recording_geometry(self.loop.sim, self.plan.tf)
+        return self._geometry
+
+    def _set_recording(self, on: bool) -> None:
+        """Every ring of the recording (this one's and its followers') on, from the next period, or off."""
+        for r in (self, *self._followers):
+            if on:
+                r.writer.restart()
+                set_recording(r.memory, r.spec.channels)
+            else:
+                set_recording(r.memory, None)
 
     # --- start and stop ---
     def start(self, path: str, wait: bool = False) -> tuple[bool, str]:
         """Start the recorder into `path`; with `wait`, until it is ready (else it is, a moment later)."""
+        if self._leader is not self:
+            return False, "the fleet's first group records every group"
         if self._proc is not None:
             return False, f"already recording to {self.path}"
         problem = path_problem(path)
@@ -213,13 +276,11 @@ class Recording(Participant):
         os.set_blocking(read, False)
         self._status, self._buffer, self.path, self._said, self._ready = read, b"", path, False, False
         self._used.add(path)
-        # the ring takes periods from now on, while the recorder comes up (a second or more):
+        # the rings take periods from now on, while the recorder comes up (a second or more):
         # a recording stopped before its recorder said ready still holds start..stop
-        self.writer.restart()
-        set_recording(self.memory, self.spec.channels)
-        if self._geometry is None and self.plan.tf is not None:  # for `batchsim view FILE`
-            self._geometry = recording_geometry(self.loop.sim, self.plan.tf)
-        self._proc.stdin.write(pickle.dumps((self.plan, os.path.abspath(path), self._geometry)))
+        self._set_recording(True)
+        groups = [(r.plan, r.geometry(), name) for r, name in zip((self, *self._followers), self._names, strict=True)]
+        self._proc.stdin.write(pickle.dumps((groups, os.path.abspath(path))))
         self._proc.stdin.flush()
         if wait:
             deadline = wallclock.monotonic() + READY_TIMEOUT
@@ -234,7 +295,7 @@ class Recording(Participant):
         """Stop writing into the ring and ask the recorder to finish the file (waiting up to `timeout` s)."""
         if self._proc is None:
             return False, "not recording"
-        set_recording(self.memory, None)
+        self._set_recording(False)
         try:
             self._proc.stdin.close()  # EOF: drain the ring, write the summary, exit
         except OSError:
@@ -266,9 +327,8 @@ class Recording(Participant):
         if not recording(self.memory):
             return
         if self.loop.rtf == 0:  # as fast as possible, every period: as fast as the recorder takes them
-            while self.writer.full() and self._proc is not None:
+            while self.writer.full() and self.recorder_alive():
                 wallclock.sleep(0.0005)
-                self._watch(force=True)
         self.writer.put_newest()
 
     def idle(self, sim, time: float) -> None:
@@ -292,14 +352,15 @@ class Recording(Participant):
         rows = rows[rows >= 0]
         seen = self.memory["rec.sensors.seen"]
         while (
-            self._proc is not None
-            and recording(self.memory)
+            recording(self.memory)
             and (seq[self._worlds[rows]] != seen[rows, column]).any()
+            and self.recorder_alive()
         ):
             wallclock.sleep(0.0005)
-            self._watch(force=True)
 
     def _serve(self) -> None:
+        if self._leader is not self:  # the service is the leader's (the first group's worker 0)
+            return
         request = take_request(self.memory, self._answered)
         if request is not None:
             ticket, on, age = request
@@ -351,7 +412,7 @@ class Recording(Participant):
             self._finished(None if self._said else silent + " up to its last complete chunk")
 
     def _finished(self, line: str | None) -> None:
-        set_recording(self.memory, None)
+        self._set_recording(False)
         if line:
             print(line, file=sys.stderr, flush=True)
         if self._status is not None:

@@ -10,6 +10,11 @@ for through `view.want` while it runs. Where the fleet has cameras, the panel sh
 world's camera image: the view process writes (world, camera) into `view.camera`, and the
 physics side (`ViewCamera`, asked by sensor_topics.py's SensorFeed) ORs WANT_RGB into that
 world's want bits, so that one camera renders as if subscribed; the view reads its block.
+
+A fleet of several groups of worlds (batchsim.fleet.groups) is one view: each group's bridge
+has its own plan (its own ViewSpec: its robots' geoms) and shared memory, and one view process
+reads them all (`ViewProcess` takes every group's plan), drawing each world with its group's
+geoms at its place in the fleet's grid.
 """
 
 from __future__ import annotations
@@ -189,6 +194,16 @@ def geometry_from_bytes(data: bytes, host: str, port: int) -> tuple[ViewSpec, li
     return ViewSpec(geoms, -1, float(z["spacing"]), host, port), json.loads(str(z["frames"]))
 
 
+def geometry_attachment(group: str | None = None) -> str:
+    """The name of a recording's geometry attachment: GEOMETRY for a fleet of one group; in a
+    fleet of several, each group's own (`batchsim/view_geometry.<group>.npz`), which the file's
+    `batchsim` metadata names beside the group's worlds."""
+    if not group:
+        return GEOMETRY
+    stem, suffix = GEOMETRY.rsplit(".", 1)
+    return f"{stem}.{group}.{suffix}"
+
+
 def recording_geometry(sim: Contract, tf) -> bytes:
     """What a recording of `sim` carries for the view: its geoms, anchored to tf's frames."""
     tree = frame_tree(sim.spec)
@@ -211,18 +226,29 @@ class ViewCamera:
             want[asked] |= WANT_RGB
 
 
+def view_camera(memory) -> ViewCamera | None:
+    """The view's camera request in `memory` (a bridge's shared arrays), where its fleet has cameras."""
+    return ViewCamera(memory) if memory is not None and "view.camera" in memory else None
+
+
 class ViewProcess:
     """The view's process: started with the bridge, stopped with it; its URL once it serves.
-    `camera`: its camera request (ViewCamera) where the fleet has cameras, else None."""
 
-    def __init__(self, plan, memory=None) -> None:
-        self.camera = ViewCamera(memory) if memory is not None and "view.camera" in memory else None
+    Args:
+      plans: the plan of the bridge whose worlds it shows; in a fleet of several groups, every
+        group's, the first group's first (its ViewSpec says where the page is served).
+      cameras: the bridges' camera requests (`view_camera`), cleared when the view closes.
+    """
+
+    def __init__(self, plans, cameras=()) -> None:
+        self.cameras = [c for c in cameras if c is not None]
+        self._closed = False
         read, write = os.pipe()
         self._proc = subprocess.Popen(  # stdout: viser's banner, which the URL line below replaces
             [sys.executable, "-m", "ros_bridge.worker.view", str(write)], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, pass_fds=(write,)
         )
         os.close(write)
-        self._proc.stdin.write(pickle.dumps(plan))
+        self._proc.stdin.write(pickle.dumps(list(plans)))
         self._proc.stdin.close()
         self._status = os.fdopen(read, "r")
         self.url: str | None = None
@@ -236,8 +262,12 @@ class ViewProcess:
                     print(f"batchsim: {line}", file=sys.stderr, flush=True)
 
     def close(self) -> None:
-        if self.camera is not None:
-            self.camera.request.clear()
+        """Stop the process; the camera requests cleared. Safe to call twice (each group's bridge does)."""
+        if self._closed:
+            return
+        self._closed = True
+        for camera in self.cameras:
+            camera.request.clear()
         if self._proc.poll() is None:
             self._proc.terminate()
             try:

@@ -10,7 +10,6 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any, TextIO
 
 import batchsim
@@ -141,30 +140,22 @@ def compile_programs(sim: Contract, loop: SimLoop, progress: startup.Progress) -
 
 def group_options(options: BridgeOptions, group: Group) -> BridgeOptions:
     """The bridge options of one group of a fleet of several: its worlds numbered from its first,
-    /clock and the fleet's services the first group's alone, its recording in a file of its own
-    (`run.<group>.mcap` beside `run.mcap`), of the recorded worlds that are its, and its view on
-    the next port."""
+    /clock and the fleet's services the first group's alone, and its share of the one recording
+    (the recorded worlds that are its; the first group's leads the others', ros_bridge/bridge.py's
+    join_bridges, even where none of its worlds is recorded) and of the one view."""
     first = group.first_world
     record = options.record
     if record is not None:
-        path = record.path
-        if path is not None and first > 0:
-            p = Path(path)
-            path = str(p.with_name(f"{p.stem}.{group.name}{p.suffix}"))
         worlds = record.worlds  # the fleet's numbers: this group's, numbered from its first
         if worlds is not None:
             worlds = tuple(w - first for w in worlds if first <= w < first + group.worlds)
-        record = dataclasses.replace(record, path=path, worlds=worlds) if worlds != () else None
-    view = options.view
-    if view is not None and first > 0:
-        view = None
+        record = dataclasses.replace(record, worlds=worlds, group=True) if worlds != () or first == 0 else None
     return dataclasses.replace(
         options,
         world_offset=options.world_offset + first,
         clock=options.clock and first == 0,
         fleet_services=first == 0,
         record=record,
-        view=view,
     )
 
 
@@ -211,14 +202,15 @@ def _checked_rate(sim: Contract, args: argparse.Namespace, manager: ControllerMa
 def start_ros(
     sim: Contract, loop: SimLoop, args: argparse.Namespace, manager: ControllerManager | None = None, group: Group | None = None
 ):
-    """The ROS 2 bridge for this run (or this group of its worlds), serving `manager`'s controllers too.
+    """The ROS 2 bridge for this run (or this group of its worlds), serving `manager`'s controllers
+    too (ros_bridge/bridge.py's BridgeParts), neither recording nor viewed yet: `join_ros` starts
+    those once every group's bridge is up.
 
     Errors name the flags; another process already serving these worlds or /clock is a
     UsageError (exit 2) naming that process's node. A group's worlds are numbered from its first
-    world; the first group's bridge alone publishes /clock and serves /batchsim/*; a recording
-    of a later group goes to a file of its own beside --record's (`run.<group>.mcap`)."""
+    world; the first group's bridge alone publishes /clock and serves /batchsim/*."""
     try:
-        from ros_bridge.bridge import ConflictKind, FleetConflict, WorkerError, start_bridge
+        from ros_bridge.bridge import ConflictKind, FleetConflict, WorkerError, open_bridge
     except ModuleNotFoundError as e:
         raise UsageError(
             f"ROS 2 is not installed ({e.name} is missing): {startup.install_command('ros')}, or pass --no-ros"
@@ -232,7 +224,7 @@ def start_ros(
     if missing:
         print(f"batchsim: {missing}", file=sys.stderr)
     try:
-        return start_bridge(sim, loop, options, manager)
+        return open_bridge(sim, loop, options, manager)
     except OptionError as e:
         raise UsageError(e.named(option_flag(e.option))) from None
     except FleetConflict as e:
@@ -241,6 +233,31 @@ def start_ros(
         raise UsageError(f"{e} ({hint})") from None
     except WorkerError as e:
         raise UsageError(str(e)) from None
+
+
+def join_ros(batches: Sequence[Batch]) -> None:
+    """Every batch's bridge recorded and viewed together (ros_bridge/bridge.py's join_bridges): the
+    run's recording from its first period where --record names a file, and its view; a fleet of
+    several groups in one file and one page."""
+    from ros_bridge.bridge import join_bridges
+
+    try:
+        join_bridges([b.bridge for b in batches], [b.group.name if b.group is not None else "" for b in batches])
+    except OptionError as e:
+        for b in batches:  # refused: the bridges already up go now, not at exit
+            b.bridge.host.close()
+        raise UsageError(e.named(option_flag(e.option))) from None
+
+
+def check_group_args(args: argparse.Namespace) -> None:
+    """A fleet of groups' --record-worlds names the fleet's worlds: one it does not have is refused
+    here, as a fleet of one group's bridge refuses it (each group's bridge sees only its own)."""
+    worlds = args.record_worlds if args.groups is not None else None
+    bad = [w for w in worlds or () if not 0 <= w < args.groups.nworld]
+    if bad:
+        raise UsageError(
+            f"--record-worlds names world {bad[0]}, which this fleet does not have (worlds 0..{args.groups.nworld - 1})"
+        )
 
 
 def _interrupt(signum: int, frame: Any) -> None:
@@ -330,7 +347,7 @@ class Batch:
     sim: Contract
     manager: ControllerManager | None
     loop: SimLoop
-    bridge: Any = None
+    bridge: Any = None  # ros_bridge/bridge.py's BridgeParts
 
 
 def build_batch(args: argparse.Namespace, progress: startup.Progress, group: Group | None, first: Batch | None) -> Batch:
@@ -370,6 +387,7 @@ def run(argv: Sequence[str]) -> int:
     with startup.StartupGuard(progress):
         description_topic.fetch(args, progress)
     check_args(args)
+    check_group_args(args)
     batches: list[Batch] = []
     with startup.StartupGuard(progress):
         for group in args.groups.groups if args.groups is not None else (None,):
@@ -381,6 +399,8 @@ def run(argv: Sequence[str]) -> int:
                     b.bridge = start_ros(b.sim, b.loop, args, b.manager, b.group)
             if b.manager is not None and b.manager not in b.loop.participants:
                 b.loop.participants.append(b.manager)
+        if not args.no_ros:
+            join_ros(batches)
     loop, first = batches[0].loop, batches[0].sim
 
     def on_signal(signum: int, frame: Any) -> None:
@@ -397,7 +417,7 @@ def run(argv: Sequence[str]) -> int:
     finally:
         for b in batches:
             if b.bridge is not None:
-                b.bridge.close()
+                b.bridge.host.close()
             b.sim.shutdown()
     print(
         f"batchsim: stopped at sim time {loop.sim_time:.3f} s; last: {format_stats(stats, loop.nworld, backend)}",
@@ -414,7 +434,7 @@ def _what(batches: list[Batch], loop: SimLoop, args: argparse.Namespace) -> str:
     where = f"on {first.name} ({first.reason}), control {loop.control_rate:g} Hz ({loop.substeps} x {first.dt:g} s), rtf {rtf}"
 
     def served(b: Batch) -> str:
-        return ("" if b.bridge is None else f", ROS 2 namespaces {b.bridge.describe()}") + (
+        return ("" if b.bridge is None else f", ROS 2 namespaces {b.bridge.host.describe()}") + (
             "" if b.manager is None else f", controllers {', '.join(b.manager.controllers) or 'none'}"
         )
 

@@ -93,8 +93,9 @@ class RecordWriter:
         k = int(m["rec.pos"][0])
         s = k % self.slots
         m["rec.meta"][s] = m["meta"][b]
-        m["rec.flags"][s] = m["flags"][b, self.worlds]
-        m["rec.status"][s] = m["status"][b, self.worlds]
+        nrow = len(self.worlds)  # 0: a fleet's first group that leads the others' recording, /clock alone
+        m["rec.flags"][s, :nrow] = m["flags"][b, self.worlds]
+        m["rec.status"][s, :nrow] = m["status"][b, self.worlds]
         for j, c in enumerate(self.channels):
             rows = channel_rows(m, n, c)
             m["rec.written"][s, j] = rows is not None
@@ -160,6 +161,51 @@ class RecordReader:
                 RecordedPeriod(m["rec.meta"][s].copy(), m["rec.flags"][s].copy(), channels, m["rec.status"][s].copy())
             )
         m["rec.pos"][1] = read + len(out)
+        return out
+
+
+class GroupsReader:
+    """The rings of a fleet's groups (each group's RecordReader, batchsim.fleet.groups), taken as
+    one stream of (group, period) in sim-time order: one loop writes every group's ring each
+    period, but the recorder reads them in turn, and a file's messages go in time order (a replay
+    paces by it). A period is handed out once every ring has reached its sim time (or `final`),
+    each ring's periods in their order; at most HOLD periods wait for a ring that fell behind."""
+
+    HOLD = 4096
+
+    def __init__(self, readers: Sequence[RecordReader]):
+        self.readers = list(readers)
+        self._held: list[list[RecordedPeriod]] = [[] for _ in self.readers]
+        self._newest = [-np.inf] * len(self.readers)
+
+    def pending(self) -> bool:
+        """Whether a ring holds periods not yet taken."""
+        return any(r.pending() for r in self.readers)
+
+    def dropped(self) -> int:
+        return sum(r.dropped() for r in self.readers)
+
+    def take(self, final: bool = False) -> list[tuple[int, RecordedPeriod]]:
+        """The periods every ring has reached, in sim-time order; with `final`, every one held."""
+        if len(self.readers) == 1:
+            return [(0, p) for p in self.readers[0].take()]
+        for k, reader in enumerate(self.readers):
+            periods = reader.take()
+            if periods:
+                self._held[k] += periods
+                self._newest[k] = max(self._newest[k], periods[-1].time)
+        held = sum(len(h) for h in self._held)
+        horizon = np.inf if final or held > self.HOLD else min(self._newest)
+        out: list[tuple[int, RecordedPeriod]] = []
+        heads = [0] * len(self._held)
+        while True:
+            due = [(h[i].time, k) for k, (h, i) in enumerate(zip(self._held, heads, strict=True)) if i < len(h)]
+            if not due or min(due)[0] > horizon:
+                break
+            _, k = min(due)
+            out.append((k, self._held[k][heads[k]]))
+            heads[k] += 1
+        self._held = [h[i:] for h, i in zip(self._held, heads, strict=True)]
         return out
 
 

@@ -114,6 +114,11 @@ class SensorRecording:
 
     def closing(self) -> str:
         """For the recorder's closing line: the samples missed, if any."""
-        if not self.missed:
-            return ""
-        return f"; {self.missed} camera or lidar samples missed (overwritten before the recorder took them)"
+        return missed_line(self.missed)
+
+
+def missed_line(missed: int) -> str:
+    """For the recorder's closing line: `missed` samples (every group's), if any."""
+    if not missed:
+        return ""
+    return f"; {missed} camera or lidar samples missed (overwritten before the recorder took them)"

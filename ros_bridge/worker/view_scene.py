@@ -1,0 +1,216 @@
+"""The web view's page (`FleetScene`): the worlds on one grid, drawn from MuJoCo's own geometry,
+and the panel. The live view (view.py) and a recording's (ros_bridge/view_file.py) fill it.
+
+A viser server (a local web page, three.js in the browser, served by this process) shows every
+world in a grid: each visible geom is one instanced mesh with an instance per world, so a
+thousand worlds cost the browser one draw call per geom and this process one array per geom per
+update. Each world is tinted by its status (red: frozen, diverged or overflowed; orange: its last
+command was rejected; yellow: command timeout). A world is picked by its number or by clicking
+it; the panel shows its status, its joint positions over the last seconds and, where its worlds
+have cameras, its camera's latest RGB image (the first camera, or the one chosen).
+
+A fleet of several groups of worlds (batchsim.fleet.groups) is one scene of several parts
+(`ScenePart`): each group's worlds are drawn with its own robots' geoms at their places in the
+one grid (the fleet's numbering), and the panel's plot and camera are the picked world's group's.
+No rclpy here: `batchsim view FILE` runs where ROS 2 is not installed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import viser
+
+from batchsim.types import FROZEN, Status
+from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT
+from ros_bridge.view_plan import ViewSpec
+
+FROZEN_RGB, BAD_RGB, TIMEOUT_RGB = (220, 30, 30), (255, 140, 0), (240, 220, 0)
+NO_IMAGE = 40  # the image's grey until the picked world's camera sends a frame
+
+
+def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products of (..., 4) quaternions (w, x, y, z)."""
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack([
+        aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw,
+    ], -1)  # fmt: skip
+
+
+def rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(..., 3) vectors v rotated by (..., 4) quaternions q."""
+    u, w = q[..., 1:], q[..., :1]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+@dataclasses.dataclass(frozen=True)
+class ScenePart:
+    """One group's worlds in the scene (a fleet of one group: every world): `spec`, what its
+    worlds draw (their geoms, the joint plot's names); `worlds`, their indices among the scene's
+    worlds, in order; `cameras`, (name, height, width) of each camera its worlds have."""
+
+    spec: ViewSpec
+    worlds: tuple[int, ...]
+    cameras: tuple[tuple[str, int, int], ...] = ()
+
+
+class FleetScene:
+    """The page: the worlds named `namespaces` on one grid, each drawn with its part's geoms
+    (`parts`: one per group, each world in one; the first part's spec says where the page is
+    served), the panel's fleet line, its world picker and status line, and the picked world's
+    joint plot and camera image (where its part has joints, cameras)."""
+
+    def __init__(self, parts: Sequence[ScenePart], namespaces: list[str]):
+        self.parts, self.namespaces = list(parts), namespaces
+        self.n = n = len(namespaces)
+        self.part_of = np.zeros(n, np.intp)  # per world: its part, and its index among the part's worlds
+        self.row_of = np.zeros(n, np.intp)
+        for k, part in enumerate(self.parts):
+            self.part_of[list(part.worlds)] = k
+            self.row_of[list(part.worlds)] = np.arange(len(part.worlds))
+        spec = self.parts[0].spec
+        spacing = max(p.spec.spacing for p in self.parts)
+        cols = int(np.ceil(np.sqrt(n)))
+        k = np.arange(n)
+        self.grid = np.stack([(k % cols) * spacing, (k // cols) * spacing, np.zeros(n)], -1)
+        with contextlib.redirect_stdout(io.StringIO()):  # its banner: batchsim prints the URL itself
+            self.server = viser.ViserServer(host=spec.host, port=spec.port, label="batchsim", verbose=False)
+        scene, gui = self.server.scene, self.server.gui
+        center = np.array([self.grid[:, 0].max() / 2, self.grid[:, 1].max() / 2, 0.0])
+        reach = max(center[0], 1.0) + spacing  # the whole grid in sight
+        self.server.initial_camera.look_at = tuple(center)
+        self.server.initial_camera.position = tuple(center + np.array([-0.7, -0.9, 0.6]) * reach)
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        scene.add_grid("/floor", width=cols * spacing + spacing, height=cols * spacing + spacing,
+                       cell_size=spacing / 4, section_size=spacing, position=tuple(center))  # fmt: skip
+        self.base_rgb: list[list[np.ndarray]] = []  # per part, per geom
+        self.handles: list[list[Any]] = []
+        for p, part in enumerate(self.parts):
+            grid, m = self.grid[list(part.worlds)], len(part.worlds)
+            path = "/fleet" if len(self.parts) == 1 else f"/fleet/{p}"
+            self.base_rgb.append([np.clip(g.rgba[:3] * 255, 0, 255).astype(np.uint8) for g in part.spec.geoms])
+            self.handles.append([])
+            for i, g in enumerate(part.spec.geoms):
+                handle = scene.add_batched_meshes_simple(
+                    f"{path}/{i}_{g.name}", g.vertices, g.faces,
+                    batched_wxyzs=np.tile(g.quat, (m, 1)).astype(np.float32),
+                    batched_positions=(grid + g.pos).astype(np.float32),
+                    batched_colors=np.tile(self.base_rgb[p][i], (m, 1)),
+                )  # fmt: skip
+                handle.on_click(lambda event, part=part: self._clicked(part, event))
+                self.handles[p].append(handle)
+        self.fleet_text = gui.add_markdown("starting ...")
+        self.picker = gui.add_number("world", 0, min=0, max=max(0, n - 1), step=1)
+        self.world_text = gui.add_markdown("")
+        self.plots: list[Any] = [None] * len(self.parts)  # per part with joints: its plot, shown while picked
+        for p, part in enumerate(self.parts):
+            if part.spec.joints is not None:
+                names = part.spec.joints[2]
+                series = (viser.uplot.Series(label="t"), *(viser.uplot.Series(label=j, stroke=_stroke(i)) for i, j in enumerate(names)))
+                self.plots[p] = gui.add_uplot(data=(np.zeros(1), *[np.zeros(1)] * len(names)), series=series,
+                                              title="joint positions (rad, m) against sim time (s)",
+                                              scales={"x": {"time": False}}, aspect=1.5, visible=bool(p == self.part_of[0]))  # fmt: skip
+        first = self.parts[self.part_of[0]].cameras if n else ()
+        self.chooser: Any = None
+        self.image: Any = None
+        if any(len(p.cameras) > 1 for p in self.parts):
+            names = tuple(c[0] for c in first) or ("",)
+            self.chooser = gui.add_dropdown("camera", names, initial_value=names[0], visible=len(first) > 1)
+        shape = next((p.cameras[0] for p in self.parts if p.cameras), None)
+        if shape is not None:
+            label = first[0][0] if first else ""
+            self.image = gui.add_image(np.full((shape[1], shape[2], 3), NO_IMAGE, np.uint8), label=label, format="jpeg",
+                                       jpeg_quality=85, visible=bool(first))  # fmt: skip
+        self._shown_part = int(self.part_of[0]) if n else 0
+        self._colors_key: bytes = b""
+        self.url = f"http://{'localhost' if spec.host in ('0.0.0.0', '127.0.0.1') else spec.host}:{self.server.get_port()}"
+
+    @property
+    def picked(self) -> int:
+        return int(np.clip(self.picker.value, 0, self.n - 1))
+
+    @property
+    def cameras(self) -> tuple[tuple[str, int, int], ...]:
+        """The picked world's part's cameras."""
+        return self.parts[self.part_of[self.picked]].cameras
+
+    @property
+    def camera(self) -> int:
+        """The chosen camera's index in `cameras` (0 without a chooser)."""
+        names = [c[0] for c in self.cameras]
+        return names.index(self.chooser.value) if self.chooser is not None and self.chooser.value in names else 0
+
+    def show_part(self) -> int:
+        """The picked world's part, its plot and its cameras shown (the panel follows a pick into
+        another group's worlds); call before drawing the panel."""
+        p = int(self.part_of[self.picked])
+        if p != self._shown_part:
+            self._shown_part = p
+            for k, plot in enumerate(self.plots):
+                if plot is not None:
+                    plot.visible = k == p
+            names = tuple(c[0] for c in self.parts[p].cameras)
+            if self.chooser is not None:
+                if len(names) > 1:
+                    self.chooser.options = names
+                self.chooser.visible = len(names) > 1
+            if self.image is not None:
+                self.image.visible = bool(names)
+        return p
+
+    def blank(self, camera: int) -> np.ndarray:
+        """The grey image of the picked world's camera `camera`, until its frame comes."""
+        _name, h, w = self.cameras[camera]
+        return np.full((h, w, 3), NO_IMAGE, np.uint8)
+
+    def _clicked(self, part: ScenePart, event: Any) -> None:
+        if event.instance_index is not None:
+            self.picker.value = int(part.worlds[int(event.instance_index)])
+
+    def draw(self, poses: np.ndarray, part: int = 0) -> None:
+        """poses: (nworld, nanchor, 7) the anchors' world poses (position, quaternion w x y z) of
+        part `part`'s worlds (every world, for one part)."""
+        grid = self.grid[list(self.parts[part].worlds)]
+        with self.server.atomic():
+            for g, handle in zip(self.parts[part].spec.geoms, self.handles[part], strict=True):
+                if g.anchor < 0:
+                    continue  # on the world body: never moves
+                p, q = poses[:, g.anchor, :3], poses[:, g.anchor, 3:]
+                handle.batched_positions = (grid + p + rotate(q, np.broadcast_to(g.pos, p.shape))).astype(np.float32)
+                handle.batched_wxyzs = qmul(q, np.broadcast_to(g.quat, q.shape)).astype(np.float32)
+
+    def tint(self, status: np.ndarray, flags: np.ndarray) -> None:
+        """Every world's colour from its status bits and flags ((nworld,) each)."""
+        key = status.tobytes() + flags.tobytes()
+        if key == self._colors_key:
+            return
+        self._colors_key = key
+        frozen = ((flags & FLAG_FROZEN) != 0) | ((status & int(FROZEN)) != 0)
+        bad = ((flags & FLAG_BAD) != 0) | ((status & int(Status.BAD_COMMAND)) != 0)
+        timeout = (flags & FLAG_TIMED_OUT) != 0
+        for part, rgbs, handles in zip(self.parts, self.base_rgb, self.handles, strict=True):
+            rows = list(part.worlds)
+            for rgb, handle in zip(rgbs, handles, strict=True):
+                colors = np.tile(rgb, (len(rows), 1))
+                colors[timeout[rows]] = TIMEOUT_RGB
+                colors[bad[rows]] = BAD_RGB
+                colors[frozen[rows]] = FROZEN_RGB
+                handle.batched_colors = colors
+
+    def plot_joints(self, t: np.ndarray, q: np.ndarray) -> None:
+        """The picked world's joint positions q (len(t), njoint) at sim times t."""
+        plot = self.plots[self.part_of[self.picked]]
+        if plot is not None and len(t):
+            plot.data = (t, *q.reshape(len(t), -1).T)
+
+
+def _stroke(i: int) -> str:
+    return ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f")[i % 8]
