@@ -243,5 +243,47 @@ def test_a_recording_in_the_view_shows_the_robots_and_scrubs(tmp_path):
             browser.close()
 
 
+def test_the_view_of_a_fleet_of_groups_shows_every_groups_worlds(tmp_path):
+    """A fleet of two groups (2 arms; 2 arms beside a rover): one page of all 4 worlds, each
+    drawn with its group's robots, and a picked world of the second group shows its status."""
+    import yaml
+
+    depot = tmp_path / "depot.yaml"
+    depot.write_text(yaml.safe_dump({"groups": [
+        {"name": "arms", "worlds": 2, "robots": [{"name": "arm", "model": "arm"}]},
+        {"name": "yard", "worlds": 2, "robots": [{"name": "arm", "model": "arm"},
+                                                  {"name": "rover", "model": "rover", "pose": [0.0, 2.0, 0.0, 0.0]}]},
+    ]}))  # fmt: skip
+    domain, port = domain_id(72), _free_port()
+    log = tmp_path / "log"
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain)}
+    args = ["--fleet", str(depot), "--backend", "cpu", "--quiet", "--controllers", "none", "--bridge-workers", "1",
+            "--view", "--view-port", str(port)]  # fmt: skip
+    proc = subprocess.Popen([sys.executable, "-m", "batchsim.cli", *args], env=env, stdout=open(log, "w"), stderr=subprocess.STDOUT)
+    browser = None
+    try:
+        _wait(lambda: "batchsim: view: " in log.read_text(), 60, "the view's line")
+        assert log.read_text().count("batchsim: view: ") == 1  # one page for both groups
+        browser = Browser()
+        browser.session_call("POST", "/url", {"url": f"http://localhost:{port}"})
+        _wait(lambda: "4 worlds" in browser.text() and "running 4" in browser.text(), 30, f"the fleet's panel\n{browser.text()}")
+        time.sleep(2.0)  # the meshes arrive and are drawn (software WebGL)
+        shot = browser.screenshot()[..., :3].astype(int)
+        imageio.v3.imwrite(tmp_path / "view.png", shot.astype(np.uint8))
+        r, g, b = shot[..., 0], shot[..., 1], shot[..., 2]
+        assert ((r > 120) & (r - g > 40) & (g - b > 30))[:, : shot.shape[1] * 2 // 3].sum() > 300, "no robot in the screenshot"
+        browser.session_call("POST", "/execute/sync", {"script": PICK, "args": []})
+        keys = [{"type": kind, "value": key} for key in "3\ue007" for kind in ("keyDown", "keyUp")]
+        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        _wait(lambda: "world_3 (world 3): running" in browser.text(), 20, f"world 3's status\n{browser.text()}")
+        assert proc.poll() is None
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        if browser is not None:
+            browser.close()
+        release_domain(domain)
+
+
 # the slider's own number field (the second number input of the panel, after the world's)
 SLIDER = "const input = document.querySelectorAll('input.mantine-NumberInput-input')[1]; input.focus(); input.select();"

@@ -1,0 +1,108 @@
+"""The live web view of a fleet of two groups of worlds (ros_bridge/bridge.py's join_bridges): one
+view process for both groups' bridges, and the page's data as it makes it (worker/view.py's
+FleetView over every group's plan and snapshot): each world drawn with its own group's robots in
+its own cell of the fleet's grid, the picked world's panel from its own group. The page in a
+browser: tests/test_view.py.
+
+The fleet: group `arms`, 2 worlds of an arm (worlds 0 and 1), and group `yard`, 2 worlds of an
+arm beside a rover (worlds 2 and 3), each group's bridge in this process (workers=0) on its own
+ROS domain.
+"""
+
+from __future__ import annotations
+
+import socket
+
+import numpy as np
+import pytest
+from conftest import need
+from ros_fleet import LOCALHOST, domain_id, release_domain
+
+rclpy = need("rclpy")
+need("viser")
+
+import batchsim  # noqa: E402
+from batchsim.cli.runner import group_options  # noqa: E402
+from batchsim.loop import SimLoop  # noqa: E402
+
+pytestmark = pytest.mark.ros
+DEPOT = {
+    "groups": [
+        {"name": "arms", "worlds": 2, "robots": [{"name": "arm", "model": "arm"}]},
+        {
+            "name": "yard",
+            "worlds": 2,
+            "robots": [{"name": "arm", "model": "arm"}, {"name": "rover", "model": "rover", "pose": [0.0, 2.0, 0.0, 0.0]}],
+        },
+    ]
+}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypatch):
+    from ros_bridge.bridge import join_bridges, open_bridge
+    from ros_bridge.options import BridgeOptions, ViewOptions
+    from ros_bridge.worker.view import FleetView
+
+    domain = domain_id(62)
+    for key, value in {**LOCALHOST, "ROS_DOMAIN_ID": str(domain)}.items():
+        monkeypatch.setenv(key, value)
+    groups = batchsim.make_groups(DEPOT, "cpu")
+    loops = []
+    for _group, sim in groups:
+        sim.configure()
+        sim.activate()
+        loops.append(SimLoop(sim, control_rate=100.0, rtf=0.0))
+    loops[0].join(loops[1])
+    options = BridgeOptions(workers=0, view=ViewOptions(port=_free_port()))
+    bridges, live = [], None
+    try:
+        for (group, sim), loop in zip(groups, loops, strict=True):
+            bridges.append(open_bridge(sim, loop, group_options(options, group)))
+        process = join_bridges(bridges, [group.name for group, _ in groups])
+        assert process is not None and process.url is not None  # one view process, for both groups
+        # the page's data, made as that process makes it, from the same plans and snapshots
+        live = FleetView([b.plan for b in bridges], [b.host.memory for b in bridges])
+        live.want(True)
+        scene = live.scene
+
+        def shown() -> None:
+            for _ in range(3):
+                loops[0].run_period()
+            live.update()
+
+        shown()
+        assert live.namespaces == ["world_0", "world_1", "world_2", "world_3"]
+        assert [part.worlds for part in scene.parts] == [(0, 1), (2, 3)]
+        arms, yard = (part.spec.geoms for part in scene.parts)
+        assert not any(g.name.startswith("rover/") for g in arms) and any(g.name.startswith("rover/") for g in yard)
+        assert scene.fleet_text.content.startswith("**4 worlds** · sim time")
+        assert "running 4 · frozen 0" in scene.fleet_text.content
+        for part, handles in zip(scene.parts, scene.handles, strict=True):
+            assert len(handles) == len(part.spec.geoms)  # one instanced mesh per geom, an instance per world
+            moving = [k for k, g in enumerate(part.spec.geoms) if g.anchor >= 0]
+            for k in moving:  # each world's robots in its own cell: the same pose there (nothing moves them)
+                at = handles[k].batched_positions - scene.grid[list(part.worlds)]
+                assert len(at) == 2 and np.allclose(at[0], at[1], atol=1e-3)
+                assert np.linalg.norm(at[0]) < 5.0
+        base = next(k for k, g in enumerate(yard) if g.name.startswith("rover/") and g.anchor >= 0)
+        drawn = scene.handles[1][base].batched_positions[:, :2] - scene.grid[[2, 3], :2]
+        assert np.allclose(drawn[:, 1], 2.0, atol=0.3)  # the rover where the fleet file put it (y = 2)
+        for world in (3, 1):  # a world of the second group, then of the first: each its own group's status
+            scene.picker.value = world
+            shown()
+            assert scene.world_text.content == f"**world_{world}** (world {world}): running"
+    finally:
+        if live is not None:
+            live.want(False)
+            live.scene.server.stop()
+        for b in bridges:
+            b.host.close()
+        for _group, sim in groups:
+            sim.shutdown()
+        release_domain(domain)
