@@ -100,7 +100,7 @@ class RecordWriter:
             rows = channel_rows(m, n, c)
             m["rec.written"][s, j] = rows is not None
             if rows is not None:
-                np.take(rows, self.worlds, axis=0, out=m[f"rec.ch{c}"][s])
+                np.take(rows, self.worlds, axis=0, out=m[f"rec.ch{c}"][s, :nrow])
         m["rec.pos"][0] = k + 1
         return True
 
