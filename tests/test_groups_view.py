@@ -1,8 +1,8 @@
 """The live web view of a fleet of two groups of worlds (ros_bridge/bridge.py's join_bridges): one
 view process for both groups' bridges, and the page's data as it makes it (worker/view.py's
 FleetView over every group's plan and snapshot): each world drawn with its own group's robots in
-its own cell of the fleet's grid, the picked world's panel from its own group. The page in a
-browser: tests/test_view.py.
+its own cell of the fleet's grid, the picked world's panel (status, camera image) from its own
+group. The page in a browser: tests/test_view.py.
 
 The fleet: group `arms`, 2 worlds of an arm (worlds 0 and 1), and group `yard`, 2 worlds of an
 arm beside a rover (worlds 2 and 3), each group's bridge in this process (workers=0) on its own
@@ -52,7 +52,7 @@ def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypat
     domain = domain_id(62)
     for key, value in {**LOCALHOST, "ROS_DOMAIN_ID": str(domain)}.items():
         monkeypatch.setenv(key, value)
-    groups = batchsim.make_groups(DEPOT, "cpu")
+    groups = batchsim.make_groups(DEPOT, "cpu", sensors={"sensors": {"camera_resolution": [16, 12], "camera_rate": 50}})
     loops = []
     for _group, sim in groups:
         sim.configure()
@@ -93,10 +93,21 @@ def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypat
         base = next(k for k, g in enumerate(yard) if g.name.startswith("rover/") and g.anchor >= 0)
         drawn = scene.handles[1][base].batched_positions[:, :2] - scene.grid[[2, 3], :2]
         assert np.allclose(drawn[:, 1], 2.0, atol=0.3)  # the rover where the fleet file put it (y = 2)
+        assert scene.image is not None and not scene.image.visible  # world 0's group has no camera
         for world in (3, 1):  # a world of the second group, then of the first: each its own group's status
             scene.picker.value = world
             shown()
             assert scene.world_text.content == f"**world_{world}** (world {world}): running"
+            if world == 3:  # the rover's camera, of world 3 (its group's second world), rendered for the page
+                assert scene.image.visible and scene.image.label == "rover/front_camera (world 3)"
+                assert bridges[1].camera.request.asked() == (1, 0) and bridges[0].camera is None
+                for _ in range(50):
+                    if scene.image.image.std() > 5:  # not the grey it shows until a frame comes
+                        break
+                    shown()
+                assert scene.image.image.shape == (12, 16, 3) and scene.image.image.std() > 5
+            else:
+                assert not scene.image.visible and bridges[1].camera.request.asked() is None
     finally:
         if live is not None:
             live.want(False)
