@@ -66,6 +66,7 @@ def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypat
             bridges.append(open_bridge(sim, loop, group_options(options, group)))
         process = join_bridges(bridges, [group.name for group, _ in groups])
         assert process is not None and process.url is not None  # one view process, for both groups
+        process.close()  # one view at a time asks for a camera image: the one below, from here
         # the page's data, made as that process makes it, from the same plans and snapshots
         live = FleetView([b.plan for b in bridges], [b.host.memory for b in bridges])
         live.want(True)
