@@ -321,3 +321,21 @@ class Fleet:
             self._log.close()
             release_domain(self.domain)
         return self.proc.returncode
+
+
+def batchsim_process(args: Sequence[str], domain: int, log: Path) -> subprocess.Popen:
+    """`batchsim ARGS` in its own process on `domain` (LOCALHOST discovery), its output into `log`."""
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain), "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(
+        [sys.executable, "-m", "batchsim.cli", *args], env=env, stdout=open(log, "w"), stderr=subprocess.STDOUT
+    )
+
+
+def spin_until_exit(executor: Any, proc: subprocess.Popen, timeout: float = 60.0, grace: float = 1.0) -> None:
+    """Spin `executor` while `proc` runs (at most `timeout` s), then `grace` s more for what is in flight."""
+    deadline = time.monotonic() + timeout
+    while proc.poll() is None and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    end = time.monotonic() + grace
+    while time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.05)

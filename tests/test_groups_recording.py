@@ -22,7 +22,8 @@ from pathlib import Path
 
 import pytest
 from conftest import need
-from ros_fleet import LOCALHOST, Fleet, domain_id, release_domain
+from depot import DEPOT
+from ros_fleet import LOCALHOST, Fleet, batchsim_process, domain_id, release_domain, spin_until_exit
 
 rclpy = need("rclpy")
 need("mcap")
@@ -39,23 +40,6 @@ pytestmark = pytest.mark.ros
 DURATION, RATE = 1.0, 100  # the recorded run: 100 control periods
 PERIODS = round(DURATION * RATE)
 ROBOTS = [(0, "arm"), (1, "arm"), (2, "arm"), (2, "rover"), (3, "arm"), (3, "rover")]  # (world, robot)
-DEPOT = {
-    "groups": [
-        {"name": "arms", "worlds": 2, "robots": [{"name": "arm", "model": "arm"}]},
-        {
-            "name": "yard",
-            "worlds": 2,
-            "robots": [{"name": "arm", "model": "arm"}, {"name": "rover", "model": "rover", "pose": [0.0, 2.0, 0.0, 0.0]}],
-        },
-    ]
-}
-
-
-def _batchsim(args: list[str], domain: int, log: Path) -> subprocess.Popen:
-    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain), "PYTHONUNBUFFERED": "1"}
-    return subprocess.Popen(
-        [sys.executable, "-m", "batchsim.cli", *args], env=env, stdout=open(log, "w"), stderr=subprocess.STDOUT
-    )
 
 
 def _record(depot: Path, path: Path, domain_base: int, *more: str) -> str:
@@ -65,7 +49,7 @@ def _record(depot: Path, path: Path, domain_base: int, *more: str) -> str:
     try:
         args = ["--fleet", str(depot), "--backend", "cpu", "--controllers", "none", "--bridge-workers", "1",
                 "--rtf", "0", "--duration", str(DURATION), "--quiet", "--record", str(path), *more]  # fmt: skip
-        assert _batchsim(args, domain, log).wait(timeout=180) == 0, log.read_text()
+        assert batchsim_process(args, domain, log).wait(timeout=180) == 0, log.read_text()
     finally:
         release_domain(domain)
     return log.read_text()
@@ -197,14 +181,9 @@ def test_replay_publishes_every_groups_topics(recorded, tmp_path):
         node.create_subscription(JointState, topic, got[topic].append, QoSProfile(depth=1000), raw=True)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    proc = _batchsim(["replay", str(recorded), "--worlds", "0,3", "--rate", "2", "--delay", "5"], domain, tmp_path / "log")
+    proc = batchsim_process(["replay", str(recorded), "--worlds", "0,3", "--rate", "2", "--delay", "5"], domain, tmp_path / "log")
     try:
-        deadline = time.monotonic() + 60
-        while proc.poll() is None and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-        end = time.monotonic() + 1.0
-        while time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
+        spin_until_exit(executor, proc)
         log = (tmp_path / "log").read_text()
         assert proc.returncode == 0, log
         for topic in picked:

@@ -11,6 +11,7 @@ import time
 
 import pytest
 from conftest import need
+from depot import DEPOT
 
 rclpy = need("rclpy")  # skips where ROS is absent, fails instead under BATCHSIM_FORCE_BACKENDS=1
 
@@ -27,23 +28,7 @@ def fleet(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("groups")
     path = root / "depot.yaml"
-    path.write_text(
-        yaml.safe_dump(
-            {
-                "groups": [
-                    {"name": "arms", "worlds": 2, "robots": [{"name": "arm", "model": "arm"}]},
-                    {
-                        "name": "yard",
-                        "worlds": 2,
-                        "robots": [
-                            {"name": "arm", "model": "arm"},
-                            {"name": "rover", "model": "rover", "pose": [0.0, 2.0, 0.0, 0.0]},
-                        ],
-                    },
-                ]
-            }
-        )
-    )
+    path.write_text(yaml.safe_dump(DEPOT))
     with Fleet(domain_id(60), ["--fleet", str(path), "--backend", "cpu", "--bridge-workers", "1"], root / "batchsim.log") as f:
         f.clock = f.latest(Clock, "/clock")
         f.js = {

@@ -16,6 +16,7 @@ import socket
 import numpy as np
 import pytest
 from conftest import need
+from depot import DEPOT
 from ros_fleet import LOCALHOST, domain_id, release_domain
 
 rclpy = need("rclpy")
@@ -26,16 +27,6 @@ from batchsim.cli.runner import group_options  # noqa: E402
 from batchsim.loop import SimLoop  # noqa: E402
 
 pytestmark = pytest.mark.ros
-DEPOT = {
-    "groups": [
-        {"name": "arms", "worlds": 2, "robots": [{"name": "arm", "model": "arm"}]},
-        {
-            "name": "yard",
-            "worlds": 2,
-            "robots": [{"name": "arm", "model": "arm"}, {"name": "rover", "model": "rover", "pose": [0.0, 2.0, 0.0, 0.0]}],
-        },
-    ]
-}
 
 
 def _free_port() -> int:

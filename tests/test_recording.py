@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
 import time
 from collections import Counter, defaultdict
 from pathlib import Path
@@ -16,7 +14,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import need
-from ros_fleet import LOCALHOST, alive, children, cmdline, domain_id, release_domain
+from ros_fleet import (
+    LOCALHOST,
+    alive,
+    batchsim_process,
+    children,
+    cmdline,
+    domain_id,
+    release_domain,
+    spin_until_exit,
+)
 
 rclpy = need("rclpy")
 need("mcap")
@@ -33,13 +40,6 @@ pytestmark = pytest.mark.ros
 NWORLD, DURATION, RATE = 3, 1.0, 100  # the recorded run: 100 control periods
 
 
-def _batchsim(args: list[str], domain: int, log: Path) -> subprocess.Popen:
-    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain), "PYTHONUNBUFFERED": "1"}
-    return subprocess.Popen(
-        [sys.executable, "-m", "batchsim.cli", *args], env=env, stdout=open(log, "w"), stderr=subprocess.STDOUT
-    )
-
-
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory) -> Path:
     """Worlds 0 and 2 of 3 arms, 1 s of sim time as fast as the recorder takes it."""
@@ -48,7 +48,7 @@ def recorded(tmp_path_factory) -> Path:
     domain = domain_id(70)
     try:
         args = ["--worlds", str(NWORLD), "--rtf", "0", "--duration", str(DURATION), "--quiet", "--record", str(path)]
-        proc = _batchsim([*args, "--record-worlds", "0,2"], domain, where / "log")
+        proc = batchsim_process([*args, "--record-worlds", "0,2"], domain, where / "log")
         assert proc.wait(timeout=120) == 0, (where / "log").read_text()
     finally:
         release_domain(domain)
@@ -175,14 +175,9 @@ def test_replay_republishes_what_was_recorded(recorded, tmp_path):
     node.create_subscription(Clock, "/clock", clock.append, QoSProfile(depth=1000), raw=True)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    proc = _batchsim(["replay", str(recorded), "--worlds", "2", "--rate", "2", "--delay", "5"], domain, tmp_path / "log")
+    proc = batchsim_process(["replay", str(recorded), "--worlds", "2", "--rate", "2", "--delay", "5"], domain, tmp_path / "log")
     try:
-        deadline = time.monotonic() + 60
-        while proc.poll() is None and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-        end = time.monotonic() + 1.0
-        while time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
+        spin_until_exit(executor, proc)
         log = (tmp_path / "log").read_text()
         assert proc.returncode == 0, log
         assert got == expected, log  # the recorded CDR bytes, every one, in order
@@ -216,7 +211,7 @@ def test_a_killed_recorder_leaves_a_readable_file_and_the_fleet_running_and_the_
 
     path = tmp_path / "live.mcap"
     domain = domain_id(70)
-    proc = _batchsim(["--worlds", "2", "--quiet", "--controllers", "none", "--record", str(path)], domain, tmp_path / "log")
+    proc = batchsim_process(["--worlds", "2", "--quiet", "--controllers", "none", "--record", str(path)], domain, tmp_path / "log")
     log = tmp_path / "log"
     os.environ.update(LOCALHOST)
     context = None
@@ -276,7 +271,7 @@ def test_a_full_disk_stops_the_recording_with_one_line_and_the_run_goes_on(tmp_p
         pytest.skip("no /dev/full")
     domain = domain_id(70)
     try:
-        proc = _batchsim(["--worlds", "1", "--rtf", "0", "--duration", "0.5", "--record", "/dev/full"], domain, tmp_path / "log")
+        proc = batchsim_process(["--worlds", "1", "--rtf", "0", "--duration", "0.5", "--record", "/dev/full"], domain, tmp_path / "log")
         assert proc.wait(timeout=120) == 0
     finally:
         release_domain(domain)
