@@ -14,9 +14,10 @@ periods compile and are not timed.
 ros: `batchsim --fleet FILE --worlds N --rtf 1 --publish-rate R` (default the warehouse) in a
 process of its own on a private ROS domain (discovery on this host only), and one subscriber
 process that counts, raw, every robot's joint_states, the odom (the simulation's ground truth)
-of every robot with a floating base, and every world's tf: received against worlds x robots x rate x RTF held, over a window of
-wall seconds after a warm-up; the RTF held is the status line's, once a second (median and
-worst). Nothing is asserted: speed is measured here, never in tests.
+of every robot with a floating base, and every world's tf: received against what the fleet
+published in the window (worlds x robots x rate x the sim time the window spanned, from /clock
+as the subscriber heard it), over a window of wall seconds after a warm-up; the RTF held is
+the status line's, once a second (median and worst). Nothing is asserted: speed is measured here, never in tests.
 """
 
 from __future__ import annotations
@@ -105,8 +106,8 @@ def physics(opts: argparse.Namespace) -> None:
 # --- ros: the warehouse, every robot's topics counted in another process ---
 def subscriber(domain: int, worlds: int, robot_names: str, odom_names: str) -> None:
     """Count every robot's joint_states, the odom of those with a floating base, and every
-    world's tf, raw; print `count <wall> <joint_states> <odom> <tf>` every 0.25 s and `heard
-    <wall>` once every topic was heard, until stdin closes."""
+    world's tf, raw; print `count <wall> <joint_states> <odom> <tf> <sim time>` (the newest
+    /clock) every 0.25 s and `heard <wall>` once every topic was heard, until stdin closes."""
     robots, with_odom = robot_names.split(","), [n for n in odom_names.split(",") if n]
     os.environ.update(LOCALHOST)
     import rclpy
@@ -114,6 +115,7 @@ def subscriber(domain: int, worlds: int, robot_names: str, odom_names: str) -> N
     from rclpy.context import Context
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
+    from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import JointState
     from tf2_msgs.msg import TFMessage
 
@@ -132,6 +134,12 @@ def subscriber(domain: int, worlds: int, robot_names: str, odom_names: str) -> N
 
         return callback
 
+    clock = [0.0]
+
+    def on_clock(msg: Clock) -> None:
+        clock[0] = max(clock[0], msg.clock.sec + msg.clock.nanosec * 1e-9)
+
+    node.create_subscription(Clock, "/clock", on_clock, 10)
     for w in range(worlds):
         node.create_subscription(TFMessage, f"/world_{w}/tf", counter("tf", w), 100, raw=True)
         for r, name in enumerate(robots):
@@ -148,7 +156,7 @@ def subscriber(domain: int, worlds: int, robot_names: str, odom_names: str) -> N
             print(f"heard {now:.3f}", flush=True)
         if now >= next_report:
             next_report = now + 0.25
-            print(f"count {now:.3f} {counts['js'].sum()} {counts['odom'].sum()} {counts['tf'].sum()}", flush=True)
+            print(f"count {now:.3f} {counts['js'].sum()} {counts['odom'].sum()} {counts['tf'].sum()} {clock[0]:.6f}", flush=True)
     executor.shutdown()
     node.destroy_node()
     rclpy.try_shutdown(context=context)
@@ -215,23 +223,25 @@ def ros(opts: argparse.Namespace) -> None:
     sub.stdin.close()
     sub.wait(30)
     window = c1[0] - c0[0]
+    sim_window = c1[4] - c0[4]  # the sim time the window spanned, from /clock as the subscriber heard it
     rtf = statistics.median(rtfs) if rtfs else float("nan")
     print(f"heard every robot's joint_states, odom and tf {heard - started:.1f} s after the start line" if heard else "not every topic was heard")
-    print(f"rtf held: median {rtf:.3f}, worst second {min(rtfs) if rtfs else float('nan'):.3f} ({len(rtfs)} status lines)")
+    print(f"rtf held: median {rtf:.3f}, worst second {min(rtfs) if rtfs else float('nan'):.3f} ({len(rtfs)} status lines); "
+          f"{sim_window:.2f} sim s in the {window:.2f} s window")  # fmt: skip
     kinds = (("joint_states", opts.worlds * len(names)), ("odom", opts.worlds * len(with_odom)), ("tf", opts.worlds))
     for k, (name, n) in enumerate(kinds):
         if not n:
             continue
         got = c1[k + 1] - c0[k + 1]
-        expected = n * opts.rate * rtf * window
-        print(f"{name:12s} received {got / window:9.0f}/s of {expected / window:9.0f}/s expected ({got / expected:.4f})")
+        expected = n * opts.rate * sim_window  # what the fleet publishes in the sim time the window spanned
+        print(f"{name:12s} received {got / window:9.0f}/s of {expected / window:9.0f}/s published ({got / expected:.4f})")
 
 
-def _last_count(lines: list[str]) -> tuple[float, int, int, int]:
+def _last_count(lines: list[str]) -> tuple[float, int, int, int, float]:
     for x in reversed(lines):
         if x.startswith("count "):
-            _, t, js, odom, tf = x.split()
-            return float(t), int(js), int(odom), int(tf)
+            _, t, js, odom, tf, clock = x.split()
+            return float(t), int(js), int(odom), int(tf), float(clock)
     raise SystemExit("the subscriber reported nothing")
 
 
