@@ -227,6 +227,11 @@ class SensorFeed(Participant):
         self._wanted = want
         self.sampler.update(sim, time, period)
 
+    def on_stop(self, sim: Contract, time: float) -> None:
+        """The run is over: the renders still in flight go into the blocks, where a recording,
+        which finishes after the loop, takes them (a --duration run's last frames)."""
+        self.sampler.on_stop(sim, time)
+
     def _write(self, sample: Sample) -> None:
         block = self.blocks.get(sample.name)
         if block is None:

@@ -100,8 +100,8 @@ def test_every_frame_and_scan_of_the_recorded_worlds_at_the_sensor_rate(recorded
         for topic, rate in (("front_camera/image_raw", CAMERA), ("front_camera/depth/image_raw", CAMERA),
                             ("front_camera/camera_info", CAMERA), ("scan", SCAN), ("points", RING)):  # fmt: skip
             times = np.array([t for t, _d, _m in topics[f"/world_{w}/{topic}"]]) * 1e-9
-            # from the first sensor period, none left out; the run's last render may still be in flight at its end
-            assert times[0] < 1 / rate and len(times) >= round(DURATION * rate) - 1, (w, topic, times)
+            # from the first sensor period, none left out: the renders in flight when the run ends too
+            assert times[0] < 1 / rate and len(times) == round(DURATION * rate), (w, topic, times)
             np.testing.assert_allclose(np.diff(times), 1 / rate, atol=1e-6, err_msg=f"{w} {topic}")
         assert len(topics[f"/world_{w}/joint_states"]) == round(DURATION * 100)
         # one render per frame: the image, its depth and its camera_info share a stamp

@@ -373,6 +373,24 @@ def test_sampler_hands_out_one_frame_of_a_world_per_update():
     sim.shutdown()
 
 
+def test_a_runs_last_frames_still_rendering_when_it_stops_are_handed_out():
+    """A frame asked for in a run's last period is still rendering when the loop stops: run()
+    hands it out before it returns (a --duration recording's last frames were lost)."""
+    from batchsim.loop import SimLoop
+
+    sim = batchsim.make(str(SCENE), 2, "cpu", sensors={"sensors": {"camera_rate": 100}})
+    sim.configure()
+    sim.activate()
+    sim.sensors.want("front", [0, 1])
+    times: list[float] = []
+    sampler = SensorSampler(sim, [lambda sample: times.append(round(sample.time, 6))])
+    loop = SimLoop(sim, control_rate=100.0, rtf=0.0, duration=0.1, participants=[sampler])
+    loop.run()
+    assert sorted(set(times)) == [round(k * 0.01, 6) for k in range(10)]  # 0.09: the last period's
+    assert sampler.produced["front"] == 20
+    sim.shutdown()
+
+
 # ---------------------------------------------------------------- intrinsics as data
 
 

@@ -17,8 +17,12 @@ rtprio=99` for a container) the loop runs as before and says so once.
 from __future__ import annotations
 
 import dataclasses
+import gc
+import logging
 import os
 from collections.abc import Sequence
+
+log = logging.getLogger("batchsim")
 
 #: controller_manager's default (ros2_control_node's kSchedPriority)
 DEFAULT_THREAD_PRIORITY = 50
@@ -105,3 +109,52 @@ def with_siblings(cpus: Sequence[int], sysfs: str = "/sys/devices/system/cpu") -
             lo, _, hi = part.partition("-")
             out.update(range(int(lo), int(hi or lo) + 1))
     return frozenset(out)
+
+
+class Scheduling:
+    """The loop thread's scheduling over one SimLoop.run(): asked for after the first period
+    (which may compile), given up if the loop falls behind, restored when the run is over.
+
+    Args:
+      thread_priority: SCHED_FIFO's priority while pacing (0: do not ask).
+      cpu_affinity: the cores to pin the thread to (empty: as it is).
+      rtf: the loop's real-time factor (0, flat out: never SCHED_FIFO).
+    """
+
+    def __init__(self, thread_priority: int, cpu_affinity: Sequence[int], rtf: float):
+        self.thread_priority = thread_priority
+        self.cpu_affinity = tuple(cpu_affinity)
+        self.rtf = rtf
+        self.asked = False
+        self.saved: Saved | None = None
+
+    def elevate(self) -> None:
+        self.asked = True
+        # what start-up made is never scanned again: a full collection of a large fleet's
+        # objects took 160-190 ms of one period (1024 arms with the bridge, H100 host)
+        gc.collect()
+        gc.freeze()
+        priority = self.thread_priority if self.rtf > 0 else 0
+        self.saved, problems = elevate(priority, self.cpu_affinity)
+        for line in problems:
+            log.warning("batchsim: warning: the loop thread runs without %s (its periods may run late under load)", line)
+
+    def fell_behind(self, seconds: float) -> None:
+        """A thread of SCHED_FIFO running flat out would starve its core: give it up, once,
+        and say so (its cores stay)."""
+        if self.saved is None or not self.saved.fifo:
+            return
+        lower(self.saved)
+        self.saved = dataclasses.replace(self.saved, fifo=False)
+        log.warning(
+            "batchsim: warning: the loop fell %.1f s behind rtf %g: its thread gives up SCHED_FIFO for the rest of the run",
+            seconds,
+            self.rtf,
+        )
+
+    def finish(self) -> None:
+        """run() is over: scheduling and the collector as they were."""
+        restore(self.saved)
+        self.saved = None
+        if self.asked:
+            gc.unfreeze()

@@ -139,6 +139,10 @@ class SensorSampler(Participant):
         while self._pending:
             self._deliver(*self._pending.popleft())
 
+    def on_stop(self, sim: Contract, time: float) -> None:
+        """The run is over: its renders still in flight go out now, not never (a recording's last frames)."""
+        self.flush()
+
     def _produce(self, sim: Contract, name: str, worlds: np.ndarray, time: float) -> None:
         if name in sim.sensors.cameras:
             if self._spread:

@@ -14,8 +14,6 @@ reset). Nothing here imports rclpy: the bridge is one participant among others.
 from __future__ import annotations
 
 import dataclasses
-import gc
-import logging
 import operator
 import os
 import threading
@@ -30,7 +28,6 @@ from batchsim.loop import realtime
 from batchsim.types import OptionError, ReturnType, Status, worlds_index
 
 DEFAULT_CONTROL_RATE = 100.0  # Hz
-log = logging.getLogger("batchsim")
 
 
 class RateError(ValueError):
@@ -69,7 +66,8 @@ class Participant:
     Subclass it and override the hooks you need; every one is a no-op here. One period
     (`SimLoop.run_period`) runs read(), every `update`, write(), every `after_write`, then
     the period's physics steps with every `while_stepping` beside them. While the loop is
-    paused, `idle` runs in place of the periods; `on_reset` runs after `SimLoop.reset`.
+    paused, `idle` runs in place of the periods; `on_reset` runs after `SimLoop.reset`;
+    `on_stop` once a run() ends.
 
     A participant that is no subclass works too: an object with `update` and any of the
     other hooks by the same names (duck-typed). The loop keeps `participants` a plain list,
@@ -112,6 +110,12 @@ class Participant:
         worlds' goals and per-world state; nothing needs to infer a reset from the state
         (a world whose time goes backwards)."""
 
+    def on_stop(self, sim: Contract, time: float) -> None:
+        """Once `SimLoop.run` is over (stop() or its duration), on the loop's thread, before
+        run() returns: finish what is still in flight (the sensor sampler hands out its
+        renders still rendering, so a recording gets the run's last frames before it closes).
+        `time` is the sim time it stopped at. Not after a period that raised."""
+
 
 def _overrides(p: object, hook: str) -> bool:
     """Whether participant `p` has `hook` (a method, or an attribute of its own) other than
@@ -123,7 +127,7 @@ def _overrides(p: object, hook: str) -> bool:
 class _Hooks:
     """Which participants run which hook, in the participants' order (SimLoop._hooks)."""
 
-    __slots__ = ("participants", "after_write", "while_stepping", "idle", "on_reset", "_by_identity")
+    __slots__ = ("participants", "after_write", "while_stepping", "idle", "on_reset", "on_stop", "_by_identity")
 
     def __init__(self, participants: Sequence[Any]):
         self.participants = list(participants)  # a copy of the list it was made from; update() runs on each
@@ -131,6 +135,7 @@ class _Hooks:
         self.while_stepping = tuple(p for p in self.participants if _overrides(p, "while_stepping"))
         self.idle = tuple(p for p in self.participants if _overrides(p, "idle"))
         self.on_reset = tuple(p for p in self.participants if _overrides(p, "on_reset"))
+        self.on_stop = tuple(p for p in self.participants if _overrides(p, "on_stop"))
         # list == tests each pair for identity first, then with __eq__: an identity test, in
         # C, unless a participant has an __eq__ of its own
         self._by_identity = any(type(p).__eq__ is not object.__eq__ for p in self.participants)
@@ -375,14 +380,14 @@ class SimLoop:
         if self.leader is not self:
             raise RuntimeError("this loop is joined to another: that one's run() runs it")
         # flat out (rtf 0) the thread keeps its cores but never asks for SCHED_FIFO (it would starve them)
-        scheduling = _Scheduling(self) if self.cpu_affinity or (self.rtf > 0 and self.thread_priority) else None
+        scheduling = realtime.Scheduling(self.thread_priority, self.cpu_affinity, self.rtf) if self.cpu_affinity or (self.rtf > 0 and self.thread_priority) else None
         try:
             return self._run(report, report_every, scheduling)
         finally:
             if scheduling is not None:
                 scheduling.finish()
 
-    def _run(self, report: Callable[[LoopStats], None] | None, report_every: float, scheduling: _Scheduling | None) -> LoopStats:
+    def _run(self, report: Callable[[LoopStats], None] | None, report_every: float, scheduling: realtime.Scheduling | None) -> LoopStats:
         start = wallclock.perf_counter()
         anchor_wall, anchor_sim = start, self.sim_time
         window_wall, window_sim, window_steps = start, self.sim_time, 0
@@ -426,6 +431,9 @@ class SimLoop:
                 if report is not None:
                     report(self.stats)
                 window_wall, window_sim, window_steps = now, self.sim_time, 0
+        for member in self.members:
+            for p in member._hooks().on_stop:
+                p.on_stop(member.sim, member.sim_time)
         now = wallclock.perf_counter()
         if now > window_wall and window_steps:
             self._update_stats(now - window_wall, self.sim_time - window_sim, window_steps)
@@ -445,46 +453,6 @@ class SimLoop:
         s.diverged = int(np.count_nonzero(status & np.uint8(Status.DIVERGED)))
         s.overflow = int(np.count_nonzero(status & np.uint8(Status.OVERFLOW)))
         s.bad_command = int(np.count_nonzero(status & np.uint8(Status.BAD_COMMAND)))
-
-
-class _Scheduling:
-    """The loop thread's real-time scheduling (batchsim/loop/realtime.py) over one run()."""
-
-    def __init__(self, loop: SimLoop):
-        self.loop = loop
-        self.asked = False
-        self.saved: realtime.Saved | None = None
-
-    def elevate(self) -> None:
-        self.asked = True
-        # what start-up made is never scanned again: a full collection of a large fleet's
-        # objects took 160-190 ms of one period (1024 arms with the bridge, H100 host)
-        gc.collect()
-        gc.freeze()
-        priority = self.loop.thread_priority if self.loop.rtf > 0 else 0
-        self.saved, problems = realtime.elevate(priority, self.loop.cpu_affinity)
-        for line in problems:
-            log.warning("batchsim: warning: the loop thread runs without %s (its periods may run late under load)", line)
-
-    def fell_behind(self, seconds: float) -> None:
-        """A thread of SCHED_FIFO running flat out would starve its core: give it up, once,
-        and say so (its cores stay)."""
-        if self.saved is None or not self.saved.fifo:
-            return
-        realtime.lower(self.saved)
-        self.saved = dataclasses.replace(self.saved, fifo=False)
-        log.warning(
-            "batchsim: warning: the loop fell %.1f s behind rtf %g: its thread gives up SCHED_FIFO for the rest of the run",
-            seconds,
-            self.loop.rtf,
-        )
-
-    def finish(self) -> None:
-        """run() is over: scheduling and the collector as they were."""
-        realtime.restore(self.saved)
-        self.saved = None
-        if self.asked:
-            gc.unfreeze()
 
 
 def format_stats(stats: LoopStats, nworld: int, backend: str) -> str:
