@@ -12,8 +12,8 @@ picks the robot (rover: contacts with the floor, arm: none). On a GPU backend th
 periods compile and are not timed.
 
 ros: `batchsim --fleet FILE --worlds N --rtf 1 --publish-rate R` (default the warehouse) in a
-process of its own on a private ROS domain (discovery on this host only), and one subscriber
-process that counts, raw, every robot's joint_states, the odom (the simulation's ground truth)
+process of its own on a private ROS domain (discovery on this host only), and subscriber
+processes (`--subscriber-processes`, each a share of the worlds) that count, raw, every robot's joint_states, the odom (the simulation's ground truth)
 of every robot with a floating base, and every world's tf: received against what the fleet
 published in the window (worlds x robots x rate x the sim time the window spanned, from /clock
 as the subscriber heard it), over a window of wall seconds after a warm-up; the RTF held is
@@ -104,8 +104,8 @@ def physics(opts: argparse.Namespace) -> None:
 
 
 # --- ros: the warehouse, every robot's topics counted in another process ---
-def subscriber(domain: int, worlds: int, robot_names: str, odom_names: str) -> None:
-    """Count every robot's joint_states, the odom of those with a floating base, and every
+def subscriber(domain: int, first: int, worlds: int, robot_names: str, odom_names: str) -> None:
+    """Count, for worlds first .. first + worlds - 1, every robot's joint_states, the odom of those with a floating base, and every
     world's tf, raw; print `count <wall> <joint_states> <odom> <tf> <sim time>` (the newest
     /clock) every 0.25 s and `heard <wall>` once every topic was heard, until stdin closes."""
     robots, with_odom = robot_names.split(","), [n for n in odom_names.split(",") if n]
@@ -140,12 +140,12 @@ def subscriber(domain: int, worlds: int, robot_names: str, odom_names: str) -> N
         clock[0] = max(clock[0], msg.clock.sec + msg.clock.nanosec * 1e-9)
 
     node.create_subscription(Clock, "/clock", on_clock, 10)
-    for w in range(worlds):
-        node.create_subscription(TFMessage, f"/world_{w}/tf", counter("tf", w), 100, raw=True)
+    for i, w in enumerate(range(first, first + worlds)):
+        node.create_subscription(TFMessage, f"/world_{w}/tf", counter("tf", i), 100, raw=True)
         for r, name in enumerate(robots):
-            node.create_subscription(JointState, f"/world_{w}/{name}/joint_states", counter("js", w * len(robots) + r), 10, raw=True)
+            node.create_subscription(JointState, f"/world_{w}/{name}/joint_states", counter("js", i * len(robots) + r), 10, raw=True)
         for r, name in enumerate(with_odom):
-            node.create_subscription(Odometry, f"/world_{w}/{name}/odom", counter("odom", w * len(with_odom) + r), 10, raw=True)
+            node.create_subscription(Odometry, f"/world_{w}/{name}/odom", counter("odom", i * len(with_odom) + r), 10, raw=True)
     executor, stop = executor_until_stdin_closes(context, node)
     heard, next_report = False, time.time()
     while not stop.is_set():
@@ -183,12 +183,18 @@ def ros(opts: argparse.Namespace) -> None:
         f"# {_machine()}; {_versions()}; {opts.fleet}: {opts.worlds} worlds x {len(names)} robots on {opts.backend}, "
         f"publish {opts.rate:g} Hz"
     )
-    sub = subprocess.Popen(
-        [sys.executable, __file__, "--subscriber", str(opts.domain), str(opts.worlds), ",".join(names), ",".join(with_odom)],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
-    )  # fmt: skip
-    sub_lines: list[str] = []
-    _lines(sub, sub_lines)
+    nsub = max(1, min(opts.subscriber_processes, opts.worlds))
+    firsts = [opts.worlds * i // nsub for i in range(nsub + 1)]  # each process a contiguous share of the worlds
+    subs = [
+        subprocess.Popen(
+            [sys.executable, __file__, "--subscriber", str(opts.domain), str(a), str(b - a), ",".join(names), ",".join(with_odom)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+        )  # fmt: skip
+        for a, b in zip(firsts[:-1], firsts[1:], strict=True)
+    ]
+    sub_lines: list[list[str]] = [[] for _ in subs]
+    for sub, lines in zip(subs, sub_lines, strict=True):
+        _lines(sub, lines)
     fleet = subprocess.Popen(
         [
             sys.executable, "-m", "batchsim.cli", "--fleet", str(opts.fleet),
@@ -210,30 +216,35 @@ def ros(opts: argparse.Namespace) -> None:
         time.sleep(0.1)
     heard = None
     while heard is None and time.time() < started + 120:
-        heard = next((float(x.split()[1]) for x in sub_lines if x.startswith("heard ")), None)
+        each = [next((float(x.split()[1]) for x in lines if x.startswith("heard ")), None) for lines in sub_lines]
+        heard = None if None in each else max(each)
         time.sleep(0.1)
     time.sleep(opts.warmup)
     n0 = len(fleet_lines)
-    c0 = _last_count(sub_lines)
+    c0 = [_last_count(lines) for lines in sub_lines]
     time.sleep(opts.seconds)
-    c1 = _last_count(sub_lines)
+    c1 = [_last_count(lines) for lines in sub_lines]
     rtfs = [float(m.group(1)) for x in fleet_lines[n0:] if (m := re.search(r"rtf\s+([0-9.]+)", x))]
     fleet.send_signal(2)
     fleet.wait(30)
-    sub.stdin.close()
-    sub.wait(30)
-    window = c1[0] - c0[0]
-    sim_window = c1[4] - c0[4]  # the sim time the window spanned, from /clock as the subscriber heard it
+    for sub in subs:
+        sub.stdin.close()
+        sub.wait(30)
+    # each process's own window: its counts against what its worlds published in the sim time it spanned
+    window = statistics.mean(b[0] - a[0] for a, b in zip(c0, c1, strict=True))
+    sim_window = statistics.mean(b[4] - a[4] for a, b in zip(c0, c1, strict=True))  # from /clock as the subscribers heard it
     rtf = statistics.median(rtfs) if rtfs else float("nan")
     print(f"heard every robot's joint_states, odom and tf {heard - started:.1f} s after the start line" if heard else "not every topic was heard")
     print(f"rtf held: median {rtf:.3f}, worst second {min(rtfs) if rtfs else float('nan'):.3f} ({len(rtfs)} status lines); "
           f"{sim_window:.2f} sim s in the {window:.2f} s window")  # fmt: skip
-    kinds = (("joint_states", opts.worlds * len(names)), ("odom", opts.worlds * len(with_odom)), ("tf", opts.worlds))
-    for k, (name, n) in enumerate(kinds):
-        if not n:
+    kinds = (("joint_states", len(names)), ("odom", len(with_odom)), ("tf", 1))  # per world
+    print(f"{nsub} subscriber process{'es' if nsub > 1 else ''}")
+    for k, (name, per_world) in enumerate(kinds):
+        if not per_world:
             continue
-        got = c1[k + 1] - c0[k + 1]
-        expected = n * opts.rate * sim_window  # what the fleet publishes in the sim time the window spanned
+        got = sum(b[k + 1] - a[k + 1] for a, b in zip(c0, c1, strict=True))
+        # what the fleet published in the sim time each window spanned
+        expected = sum(per_world * (n1 - n0) * opts.rate * (b[4] - a[4]) for n0, n1, a, b in zip(firsts[:-1], firsts[1:], c0, c1, strict=True))
         print(f"{name:12s} received {got / window:9.0f}/s of {expected / window:9.0f}/s published ({got / expected:.4f})")
 
 
@@ -251,7 +262,7 @@ def _machine() -> str:
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--subscriber":
-        subscriber(int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5])
+        subscriber(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5], sys.argv[6])
         return
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="what", required=True)
@@ -272,6 +283,7 @@ def main() -> None:
     r.add_argument("--seconds", type=float, default=20.0)
     r.add_argument("--warmup", type=float, default=5.0)
     r.add_argument("--domain", type=int, default=73)
+    r.add_argument("--subscriber-processes", type=int, default=1, help="the worlds split over this many subscribers")
     r.add_argument("extra", nargs="*", help="more batchsim flags, after --")
     opts = p.parse_args()
     physics(opts) if opts.what == "physics" else ros(opts)

@@ -16,7 +16,7 @@ quiet() { grep -v "^Warp \|^Module \|SCHED_FIFO"; }
 case $stage in
 measure)
   {
-    bash "$W"/.whl3/install.sh 2>&1 | tail -1
+    test -d /root/site || bash "$W"/.whl3/install.sh 2>&1 | tail -1  # gpu43.sh's install may have run it
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
     echo "== smoke: the warp engine's CUDA paths (graphs, pinned arrays, reset, freeze, device path)"
     timeout 150 python3 - <<'PY'
