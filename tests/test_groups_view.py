@@ -38,7 +38,7 @@ def _free_port() -> int:
 def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypatch):
     from ros_bridge.bridge import join_bridges, open_bridge
     from ros_bridge.options import BridgeOptions, ViewOptions
-    from ros_bridge.worker.view import FleetView
+    from ros_bridge.worker.view import PANEL_RATE, UPDATE_RATE, FleetView
 
     domain = domain_id(62)
     for key, value in {**LOCALHOST, "ROS_DOMAIN_ID": str(domain)}.items():
@@ -100,6 +100,27 @@ def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypat
                 assert scene.image.image.shape == (12, 16, 3) and scene.image.image.std() > 5
             else:
                 assert not scene.image.visible and bridges[1].camera.request.asked() is None
+        # the poses every update, the panel's text PANEL_RATE times a second (at 20 Hz a page on
+        # software WebGL fell behind its messages for good): counted where the page would get them
+        sent: list[str] = []
+
+        class Counted:
+            def __init__(self, content: str):
+                self._content = content
+
+            @property
+            def content(self) -> str:
+                return self._content
+
+            @content.setter
+            def content(self, value: str) -> None:
+                sent.append(value)
+                self._content = value
+
+        scene.fleet_text = Counted(scene.fleet_text.content)
+        for _ in range(20):
+            shown()
+        assert len(sent) == 20 * PANEL_RATE / UPDATE_RATE, sent
     finally:
         if live is not None:
             live.want(False)

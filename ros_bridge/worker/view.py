@@ -6,7 +6,8 @@ The page is view_scene.py's FleetScene: every world in a grid, drawn from MuJoCo
 each world tinted by its status; the panel shows sim time, the RTF and how many worlds are in
 each state, and the picked world's status, joint positions over the last seconds and, where its
 worlds have cameras, its camera's latest RGB image. Poses and status come from the snapshot the
-bridge workers read (ros_bridge/protocol/snapshot.py), at most UPDATE_RATE times a second; the
+bridge workers read (ros_bridge/protocol/snapshot.py), at most UPDATE_RATE times a second, the
+panel's text and plot PANEL_RATE times (each update one message batch to the page); the
 image from the camera's sensor block (ros_bridge/protocol/sensor_blocks.py), rendered for that one
 world while the view asks (`view.camera`, ros_bridge/view_plan.py's ViewCamera). A fleet of several
 groups is one page: each group's snapshot, read from its own bridge's shared memory, draws its
@@ -42,6 +43,10 @@ from ros_bridge.world_status import status_text
 __all__ = ["FleetScene", "FleetView", "ScenePart", "main", "qmul", "rotate"]
 
 UPDATE_RATE = 20.0  # Hz
+# The panel's text and plot: each change is a React render of the panel in the page; at 20 Hz
+# beside software WebGL on 2 busy cores, the page fell behind the messages and never caught up
+# (its sim time a minute late, a WebDriver call waiting minutes for its thread)
+PANEL_RATE = 5.0  # Hz
 PLOT_SECONDS = 10.0
 NICE = 10
 
@@ -92,6 +97,9 @@ class FleetView:
         self.history: collections.deque = collections.deque()
         self.scene.picker.on_update(lambda _: self.history.clear())
         self.seen = np.full(1, -1, np.int64)  # the seq of the shown world's frame last taken
+        self.updates = 0
+        self.panel_world = -1  # the world the panel shows: a pick shows the new one at once
+        self.panel_every = max(1, round(UPDATE_RATE / PANEL_RATE))
         self.shown = (-1, -1)  # (world, camera) of the image
 
     def want(self, on: bool) -> None:
@@ -102,6 +110,12 @@ class FleetView:
             self.shown = (-1, -1)
 
     def update(self) -> None:
+        """One update of the page, sent as one batch: the poses, the tints and (PANEL_RATE times a
+        second, or at once after a pick) the panel."""
+        with self.scene.server.atomic():
+            self._update()
+
+    def _update(self) -> None:
         snaps = []
         for k, g in enumerate(self.groups):
             snap = read_snapshot(g.memory, len(g.plan.channels), 0, g.n, g.snap)
@@ -118,7 +132,10 @@ class FleetView:
         self.rtf.append((wallclock.monotonic(), max(s.time for s in snaps)))
         self.scene.tint(self.status, self.flags)
         self.scene.show_part()
-        self._panel(max(s.time for s in snaps))
+        self._record()
+        if self.updates % self.panel_every == 0 or self.scene.picked != self.panel_world:
+            self._panel(max(s.time for s in snaps))
+        self.updates += 1
         if self.scene.image is not None:
             self._image()
 
@@ -163,15 +180,21 @@ class FleetView:
             f"**{self.n} worlds** · sim time {time:.2f} s · RTF {rtf:.2f}  \n"
             f"running {self.n - frozen} · frozen {frozen} · bad command {bad} · command timeout {timeout}"
         )
-        w = self.scene.picked
+        w = self.panel_world = self.scene.picked
+        text = f"**{self.namespaces[w] or '/'}** (world {w}): {status_text(int(self.status[w]), int(self.flags[w]))}"
+        if self.scene.world_text.content != text:
+            self.scene.world_text.content = text
+        if self.history:
+            self.scene.plot_joints(np.array([h[0] for h in self.history]), np.array([h[1] for h in self.history]))
+
+    def _record(self) -> None:
+        """The picked world's joint positions of this update into the plot's history."""
         g, row = self._picked()
-        self.scene.world_text.content = f"**{self.namespaces[w] or '/'}** (world {w}): {status_text(int(self.status[w]), int(self.flags[w]))}"
         joints, snap = g.spec.joints, g.last
         if joints is not None and snap is not None and joints[0] in snap.channels:
             self.history.append((snap.time, snap.channels[joints[0]][row, list(joints[1])]))
             while self.history and self.history[0][0] < snap.time - PLOT_SECONDS:
                 self.history.popleft()
-            self.scene.plot_joints(np.array([h[0] for h in self.history]), np.array([h[1] for h in self.history]))
 
 
 def main(argv: list[str] | None = None) -> int:
