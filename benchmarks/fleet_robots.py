@@ -23,10 +23,14 @@ the status line's, once a second (median and worst). Nothing is asserted: speed 
 from __future__ import annotations
 
 import argparse
+import collections
+import json
+import math
 import os
 import platform
 import re
 import statistics
+import struct
 import subprocess
 import sys
 import threading
@@ -104,10 +108,12 @@ def physics(opts: argparse.Namespace) -> None:
 
 
 # --- ros: the warehouse, every robot's topics counted in another process ---
-def subscriber(domain: int, first: int, worlds: int, robot_names: str, odom_names: str) -> None:
-    """Count, for worlds first .. first + worlds - 1, every robot's joint_states, the odom of those with a floating base, and every
-    world's tf, raw; print `count <wall> <joint_states> <odom> <tf> <sim time>` (the newest
-    /clock) every 0.25 s and `heard <wall>` once every topic was heard, until stdin closes."""
+def subscriber(domain: int, first: int, worlds: int, robot_names: str, odom_names: str, depth: int, rate: float) -> None:
+    """Count, for worlds first .. first + worlds - 1, every robot's joint_states, the odom of those
+    with a floating base, and every world's tf, raw; print `count <wall> <joint_states> <odom> <tf>
+    <sim time>` (the newest /clock) every 0.25 s and `heard <wall>` once every topic was heard,
+    until stdin closes; then `stamps <kind> <json>`: how many of each kind came with each stamp
+    (in publish periods, round(stamp x rate)), read from the CDR bytes."""
     robots, with_odom = robot_names.split(","), [n for n in odom_names.split(",") if n]
     os.environ.update(LOCALHOST)
     import rclpy
@@ -128,9 +134,17 @@ def subscriber(domain: int, first: int, worlds: int, robot_names: str, odom_name
         "tf": np.zeros(worlds, np.int64),
     }
 
+    stamps = {kind: collections.Counter() for kind in counts}
+    # the header's stamp: after the 4-byte CDR encapsulation; a TFMessage's first transform's, after its length
+    offset = {"js": 4, "odom": 4, "tf": 8}
+
     def counter(kind: str, k: int):
+        bins, at = stamps[kind], offset[kind]
+
         def callback(msg: bytes) -> None:
             counts[kind][k] += 1
+            sec, nsec = struct.unpack_from("<iI", msg, at)
+            bins[round((sec + nsec * 1e-9) * rate)] += 1
 
         return callback
 
@@ -141,11 +155,11 @@ def subscriber(domain: int, first: int, worlds: int, robot_names: str, odom_name
 
     node.create_subscription(Clock, "/clock", on_clock, 10)
     for i, w in enumerate(range(first, first + worlds)):
-        node.create_subscription(TFMessage, f"/world_{w}/tf", counter("tf", i), 100, raw=True)
+        node.create_subscription(TFMessage, f"/world_{w}/tf", counter("tf", i), max(100, depth), raw=True)
         for r, name in enumerate(robots):
-            node.create_subscription(JointState, f"/world_{w}/{name}/joint_states", counter("js", i * len(robots) + r), 10, raw=True)
+            node.create_subscription(JointState, f"/world_{w}/{name}/joint_states", counter("js", i * len(robots) + r), depth, raw=True)
         for r, name in enumerate(with_odom):
-            node.create_subscription(Odometry, f"/world_{w}/{name}/odom", counter("odom", i * len(with_odom) + r), 10, raw=True)
+            node.create_subscription(Odometry, f"/world_{w}/{name}/odom", counter("odom", i * len(with_odom) + r), depth, raw=True)
     executor, stop = executor_until_stdin_closes(context, node)
     heard, next_report = False, time.time()
     while not stop.is_set():
@@ -157,6 +171,8 @@ def subscriber(domain: int, first: int, worlds: int, robot_names: str, odom_name
         if now >= next_report:
             next_report = now + 0.25
             print(f"count {now:.3f} {counts['js'].sum()} {counts['odom'].sum()} {counts['tf'].sum()} {clock[0]:.6f}", flush=True)
+    for kind, bins in stamps.items():
+        print(f"stamps {kind} {json.dumps(bins)}", flush=True)
     executor.shutdown()
     node.destroy_node()
     rclpy.try_shutdown(context=context)
@@ -187,14 +203,13 @@ def ros(opts: argparse.Namespace) -> None:
     firsts = [opts.worlds * i // nsub for i in range(nsub + 1)]  # each process a contiguous share of the worlds
     subs = [
         subprocess.Popen(
-            [sys.executable, __file__, "--subscriber", str(opts.domain), str(a), str(b - a), ",".join(names), ",".join(with_odom)],
+            [sys.executable, __file__, "--subscriber", str(opts.domain), str(a), str(b - a), ",".join(names), ",".join(with_odom), str(opts.depth), str(opts.rate)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
         )  # fmt: skip
         for a, b in zip(firsts[:-1], firsts[1:], strict=True)
     ]
     sub_lines: list[list[str]] = [[] for _ in subs]
-    for sub, lines in zip(subs, sub_lines, strict=True):
-        _lines(sub, lines)
+    readers = [_lines(sub, lines) for sub, lines in zip(subs, sub_lines, strict=True)]
     fleet = subprocess.Popen(
         [
             sys.executable, "-m", "batchsim.cli", "--fleet", str(opts.fleet),
@@ -230,6 +245,8 @@ def ros(opts: argparse.Namespace) -> None:
     for sub in subs:
         sub.stdin.close()
         sub.wait(30)
+    for reader in readers:  # their last lines, the stamps, read
+        reader.join(10)
     # each process's own window: its counts against what its worlds published in the sim time it spanned
     window = statistics.mean(b[0] - a[0] for a, b in zip(c0, c1, strict=True))
     sim_window = statistics.mean(b[4] - a[4] for a, b in zip(c0, c1, strict=True))  # from /clock as the subscribers heard it
@@ -245,7 +262,15 @@ def ros(opts: argparse.Namespace) -> None:
         got = sum(b[k + 1] - a[k + 1] for a, b in zip(c0, c1, strict=True))
         # what the fleet published in the sim time each window spanned
         expected = sum(per_world * (n1 - n0) * opts.rate * (b[4] - a[4]) for n0, n1, a, b in zip(firsts[:-1], firsts[1:], c0, c1, strict=True))
-        print(f"{name:12s} received {got / window:9.0f}/s of {expected / window:9.0f}/s published ({got / expected:.4f})")
+        # by stamp: of every message the fleet published in the window's publish periods (the
+        # last second left out: still on its way when the window closed), how many arrived
+        first_bin, last_bin = math.ceil(max(a[4] for a in c0) * opts.rate), math.floor((min(b[4] for b in c1) - 1.0) * opts.rate)
+        kind = ("js", "odom", "tf")[k]
+        arrived = sum(n for lines in sub_lines for x in lines if x.startswith(f"stamps {kind} ")
+                      for b, n in json.loads(x.split(" ", 2)[2]).items() if first_bin <= int(b) <= last_bin)  # fmt: skip
+        sent = per_world * opts.worlds * (last_bin - first_bin + 1)
+        print(f"{name:12s} received {got / window:9.0f}/s of {expected / window:9.0f}/s published ({got / expected:.4f}); "
+              f"by stamp {arrived} of {sent} ({arrived / sent:.4f})")  # fmt: skip
 
 
 def _last_count(lines: list[str]) -> tuple[float, int, int, int, float]:
@@ -262,7 +287,7 @@ def _machine() -> str:
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--subscriber":
-        subscriber(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5], sys.argv[6])
+        subscriber(int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5], sys.argv[6], int(sys.argv[7]), float(sys.argv[8]))
         return
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="what", required=True)
@@ -283,6 +308,7 @@ def main() -> None:
     r.add_argument("--seconds", type=float, default=20.0)
     r.add_argument("--warmup", type=float, default=5.0)
     r.add_argument("--domain", type=int, default=73)
+    r.add_argument("--depth", type=int, default=10, help="the subscribers' QoS depth (the fleet's: -- --qos-depth N)")
     r.add_argument("--subscriber-processes", type=int, default=1, help="the worlds split over this many subscribers")
     r.add_argument("extra", nargs="*", help="more batchsim flags, after --")
     opts = p.parse_args()
