@@ -91,6 +91,21 @@ class Browser:
     def screenshot(self) -> np.ndarray:
         return imageio.v3.imread(base64.b64decode(self.session_call("GET", "/screenshot")))
 
+    def robot_pixels(self, save=None) -> int:
+        """The screenshot's pixels of the arm's orange-brown links (lit or shaded) left of the
+        panel; the screenshot saved to `save` (to look at when a test fails)."""
+        shot = self.screenshot()[..., :3].astype(int)
+        if save is not None:
+            imageio.v3.imwrite(save, shot.astype(np.uint8))
+        r, g, b = shot[..., 0], shot[..., 1], shot[..., 2]
+        return int(((r > 120) & (r - g > 40) & (g - b > 30))[:, : shot.shape[1] * 2 // 3].sum())
+
+    def type_into(self, focus: str, text: str) -> None:
+        """Type `text` and Enter, as a user would, into the field the script `focus` selects."""
+        self.session_call("POST", "/execute/sync", {"script": focus, "args": []})
+        keys = [{"type": kind, "value": key} for key in text + "\ue007" for kind in ("keyDown", "keyUp")]
+        self.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+
     def close(self) -> None:
         with contextlib.suppress(Exception):
             self.call("DELETE", f"/session/{self.session}")
@@ -135,15 +150,9 @@ def test_the_view_shows_the_robots_a_picked_worlds_status_and_keeps_up(tmp_path)
         _wait(lambda: "4 worlds" in browser.text(), 30, "the fleet's panel")
         _wait(lambda: pub.publish(Float64MultiArray(data=[0.1])) or "bad command 1" in browser.text(), 30, "world 3's bad command")
         time.sleep(2.0)  # the meshes arrive and are drawn (software WebGL)
-        shot = browser.screenshot()[..., :3].astype(int)
-        imageio.v3.imwrite(tmp_path / "view.png", shot.astype(np.uint8))  # to look at when this fails
-        r, g, b = shot[..., 0], shot[..., 1], shot[..., 2]
-        arm = (r > 120) & (r - g > 40) & (g - b > 30)  # the arm's orange-brown links, lit or shaded
-        assert arm[:, : shot.shape[1] * 2 // 3].sum() > 300, "no robot in the screenshot"  # left of the panel
+        assert browser.robot_pixels(save=tmp_path / "view.png") > 300, "no robot in the screenshot"
         # pick world 3 by its number: the panel names it and says why it is not fine
-        browser.session_call("POST", "/execute/sync", {"script": PICK, "args": []})
-        keys = [{"type": kind, "value": key} for key in "3\ue007" for kind in ("keyDown", "keyUp")]
-        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        browser.type_into(PICK, "3")
         _wait(lambda: "world_3 (world 3): bad command" in browser.text(), 20, f"world 3's status\n{browser.text()}")
         no_image = f"return document.querySelectorAll(\"{CAMERA_IMAGE}\").length"
         assert browser.session_call("POST", "/execute/sync", {"script": no_image, "args": []}) == 0  # the arm has no camera
@@ -180,9 +189,7 @@ def test_the_view_shows_the_picked_worlds_camera_image(tmp_path):
         browser = Browser()
         browser.session_call("POST", "/url", {"url": f"http://localhost:{port}"})
         _wait(lambda: "front_camera (world 0)" in browser.text(), 30, f"the camera image's label\n{browser.text()}")
-        browser.session_call("POST", "/execute/sync", {"script": PICK, "args": []})
-        keys = [{"type": kind, "value": key} for key in "1\ue007" for kind in ("keyDown", "keyUp")]
-        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        browser.type_into(PICK, "1")
         _wait(lambda: "front_camera (world 1)" in browser.text(), 20, f"world 1's camera\n{browser.text()}")
 
         def image() -> list[np.ndarray] | None:  # the <img> on the page, as drawn: world 1's frame once it came
@@ -228,13 +235,9 @@ def test_a_recording_in_the_view_shows_the_robots_and_scrubs(tmp_path):
         _wait(lambda: re.search(r"sim time 0\.00 s of 0\.00 \.\. 0\.9\d s", browser.text()), 30, "the recording's panel")
         assert "world_0 (world 0): running" in browser.text()  # the status, from the recording's /diagnostics
         time.sleep(2.0)  # the meshes arrive and are drawn
-        shot = browser.screenshot()[..., :3].astype(int)
-        r, g, b = shot[..., 0], shot[..., 1], shot[..., 2]
-        assert ((r > 120) & (r - g > 40) & (g - b > 30))[:, : shot.shape[1] * 2 // 3].sum() > 300, "no robot in the screenshot"
+        assert browser.robot_pixels() > 300, "no robot in the screenshot"
         # scrub: the slider's number field takes 0.5 s, and the page shows that moment
-        browser.session_call("POST", "/execute/sync", {"script": SLIDER, "args": []})
-        keys = [{"type": kind, "value": key} for key in "0.5\ue007" for kind in ("keyDown", "keyUp")]
-        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        browser.type_into(SLIDER, "0.5")
         _wait(lambda: re.search(r"sim time 0\.5\d s of", browser.text()), 20, "the scrubbed time")  # the frame at 0.5 s
     finally:
         proc.terminate()
@@ -268,13 +271,8 @@ def test_the_view_of_a_fleet_of_groups_shows_every_groups_worlds(tmp_path):
         browser.session_call("POST", "/url", {"url": f"http://localhost:{port}"})
         _wait(lambda: "4 worlds" in browser.text() and "running 4" in browser.text(), 30, f"the fleet's panel\n{browser.text()}")
         time.sleep(2.0)  # the meshes arrive and are drawn (software WebGL)
-        shot = browser.screenshot()[..., :3].astype(int)
-        imageio.v3.imwrite(tmp_path / "view.png", shot.astype(np.uint8))
-        r, g, b = shot[..., 0], shot[..., 1], shot[..., 2]
-        assert ((r > 120) & (r - g > 40) & (g - b > 30))[:, : shot.shape[1] * 2 // 3].sum() > 300, "no robot in the screenshot"
-        browser.session_call("POST", "/execute/sync", {"script": PICK, "args": []})
-        keys = [{"type": kind, "value": key} for key in "3\ue007" for kind in ("keyDown", "keyUp")]
-        browser.session_call("POST", "/actions", {"actions": [{"type": "key", "id": "keyboard", "actions": keys}]})
+        assert browser.robot_pixels(save=tmp_path / "view.png") > 300, "no robot in the screenshot"
+        browser.type_into(PICK, "3")
         _wait(lambda: "world_3 (world 3): running" in browser.text(), 20, f"world 3's status\n{browser.text()}")
         assert proc.poll() is None
     finally:
