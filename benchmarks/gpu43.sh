@@ -14,12 +14,16 @@
 #   carry [".whlros",".whlx",export] bash benchmarks/gpu43.sh ros        # gpu24.sh's: ROS 2, the interfaces
 #   carry [export]                   bash benchmarks/gpu43.sh physics [arm] [rover] [cpu]   # default all three
 #   carry [export]                   bash benchmarks/gpu43.sh fleet      # 1024 worlds x 4 arms over ROS, 100 Hz
+#   carry [export]                   bash benchmarks/gpu43.sh kernels [VARIANT...]  # default: "default"
 #
 # physics: benchmarks/fleet_robots.py physics, K robots a world against K worlds of one (K = 4, 8),
 # 8192 robots on warp (the arm, then the rover), then 1024 rovers on the host's CPU for comparison.
 # Each part fits one call alone if the kernel compile makes all three too long for one.
 # fleet: the GPU target, 1024 worlds x 4 arms at RTF 1 with joint_states at 100 Hz, counted
 # by 8 subscriber processes (one took only 6 % of 410k messages/s on 2026-12-02).
+# kernels: robots_per_world_kernels.py, the rover's K robots a world against K worlds of one in raw
+# MuJoCo Warp with its event trace per phase; each VARIANT ("default", "opt.solver=cg", ...) against
+# its own one-robot layout (one compile per model and variant: split over calls).
 # Everything printed also goes to $OUT/<stage>.log. WHEELS: the folder holding the staged .whl*/
 # folders (default: here). Run from a clean export of a commit, carried
 # (`git archive HEAD | tar -x -C .gpu43`), so that edits in progress stay out:
@@ -54,6 +58,15 @@ fleet)
     timeout 540 python3 benchmarks/fleet_robots.py ros --fleet examples/fleets/four_arms.yaml --worlds 1024 \
       --rate 100 --backend warp --seconds 15 --warmup 10 --subscriber-processes 8
   } 2>&1 | quiet | tee "$OUT/fleet.log"
+  ;;
+kernels)
+  warm
+  {
+    for variant in "${@:-default}"; do
+      timeout 280 python3 benchmarks/robots_per_world_kernels.py --model rover --robots 4,8 --total 8192 \
+        --seconds 5 --variant "$variant"
+    done
+  } 2>&1 | quiet | tee "$OUT/kernels.log"
   ;;
 *) echo "unknown stage $stage"; exit 2 ;;
 esac
