@@ -19,7 +19,7 @@ conflicts.py   another process already serving these worlds?
 description_topic.py  the robot description taken from a topic (`--robot-description-topic`)
 recorder.py    the recorder process (MCAP): mcap_file.py, schemas.py, sensor_recording.py, status_recording.py
 replay.py      `batchsim replay FILE`
-view.py        the web view's process; view_scene.py, its page (also `batchsim view FILE`'s)
+view.py        the web view's process; view_scene.py, its page (also `batchsim view FILE`'s); view_server.py, its server (same origin only, no share tunnel)
 stacks.py      where a worker's threads spend their time (BATCHSIM_WORKER_STACKS)
 """
 

@@ -29,6 +29,7 @@ import viser
 from batchsim.types import FROZEN, Status
 from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT
 from ros_bridge.view_plan import ViewSpec
+from ros_bridge.worker import view_server
 
 FROZEN_RGB, BAD_RGB, TIMEOUT_RGB = (220, 30, 30), (255, 140, 0), (240, 220, 0)
 NO_IMAGE = 40  # the image's grey until the picked world's camera sends a frame
@@ -82,7 +83,7 @@ class FleetScene:
         k = np.arange(n)
         self.grid = np.stack([(k % cols) * spacing, (k // cols) * spacing, np.zeros(n)], -1)
         with contextlib.redirect_stdout(io.StringIO()):  # its banner: batchsim prints the URL itself
-            self.server = viser.ViserServer(host=spec.host, port=spec.port, label="batchsim", verbose=False)
+            self.server = view_server.serve(spec.host, spec.port, label="batchsim", verbose=False)
         scene, gui = self.server.scene, self.server.gui
         center = np.array([self.grid[:, 0].max() / 2, self.grid[:, 1].max() / 2, 0.0])
         reach = max(center[0], 1.0) + spacing  # the whole grid in sight
