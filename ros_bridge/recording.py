@@ -176,7 +176,9 @@ def path_problem(path: str) -> str | None:
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         return f"{path}: directory {parent} does not exist"
-    if p.exists() and not os.access(p, os.W_OK) or not p.exists() and not os.access(parent, os.W_OK):
+    if p.is_file():  # (a device, /dev/null or a pipe, is written to)
+        return f"{path} exists; batchsim never records over a file (remove it, or name another)"
+    if not os.access(parent, os.W_OK):
         return f"{path}: not writable"
     return None
 
@@ -374,17 +376,14 @@ class Recording(Participant):
             self._watch()
 
     def _next_path(self) -> str:
-        """--record's path the first time, then numbered beside it; else a dated name."""
-        base = self.spec.path
-        if base is None:
-            return default_path()
-        if base not in self._used:
-            return base
+        """--record's path the first time, then numbered beside it (`run_2.mcap`, ...); else a
+        dated name. Never a name this run used or a file that exists (an earlier run's)."""
+        base = self.spec.path or default_path()
         stem, suffix = os.path.splitext(base)
-        k = 2
-        while f"{stem}_{k}{suffix}" in self._used:
-            k += 1
-        return f"{stem}_{k}{suffix}"
+        path, k = base, 2
+        while path in self._used or os.path.isfile(path):
+            path, k = f"{stem}_{k}{suffix}", k + 1
+        return path
 
     def _watch(self, force: bool = False) -> None:
         """The recorder's status lines; its end."""

@@ -247,15 +247,17 @@ def test_a_killed_recorder_leaves_a_readable_file_and_the_fleet_running_and_the_
             executor.spin_until_future_complete(future, timeout_sec=10)
             return future.result()
 
+        (tmp_path / "live_2.mcap").write_bytes(b"an earlier run's")  # never recorded over: the next number
         started = call(True)
-        assert started.success and started.message == f"recording to {tmp_path / 'live_2.mcap'}", started.message
+        assert started.success and started.message == f"recording to {tmp_path / 'live_3.mcap'}", started.message
         assert not call(True).success  # already recording
         time.sleep(1.5)
         stopped = call(False)
         assert stopped.success, stopped.message
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=30) == 0, log.read_text()
-        with open(tmp_path / "live_2.mcap", "rb") as f:
+        assert (tmp_path / "live_2.mcap").read_bytes() == b"an earlier run's"
+        with open(tmp_path / "live_3.mcap", "rb") as f:
             summary = make_reader(f).get_summary()
         assert summary.statistics.message_count > 0
     finally:
@@ -285,6 +287,7 @@ def test_a_full_disk_stops_the_recording_with_one_line_and_the_run_goes_on(tmp_p
     [
         (["--record", "/nonexistent/run.mcap"], "--record /nonexistent/run.mcap: directory /nonexistent does not exist"),
         (["--record", "."], "--record . is a directory"),
+        (["--record", "README.md"], "--record README.md exists; batchsim never records over a file (remove it, or name another)"),
         (["--record-topics", "joint_states,bogus"], "--record-topics names 'bogus', which this fleet does not publish"),
         (["--record-worlds", "1,7"], "--record-worlds names world 7, which this fleet does not have (worlds 0..1)"),
         (["--record-topics", "image_raw"], "--record-topics names 'image_raw', which this fleet does not publish"),

@@ -229,7 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     recording: McapRecording | None = None
     stream: Any = None
     try:
-        stream = open(path, "wb")
+        # a file made meanwhile is not written over (recording.path_problem); a device is written to
+        stream = open(path, "wb" if os.path.exists(path) and not os.path.isfile(path) else "xb")
         recording = McapRecording(groups, stream)
         # cameras and lidars, each group's from its own blocks
         sensors = [SensorRecording(p, m, recording.channel, recording.writer) for p, m in zip(plans, memories, strict=True)]
