@@ -29,6 +29,32 @@ ALIGN = 64  # bytes: every array starts on a cache line, so two writers never sh
 PREFIX = "batchsim_"  # segment names: batchsim_<pid of the creator>_<random>, in /dev/shm on Linux
 
 
+SHM = "/dev/shm"  # where Linux keeps POSIX shared memory (a tmpfs; a container's is 64 MiB by default)
+
+
+class SharedMemoryFull(ValueError):
+    """The shared-memory filesystem has no room for a fleet's segment: one line, naming what is needed."""
+
+
+def check_room(nbytes: int, where: str = SHM) -> None:
+    """Raise SharedMemoryFull unless `where` has `nbytes` free. A segment takes its pages as they
+    are written, so one that does not fit dies of SIGBUS at the first page that finds no room,
+    in whichever process writes it (the whole fleet, no line said). Checked against the whole
+    segment: its camera blocks are written once someone subscribes to every camera."""
+    try:
+        st = os.statvfs(where)
+    except OSError:
+        return  # not Linux's tmpfs: nothing to ask
+    free = st.f_bavail * st.f_frsize
+    if nbytes > free:
+        mib = 1 << 20
+        raise SharedMemoryFull(
+            f"shared memory: this fleet needs {nbytes / mib:.0f} MiB in {where} and {free / mib:.0f} MiB "
+            f"are free (of {st.f_blocks * st.f_frsize / mib:.0f}); free some (segments left by killed "
+            f"runs: ls {where}) or make it larger (a container: docker run --shm-size=...)"
+        )
+
+
 @dataclasses.dataclass(frozen=True)
 class ArraySpec:
     """One array of a Layout: its name, shape and dtype (a NumPy dtype string)."""
@@ -91,6 +117,7 @@ class Memory:
         """Zeroed arrays; in a new shared segment unless `shared` is False (one process)."""
         if not shared:
             return cls(layout, None, owner=True)
+        check_room(layout.nbytes)
         name = f"{PREFIX}{os.getpid()}_{secrets.token_hex(4)}"
         # a new segment reads as zeros (ftruncate) and takes pages only as they are written:
         # not touching them keeps a fleet's unused camera blocks free

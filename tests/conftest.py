@@ -103,3 +103,18 @@ def need(module: str, hint: str = "") -> types.ModuleType:
             raise
         why = f"{module} is not importable ({error})" + (f"; {hint}" if hint else "")
         pytest.skip(why, allow_module_level=True)
+
+
+def fake_shm_free(monkeypatch, free: int) -> None:
+    """/dev/shm reports `free` bytes free (of 64 MiB) to os.statvfs while the test runs."""
+    import os
+
+    real = os.statvfs
+
+    def statvfs(path):
+        st = real(path)
+        if str(path) != "/dev/shm":
+            return st
+        return os.statvfs_result((st.f_bsize, 4096, 16384, free // 4096, free // 4096, *tuple(st)[5:]))
+
+    monkeypatch.setattr(os, "statvfs", statvfs)

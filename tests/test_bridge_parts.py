@@ -179,6 +179,19 @@ def test_shared_memory_is_seen_by_an_attached_view_and_unlinked_by_its_creator()
         Memory.attach(layout, created.name)
 
 
+def test_a_segment_that_does_not_fit_in_dev_shm_is_refused_with_one_line(monkeypatch):
+    """Before this, a fleet whose segment outgrew /dev/shm died of SIGBUS (exit 135, no line)."""
+    from conftest import fake_shm_free
+
+    from batchsim.memory import SharedMemoryFull
+
+    fake_shm_free(monkeypatch, 1 << 20)
+    with pytest.raises(SharedMemoryFull) as e:
+        Memory.create(Layout([("big", (2 << 20,), "u1")]))
+    assert str(e.value).startswith("shared memory: this fleet needs 2 MiB in /dev/shm and 1 MiB are free (of 64)")
+    Memory.create(Layout([("small", (1000,), "u1")])).close()  # what fits is made
+
+
 def test_a_late_worker_reads_every_snapshot_it_missed_in_order():
     """joint_states at 25 Hz in a 100 Hz loop are in one snapshot of four: a worker woken after
     the next snapshot was written read only the newest and lost them (4096 arms on a GPU host:

@@ -306,6 +306,20 @@ def test_what_cannot_be_recorded_or_viewed_is_one_line(args, line, capsys, monke
     assert len(err.splitlines()) == 1 and err.startswith(f"batchsim: error: {line}"), err
 
 
+def test_a_fleet_that_does_not_fit_in_dev_shm_is_one_line(capsys, monkeypatch):
+    from conftest import fake_shm_free
+
+    domain = domain_id(70)
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    fake_shm_free(monkeypatch, 4096)
+    try:
+        assert cli.main(["--worlds", "2", "--controllers", "none", "--duration", "0.1"]) == 2
+    finally:
+        release_domain(domain)
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("batchsim: error: shared memory: this fleet needs"), err
+
+
 def test_what_cannot_be_replayed_or_viewed_is_one_line(recorded, tmp_path, capsys):
     text = tmp_path / "notes.txt"
     text.write_text("not a recording\n")

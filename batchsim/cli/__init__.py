@@ -33,6 +33,7 @@ from batchsim.cli.runner import StatusLine, build, run, setup_controllers, start
 from batchsim.cli.view import view
 from batchsim.lifecycle import LifecycleError
 from batchsim.loop import OptionError, RateError
+from batchsim.memory import SharedMemoryFull
 from batchsim.model import ModelError
 from batchsim.model.params import ParamsError
 from batchsim.sensors import DeclarationError, SensorConfigError
@@ -48,7 +49,7 @@ __all__ = [
 
 USER_ERRORS = (
     UsageError, ModelError, ConfigurationError, BackendUnavailable, LifecycleError, ParamsError, MemoryCheckError,
-    OptionError, RateError, SensorConfigError, DeclarationError, VariationError,
+    OptionError, RateError, SensorConfigError, DeclarationError, VariationError, SharedMemoryFull,
 )  # fmt: skip
 
 
