@@ -100,6 +100,19 @@ def test_relative_assets_still_resolve_after_stripping(tmp_path):
     assert spec.command_interfaces == ["j/effort"]
 
 
+def test_an_mjcf_that_includes_itself_is_one_line_naming_the_loop(tmp_path):
+    """Before, a RecursionError traceback (issue 47's review)."""
+    body = '<worldbody><body><joint/><geom size=".1"/></body></worldbody>'
+    (tmp_path / "self.xml").write_text(f'<mujoco><include file="self.xml"/>{body}</mujoco>')
+    with pytest.raises(ModelError, match=r"self.xml: its includes loop: self.xml -> self.xml \(a file"):
+        batchsim.load(tmp_path / "self.xml")
+    (tmp_path / "parts").mkdir()
+    (tmp_path / "a.xml").write_text(f'<mujoco><include file="parts/b.xml"/>{body}</mujoco>')
+    (tmp_path / "parts" / "b.xml").write_text('<mujoco><include file="a.xml"/></mujoco>')  # includes resolve from the top file's folder
+    with pytest.raises(ModelError, match=r"a.xml: its includes loop: a.xml -> b.xml -> a.xml"):
+        batchsim.load(tmp_path / "a.xml")
+
+
 ROS2_CONTROL = """<robot name="arm">
   <ros2_control name="arm" type="system">
     <hardware><plugin>batchsim/BatchedSystem</plugin></hardware>

@@ -177,7 +177,7 @@ def _load_string(
     # included files carrying the blocks too are handed to MuJoCo stripped, under their own names
     overrides: dict[str, bytes] = {}
     if path is not None:
-        for file, included in _includes(root, path.parent, where):
+        for file, included in _includes(root, path.parent, where, (path.resolve(),)):
             inc_ros = _take_ros_plugin(included, file)
             inc_blocks = _take_all(included, "ros2_control")
             if inc_ros is not None or inc_blocks:
@@ -258,20 +258,26 @@ def _take_all(root: ET.Element, tag: str) -> list[ET.Element]:
     return found
 
 
-def _includes(root: ET.Element, base: Path, where: str) -> list[tuple[str, ET.Element]]:
-    """The files `<include>`d (recursively), as (the include's file attribute, parsed root)."""
+def _includes(root: ET.Element, base: Path, where: str, chain: tuple[Path, ...] = ()) -> list[tuple[str, ET.Element]]:
+    """The files `<include>`d (recursively), as (the include's file attribute, parsed root).
+    `chain`: the files whose includes led here; one that includes itself, directly or through
+    others, is a ModelError naming the loop."""
     out = []
     for include in root.iter("include"):
         file = include.get("file")
         if not file:
             continue
+        path = (base / file).resolve()
+        if path in chain:
+            loop = " -> ".join(p.name for p in (*chain, path))
+            raise ModelError(f"{where}: its includes loop: {loop} (a file that includes itself)")
         try:
-            text = (base / file).read_text()
+            text = path.read_text()
         except OSError:
             continue  # MuJoCo names the missing file when it compiles
         included = parse_xml(text, str(base / file))
         out.append((file, included))
-        out += _includes(included, base, where)
+        out += _includes(included, base, where, (*chain, path))
     return out
 
 
