@@ -4,6 +4,8 @@ needs no ROS 2) both check first. Nothing here imports rclpy."""
 
 from __future__ import annotations
 
+import struct
+
 MAGIC = b"\x89MCAP0\r\n"
 
 
@@ -27,3 +29,11 @@ def check_file(path: str) -> bool:
     if head != MAGIC:
         raise ReplayError(f"{path} is not an MCAP file (it does not start with MCAP's magic bytes)")
     return size > 2 * len(MAGIC) and tail == MAGIC
+
+
+def cut_short_errors() -> tuple[type[BaseException], ...]:
+    """What mcap's readers raise where a file ends inside a record (a struct.error from a short
+    read, an EOFError, ...): the end of what can be read of a file cut short, else unreadable."""
+    from mcap.exceptions import McapError  # the record extra; this module is read without it
+
+    return (McapError, struct.error, EOFError, ValueError, OSError)

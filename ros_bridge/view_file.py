@@ -22,12 +22,11 @@ import time as wallclock
 from collections.abc import Callable
 
 import numpy as np
-from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader
 from mcap_ros2.decoder import DecoderFactory
 
 from ros_bridge.naming import frame
-from ros_bridge.recording_file import ReplayError, check_file
+from ros_bridge.recording_file import ReplayError, check_file, cut_short_errors
 from ros_bridge.view_plan import GEOMETRY, ViewSpec, geometry_from_bytes
 from ros_bridge.worker.view_scene import FleetScene, ScenePart, qmul, rotate
 from ros_bridge.world_status import from_values, status_text
@@ -93,7 +92,7 @@ class Recording:
                     else:
                         joints.setdefault(topic, []).append((message.log_time, np.array(msg.position)))
                         self.joint_names = self.joint_names or tuple(msg.name)
-            except (McapError, EOFError, ValueError, OSError) as e:
+            except cut_short_errors() as e:
                 if complete:
                     raise ReplayError(f"{path}: unreadable ({type(e).__name__}: {e})") from None
         self._read_head(path)
@@ -151,7 +150,7 @@ class Recording:
                         geometry[record.name] = record.data
                     elif isinstance(record, Chunk | Message):
                         break
-            except (McapError, EOFError, ValueError):
+            except cut_short_errors():
                 pass
         if groups is None:  # one group: every world draws the one geometry
             if GEOMETRY in geometry:

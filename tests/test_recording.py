@@ -336,3 +336,25 @@ def test_what_cannot_be_replayed_or_viewed_is_one_line(recorded, tmp_path, capsy
     assert cli.main(["replay", str(recorded), "--worlds", "1"]) == 2
     assert capsys.readouterr().err.strip() == f"batchsim: error: --worlds names world 1, which {recorded} does not hold (worlds [0, 2])"
     assert sum(1 for _ in StreamReader(str(recorded)).records) > 0
+
+
+def test_a_recording_cut_anywhere_is_read_up_to_the_cut_or_refused_in_one_line(recorded, tmp_path):
+    """Before, `batchsim view` on a file cut inside a record's header died of a struct.error
+    traceback (issue 47's review): every cut, a few bytes in or anywhere in its chunks."""
+    from ros_bridge.recording_file import ReplayError
+    from ros_bridge.view_file import Recording
+
+    data = recorded.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    read = 0
+    for n in sorted({9, 12, 17, 20, 30, *range(64, len(data), max(1, len(data) // 40))}):
+        cut.write_bytes(data[:n])
+        said = []
+        try:
+            recording = Recording(str(cut), said.append)
+            read += 1
+            assert recording.namespaces
+        except ReplayError as e:
+            assert "\n" not in str(e) and str(cut) in str(e), e
+        assert said and "was cut short" in said[0]
+    assert read > 10  # the chunks before each cut

@@ -16,13 +16,11 @@ from __future__ import annotations
 
 import json
 import re
-import struct
 import time as wallclock
 from collections.abc import Callable, Sequence
 from typing import Any, BinaryIO
 
 import rclpy
-from mcap.exceptions import McapError
 from mcap.records import Channel, DataEnd, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from rclpy.context import Context
@@ -32,7 +30,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 
-from ros_bridge.recording_file import ReplayError, check_file
+from ros_bridge.recording_file import ReplayError, check_file, cut_short_errors
 from ros_bridge.worker.messages import clock_payload, message_type
 
 CLOCK_RATE = 100.0  # Hz of the /clock made up for a recording without one
@@ -144,7 +142,7 @@ class Replay:
                     return
         except ReplayError:
             raise
-        except (McapError, struct.error, EOFError, ValueError) as e:
+        except cut_short_errors() as e:
             if self.complete:
                 raise ReplayError(
                     f"{self.path}: unreadable after {self.published} messages ({type(e).__name__}: {e})"
