@@ -254,6 +254,18 @@ def test_switch_controller_deactivates_one_world_only_and_back(arms, ros):
     assert listed(3) == "active"
     handle, result = _send(arms, ros, 3, _goal(ros, [0.2, 0.1, 0.2, 0.1, 0.2, 0.1], 0.5))
     assert handle.accepted and _result(arms, result).status == 4
+    # a goal in flight when its controller is deactivated ends as upstream ends it (before:
+    # "the world was reset"), and the next activation takes goals again
+    handle, result = _send(arms, ros, 3, _goal(ros, [-0.2] * 6, 5.0))
+    assert handle.accepted
+    off = arms.call(srv.SwitchController, f"{base}/switch_controller", srv.SwitchController.Request(deactivate_controllers=[JTC], strictness=2))
+    assert off.ok, off.message
+    answer = _result(arms, result)
+    assert answer.status == 6, answer  # ABORTED
+    assert answer.result.error_code == ros["FJT"].Result.INVALID_GOAL
+    assert answer.result.error_string == "Current goal cancelled during deactivate transition."
+    on = arms.call(srv.SwitchController, f"{base}/switch_controller", srv.SwitchController.Request(activate_controllers=[JTC], strictness=2))
+    assert on.ok, on.message
 
 
 def test_gripper_command_closes_one_worlds_gripper_and_a_blocked_one_stalls(tmp_path, ros):

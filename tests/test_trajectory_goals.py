@@ -215,6 +215,21 @@ def test_reset_aborts_active_goals():
     assert jtc.outcome.tolist() == [GoalOutcome.SUCCEEDED, GoalOutcome.ABORTED, GoalOutcome.NONE]
 
 
+def test_deactivating_the_controller_ends_its_goal_as_deactivated_not_reset():
+    """Before, a goal of a controller deactivated by switch_controller ended ABORTED, which the
+    bridge words "the world was reset" (issue 47's review)."""
+    sim, manager, loop, jtc = running(3)
+    t0 = loop.sim_time
+    for w, tag in ((0, 1), (1, 2)):
+        send_goal(jtc, w, tag, [1.0], [TARGET], goal={k: (0.05, 0, 0) for k in range(6)})
+    run_until(loop, t0 + 0.4)
+    manager.switch(deactivate=["joint_trajectory_controller"], worlds=[1])
+    run_until(loop, t0 + 0.5)
+    assert jtc.outcome.tolist() == [GoalOutcome.ACTIVE, GoalOutcome.DEACTIVATED, GoalOutcome.NONE]
+    loop.reset([0])
+    assert jtc.outcome[0] == GoalOutcome.ABORTED  # a reset is still a reset
+
+
 def test_the_yaml_constraints_are_the_defaults_and_a_misspelt_key_warns():
     yaml = arm_yaml("""\
         constraints:

@@ -211,6 +211,12 @@ class Controller:
     def reset(self, sim: Any, worlds: np.ndarray) -> None:
         """The listed worlds were reset: drop their goals and hold them where they are now."""
 
+    def deactivate(self, sim: Any, worlds: np.ndarray) -> None:
+        """The controller became inactive in the listed worlds (switch_controller): as a reset,
+        but a goal in flight ends DEACTIVATED (upstream: "Current goal cancelled during
+        deactivate transition."), not as if the world were reset."""
+        self.reset(sim, worlds)
+
     def update(self, sim: Any, time: float, period: float) -> None:
         raise NotImplementedError
 

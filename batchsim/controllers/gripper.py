@@ -140,6 +140,11 @@ class GripperActionController(Controller):
         active = worlds[self.outcome[worlds] == GoalOutcome.ACTIVE]
         self.outcome[active] = GoalOutcome.ABORTED
 
+    def deactivate(self, sim: Any, worlds: np.ndarray) -> None:
+        active = worlds[self.outcome[worlds] == GoalOutcome.ACTIVE]
+        self.reset(sim, worlds)  # a subclass's own reset too
+        self.outcome[active] = GoalOutcome.DEACTIVATED
+
     def _decide(self, time: float) -> None:
         """Every active goal's outcome, as upstream's check_for_success, at once."""
         active = np.flatnonzero(self.outcome == GoalOutcome.ACTIVE)

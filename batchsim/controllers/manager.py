@@ -289,7 +289,10 @@ class ControllerManager(Participant):
         for activated, deactivated, start, stop in self._pending:
             # both hold where the robot is: deactivated ones drop their goals, activated
             # ones start from the current state (what they were sent while inactive is dropped)
-            for k, rows in (*deactivated.items(), *activated.items()):
+            for k, rows in deactivated.items():
+                self._list[k].time = time
+                self._list[k].deactivate(sim, rows)
+            for k, rows in activated.items():
                 self._list[k].time = time
                 self._list[k].reset(sim, rows)
             if switch is not None and (start or stop):

@@ -51,6 +51,7 @@ class GoalOutcome(enum.IntEnum):
     GOAL_TOLERANCE_VIOLATED = 4
     CANCELED = 5
     ABORTED = 6  # the world was reset
+    DEACTIVATED = 7  # aborted: the controller was deactivated in that world (switch_controller)
 
 
 class ActionKind(enum.Enum):

@@ -310,6 +310,8 @@ def _trajectory_outcome(spec: TrajectoryActionSpec, outcome: GoalOutcome, joint:
         return GoalOutcome.ABORTED, FJT(error_code=FJT.GOAL_TOLERANCE_VIOLATED, error_string=text)
     if outcome is GoalOutcome.CANCELED:
         return outcome, FJT(error_code=FJT.SUCCESSFUL, error_string="canceled")
+    if outcome is GoalOutcome.DEACTIVATED:  # upstream's words (JointTrajectoryController::on_deactivate)
+        return GoalOutcome.ABORTED, FJT(error_code=FJT.INVALID_GOAL, error_string="Current goal cancelled during deactivate transition.")
     return GoalOutcome.ABORTED, FJT(error_code=FJT.INVALID_GOAL, error_string="the world was reset")
 
 

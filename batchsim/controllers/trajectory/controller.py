@@ -16,6 +16,7 @@ from batchsim.controllers.base import Controller, Params
 from batchsim.controllers.topics import (
     ActionKind,
     ControllerTopics,
+    GoalOutcome,
     Input,
     MessageKind,
     Output,
@@ -350,8 +351,15 @@ class JointTrajectoryController(Controller):
         self.reference_position[:] = self.feedback_position
 
     def reset(self, sim: Any, worlds: np.ndarray) -> None:
+        self._end(sim, worlds, GoalOutcome.ABORTED)
+
+    def deactivate(self, sim: Any, worlds: np.ndarray) -> None:
+        self._end(sim, worlds, GoalOutcome.DEACTIVATED)
+
+    def _end(self, sim: Any, worlds: np.ndarray, outcome: GoalOutcome) -> None:
+        """Reset or deactivated: the worlds' goals end as `outcome`; they hold where they are."""
         self._read(sim)
-        self._goals.abort(worlds)
+        self._goals.abort(worlds, outcome)
         self._stop(worlds)
         self._timeline.pool.shrink()
         if self._pids is not None:

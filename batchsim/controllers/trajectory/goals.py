@@ -275,10 +275,11 @@ class GoalTracker:
         self._end_checks(w)
         return w
 
-    def abort(self, worlds: np.ndarray) -> None:
-        """The worlds were reset: their ACTIVE goals are ABORTED."""
+    def abort(self, worlds: np.ndarray, outcome: GoalOutcome = GoalOutcome.ABORTED) -> None:
+        """The worlds were reset (or their controller deactivated: DEACTIVATED): their ACTIVE
+        goals end as `outcome`."""
         active = worlds[self.outcome[worlds] == GoalOutcome.ACTIVE]
-        self.outcome[active] = GoalOutcome.ABORTED
+        self.outcome[active] = outcome
         self._end_checks(worlds)
 
     def _end_checks(self, worlds: np.ndarray) -> None:
