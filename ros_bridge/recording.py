@@ -406,8 +406,7 @@ class Recording(Participant):
                 print(f"batchsim: {text}", file=sys.stderr, flush=True)
         if ended:
             code = self._proc.returncode
-            how = f"was killed by signal {-code}" if code < 0 else f"exited with code {code}"
-            silent = f"batchsim: warning: recording: the recorder {how}; {self.path} holds what it wrote"
+            silent = f"batchsim: warning: recording: the recorder {ended(code)}; {self.path} holds what it wrote"
             self._finished(None if self._said else silent + " up to its last complete chunk")
 
     def _finished(self, line: str | None) -> None:

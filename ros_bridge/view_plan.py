@@ -35,6 +35,7 @@ import numpy as np
 from batchsim.contract import Contract
 from batchsim.model.frames import frame_tree
 from ros_bridge.protocol.sensor_blocks import WANT_RGB, CameraRequest
+from ros_bridge.throttle import ended
 
 GEOMETRY = "batchsim/view_geometry.npz"  # a recording's attachment: the robots' geoms (`batchsim view FILE`)
 VISIBLE_GROUPS = 3  # MuJoCo's viewer shows geom groups 0, 1 and 2 by default
@@ -242,7 +243,8 @@ class ViewProcess:
 
     def __init__(self, plans, cameras=()) -> None:
         self.cameras = [c for c in cameras if c is not None]
-        self._closed = False
+        self._closed = self._said_ended = False
+        self._next_watch = 0.0
         read, write = os.pipe()
         self._proc = subprocess.Popen(  # stdout: viser's banner, which the URL line below replaces
             [sys.executable, "-m", "ros_bridge.worker.view", str(write)], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, pass_fds=(write,)
@@ -260,6 +262,21 @@ class ViewProcess:
                     self.url = line.split(" ", 1)[1]
                 elif line:
                     print(f"batchsim: {line}", file=sys.stderr, flush=True)
+
+    def watch(self) -> None:
+        """Each period (the bridge's host calls it; at most once a second): a view process that
+        ended while the fleet runs is said once, with how it ended; the simulation goes on."""
+        now = wallclock.monotonic()
+        if self._closed or self._said_ended or now < self._next_watch:
+            return
+        self._next_watch = now + 1.0
+        code = self._proc.poll()
+        if code is not None:
+            self._said_ended = True
+            for camera in self.cameras:
+                camera.request.clear()
+            print(f"batchsim: warning: view: its process {ended(code)}; the page no longer updates, the simulation goes on",
+                  file=sys.stderr, flush=True)  # fmt: skip
 
     def close(self) -> None:
         """Stop the process; the camera requests cleared. Safe to call twice (each group's bridge does)."""

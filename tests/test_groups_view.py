@@ -130,3 +130,35 @@ def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypat
         for _group, sim in groups:
             sim.shutdown()
         release_domain(domain)
+
+
+def test_a_killed_view_process_is_said_once_and_the_fleet_goes_on(tmp_path):
+    """Before, a view process that died left the page frozen and said nothing (issue 47's review)."""
+    import os
+    import signal
+    import time
+
+    from ros_fleet import alive, batchsim_process, children, cmdline
+
+    domain = domain_id(62)
+    log = tmp_path / "log"
+    proc = batchsim_process(["--worlds", "2", "--controllers", "none", "--view", "--view-port", str(_free_port())], domain, log)
+    try:
+        deadline = time.monotonic() + 90
+        while "batchsim: view: http" not in (log.read_text() if log.exists() else ""):
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.2)
+        view = next(c for c in children(proc.pid) if "ros_bridge.worker.view" in cmdline(c))
+        os.kill(view, signal.SIGKILL)
+        said = "batchsim: warning: view: its process was killed by signal 9; the page no longer updates, the simulation goes on"
+        while said not in log.read_text():
+            assert time.monotonic() < deadline, log.read_text()
+            time.sleep(0.2)
+        time.sleep(2.0)
+        assert alive(proc.pid) and log.read_text().count(said) == 1
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0, log.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        release_domain(domain)
