@@ -15,6 +15,7 @@ add an output here whose channel the physics process fills.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -54,6 +55,8 @@ from ros_bridge.recording import RecordSpec, record_spec
 from ros_bridge.sensor_topics import SensorPlan, sensor_plan
 from ros_bridge.tf_plan import TfSpec, tf_spec
 from ros_bridge.view_plan import ViewSpec, view_spec
+
+log = logging.getLogger("batchsim.ros_bridge")
 
 #: outputs whose topic holds one of these parts are created only when a subscriber appears
 ON_REQUEST_PARTS = ("/controller_state/",)
@@ -328,6 +331,13 @@ def build_plan(
     ranges = [(r.start, r.stop) for r in split_worlds(nworld, max(1, min(nworker, nworld)))]
     offset = options.world_offset
     sensors = sensor_plan(sim)
+    if tf is not None:  # a frame id a message names but no tree holds: RViz shows the message nowhere
+        stamped = [(o.topic, f) for o in outputs for f in (o.frame_id, o.child_frame_id)]
+        for topic, frame in tf.unknown_frames(stamped):
+            log.warning(
+                "batchsim: tf: %s is stamped with frame %r, which is in no world's tf tree (no body, site or "
+                "camera of the model)", topic, frame.removeprefix("{ns}/"),
+            )  # fmt: skip
     recording = None
     if options.record is not None:
         widths = [c.width for c in channels]

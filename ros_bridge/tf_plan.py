@@ -15,7 +15,7 @@ import numpy as np
 from batchsim.contract import Contract
 from batchsim.controllers.topics import Transform
 from batchsim.model import RobotPart
-from batchsim.model.frames import FrameTree, frame_tree, initial_transforms, relative_transforms
+from batchsim.model.frames import FrameTree, fixed_frames, frame_tree, initial_transforms, relative_transforms
 from batchsim.model.from_urdf import is_urdf
 from batchsim.model.urdf import generate_urdf, robot_description
 
@@ -91,6 +91,17 @@ class TfSpec:
         bodies = np.concatenate([t, r], axis=2).reshape(len(poses), -1)
         return np.concatenate([bodies, poses[:, 7 * nbody :]], axis=1) if self.controller_moving else bodies
 
+    @property
+    def frames(self) -> set[str]:
+        """Every frame of a world's tree (unprefixed), its root and the fleet's frame included."""
+        pairs = (*self.moving, *self.static, *self.controller_moving, *self.anchors)
+        return {self.root, self.fleet_frame, *(child for _, child in pairs)}
+
+    def unknown_frames(self, stamped: Sequence[tuple[str, str]]) -> list[tuple[str, str]]:
+        """Of (topic, frame id) pairs (`{ns}/frame` or `frame`), those whose frame is in no tree."""
+        frames = self.frames
+        return [(topic, f) for topic, f in stamped if f and _in_world(f) not in frames]
+
     def static_of(self, worlds) -> list[list[tuple[str, str, np.ndarray]]]:
         """Per world of `worlds` (indices), its fixed transforms as (parent, child, value):
         the tree's, then its anchors."""
@@ -127,6 +138,7 @@ def tf_spec(
 
     pairs = list(zip(tree.parents, tree.names, strict=True))
     description, extra = _description(sim, tree, source)
+    extra = [*extra, *_sensor_frames(sim, tree, {link for _, link, _, _ in extra})]
     frames = {tree.root, *tree.names, *(link for _, link, _, _ in extra)}
     moved, anchors, anchor_values = controller_frames(sim, tree.root, frames, transforms)
     width = 7 * len(bodies)
@@ -159,6 +171,15 @@ def tf_spec(
         anchors=anchors,
         anchor_values=anchor_values,
     )
+
+
+def _sensor_frames(sim: Contract, tree, taken: set[str]) -> list:
+    """Sites, camera image frames and sensors' own frame names (batchsim.model.frames.fixed_frames):
+    every frame id a sensor's message names is in the world's tree."""
+    suite = sim.sensors
+    cameras = [(c.id, c.frame_id) for c in suite.cameras.values()]
+    lidars = [(ld.site_id, ld.frame_id) for ld in suite.lidars.values() if ld.frame_id != ld.site]
+    return [f for f in fixed_frames(sim.spec.mjmodel, tree, cameras, lidars) if f[1] not in taken]
 
 
 def _in_world(frame_id: str) -> str:

@@ -13,12 +13,19 @@ jumps; `map -> odom` is a localization node's to publish) and `world` for a fixe
 A transform is static iff its child body has no joint and is not a mocap body; the joints of
 the bodies above it move the parent and the child together.
 
+Frames fixed to a body that are no body (`fixed_frames`): every named site, at its pose in its
+body, so that a frame id naming a site (an IMU's, a lidar's, a pose broadcaster's `ee_link`) is
+in the tree; a camera's image frame, in REP 103's optical convention (z forward, x right, y
+down: MuJoCo's camera frame turned half a turn about x, as its images are rows top down); a
+sensor's frame named apart from its site, at the site.
+
 No rclpy here: the ROS bridge turns the arrays into tf2_msgs/TFMessage.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import mujoco
 import numpy as np
@@ -140,6 +147,41 @@ def initial_transforms(tree: FrameTree, model: RobotSpec | mujoco.MjModel) -> tu
     else:
         mujoco.mj_kinematics(m, d)
     return relative_transforms(tree, d.xpos, d.xquat)
+
+
+OPTICAL = np.array([0.0, 1.0, 0.0, 0.0])  # w x y z: half a turn about x, MuJoCo camera -> optical frame
+
+
+def fixed_frames(
+    m: mujoco.MjModel,
+    tree: FrameTree,
+    cameras: Sequence[tuple[int, str]] = (),
+    sensors: Sequence[tuple[int, str]] = (),
+) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+    """The frames fixed to a body that are no frame of `tree` (see the module's docstring), as
+    (the body's frame, the frame, position (3,), quaternion w x y z (4,)) in the body's frame.
+
+    Args:
+      cameras: (camera id, the frame id its images are stamped with): that frame, optical.
+      sensors: (site id, the frame id a sensor is stamped with) where the frame is named apart
+        from the site (a lidar's `frame_name`): that frame, at the site.
+    A name given twice, or a frame of the tree already, is taken once (the first, the tree's).
+    """
+    taken = {tree.root, *tree.names}
+    out = []
+
+    def add(body: int, name: str, pos: np.ndarray, quat: np.ndarray) -> None:
+        if name and name not in taken:
+            taken.add(name)
+            out.append((tree.frame(int(body)), name, np.array(pos, float), np.array(quat, float)))
+
+    for s in range(m.nsite):
+        add(m.site_bodyid[s], mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SITE, s) or "", m.site_pos[s], m.site_quat[s])
+    for c, frame in cameras:
+        add(m.cam_bodyid[c], frame, m.cam_pos[c], _multiply(m.cam_quat[c], OPTICAL))
+    for s, frame in sensors:
+        add(m.site_bodyid[s], frame, m.site_pos[s], m.site_quat[s])
+    return out
 
 
 def _multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
