@@ -33,6 +33,7 @@ import statistics
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -44,11 +45,36 @@ sys.path.insert(0, str(ROOT))
 # fleet.py's: the subscriber's executor, the child processes' PYTHONPATH, the versions line
 from fleet import LOCALHOST, _pythonpath, _versions, executor_until_stdin_closes  # noqa: E402
 
-
 # --- physics: K robots in a world against K worlds of one ---
-def fleet_of(model: str, k: int, spacing: float = 3.0) -> dict:
+_ENVIRONMENT = """<mujoco model="floor">
+  <option timestep="{timestep}" integrator="{integrator}" solver="{solver}"/>
+  <worldbody>
+    <light name="sun" pos="0 0 5" dir="0 0 -1" directional="true"/>
+    <geom name="floor" type="plane" size="0 0 0.05"/>
+  </worldbody>
+</mujoco>
+"""
+
+
+def solver_environment(model: str, solver: str, folder: Path) -> Path:
+    """A floor whose physics options are the robot's own but for the constraint solver (a fleet's
+    environment sets the options every robot of a world steps with): its path, written in `folder`."""
+    import mujoco
+
+    import batchsim
+
+    m = batchsim.load(model).mjmodel
+    integrator = {0: "Euler", 1: "RK4", 2: "implicit", 3: "implicitfast"}[int(m.opt.integrator)]
+    path = folder / f"floor_{solver.lower()}.xml"
+    path.write_text(_ENVIRONMENT.format(timestep=m.opt.timestep, integrator=integrator, solver=solver))
+    assert mujoco.MjModel.from_xml_path(str(path)).opt.solver == {"PGS": 0, "CG": 1, "NEWTON": 2}[solver.upper()]
+    return path
+
+
+def fleet_of(model: str, k: int, spacing: float = 3.0, environment: Path | None = None) -> dict:
     columns = max(1, int(np.ceil(np.sqrt(k))))
     return {
+        **({"environment": str(environment)} if environment is not None else {}),
         "robots": [
             {"name": "r_{k}", "model": model, "count": k, "grid": {"spacing": [spacing, spacing], "columns": columns}}
         ]
@@ -79,9 +105,12 @@ def robot_steps_per_second(sim, robots: int, nstep: int, seconds: float, warmup:
 def physics(opts: argparse.Namespace) -> None:
     import batchsim
 
+    environment = None
+    if opts.solver is not None:  # both layouts on a floor whose options set the solver
+        environment = solver_environment(opts.model, opts.solver, Path(tempfile.mkdtemp()))
     print(
         f"# {_machine()}; {_versions()}; backend {opts.backend}, model {opts.model}, {opts.total} robots in all, "
-        f"best of {opts.rounds} interleaved rounds"
+        f"best of {opts.rounds} interleaved rounds; solver {opts.solver or 'as the model sets it'}"
     )
     print(f"{'layout':28s} {'worlds':>6s} {'robots/world':>12s} {'robot-steps/s':>14s} {'median ms':>10s} {'worst ms':>9s}")
     for k in opts.robots:
@@ -91,7 +120,7 @@ def physics(opts: argparse.Namespace) -> None:
         layouts = [(f"{nworld} worlds x {k} robots", nworld, k), (f"{nworld * k} worlds x 1 robot", nworld * k, 1)]
         sims = {}
         for _, n, per in layouts:
-            sims[per] = batchsim.make(fleet_of(opts.model, per), n, opts.backend)
+            sims[per] = batchsim.make(fleet_of(opts.model, per, environment=environment), n, opts.backend)
             sims[per].configure()
             sims[per].activate()
         best: dict[int, tuple[float, float, float]] = {}
@@ -300,6 +329,7 @@ def main() -> None:
     ph.add_argument("--seconds", type=float, default=3.0, help="each round's length")
     ph.add_argument("--rounds", type=int, default=3, help="interleaved rounds per layout (the best is shown)")
     ph.add_argument("--warmup", type=int, default=5)
+    ph.add_argument("--solver", choices=["Newton", "CG", "PGS"], help="every world's constraint solver (default: the model's)")
     r = sub.add_parser("ros")
     r.add_argument("--fleet", default=str(ROOT / "examples/fleets/warehouse.yaml"))
     r.add_argument("--worlds", type=int, default=16)

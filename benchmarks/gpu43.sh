@@ -12,7 +12,7 @@
 #   carry [".whl2", export]          bash benchmarks/gpu43.sh copy2
 #   carry [".whl3", export]          bash benchmarks/gpu43.sh install    # gpu24.sh's: the card, the cores
 #   carry [".whlros",".whlx",export] bash benchmarks/gpu43.sh ros        # gpu24.sh's: ROS 2, the interfaces
-#   carry [export]                   bash benchmarks/gpu43.sh physics [arm] [rover] [cpu]   # default all three
+#   carry [export]                   bash benchmarks/gpu43.sh physics [arm] [rover] [rover-cg] [cpu]   # default: arm rover cpu
 #   carry [export]                   bash benchmarks/gpu43.sh fleet      # 1024 worlds x 4 arms over ROS, 100 Hz
 #   carry [export]                   bash benchmarks/gpu43.sh kernels [VARIANT...]  # default: "default"
 #
@@ -43,6 +43,9 @@ physics)
       arm | rover)
         timeout 290 python3 benchmarks/fleet_robots.py physics --backend warp --model "$part" --robots 4,8 \
           --total 8192 --seconds 8 ;;
+      rover-cg)  # the same on floors whose option sets MuJoCo's CG solver (the default is Newton)
+        timeout 290 python3 benchmarks/fleet_robots.py physics --backend warp --model rover --robots 4,8 \
+          --total 8192 --seconds 8 --solver CG ;;
       cpu)
         timeout 120 python3 benchmarks/fleet_robots.py physics --backend cpu --model rover --robots 4,8 \
           --total 1024 --seconds 5 ;;
