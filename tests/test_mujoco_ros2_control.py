@@ -148,6 +148,11 @@ def test_the_model_comes_from_the_mujoco_model_param():
     assert out.stdout.startswith(f"model      scene  ({SCENE})")
     assert "-> /camera/color/image_raw" in out.stdout and "range 0.05..10 m -> /scan" in out.stdout
     assert "HeartbeatPublisherPlugin is not run by batchsim" in out.stdout
+    # the URDF given as the model reads its mujoco_model too, as `--ros2-control` does (before:
+    # the URDF compiled alone, with no actuators, and "camera is not in the model")
+    same = _cli("info", str(URDF), "--sensors", str(PLUGINS))
+    assert same.returncode == 0, same.stderr
+    assert same.stdout == out.stdout
 
 
 # --- a robot described only by a URDF, compiled as mujoco_ros2_control's generation tool does ---

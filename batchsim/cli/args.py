@@ -289,6 +289,7 @@ def check_args(args: argparse.Namespace) -> None:
         if value is not None and value < 1:
             raise UsageError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
     check_fleet_args(args)
+    take_urdf_model(args)
     args.model = default_model(args.model, args.ros2_control) if args.fleet is None else args.fleet
     model = Path(args.model).expanduser()
     if str(args.model) not in model_names() and model.is_dir():
@@ -383,6 +384,24 @@ def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
         else:
             (ros if inside else ours).append(arg)
     return ours, ros
+
+
+def take_urdf_model(args: argparse.Namespace) -> None:
+    """A URDF given as the model whose ros2_control block names its simulation (`mujoco_model`)
+    is read as mujoco_ros2_control reads it: as the --ros2-control file, simulating that MJCF
+    (so `batchsim info robot.urdf` shows the model `batchsim --ros2-control robot.urdf` runs),
+    unless --mujoco-inputs or --scene are given to compile the URDF with."""
+    model = getattr(args, "model", None)
+    if model is None or args.ros2_control is not None or not is_urdf(model):
+        return
+    if getattr(args, "mujoco_inputs", None) is not None or getattr(args, "scene", None) is not None:
+        return  # inputs or a scene to compile the URDF with: the URDF is the model
+    try:
+        names = model_file(read_description(model))
+    except (OSError, ValueError):
+        return  # the model's own load names what is wrong with the file
+    if names is not None:
+        args.ros2_control, args.model = model, None
 
 
 def default_model(model: str | None, ros2_control: str | None) -> str:

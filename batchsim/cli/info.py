@@ -15,6 +15,7 @@ from batchsim.cli.args import (
     check_fleet_args,
     default_model,
     info_parser,
+    take_urdf_model,
 )  # fmt: skip
 from batchsim.fleet import load_fleet
 from batchsim.model import CommandMode, RobotSpec
@@ -30,6 +31,7 @@ def info(argv: Sequence[str]) -> int:
     if args.fleet is not None and args.model is not None:
         raise UsageError(f"batchsim info: give a model or --fleet, not both ({args.model!r} and --fleet {args.fleet})")
     check_fleet_args(args)
+    take_urdf_model(args)
     args.model = default_model(args.model, args.ros2_control)
     sensors = SensorConfig.from_flags(args.sensors)
     if args.groups is not None:  # a fleet of several groups of worlds: each group's world, in turn
