@@ -48,6 +48,7 @@ from ros_bridge.protocol.recording import (
     take_request,
 )
 from ros_bridge.sensor_topics import SensorPlan
+from ros_bridge.throttle import how_ended
 from ros_bridge.view_plan import recording_geometry
 
 FLEET_TOPICS = ("/tf", "/tf_static", "/clock", "/diagnostics")
@@ -406,7 +407,7 @@ class Recording(Participant):
                 print(f"batchsim: {text}", file=sys.stderr, flush=True)
         if ended:
             code = self._proc.returncode
-            silent = f"batchsim: warning: recording: the recorder {ended(code)}; {self.path} holds what it wrote"
+            silent = f"batchsim: warning: recording: the recorder {how_ended(code)}; {self.path} holds what it wrote"
             self._finished(None if self._said else silent + " up to its last complete chunk")
 
     def _finished(self, line: str | None) -> None:

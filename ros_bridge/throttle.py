@@ -1,6 +1,6 @@
 """Rate-limited log lines: one line per key (a topic and a reason) per window, and a line
 with the count held back when a window closes; and how a helper process ended, in words
-(`ended`). No rclpy here.
+(`how_ended`). No rclpy here.
 
     throttle = LogThrottle(logger.warning, interval=2.0)
     throttle.warn(("/world_3/commands", Problem.NOT_FINITE), "rejected command on ...: value nan ...")
@@ -75,6 +75,6 @@ class LogThrottle:
         return f"{window[2]} ({n} {'line' if n == 1 else 'lines'} like it held back in {self.interval:g} s)"
 
 
-def ended(code: int) -> str:
+def how_ended(code: int) -> str:
     """How a helper process ended, from its exit status (a subprocess returncode)."""
     return f"was killed by signal {-code}" if code < 0 else f"exited with code {code}"

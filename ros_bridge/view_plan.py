@@ -35,7 +35,7 @@ import numpy as np
 from batchsim.contract import Contract
 from batchsim.model.frames import frame_tree
 from ros_bridge.protocol.sensor_blocks import WANT_RGB, CameraRequest
-from ros_bridge.throttle import ended
+from ros_bridge.throttle import how_ended
 
 GEOMETRY = "batchsim/view_geometry.npz"  # a recording's attachment: the robots' geoms (`batchsim view FILE`)
 VISIBLE_GROUPS = 3  # MuJoCo's viewer shows geom groups 0, 1 and 2 by default
@@ -275,7 +275,7 @@ class ViewProcess:
             self._said_ended = True
             for camera in self.cameras:
                 camera.request.clear()
-            print(f"batchsim: warning: view: its process {ended(code)}; the page no longer updates, the simulation goes on",
+            print(f"batchsim: warning: view: its process {how_ended(code)}; the page no longer updates, the simulation goes on",
                   file=sys.stderr, flush=True)  # fmt: skip
 
     def close(self) -> None:
