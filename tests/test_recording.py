@@ -145,6 +145,44 @@ def test_a_recordings_status_holds_each_change_and_the_view_reads_it_back():
     ]
 
 
+def test_a_recordings_status_holds_the_live_counts_and_last_problem_of_bad_commands():
+    """Before, the recorded /diagnostics lacked what the live one says of rejected commands
+    (issue 47): their count and the last one's reason, read from the bridge's shared memory,
+    the bridge workers' (`rej`) and the loop's controllers' (`hrej`); a new rejection is a change."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.serialization import deserialize_message
+
+    from batchsim.memory import Layout, Memory
+    from batchsim.types import Status
+    from ros_bridge.plan import FLAG_BAD
+    from ros_bridge.protocol.commands import RejectionWriter, rejection_arrays
+    from ros_bridge.worker.status_recording import StatusRecording
+
+    memory = Memory.create(Layout(rejection_arrays("rej", 3) + rejection_arrays("hrej", 3)), shared=False)
+    mine, host = RejectionWriter(memory, "rej"), RejectionWriter(memory, "hrej")
+    rec = StatusRecording(["world_0", "world_2"], (mine, host, [0, 2]))  # worlds 0 and 2 of 3 recorded
+    ok, bad = np.zeros(2, np.uint8), np.array([0, int(Status.BAD_COMMAND)], np.uint8)
+    flags = np.array([0, FLAG_BAD], np.uint8)
+
+    def statuses(t, bits, fl):
+        data = rec.message(t, 0, int(t * 1e9), bits, fl)
+        if data is None:
+            return None
+        return {s.hardware_id: (s.message, {v.key: v.value for v in s.values}) for s in deserialize_message(data, DiagnosticArray).status}
+
+    assert statuses(0.01, ok, ok)["world_2"][1]["bad_commands"] == "0"
+    mine.put(2, 3, "/world_2/commands", "value nan at index 1")
+    first = statuses(0.03, bad, flags)
+    assert list(first) == ["world_2"]
+    assert first["world_2"][0] == "bad_command (/world_2/commands: value nan at index 1)"
+    assert first["world_2"][1]["bad_commands"] == "1" and first["world_2"][1]["last_problem"] == "/world_2/commands: value nan at index 1"
+    host.put(2, 4, "/world_2/joint_trajectory", "2 points for 6 joints")  # the loop's, later: the last
+    second = statuses(0.04, bad, flags)  # the same bits and flags: a new rejection is a change
+    assert second["world_2"][1]["bad_commands"] == "2"
+    assert second["world_2"][1]["last_problem"] == "/world_2/joint_trajectory: 2 points for 6 joints"
+    assert statuses(0.05, bad, flags) is None
+
+
 def test_schemas_carry_their_dependencies_as_rosbag2_writes_them():
     text = schema_text("sensor_msgs/msg/JointState")
     assert text.startswith("#") or text.startswith("std_msgs/Header")
@@ -169,9 +207,13 @@ def test_replay_republishes_what_was_recorded(recorded, tmp_path):
     context = Context()
     rclpy.init(context=context, domain_id=domain)
     node = Node("test_replay_client", context=context)
+    from diagnostic_msgs.msg import DiagnosticArray
+
     got: list[bytes] = []
     clock: list[bytes] = []
+    diagnostics: list = []
     node.create_subscription(JointState, "/world_2/joint_states", got.append, QoSProfile(depth=1000), raw=True)
+    node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, QoSProfile(depth=1000))
     node.create_subscription(Clock, "/clock", clock.append, QoSProfile(depth=1000), raw=True)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
@@ -183,6 +225,8 @@ def test_replay_republishes_what_was_recorded(recorded, tmp_path):
         assert got == expected, log  # the recorded CDR bytes, every one, in order
         assert len(clock) == len(expected)
         assert node.count_publishers("/world_0/joint_states") == 0
+        # /diagnostics goes out with world 2's statuses only (before: not at all under --worlds)
+        assert diagnostics and {s.hardware_id for d in diagnostics for s in d.status} == {"world_2"}
     finally:
         if proc.poll() is None:
             proc.kill()

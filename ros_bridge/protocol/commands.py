@@ -178,3 +178,13 @@ class RejectionWriter:
         """The topic of the last rejection."""
         return text_of(self.topics[world])
 
+
+def bad_commands(mine: RejectionWriter, host: RejectionWriter, world: int) -> tuple[int, str]:
+    """A world's rejected commands in all, the bridge workers' (`mine`, block `rej`) and the
+    loop's controllers' (`host`, block `hrej`), and the last one's "<topic>: <reason>" ("" with none):
+    what /diagnostics says live (worker/diagnostics.py) and a recording's /diagnostics records."""
+    count = int(mine.count[world]) + int(host.count[world])
+    if not count:
+        return 0, ""
+    return count, host.reason(world) if host.period[world] > mine.period[world] else mine.reason(world)
+

@@ -26,7 +26,7 @@ from rclpy.qos import QoSProfile
 
 from batchsim.memory import Memory
 from ros_bridge import world_status
-from ros_bridge.protocol.commands import Problem, RejectionWriter
+from ros_bridge.protocol.commands import Problem, RejectionWriter, bad_commands
 from ros_bridge.protocol.liveness import hung
 from ros_bridge.protocol.world_params import read_line
 from ros_bridge.worker.messages import stamp_of
@@ -129,10 +129,7 @@ class Diagnostics:
             w = self.lo + row
             bits = int(snap.status[row])
             flags = int(snap.flags[row])
-            count = int(mine.count[w]) + int(host.count[w])
-            last = ""
-            if count:
-                last = host.reason(w) if host.period[w] > mine.period[w] else mine.reason(w)
+            count, last = bad_commands(mine, host, w)
             out.status.append(
                 DiagnosticStatus(
                     level=bytes([world_status.level(bits, flags)]),  # a ROS byte field

@@ -38,6 +38,7 @@ from std_msgs.msg import String
 from batchsim.memory import Memory
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
+from ros_bridge.protocol.commands import RejectionWriter
 from ros_bridge.protocol.recording import GroupsReader, RecordedPeriod, RecordReader, set_recording
 from ros_bridge.view_plan import geometry_attachment
 from ros_bridge.worker.mcap_file import BlockWriter
@@ -62,7 +63,7 @@ class _Group:
     """One group's share of a recording (a fleet of one group: the whole of it): its recorded
     worlds' outputs (each world's channel), its tf template and its worlds' /diagnostics."""
 
-    def __init__(self, plan: FleetPlan, channel: Callable[..., int]):
+    def __init__(self, plan: FleetPlan, channel: Callable[..., int], memory: Memory | None = None):
         spec = plan.recording
         self.spec, self.tf_spec = spec, plan.tf
         self.worlds = [plan.world_offset + w for w in spec.worlds]
@@ -73,7 +74,10 @@ class _Group:
             for out in self.outputs
         ]
         self.tf = TfTemplate(plan.tf, self.namespaces) if spec.tf and plan.tf.all_moving else None
-        self.status = StatusRecording(self.namespaces) if spec.diagnostics else None
+        rejections = None
+        if memory is not None:  # the live counts of rejected commands, from the bridge's memory
+            rejections = (RejectionWriter(memory, "rej"), RejectionWriter(memory, "hrej"), list(spec.worlds))
+        self.status = StatusRecording(self.namespaces, rejections) if spec.diagnostics else None
 
 
 class McapRecording:
@@ -85,7 +89,12 @@ class McapRecording:
 
     Raises OSError where the file cannot be written."""
 
-    def __init__(self, plan: FleetPlan | Sequence[tuple[FleetPlan, bytes | None, str]], stream: BinaryIO):
+    def __init__(
+        self,
+        plan: FleetPlan | Sequence[tuple[FleetPlan, bytes | None, str]],
+        stream: BinaryIO,
+        memories: Sequence[Memory] | None = None,
+    ):
         groups = [(plan, None, "")] if isinstance(plan, FleetPlan) else list(plan)
         self.spec = groups[0][0].recording
         self.writer = BlockWriter(stream, chunk_bytes=CHUNK_BYTES, compression="zstd")
@@ -106,7 +115,8 @@ class McapRecording:
                 for p, geometry, name in groups
             ])  # fmt: skip
         self.writer.add_metadata("batchsim", head)  # first: a replay picks worlds by it before their channels come
-        self.groups = [_Group(p, self.channel) for p, _, _ in groups]
+        memories = list(memories) if memories is not None else [None] * len(groups)
+        self.groups = [_Group(p, self.channel, m) for (p, _, _), m in zip(groups, memories, strict=True)]
         self.namespaces = [ns for g in self.groups for ns in g.namespaces]
         self.tf_channel = (
             self.channel("/tf", "tf2_msgs/msg/TFMessage", depth=100) if any(g.tf is not None for g in self.groups) else -1
@@ -231,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # a file made meanwhile is not written over (recording.path_problem); a device is written to
         stream = open(path, "wb" if os.path.exists(path) and not os.path.isfile(path) else "xb")
-        recording = McapRecording(groups, stream)
+        recording = McapRecording(groups, stream, memories)
         # cameras and lidars, each group's from its own blocks
         sensors = [SensorRecording(p, m, recording.channel, recording.writer) for p, m in zip(plans, memories, strict=True)]
         status.write("ready\n")

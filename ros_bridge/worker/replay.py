@@ -6,7 +6,8 @@ transient local); messages go out as their recorded CDR bytes, paced by their lo
 (sim time) times `rate`. /clock is republished as recorded; a recording without it gets one
 from the log times (at most CLOCK_RATE Hz), so `use_sim_time` nodes follow the replay.
 A batchsim recording names its worlds (its `batchsim` metadata): `worlds` picks some, and
-the fleet-wide topics (/clock, /tf, /tf_static) go out whole.
+the fleet-wide topics (/clock, /tf, /tf_static) go out whole; /diagnostics goes out with the
+picked worlds' statuses only (a message with none of them is not sent).
 
 The file is read as a stream, record by record, so a recording that was cut short (the
 recorder was killed) replays up to its last complete chunk, after one line that says so.
@@ -36,6 +37,7 @@ from ros_bridge.worker.messages import clock_payload, message_type
 CLOCK_RATE = 100.0  # Hz of the /clock made up for a recording without one
 DRAIN_TIMEOUT = 5.0  # s the replay waits at its end for subscribers to acknowledge the last messages
 FLEET = ("/clock", "/tf", "/tf_static")
+DIAGNOSTICS = "/diagnostics"  # one status per world (hardware_id: its namespace): filtered by --worlds
 
 
 def _qos(channel: Channel) -> QoSProfile:
@@ -79,6 +81,7 @@ class Replay:
         self.first = self.last = None
         self._schemas: dict[int, Schema] = {}
         self._publishers: dict[int, Any] = {}  # channel id -> publisher, or None: not replayed
+        self._diagnostics: set[int] = set()  # the /diagnostics channels, filtered to the picked worlds
         self._clock: Any = None
         self._clock_recorded = False
         self._last_clock = -1
@@ -128,7 +131,13 @@ class Replay:
                     if not self._clock_recorded and record.log_time - self._last_clock >= 1e9 / CLOCK_RATE:
                         self._last_clock = record.log_time
                         self._clock.publish(clock_payload(*divmod(record.log_time, 1_000_000_000)))
-                    pub.publish(record.data)
+                    if record.channel_id in self._diagnostics:
+                        kept = self._picked_statuses(record.data)
+                        if kept is None:
+                            continue
+                        pub.publish(kept)
+                    else:
+                        pub.publish(record.data)
                     self.published += 1
                     self.last = record.log_time
                 elif isinstance(record, Schema):
@@ -174,7 +183,9 @@ class Replay:
         if topic == "/clock":
             self._clock_recorded = True
             return self._clock  # one publisher on /clock
-        if self.worlds is not None and topic not in FLEET:
+        if self.worlds is not None and topic == DIAGNOSTICS:
+            self._diagnostics.add(channel.id)
+        elif self.worlds is not None and topic not in FLEET:
             if self.prefixes is None or not topic.startswith(self.prefixes):
                 return None
         schema = self._schemas.get(channel.schema_id)
@@ -187,6 +198,16 @@ class Replay:
             self.say(f"warning: {topic}: no message type {schema.name} installed; not replayed")
             return None
         return node.create_publisher(cls, topic, _qos(channel))
+
+    def _picked_statuses(self, data: bytes) -> Any:
+        """A recorded DiagnosticArray with the picked worlds' statuses only, or None if it has none."""
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.serialization import deserialize_message
+
+        msg = deserialize_message(data, DiagnosticArray)
+        names = {p.strip("/") for p in self.prefixes or ()}
+        msg.status = [s for s in msg.status if s.hardware_id in names]
+        return msg if msg.status else None
 
     def clock_publisher(self, node: Node) -> None:
         self._clock = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
