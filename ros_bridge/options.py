@@ -102,6 +102,8 @@ class BridgeOptions:
       tf: publish tf, tf_static and robot_description (ros_bridge/worker/tf.py).
       description: the user's robot description (`--ros2-control`, xacro arguments after
         the path): robot_description publishes it where it is a URDF.
+      description_topic: the topic the description was read from (`--robot-description-topic`):
+        its publisher (robot_state_publisher's) keeps it; batchsim publishes no second one there.
       ros_args: ROS arguments for every worker's node, as after `--ros-args` on a ROS
         executable's command line (`-p use_sim_time:=true`, `-r from:=to`, `--log-level warn`).
       record: what a recording writes (MCAP, ros_bridge/recording.py); None: no recording, not even on request.
@@ -124,6 +126,7 @@ class BridgeOptions:
     all_topics: bool = dataclasses.field(default=False, metadata=_flag("--all-topics"))
     tf: bool = dataclasses.field(default=True, metadata=_flag("--no-tf"))
     description: str | None = dataclasses.field(default=None, metadata=_flag("--ros2-control"))
+    description_topic: str | None = dataclasses.field(default=None, metadata=_flag("--robot-description-topic"))
     ros_args: tuple[str, ...] = dataclasses.field(default=(), metadata=_flag("--ros-args", tuple))
     record: RecordOptions | None = dataclasses.field(default_factory=RecordOptions)  # its own fields' flags
     view: ViewOptions | None = None  # `--view`: ViewOptions from its fields' flags

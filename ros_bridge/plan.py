@@ -316,7 +316,11 @@ def build_plan(
         input_specs.append(InputSpec(inp.topic, inp.kind, f"in{len(inputs) - 1}", inp.row_width(), controller=config.name))
 
     transforms = [tr for t in topics for tr in t.transforms]  # a diff drive's odom -> base_link
-    tf = tf_spec(sim, publish_every, channel, options.description, transforms) if options.tf and available()["tf2_msgs"] else None
+    tf = (
+        tf_spec(sim, publish_every, channel, options.description, transforms, options.description_topic)
+        if options.tf and available()["tf2_msgs"]
+        else None
+    )
     actions: list[TrajectoryActionSpec | GripperActionSpec] = []
     if manager is not None and available()["control_msgs"]:
         monitor_every = max(1, round(control_rate / ACTION_MONITOR_RATE))

@@ -58,6 +58,8 @@ class TfSpec:
         a controller's frame that is no frame of the tree (a robot's `odom`, where the robot
         started in that world), so every frame a controller names is in the world's tree.
       anchor_values: (nworld, nanchor, 7) their translation xyz and rotation xyzw.
+      source_topic: the topic the description was read from (`/robot_description`), where
+        another node publishes it: no robot_description of batchsim's goes there.
     """
 
     moving: tuple[tuple[str, str], ...]
@@ -75,6 +77,7 @@ class TfSpec:
     controller_moving: tuple[tuple[str, str], ...] = ()
     anchors: tuple[tuple[str, str], ...] = ()
     anchor_values: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0, 7)))
+    source_topic: str = ""
 
     @property
     def all_moving(self) -> tuple[tuple[str, str], ...]:
@@ -117,6 +120,7 @@ def tf_spec(
     channel: Callable[[str, int, Callable[[np.ndarray], None]], int],
     source: str | None = None,
     transforms: Sequence[Transform] = (),
+    source_topic: str | None = None,
 ) -> TfSpec:
     """The tf tree of `sim`'s robot, its moving transforms filled from the engine's body
     poses (forward kinematics of every world at once) into one channel. `source`: the
@@ -137,8 +141,9 @@ def tf_spec(
     )
 
     pairs = list(zip(tree.parents, tree.names, strict=True))
-    description, extra = _description(sim, tree, source)
-    extra = [*extra, *_sensor_frames(sim, tree, {link for _, link, _, _ in extra})]
+    attached = _sensor_frames(sim, tree)  # sites, camera frames
+    description, extra = _description(sim, tree, source, {name for _, name, _, _ in attached})
+    extra = [*extra, *(f for f in attached if f[1] not in {link for _, link, _, _ in extra})]
     frames = {tree.root, *tree.names, *(link for _, link, _, _ in extra)}
     moved, anchors, anchor_values = controller_frames(sim, tree.root, frames, transforms)
     width = 7 * len(bodies)
@@ -170,16 +175,17 @@ def tf_spec(
         controller_moving=tuple((_in_world(t.parent), _in_world(t.child)) for t in moved),
         anchors=anchors,
         anchor_values=anchor_values,
+        source_topic="/" + source_topic.strip("/") if source_topic else "",
     )
 
 
-def _sensor_frames(sim: Contract, tree, taken: set[str]) -> list:
+def _sensor_frames(sim: Contract, tree) -> list:
     """Sites, camera image frames and sensors' own frame names (batchsim.model.frames.fixed_frames):
     every frame id a sensor's message names is in the world's tree."""
     suite = sim.sensors
     cameras = [(c.id, c.frame_id) for c in suite.cameras.values()]
     lidars = [(ld.site_id, ld.frame_id) for ld in suite.lidars.values() if ld.frame_id != ld.site]
-    return [f for f in fixed_frames(sim.spec.mjmodel, tree, cameras, lidars) if f[1] not in taken]
+    return fixed_frames(sim.spec.mjmodel, tree, cameras, lidars)
 
 
 def _in_world(frame_id: str) -> str:
@@ -245,23 +251,62 @@ def _robot_description(robot: RobotPart) -> tuple[str, str]:
 
 
 
-def _description(sim: Contract, tree, source: str | None) -> tuple[str, list]:
-    """The user's URDF if its links are frames of the tree (so RViz finds a transform for
-    each), else the one generated from the MJCF (with a warning saying why), and the
-    generated one's links that are no body (Urdf.extra_frames: tf_static carries them)."""
+def _description(sim: Contract, tree, source: str | None, fixed: set[str]) -> tuple[str, list]:
+    """The user's URDF if each of its links is a frame of the tree (a body, or one of `fixed`:
+    a site, a camera frame) or hangs from one by fixed joints (placed as the URDF places it),
+    so RViz finds a transform for each; else the one generated from the MJCF (with a warning
+    saying why). With it, the frames tf_static adds for it: the URDF's placed links, or the
+    generated one's links that are no body (Urdf.extra_frames)."""
     if source is not None:
         text = robot_description(sim.spec, source)
-        links = {link.get("name") for link in ET.fromstring(text).iter("link")}
-        unknown = sorted(links - set(tree.names) - {tree.root})
+        urdf = ET.fromstring(text)
+        links = {link.get("name") for link in urdf.iter("link")}
+        placed = _fixed_links(urdf, {tree.root, *tree.names, *fixed})
+        unknown = sorted(links - set(tree.names) - {tree.root} - fixed - {link for _, link, _, _ in placed})
         if not unknown:
-            return text, []
+            return text, placed
         more = f" and {len(unknown) - 3} more" if len(unknown) > 3 else ""
         log.warning(
-            "batchsim: robot_description: the links %s%s of %s are no bodies of the MJCF (tf's frames are "
-            "its body names): publishing the URDF generated from the MJCF instead",
+            "batchsim: robot_description: the links %s%s of %s are no bodies or sites of the MJCF, nor fixed to "
+            "one (tf's frames are their names): publishing the URDF generated from the MJCF instead",
             ", ".join(unknown[:3]), more, str(source).split()[0],
         )
     urdf = generate_urdf(sim.spec)
     for line in urdf.warnings:
         log.warning("batchsim: robot_description: %s", line)
     return urdf.text, urdf.extra_frames
+
+
+def _fixed_links(urdf: ET.Element, known: set[str]) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+    """The URDF's links that are no frame in `known` but hang from one through fixed joints,
+    as (parent frame, link, position (3,), quaternion w x y z (4,)) from the joints' origins."""
+    out: list[tuple[str, str, np.ndarray, np.ndarray]] = []
+    have = set(known)
+    fixed = [j for j in urdf.findall("joint") if j.get("type") == "fixed"]
+    grew = True
+    while grew:
+        grew = False
+        for joint in fixed:
+            parent, child = joint.find("parent"), joint.find("child")
+            if parent is None or child is None:
+                continue
+            p, c = parent.get("link"), child.get("link")
+            if p in have and c not in have:
+                origin = joint.find("origin")
+                xyz = [float(v) for v in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split()]
+                rpy = [float(v) for v in (origin.get("rpy", "0 0 0") if origin is not None else "0 0 0").split()]
+                out.append((p, c, np.array(xyz), _rpy_quat(*rpy)))
+                have.add(c)
+                grew = True
+    return out
+
+
+def _rpy_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """URDF's rpy (about fixed x, then y, then z) as a quaternion w x y z."""
+    cr, sr = np.cos(roll / 2), np.sin(roll / 2)
+    cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
+    cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
+    return np.array([
+        cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
+    ])  # fmt: skip

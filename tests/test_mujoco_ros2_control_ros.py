@@ -7,8 +7,8 @@ The launch file becomes `batchsim --ros2-control test_robot.urdf --controllers c
 --sensors mujoco_ros2_control_plugins.yaml` (the model is the URDF's `mujoco_model` param).
 One world in the root namespace gives upstream's exact names (`/joint_states`,
 `/mujoco_ros2_control_node/...`); a second fleet of two worlds checks the same under
-`/world_1/...`. What is not translated: `check_node_running(robot_state_publisher)` (batchsim
-publishes `/robot_description` itself, tests/test_ros_stack.py) and the exact settled pose of
+`/world_1/...`. `check_node_running(robot_state_publisher)`: batchsim's node of that name
+publishes the user's URDF on `/robot_description`. What is not translated: the exact settled pose of
 `test_pose_interfaces_transform` (its figures are per libmujoco build; here the pose is
 checked against MuJoCo's own site pose).
 """
@@ -67,6 +67,7 @@ def robot(request, tmp_path_factory, ros):
     if request.param.startswith("transmission"):
         args[1] = str(transmission_robot(folder, use_pid=request.param.endswith("pid")))
     with Fleet(domain_id(84), ["--worlds", "1", "--namespace", "", *args], folder / "batchsim.log") as fleet:
+        fleet.source = args[1]  # the --ros2-control description, xacro arguments after the path
         fleet.pid = request.param.endswith("pid")
         fleet.transmission = request.param.startswith("transmission")
         fleet.js = fleet.latest(ros["JointState"], "/joint_states")
@@ -334,6 +335,44 @@ def test_a_fleet_serves_each_world_under_its_namespace(fleet, ros):
     assert fleet.call(ros["ms"].SetPause, f"{NODE}/set_pause", ros["ms"].SetPause.Request(paused=False)).success
 
 
+def test_robot_description_is_the_users_urdf_and_its_links_are_in_tf(robot, ros):
+    """With the peer's URDF given (--ros2-control), /robot_description is that URDF, published by a
+    node named robot_state_publisher (upstream's test_node_start checks it runs), and every link
+    of it is a frame of the tf tree under `world` (its fixed links are the MJCF's sites). Before:
+    a URDF generated from the MJCF (robot `scene`, no `base`, `ee_link`, camera or lidar links)."""
+    import xml.etree.ElementTree as ET
+
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from std_msgs.msg import String
+    from tf2_msgs.msg import TFMessage
+
+    from batchsim.model.description import read_source
+
+    latched = QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    description = robot.latest(String, "/robot_description", qos=latched)
+    robot.wait(lambda: description.count > 0, 20, "/robot_description")
+    urdf = ET.fromstring(description.msg.data)
+    assert urdf.get("name") == "two_dof_robot"
+    assert description.msg.data == read_source(robot.source)[0]  # xacro expanded
+    assert "robot_state_publisher" in robot.node.get_node_names()
+    assert robot.node.count_publishers("/robot_description") == 1
+    parents: dict[str, str] = {}
+
+    def on_tf(msg) -> None:
+        parents.update({t.child_frame_id: t.header.frame_id for t in msg.transforms})
+
+    robot.node.create_subscription(TFMessage, "/tf_static", on_tf, latched)
+    robot.node.create_subscription(TFMessage, "/tf", on_tf, 10)
+    links = {link.get("name") for link in urdf.iter("link")} - {"world"}
+
+    def root(frame: str) -> str:
+        while frame in parents:
+            frame = parents[frame]
+        return frame
+
+    robot.wait(lambda: all(root(link) == "world" and link in parents for link in links), 20, f"every link of {sorted(links)} in tf")
+
+
 def test_mjcf_generation_from_the_urdf(tmp_path, ros):
     """robot_launch_mjcf_generation_test.py: the demo robot described only by its URDF (demo 02:
     --m test_inputs.xml, --scene scene_info.xml), its generated MJCF on /mujoco_robot_description,
@@ -392,6 +431,12 @@ def test_mjcf_generation_from_the_robot_description_topic(tmp_path, ros):
         robot.wait(lambda: js.count > 0, 20, "/joint_states")
         _controllers_running(robot, ros)
         _command(robot, ros, "/position_controller/commands", [0.5, -0.5], {"joint1": 0.5, "joint2": -0.5}, js)
+        # the topic read from keeps its one latched publisher (before: batchsim published a second
+        # description there once someone subscribed, and RViz got whichever came last)
+        seen = robot.latest(String, "/robot_description", qos=latched)
+        robot.wait(lambda: seen.count > 0, 10, "/robot_description")
+        time.sleep(3.0)  # a publisher made on request comes within a second of the subscriber
+        assert robot.node.count_publishers("/robot_description") == 1
         robot.node.destroy_publisher(publisher)
 
 

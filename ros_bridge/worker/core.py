@@ -247,6 +247,9 @@ class Worker:
             self._thread.join(timeout=2.0)
         if self.simulation is not None:
             self.simulation.close()
+        if self.tf is not None:
+            with contextlib.suppress(Exception):
+                self.tf.close()
         with contextlib.suppress(Exception):
             self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)

@@ -45,6 +45,7 @@ from ros_bridge.worker.messages import (
     value_markers,
 )
 
+RSP = "robot_state_publisher"  # the node that publishes /robot_description in a ros2_control stack
 #: tf2_ros's DynamicBroadcasterQoS and StaticBroadcasterQoS
 DYNAMIC_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 STATIC_QOS = QoSProfile(
@@ -126,10 +127,19 @@ class TfPublishers:
             # a root-namespace world's /tf and /tf_static are the fleet's own
             kinds = ("robot_description", "mujoco_robot_description")
             for kind in ("tf", "tf_static", *kinds) if ns else kinds:
-                self._on_request[topic_name(ns, kind)] = (kind, row)
+                if topic_name(ns, kind) != spec.source_topic:  # its own publisher keeps the topic we read
+                    self._on_request[topic_name(ns, kind)] = (kind, row)
             for prefix, _ in spec.robot_descriptions:  # each robot's of a world of several
                 self._on_request[topic_name(ns, f"{prefix}robot_description")] = (prefix, row)
         self._keep: list[Any] = []  # publishers of latched messages
+        # a world in the root namespace stands in for a ros2_control robot: /robot_description is
+        # published at once by a node named as the one that publishes it there, robot_state_publisher
+        # (no parameter services: it is never spun), unless another node already does (the topic
+        # the description was read from)
+        self.rsp: Node | None = None
+        if "" in namespaces and "/robot_description" in self._on_request:
+            self.rsp = Node(RSP, context=node.context, start_parameter_services=False)
+            self._create("/robot_description", self.rsp)
         if all_topics:
             for topic in list(self._on_request):
                 self._create(topic)
@@ -147,7 +157,13 @@ class TfPublishers:
             self._create(topic)
         return True
 
-    def _create(self, topic: str) -> None:
+    def close(self) -> None:
+        if self.rsp is not None:
+            self.rsp.destroy_node()
+            self.rsp = None
+
+    def _create(self, topic: str, owner: Node | None = None) -> None:
+        """`topic`'s publisher, on `owner` (default: the worker's node), and its latched message."""
         kind, row = self._on_request.pop(topic)
         ns = self.namespaces[row]
         if kind == "tf":
@@ -158,7 +174,7 @@ class TfPublishers:
             pub.publish(static_message(self.spec, [ns], [self.lo + row]))
             self._keep.append(pub)
         else:
-            pub = self.node.create_publisher(String, topic, STATIC_QOS)
+            pub = (owner or self.node).create_publisher(String, topic, STATIC_QOS)
             text = dict(self.spec.robot_descriptions).get(kind)  # a robot's, keyed by its prefix
             if text is None:
                 text = self.spec.description if kind == "robot_description" else self.spec.mjcf
