@@ -189,7 +189,7 @@ def join_bridges(bridges: Sequence[BridgeParts], names: Sequence[str]) -> ViewPr
         viewed = [b for b in bridges if b.plan.view is not None]
         view = ViewProcess([b.plan for b in viewed], [b.camera for b in viewed])
         first.host.on_close.append(view.close)
-        first.host.watchers.append(view.watch)
+        first.host.workers.watchers.append(view.watch)
         for b in bridges[1:]:  # whichever bridge closes first ends the view, while every snapshot is there
             b.host.on_close.insert(0, view.close)
         if view.url is not None:

@@ -108,7 +108,6 @@ class BridgeHost(Participant):
         self.namespaces = plan.namespaces
         self.readers = list(readers)
         self.on_close: list[Any] = []  # called first by close(): a recording finishes its file
-        self.watchers: list[Any] = []  # called each period beside the workers' supervision: the view's watch
         self.throttle = LogThrottle(_stderr)
         self.memory = Memory.create(plan.layout, shared=processes or plan.recording is not None)  # a recorder attaches
         plan.memory_name = self.memory.name
@@ -205,8 +204,6 @@ class BridgeHost(Participant):
         """Requests, commands, timeouts, BAD_COMMAND; the controllers run after this."""
         self._flush(write=False)  # a step that failed before while_stepping: read() has moved on since
         self.workers.supervise()
-        for watch in self.watchers:
-            watch()
         good = np.zeros(self.nworld, dtype=bool)
         rejected = np.zeros(self.nworld, dtype=bool)
         self._serve_requests(sim, good, rejected, later=not self.lockstep)
@@ -280,8 +277,6 @@ class BridgeHost(Participant):
         self.bad |= refused
         self._gate_since = None
         self.workers.supervise()
-        for watch in self.watchers:
-            watch()
         if self._serve_requests(sim, None, None) and self._force:
             for c in self.readers:  # the controllers' copies of the state, for what is published now
                 c.update(sim, time, 0.0)

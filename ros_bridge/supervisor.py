@@ -127,6 +127,7 @@ class Supervisor:
         os.set_blocking(self.notify_r, False)
         os.set_blocking(self.notify_w, False)
         self._next_supervise = 0.0
+        self.watchers: list[Any] = []  # other helpers' checks, called by supervise()
         self._closed = False
 
     def start(self) -> None:
@@ -275,11 +276,14 @@ class Supervisor:
         raise WorkerError(f"bridge worker {p.index} failed to start: {detail}")
 
     def supervise(self) -> None:
-        """Restart a worker that died (with a back-off); say when one is back."""
+        """Restart a worker that died (with a back-off); say when one is back. Then `watchers`:
+        the other helper processes' checks (the web view's, ViewProcess.watch)."""
         now = wallclock.monotonic()
         if now < self._next_supervise:
             return
         self._next_supervise = now + SUPERVISE
+        for watch in self.watchers:
+            watch()
         self.throttle.flush()  # windows that closed: how many lines each held back
         for j, p in enumerate(self._procs):
             if not p.ready and p.status >= 0:  # a restarted worker: is it up?
