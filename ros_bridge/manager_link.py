@@ -10,6 +10,7 @@ periods and says what to answer.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -29,6 +30,7 @@ class ControllerSpec:
       command_interfaces: the command interfaces it claims while active.
       state_interfaces: the state interfaces it reads.
       update_rate: Hz.
+      parameters: its parameters (ControllerInfo.parameters), which its node holds.
     """
 
     name: str
@@ -36,6 +38,7 @@ class ControllerSpec:
     command_interfaces: tuple[str, ...]
     state_interfaces: tuple[str, ...]
     update_rate: int
+    parameters: tuple[tuple[str, Any], ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +95,7 @@ def manager_spec(sim: Contract, manager: ControllerManager, control_rate: float)
             c.command_interfaces,
             c.state_interfaces,
             int(round(c.update_rate if c.update_rate else control_rate)),
+            c.parameters,
         )
         for c in manager.describe()
     )

@@ -40,6 +40,26 @@ class Reliability(AnyCase, enum.Enum):
     BEST_EFFORT = "best_effort"
 
 
+class ControllerNodes(AnyCase, enum.Enum):
+    """Whether every world's controllers and controller_manager are ROS nodes (`--controller-nodes`):
+    ON, OFF, or AUTO: for fleets of up to CONTROLLER_NODES_UP_TO worlds, and always in the root
+    namespace (where a ros2_control stack's tools look for them)."""
+
+    AUTO = "auto"
+    ON = "on"
+    OFF = "off"
+
+    def wanted(self, namespaces: list[str]) -> bool:
+        if self is ControllerNodes.AUTO:
+            return len(namespaces) <= CONTROLLER_NODES_UP_TO or "" in namespaces
+        return self is ControllerNodes.ON
+
+
+#: AUTO's line: each world adds a node per controller and one for its controller_manager, each
+#: with its parameter services, to the ROS graph every process discovers (benchmarks/discovery.py)
+CONTROLLER_NODES_UP_TO = 32
+
+
 @dataclasses.dataclass(frozen=True)
 class RecordOptions:
     """What a recording (ros_bridge/recording.py) writes, and where to from the start.
@@ -100,6 +120,8 @@ class BridgeOptions:
         someone asks (sensors, actuator commands, controller_state): for tools that list
         topics before they subscribe, at the price of discovery time in large fleets.
       tf: publish tf, tf_static and robot_description (ros_bridge/worker/tf.py).
+      controller_nodes: a ROS node per controller of every world, and one per controller_manager,
+        with their parameters (ros_bridge/worker/controller_nodes.py); ControllerNodes.
       description: the user's robot description (`--ros2-control`, xacro arguments after
         the path): robot_description publishes it where it is a URDF.
       description_topic: the topic the description was read from (`--robot-description-topic`):
@@ -125,6 +147,9 @@ class BridgeOptions:
     startup_check: float = 1.0
     all_topics: bool = dataclasses.field(default=False, metadata=_flag("--all-topics"))
     tf: bool = dataclasses.field(default=True, metadata=_flag("--no-tf"))
+    controller_nodes: ControllerNodes = dataclasses.field(
+        default=ControllerNodes.AUTO, metadata=_flag("--controller-nodes", ControllerNodes)
+    )
     description: str | None = dataclasses.field(default=None, metadata=_flag("--ros2-control"))
     description_topic: str | None = dataclasses.field(default=None, metadata=_flag("--robot-description-topic"))
     ros_args: tuple[str, ...] = dataclasses.field(default=(), metadata=_flag("--ros-args", tuple))

@@ -121,6 +121,7 @@ class FleetPlan:
       fleet_services: worker 0 serves /batchsim/{reset,pause,step,record}.
       startup_check: seconds worker 0 watches the graph for another fleet at start.
       all_topics: create the on-request topics at start too.
+      controller_nodes: a node per controller and controller_manager of every world (BridgeOptions).
       sensors: cameras and lidars (ros_bridge/sensor_topics.py), or None.
       tf: the tf tree and robot description, or None.
       manager: the controller_manager services' data, or None without controllers.
@@ -150,6 +151,7 @@ class FleetPlan:
     clock: bool
     startup_check: float
     all_topics: bool = False
+    controller_nodes: bool = False
     fleet_services: bool = True
     actuator_robots: list[str] = dataclasses.field(default_factory=list)
     robots: tuple[str, ...] = ()  # a fleet file's robots in every world (batchsim.fleet), for /diagnostics
@@ -377,6 +379,7 @@ def build_plan(
         clock=options.clock,
         startup_check=options.startup_check,
         all_topics=options.all_topics,
+        controller_nodes=options.controller_nodes.wanted(namespaces) and manager is not None,
         fleet_services=options.fleet_services,
         ros_args=tuple(options.ros_args),
         sensors=sensors,

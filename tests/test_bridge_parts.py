@@ -647,3 +647,13 @@ def test_a_step_run_while_paused_is_published_as_it_left_the_worlds():
     finally:
         host.close()
         sim.shutdown()
+
+
+def test_controller_nodes_auto_is_on_for_small_fleets_and_the_root_namespace():
+    from ros_bridge.options import CONTROLLER_NODES_UP_TO, ControllerNodes
+
+    small = [f"world_{i}" for i in range(CONTROLLER_NODES_UP_TO)]
+    large = [f"world_{i}" for i in range(CONTROLLER_NODES_UP_TO + 1)]
+    assert ControllerNodes("auto").wanted(small) and not ControllerNodes("AUTO").wanted(large)
+    assert ControllerNodes.AUTO.wanted([""])  # one world at the root: a ros2_control robot's drop-in
+    assert ControllerNodes("on").wanted(large) and not ControllerNodes("off").wanted([""])

@@ -8,9 +8,11 @@ import dataclasses
 import functools
 
 from ros_bridge.options import (  # no rclpy: the options and their flags
+    CONTROLLER_NODES_UP_TO,
     INPROCESS_WORLDS,
     WORLDS_PER_WORKER,
     BridgeOptions,
+    ControllerNodes,
     RecordOptions,
     Reliability,
     ViewOptions,
@@ -43,6 +45,12 @@ def add_bridge_flags(p: argparse.ArgumentParser) -> None:
         "appear when someone subscribes or publishes)",
     )
     bridge("tf", help="publish no tf, tf_static or robot_description (default: every world's)")
+    bridge(
+        "controller_nodes",
+        choices=tuple(c.value for c in ControllerNodes),
+        help=f"a ROS node per controller and controller_manager of every world, with its parameters (default auto: "
+        f"up to {CONTROLLER_NODES_UP_TO} worlds, and in the root namespace)",
+    )
     rec = p.add_argument_group("recording (MCAP, as rosbag2 writes it)")
     add_option(rec, RecordOptions, "path", metavar="FILE", help="record every world's state topics into this MCAP file")
     add_option(

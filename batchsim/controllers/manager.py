@@ -77,6 +77,7 @@ class ControllerInfo:
       update_rate: its own `update_rate` parameter, else the manager's (Hz; None: neither set).
       is_async: always False: every controller runs in the loop thread.
       active: (nworld,) bool, a copy: the worlds where it is active.
+      parameters: its `ros__parameters` as the YAML gives them, flattened (`gains.joint1.p`), sorted.
     """
 
     name: str
@@ -86,6 +87,7 @@ class ControllerInfo:
     update_rate: float | None
     is_async: bool
     active: np.ndarray
+    parameters: tuple[tuple[str, Any], ...] = ()
 
     def state(self, world: int) -> str:
         """The lifecycle state name in one world: `active` or `inactive`."""
@@ -462,6 +464,7 @@ class ControllerManager(Participant):
                     update_rate=float(rate) if own else self.update_rate,
                     is_async=False,
                     active=self._active[k].copy(),
+                    parameters=tuple(sorted(c.params.values.items())),
                 )
             )
         return out

@@ -10,6 +10,7 @@ on_request.py, graph_scan.py  per-world entities created when a client appears i
 tf.py          tf, tf_static, robot_description
 actions.py     FollowJointTrajectory and GripperCommand servers
 controller_manager.py  every world's controller_manager services
+controller_nodes.py  a node per controller and controller_manager, with their parameters
 services.py    requests to the loop (reset, pause, step, switch) and the services that wait for them
 simulation.py, wrench.py  mujoco_ros2_control's simulation services and ExternalWrenchPlugin service
 sensors.py, sensor_messages.py   camera images and lidar scans

@@ -131,6 +131,7 @@ class Worker:
         self.type_check: Any = None  # remote endpoints of another definition (ros_bridge/worker/type_check.py)
         self.manager: Any = None  # controller_manager services (ros_bridge/worker/controller_manager.py)
         self.tf: Any = None  # tf, tf_static, robot_description (ros_bridge/worker/tf.py)
+        self.controller_nodes: Any = None  # a node per controller (ros_bridge/worker/controller_nodes.py)
         self.simulation: Any = None  # mujoco_ros2_control's services (ros_bridge/worker/simulation.py)
         self._served: list[Any] = []
 
@@ -212,6 +213,10 @@ class Worker:
             self.manager = ControllerManagerServices(
                 node, plan.manager, self.memory, self.requests, self.namespaces, self.lo
             )
+            if plan.controller_nodes:  # a node per controller and controller_manager, as ros2_control's
+                from ros_bridge.worker.controller_nodes import ControllerNodes
+
+                self.controller_nodes = ControllerNodes(self.context, plan.manager, self.namespaces)
         if available()["mujoco_ros2_control_msgs"]:
             from ros_bridge.worker.simulation import SimulationServices
 
@@ -230,6 +235,8 @@ class Worker:
         """Spin the executor on its own thread."""
         self.executor = EventsExecutor(context=self.context)
         self.executor.add_node(self.node)
+        for side in self.controller_nodes.nodes if self.controller_nodes is not None else ():
+            self.executor.add_node(side)
         # the EventsExecutor prints two lines to stdout for every timer beyond 8 on a clock
         # when it first takes them in, and every action server has one (rcl_action's goal
         # expiry): a fleet's hundreds would flood the console with them
@@ -250,6 +257,9 @@ class Worker:
         if self.tf is not None:
             with contextlib.suppress(Exception):
                 self.tf.close()
+        if self.controller_nodes is not None:
+            with contextlib.suppress(Exception):
+                self.controller_nodes.close()
         with contextlib.suppress(Exception):
             self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
