@@ -339,3 +339,69 @@ def spin_until_exit(executor: Any, proc: subprocess.Popen, timeout: float = 60.0
     end = time.monotonic() + grace
     while time.monotonic() < end:
         executor.spin_once(timeout_sec=0.05)
+
+
+def list_controllers(fleet: Fleet, controller_manager: str, timeout: float) -> Any:
+    """controller_manager.controller_manager_services.list_controllers (its Python package is not
+    on PyPI): the ListControllers service of `controller_manager` (a name relative to the root, as
+    the client node there resolves it)."""
+    from controller_manager_msgs.srv import ListControllers
+
+    name = controller_manager if controller_manager.startswith("/") else "/" + controller_manager
+    return fleet.call(ListControllers, f"{name}/list_controllers", ListControllers.Request(), timeout=timeout)
+
+
+def check_controllers_running(fleet: Fleet, cnames: Sequence[str], namespace: str = "", state: str = "active") -> None:
+    """controller_manager/test_utils.py's check_controllers_running (jazzy), line for line, the
+    helper mujoco_ros2_control's launch tests call: it waits up to 10 s for a node named after
+    each controller in the manager's namespace, then up to 10 s for list_controllers to show each
+    in `state`. `fleet` stands for upstream's `node` (the graph query is its node's)."""
+    node = fleet.node
+    # wait for controller to be loaded before we call the CM services
+    found = {cname: False for cname in cnames}  # Define 'found' as a dictionary
+    start = time.time()
+    # namespace is either "/" (empty) or "/ns" if set
+    if namespace:
+        namespace_api = namespace
+        if not namespace_api.startswith("/"):
+            namespace_api = "/" + namespace_api
+        if namespace.endswith("/"):
+            namespace_api = namespace_api[:-1]
+    else:
+        namespace_api = "/"
+
+    while time.time() - start < 10.0 and not all(found.values()):
+        node_names_namespaces = node.get_node_names_and_namespaces()
+        for cname in cnames:
+            if any(name == cname and ns == namespace_api for name, ns in node_names_namespaces):
+                found[cname] = True
+        time.sleep(0.1)
+    assert all(found.values()), (
+        f"Controller node(s) not found: {', '.join(['ns: ' + namespace_api + ', ctrl:' + cname for cname, is_found in found.items() if not is_found])}"
+        f", but seeing {node.get_node_names_and_namespaces()}"
+    )
+
+    found = {cname: False for cname in cnames}  # Define 'found' as a dictionary
+    start = time.time()
+    # namespace is either "/" (empty) or "/ns" if set
+    if not namespace:
+        cm = "controller_manager"
+    else:
+        if namespace.endswith("/"):
+            cm = namespace + "controller_manager"
+        else:
+            cm = namespace + "/controller_manager"
+    while time.time() - start < 10.0 and not all(found.values()):
+        controllers = list_controllers(fleet, cm, 5.0).controller
+        assert controllers, "No controllers found!"
+        for c in controllers:
+            for cname in cnames:
+                if c.name == cname and c.state == state:
+                    found[cname] = True
+                    break
+        time.sleep(0.1)
+
+    assert all(found.values()), (
+        f"Controller(s) not found or not {state}: {', '.join([cname for cname, is_found in found.items() if not is_found])}"
+    )
+

@@ -2,8 +2,8 @@
 (ros_bridge/worker/controller_nodes.py; issue 47): `/world_1/joint_trajectory_controller` and
 `/world_1/controller_manager` in the graph, the controller's YAML parameters readable through the
 standard parameter services and a set refused with the reason; upstream's
-`controller_manager.test_utils.check_controllers_running`, line for line (it waits for those
-nodes before it asks list_controllers); `--controller-nodes off` makes none. A batchsim
+`controller_manager.test_utils.check_controllers_running` (tests/ros_fleet.py, line for line: it
+waits for those nodes before it asks list_controllers); `--controller-nodes off` makes none. A batchsim
 subprocess of the shipped arm over real DDS. Domain 66.
 """
 
@@ -13,43 +13,13 @@ import time
 
 import pytest
 from conftest import need
-from ros_fleet import Fleet, domain_id
+from ros_fleet import Fleet, check_controllers_running, domain_id
 
 rclpy = need("rclpy")
 pytestmark = pytest.mark.ros
 
 JTC = "joint_trajectory_controller"
 CONTROLLERS = ["joint_state_broadcaster", JTC, "wrist_ft_broadcaster"]
-
-
-def check_controllers_running(node, cnames, namespace="", state="active"):
-    """controller_manager/test_utils.py's (jazzy), line for line but for list_controllers' client,
-    which is controller_manager's Python package (not on PyPI): the same request, made here."""
-    from controller_manager_msgs.srv import ListControllers
-
-    # wait for controller to be loaded before we call the CM services
-    found = {cname: False for cname in cnames}  # Define 'found' as a dictionary
-    start = time.time()
-    # namespace is either "/" (empty) or "/ns" if set
-    if namespace:
-        namespace_api = namespace
-        if not namespace_api.startswith("/"):
-            namespace_api = "/" + namespace_api
-        if namespace.endswith("/"):
-            namespace_api = namespace_api[:-1]
-    else:
-        namespace_api = "/"
-
-    while time.time() - start < 10.0 and not all(found.values()):
-        node_names_namespaces = node.get_node_names_and_namespaces()
-        for cname in cnames:
-            if any(name == cname and ns == namespace_api for name, ns in node_names_namespaces):
-                found[cname] = True
-        time.sleep(0.1)
-    assert all(found.values()), (
-        f"Controller node(s) not found: {', '.join(['ns: ' + namespace_api + ', ctrl:' + cname for cname, is_found in found.items() if not is_found])}"
-    )
-    return namespace_api, ListControllers
 
 
 def _call(fleet, srv_type, name, request):
@@ -63,8 +33,8 @@ def test_each_controller_is_a_node_with_its_parameters(tmp_path):
 
     with Fleet(domain_id(66), ["--worlds", "2", "--controllers", "default"], tmp_path / "log") as fleet:
         fleet.wait_started()
-        check_controllers_running(fleet.node, CONTROLLERS, "/world_1")
-        check_controllers_running(fleet.node, ["controller_manager"], "world_0")
+        check_controllers_running(fleet, CONTROLLERS, "/world_1")  # upstream's helper, line for line
+        assert ("controller_manager", "/world_0") in fleet.node.get_node_names_and_namespaces()
         listed = _call(fleet, ListControllers, "/world_1/controller_manager/list_controllers", ListControllers.Request())
         assert {c.name: c.state for c in listed.controller} == dict.fromkeys(CONTROLLERS, "active")
         got = _call(fleet, GetParameters, f"/world_1/{JTC}/get_parameters", GetParameters.Request(names=["joints", "command_interfaces"]))

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ros_fleet import Fleet, domain_id
+from ros_fleet import Fleet, check_controllers_running, domain_id
 
 pytestmark = pytest.mark.ros
 
@@ -87,11 +87,9 @@ def _near(sink, expected, delta):
 
 
 def _controllers_running(fleet, ros, base=""):
-    def running():
-        reply = fleet.call(ros["cm"].ListControllers, f"{base}/controller_manager/list_controllers", ros["cm"].ListControllers.Request())
-        return {c.name for c in reply.controller if c.state == "active"} >= set(CONTROLLERS)
-
-    fleet.wait(running, 30, "the controllers active")
+    """upstream's check_controllers_running(node, CONTROLLERS, namespace), as its tests call it:
+    the controllers' nodes in the manager's namespace, then each active in list_controllers."""
+    check_controllers_running(fleet, CONTROLLERS, base)
 
 
 def _command(fleet, ros, topic, data, expected, sink, delta=0.05, timeout=15.0):
