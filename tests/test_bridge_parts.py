@@ -314,6 +314,39 @@ def test_the_graph_scan_looks_at_a_slice_of_the_names_a_tick_and_passes_every_in
     assert Node.lists == 2 and len(seen[-1]) == SLICE
 
 
+def test_the_graph_scan_of_a_small_graph_passes_every_few_tenths_and_a_slow_one_at_most_a_second():
+    """A small fleet's on-request topic (a camera's image_raw) was created up to a second after a
+    subscriber appeared (issue 47: the first frame): the wait follows what a pass takes."""
+    from ros_bridge.worker.graph_scan import GRAPH_SCAN, MIN_SCAN
+
+    class Node:
+        lists = 0
+
+        def get_topic_names_and_types(self):
+            Node.lists += 1
+            return [("/world_0/joint_states", ["sensor_msgs/msg/JointState"])]
+
+    slow = {"on": False}
+
+    def on_topic(name):
+        if slow["on"]:
+            time.sleep(0.05)  # a pass of 50 ms: 2.5 s at 2 % of the worker, held to GRAPH_SCAN
+
+    scan = GraphScan(Node(), on_topic, lambda topics: None)
+    scan.step(0.0)
+    scan.step(MIN_SCAN - 0.01)
+    assert Node.lists == 1
+    scan.step(MIN_SCAN + 0.01)
+    assert Node.lists == 2
+    slow["on"] = True
+    scan.step(1.0)  # the pass that ends at 1.0 took 50 ms
+    slow["on"] = False
+    scan.step(1.0 + GRAPH_SCAN - 0.01)
+    assert Node.lists == 3
+    scan.step(1.0 + GRAPH_SCAN + 0.01)
+    assert Node.lists == 4
+
+
 def test_ring_wraps_refuses_when_full_and_continues_across_writers():
     layout = Layout(ring_arrays("r", 256))
     memory = Memory.create(layout, shared=False)

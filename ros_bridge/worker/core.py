@@ -195,7 +195,8 @@ class Worker:
             self.tf = TfPublishers(node, plan.tf, self.namespaces, self.lo, all_topics=plan.all_topics)
         if plan.sensors is not None:
             self.sensors = SensorPublishers(
-                node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, plan.all_topics, self.diagnostics.missed
+                node, qos, self.memory, plan.sensors, self.lo, self.hi, self.namespaces, plan.all_topics, self.diagnostics.missed,
+                on_matched=self._refresh_now,
             )
         create_loop_services(
             node, self.requests, self.namespaces, self.lo, fleet=self.index == 0 and plan.fleet_services, robots=plan.robots
@@ -367,6 +368,10 @@ class Worker:
             if count > self._clock_subscribers and snap.n >= 0:
                 self._clock_pub.publish(clock_payload(sec, nanosec))
             self._clock_subscribers = count
+
+    def _refresh_now(self) -> None:
+        """A publisher matched or lost a subscriber: read the counts at the next tick."""
+        self._due["refresh"] = 0.0
 
     def _topic_seen(self, name: str) -> None:
         """The graph scan saw topic `name` (ros_bridge/worker/graph_scan.py): create an on-request

@@ -18,6 +18,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2
@@ -74,6 +75,9 @@ class SensorPublishers:
       all_topics: create every publisher now, not when a subscriber appears.
       count_missed: told (topic, rows, counts) of the samples subscribed rows never got: each
         block holds a world's newest sample only (Diagnostics.missed).
+      on_matched: called (on the executor's thread) when a subscriber of a topic comes or goes,
+        so the worker reads the counts at once rather than at its next SUBSCRIBER_REFRESH: the
+        first frame follows a subscription by a camera period and a render.
 
     Attributes:
       published: messages published so far.
@@ -90,8 +94,10 @@ class SensorPublishers:
         namespaces: Sequence[str],
         all_topics: bool = False,
         count_missed: Callable[[str, np.ndarray, np.ndarray], None] | None = None,
+        on_matched: Callable[[], None] | None = None,
     ):
         self.lo, self.hi, self.plan = lo, hi, plan
+        self._events = PublisherEventCallbacks(matched=lambda info: on_matched()) if on_matched else None
         self.want = WantWriter(memory, lo, hi)
         self.published = 0
         self.count_missed = count_missed
@@ -126,7 +132,7 @@ class SensorPublishers:
         if hit is None:
             return False
         t, row = hit
-        t.publishers[row] = self.node.create_publisher(t.msg_type, topic, self.qos)
+        t.publishers[row] = self.node.create_publisher(t.msg_type, topic, self.qos, event_callbacks=self._events)
         return True
 
     def requested(self, topic: str) -> bool:
