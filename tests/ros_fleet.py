@@ -197,6 +197,7 @@ class Fleet:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._running = True
+        self.spinning = threading.Lock()
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
         self._publishers: dict[str, Any] = {}
@@ -204,7 +205,8 @@ class Fleet:
     def _spin(self) -> None:
         while self._running:
             try:
-                self.executor.spin_once(timeout_sec=0.05)
+                with self.spinning:  # not while send_goal_async fills in its request (see send_goal)
+                    self.executor.spin_once(timeout_sec=0.05)
             except (ExternalShutdownException, rclpy.executors.ShutdownException):
                 return
             except Exception:
@@ -263,7 +265,10 @@ class Fleet:
         again (a newer goal preempts a lost one that was accepted), up to `timeout`."""
         deadline = time.monotonic() + timeout
         while True:
-            sent = client.send_goal_async(goal, feedback_callback=feedback)
+            # rclpy's send_goal_async sends first and registers the answer's future after: an answer
+            # the spinning thread takes in between raised ValueError in the future's done callback
+            with self.spinning:
+                sent = client.send_goal_async(goal, feedback_callback=feedback)
             try:
                 self.wait(sent.done, min(10.0, max(0.0, deadline - time.monotonic())), "the goal's acceptance")
                 return sent.result()

@@ -220,7 +220,10 @@ print("controller", c.name, c.state, c.update_rate, c.is_async)
 def test_round_trip_over_dds(tmp_path):
     """A TFMessage and a ListControllers call between two processes, over Fast DDS."""
     _need("rclpy"), _need("tf2_msgs"), _need("controller_manager_msgs")
-    env = {**os.environ, "ROS_DOMAIN_ID": "77", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "PYTHONUNBUFFERED": "1"}
+    from ros_fleet import domain_id, release_domain
+
+    domain = domain_id(77)  # a domain no other test or run on this machine holds (a fixed one heard a fleet's tf)
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "PYTHONUNBUFFERED": "1"}
     server = subprocess.Popen([sys.executable, "-c", SERVER], env=env, stdout=subprocess.PIPE, text=True)
     try:
         assert server.stdout.readline().strip() == "ready"
@@ -229,6 +232,7 @@ def test_round_trip_over_dds(tmp_path):
     finally:
         server.terminate()
         server.wait(10)
+        release_domain(domain)
     assert client.returncode == 0, client.stderr
     lines = client.stdout.splitlines()
     assert "tf world tool0 1.5" in lines

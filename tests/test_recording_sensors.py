@@ -244,7 +244,7 @@ def test_a_worker_publishes_each_new_sample_once_and_counts_the_ones_overwritten
     class Node:
         publishers: dict[str, Publisher] = {}
 
-        def create_publisher(self, msg_type, topic, qos):
+        def create_publisher(self, msg_type, topic, qos, **kwargs):
             return self.publishers.setdefault(topic, Publisher())
 
     sim = batchsim.make("rover", 1, "cpu", sensors={"sensors": {"cameras": {"front_camera": {"width": 8, "height": 6}}}})
@@ -308,7 +308,7 @@ def test_a_worker_busy_with_camera_frames_still_takes_every_scan():
             return 1
 
     class Node:
-        def create_publisher(self, msg_type, topic, qos):
+        def create_publisher(self, msg_type, topic, qos, **kwargs):
             return Publisher(topic)
 
     missed = []
