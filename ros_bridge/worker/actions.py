@@ -34,6 +34,7 @@ served as ros2_controllers' JointTrajectoryController serves it:
 from __future__ import annotations
 
 import collections
+import ctypes
 import dataclasses
 import threading
 import time as wallclock
@@ -69,6 +70,17 @@ FJT = FollowJointTrajectory.Result
 _ACTION_NAME = {TrajectoryActionSpec: "follow_joint_trajectory", GripperActionSpec: "gripper_cmd"}
 UNSEEN_TIMEOUT = 5.0  # s a goal may wait to show up in its world before it is given up
 PREEMPTED = "Current goal cancelled due to new incoming action."  # upstream's words
+RESULT_TIMEOUT = 60.0  # s a finished goal's result (and its request) is kept for a client to fetch
+BIG_GOAL = 100_000  # trajectory points: a goal larger is rejected at once and the worker trims its heap
+TRIM_EVERY = 5.0  # s between two trims while one may free pages
+
+
+def _malloc_trim() -> None:
+    """glibc's malloc_trim(0): free heap pages back to the system (elsewhere: nothing)."""
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 @dataclasses.dataclass
@@ -119,6 +131,7 @@ class ActionServers(OnRequest):
         self._lock = threading.Lock()
         self.inflight: list[dict[int, _Goal]] = [{} for _ in specs]  # per action: world -> goal
         self._handles: dict[int, _Goal] = {}  # accepted goals until their execute callback runs
+        self._trim_until = self._next_trim = 0.0  # while a big goal's objects may be freed (trim)
         # what the loop thread decided, carried out on the executor thread (the worker's spin
         # loop calls drain()): rclpy's goal handles are not safe to drive from two threads
         # (feedback from one deadlocked a state change on the other), and the EventsExecutor
@@ -145,7 +158,8 @@ class ActionServers(OnRequest):
                 kind,
                 action,
                 execute_callback=self._execute,
-                goal_callback=lambda request: self._goal(a, w),
+                goal_callback=lambda request: self._goal(a, w, request),
+                result_timeout=RESULT_TIMEOUT,
                 handle_accepted_callback=lambda handle: self._accepted(a, w, handle),
                 cancel_callback=lambda handle: self._cancel(a, w, handle),
             )
@@ -156,8 +170,17 @@ class ActionServers(OnRequest):
         return [spec.channel for spec, goals in zip(self.specs, self.inflight, strict=True) if goals]
 
     # --- the executor thread ---
-    def _goal(self, a: int, world: int) -> GoalResponse:
+    def _goal(self, a: int, world: int, request: Any) -> GoalResponse:
         spec = self.specs[a]
+        points = len(getattr(getattr(request, "trajectory", None), "points", ()))
+        if points > BIG_GOAL:  # its Python objects: hundreds of MB, freed when it is rejected or its result expires
+            self._trim_until = wallclock.monotonic() + RESULT_TIMEOUT + 2 * TRIM_EVERY
+        if points > BIG_GOAL and 0 < spec.max_points < points:  # accepted, it would be kept until then
+            self.logger.error(
+                f"{spec.controller} in world {world}: goal rejected: {points} points, more than {spec.max_points}"
+                f" (a goal of more than {BIG_GOAL} is rejected at once, not kept for its result)"
+            )
+            return GoalResponse.REJECT
         if not self.active.active(world, spec.controller_index):
             self.logger.error(f"{spec.controller} in world {world}: can't accept new action goals: controller is not running")
             return GoalResponse.REJECT
@@ -284,6 +307,14 @@ class ActionServers(OnRequest):
     def busy(self) -> bool:
         """Goals in flight or decisions waiting: the spin loop should come back soon."""
         return bool(self._queue) or any(self.inflight) or bool(self._handles) or bool(self._to_create)
+
+    def trim(self, now: float) -> None:
+        """Give the heap's free pages back to the system every TRIM_EVERY s while a big goal's
+        objects may still be freed (its result expiring): Python frees them, but glibc keeps the
+        pages of a heap it grew (a 1,000,000-point goal: 700-800 MB, kept for good before)."""
+        if now < self._trim_until and now >= self._next_trim:
+            self._next_trim = now + TRIM_EVERY
+            _malloc_trim()
 
     def drain(self) -> None:
         """The executor thread: servers created; feedback published and results handed to the goals'

@@ -303,6 +303,8 @@ class Worker:
             due["refresh"] = now + SUBSCRIBER_REFRESH
             self._refresh()
         self._graph.step(now)
+        if self.actions is not None:
+            self.actions.trim(now)
         if now >= due["diag"] and self.snapshot.n >= 0:
             due["diag"] = now + DIAGNOSTICS_PERIOD
             self.diagnostics.publish(self.snapshot)
