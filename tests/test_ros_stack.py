@@ -167,6 +167,12 @@ def test_long_goals_up_to_max_trajectory_points_are_taken_and_beyond_refused_wit
     answer = _result(arms, result)
     assert answer.result.error_code == ros["FJT"].Result.INVALID_GOAL
     assert "10001 points, more than 10000" in answer.result.error_string
+    # beyond 100,000 points a goal is rejected at once (accepted, rclpy would keep its hundreds
+    # of MB of objects with its result), the reason in the fleet's log
+    huge = ros["FJT"].Goal(trajectory=ros["JointTrajectory"](joint_names=ARM_JOINTS, points=points[:1] * 100_001))
+    handle, _ = _send(arms, ros, 3, huge)
+    assert not handle.accepted
+    arms.wait(lambda: "goal rejected: 100001 points, more than 10000" in arms.log(), 10, "the reason in the log")
 
 
 def test_tf_gives_a_worlds_end_link_pose_equal_to_mujocos(arms, ros):
