@@ -104,18 +104,37 @@ class BatchsimVectorEnv(VectorEnv):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict]:
-        """Reset every world (`options={"worlds": [...]}`: only those); `seed` restarts the
-        variation's draws (and the action space's sampler) from it."""
+        """Reset every world, or only those of `options`: gymnasium's `{"reset_mask": mask}` (a
+        (num_envs,) bool array, as its vector envs take it) or `{"worlds": [...]}`; `seed` restarts
+        the variation's draws (and the action space's sampler) from it. The observation is every
+        world's."""
         super().reset(seed=seed)
         if seed is not None:
             self.sim.reseed(seed)
             self.action_space.seed(seed)
-        worlds = None if not options or options.get("worlds") is None else np.asarray(options["worlds"])
+        worlds = self._worlds_of(options or {})
         self.sim.reset(worlds)
         rows = slice(None) if worlds is None else worlds
         self._steps[rows] = 0
         self._done[rows] = False
         return self._observe(), {}
+
+    def _worlds_of(self, options: dict[str, Any]) -> np.ndarray | None:
+        """The worlds a reset's options name (None: every world), checked as gymnasium checks them."""
+        mask, worlds = options.get("reset_mask"), options.get("worlds")
+        if mask is not None and worlds is not None:
+            raise ValueError("reset options: give `reset_mask` or `worlds`, not both")
+        if mask is None:
+            return None if worlds is None else np.asarray(worlds)
+        if not isinstance(mask, np.ndarray):
+            raise TypeError(f"`options['reset_mask']` must be a numpy array, got {type(mask)}")
+        if mask.shape != (self.num_envs,):
+            raise ValueError(f"`options['reset_mask']` must have shape `({self.num_envs},)`, got {mask.shape}")
+        if mask.dtype != np.bool_:
+            raise TypeError(f"`options['reset_mask']` must have `dtype=np.bool_`, got {mask.dtype}")
+        if not mask.any():
+            raise ValueError("`options['reset_mask']` must contain at least one True value")
+        return np.flatnonzero(mask)
 
     def _observe(self) -> Any:
         return self.sim.device_state() if self.device else self.sim.state.copy()

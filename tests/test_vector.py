@@ -94,6 +94,26 @@ def test_a_seeded_reset_repeats_and_another_seed_differs():
     assert not np.allclose(other, first)
 
 
+def test_reset_mask_resets_only_the_masked_worlds_as_gymnasium_takes_it():
+    """gymnasium's partial reset, `reset(options={"reset_mask": mask})`, reset every world before
+    (issue 46): now only the masked ones, checked as gymnasium's vector envs check the mask."""
+    env = vector.make("arm", NWORLD, "cpu", **OPTIONS)
+    start, _ = env.reset(seed=1)
+    for _ in range(5):
+        moved, *_ = env.step(np.full(env.action_space.shape, 0.2))
+    assert not np.allclose(moved, start)
+    mask = np.array([False, True, False, True])
+    obs, _ = env.reset(options={"reset_mask": mask})
+    np.testing.assert_allclose(obs[mask], start[mask])
+    np.testing.assert_allclose(obs[~mask], moved[~mask])
+    for bad, error in ((np.zeros(NWORLD, bool), ValueError), (np.ones(3, bool), ValueError), ([True] * NWORLD, TypeError),
+                       (np.ones(NWORLD, np.int64), TypeError)):  # fmt: skip
+        with pytest.raises(error, match="reset_mask"):
+            env.reset(options={"reset_mask": bad})
+    with pytest.raises(ValueError, match="not both"):
+        env.reset(options={"reset_mask": mask, "worlds": [0]})
+
+
 def test_a_failed_world_is_terminated_and_comes_back():
     """A world that diverges is frozen by the contract: its episode ends (terminated), and the
     next step is its reset; the other world goes on."""
