@@ -320,6 +320,28 @@ def test_status_line_shows_paused_and_clears_the_rest_of_the_line():
     assert out.endswith("\n")
 
 
+def test_the_status_line_fits_the_terminal(monkeypatch):
+    """A 112-character line on 80 columns wrapped, and each redraw left a stale row (issue 46):
+    the line is fitted to the terminal's width each time it is drawn."""
+    import os
+
+    from batchsim.cli.runner import fit
+
+    line = format_stats(LoopStats(sim_time=12.5, rtf=1.0, steps_per_second=2.0e3), 16, "cpu (auto: no CUDA GPU, so mujoco.batch on the CPU)")
+    assert len(line) > 80
+    assert fit(line, 200) == line
+    short = fit(line, 79)
+    assert len(short) <= 79 and "(auto" not in short and short.startswith("sim")
+    assert fit(line, 20) == line[:19] + "…"
+    monkeypatch.setattr("shutil.get_terminal_size", lambda *a, **k: os.terminal_size((60, 24)))
+    from batchsim.cli import StatusLine
+
+    master, stream = pty_stream()
+    StatusLine(None, 16, "cpu", stream=stream)._draw(line)
+    drawn = read_all(master).split("\r")[-1].removesuffix("\x1b[K")
+    assert len(drawn) <= 59, drawn
+
+
 # ---------------------------------------------------------------- version, imports, hints
 
 

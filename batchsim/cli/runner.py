@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import re
+import shutil
 import signal
 import sys
 import threading
@@ -264,6 +266,16 @@ def _interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
+def fit(line: str, width: int) -> str:
+    """`line` in `width` characters (a terminal's, less one: a line that fills its last column
+    wraps, and `\r` then redraws only the wrapped part, leaving a stale row each second): its
+    parenthetical remarks dropped first, then cut, with an ellipsis."""
+    if len(line) <= width:
+        return line
+    line = re.sub(r" \([^()]*\)", "", line)
+    return line if len(line) <= width else line[: max(0, width - 1)] + "…"
+
+
 class StatusLine:
     """The live status line of a run: redrawn in place on a terminal (the rest of the line
     cleared), one line per report in a log: every second on a terminal, every LOG_EVERY
@@ -309,7 +321,7 @@ class StatusLine:
         if self.quiet:
             return
         with self._lock:
-            self.stream.write(f"\r{line}\x1b[K" if self.tty else line + "\n")
+            self.stream.write(f"\r{fit(line, shutil.get_terminal_size().columns - 1)}\x1b[K" if self.tty else line + "\n")
             self.stream.flush()
             self._drawn = True
 
