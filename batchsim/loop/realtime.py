@@ -111,9 +111,15 @@ def with_siblings(cpus: Sequence[int], sysfs: str = "/sys/devices/system/cpu") -
     return frozenset(out)
 
 
+RETRY = 5.0  # s after a stall before the loop thread asks for SCHED_FIFO again; doubled each stall
+RETRY_MAX = 60.0  # s, at most
+
+
 class Scheduling:
     """The loop thread's scheduling over one SimLoop.run(): asked for after the first period
-    (which may compile), given up if the loop falls behind, restored when the run is over.
+    (which may compile), given up while the loop is behind and asked for again once it has kept
+    up for RETRY s (doubled after each stall, up to RETRY_MAX: a loop that cannot keep up at all
+    starves its core for a moment a minute at most), restored when the run is over.
 
     Args:
       thread_priority: SCHED_FIFO's priority while pacing (0: do not ask).
@@ -127,6 +133,9 @@ class Scheduling:
         self.rtf = rtf
         self.asked = False
         self.saved: Saved | None = None
+        self._retry = RETRY
+        self._retry_at: float | None = None  # when to ask for SCHED_FIFO again (None: not given up)
+        self._said = False
 
     def elevate(self) -> None:
         self.asked = True
@@ -139,18 +148,36 @@ class Scheduling:
         for line in problems:
             log.warning("batchsim: warning: the loop thread runs without %s (its periods may run late under load)", line)
 
-    def fell_behind(self, seconds: float) -> None:
-        """A thread of SCHED_FIFO running flat out would starve its core: give it up, once,
-        and say so (its cores stay)."""
+    def fell_behind(self, seconds: float, now: float) -> None:
+        """A thread of SCHED_FIFO running flat out would starve its core: give it up (its cores
+        stay) until the loop has kept up for a while, and say so the first time."""
+        if self._retry_at is not None:  # given up already: the wait starts again from now
+            self._retry_at = now + self._retry
+            return
         if self.saved is None or not self.saved.fifo:
             return
         lower(self.saved)
         self.saved = dataclasses.replace(self.saved, fifo=False)
-        log.warning(
-            "batchsim: warning: the loop fell %.1f s behind rtf %g: its thread gives up SCHED_FIFO for the rest of the run",
-            seconds,
-            self.rtf,
-        )
+        self._retry_at = now + self._retry
+        self._retry = min(RETRY_MAX, 2 * self._retry)
+        if not self._said:
+            self._said = True
+            log.warning(
+                "batchsim: warning: the loop fell %.1f s behind rtf %g: its thread gives up SCHED_FIFO until it has "
+                "kept up for %g s, then asks again (after each stall, waiting twice as long, up to %g s; said once)",
+                seconds, self.rtf, RETRY, RETRY_MAX,
+            )  # fmt: skip
+
+    def kept_up(self, now: float) -> None:
+        """A period on time: SCHED_FIFO again once the wait after the last stall is over."""
+        if self._retry_at is None or now < self._retry_at or self.saved is None:
+            return
+        self._retry_at = None
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(self.thread_priority))
+            self.saved = dataclasses.replace(self.saved, fifo=True)
+        except OSError:
+            pass  # as it was: the normal policy
 
     def finish(self) -> None:
         """run() is over: scheduling and the collector as they were."""

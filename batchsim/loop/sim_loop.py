@@ -420,11 +420,13 @@ class SimLoop:
             if self.rtf > 0:
                 target = anchor_wall + (self.sim_time - anchor_sim) / self.rtf
                 if target > now:
+                    if scheduling is not None:
+                        scheduling.kept_up(now)
                     wallclock.sleep(target - now)
                 elif now - target > 0.5:  # fell behind: hold the rate from here, don't sprint
                     anchor_wall, anchor_sim = now, self.sim_time
                     if scheduling is not None:
-                        scheduling.fell_behind(now - target)
+                        scheduling.fell_behind(now - target, now)
             now = wallclock.perf_counter()
             if now - window_wall >= report_every:
                 self._update_stats(now - window_wall, self.sim_time - window_sim, window_steps)
