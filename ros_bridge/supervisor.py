@@ -278,6 +278,7 @@ class Supervisor:
     def supervise(self) -> None:
         """Restart a worker that died (with a back-off); say when one is back. Then `watchers`:
         the other helper processes' checks (the web view's, ViewProcess.watch)."""
+        liveness.physics_alive(self.memory, wallclock.time())  # the loop looked: the physics process runs
         now = wallclock.monotonic()
         if now < self._next_supervise:
             return

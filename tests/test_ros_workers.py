@@ -187,6 +187,26 @@ def test_a_stopped_worker_is_reported_and_said_to_answer_again(fleet):
     fleet.wait(lambda: fleet.js[63].count > before + 5, 30, "world_63's joint_states again")
 
 
+def test_a_stopped_physics_process_is_said_and_said_to_run_again(fleet):
+    """kill -STOP on the physics process (issue 47's review: every topic went quiet and nobody
+    said so): worker 0 says so within PHYSICS_STALL s and shows it in /diagnostics; SIGCONT: said
+    to run again, and the worlds publish again."""
+    from ros_bridge.protocol.liveness import PHYSICS_STALL
+
+    diag = fleet.diagnostics()
+    os.kill(fleet.proc.pid, signal.SIGSTOP)
+    try:
+        fleet.wait(lambda: "the physics process has not finished a period for" in fleet.log(), PHYSICS_STALL + 3, "the stop said")
+        fleet.wait(lambda: diag.world("batchsim") is not None, 5, "the stop in /diagnostics")
+        status = diag.world("batchsim")
+        assert status.level == status.ERROR and "has not run a period" in status.message
+    finally:
+        os.kill(fleet.proc.pid, signal.SIGCONT)
+    before = fleet.js[0].count
+    fleet.wait(lambda: "the physics process runs again" in fleet.log(), 5, "said to run again")
+    fleet.wait(lambda: fleet.js[0].count > before + 5, 30, "world_0's joint_states again")
+
+
 def test_a_killed_worker_is_restarted_and_its_worlds_come_back(fleet):
     workers = bridge_workers(fleet.proc.pid)
     assert sorted(workers) == [0, 1, 2]

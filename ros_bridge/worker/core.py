@@ -50,7 +50,7 @@ from ros_bridge.options import Reliability
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.protocol.commands import Problem, SlotWriter
 from ros_bridge.protocol.demand import ChannelDemand
-from ros_bridge.protocol.liveness import Beat
+from ros_bridge.protocol.liveness import Beat, PhysicsWatch
 from ros_bridge.protocol.snapshot import HEADERS, Snapshot, read_snapshot
 from ros_bridge.throttle import LogThrottle
 from ros_bridge.worker.command_callbacks import CommandCallbacks
@@ -147,6 +147,8 @@ class Worker:
             self._clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
         workers = [worlds_label(plan.namespaces, lo, hi) for lo, hi in plan.ranges]
         self.diagnostics = Diagnostics(node, self.memory, self.lo, self.hi, self.namespaces, workers, plan.robots)
+        if self.index == 0:  # one worker says when the physics process stops (protocol/liveness.py)
+            self.diagnostics.physics = PhysicsWatch(self.memory)
         self.intake = Intake(node, qos, lambda: self.snapshot.period, self.diagnostics, self.throttle)
         self._on_request: dict[str, tuple[Output, int]] = {}
         for spec in plan.outputs:
@@ -305,6 +307,10 @@ class Worker:
         self._graph.step(now)
         if self.actions is not None:
             self.actions.trim(now)
+        if now >= due["diag"] and self.diagnostics.physics is not None:
+            said = self.diagnostics.physics.check(wallclock.time())
+            if said is not None:
+                self.logger.warning(said)
         if now >= due["diag"] and self.snapshot.n >= 0:
             due["diag"] = now + DIAGNOSTICS_PERIOD
             self.diagnostics.publish(self.snapshot)

@@ -27,7 +27,7 @@ from rclpy.qos import QoSProfile
 from batchsim.memory import Memory
 from ros_bridge import world_status
 from ros_bridge.protocol.commands import Problem, RejectionWriter, bad_commands
-from ros_bridge.protocol.liveness import hung
+from ros_bridge.protocol.liveness import PhysicsWatch, hung
 from ros_bridge.protocol.world_params import read_line
 from ros_bridge.worker.messages import stamp_of
 
@@ -51,6 +51,7 @@ class Diagnostics:
         self._robots = [KeyValue(key="robots", value=", ".join(robots))] if robots else []
         self.workers = workers or []
         self.hung = hung(memory)
+        self.physics: PhysicsWatch | None = None  # worker 0's watch on the physics process
         self.memory = memory
         self.randomized = "wp.text" in memory  # each world's draw (ros_bridge/protocol/world_params.py)
         self.namespaces = namespaces
@@ -149,6 +150,15 @@ class Diagnostics:
                 )
             )
         now = wallclock.time()
+        if self.physics is not None and self.physics.stalled:
+            out.status.append(
+                DiagnosticStatus(
+                    level=DiagnosticStatus.ERROR,
+                    name="batchsim: simulation",
+                    message=f"the physics process has not run a period for {now - self.physics.stalled:.1f} s",
+                    hardware_id="batchsim",
+                )
+            )
         for j, since in enumerate(self.hung.tolist()):
             if since and j < len(self.workers):
                 out.status.append(
