@@ -690,3 +690,25 @@ def test_controller_nodes_auto_is_on_for_small_fleets_and_the_root_namespace():
     assert ControllerNodes("auto").wanted(small) and not ControllerNodes("AUTO").wanted(large)
     assert ControllerNodes.AUTO.wanted([""])  # one world at the root: a ros2_control robot's drop-in
     assert ControllerNodes("on").wanted(large) and not ControllerNodes("off").wanted([""])
+
+
+def test_a_worlds_requests_have_a_budget_and_its_neighbours_keep_theirs():
+    """A flood of switch_controller calls on one world held every other world's services behind
+    it (issue 47's review: p50 6 ms -> 555 ms): each world has a budget (a token bucket)."""
+    import threading
+
+    from ros_bridge.protocol.services import service_arrays
+    from ros_bridge.worker.services import GOAL_RATE, WORLD_RATE, LoopRequests
+
+    memory = Memory.create(Layout(service_arrays(1) + ring_arrays("ring0", 4096)), shared=False)
+    requests = LoopRequests(memory, 0, Ring(memory, "ring0"), threading.Lock(), lambda: None)
+    flood = [requests.admit(3, now=10.0) for _ in range(100)]  # 100 at once from world 3
+    assert sum(flood) == WORLD_RATE and flood[: int(WORLD_RATE)] == [True] * int(WORLD_RATE)
+    assert requests.admit(0, now=10.0)  # its neighbour's first goes through
+    assert not requests.admit(3, now=10.02) and requests.admit(3, now=10.06)  # 20 a second come back
+    assert sum(requests.admit(3, now=11.5 + k * 0.01) for k in range(10)) == 10  # a calm world: all
+    assert sum(requests.admit(5, now=10.0, rate=GOAL_RATE) for _ in range(150)) == GOAL_RATE  # goals: their own
+    message, log = requests.refusal("/world_3/controller_manager/switch_controller", now=10.0)
+    assert log and not requests.refusal("/world_3/controller_manager/switch_controller", now=11.0)[1]
+    assert message.startswith("/world_3/controller_manager/switch_controller: more requests a second")
+

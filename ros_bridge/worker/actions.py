@@ -64,7 +64,7 @@ from ros_bridge.protocol.goals import RefusalReader
 from ros_bridge.protocol.requests import Kind
 from ros_bridge.worker.messages import Trajectory, parse_trajectory, seconds, stamp_of
 from ros_bridge.worker.on_request import OnRequest
-from ros_bridge.worker.services import LoopRequests
+from ros_bridge.worker.services import GOAL_RATE, LoopRequests
 
 FJT = FollowJointTrajectory.Result
 _ACTION_NAME = {TrajectoryActionSpec: "follow_joint_trajectory", GripperActionSpec: "gripper_cmd"}
@@ -175,6 +175,11 @@ class ActionServers(OnRequest):
         points = len(getattr(getattr(request, "trajectory", None), "points", ()))
         if points > BIG_GOAL:  # its Python objects: hundreds of MB, freed when it is rejected or its result expires
             self._trim_until = wallclock.monotonic() + RESULT_TIMEOUT + 2 * TRIM_EVERY
+        if not self.requests.admit(world, rate=GOAL_RATE):  # one world's flood of goals: its neighbours' go first
+            message, log = self.requests.refusal(f"{spec.controller} in world {world}: goal")
+            if log:
+                self.logger.error(message)
+            return GoalResponse.REJECT
         if points > BIG_GOAL and 0 < spec.max_points < points:  # accepted, it would be kept until then
             self.logger.error(
                 f"{spec.controller} in world {world}: goal rejected: {points} points, more than {spec.max_points}"

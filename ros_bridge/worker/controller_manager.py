@@ -145,6 +145,12 @@ class ControllerManagerServices(OnRequest):
 
     def _switch_controller(self, at: tuple[int, ManagerScope], where: str, request: Any, response: Any) -> Any:
         world, scope = at
+        if not self.requests.admit(world):  # a flood from this world waits behind nobody's
+            response.ok = False
+            response.message, log = self.requests.refusal(where)
+            if log:
+                self.logger.warning(response.message)
+            return response
         # a robot's names become the world's: its own controllers only (another robot's name is unknown here)
         activate = [scope.prefix + n for n in request.activate_controllers]
         deactivate = [scope.prefix + n for n in request.deactivate_controllers]

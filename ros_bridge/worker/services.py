@@ -26,6 +26,13 @@ from ros_bridge.protocol.requests import Kind, encode_document, encode_reset, en
 from ros_bridge.protocol.services import Answer, Tickets
 
 SERVICE_WAIT = 2.0  # s a service waits for the loop to carry out its request
+# A service that waits for the loop holds the worker's executor thread a period or so: a flood
+# of them on one world held every other world's services behind it (switch_controller p50 6 ms
+# -> 555 ms, issue 47). Each world may make WORLD_RATE such requests a second (as many at once);
+# beyond, they are refused at once, saying why, and its neighbours' go first. Action goals,
+# which wait for nothing but cost the thread their parsing, have a budget of their own.
+WORLD_RATE = 20.0
+GOAL_RATE = 100.0  # FollowJointTrajectory / GripperCommand goals a second per world
 
 
 class LoopRequests:
@@ -43,6 +50,33 @@ class LoopRequests:
         self.nudge = nudge
         self.running = True
         self._cond = threading.Condition()
+        self._budget: dict[tuple[int, float], tuple[float, float]] = {}  # (world, rate) -> (tokens, when counted)
+        self._said: dict[int, float] = {}  # world -> when its refusals were last logged
+
+    def admit(self, world: int, now: float | None = None, rate: float = WORLD_RATE) -> bool:
+        """Whether `world` may make one more request of a budget of `rate` a second (a token
+        bucket as deep: WORLD_RATE for those that wait for the loop, GOAL_RATE for goals); a
+        refused one is answered at once."""
+        now = wallclock.monotonic() if now is None else now
+        key = (world, rate)
+        tokens, then = self._budget.get(key, (rate, now))
+        tokens = min(rate, tokens + (now - then) * rate)
+        admitted = tokens >= 1.0
+        self._budget[key] = (tokens - 1.0 if admitted else tokens, now)
+        return admitted
+
+    def refusal(self, where: str, now: float | None = None) -> tuple[str, bool]:
+        """A refused request's message, and whether to log it (once in 2 s per `where`)."""
+        now = wallclock.monotonic() if now is None else now
+        key = hash(where)
+        log = now - self._said.get(key, -1e9) >= 2.0
+        if log:
+            self._said[key] = now
+        return (
+            f"{where}: more requests a second from this world than its budget (services that wait for the loop: "
+            f"{WORLD_RATE:g}, action goals: {GOAL_RATE:g}): refused, so that the other worlds' go first",
+            log,
+        )
 
     def put(self, kind: Kind, encode: Callable[[int], bytes]) -> int | None:
         """Queue a request; its ticket, or None when the ring is full (the loop is far behind)."""
@@ -112,6 +146,9 @@ def _robot_reset_service(requests: LoopRequests, world: int, robot: int) -> Call
     """`<ns>/<robot>/reset`: that robot of that world back where it starts, the others as they are."""
 
     def reset(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if not requests.admit(world):  # one world's flood
+            response.success, response.message = False, requests.refusal(f"world {world}'s robot reset")[0]
+            return response
         answer = requests.wait(requests.put(Kind.RESET_ROBOT, lambda t: encode_document(t, world, {"robot": robot})))
         response.success = answer is not None and answer.ok
         response.message = "the loop did not answer in time" if answer is None else answer.message
@@ -139,6 +176,9 @@ def _record_service(requests: LoopRequests) -> Callable[[Any, Any], Any]:
 
 def _reset_service(requests: LoopRequests, worlds: list[int] | None, target: str) -> Callable[[Any, Any], Any]:
     def reset(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if worlds is not None and not requests.admit(worlds[0]):  # one world's flood
+            response.success, response.message = False, requests.refusal(target)[0]
+            return response
         done = requests.wait(requests.put(Kind.RESET, lambda t: encode_reset(t, worlds))) is not None
         response.success = True
         response.message = f"reset {target}" if done else f"reset of {target} queued (the loop is busy)"

@@ -1,0 +1,137 @@
+"""A flood of switch_controller calls on one world against its neighbours' services (issue 47).
+
+    .venv/bin/python benchmarks/service_flood.py --seconds 10
+
+`batchsim --worlds 16` (the arm, its controllers, one bridge worker: every world on the same
+executor thread) on a private ROS domain. One process floods world 3's
+`controller_manager/switch_controller` with `--clients` calls in flight, each answered call
+followed by a new one (deactivating and activating the trajectory controller in turn); meanwhile this
+process calls world 0's `switch_controller` (an empty switch) every 0.2 s and times each answer.
+Two windows: quiet, then flooded. Printed per window: world 0's answer times (p50, p99, worst)
+and how many of the flood's calls were answered and how many refused. Nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fleet import LOCALHOST, _pythonpath, _versions  # noqa: E402
+
+JTC = "joint_trajectory_controller"
+
+
+def _client(domain: int, name: str):
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    os.environ.update(LOCALHOST)
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = Node(name, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    return context, node, executor
+
+
+def flood(domain: int, world: int, seconds: float, outstanding: int) -> None:
+    """The flooding process: one client keeping `outstanding` calls in flight, a new one sent as
+    each is answered (what a client looping over call_async does)."""
+    from controller_manager_msgs.srv import SwitchController
+
+    context, node, executor = _client(domain, "flooder")
+    client = node.create_client(SwitchController, f"/world_{world}/controller_manager/switch_controller")
+    client.wait_for_service(timeout_sec=30)
+    counts = {"ok": 0, "refused": 0}
+    stop = time.monotonic() + seconds
+    sent = 0
+
+    def send() -> None:
+        nonlocal sent
+        request = SwitchController.Request(strictness=1)
+        (request.deactivate_controllers if sent % 2 == 0 else request.activate_controllers).append(JTC)
+        sent += 1
+        client.call_async(request).add_done_callback(answered)
+
+    def answered(future) -> None:
+        counts["ok" if future.result().ok else "refused"] += 1
+        if time.monotonic() < stop:
+            send()
+
+    for _ in range(outstanding):
+        send()
+    while time.monotonic() < stop + 2.0:
+        executor.spin_once(timeout_sec=0.05)
+    context.try_shutdown()
+    print(f"{counts['ok']} {counts['refused']}", flush=True)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seconds", type=float, default=10.0, help="each window")
+    p.add_argument("--clients", type=int, default=32, help="the flood's calls in flight")
+    p.add_argument("--world", type=int, default=3, help="the flooded world")
+    p.add_argument("--domain", type=int, default=58)
+    p.add_argument("--flood", nargs=3, type=float, help=argparse.SUPPRESS)  # the flooding process
+    opts = p.parse_args()
+    if opts.flood:
+        flood(int(opts.flood[0]), opts.world, opts.flood[1], int(opts.flood[2]))
+        return
+    from controller_manager_msgs.srv import SwitchController
+
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(opts.domain), "PYTHONPATH": _pythonpath()}
+    fleet = subprocess.Popen([sys.executable, "-m", "batchsim.cli", "--worlds", "16", "--bridge-workers", "1", "--quiet"],
+                             stderr=subprocess.PIPE, text=True, env=env)  # fmt: skip
+    try:
+        for line in fleet.stderr:
+            if line.startswith("batchsim: ") and " x " in line:
+                break
+        threading.Thread(target=lambda: [None for _ in fleet.stderr], daemon=True).start()
+        context, node, executor = _client(opts.domain, "service_flood_probe")
+        probe = node.create_client(SwitchController, "/world_0/controller_manager/switch_controller")
+        assert probe.wait_for_service(timeout_sec=60)
+        print(f"# {platform.node() or 'host'}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; {_versions()}; "
+              f"{time.strftime('%Y-%m-%d')}; 16 arms, 1 bridge worker, {opts.clients} flooding calls in flight on world {opts.world}")  # fmt: skip
+        print("| window | world 0's answers | p50 ms | p99 ms | worst ms | flood answered | flood refused |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+
+        def window(label: str, flooder: subprocess.Popen | None) -> None:
+            times = []
+            end = time.monotonic() + opts.seconds
+            while time.monotonic() < end:
+                t0 = time.monotonic()
+                future = probe.call_async(SwitchController.Request(strictness=1))
+                executor.spin_until_future_complete(future, timeout_sec=10)
+                times.append(1e3 * (time.monotonic() - t0) if future.done() else float("inf"))
+                time.sleep(max(0.0, 0.2 - (time.monotonic() - t0)))
+            flood_ok, refused = ("-", "-")
+            if flooder is not None:
+                flood_ok, refused = flooder.communicate(timeout=120)[0].split()
+            times.sort()
+            p99 = times[min(len(times) - 1, int(0.99 * len(times)))]
+            print(f"| {label} | {len(times)} | {statistics.median(times):.1f} | {p99:.1f} | {times[-1]:.1f} | {flood_ok} | {refused} |",
+                  flush=True)  # fmt: skip
+
+        window("quiet", None)
+        flooder = subprocess.Popen([sys.executable, __file__, "--world", str(opts.world), "--flood", str(opts.domain),
+                                    str(opts.seconds), str(opts.clients)], stdout=subprocess.PIPE, text=True, env=env)  # fmt: skip
+        time.sleep(2.0)  # its clients found the service
+        window("flooded", flooder)
+        context.try_shutdown()
+    finally:
+        fleet.terminate()
+        fleet.wait(timeout=30)
+
+
+if __name__ == "__main__":
+    main()
