@@ -274,6 +274,28 @@ def test_switch_controller_deactivates_one_world_only_and_back(arms, ros):
     assert on.ok, on.message
 
 
+def test_a_burst_of_controller_manager_calls_is_answered_every_one(arms, ros):
+    """5,000 list_controllers calls at once lost all but 11 (issue 47's review found 40-120 lost;
+    upstream's answer every call): the services hold up to 10,000 requests now. The client's own
+    queue is deep too: one of ROS's default depth (10) loses its answers itself."""
+    from rclpy.qos import QoSProfile
+
+    srv = ros["srv"]
+    client = arms.node.create_client(srv.ListControllers, "/world_1/controller_manager/list_controllers",
+                                     qos_profile=QoSProfile(depth=10_000))  # fmt: skip
+    try:
+        assert client.wait_for_service(timeout_sec=20)
+        answered = []
+        with arms.spinning:
+            futures = [client.call_async(srv.ListControllers.Request()) for _ in range(2000)]
+            for f in futures:
+                f.add_done_callback(answered.append)
+        arms.wait(lambda: len(answered) == len(futures), 30, f"every answer ({len(answered)} of {len(futures)} so far)")
+        assert all(JTC in {c.name for c in f.result().controller} for f in futures)
+    finally:
+        arms.node.destroy_client(client)
+
+
 def test_gripper_command_closes_one_worlds_gripper_and_a_blocked_one_stalls(tmp_path, ros):
     from control_msgs.action import GripperCommand
     from test_robots import _demo

@@ -38,6 +38,7 @@ from controller_manager_msgs.srv import (
 )
 from lifecycle_msgs.msg import State
 from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from batchsim.memory import Memory
 from ros_bridge.manager_link import ManagerScope, ManagerSpec
@@ -46,6 +47,10 @@ from ros_bridge.protocol.active import ActiveReader
 from ros_bridge.protocol.requests import Kind, encode_switch
 from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import LoopRequests
+
+# the requests a service holds before it takes them: ROS's default (10) lost all but 11 of a burst
+# of 5,000 list_controllers calls, where upstream's controller_manager answers every one
+SERVICE_QOS = QoSProfile(depth=10_000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 
 
 class ControllerManagerServices(OnRequest):
@@ -77,7 +82,9 @@ class ControllerManagerServices(OnRequest):
             (UnloadController, "unload_controller", self._refuse),
             (ReloadControllerLibraries, "reload_controller_libraries", self._refuse),
         ):
-            self._services.append(self._node.create_service(srv, f"{base}/{name}", _bind(handler, value, f"{base}/{name}")))
+            self._services.append(
+                self._node.create_service(srv, f"{base}/{name}", _bind(handler, value, f"{base}/{name}"), qos_profile=SERVICE_QOS)
+            )
 
     def _claimed(self, world: int) -> dict[str, str]:
         """command interface -> the controller active in `world` that claims it (world names)."""
