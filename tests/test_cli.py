@@ -345,6 +345,23 @@ def test_the_status_line_fits_the_terminal(monkeypatch):
 # ---------------------------------------------------------------- version, imports, hints
 
 
+def test_help_names_every_command_and_every_flag_the_readme_gives():
+    """`--help` named neither `replay` nor `view` nor `--ros-args` (issue 46): every command and
+    every flag of the README's "The command" block is in some `--help`."""
+    import re
+
+    readme = (Path(__file__).parent.parent / "README.md").read_text()
+    block = readme.split("## The command", 1)[1].split("```", 2)[1]
+    helps = {cmd: " ".join(batchsim_cli(*cmd.split(), "--help").stdout.split()) for cmd in ("", "info", "replay", "view", "evaluate")}
+    main = helps[""]
+    for command in ("batchsim info", "batchsim replay", "batchsim view", "batchsim evaluate", "--ros-args"):
+        assert command in main, command
+    flags = set(re.findall(r"--[a-z][a-z0-9-]*", block))
+    assert len(flags) > 30
+    missing = sorted(f for f in flags if not any(re.search(rf"{f}\b", text) for text in helps.values()))
+    assert not missing, missing
+
+
 def test_version():
     out = batchsim_cli("--version")
     assert out.returncode == 0

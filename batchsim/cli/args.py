@@ -42,7 +42,12 @@ def run_parser() -> argparse.ArgumentParser:
     p = _Parser(
         prog="batchsim",
         description="Run N copies of one MuJoCo robot, each on its own ROS 2 namespace.",
-        epilog="`batchsim info MODEL` lists a model's interfaces and sensors.",
+        epilog=(
+            "commands: `batchsim info MODEL` lists a model's interfaces and sensors; `batchsim replay FILE` "
+            "republishes an MCAP recording over ROS 2; `batchsim view FILE` shows one in the web view; "
+            "`batchsim evaluate --controllers FILE` scores a policy controller over randomized worlds (each: --help). "
+            "`--ros-args ... [--]` passes ROS arguments to every bridge worker's node (remaps, -p, --log-level)."
+        ),
     )
     p.add_argument("--worlds", type=int, default=None, help=f"number of worlds (default {DEFAULT_WORLDS}; a fleet of groups: each group's, from its file)")
     p.add_argument(
