@@ -44,7 +44,7 @@ from ros_bridge.outputs import ChannelFill, Field, OutputSpec, robot_outputs
 from ros_bridge.protocol.active import active_arrays
 from ros_bridge.protocol.commands import rejection_arrays, slot_arrays
 from ros_bridge.protocol.demand import demand_arrays
-from ros_bridge.protocol.goals import refusal_arrays
+from ros_bridge.protocol.goals import held_arrays, refusal_arrays
 from ros_bridge.protocol.liveness import liveness_arrays
 from ros_bridge.protocol.requests import trajectory_bytes, wrench_arrays
 from ros_bridge.protocol.sensor_blocks import camera_request_arrays
@@ -189,7 +189,7 @@ class FleetPlan:
         if self.manager is not None:
             arrays += active_arrays(n, len(self.manager.controllers))  # protocol/active.py
         if self.actions:  # per world: the last goal the loop refused, and why
-            arrays += refusal_arrays(n)  # protocol/goals.py
+            arrays += refusal_arrays(n) + held_arrays(n, len(self.actions))  # protocol/goals.py
         if self.wrench_service:
             arrays += wrench_arrays(nw)
         if self.recording is not None:

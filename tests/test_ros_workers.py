@@ -207,6 +207,34 @@ def test_a_stopped_physics_process_is_said_and_said_to_run_again(fleet):
     fleet.wait(lambda: fleet.js[0].count > before + 5, 30, "world_0's joint_states again")
 
 
+def test_a_goal_in_flight_when_its_worker_dies_is_told_aborted_by_the_next_one(tmp_path):
+    """A goal accepted by a worker that was then killed never got a result: its client waited
+    forever (issue 47's review). The restarted worker finds it held and tells its client ABORTED
+    on the action's status topic."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+    from rclpy.action import ActionClient
+
+    args = ["--worlds", "2", "--controllers", "default", "--bridge-workers", "1"]
+    with Fleet(domain_id(44), args, tmp_path / "batchsim.log") as fleet:
+        fleet.wait_started()
+        client = ActionClient(fleet.node, FollowJointTrajectory, "/world_1/joint_trajectory_controller/follow_joint_trajectory")
+        assert client.wait_for_server(timeout_sec=40)
+        time.sleep(1.0)
+        goal = FollowJointTrajectory.Goal()
+        goal.trajectory = JointTrajectory(
+            joint_names=[f"joint{k}" for k in range(1, 7)],
+            points=[JointTrajectoryPoint(positions=[0.3] * 6, time_from_start=Duration(sec=20))],
+        )
+        handle = fleet.send_goal(client, goal)
+        assert handle.accepted
+        fleet.wait(lambda: handle.status == GoalStatus.STATUS_EXECUTING, 10, "the goal executing")
+        worker = bridge_workers(fleet.proc.pid)
+        os.kill(next(iter(worker.values())), signal.SIGKILL)
+        fleet.wait(lambda: handle.status == GoalStatus.STATUS_ABORTED, 40, "the goal told ABORTED")
+        fleet.wait(lambda: "is told ABORTED on the action's status topic" in fleet.log(), 10, "the line that says so")
+
+
 def test_a_killed_worker_is_restarted_and_its_worlds_come_back(fleet):
     workers = bridge_workers(fleet.proc.pid)
     assert sorted(workers) == [0, 1, 2]

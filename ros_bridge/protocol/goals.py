@@ -72,3 +72,32 @@ class RefusalReader:
         if int(self.tag[world]) != tag:  # another goal's refusal came meanwhile: its words are not ours
             text = ""
         return code, text or WORDS[code]
+
+
+# --- the goals a worker holds, for the worker that follows it ---
+# A worker that dies takes its accepted goals' servers with it, and their clients wait for a
+# result nobody will send. Each worker notes the goal id of every world's goal in flight
+# (`goal.held`, per world and action, zeros: none); a restarted worker finds them there and
+# tells their clients (worker/actions.py): ABORTED on the action's status topic.
+
+
+def held_arrays(nworld: int, naction: int) -> list[tuple[str, tuple[int, ...], str]]:
+    return [("goal.held", (nworld, max(1, naction), 16), "u1")]
+
+
+def hold(memory: Memory, world: int, action: int, goal_id: bytes) -> None:
+    memory["goal.held"][world, action] = np.frombuffer(goal_id, np.uint8)
+
+
+def release(memory: Memory, world: int, action: int, goal_id: bytes) -> None:
+    """Forget the goal `goal_id` (a newer one held in its place stays)."""
+    row = memory["goal.held"][world, action]
+    if row.tobytes() == goal_id:
+        row[:] = 0
+
+
+def held(memory: Memory, lo: int, hi: int) -> list[tuple[int, int, bytes]]:
+    """(world, action, goal id) of every goal held in worlds [lo, hi)."""
+    block = memory["goal.held"][lo:hi]
+    return [(lo + int(w), int(a), block[w, a].tobytes()) for w, a in zip(*np.nonzero(block.any(axis=2)), strict=True)]
+

@@ -42,9 +42,11 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from action_msgs.msg import GoalStatus, GoalStatusArray
 from control_msgs.action import FollowJointTrajectory, GripperCommand
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.node import Node
+from rclpy.qos import qos_profile_action_status_default
 from rclpy.task import Future
 
 from batchsim.controllers.joint_names import JointOrder
@@ -60,7 +62,7 @@ from ros_bridge.action_plan import (
 from ros_bridge.naming import topic_name
 from ros_bridge.protocol.active import ActiveReader
 from ros_bridge.protocol.demand import ChannelDemand
-from ros_bridge.protocol.goals import RefusalReader
+from ros_bridge.protocol.goals import RefusalReader, held, hold, release
 from ros_bridge.protocol.requests import Kind
 from ros_bridge.worker.messages import Trajectory, parse_trajectory, seconds, stamp_of
 from ros_bridge.worker.on_request import OnRequest
@@ -144,6 +146,28 @@ class ActionServers(OnRequest):
         for a, spec in enumerate(specs):
             for row, ns in enumerate(namespaces):
                 self.offer(topic_name(ns, f"{spec.controller}/{_ACTION_NAME[type(spec)]}"), (a, lo + row))
+        self.memory = memory
+        self._told = self._tell_predecessors_goals(node, namespaces)
+
+    def _tell_predecessors_goals(self, node: Node, namespaces: list[str]) -> list[Any]:
+        """A restarted worker: the goals its predecessor had accepted and not finished never get
+        their result; their clients are told ABORTED on each action's status topic (latched, as
+        an action server's own). Returns the publishers, kept for late subscribers."""
+        publishers = []
+        for world, a, goal_id in held(self.memory, self.lo, self.lo + len(namespaces)):
+            spec = self.specs[a]
+            action = topic_name(namespaces[world - self.lo], f"{spec.controller}/{_ACTION_NAME[type(spec)]}")
+            status = GoalStatus(status=GoalStatus.STATUS_ABORTED)
+            status.goal_info.goal_id.uuid = list(goal_id)
+            pub = node.create_publisher(GoalStatusArray, f"{action}/_action/status", qos_profile_action_status_default)
+            pub.publish(GoalStatusArray(status_list=[status]))
+            publishers.append(pub)
+            release(self.memory, world, a, goal_id)
+            self.logger.error(
+                f"{spec.controller} in world {world}: a goal in flight when the bridge worker serving it stopped "
+                "is told ABORTED on the action's status topic (its result was lost with that worker)"
+            )
+        return publishers
 
     def base_of(self, name: str) -> str | None:
         """An action client's topics and services are `<action>/_action/...`."""
@@ -206,6 +230,7 @@ class ActionServers(OnRequest):
                 goal.future.set_result((GoalOutcome.ABORTED, FJT(error_code=code, error_string=problem)))
                 handle.execute()
                 return
+        hold(self.memory, world, a, bytes(handle.goal_id.uuid))  # for a worker that follows this one
         with self._lock:
             old = self.inflight[a].get(world)
             self.inflight[a][world] = goal
@@ -306,6 +331,7 @@ class ActionServers(OnRequest):
         with self._lock:
             if self.inflight[goal.action].get(goal.world) is goal:
                 del self.inflight[goal.action][goal.world]
+        release(self.memory, goal.world, goal.action, bytes(goal.handle.goal_id.uuid))
         self._queue.append((goal, outcome, result))
 
     @property
