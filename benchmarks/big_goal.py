@@ -17,38 +17,13 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fleet import LOCALHOST, _pythonpath, _versions  # noqa: E402
-
-
-def rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
-
-
-def worker_pid(parent: int) -> int | None:
-    for pid in os.listdir("/proc"):
-        if not pid.isdigit():
-            continue
-        try:
-            with open(f"/proc/{pid}/stat") as f:
-                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                cmd = f.read()
-        except OSError:
-            continue
-        if ppid == parent and b"ros_bridge.worker" in cmd and b"recorder" not in cmd and b"view" not in cmd:
-            return int(pid)
-    return None
+from fleet import Batchsim, _versions, client_node, rss_mb, worker_pid  # noqa: E402
 
 
 def main() -> None:
@@ -61,28 +36,15 @@ def main() -> None:
     import rclpy
     from control_msgs.action import FollowJointTrajectory
     from rclpy.action import ActionClient
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
     from trajectory_msgs.msg import JointTrajectoryPoint
 
-    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(opts.domain), "PYTHONPATH": _pythonpath()}
-    cmd = [sys.executable, "-m", "batchsim.cli", "--worlds", "2", "--bridge-workers", "1", "--quiet"]
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)
-    context = Context()
+    fleet = Batchsim(["--worlds", "2", "--bridge-workers", "1", "--quiet"], opts.domain)
+    context = None
     try:
-        for line in proc.stderr:
-            if line.startswith("batchsim: ") and " x " in line:
-                break
-        log = open(os.environ.get("BIG_GOAL_LOG", os.devnull), "w")
-        threading.Thread(target=lambda: [log.write(line) for line in proc.stderr], daemon=True).start()
-        worker = worker_pid(proc.pid)
+        fleet.wait_started(120)
+        worker = worker_pid(fleet.proc.pid)
         assert worker is not None, "no bridge worker process"
-        os.environ.update(LOCALHOST)
-        rclpy.init(context=context, domain_id=opts.domain)
-        node = Node("big_goal_client", context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
+        context, node, executor = client_node(opts.domain, "big_goal_client")
         client = ActionClient(node, FollowJointTrajectory, "/world_0/joint_trajectory_controller/follow_joint_trajectory")
         assert client.wait_for_server(timeout_sec=60)
         for _ in range(100):
@@ -121,9 +83,9 @@ def main() -> None:
                 executor.spin_once(timeout_sec=0)
                 print(f"  {time.monotonic() - start:5.0f} s after the answer: {rss_mb(worker):.0f} MB", flush=True)
     finally:
-        rclpy.try_shutdown(context=context)
-        proc.terminate()
-        proc.wait(timeout=30)
+        if context is not None:
+            rclpy.try_shutdown(context=context)
+        fleet.stop()
 
 
 if __name__ == "__main__":

@@ -18,37 +18,25 @@ import argparse
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fleet import LOCALHOST, _pythonpath, _versions  # noqa: E402
+from fleet import Batchsim, _versions, client_node  # noqa: E402
 
 
 def one_run(domain: int, extra: list[str]) -> tuple[float, float]:
     """(matched after s, first frame after s) of one run; NaN where it did not come in 20 s."""
     import rclpy
-    from rclpy.context import Context
     from rclpy.event_handler import SubscriptionEventCallbacks
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
     from sensor_msgs.msg import Image
 
-    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain), "PYTHONPATH": _pythonpath()}
-    args = ["--model", "rover", "--worlds", "2", "--camera-resolution", "64x48", "--status-every", "1", *extra]
-    proc = subprocess.Popen([sys.executable, "-m", "batchsim.cli", *args], stderr=subprocess.PIPE, text=True, env=env)
-    context = Context()
+    fleet = Batchsim(["--model", "rover", "--worlds", "2", "--camera-resolution", "64x48", *extra], domain)
+    context = None
     try:
-        for line in proc.stderr:
-            if line.startswith("batchsim: ") and " x " in line and "control" in line:
-                break
-        os.environ.update(LOCALHOST)
-        rclpy.init(context=context, domain_id=domain)
-        node = Node("first_frame_probe", context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
+        fleet.wait_started(120)
+        context, node, executor = client_node(domain, "first_frame_probe")
         until = time.monotonic() + 4.0  # the probe's own discovery of the fleet, done before it subscribes
         while time.monotonic() < until:
             executor.spin_once(timeout_sec=0.01)
@@ -63,9 +51,9 @@ def one_run(domain: int, extra: list[str]) -> tuple[float, float]:
         nan = float("nan")
         return (matched[0] - t0 if matched else nan), (got[0] - t0 if got else nan)
     finally:
-        rclpy.try_shutdown(context=context)
-        proc.terminate()
-        proc.wait(timeout=20)
+        if context is not None:
+            rclpy.try_shutdown(context=context)
+        fleet.stop()
 
 
 def main() -> None:

@@ -247,6 +247,60 @@ def _pythonpath() -> str:
     return str(ROOT) + (os.pathsep + extra if extra else "")
 
 
+def children(pid: int) -> list[int]:
+    """The direct child processes of `pid` (Linux /proc); none where it cannot say."""
+    out = []
+    try:
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                out += [int(c) for c in f.read().split()]
+    except OSError:
+        pass
+    return out
+
+
+def worker_pid(pid: int) -> int | None:
+    """Bridge worker 0's process of batchsim process `pid`, or None."""
+    for child in children(pid):
+        try:
+            with open(f"/proc/{child}/cmdline", "rb") as f:
+                argv = f.read().split(b"\0")
+        except OSError:
+            continue
+        if b"ros_bridge.worker" in argv and argv[argv.index(b"ros_bridge.worker") + 1] == b"0":
+            return child
+    return None
+
+
+def rss_mb(pid: int) -> float:
+    """Process `pid`'s resident memory (VmRSS) in MB; NaN where /proc cannot say."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+def client_node(domain: int, name: str) -> tuple[Any, Any, Any]:
+    """(context, node, executor) of a client node of this process on `domain`, localhost only:
+    a benchmark's probe of a fleet (`rclpy.try_shutdown(context=context)` ends it)."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    os.environ.update(LOCALHOST)
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = Node(name, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    return context, node, executor
+
+
 class Subscribers:
     """K subscriber processes sharing the worlds."""
 

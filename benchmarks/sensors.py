@@ -71,7 +71,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # a source checkout, uninstalled
 
-from fleet import Batchsim, _pythonpath  # noqa: E402 (its process handling and status parsing)
+from fleet import Batchsim, _pythonpath, children  # noqa: E402 (its process handling and status parsing)
 from throughput import device_name, versions  # noqa: E402
 
 import batchsim  # noqa: E402
@@ -543,18 +543,6 @@ def cpu_seconds(pid: int) -> float:
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     except (OSError, ValueError, IndexError):
         return float("nan")
-
-
-def children(pid: int) -> list[int]:
-    """The direct child processes of `pid` (Linux /proc); none where it cannot say."""
-    out = []
-    try:
-        for task in os.listdir(f"/proc/{pid}/task"):
-            with open(f"/proc/{pid}/task/{task}/children") as f:
-                out += [int(c) for c in f.read().split()]
-    except OSError:
-        pass
-    return out
 
 
 class HelperDied(RuntimeError):

@@ -19,29 +19,13 @@ import platform
 import statistics
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fleet import LOCALHOST, _pythonpath, _versions  # noqa: E402
+from fleet import LOCALHOST, Batchsim, _pythonpath, _versions, client_node  # noqa: E402
 
 JTC = "joint_trajectory_controller"
-
-
-def _client(domain: int, name: str):
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
-
-    os.environ.update(LOCALHOST)
-    context = Context()
-    rclpy.init(context=context, domain_id=domain)
-    node = Node(name, context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    return context, node, executor
 
 
 def flood(domain: int, world: int, seconds: float, outstanding: int) -> None:
@@ -49,7 +33,7 @@ def flood(domain: int, world: int, seconds: float, outstanding: int) -> None:
     each is answered (what a client looping over call_async does)."""
     from controller_manager_msgs.srv import SwitchController
 
-    context, node, executor = _client(domain, "flooder")
+    context, node, executor = client_node(domain, "flooder")
     client = node.create_client(SwitchController, f"/world_{world}/controller_manager/switch_controller")
     client.wait_for_service(timeout_sec=30)
     counts = {"ok": 0, "refused": 0}
@@ -90,14 +74,10 @@ def main() -> None:
     from controller_manager_msgs.srv import SwitchController
 
     env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(opts.domain), "PYTHONPATH": _pythonpath()}
-    fleet = subprocess.Popen([sys.executable, "-m", "batchsim.cli", "--worlds", "16", "--bridge-workers", "1", "--quiet"],
-                             stderr=subprocess.PIPE, text=True, env=env)  # fmt: skip
+    fleet = Batchsim(["--worlds", "16", "--bridge-workers", "1", "--quiet"], opts.domain)
     try:
-        for line in fleet.stderr:
-            if line.startswith("batchsim: ") and " x " in line:
-                break
-        threading.Thread(target=lambda: [None for _ in fleet.stderr], daemon=True).start()
-        context, node, executor = _client(opts.domain, "service_flood_probe")
+        fleet.wait_started(120)
+        context, node, executor = client_node(opts.domain, "service_flood_probe")
         probe = node.create_client(SwitchController, "/world_0/controller_manager/switch_controller")
         assert probe.wait_for_service(timeout_sec=60)
         print(f"# {platform.node() or 'host'}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; {_versions()}; "
@@ -129,8 +109,7 @@ def main() -> None:
         window("flooded", flooder)
         context.try_shutdown()
     finally:
-        fleet.terminate()
-        fleet.wait(timeout=30)
+        fleet.stop()
 
 
 if __name__ == "__main__":

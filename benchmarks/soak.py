@@ -17,16 +17,13 @@ import argparse
 import os
 import platform
 import random
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from big_goal import rss_mb, worker_pid  # noqa: E402
-from fleet import LOCALHOST, _pythonpath, _versions  # noqa: E402
+from fleet import Batchsim, _versions, client_node, rss_mb, worker_pid  # noqa: E402
 
 JOINTS = [f"joint{k}" for k in range(1, 7)]
 JTC = "joint_trajectory_controller"
@@ -44,29 +41,16 @@ def main() -> None:
     from control_msgs.action import FollowJointTrajectory
     from controller_manager_msgs.srv import SwitchController
     from rclpy.action import ActionClient
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
     from std_srvs.srv import Trigger
     from trajectory_msgs.msg import JointTrajectoryPoint
 
     record = Path(tempfile.mkdtemp()) / "soak.mcap"
-    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(opts.domain), "PYTHONPATH": _pythonpath()}
-    cmd = [sys.executable, "-m", "batchsim.cli", "--worlds", str(opts.worlds), "--bridge-workers", "1", "--quiet",
-           "--record", str(record)]  # fmt: skip
-    fleet = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)
-    context = Context()
+    fleet = Batchsim(["--worlds", str(opts.worlds), "--bridge-workers", "1", "--quiet", "--record", str(record)], opts.domain)
+    context = None
     try:
-        for line in fleet.stderr:
-            if line.startswith("batchsim: ") and " x " in line:
-                break
-        threading.Thread(target=lambda: [None for _ in fleet.stderr], daemon=True).start()
-        worker = worker_pid(fleet.pid)
-        os.environ.update(LOCALHOST)
-        rclpy.init(context=context, domain_id=opts.domain)
-        node = Node("soak_client", context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
+        fleet.wait_started(120)
+        worker = worker_pid(fleet.proc.pid)
+        context, node, executor = client_node(opts.domain, "soak_client")
         rng = random.Random(0)
         actions = [ActionClient(node, FollowJointTrajectory, f"/world_{w}/{JTC}/follow_joint_trajectory") for w in range(opts.worlds)]
         switches = [node.create_client(SwitchController, f"/world_{w}/controller_manager/switch_controller") for w in range(opts.worlds)]
@@ -96,7 +80,7 @@ def main() -> None:
 
         def line(t: float) -> None:
             s = stats
-            print(f"| {(t - start) / 60:.1f} | {rss_mb(fleet.pid):.0f} | {rss_mb(worker):.0f} | {s['sent']} | {s['accepted']} | "
+            print(f"| {(t - start) / 60:.1f} | {rss_mb(fleet.proc.pid):.0f} | {rss_mb(worker):.0f} | {s['sent']} | {s['accepted']} | "
                   f"{s['rejected']} | {s['results']} | {s['switches']} | {s['resets']} |", flush=True)  # fmt: skip
 
         while (now := time.monotonic()) - start < 60 * opts.minutes:
@@ -125,9 +109,9 @@ def main() -> None:
             executor.spin_once(timeout_sec=0.01)
         line(time.monotonic())
     finally:
-        rclpy.try_shutdown(context=context)
-        fleet.terminate()
-        fleet.wait(timeout=60)
+        if context is not None:
+            rclpy.try_shutdown(context=context)
+        fleet.stop()
 
 
 if __name__ == "__main__":
