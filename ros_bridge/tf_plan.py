@@ -17,7 +17,7 @@ from batchsim.controllers.topics import Transform
 from batchsim.model import RobotPart
 from batchsim.model.frames import FrameTree, fixed_frames, frame_tree, initial_transforms, relative_transforms
 from batchsim.model.from_urdf import is_urdf
-from batchsim.model.urdf import generate_urdf, robot_description
+from batchsim.model.urdf import fixed_links, generate_urdf, robot_description
 
 FLEET_FRAME = "world"  # the fixed frame every world's tf tree hangs from
 log = logging.getLogger("batchsim.ros_bridge")
@@ -261,7 +261,7 @@ def _description(sim: Contract, tree, source: str | None, fixed: set[str]) -> tu
         text = robot_description(sim.spec, source)
         urdf = ET.fromstring(text)
         links = {link.get("name") for link in urdf.iter("link")}
-        placed = _fixed_links(urdf, {tree.root, *tree.names, *fixed})
+        placed = fixed_links(urdf, {tree.root, *tree.names, *fixed})
         unknown = sorted(links - set(tree.names) - {tree.root} - fixed - {link for _, link, _, _ in placed})
         if not unknown:
             return text, placed
@@ -275,38 +275,3 @@ def _description(sim: Contract, tree, source: str | None, fixed: set[str]) -> tu
     for line in urdf.warnings:
         log.warning("batchsim: robot_description: %s", line)
     return urdf.text, urdf.extra_frames
-
-
-def _fixed_links(urdf: ET.Element, known: set[str]) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
-    """The URDF's links that are no frame in `known` but hang from one through fixed joints,
-    as (parent frame, link, position (3,), quaternion w x y z (4,)) from the joints' origins."""
-    out: list[tuple[str, str, np.ndarray, np.ndarray]] = []
-    have = set(known)
-    fixed = [j for j in urdf.findall("joint") if j.get("type") == "fixed"]
-    grew = True
-    while grew:
-        grew = False
-        for joint in fixed:
-            parent, child = joint.find("parent"), joint.find("child")
-            if parent is None or child is None:
-                continue
-            p, c = parent.get("link"), child.get("link")
-            if p in have and c not in have:
-                origin = joint.find("origin")
-                xyz = [float(v) for v in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split()]
-                rpy = [float(v) for v in (origin.get("rpy", "0 0 0") if origin is not None else "0 0 0").split()]
-                out.append((p, c, np.array(xyz), _rpy_quat(*rpy)))
-                have.add(c)
-                grew = True
-    return out
-
-
-def _rpy_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """URDF's rpy (about fixed x, then y, then z) as a quaternion w x y z."""
-    cr, sr = np.cos(roll / 2), np.sin(roll / 2)
-    cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
-    cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
-    return np.array([
-        cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy,
-    ])  # fmt: skip

@@ -472,3 +472,24 @@ def test_every_link_of_the_generated_urdf_has_a_tf_frame():
     assert body == "waist_lower"
     assert pos == pytest.approx(m.jnt_pos[m.joint("abdomen_y").id], abs=1e-12)
     assert quat == pytest.approx([1, 0, 0, 0], abs=1e-12)
+
+
+def test_a_urdfs_links_fixed_to_known_frames_are_placed_as_its_joints_place_them():
+    """A user's URDF whose links hang from the MJCF's frames by fixed joints is published, and tf
+    places those links (ros_bridge/tf_plan.py); one behind a moving joint is not placed."""
+    from batchsim.model.urdf import fixed_links, quat_of_rpy
+
+    urdf = ET.fromstring(
+        '<robot name="r"><link name="base"/><link name="camera_link"/><link name="optical"/><link name="wheel"/>'
+        '<joint name="c" type="fixed"><parent link="base"/><child link="camera_link"/>'
+        '<origin xyz="0.1 0 0.2" rpy="0 0.5 0"/></joint>'
+        '<joint name="o" type="fixed"><parent link="camera_link"/><child link="optical"/>'
+        '<origin rpy="-1.5707963 0 -1.5707963"/></joint>'
+        '<joint name="w" type="continuous"><parent link="base"/><child link="wheel"/></joint></robot>'
+    )
+    placed = {link: (parent, pos, quat) for parent, link, pos, quat in fixed_links(urdf, {"base"})}
+    assert set(placed) == {"camera_link", "optical"}  # the wheel moves: the MJCF's body, or nothing
+    parent, pos, quat = placed["camera_link"]
+    assert parent == "base" and np.allclose(pos, [0.1, 0, 0.2]) and np.allclose(rpy(quat), [0, 0.5, 0])
+    assert placed["optical"][0] == "camera_link" and np.allclose(placed["optical"][2], [0.5, -0.5, 0.5, -0.5], atol=1e-7)
+    assert np.allclose(rpy(quat_of_rpy(0.3, -0.7, 1.1)), [0.3, -0.7, 1.1])

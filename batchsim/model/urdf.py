@@ -265,6 +265,37 @@ def rpy(quat: np.ndarray) -> np.ndarray:
     return np.array([math.atan2(-r[1, 2], r[1, 1]), pitch, 0.0])  # gimbal lock: yaw folded into roll
 
 
+def quat_of_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """The quaternion (w, x, y, z) of URDF's roll, pitch, yaw (fixed axes x, y, z); `rpy`'s inverse."""
+    out = np.empty(4)
+    mujoco.mju_euler2Quat(out, np.array([roll, pitch, yaw], np.float64), "XYZ")
+    return out
+
+
+def fixed_links(urdf: ET.Element, known: set[str]) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+    """A URDF's links that are no frame in `known` but hang from one through fixed joints, as
+    (parent frame, link, position (3,), quaternion w x y z (4,)) from the joints' origins."""
+    out: list[tuple[str, str, np.ndarray, np.ndarray]] = []
+    have = set(known)
+    fixed = [j for j in urdf.findall("joint") if j.get("type") == "fixed"]
+    grew = True
+    while grew:
+        grew = False
+        for joint in fixed:
+            parent, child = joint.find("parent"), joint.find("child")
+            if parent is None or child is None:
+                continue
+            p, c = parent.get("link"), child.get("link")
+            if p in have and c not in have:
+                origin = joint.find("origin")
+                xyz = [float(v) for v in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split()]
+                rpy_ = [float(v) for v in (origin.get("rpy", "0 0 0") if origin is not None else "0 0 0").split()]
+                out.append((p, c, np.array(xyz), quat_of_rpy(*rpy_)))
+                have.add(c)
+                grew = True
+    return out
+
+
 def _rotate(quat: np.ndarray, v: np.ndarray) -> np.ndarray:
     out = np.empty(3)
     mujoco.mju_rotVecQuat(out, np.asarray(v, np.float64), np.asarray(quat, np.float64))
