@@ -276,13 +276,14 @@ class Supervisor:
         raise WorkerError(f"bridge worker {p.index} failed to start: {detail}")
 
     def supervise(self) -> None:
-        """Restart a worker that died (with a back-off); say when one is back. Then `watchers`:
-        the other helper processes' checks (the web view's, ViewProcess.watch)."""
-        liveness.physics_alive(self.memory, wallclock.time())  # the loop looked: the physics process runs
+        """At most every SUPERVISE s: stamp that the physics process runs (liveness.physics_alive),
+        run `watchers` (the other helper processes' checks: the web view's, ViewProcess.watch),
+        restart a worker that died (with a back-off) and say when one is back."""
         now = wallclock.monotonic()
         if now < self._next_supervise:
             return
         self._next_supervise = now + SUPERVISE
+        liveness.physics_alive(self.memory, wallclock.time())  # the loop looked: the physics process runs
         for watch in self.watchers:
             watch()
         self.throttle.flush()  # windows that closed: how many lines each held back

@@ -76,7 +76,7 @@ class _Group:
         self.tf = TfTemplate(plan.tf, self.namespaces) if spec.tf and plan.tf.all_moving else None
         rejections = None
         if memory is not None:  # the live counts of rejected commands, from the bridge's memory
-            rejections = (RejectionWriter(memory, "rej"), RejectionWriter(memory, "hrej"), list(spec.worlds))
+            rejections = (RejectionWriter(memory, "rej"), RejectionWriter(memory, "hrej"), np.asarray(spec.worlds, np.intp))
         self.status = StatusRecording(self.namespaces, rejections) if spec.diagnostics else None
 
 

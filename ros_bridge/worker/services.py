@@ -51,7 +51,7 @@ class LoopRequests:
         self.running = True
         self._cond = threading.Condition()
         self._budget: dict[tuple[int, float], tuple[float, float]] = {}  # (world, rate) -> (tokens, when counted)
-        self._said: dict[int, float] = {}  # world -> when its refusals were last logged
+        self._said: dict[str, float] = {}  # where -> when its refusals were last logged
 
     def admit(self, world: int, now: float | None = None, rate: float = WORLD_RATE) -> bool:
         """Whether `world` may make one more request of a budget of `rate` a second (a token
@@ -68,10 +68,9 @@ class LoopRequests:
     def refusal(self, where: str, now: float | None = None) -> tuple[str, bool]:
         """A refused request's message, and whether to log it (once in 2 s per `where`)."""
         now = wallclock.monotonic() if now is None else now
-        key = hash(where)
-        log = now - self._said.get(key, -1e9) >= 2.0
+        log = now - self._said.get(where, -1e9) >= 2.0
         if log:
-            self._said[key] = now
+            self._said[where] = now
         return (
             f"{where}: more requests a second from this world than its budget (services that wait for the loop: "
             f"{WORLD_RATE:g}, action goals: {GOAL_RATE:g}): refused, so that the other worlds' go first",

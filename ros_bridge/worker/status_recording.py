@@ -29,7 +29,7 @@ class StatusRecording:
     rejection blocks (`rej`, `hrej`) and each recorded world's row in them (None: no counts)."""
 
     def __init__(
-        self, namespaces: list[str], rejections: tuple[RejectionWriter, RejectionWriter, list[int]] | None = None
+        self, namespaces: list[str], rejections: tuple[RejectionWriter, RejectionWriter, np.ndarray] | None = None
     ):
         self.namespaces = namespaces
         self.rejections = rejections
