@@ -77,6 +77,7 @@ class ManagerSpec:
       command_interfaces, state_interfaces: the system's.
       hardware: the hardware component's name (the `<ros2_control>` block's, else the model's).
       scopes: the controller_managers every world serves: one, or one per robot (ManagerScope).
+      update_rate: the controller_manager's own `update_rate` (Hz), else the control rate.
     """
 
     controllers: tuple[ControllerSpec, ...]
@@ -85,6 +86,7 @@ class ManagerSpec:
     state_interfaces: tuple[str, ...]
     hardware: str
     scopes: tuple[ManagerScope, ...] = ()
+    update_rate: int = 0
 
 
 def manager_spec(sim: Contract, manager: ControllerManager, control_rate: float) -> ManagerSpec:
@@ -124,6 +126,7 @@ def manager_spec(sim: Contract, manager: ControllerManager, control_rate: float)
         state_interfaces=tuple(spec.state_interfaces),
         hardware=spec.name,
         scopes=scopes,
+        update_rate=int(round(manager.update_rate or control_rate)),
     )
 
 

@@ -69,8 +69,7 @@ class ControllerNodes:
             for scope in spec.scopes:
                 where = _namespace(ns, scope.prefix)
                 mine = [spec.controllers[k] for k in scope.controllers]
-                rate = max((c.update_rate for c in mine), default=0)
-                manager = [("update_rate", rate), *((f"{scope.local(c.name)}.type", c.type) for c in mine)]
+                manager = [("update_rate", spec.update_rate), *((f"{scope.local(c.name)}.type", c.type) for c in mine)]
                 self._node("controller_manager", where, context, manager)
                 for c in mine:
                     self._node(scope.local(c.name), where, context, c.parameters)
