@@ -264,8 +264,8 @@ class ViewProcess:
                     print(f"batchsim: {line}", file=sys.stderr, flush=True)
 
     def watch(self) -> None:
-        """Each period (the bridge's host calls it; at most once a second): a view process that
-        ended while the fleet runs is said once, with how it ended; the simulation goes on."""
+        """One of the supervisor's watchers (at most once a second): a view process that ended
+        while the fleet runs is said once, with how it ended; the simulation goes on."""
         now = wallclock.monotonic()
         if self._closed or self._said_ended or now < self._next_watch:
             return
