@@ -77,12 +77,18 @@ def test_bad_flag_values_are_one_line_and_exit_2(args, message, tmp_path):
         ({"ROS_DOMAIN_ID": "240"}, [], "ROS_DOMAIN_ID=240: must be an integer in 0..232"),
         ({}, ["--model", "{tmp}/binary.xml", "--no-ros"], "binary.xml: not a text file (byte 0x91 at offset 1 is not UTF-8)"),
         ({}, ["--log-dir", "/sys/kernel", "--no-ros"], "--log-dir: log directory '/sys/kernel': cannot write MUJOCO_LOG.TXT there"),
+        # issue 47's review: a YAML that is not UTF-8 text was a UnicodeDecodeError traceback for each of these
+        *(
+            ({}, [flag, "{tmp}/binary.yaml", "--no-ros"], "binary.yaml: not a text file (byte 0x91 at offset 1 is not UTF-8)")
+            for flag in ("--controllers", "--sensors", "--fleet", "--randomize")
+        ),
     ],
 )
 def test_what_a_new_user_gets_wrong_is_one_line_naming_the_cause(env, args, message, tmp_path, monkeypatch):
     """Issue 23: a 15-line traceback (ROS_DOMAIN_ID=abc), Fast DDS port errors (240), a decode error
     naming no file, a log directory that can never be written accepted."""
     (tmp_path / "binary.xml").write_bytes(b"<\x91\x00\xff")
+    (tmp_path / "binary.yaml").write_bytes(b"a\x91\x00\xff")
     for key, value in env.items():
         monkeypatch.setenv(key, value)
     line = one_error_line(batchsim_cli(*(a.replace("{tmp}", str(tmp_path)) for a in args), "--duration", "0.1"))

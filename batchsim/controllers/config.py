@@ -45,7 +45,7 @@ from batchsim.controllers.base import Params
 from batchsim.controllers.manager import ControllerManager
 from batchsim.controllers.types import CONTROLLER_TYPES
 from batchsim.model import RobotSpec
-from batchsim.model.params import ParamsError, load_yaml
+from batchsim.model.params import ParamsError, load_yaml, read_text
 from batchsim.types import ConfigurationError
 
 # keys of a controller's entry in the controller_manager block besides `type`
@@ -103,9 +103,9 @@ def parse(source: str | Path | Mapping[str, Any], *, name: str | None = None) ->
             path = Path(text).expanduser()
             where = name or str(source)
             try:
-                text = path.read_text()
-            except OSError as e:
-                raise ConfigurationError(f"{where}: {e.strerror or e}") from None
+                text = read_text(path, where)
+            except ParamsError as e:
+                raise ConfigurationError(str(e)) from None
         else:
             where = name or "controllers"
         try:
@@ -152,6 +152,8 @@ def parse(source: str | Path | Mapping[str, Any], *, name: str | None = None) ->
         if "type" not in entry:
             raise ConfigurationError(f"{where}: controller {cname!r}: type: missing")
         ctype = entry["type"]
+        if not isinstance(ctype, str):
+            raise ConfigurationError(f"{where}: controller {cname!r}: type: must be a plugin name, got {ctype!r}")
         if ctype not in CONTROLLER_TYPES:
             raise ConfigurationError(
                 f"{where}: controller {cname!r}: type: unknown type {ctype!r} "

@@ -64,11 +64,19 @@ def load_yaml(text: str, where: str) -> Any:
 def read_yaml(path: str | Path) -> Any:
     """A YAML file as rcl reads it; ParamsError for a missing file or malformed YAML."""
     path = Path(path).expanduser()
+    return load_yaml(read_text(path, str(path)), str(path))
+
+
+def read_text(path: Path, where: str) -> str:
+    """A YAML file's text; ParamsError naming `where` for one that cannot be read or is not UTF-8 text."""
     try:
-        text = path.read_text()
+        return path.expanduser().read_text()
     except OSError as e:
-        raise ParamsError(f"{path}: {e.strerror or e}") from None
-    return load_yaml(text, str(path))
+        raise ParamsError(f"{where}: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise ParamsError(
+            f"{where}: not a text file (byte 0x{e.object[e.start]:02x} at offset {e.start} is not UTF-8): YAML is text"
+        ) from None
 
 
 def node_parameters(doc: Any, node: str | None, where: str) -> dict[str, Any]:

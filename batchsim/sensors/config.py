@@ -54,7 +54,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from batchsim.model.params import ParamsError, load_yaml, nest_dotted
+from batchsim.model.params import ParamsError, load_yaml, nest_dotted, read_text
 from batchsim.plugins import BaseVelocityConfig, ExternalWrenchConfig
 from batchsim.plugins.config import NOT_RUN, RUN, parse_plugin
 from batchsim.sensors.noise import Noise
@@ -177,9 +177,7 @@ class SensorConfig:
             else:
                 where = str(source)
                 try:
-                    document = load_yaml(Path(source).expanduser().read_text(), where)
-                except OSError as e:
-                    raise SensorConfigError(f"{where}: {e.strerror}") from None
+                    document = load_yaml(read_text(Path(source), where), where)
                 except ParamsError as e:
                     raise SensorConfigError(str(e)) from None
             names.append(where)
