@@ -44,6 +44,10 @@ class AntiWindup(AnyCase, enum.Enum):
 _ACCEPTED_KEYS = ("antiwindup", "error_deadband", "saturation", "activate_state_publisher")
 
 
+# PidBank's per-loop arrays, which set_gains makes per world
+_GAIN_ARRAYS = ("p", "i", "d", "i_max", "i_min", "u_max", "u_min", "_conditional", "_back", "_tt")
+
+
 @dataclasses.dataclass(frozen=True)
 class PidGains:
     """One joint's PID gains, as control_toolbox's PidROS parameters name them."""
@@ -118,6 +122,29 @@ class PidBank:
         self._u_clamped = bool(np.isfinite(self.u_max).any() or np.isfinite(self.u_min).any())
         self.i_term = np.zeros((nworld, len(gains)))
         self.last_error = np.full((nworld, len(gains)), np.nan)
+        self._per_world = False  # set_gains made every gain (nworld, npid)
+
+    def set_gains(self, worlds: np.ndarray, gains: list[PidGains]) -> None:
+        """New gains for the listed worlds' loops (a controller's parameters set at run time),
+        from their next update on; the integral and last error are kept, as control_toolbox's
+        `set_gains` keeps them. The first call makes every gain an (nworld, npid) array."""
+        nworld = self.i_term.shape[0]
+        names = _GAIN_ARRAYS
+        if not self._per_world:
+            for name in names:
+                setattr(self, name, np.repeat(np.asarray(getattr(self, name))[None], nworld, axis=0))
+            self._per_world = True
+        one = PidBank(gains, 1)
+        for name in names:
+            getattr(self, name)[worlds] = getattr(one, name)
+        self._any_conditional, self._any_back = bool(self._conditional.any()), bool(self._back.any())
+        self._i_clamped = bool(np.isfinite(self.i_max).any() or np.isfinite(self.i_min).any())
+        self._u_clamped = bool(np.isfinite(self.u_max).any() or np.isfinite(self.u_min).any())
+
+    def _rows(self, worlds: np.ndarray | slice) -> tuple[np.ndarray, ...]:
+        """The gains (p, i, d, i_max, i_min, u_max, u_min, conditional, back, tt) of `worlds`:
+        per loop, or per world and loop after set_gains."""
+        return tuple(getattr(self, n)[worlds] if self._per_world else getattr(self, n) for n in _GAIN_ARRAYS)
 
     def reset(self, worlds: np.ndarray | slice) -> None:
         """Forget the integral and the last error of the listed worlds (after a reset)."""
@@ -153,34 +180,35 @@ class PidBank:
         dt = np.asarray(dt, dtype=np.float64).reshape(-1, 1)
         i_term = self.i_term[worlds]
         last = self.last_error[worlds]
-        p_term = self.p * error
+        p, i, d, i_max, i_min, u_max, u_min, conditional, back, tt = self._rows(worlds)
+        p_term = p * error
         if (dt > 0).all():  # every world stepped since its last update: the usual period
             if error_dot is None:
-                d_term = self.d * np.nan_to_num((error - last) / dt, nan=0.0)  # NaN last: a first update
-            integrate = self.i * error * dt
+                d_term = d * np.nan_to_num((error - last) / dt, nan=0.0)  # NaN last: a first update
+            integrate = i * error * dt
             elapsed = dt
         else:
             stepped = dt > 0
             elapsed = np.where(stepped, dt, 0.0)
             if error_dot is None:
                 safe_dt = np.where(stepped, dt, 1.0)
-                d_term = np.where(np.isnan(last) | ~stepped, 0.0, self.d * (error - last) / safe_dt)
-            integrate = self.i * error * elapsed
+                d_term = np.where(np.isnan(last) | ~stepped, 0.0, d * (error - last) / safe_dt)
+            integrate = i * error * elapsed
         if error_dot is not None:
-            d_term = self.d * error_dot
+            d_term = d * error_dot
         if self._any_conditional:
             trial = p_term + i_term + d_term
-            saturated = ((trial > self.u_max) & (error > 0)) | ((trial < self.u_min) & (error < 0))
-            integrate = np.where(self._conditional & saturated, 0.0, integrate)
+            saturated = ((trial > u_max) & (error > 0)) | ((trial < u_min) & (error < 0))
+            integrate = np.where(conditional & saturated, 0.0, integrate)
         i_term = i_term + integrate
         if self._i_clamped:
-            i_term = np.clip(i_term, self.i_min, self.i_max)
+            i_term = np.clip(i_term, i_min, i_max)
         u = p_term + i_term + d_term
-        out = np.clip(u, self.u_min, self.u_max) if self._u_clamped else u
+        out = np.clip(u, u_min, u_max) if self._u_clamped else u
         if self._any_back:
-            tt = np.where(self._tt > 0, self._tt, 1.0)
-            bleed = np.where(self._tt > 0, (out - u) * elapsed / tt, 0.0)
-            i_term = np.where(self._back, i_term + bleed, i_term)
+            safe_tt = np.where(tt > 0, tt, 1.0)
+            bleed = np.where(tt > 0, (out - u) * elapsed / safe_tt, 0.0)
+            i_term = np.where(back, i_term + bleed, i_term)
         self.i_term[worlds] = i_term
         self.last_error[worlds] = error
         return out

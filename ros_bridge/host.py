@@ -34,14 +34,7 @@ from batchsim.types import FROZEN, Status
 from ros_bridge.action_plan import decode_cancel, decode_gripper_goal
 from ros_bridge.manager_link import ManagerLink
 from ros_bridge.naming import topic_name
-from ros_bridge.plan import (
-    FLAG_BAD,
-    FLAG_FROZEN,
-    FLAG_TIMED_OUT,
-    ChannelFill,
-    FleetPlan,
-    describe,
-)
+from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT, ChannelFill, FleetPlan, describe
 from ros_bridge.protocol.commands import RejectionWriter, SlotReader
 from ros_bridge.protocol.demand import demanded
 from ros_bridge.protocol.goals import Refusal, RefusalWriter
@@ -411,6 +404,9 @@ class BridgeHost(Participant):
                 elif kind == Kind.SWITCH and self.manager_link is not None:
                     later = False  # the switch resets its controllers in this period: trajectories go first, as ever
                     ticket, _, ok, message = self.manager_link.switch(payload)
+                    self._done(j, ticket, self.loop.sim_time, ok=ok, message=message)
+                elif kind == Kind.SET_PARAMETERS and self.manager_link is not None:
+                    ticket, ok, message = self.manager_link.set_parameters(payload)
                     self._done(j, ticket, self.loop.sim_time, ok=ok, message=message)
         reset_rows: np.ndarray | None = None
         if resets:

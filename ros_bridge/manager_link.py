@@ -18,7 +18,7 @@ from batchsim.contract import Contract
 from batchsim.controllers import ControllerManager
 from batchsim.memory import Memory
 from ros_bridge.protocol.active import ActiveWriter
-from ros_bridge.protocol.requests import decode_switch
+from ros_bridge.protocol.requests import decode_document, decode_switch
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,6 +31,7 @@ class ControllerSpec:
       state_interfaces: the state interfaces it reads.
       update_rate: Hz.
       parameters: its parameters (ControllerInfo.parameters), which its node holds.
+      runtime: those it takes at run time, with their values at start (ControllerInfo.runtime).
     """
 
     name: str
@@ -39,6 +40,7 @@ class ControllerSpec:
     state_interfaces: tuple[str, ...]
     update_rate: int
     parameters: tuple[tuple[str, Any], ...] = ()
+    runtime: tuple[tuple[str, Any], ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,6 +100,7 @@ def manager_spec(sim: Contract, manager: ControllerManager, control_rate: float)
             c.state_interfaces,
             int(round(c.update_rate if c.update_rate else control_rate)),
             c.parameters,
+            c.runtime,
         )
         for c in manager.describe()
     )
@@ -161,3 +164,12 @@ class ManagerLink:
         for name, worlds in result.activated.items():
             self.active.set(index[name], worlds, True)
         return ticket, world, result.ok, result.message
+
+    def set_parameters(self, payload: np.ndarray) -> tuple[int, bool, str]:
+        """A SET_PARAMETERS request (a controller node's set_parameters): (ticket, ok, message)."""
+        ticket, world, document = decode_document(payload)
+        name = document.get("controller")
+        if name not in self.names:
+            return ticket, False, f"no controller named {name!r}"
+        why = self.manager[name].set_parameters(np.array([world]), document.get("values", {}))
+        return ticket, not why, why

@@ -286,6 +286,8 @@ BAD = {
         ["controller 'c'", "type", "fancy_controllers/Fancy", *CONTROLLER_TYPES],
     ),
     "missing type": (arm_yaml("c:\n  joints: [joint1]\n"), ["controller 'c'", "type: missing"]),
+    # issue 47's review: a type that is a list was a TypeError traceback (unhashable type)
+    "type not a name": (arm_yaml("c:\n  type: [a, b]\n"), ["controller 'c'", "type: must be a plugin name, got ['a', 'b']"]),
     "unknown joint": (
         arm_yaml(
             "c:\n  type: position_controllers/JointGroupPositionController\n",
@@ -897,6 +899,39 @@ def test_trajectory_pid_is_ros2_controllers_formula_per_joint_and_world():
         np.testing.assert_allclose(jtc.output, expected, rtol=1e-12, atol=1e-12)
         sim.advance(period)
     assert np.abs(jtc.reference_velocity[[0, 1]]).max() > 0 and (np.abs(integral) == clamp).any()
+
+
+def test_trajectory_gains_set_at_run_time_drive_that_world_from_its_next_update():
+    """gains.<joint>.p set in world 1 (Controller.set_parameters, as upstream's update re-reads
+    them): world 1's effort follows the new gain at once, worlds 0 and 2 the YAML's; the integral
+    is kept, as control_toolbox's set_gains keeps it."""
+    rng = np.random.default_rng(5)
+    joint = QUADRUPED_JOINTS[0]
+    spec = batchsim.load("quadruped")
+    gains = "".join(f"{j}: {{p: 10.0, i: 2.0, d: 0.5}}\n" for j in QUADRUPED_JOINTS)
+    manager = load_controllers(effort_jtc_yaml(gains), spec, 3)
+    jtc = manager["t"]
+    assert jtc.runtime_parameters()[f"gains.{joint}.p"] == 10.0
+    sim = FakeSim(spec, 3, rng)
+    nj = len(QUADRUPED_JOINTS)
+    pos = [spec.state_interfaces.index(f"{j}/position") for j in QUADRUPED_JOINTS]
+    vel = [spec.state_interfaces.index(f"{j}/velocity") for j in QUADRUPED_JOINTS]
+    cols = [spec.command_interfaces.index(f"{j}/effort") for j in QUADRUPED_JOINTS]
+    for w in range(3):
+        jtc.set_trajectory(w, QUADRUPED_JOINTS, [0.5], [rng.normal(scale=0.3, size=nj)])
+    p, i, d, period = np.full((3, nj), 10.0), np.full((3, nj), 2.0), np.full((3, nj), 0.5), 0.01
+    integral = np.zeros((3, nj))
+    for step in range(20):
+        if step == 10:
+            assert jtc.set_parameters(np.array([1]), {f"gains.{joint}.p": 40.0, f"gains.{joint}.i": 0.0}) == ""
+            p[1, 0], i[1, 0] = 40.0, 0.0
+        manager.update(sim, step * period, period)
+        e = jtc.reference_position - sim.state[:, pos]
+        de = jtc.reference_velocity - sim.state[:, vel]
+        integral = integral + i * e * period
+        expected = p * e + integral + d * de
+        np.testing.assert_allclose(sim.command[:, cols], expected, rtol=1e-12, atol=1e-12, err_msg=f"step {step}")
+        sim.advance(period)
 
 
 def test_trajectory_gains_are_control_toolbox_pid_parameters_and_a_typo_warns():

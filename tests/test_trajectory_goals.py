@@ -259,3 +259,40 @@ def test_the_yaml_constraints_are_the_defaults_and_a_misspelt_key_warns():
     assert jtc.outcome[1] == GoalOutcome.SUCCEEDED
     # the defaults alone load without warnings
     assert running(1)[1].warnings == []
+
+
+def test_tolerances_set_at_run_time_change_one_world_from_its_next_goal():
+    """A set_parameters on `/world_1/joint_trajectory_controller` (Controller.set_parameters):
+    world 1's next goal takes the new defaults, world 0 keeps the YAML's, and a goal already
+    running keeps the tolerances it started with, as upstream's update re-reads its parameters."""
+    _, _, loop, jtc = running(2)
+    assert jtc.runtime_parameters()["constraints.goal_time"] == 0.0
+    tight = {f"constraints.{j}.goal": 1e-6 for j in ARM_JOINTS} | {"constraints.goal_time": 0.2}
+    t0 = loop.sim_time
+    send_goal(jtc, 1, 1, [0.5], [TARGET])  # started with the YAML's tolerances (none)
+    assert jtc.set_parameters(np.array([1]), tight) == ""
+    run_while_active(loop, jtc, 1, t0 + 2.0)
+    assert jtc.outcome[1] == GoalOutcome.SUCCEEDED  # its own tolerances, not the new ones
+    t1 = loop.sim_time
+    for world in (0, 1):
+        send_goal(jtc, world, 2, [0.5], [TARGET * 0.5])
+    run_until(loop, t1 + 0.5 + 0.2 + 0.1)
+    assert jtc.outcome[0] == GoalOutcome.SUCCEEDED
+    assert jtc.outcome[1] == GoalOutcome.GOAL_TOLERANCE_VIOLATED  # 1e-6 rad within 0.2 s: never
+
+
+def test_a_bad_or_read_only_parameter_set_at_run_time_is_refused_and_changes_nothing():
+    _, _, loop, jtc = running(2)
+    why = jtc.set_parameters(np.array([1]), {"constraints.goal_time": -1.0, "allow_partial_joints_goal": True})
+    assert "constraints.goal_time" in why and ">= 0" in why
+    assert not jtc.allow_partial.any()  # nothing of a refused set is applied
+    why = jtc.set_parameters(np.array([1]), {"joints": ["joint1"]})
+    assert "'joints'" in why and "read-only" in why and "restart" in why
+    assert "does not act on it" in jtc.set_parameters(np.array([0]), {"cmd_timeout": 1.0})
+    assert "joint9" in jtc.set_parameters(np.array([0]), {"gains.joint9.p": 1.0})
+    assert jtc.set_parameters(np.array([1]), {"allow_partial_joints_goal": True}) == ""
+    assert jtc.allow_partial.tolist() == [False, True]
+    message = (1, ["joint1"], np.array([0.5]), np.array([[0.3]]), None, None, 0.0)
+    batch, kept, _ = trajectory_batch(ARM_JOINTS, [message, (0, *message[1:])])
+    rejected = jtc.set_trajectories(batch)
+    assert [k for k, _ in rejected] == [1] and "allow_partial_joints_goal" in rejected[0][1]

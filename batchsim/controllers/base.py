@@ -201,6 +201,19 @@ class Controller:
                 self.state_interfaces.append(n)
         return np.array(cols, dtype=np.intp)
 
+    # --- parameters at run time (its node's set_parameters) ---
+    def runtime_parameters(self) -> dict[str, Any]:
+        """The parameters it takes at run time, with their values at start (defaults included,
+        as upstream's node declares them); none by default: a controller takes its parameters
+        when the fleet starts."""
+        return {}
+
+    def set_parameters(self, worlds: np.ndarray, values: Mapping[str, Any]) -> str:
+        """Set parameters (dotted keys, as its node names them) in the listed worlds, from the
+        next update on: "" done, else one line saying why nothing changed."""
+        key = next(iter(values), "")
+        return f"controller {self.name!r}: cannot set {key!r} at run time: it takes its parameters at start (change the YAML and restart)"
+
     # --- the loop ---
     def activate(self, sim: Any, time: float) -> None:
         """First period: take the current state as the starting point (hold where the robot is).

@@ -78,6 +78,8 @@ class ControllerInfo:
       is_async: always False: every controller runs in the loop thread.
       active: (nworld,) bool, a copy: the worlds where it is active.
       parameters: its `ros__parameters` as the YAML gives them, flattened (`gains.joint1.p`), sorted.
+      runtime: the parameters it takes at run time (Controller.set_parameters), with their values
+        at start, defaults included.
     """
 
     name: str
@@ -88,6 +90,7 @@ class ControllerInfo:
     is_async: bool
     active: np.ndarray
     parameters: tuple[tuple[str, Any], ...] = ()
+    runtime: tuple[tuple[str, Any], ...] = ()
 
     def state(self, world: int) -> str:
         """The lifecycle state name in one world: `active` or `inactive`."""
@@ -465,6 +468,7 @@ class ControllerManager(Participant):
                     is_async=False,
                     active=self._active[k].copy(),
                     parameters=tuple(sorted(c.params.values.items())),
+                    runtime=tuple(c.runtime_parameters().items()),
                 )
             )
         return out

@@ -34,6 +34,7 @@ class Kind(enum.IntEnum):
     SET_FREE_JOINTS = 10  # mujoco_ros2_control's set_free_joint_state
     APPLY_WRENCH = 11  # the ExternalWrenchPlugin's apply_wrench: answered at once, marked done when run
     RESET_ROBOT = 12  # `<ns>/<robot>/reset`: one robot of a world of several back at its start
+    SET_PARAMETERS = 13  # a controller node's set_parameters in one world (a document: controller, values)
 
 
 _TRAJ = struct.Struct("<iiiiiiii")  # input, trajectories, points, joints, has velocities, accelerations, goals, 0
@@ -229,7 +230,8 @@ _DOC = struct.Struct("<qq")  # ticket, world (-1: every world)
 
 def encode_document(ticket: int, world: int, document: dict) -> bytes:
     """A request whose arguments are a small JSON document (RESET_WORLD, SET_FREE_JOINTS, APPLY_WRENCH,
-    RESET_ROBOT: {"robot": its index among the world's robots})."""
+    RESET_ROBOT: {"robot": its index among the world's robots}, SET_PARAMETERS: {"controller": its
+    name in the world, "values": {key: value}})."""
     return _DOC.pack(ticket, world) + json.dumps(document).encode()
 
 

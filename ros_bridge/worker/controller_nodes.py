@@ -9,16 +9,22 @@ and controllers in `/<ns>/<robot>`), holding the controller's parameters. Tools 
 `controller_manager.test_utils.check_controllers_running`, which waits for the controllers'
 nodes before it asks `list_controllers`.
 
-The parameters are read-only here: batchsim's controllers take theirs when the fleet starts, so
-a `set_parameters` request is refused with a reason (change the YAML and restart). The nodes
-join the worker's executor; their services are the parameter services only (the manager's
-`list_controllers`, `switch_controller`, ... are served by worker/controller_manager.py under
-the same names). Each node costs the ROS graph a participant's worth of endpoints to discover
-(6 services, 2 publishers): BridgeOptions.controller_nodes says for which fleets.
+A controller's node declares the YAML's parameters and, with their values at start, those
+the controller takes at run time (Controller.runtime_parameters: the trajectory controller's
+tolerances, gains and `allow_partial_joints_goal`, as upstream's re-reads them). A
+`set_parameters` on the node goes to the loop as a SET_PARAMETERS request for the node's world
+and is answered with the controller's verdict: set in that world from the next period, or refused
+with the reason (a read-only key: change the YAML and restart), the node's value then unchanged.
+The controller_manager node's parameters are read-only. The nodes join the worker's executor;
+their services are the parameter services only (the manager's `list_controllers`,
+`switch_controller`, ... are served by worker/controller_manager.py under the same names). Each
+node costs the ROS graph a participant's worth of endpoints to discover (6 services, 2
+publishers): BridgeOptions.controller_nodes says for which fleets.
 """
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Sequence
 from typing import Any
@@ -29,8 +35,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from ros_bridge.manager_link import ManagerSpec
+from ros_bridge.protocol.requests import Kind, encode_document
+from ros_bridge.worker.services import LoopRequests
 
-READ_ONLY = "batchsim's controllers take their parameters at start: change the controllers YAML and restart"
+READ_ONLY = "the controller_manager's parameters are read-only in batchsim: change the controllers YAML and restart"
 
 
 def parameter_value(value: Any) -> Any:
@@ -47,6 +55,11 @@ def parameter_value(value: Any) -> Any:
     return str(value)
 
 
+def _plain(value: Any) -> Any:
+    """A parameter's value as JSON takes it (an array parameter's array.array as a list)."""
+    return value if isinstance(value, bool | int | float | str | type(None)) else list(value)
+
+
 def _valid(key: str) -> bool:
     """A name a ROS parameter may have (a YAML key that is none is left off the node)."""
     return bool(_NAME.fullmatch(key))
@@ -61,29 +74,49 @@ def _namespace(ns: str, prefix: str) -> str:
 
 
 class ControllerNodes:
-    """The nodes of worlds named `namespaces` (ros_bridge/plan.py's), made in `context`."""
+    """The nodes of worlds named `namespaces` (ros_bridge/plan.py's), the first being world `lo`
+    (a local index, as the loop's requests take it), made in `context`."""
 
-    def __init__(self, context: Context, spec: ManagerSpec, namespaces: Sequence[str]):
+    def __init__(self, context: Context, spec: ManagerSpec, namespaces: Sequence[str], requests: LoopRequests, lo: int):
         self.nodes: list[Node] = []
-        for ns in namespaces:
+        self.requests = requests
+        for row, ns in enumerate(namespaces):
             for scope in spec.scopes:
                 where = _namespace(ns, scope.prefix)
                 mine = [spec.controllers[k] for k in scope.controllers]
                 manager = [("update_rate", spec.update_rate), *((f"{scope.local(c.name)}.type", c.type) for c in mine)]
-                self._node("controller_manager", where, context, manager)
+                node = self._node("controller_manager", where, context, manager)
+                node.add_on_set_parameters_callback(lambda params: SetParametersResult(successful=False, reason=READ_ONLY))
                 for c in mine:
-                    self._node(scope.local(c.name), where, context, c.parameters)
+                    node = self._node(scope.local(c.name), where, context, [*dict(c.parameters).items(), *c.runtime])
+                    node.add_on_set_parameters_callback(functools.partial(self._set, lo + row, c.name, node.get_fully_qualified_name()))
 
-    def _node(self, name: str, namespace: str, context: Context, parameters: Sequence[tuple[str, Any]]) -> None:
+    def _node(self, name: str, namespace: str, context: Context, parameters: Sequence[tuple[str, Any]]) -> Node:
+        """A node holding `parameters` (a later value of a key wins)."""
+        values = {k: parameter_value(v) for k, v in parameters if _valid(k)}
         node = Node(
             name,
             namespace=namespace,
             context=context,
-            parameter_overrides=[Parameter(k, value=parameter_value(v)) for k, v in parameters if _valid(k)],
+            parameter_overrides=[Parameter(k, value=v) for k, v in values.items()],
             automatically_declare_parameters_from_overrides=True,
         )
-        node.add_on_set_parameters_callback(lambda params: SetParametersResult(successful=False, reason=READ_ONLY))
         self.nodes.append(node)
+        return node
+
+    def _set(self, world: int, controller: str, where: str, params: list[Parameter]) -> SetParametersResult:
+        """A set_parameters on a controller's node: the loop's verdict, as its answer."""
+        if not self.requests.admit(world):
+            reason, _ = self.requests.refusal(where)
+            return SetParametersResult(successful=False, reason=reason)
+        values = {p.name: _plain(p.value) for p in params}
+        ticket = self.requests.put(
+            Kind.SET_PARAMETERS, lambda t: encode_document(t, world, {"controller": controller, "values": values})
+        )
+        answer = self.requests.wait(ticket)
+        if answer is None:
+            return SetParametersResult(successful=False, reason="the simulation loop did not answer in time")
+        return SetParametersResult(successful=answer.ok, reason=answer.message)
 
     def close(self) -> None:
         for node in self.nodes:

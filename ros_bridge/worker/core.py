@@ -219,7 +219,9 @@ class Worker:
             if plan.controller_nodes:  # a node per controller and controller_manager, as ros2_control's
                 from ros_bridge.worker.controller_nodes import ControllerNodes
 
-                self.controller_nodes = ControllerNodes(self.context, plan.manager, self.namespaces)
+                self.controller_nodes = ControllerNodes(
+                    self.context, plan.manager, self.namespaces, self.requests, self.lo
+                )
         if available()["mujoco_ros2_control_msgs"]:
             from ros_bridge.worker.simulation import SimulationServices
 

@@ -7,7 +7,7 @@ batch checks and the goals live beside it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -22,6 +22,7 @@ from batchsim.controllers.topics import (
     Output,
     TrajectoryBatch,
 )
+from batchsim.controllers.trajectory import runtime
 from batchsim.controllers.trajectory.gains import read_gains
 from batchsim.controllers.trajectory.goals import Constraints, GoalTracker
 from batchsim.controllers.trajectory.splines import Interpolation
@@ -29,7 +30,7 @@ from batchsim.controllers.trajectory.timeline import Timeline
 from batchsim.controllers.trajectory.validation import CommandBound, check, one_trajectory, unpack
 from batchsim.model import RobotSpec
 from batchsim.pid import PidBank
-from batchsim.types import as_slice
+from batchsim.types import ConfigurationError, as_slice
 
 # the combinations of command interfaces the stock controller accepts
 COMMAND_COMBINATIONS = (
@@ -106,7 +107,8 @@ class JointTrajectoryController(Controller):
                 f"{list(self.state_kinds)} is not a combination the "
                 f"controller supports ({'; '.join(map(str, map(list, STATE_COMBINATIONS)))})",
             )
-        self.allow_partial = params.boolean("allow_partial_joints_goal", False)
+        # per world: set_parameters changes a world's (runtime.py)
+        self.allow_partial = np.full(nworld, params.boolean("allow_partial_joints_goal", False))
         self.open_loop = params.boolean("open_loop_control", False)
         self.interpolation = Interpolation(
             params.choice("interpolation_method", [i.value for i in Interpolation], "splines")
@@ -141,11 +143,13 @@ class JointTrajectoryController(Controller):
             params, self.joints, effort=self.command_kinds == ("effort",)
         )
         self._pids = PidBank(gains, self.nworld) if pid else None
+        self._overrides: dict[int, dict[str, Any]] = {}  # world -> the parameters set there at run time
         p, d = (np.array([getattr(g, name) for g in gains]) for name in ("p", "d"))
         self._bound = CommandBound(
             self.command_kinds, pid, np.abs(self.ff_velocity_scale) + np.abs(d), np.abs(p)
         )
         self.constraints = Constraints.read(params, self.joints)
+        self._runtime = runtime.declared(self.joints, self.constraints, gains, self.ff_velocity_scale, bool(self.allow_partial[0]))
         self._goals = GoalTracker(self.nworld, self.constraints)
         self.goal, self.outcome, self.outcome_joint = (
             self._goals.goal,
@@ -257,7 +261,7 @@ class JointTrajectoryController(Controller):
             name=self.name,
             nworld=self.nworld,
             joints=self.joints,
-            allow_partial=self.allow_partial,
+            allow_partial=self.allow_partial[b.worlds],
             max_points=self.max_trajectory_points,
             time=self.time,
             bound=self._bound,
@@ -343,6 +347,36 @@ class JointTrajectoryController(Controller):
             ),
             action=ActionKind.FOLLOW_JOINT_TRAJECTORY,
         )
+
+    # --- parameters at run time (runtime.py) ---
+    def runtime_parameters(self) -> dict[str, Any]:
+        return dict(self._runtime)
+
+    def set_parameters(self, worlds: np.ndarray, values: Mapping[str, Any]) -> str:
+        why = runtime.refusal(self.name, list(values), self.joints)
+        if why:
+            return why
+        staged = []  # every world's new values, checked before any world changes
+        for w in np.unique(np.asarray(worlds, np.int64)).tolist():
+            p = Params({**self.params.values, **self._overrides.get(w, {}), **values}, where="set_parameters", controller=self.name)
+            try:
+                gains, ff = read_gains(p, self.joints, effort=self.command_kinds == ("effort",))
+                staged.append((w, gains, ff, Constraints.read(p, self.joints), p.boolean("allow_partial_joints_goal", False)))
+            except ConfigurationError as e:
+                return str(e)
+        for w, gains, ff, constraints, allow in staged:
+            self._overrides[w] = {**self._overrides.get(w, {}), **values}
+            self.allow_partial[w] = allow
+            self._goals.set_defaults(np.array([w]), constraints)
+            if self.ff_velocity_scale.ndim == 1:
+                self.ff_velocity_scale = np.repeat(self.ff_velocity_scale[None], self.nworld, axis=0)
+            self.ff_velocity_scale[w] = ff
+            if self._pids is not None:
+                self._pids.set_gains(np.array([w]), gains)
+                kp, kv = (np.array([abs(getattr(g, k)) for g in gains]) for k in ("p", "d"))
+                b = self._bound  # the commands' bound only grows: it covers every world's gains
+                self._bound = CommandBound(b.kinds, b.pid, np.maximum(b.kv, np.abs(ff) + kv), np.maximum(b.kp, kp))
+        return ""
 
     # --- the loop ---
     def activate(self, sim: Any, time: float) -> None:

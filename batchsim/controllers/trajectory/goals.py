@@ -146,9 +146,10 @@ class GoalTracker:
 
     def __init__(self, nworld: int, constraints: Constraints):
         nj = len(constraints.goal)
-        self.constraints = constraints
-        self.default_path = constraints.path_tolerance()
-        self.default_goal = constraints.goal_tolerance()
+        # each world's defaults, (nworld, njoint, 3) and (nworld,): set_defaults changes a world's
+        self.default_path = np.repeat(constraints.path_tolerance()[None], nworld, axis=0)
+        self.default_goal = np.repeat(constraints.goal_tolerance()[None], nworld, axis=0)
+        self.default_goal_time = np.full(nworld, constraints.goal_time)
         self.goal = np.zeros(nworld, np.int64)
         self.outcome = np.zeros(nworld, np.int8)
         self.outcome_joint = np.full(nworld, -1, np.int64)
@@ -160,6 +161,14 @@ class GoalTracker:
         self._queued = np.zeros(nworld, bool)  # the pending trajectory carries the world's goal
         self._checking = np.zeros(nworld, bool)  # its trajectory started: checks run
         self._first = np.zeros(nworld, bool)  # it started this update: the path check runs anyway
+
+    def set_defaults(self, worlds: np.ndarray, constraints: Constraints) -> None:
+        """The listed worlds' default tolerances become `constraints`' (its parameters set at run
+        time): for the goals they queue from now on, as upstream's update takes changed
+        parameters for the next goal; a goal already running keeps the tolerances it started with."""
+        self.default_path[worlds] = constraints.path_tolerance()
+        self.default_goal[worlds] = constraints.goal_tolerance()
+        self.default_goal_time[worlds] = constraints.goal_time
 
     def queue(
         self,
@@ -187,20 +196,21 @@ class GoalTracker:
             return
         w = worlds[has]
         pick = lambda a: None if a is None else a[has]  # noqa: E731
-        path_tol, bad_path = resolve(self.default_path, pick(path))
-        goal_tol, bad_goal = resolve(self.default_goal, pick(goal))
-        time_tol, bad_time = resolve(self.constraints.goal_time, pick(goal_time))
-        self._path[:, w] = limits(np.broadcast_to(path_tol, (len(w), *self.default_path.shape)))
-        self._goal[:, w] = limits(np.broadcast_to(goal_tol, (len(w), *self.default_goal.shape)))
+        path_tol, bad_path = resolve(self.default_path[w], pick(path))
+        goal_tol, bad_goal = resolve(self.default_goal[w], pick(goal))
+        time_tol, bad_time = resolve(self.default_goal_time[w], pick(goal_time))
+        self._path[:, w] = limits(path_tol)
+        self._goal[:, w] = limits(goal_tol)
         self._goal_time[w] = time_tol
         illegal = np.zeros(len(w), bool)
         for bad in (bad_path, bad_goal, bad_time):
             if bad.size:
                 illegal |= bad
         if illegal.any():  # upstream: an illegal value anywhere -> every default
-            self._path[:, w[illegal]] = limits(self.default_path[None])
-            self._goal[:, w[illegal]] = limits(self.default_goal[None])
-            self._goal_time[w[illegal]] = self.constraints.goal_time
+            bad = w[illegal]
+            self._path[:, bad] = limits(self.default_path[bad])
+            self._goal[:, bad] = limits(self.default_goal[bad])
+            self._goal_time[bad] = self.default_goal_time[bad]
 
     def start(self, worlds: np.ndarray, end: np.ndarray) -> None:
         """The queued trajectories of `worlds` started (or were all in the past); `end`:

@@ -223,7 +223,7 @@ def check(
     name: str,
     nworld: int,
     joints: Sequence[str],
-    allow_partial: bool,
+    allow_partial: np.ndarray,
     max_points: int,
     time: float,
     bound: CommandBound,
@@ -232,7 +232,8 @@ def check(
     """Every check of every trajectory of the batch, in one vectorized pass.
 
     A rejected trajectory's reason names the first check it fails, in the order of the
-    controller's documentation; `name` prefixes every reason.
+    controller's documentation; `name` prefixes every reason. `allow_partial`: (n,) bool, each
+    trajectory's world's allow_partial_joints_goal.
     """
     n, npoint = len(b.worlds), len(b.times)
     counts = b.counts
@@ -272,7 +273,7 @@ def check(
             lambda k: "the goal's trajectory has no points",
         ),
         (
-            ~empty & ~rows_all(b.joint_mask) & (not allow_partial),
+            ~empty & ~rows_all(b.joint_mask) & ~allow_partial,
             lambda k: (
                 f"the trajectory lacks joint {joints[int(np.argmin(b.joint_mask[k]))]!r} and "
                 "allow_partial_joints_goal is false"
