@@ -41,6 +41,12 @@ def test_the_ros_recipes_run_with_rclpy_alone(tmp_path):
         goal = _run(fleet, "controllers.py", "goal", "--world", "2", "--seconds", "0.5")
         assert goal.returncode == 0 and "status 4 error_code 0" in goal.stdout, goal.stdout + goal.stderr
         assert "feedback:" in goal.stdout
+        got = _run(fleet, "controllers.py", "param", "--world", "2", "--name", "constraints.goal_time")
+        assert got.returncode == 0 and got.stdout.strip() == "constraints.goal_time: 0.0", got.stdout + got.stderr
+        put = _run(fleet, "controllers.py", "param", "--world", "2", "--name", "constraints.goal_time", "--value", "0.5")
+        assert put.returncode == 0 and put.stdout.strip() == "constraints.goal_time: 0.5", put.stdout + put.stderr
+        bad = _run(fleet, "controllers.py", "param", "--world", "2", "--name", "interpolation_method", "--value", "none")
+        assert bad.returncode == 1 and "read-only" in bad.stdout, bad.stdout + bad.stderr
         for what, expected in (
             (["reset", "--world", "1"], "/world_1/reset: ok"),
             (["pause"], "/batchsim/pause: ok: paused"),
