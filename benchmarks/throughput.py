@@ -30,7 +30,7 @@ row's `auto` column, the rule of the day it was run). Writes throughput.csv and
 throughput.png (steps/s vs worlds, log-log, one colour per backend, raw dashed) to --out.
 
     python benchmarks/throughput.py --backends cpu,mjx,warp --worlds 16,256,1024,8192 --model humanoid
-    python benchmarks/throughput.py --plot a.csv b.csv --out benchmarks   # merge runs, redraw
+    python benchmarks/throughput.py --plot a.csv b.csv --out benchmarks/results   # merge runs, redraw
     python benchmarks/throughput.py --around-threshold --model humanoid   # auto's threshold, held out
     python benchmarks/throughput.py --devices all --backends warp --worlds 8192   # several GPUs (devices.py)
 """
