@@ -1,7 +1,7 @@
-"""The rclpy twins of the README's `ros2` recipes (issue 46: the pip install has no `ros2` CLI):
-examples/controllers.py (list, switch, a FollowJointTrajectory goal) and examples/fleet_services.py
-(reset, pause, step, resume, record), each run as a user runs it, in a process of its own, against
-a batchsim fleet of the arm over real DDS. Domain 68.
+"""The rclpy twins of the `ros2` recipes of docs/ros.md and the README (issue 46: the pip install
+has no `ros2` CLI): examples/controllers.py (list, switch, a FollowJointTrajectory goal) and
+examples/fleet_services.py (reset, pause, step, resume, record), each run as a user runs it, in a
+process of its own, against a batchsim fleet of the arm over real DDS. Domain 68.
 """
 
 from __future__ import annotations

@@ -397,7 +397,7 @@ def test_sigterm_or_ctrl_c_while_the_workers_start_stops_them_and_removes_the_se
     finally:
         if proc.poll() is None:
             proc.kill()
-    # interrupted during start-up: the documented exit codes, 128 + the signal (README)
+    # interrupted during start-up: the documented exit codes, 128 + the signal (docs/cli.md)
     assert proc.returncode == (130 if ctrl_c else 143), err
     assert "Traceback" not in err and "leaked" not in err, err
     assert not [p for p in workers if alive(p)], "orphaned workers"

@@ -11,7 +11,7 @@ from batchsim.controllers.topics import trajectory_batch
 
 
 def test_every_default_controller_declares_its_topics():
-    """What the README lists per controller type, as data: topic, kind, and the arrays behind them."""
+    """What docs/controllers.md lists per controller type, as data: topic, kind, and the arrays behind them."""
     seen = {}
     for model in ("arm", "car", "quadruped"):
         manager = load_controllers(default_controllers(model), batchsim.load(model), 2)
