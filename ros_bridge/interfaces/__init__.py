@@ -35,17 +35,21 @@ def available() -> dict[str, bool]:
 def missing_line(reason: str = "") -> str | None:
     """The one line to print when some packages are missing; None when all are there.
 
-    `reason` (e.g. "cmake, g++ not found") is put in brackets after the package names.
+    `reason` (e.g. "cmake, g++ not found", or the failed stage and its log) is put in
+    brackets after the package names. The fix names build tools only where they are not
+    on PATH.
     """
     missing = [pkg for pkg, ok in available().items() if not ok]
     if not missing:
         return None
+    from ros_bridge.interfaces.build import missing_tools  # stdlib only: cheap
+
     lost = ", ".join(LOST[pkg] for pkg in missing)
     why = f" ({reason})" if reason else ""
-    return (
-        f"ROS interface packages {', '.join(missing)} missing{why}: no {lost}. "
-        "Fix: `python -m ros_bridge.interfaces` (needs cmake, g++) or source ROS 2 Jazzy."
-    )
+    tools = missing_tools()
+    run = "`python -m ros_bridge.interfaces`"
+    fix = f"install {', '.join(tools)}, then {run}" if tools else run
+    return f"ROS interface packages {', '.join(missing)} missing{why}: no {lost}. Fix: {fix}, or source ROS 2 Jazzy."
 
 
 def _importable(pkg: str) -> bool:

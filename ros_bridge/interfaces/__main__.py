@@ -1,9 +1,13 @@
 """`python -m ros_bridge.interfaces [--force] [--check] [--require]`
 
 Builds (or copies from the cache) the interface packages this interpreter cannot import
-yet, into its prefix: one progress line per package. Packages a sourced ROS 2 install
-already provides (AMENT_PREFIX_PATH) are left to it. Without cmake/g++ (and no cached
-build) it prints one line saying what is missing and what is lost.
+yet, into its prefix: a line as each stage of each package starts, a "still ..., N s" line
+every 10 s while one runs (pip, cmake, make, or waiting for another build of the same cache
+to finish that package, which is then taken from the cache, not built again), and one line
+per package at the end. Packages a sourced ROS 2 install already provides
+(AMENT_PREFIX_PATH) are left to it. Without cmake/g++ (and no cached build) it prints one
+line saying what is missing and what is lost; a failed stage is named with its last lines
+of output and its log. BATCHSIM_INTERFACES_CACHE moves the cache (see build.py).
 
   --check    only report what is missing; build nothing
   --force    rebuild from source even if importable or cached (refreshes the cache)
@@ -17,18 +21,14 @@ import argparse
 import concurrent.futures
 import importlib
 import importlib.util
-import subprocess
 import sys
 import time
 
 from ros_bridge import interfaces
 from ros_bridge.interfaces import build
 
-PREFIX = "ros interfaces:"
-
-
-def _say(text: str) -> None:
-    print(f"{PREFIX} {text}", flush=True)
+PREFIX = build.PREFIX
+_say = build.say
 
 
 def _levels(packages: list[str]) -> list[list[str]]:
@@ -45,15 +45,18 @@ def _levels(packages: list[str]) -> list[list[str]]:
     return levels
 
 
-def _one(pkg: str, dest, force: bool, jobs: int) -> str:
-    """Build or copy one package into this prefix; return its progress line."""
+def _one(pkg: str, dest, force: bool, jobs: int, since: float) -> str:
+    """Build or copy one package into this prefix, holding its cache lock; return its last line."""
     start = time.monotonic()
-    tree = None if force else build.cached(pkg, dest)
-    how = "installed from cache"
-    if tree is None:
-        tree = build.build(pkg, dest, jobs=jobs)
+    with build.package_lock(pkg, dest) as waited:
+        tree, built = build.obtain(pkg, dest, jobs=jobs, force=force, since=since)
+        build.install(tree)
+    if built:
         how = "built and installed"
-    build.install(tree)
+    elif waited:
+        how = "installed from the cache, which another build filled while this one waited"
+    else:
+        how = "installed from cache"
     return f"{pkg} {how} in {time.monotonic() - start:.1f} s"
 
 
@@ -91,13 +94,15 @@ def main(argv: list[str] | None = None) -> int:
             todo = [p for p in todo if p not in uncached]
         elif uncached:
             try:
-                build.install_build_requirements()
-            except subprocess.CalledProcessError:
-                why = "pip could not install the build requirements"
+                build.install_build_requirements(dest)
+            except (build.BuildError, OSError) as error:
+                _say(str(error))
+                why = error.short() if isinstance(error, build.BuildError) else f"build requirements: {error}"
                 todo = [p for p in todo if p not in uncached]
         failed = _run(todo, dest, args.force, args.jobs)
         if failed:
             _say(f"{', '.join(failed)} failed to build")
+            why = "; ".join(filter(None, [why, *failed.values()]))
 
     importlib.invalidate_caches()
     line = interfaces.missing_line(why)
@@ -109,18 +114,24 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _run(todo: list[str], dest, force: bool, jobs: int) -> list[str]:
-    """Build/copy `todo`, level by level, two packages at a time; return the failed ones."""
-    failed = []
+def _run(todo: list[str], dest, force: bool, jobs: int) -> dict[str, str]:
+    """Build/copy `todo`, level by level, two packages at a time; return the failed ones, each
+    with one line on why (the failed stage and its log)."""
+    since = time.time()  # --force: a tree another run finishes after this is fresh enough to take
+    failed = {}
     with concurrent.futures.ThreadPoolExecutor(max_workers=2) as pool:
         for level in _levels(todo):
-            futures = {pool.submit(_one, pkg, dest, force, jobs): pkg for pkg in level}
+            futures = {pool.submit(_one, pkg, dest, force, jobs, since): pkg for pkg in level}
             for future in concurrent.futures.as_completed(futures):
+                pkg = futures[future]
                 try:
                     _say(future.result())
-                except (build.BuildError, OSError) as error:
+                except build.BuildError as error:
                     _say(str(error))
-                    failed.append(futures[future])
+                    failed[pkg] = error.short()
+                except OSError as error:  # copying into the cache or the prefix
+                    _say(f"{pkg}: {error}")
+                    failed[pkg] = f"{pkg}: {error}"
     return failed
 
 

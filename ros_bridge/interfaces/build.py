@@ -8,10 +8,24 @@ The wheels lay out a normal ROS prefix inside the venv (`share/<pkg>/cmake`, `li
    DEPENDENCIES, plus one fix: the wheels' exported `*__rosidl_generator_py` targets name
    the include dirs of the machine that built them, which CMake refuses, so every imported
    target's missing include dirs are replaced by this interpreter's Python/NumPy ones);
-2. `cmake` + `make -j2` + `make install` into the cache, `<cache>/<key>/<pkg>`;
+2. `cmake` + `make -j2` + `make install` in a scratch directory of this process inside the
+   cache (`<cache>/<key>/.<pkg>.XXXX.tmp`), then one rename of the complete install tree to
+   `<cache>/<key>/<pkg>`, so that path is always either absent or complete;
 3. copy that install tree into the interpreter's prefix: `lib/pythonX.Y/site-packages/*`
    to its site-packages, the rest (`lib*.so`, `share/<pkg>`, `include/`) as is; the Python
    package goes last, so once it imports, its libraries are there.
+
+Builds of the same cache (other checkouts, venvs or CI jobs under one HOME) take turns per
+package: `<cache>/<key>/<pkg>.lock` (fcntl.flock) is held while a package is built or copied
+out of the cache, and whoever gets it second looks again and takes what the first finished
+instead of building it too. A crashed build leaves only a scratch directory, removed by
+the next build of that package, and a lock the kernel has released.
+
+Every stage prints a line when it starts and a "still ..., N s" line every 10 s while it
+runs (BATCHSIM_INTERFACES_PROGRESS_S sets the interval); a failing stage is named with the
+last lines of its output and the log holding all of it (`<cache>/<key>/<pkg>.log`).
+BATCHSIM_INTERFACES_CACHE moves the cache (default `${XDG_CACHE_HOME:-~/.cache}/batchsim/
+ros-interfaces`; the key directory goes under it).
 
 The cache key covers the CPython ABI, the platform, the ROS wheel versions the generated
 code is tied to, and a hash of the definitions and of the build recipe, so a second venv with the
@@ -21,18 +35,26 @@ wheels' bootstrapper `.pth` puts `<venv>/lib` on LD_LIBRARY_PATH.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.metadata
 import json
 import os
 import platform
 import shutil
-import subprocess
+import socket
 import sys
 import sysconfig
 import tempfile
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
+
+# the stages, their locks and their errors (stages.py); PREFIX and BuildError are this module's too
+from ros_bridge.interfaces.stages import PREFIX as PREFIX
+from ros_bridge.interfaces.stages import BuildError as BuildError
+from ros_bridge.interfaces.stages import lock, run_stage
+from ros_bridge.interfaces.stages import say as say
 
 DEFINITIONS = Path(__file__).resolve().with_name("definitions")
 
@@ -64,6 +86,12 @@ KEY_DISTRIBUTIONS = (
 )
 
 TOOLS = ("cmake", "make", "g++", "gcc")
+
+
+CACHE_ENV = "BATCHSIM_INTERFACES_CACHE"  # where the cache's key directories go (default ~/.cache/...)
+
+# written into a finished install tree (not copied into the prefix): who built it, and when
+STAMP = ".batchsim-build.json"
 
 # bump when the build or install steps change what lands in the cache (CMAKE_TEMPLATE is hashed anyway)
 RECIPE_REVISION = 1
@@ -109,10 +137,6 @@ endforeach()
 ament_export_dependencies(rosidl_default_runtime)
 ament_package()
 """
-
-
-class BuildError(RuntimeError):
-    """A step of a package's build failed; the message names the log to read."""
 
 
 def package_deps(pkg: str) -> list[str]:
@@ -171,9 +195,12 @@ def cache_key() -> str:
 
 
 def cache_dir() -> Path:
-    """`${XDG_CACHE_HOME:-~/.cache}/batchsim/ros-interfaces/<key>`."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "batchsim" / "ros-interfaces" / cache_key()
+    """`$BATCHSIM_INTERFACES_CACHE/<key>`, by default `${XDG_CACHE_HOME:-~/.cache}/batchsim/ros-interfaces/<key>`."""
+    root = os.environ.get(CACHE_ENV)
+    if not root:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        root = os.path.join(base, "batchsim", "ros-interfaces")
+    return Path(root).expanduser() / cache_key()
 
 
 def sourced_prefix(pkg: str) -> str | None:
@@ -197,12 +224,25 @@ def missing_build_requirements() -> list[str]:
     return [req for req in BUILD_REQUIREMENTS if _version(req) is None]
 
 
-def install_build_requirements() -> None:
-    """pip-install the missing BUILD_REQUIREMENTS into this interpreter."""
-    missing = missing_build_requirements()
-    if missing:
-        print(f"ros interfaces: pip installing build requirements: {' '.join(missing)}", flush=True)
-        subprocess.run([sys.executable, "-m", "pip", "install", "-q", *missing], check=True)
+def install_build_requirements(dest: Path | None = None) -> None:
+    """pip-install the missing BUILD_REQUIREMENTS into this interpreter (one such pip per venv at a time)."""
+    if not missing_build_requirements():
+        return
+    dest = dest or cache_dir()
+    venv = hashlib.sha256(os.path.realpath(sys.prefix).encode()).hexdigest()[:12]
+    with lock(dest / f"pip-{venv}.lock", "", "another run's pip install into this venv"):
+        importlib.invalidate_caches()
+        missing = missing_build_requirements()  # that other run may have installed them meanwhile
+        if missing:
+            log = dest / f"pip-{venv}.log"
+            log.write_text(f"# pip for {sys.prefix}, pid {os.getpid()}\n")
+            run_stage("", "pip installing build requirements",
+                      [sys.executable, "-m", "pip", "install", "-q", *missing], log, detail=" ".join(missing))
+
+
+def package_lock(pkg: str, dest: Path) -> contextlib.AbstractContextManager[bool]:
+    """The lock of `pkg` in the cache `dest`: held to build it or copy it out (yields whether we waited)."""
+    return lock(dest / f"{pkg}.lock", pkg)
 
 
 def build_env() -> dict[str, str]:
@@ -216,36 +256,78 @@ def build_env() -> dict[str, str]:
     return env
 
 
+def steps(src: Path, work: Path, stage: Path, jobs: int) -> list[tuple[str, list[str]]]:
+    """The stages of a build, (name, command): configure, compile, install into `stage`."""
+    return [
+        ("cmake configure",
+         ["cmake", "-S", str(src), "-B", str(work), f"-DCMAKE_INSTALL_PREFIX={stage}",
+          f"-DPython3_EXECUTABLE={sys.executable}", "-DPYTHON_EXECUTABLE=" + sys.executable,
+          "-DBUILD_TESTING=OFF", "-DCMAKE_BUILD_TYPE=Release"]),
+        (f"build (make -j{jobs})", ["make", "-C", str(work), f"-j{jobs}"]),
+        ("make install", ["make", "-C", str(work), "install"]),
+    ]
+
+
+def obtain(pkg: str, dest: Path, *, jobs: int = 2, force: bool = False, since: float | None = None) -> tuple[Path, bool]:
+    """`pkg`'s install tree in the cache `dest`, built first unless a complete one is there; and
+    whether this call built it. The caller holds package_lock(pkg, dest).
+
+    With `force`, a cached tree is still taken if a build finished it after `since` (time.time()
+    of this run's start): another run built it afresh while this one waited for the lock.
+    """
+    tree = cached(pkg, dest)
+    if tree is not None and (not force or (since is not None and built_at(tree) >= since)):
+        return tree, False
+    return build(pkg, dest, jobs=jobs), True
+
+
 def build(pkg: str, dest: Path, jobs: int = 2) -> Path:
-    """Build `pkg` and install it to `dest/<pkg>` (replacing any); return that tree."""
+    """Build `pkg` and install it to `dest/<pkg>` (replacing any); return that tree.
+
+    The caller holds package_lock(pkg, dest): everything happens in a scratch directory of
+    this process inside `dest`, and the complete tree is renamed into place at the end.
+    """
     dest.mkdir(parents=True, exist_ok=True)
+    _remove_leftovers(pkg, dest)
     final = dest / pkg
-    with tempfile.TemporaryDirectory(prefix=f"batchsim-{pkg}-") as scratch:
-        src, work, stage = Path(scratch, "src"), Path(scratch, "build"), Path(scratch, "install")
+    started = time.time()
+    scratch = Path(tempfile.mkdtemp(prefix=f".{pkg}.", suffix=".tmp", dir=dest))
+    try:
+        src, work, stage = scratch / "src", scratch / "build", scratch / "install"
         shutil.copytree(DEFINITIONS / pkg, src)
         (src / "CMakeLists.txt").write_text(cmakelists(pkg))
         log_path = dest / f"{pkg}.log"
+        log_path.write_text(f"# {pkg}: built by pid {os.getpid()} on {socket.gethostname()} for {sys.prefix}\n")
         env = build_env()
-        steps = [
-            ["cmake", "-S", str(src), "-B", str(work), f"-DCMAKE_INSTALL_PREFIX={stage}",
-             f"-DPython3_EXECUTABLE={sys.executable}", "-DPYTHON_EXECUTABLE=" + sys.executable,
-             "-DBUILD_TESTING=OFF", "-DCMAKE_BUILD_TYPE=Release"],
-            ["make", "-C", str(work), f"-j{jobs}"],
-            ["make", "-C", str(work), "install"],
-        ]
-        with open(log_path, "w") as log:
-            for step in steps:
-                log.write("$ " + " ".join(step) + "\n")
-                log.flush()
-                done = subprocess.run(step, stdout=log, stderr=subprocess.STDOUT, env=env)
-                if done.returncode != 0:
-                    raise BuildError(f"{pkg}: `{step[0]}` failed (exit {done.returncode}); see {log_path}")
-        tmp = dest / f".{pkg}.tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.copytree(stage, tmp, symlinks=True)
-        shutil.rmtree(final, ignore_errors=True)
-        tmp.rename(final)
+        for name, cmd in steps(src, work, stage, jobs):
+            run_stage(pkg, name, cmd, log_path, env)
+        if not (stage / "share" / pkg / "package.xml").exists():
+            raise BuildError(f"{pkg}: make install put no share/{pkg}/package.xml into {stage}; see {log_path}",
+                             label=pkg, stage="make install", log=log_path)
+        (stage / STAMP).write_text(json.dumps({
+            "package": pkg, "pid": os.getpid(), "host": socket.gethostname(), "prefix": sys.prefix,
+            "started": started, "finished": time.time(),
+        }))
+        if final.exists() or final.is_symlink():  # --force, or a tree without its package.xml
+            os.rename(final, scratch / "replaced")
+        os.rename(stage, final)  # atomic: `final` is absent or complete, never half-copied
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
     return final
+
+
+def _remove_leftovers(pkg: str, dest: Path) -> None:
+    """Scratch directories of `pkg` that crashed builds left (only a lock holder makes them)."""
+    for path in dest.glob(f".{pkg}.*.tmp"):
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def built_at(tree: Path) -> float:
+    """When the build of `tree` finished (time.time()); 0 where it does not say."""
+    try:
+        return float(json.loads((tree / STAMP).read_text())["finished"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0.0
 
 
 def cached(pkg: str, dest: Path) -> Path | None:
@@ -274,11 +356,13 @@ def install(tree: Path, prefix: str | None = None) -> None:
     for path in sorted(tree.rglob("*")):
         if (site_src and (path == site_src or site_src in path.parents)) or "__pycache__" in path.parts:
             continue
+        if path == tree / STAMP:
+            continue
         target = Path(prefix) / path.relative_to(tree)
         if path.is_dir() and not path.is_symlink():
             target.mkdir(parents=True, exist_ok=True)
             continue
-        tmp = target.with_name(f".{target.name}.batchsim-tmp")
+        tmp = target.with_name(f".{target.name}.{os.getpid()}.batchsim-tmp")
         tmp.unlink(missing_ok=True)
         if path.is_symlink():
             os.symlink(os.readlink(path), tmp)
@@ -290,14 +374,14 @@ def install(tree: Path, prefix: str | None = None) -> None:
     site_dst.mkdir(parents=True, exist_ok=True)
     for entry in sorted(site_src.iterdir(), key=lambda p: p.name.endswith("-info")):
         target = site_dst / entry.name
-        tmp = site_dst / f".{entry.name}.batchsim-tmp"
+        tmp = site_dst / f".{entry.name}.{os.getpid()}.batchsim-tmp"
         shutil.rmtree(tmp, ignore_errors=True)
         if entry.is_dir():
             shutil.copytree(entry, tmp, symlinks=True, ignore=shutil.ignore_patterns("__pycache__"))
         else:
             shutil.copy2(entry, tmp)
         if target.is_dir() and entry.is_dir():
-            old = site_dst / f".{entry.name}.batchsim-old"
+            old = site_dst / f".{entry.name}.{os.getpid()}.batchsim-old"
             shutil.rmtree(old, ignore_errors=True)
             target.rename(old)
             tmp.rename(target)
