@@ -16,26 +16,16 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
+# re-exported: they live in batchsim/basics.py, which needs no NumPy
+from batchsim.basics import AnyCase as AnyCase
+from batchsim.basics import ConfigurationError as ConfigurationError
+from batchsim.basics import OptionError as OptionError
+
 
 class _AddsNoise(Protocol):
     """What PendingFrames needs of the sensor suite (batchsim.sensors.SensorSuite)."""
 
     def add_noise(self, name: str, values: np.ndarray, worlds: np.ndarray) -> None: ...
-
-
-class AnyCase:
-    """Mixed into an Enum before its base (`class Mode(AnyCase, enum.Enum)`): a string names a
-    member in any case, by its value or its name, as MJX's `Impl` does; strings come in at the
-    edges (YAML, flags, ROS requests) and become members at once."""
-
-    @classmethod
-    def _missing_(cls, value: object) -> Any:
-        if isinstance(value, str):
-            key = value.lower()
-            for member in cls:  # type: ignore[attr-defined]
-                if member.name.lower() == key or (isinstance(member.value, str) and member.value.lower() == key):
-                    return member
-        return None
 
 
 class ReturnType(enum.Enum):
@@ -74,24 +64,6 @@ class StateSource(enum.Enum):
 
 #: the engine fields read() gathers state interfaces from, in StateSource's order
 READ_FIELDS = tuple(s.value for s in StateSource)
-
-
-class OptionError(ValueError):
-    """A bad option value. `option` is its Python name (`control_rate`); str() reads
-    `"<option> <detail>"`, and `named(flag)` the same with the command line's name for it.
-    An empty `option` is a problem of no single option: the message is the detail alone."""
-
-    def __init__(self, option: str, detail: str):
-        super().__init__(f"{option} {detail}" if option else detail)
-        self.option = option
-        self.detail = detail
-
-    def named(self, name: str) -> str:
-        return f"{name} {self.detail}" if self.option else self.detail
-
-
-class ConfigurationError(ValueError):
-    """The model or its ros2_control block asks for something the simulation cannot serve."""
 
 
 def check_plugin_runs(plugin: Any, runs: bool, kind: str) -> None:

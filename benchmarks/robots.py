@@ -63,7 +63,7 @@ def unpack(paths: list[Path], into: Path) -> list[Path]:
 
 def check(scene: Path, backend: str, seconds: float, nworld: int) -> tuple[bool, str]:
     """Run one robot on one backend; (ok, one line)."""
-    from batchsim.cli import info
+    from batchsim.cli.info import info
 
     try:
         spec = batchsim.load(scene)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import re
 import string
 
-from batchsim.loop import OptionError
+from batchsim.basics import OptionError
 
 DEFAULT_TEMPLATE = "world_{i}"
 

@@ -16,8 +16,8 @@ import os
 from collections.abc import Callable
 from typing import Any
 
-from batchsim.loop import OptionError, RateError, whole_ratio
-from batchsim.types import AnyCase
+from batchsim.basics import AnyCase, OptionError
+from batchsim.loop.rates import RateError, whole_ratio
 from ros_bridge.naming import DEFAULT_TEMPLATE
 
 #: worlds up to which the bridge runs inside the physics process by default

@@ -351,13 +351,14 @@ def test_the_status_line_fits_the_terminal(monkeypatch):
 # ---------------------------------------------------------------- version, imports, hints
 
 
-def test_help_names_every_command_and_every_flag_the_readme_gives():
+def test_help_names_every_command_and_every_flag_the_docs_give():
     """`--help` named neither `replay` nor `view` nor `--ros-args` (issue 46): every command and
-    every flag of the README's "The command" block is in some `--help`."""
+    every flag of docs/cli.md's "The command" block (the README's, before the docs moved to
+    docs/) is in some `--help`."""
     import re
 
-    readme = (Path(__file__).parent.parent / "README.md").read_text()
-    block = readme.split("## The command", 1)[1].split("```", 2)[1]
+    page = (Path(__file__).parent.parent / "docs" / "cli.md").read_text()
+    block = page.split("## The command", 1)[1].split("```", 2)[1]
     helps = {cmd: " ".join(batchsim_cli(*cmd.split(), "--help").stdout.split()) for cmd in ("", "info", "replay", "view", "evaluate")}
     main = helps[""]
     for command in ("batchsim info", "batchsim replay", "batchsim view", "batchsim evaluate", "--ros-args"):
@@ -458,18 +459,19 @@ def test_throughput_plot_keeps_the_auto_column_each_row_was_recorded_with(tmp_pa
 def test_an_internal_bug_is_not_passed_off_as_a_usage_error(monkeypatch, capsys):
     """Issue 22: main() caught every ValueError, so a bug exited 2 as a one-line usage error."""
     from batchsim import cli
+    from batchsim.cli import runner
 
     def broken(argv):
         raise ValueError("an index went wrong somewhere")
 
-    monkeypatch.setattr(cli, "run", broken)
+    monkeypatch.setattr(runner, "run", broken)  # what main() calls once the flags parse
     with pytest.raises(ValueError, match="an index went wrong"):
         cli.main(["--no-ros"])
 
     def user_error(argv):
         raise OptionError("", "unknown backend 'foo' (choose from auto, cpu, mjx, warp)")
 
-    monkeypatch.setattr(cli, "run", user_error)
+    monkeypatch.setattr(runner, "run", user_error)
     assert cli.main(["--backend", "foo"]) == 2
     assert capsys.readouterr().err.strip() == "batchsim: error: unknown backend 'foo' (choose from auto, cpu, mjx, warp)"
 
@@ -560,3 +562,38 @@ def test_start_up_compiles_the_cameras_and_lidars_drawn_in_batched_kernels(backe
         assert calls == [] and lines == ["compiling cpu's program for 2 worlds"]
     assert sim.time[0] == 0.0  # reset after
     sim.shutdown()
+
+
+# what the command's quick answers may not import: each costs a new user seconds (issue 46)
+HEAVY = ("numpy", "mujoco", "rclpy", "jax", "warp", "yaml", "importlib.metadata")
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["--bogus"], ["--worlds", "x"], ["info", "--help"], ["view", "--bogus"], ["evaluate", "--help"]])
+def test_help_and_usage_errors_are_answered_before_anything_heavy_is_imported(argv):
+    """Issue 46: every command, `--help` and a mistyped flag spent 4-10 s importing MuJoCo and the
+    backends before it parsed its arguments."""
+    code = (
+        "import sys\nfrom batchsim.cli import main\n"
+        f"try:\n    rc = main({argv!r})\nexcept SystemExit as e:\n    rc = e.code\n"
+        f"print(rc, sorted(m for m in {HEAVY!r} if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    rc, loaded = out.stdout.strip().splitlines()[-1].split(" ", 1)
+    assert rc in ("0", "2") and loaded == "[]", out.stdout + out.stderr
+
+
+def test_the_parsers_backend_names_are_the_registrys():
+    from batchsim.backends import names
+    from batchsim.cli.args import SHIPPED_BACKENDS
+
+    assert list(SHIPPED_BACKENDS) == [b.value for b in batchsim.backends.Backend] == names()[:4]
+
+
+@pytest.mark.timing
+def test_a_mistyped_flag_and_help_answer_within_a_second():
+    """Issue 46's check, timed alone (the `timing` tests run with nothing beside them)."""
+    for argv in (["--bogus"], ["--help"], ["--version"]):
+        start = time.monotonic()
+        out = subprocess.run([sys.executable, "-m", "batchsim.cli", *argv], capture_output=True, text=True, timeout=60)
+        took = time.monotonic() - start
+        assert out.returncode in (0, 2) and took < 1.0, (argv, took, out.stderr)

@@ -539,7 +539,7 @@ def test_a_robots_plugins_move_under_its_prefix_and_one_per_world(tmp_path):
         ("/**:\n  ros__parameters:\n    mujoco_plugins:\n      v: {type: mujoco_ros2_control_plugins/BaseVelocityPlugin, body: chassis}\n",
          r"mujoco_plugins\.v\.body: no body 'chassis' in the model \(bodies: base, left_wheel, right_wheel\)"),
         ("sensors: [\n", r"a\.yaml:2:1: malformed YAML"),
-        (b"sensors:\n  seed: \xff\n", r"a\.yaml: cannot be read: not UTF-8 text"),
+        (b"sensors:\n  seed: \xff\n", r"a\.yaml: not a text file \(byte 0xff at offset 17 is not UTF-8\)"),
     ],
 )
 def test_a_bad_robot_sensors_file_is_one_line_naming_its_file_and_key(tmp_path, text, message):

@@ -21,51 +21,81 @@ cleanly with code 0.
 
 from __future__ import annotations
 
+import importlib
 import sys
 from collections.abc import Sequence
+from typing import Any
 
-from batchsim.backends import BackendUnavailable
-from batchsim.cli.args import EXIT_USAGE, UsageError, check_args, default_model, run_parser, version_line
-from batchsim.cli.evaluate import evaluate
-from batchsim.cli.info import info, sensor_lines
-from batchsim.cli.replay import replay
-from batchsim.cli.runner import StatusLine, build, run, setup_controllers, start_ros
-from batchsim.cli.view import view
-from batchsim.lifecycle import LifecycleError
-from batchsim.loop import OptionError, RateError
-from batchsim.memory import SharedMemoryFull
-from batchsim.model import ModelError
-from batchsim.model.params import ParamsError
-from batchsim.sensors import DeclarationError, SensorConfigError
-from batchsim.startup import MemoryCheckError
-from batchsim.types import ConfigurationError
-from batchsim.variation import VariationError
+from batchsim.cli import args
+from batchsim.cli.args import EXIT_USAGE, UsageError, split_ros_args
+
+# the command's parts, imported when used (PEP 562 for `from batchsim.cli import run`): `--help`,
+# `--version` and a mistyped flag are answered before MuJoCo, the backends or rclpy load (issue 46).
+# A subcommand's function is its module's (`batchsim.cli.info.info`): the package's attribute
+# `info` is that module once imported.
+_LAZY = {
+    "StatusLine": "batchsim.cli.runner",
+    "build": "batchsim.cli.runner",
+    "check_args": "batchsim.cli.args",
+    "default_model": "batchsim.cli.args",
+    "run": "batchsim.cli.runner",
+    "run_parser": "batchsim.cli.args",
+    "sensor_lines": "batchsim.cli.info",
+    "setup_controllers": "batchsim.cli.runner",
+    "start_ros": "batchsim.cli.runner",
+    "version_line": "batchsim.cli.args",
+}
+#: subcommand -> (module, function, its parser in args.py); "" is the run itself
+_COMMANDS = {
+    "": ("batchsim.cli.runner", "run", "run_parser"),
+    "info": ("batchsim.cli.info", "info", "info_parser"),
+    "replay": ("batchsim.cli.replay", "replay", "replay_parser"),
+    "view": ("batchsim.cli.view", "view", "view_parser"),
+    "evaluate": ("batchsim.cli.evaluate", "evaluate", "evaluate_parser"),
+}
 
 __all__ = [
-    "EXIT_USAGE", "USER_ERRORS", "StatusLine", "UsageError", "build", "check_args", "default_model", "info", "main",
-    "run", "run_parser", "sensor_lines", "setup_controllers", "start_ros", "version_line",
+    "EXIT_USAGE", "StatusLine", "UsageError", "build", "check_args", "default_model", "main",
+    "run", "run_parser", "sensor_lines", "setup_controllers", "start_ros", "user_errors", "version_line",
 ]  # fmt: skip
 
 
-USER_ERRORS = (
-    UsageError, ModelError, ConfigurationError, BackendUnavailable, LifecycleError, ParamsError, MemoryCheckError,
-    OptionError, RateError, SensorConfigError, DeclarationError, VariationError, SharedMemoryFull,
-)  # fmt: skip
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module 'batchsim.cli' has no attribute {name!r}")
+    return getattr(importlib.import_module(_LAZY[name]), name)
+
+
+def user_errors() -> tuple[type[Exception], ...]:
+    """What the user can fix: printed as one line, exit 2 (imported when an error is to be judged)."""
+    from batchsim.backends import BackendUnavailable
+    from batchsim.lifecycle import LifecycleError
+    from batchsim.loop import OptionError, RateError
+    from batchsim.memory import SharedMemoryFull
+    from batchsim.model import ModelError
+    from batchsim.model.params import ParamsError
+    from batchsim.sensors import DeclarationError, SensorConfigError
+    from batchsim.startup import MemoryCheckError
+    from batchsim.types import ConfigurationError
+    from batchsim.variation import VariationError
+
+    return (
+        UsageError, ModelError, ConfigurationError, BackendUnavailable, LifecycleError, ParamsError, MemoryCheckError,
+        OptionError, RateError, SensorConfigError, DeclarationError, VariationError, SharedMemoryFull,
+    )  # fmt: skip
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    command = argv[0] if argv and argv[0] in _COMMANDS else ""
+    if command:
+        argv = argv[1:]
+    module, name, parser = _COMMANDS[command]
     try:
-        if argv and argv[0] == "info":
-            return info(argv[1:])
-        if argv and argv[0] == "replay":
-            return replay(argv[1:])
-        if argv and argv[0] == "view":
-            return view(argv[1:])
-        if argv and argv[0] == "evaluate":
-            return evaluate(argv[1:])
-        return run(argv)
-    except USER_ERRORS as e:  # what the user can fix, as one line; an internal bug keeps its traceback
+        # parsed here first, with nothing heavy imported: --help, --version and a bad flag answer at once
+        getattr(args, parser)().parse_args(split_ros_args(argv)[0] if not command else argv)
+        return getattr(importlib.import_module(module), name)(argv)
+    except UsageError as e:  # before anything heavy was imported: the parser's own
         print(f"batchsim: error: {e}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
@@ -73,3 +103,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # `batchsim info arm | head`
         sys.stderr.close()
         return 0
+    except Exception as e:
+        if not isinstance(e, user_errors()):
+            raise  # an internal bug keeps its traceback
+        print(f"batchsim: error: {e}", file=sys.stderr)  # what the user can fix, as one line
+        return EXIT_USAGE

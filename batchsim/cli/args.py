@@ -4,27 +4,23 @@ the model the flags name (a --ros2-control file's `mujoco_model`, a URDF)."""
 from __future__ import annotations
 
 import argparse
-import importlib.metadata
 import importlib.util
 import math
 import os
 import platform
 import socket
+import sys
 import tomllib
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-import mujoco
-
 import batchsim
-from batchsim import startup
 from batchsim.cli.bridge_flags import add_bridge_flags, add_option, add_view_flags, world_list
-from batchsim.fleet.groups import has_groups, read_groups
 from batchsim.loop.realtime import DEFAULT_THREAD_PRIORITY
-from batchsim.model import model_names
-from batchsim.model.description import model_file, read_description
-from batchsim.model.from_urdf import is_urdf
 from ros_bridge.options import BridgeOptions  # no rclpy: the options and their flags
+
+# The parsers import nothing heavy (MuJoCo, the models, the backends): `--help`, `--version` and a
+# mistyped flag answer at once (issue 46). What checks the parsed arguments imports them then.
 
 EXIT_USAGE = 2
 
@@ -61,7 +57,7 @@ def run_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="a fleet file (YAML): an environment and several robots in every world, each its own namespace",
     )
-    concrete = ", ".join(b for b in batchsim.backends.names() if b != "auto")  # registered ones too
+    concrete = ", ".join(b for b in backend_names() if b != "auto")  # registered ones too
     p.add_argument("--backend", default="auto", help=f"{concrete} or auto (default auto: picked for the hardware)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many simulated seconds")
     p.add_argument("--rtf", type=float, default=1.0, help="real-time factor; 0 runs as fast as possible")
@@ -134,7 +130,7 @@ def run_parser() -> argparse.ArgumentParser:
         help="where MuJoCo's own log (MUJOCO_LOG.TXT) goes (default: $XDG_STATE_HOME/batchsim, "
         "never the working directory)",
     )
-    p.add_argument("--version", action="version", version=version_line())
+    p.add_argument("--version", action=_Version, nargs=0, help="print the versions and exit")
     add_bridge_flags(p)  # ROS 2 bridge, recording, the web view
     sens = p.add_argument_group("cameras, lidars and sensor noise")
     sens.add_argument(
@@ -169,16 +165,45 @@ def _controllers(text: str) -> str | None:
     return None if text.lower() == "default" else text
 
 
+def backend_names() -> list[str]:
+    """batchsim.backends.names(), without importing the backends (MuJoCo) where nothing did yet:
+    then no backend was registered, and the names are the shipped ones."""
+    loaded = sys.modules.get("batchsim.backends")
+    return loaded.names() if loaded is not None else list(SHIPPED_BACKENDS)
+
+
+#: batchsim.backends.Backend's values (tests/test_cli.py checks they agree)
+SHIPPED_BACKENDS = ("auto", "cpu", "mjx", "warp")
+
+
+class _Version(argparse.Action):
+    """--version, its line made when asked for (reading the packages' metadata costs the other
+    answers a tenth of a second)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        print(version_line())
+        parser.exit()
+
+
 def version_line() -> str:
-    """`batchsim --version`: batchsim's and the engines' versions."""
-    return f"batchsim {batchsim_version()} (mujoco {mujoco.__version__}, python {platform.python_version()})"
+    """`batchsim --version`: batchsim's and the engines' versions (from the distributions' metadata:
+    importing MuJoCo to ask it would cost the answer a second)."""
+    import importlib.metadata
 
-
-def batchsim_version(installed_version: Callable[[str], str] = importlib.metadata.version) -> str:
-    """The installed distribution's version; for a source checkout on PYTHONPATH (no distribution metadata),
-    the checkout's pyproject.toml's, marked as such."""
     try:
-        return installed_version("batchsim")
+        mujoco_version = importlib.metadata.version("mujoco")
+    except importlib.metadata.PackageNotFoundError:
+        mujoco_version = "not installed"
+    return f"batchsim {batchsim_version()} (mujoco {mujoco_version}, python {platform.python_version()})"
+
+
+def batchsim_version(installed_version: Callable[[str], str] | None = None) -> str:
+    """The installed distribution's version (`installed_version`: importlib.metadata.version); for a
+    source checkout on PYTHONPATH (no distribution metadata), the checkout's pyproject.toml's, marked as such."""
+    import importlib.metadata
+
+    try:
+        return (installed_version or importlib.metadata.version)("batchsim")
     except importlib.metadata.PackageNotFoundError:
         pass
     pyproject = Path(batchsim.__file__).resolve().parents[1] / "pyproject.toml"
@@ -237,6 +262,32 @@ def _urdf_flags(p: argparse.ArgumentParser) -> None:
 
 DEFAULT_WORLDS = 16
 
+def evaluate_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="batchsim evaluate",
+        description="Run a policy controller over N randomized worlds for E episodes, commands drawn per world "
+        "(seeded), and report success, tracking error and the worst worlds.",
+    )
+    p.add_argument("--model", default="arm", help="a shipped model's name or an MJCF file (default: arm)")
+    p.add_argument("--controllers", required=True, help="the controller_manager YAML declaring the batchsim/PolicyController")
+    p.add_argument("--controller", default=None, help="the policy controller's name, where the YAML declares several")
+    p.add_argument("--randomize", default=None, help="the randomization YAML each world draws its conditions from")
+    p.add_argument("--worlds", type=int, default=64)
+    p.add_argument(
+        "--world-offset", type=int, default=0, help="the first world's number: --worlds 1 --world-offset W reproduces world W"
+    )
+    p.add_argument("--episodes", type=int, default=3)
+    p.add_argument("--episode-seconds", type=float, default=3.0)
+    p.add_argument("--tolerance", type=float, default=0.1, help="success: the error below this at an episode's end (rad, m, m/s)")
+    p.add_argument("--fall-height", type=float, default=None, help="a floating base below this height (m) has fallen")
+    p.add_argument("--seed", type=int, default=0, help="the commands' seed (the conditions' is the randomize file's)")
+    p.add_argument("--backend", default="cpu")
+    p.add_argument("--worst", type=int, default=5, help="how many of the worst worlds to list")
+    p.add_argument("--json", type=Path, default=None, help="write every world's results here")
+    p.add_argument("--plot", type=Path, default=None, help="write a plot here (.png, .svg, .pdf)")
+    return p
+
+
 #: flags that describe one robot: a fleet file says them per robot
 _ROBOT_FLAGS = ("model", "ros2_control", "keyframe", "mujoco_inputs", "scene")
 
@@ -283,6 +334,9 @@ def check_args(args: argparse.Namespace) -> None:
     Raises:
       UsageError: the first bad value, as one line naming the flag and the value.
     """
+    from batchsim import startup
+    from batchsim.model import model_names
+
     for name, what in _POSITIVE.items():
         value = getattr(args, name)
         if value is not None and not (math.isfinite(value) and value > 0):
@@ -348,6 +402,8 @@ def check_args(args: argparse.Namespace) -> None:
 def check_fleet_args(args: argparse.Namespace) -> None:
     """--fleet names every robot's model, description, keyframe and controllers in its file:
     the flags that say them for one robot are refused beside it, naming the file's key."""
+    from batchsim.fleet.groups import has_groups, read_groups
+
     args.groups = None
     if args.fleet is None:
         if getattr(args, "worlds", 0) is None:
@@ -396,6 +452,9 @@ def take_urdf_model(args: argparse.Namespace) -> None:
     is read as mujoco_ros2_control reads it: as the --ros2-control file, simulating that MJCF
     (so `batchsim info robot.urdf` shows the model `batchsim --ros2-control robot.urdf` runs),
     unless --mujoco-inputs or --scene are given to compile the URDF with."""
+    from batchsim.model.description import model_file, read_description
+    from batchsim.model.from_urdf import is_urdf
+
     model = getattr(args, "model", None)
     if model is None or args.ros2_control is not None or not is_urdf(model):
         return
@@ -413,6 +472,9 @@ def default_model(model: str | None, ros2_control: str | None) -> str:
     """`--model`, else the --ros2-control file's `mujoco_model` param (as mujoco_ros2_control
     finds its simulation), else that file itself if it is a URDF (compiled to MJCF, as
     mujoco_ros2_control does without one), else the shipped arm."""
+    from batchsim.model.description import model_file, read_description
+    from batchsim.model.from_urdf import is_urdf
+
     if model is not None:
         return model
     if ros2_control is not None:

@@ -10,65 +10,17 @@ draws and the command that runs one alone (batchsim.evaluation).
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 
 import batchsim
-from batchsim.cli.args import UsageError
+from batchsim.cli.args import UsageError, evaluate_parser
 from batchsim.controllers import load_controllers
 from batchsim.evaluation.episodes import EvalOptions, find_policy, run_episodes
 from batchsim.evaluation.report import as_json, plot, table
 from batchsim.loop import SimLoop
-
-
-def evaluate_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="batchsim evaluate",
-        description="Run a policy controller over N randomized worlds for E episodes, commands drawn per world "
-        "(seeded), and report success, tracking error and the worst worlds.",
-    )
-    p.add_argument("--model", default="arm", help="a shipped model's name or an MJCF file (default: arm)")
-    p.add_argument(
-        "--controllers",
-        required=True,
-        help="the controller_manager YAML declaring the batchsim/PolicyController",
-    )
-    p.add_argument(
-        "--controller", default=None, help="the policy controller's name, where the YAML declares several"
-    )
-    p.add_argument(
-        "--randomize", default=None, help="the randomization YAML each world draws its conditions from"
-    )
-    p.add_argument("--worlds", type=int, default=64)
-    p.add_argument(
-        "--world-offset",
-        type=int,
-        default=0,
-        help="the first world's number: --worlds 1 --world-offset W reproduces world W",
-    )
-    p.add_argument("--episodes", type=int, default=3)
-    p.add_argument("--episode-seconds", type=float, default=3.0)
-    p.add_argument(
-        "--tolerance",
-        type=float,
-        default=0.1,
-        help="success: the error below this at an episode's end (rad, m, m/s)",
-    )
-    p.add_argument(
-        "--fall-height", type=float, default=None, help="a floating base below this height (m) has fallen"
-    )
-    p.add_argument(
-        "--seed", type=int, default=0, help="the commands' seed (the conditions' is the randomize file's)"
-    )
-    p.add_argument("--backend", default="cpu")
-    p.add_argument("--worst", type=int, default=5, help="how many of the worst worlds to list")
-    p.add_argument("--json", type=Path, default=None, help="write every world's results here")
-    p.add_argument("--plot", type=Path, default=None, help="write a plot here (.png, .svg, .pdf)")
-    return p
 
 
 def evaluate(argv: Sequence[str]) -> int:

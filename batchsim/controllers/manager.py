@@ -78,8 +78,7 @@ class ControllerInfo:
       is_async: always False: every controller runs in the loop thread.
       active: (nworld,) bool, a copy: the worlds where it is active.
       parameters: its `ros__parameters` as the YAML gives them, flattened (`gains.joint1.p`), sorted.
-      runtime: the parameters it takes at run time (Controller.set_parameters), with their values
-        at start, defaults included.
+      runtime: those it takes at run time (Controller.set_parameters), as at start, defaults included.
     """
 
     name: str

@@ -69,8 +69,6 @@ def robot_sensors(where: str, entry: RobotEntry, alone: RobotSpec, world: mujoco
             BaseVelocity(config.base_velocity, alone.mjmodel, 1)
     except (SensorConfigError, ConfigurationError, DeclarationError) as e:
         raise FleetError(f"{at}: {e}") from None
-    except UnicodeDecodeError as e:  # SensorConfig.load reads text: a binary file is unreadable too
-        raise FleetError(f"{at}: {entry.sensors}: cannot be read: not UTF-8 text (byte {e.start})") from None
     p = entry.name + "/"
     for name in config.cameras:
         if mujoco.mj_name2id(world, mujoco.mjtObj.mjOBJ_CAMERA, p + name) < 0:
