@@ -238,7 +238,7 @@ def test_a_recording_of_groups_in_the_view_draws_each_world_with_its_groups_robo
                             stdout=open(log, "w"), stderr=subprocess.STDOUT)  # fmt: skip
     try:
         deadline = time.monotonic() + 60
-        while "batchsim: view: " not in log.read_text():
+        while "batchsim: view: http" not in log.read_text():
             assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
             time.sleep(0.2)
         assert re.search(rf"\({re.escape(str(recorded))}: 4 worlds, sim time 0\.00 \.\. 0\.9\d s\)", log.read_text()), log.read_text()

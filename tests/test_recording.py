@@ -402,3 +402,42 @@ def test_a_recording_cut_anywhere_is_read_up_to_the_cut_or_refused_in_one_line(r
             assert "\n" not in str(e) and str(cut) in str(e), e
         assert said and "was cut short" in said[0]
     assert read > 10  # the chunks before each cut
+
+
+def test_the_view_opens_a_recording_through_its_index_and_decodes_a_frame_when_shown(recorded, monkeypatch):
+    """Issue 46: `batchsim view` decoded every /tf and joint_states message and composed every
+    world's poses in a Python loop before its URL line (9 minutes for 256 worlds, 46 MB). Now
+    opening decodes /tf_static, /diagnostics and one joint_states only; a frame's /tf is decoded
+    when it is shown, and a world's joint_states when it is picked, and they give what the
+    stream read (the path of a file cut short) gives."""
+    from ros_bridge.view_file import Recording
+
+    decoded: Counter[str] = Counter()
+    decode = Recording._decode
+
+    def counting(self, channel, schema, data):
+        decoded[channel.topic] += 1
+        return decode(self, channel, schema, data)
+
+    monkeypatch.setattr(Recording, "_decode", counting)
+    rec = Recording(str(recorded), lambda line: None)
+    try:
+        assert decoded["/tf"] == 0 and sum(n for t, n in decoded.items() if t.endswith("/joint_states")) == 1
+        assert len(rec.times) > 10
+        k = len(rec.times) // 2
+        shown = rec.transforms(k)
+        assert decoded["/tf"] == 1  # that frame's message alone
+        stream = Recording(str(recorded), lambda line: None)
+        stream._file = None
+        times = stream._read_stream(str(recorded), True, [])
+        assert np.allclose(np.array(times) * 1e-9, rec.times)
+        assert shown.keys() == stream._moving[k].keys()
+        for name, (parent, pose) in shown.items():
+            assert stream._moving[k][name][0] == parent and np.allclose(stream._moving[k][name][1], pose)
+        t, q = rec.joint_series(0, float(rec.times[-1]))
+        stream_t, stream_q = stream.joint_series(0, float(rec.times[-1]))
+        assert len(t) and q.shape[1] == 6 and np.isin(np.round(t, 6), np.round(stream_t, 6)).all()
+        poses = rec.anchor_poses(k, ["link1", "link6"], [0, 1])
+        assert poses.shape == (2, 2, 7) and np.allclose(np.linalg.norm(poses[..., 3:], axis=-1), 1.0)
+    finally:
+        rec.close()

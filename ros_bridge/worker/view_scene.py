@@ -4,10 +4,13 @@ and the panel. The live view (view.py) and a recording's (ros_bridge/view_file.p
 A viser server (a local web page, three.js in the browser, served by this process) shows every
 world in a grid: each visible geom is one instanced mesh with an instance per world, so a
 thousand worlds cost the browser one draw call per geom and this process one array per geom per
-update. Each world is tinted by its status (red: frozen, diverged or overflowed; orange: its last
-command was rejected; yellow: command timeout). A world is picked by its number or by clicking
-it; the panel shows its status, its joint positions over the last seconds and, where its worlds
-have cameras, its camera's latest RGB image (the first camera, or the one chosen).
+update. Each world is tinted by its status: frozen (diverged or overflowed), its last command
+rejected, or a command timeout, each tint picked from a few candidates as the one farthest from
+every robot colour of the scene (`tints`), and the panel's legend names them. A world is picked
+by its number or by clicking it: a box marks its cell and a label names it (every world is
+labelled in a fleet of up to LABELLED worlds); the panel shows its status, its joint positions
+over the last seconds and, where its worlds have cameras, its camera's latest RGB image (the
+first camera, or the one chosen). The first view frames every world of the grid.
 
 A fleet of several groups of worlds (batchsim.fleet.groups) is one scene of several parts
 (`ScenePart`): each group's worlds are drawn with its own robots' geoms at their places in the
@@ -31,7 +34,14 @@ from ros_bridge.plan import FLAG_BAD, FLAG_FROZEN, FLAG_TIMED_OUT
 from ros_bridge.view_plan import ViewSpec
 from ros_bridge.worker import view_server
 
-FROZEN_RGB, BAD_RGB, TIMEOUT_RGB = (220, 30, 30), (255, 140, 0), (240, 220, 0)
+# per status, the tints it may take (name, rgb), the first of those farthest from the robots' colours
+TINT_CANDIDATES = {
+    "frozen": (("red", (220, 30, 30)), ("magenta", (230, 0, 200)), ("purple", (120, 0, 220))),
+    "bad command": (("magenta", (230, 0, 200)), ("cyan", (0, 200, 230)), ("orange", (255, 140, 0))),
+    "command timeout": (("yellow", (240, 220, 0)), ("lime", (120, 255, 0)), ("white", (255, 255, 255))),
+}
+HIGHLIGHT_RGB = (0, 160, 255)  # the picked world's box
+LABELLED = 64  # up to this many worlds, each is labelled with its number
 NO_IMAGE = 40  # the image's grey until the picked world's camera sends a frame
 
 
@@ -86,9 +96,8 @@ class FleetScene:
             self.server = view_server.serve(spec.host, spec.port, label="batchsim", verbose=False)
         scene, gui = self.server.scene, self.server.gui
         center = np.array([self.grid[:, 0].max() / 2, self.grid[:, 1].max() / 2, 0.0])
-        reach = max(center[0], 1.0) + spacing  # the whole grid in sight
         self.server.initial_camera.look_at = tuple(center)
-        self.server.initial_camera.position = tuple(center + np.array([-0.7, -0.9, 0.6]) * reach)
+        self.server.initial_camera.position = tuple(framing(self.grid, spacing, self.server.initial_camera.fov))
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         scene.add_grid("/floor", width=cols * spacing + spacing, height=cols * spacing + spacing,
                        cell_size=spacing / 4, section_size=spacing, position=tuple(center))  # fmt: skip
@@ -108,8 +117,19 @@ class FleetScene:
                 )  # fmt: skip
                 handle.on_click(lambda event, part=part: self._clicked(part, event))
                 self.handles[p].append(handle)
+        self.tints = tints([rgb for rgbs in self.base_rgb for rgb in rgbs])
+        self.spacing = spacing
+        if n <= LABELLED:
+            for w in range(n):
+                scene.add_label(f"/labels/{w}", str(w), position=tuple(self.grid[w] + (-0.4 * spacing, -0.4 * spacing, 0.0)))
+        self.mark = scene.add_box("/picked/box", color=HIGHLIGHT_RGB, dimensions=(0.9 * spacing, 0.9 * spacing, 0.02 * spacing),
+                                  wireframe=True, position=tuple(self.grid[0]) if n else (0.0, 0.0, 0.0))  # fmt: skip
+        self.label = scene.add_label("/picked/label", "", position=(0.0, 0.0, 0.0))
         self.fleet_text = gui.add_markdown("starting ...")
+        self.tint_text = gui.add_markdown("tints: " + " · ".join(f"{name}: {state}" for state, (name, _) in self.tints.items()))
         self.picker = gui.add_number("world", 0, min=0, max=max(0, n - 1), step=1)
+        self.picker.on_update(lambda _: self._mark())
+        self._mark()
         self.world_text = gui.add_markdown("")
         self.plots: list[Any] = [None] * len(self.parts)  # per part with joints: its plot, shown while picked
         for p, part in enumerate(self.parts):
@@ -172,6 +192,16 @@ class FleetScene:
         _name, h, w = self.cameras[camera]
         return np.full((h, w, 3), NO_IMAGE, np.uint8)
 
+    def _mark(self) -> None:
+        """The picked world's box and label at its cell."""
+        if not self.n:
+            return
+        w = self.picked
+        at = self.grid[w]
+        self.mark.position = tuple(at + (0.0, 0.0, 0.01 * self.spacing))
+        self.label.position = tuple(at + (0.0, 0.0, 0.6 * self.spacing))
+        self.label.text = f"world {w}" + (f" ({self.namespaces[w]})" if self.namespaces[w] and self.namespaces[w] != f"world_{w}" else "")
+
     def _clicked(self, part: ScenePart, event: Any) -> None:
         if event.instance_index is not None:
             self.picker.value = int(part.worlds[int(event.instance_index)])
@@ -197,13 +227,14 @@ class FleetScene:
         frozen = ((flags & FLAG_FROZEN) != 0) | ((status & int(FROZEN)) != 0)
         bad = ((flags & FLAG_BAD) != 0) | ((status & int(Status.BAD_COMMAND)) != 0)
         timeout = (flags & FLAG_TIMED_OUT) != 0
+        tint = {state: rgb for state, (_, rgb) in self.tints.items()}
         for part, rgbs, handles in zip(self.parts, self.base_rgb, self.handles, strict=True):
             rows = list(part.worlds)
             for rgb, handle in zip(rgbs, handles, strict=True):
                 colors = np.tile(rgb, (len(rows), 1))
-                colors[timeout[rows]] = TIMEOUT_RGB
-                colors[bad[rows]] = BAD_RGB
-                colors[frozen[rows]] = FROZEN_RGB
+                colors[timeout[rows]] = tint["command timeout"]
+                colors[bad[rows]] = tint["bad command"]
+                colors[frozen[rows]] = tint["frozen"]
                 handle.batched_colors = colors
 
     def plot_joints(self, t: np.ndarray, q: np.ndarray) -> None:
@@ -211,6 +242,30 @@ class FleetScene:
         plot = self.plots[self.part_of[self.picked]]
         if plot is not None and len(t):
             plot.data = (t, *q.reshape(len(t), -1).T)
+
+
+def tints(colors: Sequence[np.ndarray]) -> dict[str, tuple[str, tuple[int, int, int]]]:
+    """Each status's tint (name, rgb): of its TINT_CANDIDATES not taken by another status, the one
+    whose nearest robot colour (`colors`, rgb) is farthest, the first of equals."""
+    base = np.array([np.asarray(c, float) for c in colors]).reshape(-1, 3)
+    out: dict[str, tuple[str, tuple[int, int, int]]] = {}
+    for state, candidates in TINT_CANDIDATES.items():
+        free = [c for c in candidates if c[0] not in {name for name, _ in out.values()}]
+        far = [np.linalg.norm(base - c[1], axis=1).min() if len(base) else 0.0 for c in free]
+        out[state] = free[int(np.argmax(far))]
+    return out
+
+
+def framing(grid: np.ndarray, spacing: float, fov: float) -> np.ndarray:
+    """The first view's camera position: looking at the grid's centre from the front left and
+    above, far enough that a sphere holding every world's cell fills at most the vertical field
+    of view `fov` (radians; the horizontal one is wider on a landscape page)."""
+    lo, hi = grid.min(axis=0) - spacing / 2, grid.max(axis=0) + spacing / 2
+    center = (lo + hi) / 2
+    center[2] = 0.0
+    radius = max(float(np.linalg.norm((hi - lo)[:2]) / 2), spacing)
+    direction = np.array([-0.7, -0.9, 0.6])
+    return center + direction / np.linalg.norm(direction) * radius / np.sin(fov / 2) * 1.05
 
 
 def _stroke(i: int) -> str:
