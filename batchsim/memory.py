@@ -209,6 +209,9 @@ class Ring:
             write += tail
             at = 0
         self.data[at + _HEADER.size : at + size] = body
+        # zeros to the 8-byte boundary: take() hands these bytes out with the payload, and a record
+        # read as text (a JSON document, rstripped of NULs) must not end in an older record's bytes
+        self.data[at + size : at + padded] = 0
         self.data[at : at + _HEADER.size] = np.frombuffer(_HEADER.pack(padded, kind), np.uint8)
         self.pos[0] = write + padded
         return True

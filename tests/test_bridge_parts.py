@@ -366,6 +366,28 @@ def test_ring_wraps_refuses_when_full_and_continues_across_writers():
     assert [p[:1].tobytes() for _, p in Ring(memory, "r").take()] == [b"x"]
 
 
+def test_a_text_record_reads_back_whole_where_an_older_record_lay():
+    """The soak's fleet died after 27 minutes, twice (issue 47's 30-minute soak): a switch_controller
+    request landed where an older, longer record had been, its padding to 8 bytes still held that
+    record's bytes, and decode_switch's JSON read them as "Extra data" in the loop thread."""
+    from ros_bridge.protocol.requests import decode_document, decode_switch, encode_document, encode_switch
+
+    layout = Layout(ring_arrays("r", 256))
+    memory = Memory.create(layout, shared=False)
+    producer, consumer = Ring(memory, "r"), Ring(memory, "r")
+    for _ in range(8):  # around the ring with records of non-zero bytes, to every offset
+        for size in range(1, 30, 3):
+            assert producer.put(1, bytes([0xAB]) * size)
+            list(consumer.take())
+    for n in range(40):  # every length of text record, so every length of padding
+        name = "c" * n
+        assert producer.put(5, encode_switch(n, 2, [name], [], 1, False))
+        assert producer.put(9, encode_document(n, 3, {"controller": name}))
+        records = list(consumer.take())
+        assert decode_switch(records[0][1])[2] == [name]
+        assert decode_document(records[1][1])[2] == {"controller": name}
+
+
 def test_trajectory_batches_survive_the_ring_and_concatenate():
     nj = 3
     batch = TrajectoryBatch(
