@@ -12,6 +12,7 @@ from __future__ import annotations
 import enum
 import json
 import struct
+from typing import Any
 
 import numpy as np
 
@@ -221,8 +222,14 @@ def encode_switch(ticket: int, world: int, activate: list[str], deactivate: list
 def decode_switch(payload: np.ndarray) -> tuple[int, int, list[str], list[str], int, bool]:
     """(ticket, world, activate, deactivate, strictness, activate_asap)."""
     ticket, world, strictness, asap = _SWITCH.unpack_from(payload, 0)
-    activate, deactivate = json.loads(payload[_SWITCH.size :].tobytes().rstrip(b"\0").decode())
+    activate, deactivate = _json(payload[_SWITCH.size :])
     return ticket, world, activate, deactivate, strictness, bool(asap)
+
+
+def _json(payload: np.ndarray) -> Any:
+    """The JSON document at the start of a record's payload: what follows it (the record's padding
+    to 8 bytes) is not read (raw_decode), whatever it holds."""
+    return json.JSONDecoder().raw_decode(payload.tobytes().decode(errors="replace"))[0]
 
 
 _DOC = struct.Struct("<qq")  # ticket, world (-1: every world)
@@ -238,7 +245,7 @@ def encode_document(ticket: int, world: int, document: dict) -> bytes:
 def decode_document(payload: np.ndarray) -> tuple[int, int, dict]:
     """(ticket, world or -1, the document)."""
     ticket, world = _DOC.unpack_from(payload, 0)
-    return ticket, world, json.loads(payload[_DOC.size :].tobytes().rstrip(b"\0").decode())
+    return ticket, world, _json(payload[_DOC.size :])
 
 
 # An apply_wrench request is answered like any other (accepted, or why not) as soon as the loop
