@@ -83,7 +83,7 @@ def main() -> None:
             print(f"| {(t - start) / 60:.1f} | {rss_mb(fleet.proc.pid):.0f} | {rss_mb(worker):.0f} | {s['sent']} | {s['accepted']} | "
                   f"{s['rejected']} | {s['results']} | {s['switches']} | {s['resets']} |", flush=True)  # fmt: skip
 
-        while (now := time.monotonic()) - start < 60 * opts.minutes:
+        while (now := time.monotonic()) - start < 60 * opts.minutes and fleet.proc.poll() is None:
             if now >= next_goal:
                 next_goal += 0.1
                 w = rng.randrange(opts.worlds)
@@ -108,6 +108,9 @@ def main() -> None:
                 line(now)
             executor.spin_once(timeout_sec=0.01)
         line(time.monotonic())
+        if fleet.proc.poll() is not None:  # what ended it, in its own words
+            print(f"# the fleet ended (exit {fleet.proc.returncode}) at minute {(time.monotonic() - start) / 60:.1f}; its last lines:")
+            print("\n".join(f"#   {text}" for _, text in fleet.lines[-30:]), flush=True)
     finally:
         if context is not None:
             rclpy.try_shutdown(context=context)
