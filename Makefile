@@ -43,10 +43,11 @@ test: $(STAMP)
 	if [ $$rc -eq 5 ]; then echo "no test was collected; that is a failure" >&2; fi; \
 	if [ $$rc -eq 0 ]; then $(PY) tests/stale_dds_segments.py; $(PY) -m pytest -q -m timing $(PYTEST_ARGS); rc=$$?; [ $$rc -eq 5 ] && rc=0; fi; exit $$rc
 
-# the newcomer's subset: the cpu backend and the ROS stack, no mjx or warp compiles
+# the newcomer's subset: the cpu backend without ROS, mjx or warp compiles, or the tests marked
+# slow (over a few seconds each: the docs' blocks, packaging, CI and interface-build rehearsals)
 quick:
 	@test -x $(VENV)/bin/pytest || $(MAKE) install
-	@$(PY) -m pytest -q -n 2 -m "not ros" -k "not mjx and not warp and not devices" $(PYTEST_ARGS)
+	@$(PY) -m pytest -q -n 2 -m "not ros and not slow" -k "not mjx and not warp and not devices" $(PYTEST_ARGS)
 
 $(CURDIR)/.menagerie/universal_robots_ur5e/ur5e.xml:
 	@mkdir -p .menagerie

@@ -13,6 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# over a few seconds each: `make test` runs them, `make quick` leaves them out
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parent.parent
 
 

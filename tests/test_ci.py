@@ -13,6 +13,9 @@ from pathlib import Path
 import pytest
 from conftest import need
 
+# over a few seconds each: `make test` runs them, `make quick` leaves them out
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parent.parent
 
 

@@ -124,6 +124,7 @@ def test_a_fleet_that_cannot_fit_is_refused_before_anything_is_allocated():
     assert "ROS 2 bridge" in line and "--no-ros" in line and "--skip-memory-check" in line
 
 
+@pytest.mark.slow  # over a few seconds: `make quick` leaves it out
 def test_memory_estimate_splits_host_and_device_and_checks_both():
     spec = batchsim.load("arm")
     host = batchsim.backends.estimate_memory(spec, "cpu", 1000, ros=True, nthread=2)
@@ -222,6 +223,7 @@ print("not interrupted")
 """
 
 
+@pytest.mark.slow  # over a few seconds: `make quick` leaves it out
 def test_a_signal_inside_a_long_library_call_exits_promptly():
     proc = subprocess.Popen([sys.executable, "-c", GUARDED_CALL], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert "resetting 200000 worlds" in proc.stderr.readline()
@@ -440,6 +442,7 @@ def test_install_hint_is_a_command_a_user_can_run():
 # ---------------------------------------------------------------- benchmarks/throughput.py
 
 
+@pytest.mark.slow  # over a few seconds: `make quick` leaves it out
 def test_throughput_plot_keeps_the_auto_column_each_row_was_recorded_with(tmp_path):
     fields = "date,device,model,backend,nworld,nstep,contract_sps,raw_sps,ratio,auto,compile_s,note"
     rows = [  # recorded under an older rule: cpu up to 1024 worlds on this GPU host

@@ -33,6 +33,9 @@ from conftest import need
 from ros_bridge import interfaces
 from ros_bridge.interfaces import build, stages
 
+# over a few seconds each: `make test` runs them, `make quick` leaves them out
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # cmake, make, g++ and gcc in one: a package's install tree in a second, its "build" counted in $FAKE_BUILDS

@@ -331,6 +331,7 @@ def test_cli_runs_for_a_duration_and_reports(tmp_path):
     assert "stopped at sim time 3.000" in out.stderr
 
 
+@pytest.mark.slow  # over a few seconds: `make quick` leaves it out
 def test_cli_sigterm_and_sigint_exit_cleanly():
     """Once the run has begun (its first line printed), a signal ends it cleanly with 0;
     during start-up it exits with 130/143 (tests/test_cli.py)."""

@@ -55,6 +55,7 @@ def test_the_base_velocity_plugin_is_run_not_warned_of():
     assert config.warnings == [] and config.base_velocity.body == "base_link"  # tests/test_base_velocity.py
 
 
+@pytest.mark.slow  # over a few seconds: `make quick` leaves it out
 def test_demo_05_starts_and_a_bad_base_velocity_param_stops_it_in_one_line(tmp_path):
     resources = DEMOS / "demo_resources"
     args = [

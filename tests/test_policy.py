@@ -383,6 +383,7 @@ def _evaluate(tmp_path, *extra: str) -> dict:
     return json.loads(out.read_text())
 
 
+@pytest.mark.slow  # over a few seconds: `make quick` leaves it out
 def test_the_shipped_policy_reaches_its_targets_across_randomized_worlds_and_a_world_repeats_alone(
     tmp_path, capsys
 ):
@@ -506,6 +507,7 @@ def test_a_velocity_policy_reads_the_base_in_its_own_frame_takes_cmd_vel_and_dri
     )
 
 
+@pytest.mark.slow  # over a few seconds: `make quick` leaves it out
 def test_the_training_script_trains_and_exports_a_policy_the_controller_runs(tmp_path):
     """A short run of examples/policies/train_arm_reach.py (the `train` extra: stable-baselines3
     and PyTorch, not in `all`; skipped where they are absent)."""

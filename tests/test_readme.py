@@ -24,6 +24,9 @@ import numpy as np
 import pytest
 from ros_fleet import LOCALHOST, domain_id, release_domain
 
+# over a few seconds each: `make test` runs them, `make quick` leaves them out
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parent.parent
 FENCE = re.compile(r"^( *)```(\w+)\n(.*?)^\1```$", re.S | re.M)
 # the pages issue 46 asked for: the README is one page, docs/ holds the rest, docs/README.md indexes it

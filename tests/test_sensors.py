@@ -787,6 +787,7 @@ def test_host_site_poses_are_each_worlds_kinematics_at_its_current_state():
     sensors.close()
 
 
+@pytest.mark.slow  # over a few seconds: `make quick` leaves it out
 def test_the_loop_profile_times_each_configuration_and_puts_the_library_back():
     """benchmarks/sensor_loop_profile.py (issue 24: mjx's camera loop), a short run on cpu: every
     configuration ran its periods, the phases land where they ran (the render thread, or the
