@@ -629,3 +629,57 @@ def _versions() -> str:
 
 if __name__ == "__main__":
     main()
+
+
+def keep_in_flight(context: Any, executor: Any, send: Callable[[int], Any], outcome: Callable[[Any], str],
+                   keys: tuple[str, str], outstanding: int, seconds: float) -> None:  # fmt: skip
+    """A flooding client's run (service_flood.py, goal_flood.py): `outstanding` requests in flight
+    for `seconds`, a new one sent as each is answered; `send(k)` sends the k-th and returns its
+    future, `outcome(future)` names what came of it (one of `keys`). Spins until 2 s after the
+    end, shuts `context` down and prints the two counts, as start_flooder's caller reads them."""
+    stop = time.monotonic() + seconds
+    counts = dict.fromkeys(keys, 0)
+    sent = 0
+
+    def next_one() -> None:
+        nonlocal sent
+        sent += 1
+        send(sent - 1).add_done_callback(answered)
+
+    def answered(future: Any) -> None:
+        counts[outcome(future)] += 1
+        if time.monotonic() < stop:
+            next_one()
+
+    for _ in range(outstanding):
+        next_one()
+    while time.monotonic() < stop + 2.0:
+        executor.spin_once(timeout_sec=0.05)
+    context.try_shutdown()
+    print(" ".join(str(counts[k]) for k in keys), flush=True)
+
+
+def start_flooder(script: str, world: int, domain: int, seconds: float, clients: int) -> subprocess.Popen:
+    """`script --world W --flood DOMAIN SECONDS CLIENTS` in a process of its own (its flood()),
+    its one line of counts on stdout."""
+    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(domain), "PYTHONPATH": _pythonpath()}
+    return subprocess.Popen([sys.executable, script, "--world", str(world), "--flood", str(domain), str(seconds), str(clients)],
+                            stdout=subprocess.PIPE, text=True, env=env)  # fmt: skip
+
+
+def flood_args(doc: str, domain: int, what: str, flood: Callable[[int, int, float, int], None]) -> Any:
+    """The flood benchmarks' flags (`what`: what is in flight); None where this process is the
+    flooder that start_flooder started, after its `flood(domain, world, seconds, clients)` ran."""
+    import argparse
+
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
+    p.add_argument("--seconds", type=float, default=10.0, help="each window")
+    p.add_argument("--clients", type=int, default=32, help=f"the flood's {what} in flight")
+    p.add_argument("--world", type=int, default=3, help="the flooded world")
+    p.add_argument("--domain", type=int, default=domain)
+    p.add_argument("--flood", nargs=3, type=float, help=argparse.SUPPRESS)  # the flooding process
+    opts = p.parse_args()
+    if opts.flood:
+        flood(int(opts.flood[0]), opts.world, opts.flood[1], int(opts.flood[2]))
+        return None
+    return opts

@@ -18,7 +18,6 @@ and how many of the flood's goals were accepted and rejected. Nothing is asserte
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import subprocess
@@ -27,7 +26,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fleet import LOCALHOST, Batchsim, _pythonpath, _versions, client_node  # noqa: E402
+from fleet import Batchsim, _versions, client_node, flood_args, keep_in_flight, start_flooder  # noqa: E402
 
 JTC = "joint_trajectory_controller"
 NEIGHBOURS = (0, 1, 2)
@@ -43,46 +42,23 @@ def flood(domain: int, world: int, seconds: float, outstanding: int) -> None:
     context, node, executor = client_node(domain, "goal_flooder")
     client = ActionClient(node, FollowJointTrajectory, f"/world_{world}/{JTC}/follow_joint_trajectory")
     client.wait_for_server(timeout_sec=30)
-    counts = {"accepted": 0, "rejected": 0}
-    stop = time.monotonic() + seconds
-    sent = 0
 
-    def send() -> None:
-        nonlocal sent
+    def send(k: int):
         goal = FollowJointTrajectory.Goal()
-        goal.trajectory.joint_names = [f"joint{k}" for k in range(1, 7)]
-        position = 0.2 if sent % 2 else -0.2
-        goal.trajectory.points = [JointTrajectoryPoint(positions=[position] * 6, time_from_start=Duration(sec=1))]
-        sent += 1
-        client.send_goal_async(goal).add_done_callback(answered)
+        goal.trajectory.joint_names = [f"joint{j}" for j in range(1, 7)]
+        goal.trajectory.points = [JointTrajectoryPoint(positions=[0.2 if k % 2 else -0.2] * 6, time_from_start=Duration(sec=1))]
+        return client.send_goal_async(goal)
 
-    def answered(future) -> None:
-        counts["accepted" if future.result().accepted else "rejected"] += 1
-        if time.monotonic() < stop:
-            send()
-
-    for _ in range(outstanding):
-        send()
-    while time.monotonic() < stop + 2.0:
-        executor.spin_once(timeout_sec=0.05)
-    context.try_shutdown()
-    print(f"{counts['accepted']} {counts['rejected']}", flush=True)
+    outcome = lambda f: "accepted" if f.result().accepted else "rejected"  # noqa: E731
+    keep_in_flight(context, executor, send, outcome, ("accepted", "rejected"), outstanding, seconds)
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seconds", type=float, default=10.0, help="each window")
-    p.add_argument("--clients", type=int, default=32, help="the flood's goals in flight")
-    p.add_argument("--world", type=int, default=3, help="the flooded world")
-    p.add_argument("--domain", type=int, default=59)
-    p.add_argument("--flood", nargs=3, type=float, help=argparse.SUPPRESS)  # the flooding process
-    opts = p.parse_args()
-    if opts.flood:
-        flood(int(opts.flood[0]), opts.world, opts.flood[1], int(opts.flood[2]))
+    opts = flood_args(__doc__, 59, "goals", flood)
+    if opts is None:  # this process was the flooder
         return
     from sensor_msgs.msg import JointState
 
-    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(opts.domain), "PYTHONPATH": _pythonpath()}
     fleet = Batchsim(["--worlds", "16", "--bridge-workers", "1", "--quiet"], opts.domain)
     try:
         fleet.wait_started(120)
@@ -113,8 +89,7 @@ def main() -> None:
             print(f"| {label} | {rate:.1f} | {1e3 * max(gaps):.0f} | {accepted} | {rejected} |", flush=True)
 
         window("quiet", None)
-        flooder = subprocess.Popen([sys.executable, __file__, "--world", str(opts.world), "--flood", str(opts.domain),
-                                    str(opts.seconds + 5), str(opts.clients)], stdout=subprocess.PIPE, text=True, env=env)  # fmt: skip
+        flooder = start_flooder(__file__, opts.world, opts.domain, opts.seconds + 5, opts.clients)
         time.sleep(2.0)  # its client found the server; it floods until after the window
         window("flooded", flooder)
         context.try_shutdown()

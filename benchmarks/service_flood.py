@@ -13,7 +13,6 @@ and how many of the flood's calls were answered and how many refused. Nothing is
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import statistics
@@ -23,7 +22,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fleet import LOCALHOST, Batchsim, _pythonpath, _versions, client_node  # noqa: E402
+from fleet import Batchsim, _versions, client_node, flood_args, keep_in_flight, start_flooder  # noqa: E402
 
 JTC = "joint_trajectory_controller"
 
@@ -36,44 +35,21 @@ def flood(domain: int, world: int, seconds: float, outstanding: int) -> None:
     context, node, executor = client_node(domain, "flooder")
     client = node.create_client(SwitchController, f"/world_{world}/controller_manager/switch_controller")
     client.wait_for_service(timeout_sec=30)
-    counts = {"ok": 0, "refused": 0}
-    stop = time.monotonic() + seconds
-    sent = 0
 
-    def send() -> None:
-        nonlocal sent
+    def send(k: int):
         request = SwitchController.Request(strictness=1)
-        (request.deactivate_controllers if sent % 2 == 0 else request.activate_controllers).append(JTC)
-        sent += 1
-        client.call_async(request).add_done_callback(answered)
+        (request.deactivate_controllers if k % 2 == 0 else request.activate_controllers).append(JTC)
+        return client.call_async(request)
 
-    def answered(future) -> None:
-        counts["ok" if future.result().ok else "refused"] += 1
-        if time.monotonic() < stop:
-            send()
-
-    for _ in range(outstanding):
-        send()
-    while time.monotonic() < stop + 2.0:
-        executor.spin_once(timeout_sec=0.05)
-    context.try_shutdown()
-    print(f"{counts['ok']} {counts['refused']}", flush=True)
+    keep_in_flight(context, executor, send, lambda f: "ok" if f.result().ok else "refused", ("ok", "refused"), outstanding, seconds)
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seconds", type=float, default=10.0, help="each window")
-    p.add_argument("--clients", type=int, default=32, help="the flood's calls in flight")
-    p.add_argument("--world", type=int, default=3, help="the flooded world")
-    p.add_argument("--domain", type=int, default=58)
-    p.add_argument("--flood", nargs=3, type=float, help=argparse.SUPPRESS)  # the flooding process
-    opts = p.parse_args()
-    if opts.flood:
-        flood(int(opts.flood[0]), opts.world, opts.flood[1], int(opts.flood[2]))
+    opts = flood_args(__doc__, 58, "calls", flood)
+    if opts is None:  # this process was the flooder
         return
     from controller_manager_msgs.srv import SwitchController
 
-    env = {**os.environ, **LOCALHOST, "ROS_DOMAIN_ID": str(opts.domain), "PYTHONPATH": _pythonpath()}
     fleet = Batchsim(["--worlds", "16", "--bridge-workers", "1", "--quiet"], opts.domain)
     try:
         fleet.wait_started(120)
@@ -103,8 +79,7 @@ def main() -> None:
                   flush=True)  # fmt: skip
 
         window("quiet", None)
-        flooder = subprocess.Popen([sys.executable, __file__, "--world", str(opts.world), "--flood", str(opts.domain),
-                                    str(opts.seconds), str(opts.clients)], stdout=subprocess.PIPE, text=True, env=env)  # fmt: skip
+        flooder = start_flooder(__file__, opts.world, opts.domain, opts.seconds, opts.clients)
         time.sleep(2.0)  # its clients found the service
         window("flooded", flooder)
         context.try_shutdown()
