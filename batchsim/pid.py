@@ -122,24 +122,25 @@ class PidBank:
         self._u_clamped = bool(np.isfinite(self.u_max).any() or np.isfinite(self.u_min).any())
         self.i_term = np.zeros((nworld, len(gains)))
         self.last_error = np.full((nworld, len(gains)), np.nan)
-        self._per_world = False  # set_gains made every gain (nworld, npid)
 
     def set_gains(self, worlds: np.ndarray, gains: list[PidGains]) -> None:
         """New gains for the listed worlds' loops (a controller's parameters set at run time),
         from their next update on; the integral and last error are kept, as control_toolbox's
         `set_gains` keeps them. The first call makes every gain an (nworld, npid) array."""
-        nworld = self.i_term.shape[0]
-        names = _GAIN_ARRAYS
         if not self._per_world:
-            for name in names:
-                setattr(self, name, np.repeat(np.asarray(getattr(self, name))[None], nworld, axis=0))
-            self._per_world = True
+            for name in _GAIN_ARRAYS:
+                setattr(self, name, np.repeat(np.asarray(getattr(self, name))[None], self.i_term.shape[0], axis=0))
         one = PidBank(gains, 1)
-        for name in names:
+        for name in _GAIN_ARRAYS:
             getattr(self, name)[worlds] = getattr(one, name)
         self._any_conditional, self._any_back = bool(self._conditional.any()), bool(self._back.any())
         self._i_clamped = bool(np.isfinite(self.i_max).any() or np.isfinite(self.i_min).any())
         self._u_clamped = bool(np.isfinite(self.u_max).any() or np.isfinite(self.u_min).any())
+
+    @property
+    def _per_world(self) -> bool:
+        """set_gains made every gain (nworld, npid)."""
+        return self.p.ndim == 2
 
     def _rows(self, worlds: np.ndarray | slice) -> tuple[np.ndarray, ...]:
         """The gains (p, i, d, i_max, i_min, u_max, u_min, conditional, back, tt) of `worlds`:

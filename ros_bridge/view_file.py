@@ -91,6 +91,7 @@ class Recording:
         self._file: IndexedFile | None = None
         self._moving: list[dict[str, tuple[str, np.ndarray]]] = []  # streamed: each kept frame's transforms
         self._joints: dict[str, list[tuple[int, np.ndarray]]] = {}  # streamed: per topic, (log time, positions)
+        self._joint_indexes: dict[str, np.ndarray] = {}  # indexed: per topic, its messages' index entries
         self._read_head(path)
         statuses: list[tuple[int, list[tuple[str, int, int]]]] = []  # (log time, [(namespace, bits, flags)])
         times: list[int] = []
@@ -215,10 +216,9 @@ class Recording:
         return np.array([s[0] for s in series]), np.array([s[1] for s in series])
 
     def _joint_index(self, topic: str) -> np.ndarray:
-        cache = self.__dict__.setdefault("_joint_indexes", {})
-        if topic not in cache:
-            cache[topic] = self._file.index(self._file.channel_ids(lambda t: t == topic))
-        return cache[topic]
+        if topic not in self._joint_indexes:
+            self._joint_indexes[topic] = self._file.index(self._file.channel_ids(lambda t: t == topic))
+        return self._joint_indexes[topic]
 
     def _status_at(self, statuses: list[tuple[int, list[tuple[str, int, int]]]]) -> tuple[np.ndarray, np.ndarray]:
         """(ntime, nworld) status bits and flags at each kept time: the newest /diagnostics word

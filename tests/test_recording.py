@@ -441,5 +441,6 @@ def test_the_view_opens_a_recording_through_its_index_and_decodes_a_frame_when_s
         assert len(t) and q.shape[1] == 6 and np.isin(np.round(t, 6), np.round(stream_t, 6)).all()
         poses = rec.anchor_poses(k, ["link1", "link6"], [0, 1])
         assert poses.shape == (2, 2, 7) and np.allclose(np.linalg.norm(poses[..., 3:], axis=-1), 1.0)
+        stream.close()
     finally:
         rec.close()

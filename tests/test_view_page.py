@@ -44,8 +44,8 @@ def test_the_first_view_frames_every_worlds_cell(n):
     k = np.arange(n)
     grid = np.stack([(k % cols) * spacing, (k // cols) * spacing, np.zeros(n)], -1)
     fov = 75.0 * np.pi / 180.0
-    camera = framing(grid, spacing, fov)
-    center = np.array([grid[:, 0].max() / 2, grid[:, 1].max() / 2, 0.0])
+    camera, center = framing(grid, spacing, fov)
+    np.testing.assert_allclose(center, [grid[:, 0].max() / 2, grid[:, 1].max() / 2, 0.0])
     corners = np.concatenate([grid + (dx, dy, dz) for dx in (-1, 1) for dy in (-1, 1) for dz in (0, spacing / 2)])
     assert _inside_view(camera, center, fov, 1.0, corners)  # a square page; a wide one sees more
 

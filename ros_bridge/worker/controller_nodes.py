@@ -88,7 +88,7 @@ class ControllerNodes:
                 node = self._node("controller_manager", where, context, manager)
                 node.add_on_set_parameters_callback(lambda params: SetParametersResult(successful=False, reason=READ_ONLY))
                 for c in mine:
-                    node = self._node(scope.local(c.name), where, context, [*dict(c.parameters).items(), *c.runtime])
+                    node = self._node(scope.local(c.name), where, context, [*c.parameters, *c.runtime])
                     node.add_on_set_parameters_callback(functools.partial(self._set, lo + row, c.name, node.get_fully_qualified_name()))
 
     def _node(self, name: str, namespace: str, context: Context, parameters: Sequence[tuple[str, Any]]) -> Node:

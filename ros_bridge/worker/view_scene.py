@@ -95,9 +95,9 @@ class FleetScene:
         with contextlib.redirect_stdout(io.StringIO()):  # its banner: batchsim prints the URL itself
             self.server = view_server.serve(spec.host, spec.port, label="batchsim", verbose=False)
         scene, gui = self.server.scene, self.server.gui
-        center = np.array([self.grid[:, 0].max() / 2, self.grid[:, 1].max() / 2, 0.0])
+        position, center = framing(self.grid, spacing, self.server.initial_camera.fov)
         self.server.initial_camera.look_at = tuple(center)
-        self.server.initial_camera.position = tuple(framing(self.grid, spacing, self.server.initial_camera.fov))
+        self.server.initial_camera.position = tuple(position)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         scene.add_grid("/floor", width=cols * spacing + spacing, height=cols * spacing + spacing,
                        cell_size=spacing / 4, section_size=spacing, position=tuple(center))  # fmt: skip
@@ -256,8 +256,8 @@ def tints(colors: Sequence[np.ndarray]) -> dict[str, tuple[str, tuple[int, int, 
     return out
 
 
-def framing(grid: np.ndarray, spacing: float, fov: float) -> np.ndarray:
-    """The first view's camera position: looking at the grid's centre from the front left and
+def framing(grid: np.ndarray, spacing: float, fov: float) -> tuple[np.ndarray, np.ndarray]:
+    """The first view's camera position and the point it looks at: the grid's centre, from the front left and
     above, far enough that a sphere holding every world's cell fills at most the vertical field
     of view `fov` (radians; the horizontal one is wider on a landscape page)."""
     lo, hi = grid.min(axis=0) - spacing / 2, grid.max(axis=0) + spacing / 2
@@ -265,7 +265,7 @@ def framing(grid: np.ndarray, spacing: float, fov: float) -> np.ndarray:
     center[2] = 0.0
     radius = max(float(np.linalg.norm((hi - lo)[:2]) / 2), spacing)
     direction = np.array([-0.7, -0.9, 0.6])
-    return center + direction / np.linalg.norm(direction) * radius / np.sin(fov / 2) * 1.05
+    return center + direction / np.linalg.norm(direction) * radius / np.sin(fov / 2) * 1.05, center
 
 
 def _stroke(i: int) -> str:
