@@ -32,6 +32,8 @@ from batchsim.sensors import Camera, Lidar
 from batchsim.types import FROZEN, HeldBase, StateSource, StepFailures, as_slice
 
 _FROZEN_BITS = np.uint8(FROZEN)  # converted once: an IntFlag to uint8 costs microseconds a call
+#: the state that stepping a world needs, as mj_getState lays it out (Engine.physics_state)
+INTEGRATION = int(mujoco.mjtState.mjSTATE_INTEGRATION)
 
 
 @dataclasses.dataclass
@@ -274,6 +276,20 @@ class Engine:
     def set_qstate(self, worlds: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
         """Write `qpos` `(n, nq)` and `qvel` `(n, nv)` float64 rows into `worlds` (live ones)."""
         raise NotImplementedError(f"the {self.name} backend cannot write the joint state")
+
+    def physics_state(self, worlds: np.ndarray, what: int = INTEGRATION) -> np.ndarray:
+        """The listed worlds' state `(n, mj_stateSize(model, what))` float64, as `mj_getState` lays
+        out the `what` (an mjtState mask) of one MjData. Here: the engine's time, qpos, qvel and
+        ctrl over a fresh MjData's values (an engine that holds MjData per world gives it whole)."""
+        m = self.model
+        d = mujoco.MjData(m)
+        qpos, qvel = self.qstate(worlds)
+        ctrl, time = self.ctrl(), self.buffers.time
+        out = np.empty((len(worlds), mujoco.mj_stateSize(m, what)))
+        for k, w in enumerate(worlds):
+            d.time, d.qpos[:], d.qvel[:], d.ctrl[:] = time[w], qpos[k], qvel[k], ctrl[w]
+            mujoco.mj_getState(m, d, out[k], what)
+        return out
 
     def set_model_fields(self, worlds: np.ndarray, params: dict[str, np.ndarray]) -> None:
         """Make `params[field][worlds]` the engine's values of each field for those worlds.

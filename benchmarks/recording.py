@@ -5,8 +5,9 @@
 
 The loop runs in this process as `batchsim` runs it (the arm's default controllers, the ROS 2
 bridge with its workers in processes, RTF 1, the loop thread's SCHED_FIFO where allowed), once
-without a recording and once with `--record` (the default topic set: joint_states,
-wrist_ft_broadcaster/wrench, /tf, /tf_static, /clock, robot_description). Reported per run:
+without a recording and once with `--record --no-record-inputs` (the default topic set: joint_states,
+wrist_ft_broadcaster/wrench, /tf, /tf_static, /clock, robot_description), and once with `--record`
+(the same, and the physics inputs `batchsim resim` re-runs from: /batchsim/inputs, /batchsim/starts). Reported per run:
 the RTF held (sim time over wall time from the first period to the last), the loop's own
 time per period (the pacing sleep excluded: median, 99th percentile, worst) against the
 period's budget; with the recording, the messages in the file counted per topic against what
@@ -32,11 +33,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # its siblings
 from paced_fleet import paced_fleet, timed_run  # noqa: E402
 
 
-def run(opts: argparse.Namespace, path: str | None) -> dict:
+def run(opts: argparse.Namespace, path: str | None, inputs: bool = True) -> dict:
     from ros_bridge.bridge import BridgeOptions
     from ros_bridge.options import RecordOptions
 
-    with paced_fleet(opts, BridgeOptions(record=RecordOptions(path))) as (_sim, loop, host):
+    with paced_fleet(opts, BridgeOptions(record=RecordOptions(path, inputs=inputs))) as (_sim, loop, host):
         figures = timed_run(loop)
         figures["dropped"] = int(host.memory["rec.dropped"][0]) if path else 0
     return figures
@@ -76,10 +77,17 @@ def main() -> None:
     budget = 1e3 / opts.control_rate
     with tempfile.TemporaryDirectory() as where:
         path = os.path.join(where, "run.mcap")
+        plain = os.path.join(where, "plain.mcap")
+        sizes = {}
         if opts.warmup:  # a first fleet compiles and captures (warp: a minute): not one of the timed runs
             run(argparse.Namespace(**{**vars(opts), "duration": 1.0}), None)
-        for label, record in [("without recording", None), ("recording", path)] * opts.repeat:
-            r = run(opts, record)
+        runs = [("without recording", None, True), ("recording, no inputs", plain, False), ("recording", path, True)]
+        for label, record, inputs in runs * opts.repeat:
+            for old in (record,) if record and os.path.exists(record) else ():
+                os.remove(old)
+            r = run(opts, record, inputs)
+            if record:
+                sizes[label] = os.path.getsize(record) / (opts.worlds * r["sim_time"])
             print(
                 f"{label:18s} rtf {r['rtf']:.3f} | loop's own time per period: median {r['median']:.3f} ms, "
                 f"p99 {r['p99']:.3f} ms, worst {r['worst']:.2f} ms (budget {budget:g} ms, {r['over']} over) | "
@@ -90,12 +98,15 @@ def main() -> None:
         periods = r["periods"]
         print(f"file: {size / 1e6:.2f} MB, {sum(topics.values())} messages, ring drops {r['dropped']}, "
               f"{size / (opts.worlds * r['sim_time']) / 1e3:.1f} kB per world-second")  # fmt: skip
+        extra = sizes["recording"] - sizes["recording, no inputs"]
+        print(f"the physics inputs (batchsim resim) add {extra / 1e3:.2f} kB per world-second to the file "
+              f"({sizes['recording, no inputs'] / 1e3:.1f} -> {sizes['recording'] / 1e3:.1f})")  # fmt: skip
         for topic, n in sorted(topics.items()):
             if topic == "/diagnostics":  # every world once a sim second, and the worlds whose status changed
                 print(f"  {topic:32s} {n:8d} (once a sim second: {r['sim_time']:.0f} s, and at each change of status)")
                 continue
             per = opts.worlds if not topic.startswith("/") else 1
-            expected = periods * per if topic not in ("/tf_static", "robot_description") else per
+            expected = periods * per if topic not in ("/tf_static", "robot_description", "/batchsim/starts") else per
             print(f"  {topic:32s} {n:8d} of {expected:8d} expected {'ok' if n == expected else 'MISSING'}")
 
 

@@ -71,6 +71,8 @@ class RecordOptions:
         None: the default set (every state topic published from the start, /tf, /tf_static,
         /clock, robot_description).
       worlds: the worlds (indices 0..nworld-1) recorded; None: all.
+      inputs: also every period's physics inputs, the model and the worlds' starts, so that
+        `batchsim resim` can re-run the recorded worlds (batchsim.resim); not in a fleet of groups.
       group: one group's share of a fleet of several groups (batchsim.fleet.groups), recorded into
         one file with the others' (ros_bridge/bridge.py's join_bridges): `topics` may name what only
         another group publishes (join_bridges refuses a name no group publishes), and `worlds` may
@@ -81,6 +83,7 @@ class RecordOptions:
     topics: tuple[str, ...] | None = dataclasses.field(default=None, metadata=_flag("--record-topics"))
     worlds: tuple[int, ...] | None = dataclasses.field(default=None, metadata=_flag("--record-worlds"))
     group: bool = False
+    inputs: bool = dataclasses.field(default=True, metadata=_flag("--no-record-inputs"))
 
 
 @dataclasses.dataclass(frozen=True)

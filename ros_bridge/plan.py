@@ -36,6 +36,7 @@ from ros_bridge.action_plan import (
     gripper_action,
     trajectory_action,
 )
+from ros_bridge.input_recording import inputs_layout
 from ros_bridge.interfaces import available
 from ros_bridge.manager_link import ManagerSpec, manager_spec
 from ros_bridge.naming import ros_names, world_namespaces, worlds_label
@@ -349,6 +350,8 @@ def build_plan(
         widths = [c.width for c in channels]
         tf_channel = tf.channel if tf else None
         recording = record_spec(options.record, outputs, widths, tf_channel, options.clock, nworld, sensors)
+        if options.record.inputs and not options.record.group and recording.worlds:  # what resim needs (batchsim.resim)
+            recording = dataclasses.replace(recording, inputs=inputs_layout(sim))
     view = None
     if options.view is not None:
         if tf is None:

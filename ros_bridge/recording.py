@@ -37,8 +37,11 @@ from pathlib import Path
 import numpy as np
 
 from batchsim.loop import OptionError, Participant, SimLoop
+from batchsim.resim.layout import InputsLayout
+from ros_bridge.input_recording import InputRecording
 from ros_bridge.options import RecordOptions
 from ros_bridge.outputs import OutputSpec
+from ros_bridge.protocol.input_ring import INPUTS, STARTS, ring_arrays
 from ros_bridge.protocol.recording import (
     RecordWriter,
     put_answer,
@@ -84,11 +87,17 @@ class RecordSpec:
     diagnostics: bool = False
     # a group's (RecordOptions.group): the topics named that this group does not publish
     unknown: tuple[str, ...] = ()
+    # what re-simulation needs recorded every period (batchsim.resim); None: not recorded
+    inputs: InputsLayout | None = None
 
     def arrays(self, nchannel: int) -> list[tuple[str, tuple[int, ...], str]]:
         arrays = recording_arrays(nchannel, len(self.worlds), self.channels, self.widths)
         if any(self.sensors):  # the seq the recorder took last (protocol/sensor_blocks.py)
             arrays.append(("rec.sensors.seen", (len(self.worlds), len(self.sensors)), "i8"))
+        if self.inputs is not None:  # every period's inputs, and the worlds' (re)starts: protocol/input_ring.py
+            nrow = len(self.worlds)
+            arrays += ring_arrays(INPUTS, nrow, self.inputs.input_width)
+            arrays += ring_arrays(STARTS, 1, self.inputs.start_width, least=max(256, 4 * nrow))
         return arrays
 
 
@@ -220,6 +229,8 @@ class Recording(Participant):
         self._leader: Recording = self
         self._followers: list[Recording] = []
         self._names: list[str] = [""]  # each group's name, this one's first ("": one group alone)
+        # every period's physics inputs (batchsim.resim), where recorded
+        self.inputs = InputRecording(plan, memory, loop, self.recorder_alive) if self.spec.inputs is not None else None
 
     # --- a fleet of several groups: one recording ---
     def lead(self, followers: Sequence[Recording], names: Sequence[str]) -> None:
@@ -255,6 +266,8 @@ class Recording(Participant):
         for r in (self, *self._followers):
             if on:
                 r.writer.restart()
+                if r.inputs is not None:
+                    r.inputs.restart()
                 set_recording(r.memory, r.spec.channels)
             else:
                 set_recording(r.memory, None)
@@ -283,7 +296,8 @@ class Recording(Participant):
         # a recording stopped before its recorder said ready still holds start..stop
         self._set_recording(True)
         groups = [(r.plan, r.geometry(), name) for r, name in zip((self, *self._followers), self._names, strict=True)]
-        self._proc.stdin.write(pickle.dumps((groups, os.path.abspath(path))))
+        resim = self.inputs.source() if self.inputs is not None and not self._followers else None
+        self._proc.stdin.write(pickle.dumps((groups, os.path.abspath(path), resim)))
         self._proc.stdin.flush()
         if wait:
             deadline = wallclock.monotonic() + READY_TIMEOUT
@@ -333,6 +347,14 @@ class Recording(Participant):
             while self.writer.full() and self.recorder_alive():
                 wallclock.sleep(0.0005)
         self.writer.put_newest()
+
+    def after_write(self, sim, time: float, period: float) -> None:
+        if self.inputs is not None and recording(self.memory):
+            self.inputs.after_write(sim, time, period)
+
+    def on_reset(self, sim, worlds: np.ndarray | None) -> None:
+        if self.inputs is not None:
+            self.inputs.on_reset(worlds)
 
     def idle(self, sim, time: float) -> None:
         self._serve()

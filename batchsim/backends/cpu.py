@@ -30,7 +30,7 @@ from mujoco import batch as mjbatch
 
 from batchsim.backends import footprint
 from batchsim.backends.host_sensors import HostSensors
-from batchsim.engine import Engine
+from batchsim.engine import INTEGRATION, Engine
 from batchsim.parts.failures import warning_text
 from batchsim.plugins.base_velocity import HELD_DOFS, world_velocity
 from batchsim.sensors import Camera, Lidar
@@ -239,6 +239,16 @@ class CpuEngine(Engine):
         self._fields["qpos"][worlds] = qpos
         self._fields["qvel"][worlds] = qvel
         self._batch.forward(ids=np.sort(worlds).astype(np.int32))  # poses and sensordata of the new state
+
+    def physics_state(self, worlds: np.ndarray, what: int = INTEGRATION) -> np.ndarray:
+        """Exact: each world's MjData out of the batch, then mj_getState."""
+        m = self.model
+        d = mujoco.MjData(m)
+        out = np.empty((len(worlds), mujoco.mj_stateSize(m, what)))
+        for k, w in enumerate(worlds):
+            self._batch.get_data(int(w), d)
+            mujoco.mj_getState(m, d, out[k], what)
+        return out
 
     def _kinematics_now(self, worlds: np.ndarray, rows: np.ndarray, xpos: np.ndarray, xquat: np.ndarray) -> None:
         """xpos/xquat of the current state into the `rows` (bool) of `worlds`: mj_kinematics per world."""

@@ -26,7 +26,6 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from batchsim.cli import args
 from batchsim.cli.args import EXIT_USAGE, UsageError, split_ros_args
 
 # the command's parts, imported when used (PEP 562 for `from batchsim.cli import run`): `--help`,
@@ -45,13 +44,15 @@ _LAZY = {
     "start_ros": "batchsim.cli.runner",
     "version_line": "batchsim.cli.args",
 }
-#: subcommand -> (module, function, its parser in args.py); "" is the run itself
+#: subcommand -> (module, function, its parser: "module:function", light modules only); "" is the run itself
 _COMMANDS = {
-    "": ("batchsim.cli.runner", "run", "run_parser"),
-    "info": ("batchsim.cli.info", "info", "info_parser"),
-    "replay": ("batchsim.cli.replay", "replay", "replay_parser"),
-    "view": ("batchsim.cli.view", "view", "view_parser"),
-    "evaluate": ("batchsim.cli.evaluate", "evaluate", "evaluate_parser"),
+    "": ("batchsim.cli.runner", "run", "batchsim.cli.args:run_parser"),
+    "info": ("batchsim.cli.info", "info", "batchsim.cli.args:info_parser"),
+    "replay": ("batchsim.cli.replay", "replay", "batchsim.cli.args:replay_parser"),
+    "view": ("batchsim.cli.view", "view", "batchsim.cli.args:view_parser"),
+    "evaluate": ("batchsim.cli.evaluate", "evaluate", "batchsim.cli.args:evaluate_parser"),
+    "resim": ("batchsim.cli.resim", "resim", "batchsim.cli.analysis_args:resim_parser"),
+    "calibrate": ("batchsim.cli.calibrate", "calibrate", "batchsim.cli.analysis_args:calibrate_parser"),
 }
 
 __all__ = [
@@ -93,7 +94,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     module, name, parser = _COMMANDS[command]
     try:
         # parsed here first, with nothing heavy imported: --help, --version and a bad flag answer at once
-        getattr(args, parser)().parse_args(split_ros_args(argv)[0] if not command else argv)
+        where, function = parser.split(":")
+        getattr(importlib.import_module(where), function)().parse_args(split_ros_args(argv)[0] if not command else argv)
         return getattr(importlib.import_module(module), name)(argv)
     except UsageError as e:  # before anything heavy was imported: the parser's own
         print(f"batchsim: error: {e}", file=sys.stderr)

@@ -29,19 +29,23 @@ class UsageError(Exception):
     """A problem the user can fix; printed as one line, exit code 2."""
 
 
-class _Parser(argparse.ArgumentParser):
+class Parser(argparse.ArgumentParser):
+    """An argparse parser whose errors are one line (UsageError, exit 2), not a usage dump."""
+
     def error(self, message: str) -> None:  # one line, exit 2, no usage dump
         raise UsageError(message)
 
 
 def run_parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = Parser(
         prog="batchsim",
         description="Run N copies of one MuJoCo robot, each on its own ROS 2 namespace.",
         epilog=(
             "commands: `batchsim info MODEL` lists a model's interfaces and sensors; `batchsim replay FILE` "
             "republishes an MCAP recording over ROS 2; `batchsim view FILE` shows one in the web view; "
-            "`batchsim evaluate --controllers FILE` scores a policy controller over randomized worlds (each: --help). "
+            "`batchsim evaluate --controllers FILE` scores a policy controller over randomized worlds; "
+            "`batchsim resim FILE --worlds I` re-runs recorded worlds' physics and compares; "
+            "`batchsim calibrate REAL.mcap --randomize FILE` fits the model to a real robot's bag (each: --help). "
             "`--ros-args ... [--]` passes ROS arguments to every bridge worker's node (remaps, -p, --log-level)."
         ),
     )
@@ -217,7 +221,7 @@ def batchsim_version(installed_version: Callable[[str], str] | None = None) -> s
 
 
 def info_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="batchsim info", description="List a model's interfaces and sensors.")
+    p = Parser(prog="batchsim info", description="List a model's interfaces and sensors.")
     p.add_argument("model", nargs="?", help="shipped model name or MJCF path (default: as batchsim's --model)")
     p.add_argument("--fleet", default=None, metavar="FILE", help="a fleet file: each robot's interfaces, sensors and controllers")
     p.add_argument("--worlds", type=int, default=None, help=f"world count the backend choice is for (default {DEFAULT_WORLDS})")
@@ -233,7 +237,7 @@ def info_parser() -> argparse.ArgumentParser:
 
 
 def replay_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="batchsim replay", description="Republish an MCAP recording over ROS 2, with /clock.")
+    p = Parser(prog="batchsim replay", description="Republish an MCAP recording over ROS 2, with /clock.")
     p.add_argument("file", help="an MCAP file (batchsim --record, or any ROS 2 MCAP bag)")
     p.add_argument(
         "--worlds", type=world_list, default=None, metavar="I,J-K,...", help="the worlds replayed (default: all)"
@@ -246,7 +250,7 @@ def replay_parser() -> argparse.ArgumentParser:
 
 
 def view_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="batchsim view", description="Show an MCAP recording in the web view, scrubbed through.")
+    p = Parser(prog="batchsim view", description="Show an MCAP recording in the web view, scrubbed through.")
     p.add_argument("file", help="an MCAP file written by batchsim --record")
     add_view_flags(p)
     return p

@@ -64,6 +64,7 @@ def add_bridge_flags(p: argparse.ArgumentParser) -> None:
         "or scan, only when named)",
     )
     add_option(rec, RecordOptions, "worlds", type=world_list, metavar="I,J-K,...", help="the worlds recorded (default: all)")
+    add_option(rec, RecordOptions, "inputs", help="record no physics inputs (they let `batchsim resim` re-run a recorded world)")
     view = p.add_argument_group("the web view")
     view.add_argument("--view", action="store_true", help="serve a web page showing every world in 3D, live")
     add_view_flags(view)

@@ -206,6 +206,11 @@ class BaseDrive:
         v = self.velocity
         return None if v is None else HeldBase(v.qposadr, v.dofadr)
 
+    @property
+    def staged(self) -> np.ndarray | None:
+        """(nworld, 3): the target the engine holds now (NaN rows: none), None before the first write()."""
+        return self._staged
+
     def command(self, sel: np.ndarray, command: Any, time: np.ndarray) -> None:
         """set_base_velocity() for worlds `sel` `(n,)` at their sim `time` `(n,)`: `command` `(n, 3)`
         or `(3,)`, body-frame vx, vy [m/s] and wz [rad/s]. ValueError: no plugin, a wrong shape,

@@ -220,10 +220,12 @@ class Wrenches:
         self.store: ExternalWrenches | None = None
         self._wrenched = np.zeros(nworld, bool)  # worlds whose engine xfrc_applied is not zero
         self._requests = 0  # apply_wrench() calls so far
+        self.configured = False  # whether the plugin is configured (configure)
 
     def configure(self, config: ExternalWrenchConfig | None) -> None:
         """The plugin's params from the sensor configuration (None: not configured)."""
         check_plugin_runs(config, self.runs, "ExternalWrenchPlugin")
+        self.configured = config is not None
 
     def apply(self, wrenches: ExternalWrench | Sequence[ExternalWrench], sel: np.ndarray, time: np.ndarray, frozen: np.ndarray) -> int:
         """apply_wrench() in worlds `sel` `(n,)` at their sim `time` `(n,)`; `frozen` `(n,)` bool.

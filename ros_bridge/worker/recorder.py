@@ -36,11 +36,14 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import String
 
 from batchsim.memory import Memory
+from batchsim.resim.layout import METADATA as RESIM_METADATA
+from batchsim.resim.layout import MODEL_ATTACHMENT
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.protocol.commands import RejectionWriter
 from ros_bridge.protocol.recording import GroupsReader, RecordedPeriod, RecordReader, set_recording
 from ros_bridge.view_plan import geometry_attachment
+from ros_bridge.worker.input_topics import InputTopics
 from ros_bridge.worker.mcap_file import BlockWriter
 from ros_bridge.worker.messages import clock_payload, stamp_of
 from ros_bridge.worker.process import die_with_parent
@@ -94,6 +97,7 @@ class McapRecording:
         plan: FleetPlan | Sequence[tuple[FleetPlan, bytes | None, str]],
         stream: BinaryIO,
         memories: Sequence[Memory] | None = None,
+        resim: dict | None = None,
     ):
         groups = [(plan, None, "")] if isinstance(plan, FleetPlan) else list(plan)
         self.spec = groups[0][0].recording
@@ -130,6 +134,11 @@ class McapRecording:
         for _, geometry, name in groups:  # the robots' geoms, for `batchsim view FILE` (ros_bridge/view_plan.py)
             if geometry is not None:
                 self.writer.add_attachment(0, 0, geometry_attachment(name if len(groups) > 1 else None), "application/x-npz", geometry)
+        self.inputs: InputTopics | None = None
+        if resim is not None and memories[0] is not None:  # every period's inputs, for `batchsim resim` (batchsim.resim)
+            self.writer.add_metadata(RESIM_METADATA, resim["meta"])
+            self.writer.add_attachment(0, 0, MODEL_ATTACHMENT, "application/x-mujoco-mjb", resim["model"])
+            self.inputs = InputTopics(memories[0], len(self.groups[0].namespaces), self.channel, self._add)
 
     def channel(self, topic: str, msg_type: str, depth: int = 10, latched: bool = False) -> int:
         """The channel of `topic` (its `msg_type`'s schema registered once), with the QoS rosbag2
@@ -227,8 +236,9 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the physics process, which stops us
     stopping = []
     signal.signal(signal.SIGTERM, lambda signum, frame: stopping.append(signum))
-    try:  # per group (one, or a fleet's several, the first's first): (plan, geometry, name); the file
-        groups, path = pickle.load(sys.stdin.buffer)
+    try:  # per group (one, or a fleet's several, the first's first): (plan, geometry, name); the file; the
+        # model and facts for re-simulation, where inputs are recorded (ros_bridge/input_recording.py)
+        groups, path, resim = pickle.load(sys.stdin.buffer)
     except (EOFError, pickle.UnpicklingError):
         return 0
     plans = [plan for plan, _, _ in groups]
@@ -241,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # a file made meanwhile is not written over (recording.path_problem); a device is written to
         stream = open(path, "wb" if os.path.exists(path) and not os.path.isfile(path) else "xb")
-        recording = McapRecording(groups, stream, memories)
+        recording = McapRecording(groups, stream, memories, resim)
         # cameras and lidars, each group's from its own blocks
         sensors = [SensorRecording(p, m, recording.channel, recording.writer) for p, m in zip(plans, memories, strict=True)]
         status.write("ready\n")
@@ -254,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
                 recording.write(period, group)
             for s in sensors:
                 s.take()
+            if recording.inputs is not None:
+                recording.inputs.take()
             if wallclock.monotonic() - flushed >= CHUNK_SECONDS:
                 recording.flush()
                 flushed = wallclock.monotonic()
@@ -264,11 +276,15 @@ def main(argv: list[str] | None = None) -> int:
             recording.write(period, group)
         for s in sensors:
             s.take()
+        if recording.inputs is not None:
+            recording.inputs.take(final=True)
         recording.finish()
         stream.close()
         dropped = reader.dropped()
         lost = f"; {dropped} periods dropped (the recorder fell behind the loop)" if dropped else ""
         lost += missed_line(sum(s.missed for s in sensors))
+        if recording.inputs is not None:
+            lost += recording.inputs.lost_line()
         status.write(f"recording: {recording.messages} messages in {path}{lost}\n")
         return 0
     except OSError as e:  # a full disk, a path that went away: the recording stops, the loop goes on

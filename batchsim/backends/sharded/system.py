@@ -292,6 +292,14 @@ class ShardedSystem(SystemFace):
             qpos[order], qvel[order] = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
         return qpos, qvel
 
+    def physics_state(self, worlds: Sequence[int] | np.ndarray | None) -> np.ndarray:
+        """Not on a fleet over several devices: re-simulation (batchsim.resim) records one device's."""
+        raise NotImplementedError("a fleet over several devices does not record its physics state: use one device")
+
+    def physics_inputs(self, worlds: Sequence[int] | np.ndarray | None) -> dict[str, np.ndarray]:
+        """Not on a fleet over several devices (physics_state)."""
+        raise NotImplementedError("a fleet over several devices does not record its physics inputs: use one device")
+
     def set_qstate(self, worlds: Sequence[int] | np.ndarray | None, qpos: Any, qvel: Any) -> None:
         """As BatchedSystem.set_qstate (the fleet's world numbers)."""
         self._require("write the joint state", RUNNING)

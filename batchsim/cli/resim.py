@@ -1,0 +1,90 @@
+"""`batchsim resim FILE [--worlds I,J-K] [--model M] [--tolerance X] [--json F] [--plot F]`: re-run
+recorded worlds' physics from the inputs the recording holds (batchsim.resim) and say, per world,
+whether the re-run is bit-exact, or where it parts from the recording and for how long it stays
+within the tolerance."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time as wallclock
+from collections.abc import Sequence
+
+from batchsim import startup
+from batchsim.cli.analysis_args import resim_parser
+from batchsim.cli.args import UsageError
+
+
+def resim(argv: Sequence[str]) -> int:
+    args = resim_parser().parse_args(list(argv))
+    if not args.tolerance > 0:
+        raise UsageError(f"--tolerance must be > 0, got {args.tolerance}")
+    try:
+        import mcap  # noqa: F401
+        import mcap_ros2  # noqa: F401
+    except ModuleNotFoundError as e:
+        raise UsageError(f"resim needs {e.name}: {startup.install_command('record')}") from None
+    from batchsim.resim.compare import compare
+    from batchsim.resim.layout import load_model, model_bytes, model_hash
+    from batchsim.resim.physics import rerun
+    from batchsim.resim.recorded import ResimError, read
+
+    began = wallclock.monotonic()
+    try:
+        recorded = read(args.file, args.worlds)
+    except ResimError as e:
+        raise UsageError(str(e)) from None
+    model = load_model(recorded.model)
+    if args.model is not None:
+        import batchsim
+
+        theirs = model_hash(model_bytes(batchsim.load(args.model).mjmodel))
+        if theirs != recorded.meta["model_sha256"]:
+            raise UsageError(
+                f"--model {args.model} is not the model {args.file} was recorded with (SHA-256 {theirs[:12]} against "
+                f"{recorded.meta['model_sha256'][:12]}): a re-run of another model says nothing about the recording"
+            )
+    backend = recorded.meta["backend"]
+    say = lambda line: print(f"batchsim: {line}", file=sys.stderr)  # noqa: E731
+    say(
+        f"re-running {len(recorded.worlds)} world(s) of {args.file} ({len(recorded.headers)} periods, recorded on "
+        f"{backend}, MuJoCo {recorded.meta['mujoco']}) on MuJoCo's C step"
+    )
+    results = []
+    for w, world in recorded.worlds.items():
+        if not world.starts:
+            say(f"world {w}: the recording holds no start of it (its start was dropped): cannot be re-run")
+            continue
+        run = rerun(model, recorded.layout, recorded.headers, world)
+        result = compare(model, w, run, recorded.headers, world.joint_states, args.tolerance)
+        results.append(result)
+        print(result.line())
+    if backend != "cpu":
+        say(f"a {backend} recording re-run on MuJoCo's C step parts from it: {backend} computes with kernels of its own (float32 on a GPU)")
+    if args.json is not None:
+        args.json.write_text(json.dumps({"file": args.file, "backend": backend, "worlds": [r.to_json() for r in results]}, indent=1))
+    if args.plot is not None:
+        _plot(results, args.plot, args.tolerance)
+    say(f"done in {wallclock.monotonic() - began:.1f} s")
+    return 0
+
+
+def _plot(results, path, tolerance: float) -> None:
+    """The largest difference over time, per world (log scale; bit-exact worlds on the floor)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for r in results:
+        ax.plot(r.time, np.maximum(r.error, 1e-17), label=f"world {r.world}")
+    ax.axhline(tolerance, color="grey", linestyle="--", label=f"tolerance {tolerance:g}")
+    ax.set_yscale("log")
+    ax.set_xlabel("sim time (s)")
+    ax.set_ylabel("largest joint difference")
+    ax.set_title("re-run against the recording")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)

@@ -1,0 +1,113 @@
+"""A re-run measured against the recording: each recorded joint state of a world (position and
+velocity of every hinge and slide joint) beside the re-run's state at the same period's start
+(joint_states are published from the state a period starts with). Bit-exact, or where and when
+they part, and how long the re-run stays within a tolerance of the recording (its horizon)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+
+from batchsim.resim.physics import Trajectory
+from batchsim.resim.recorded import JointStates
+
+_MOVING = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+
+
+@dataclasses.dataclass
+class Comparison:
+    """One world's re-run against its recording.
+
+    Attributes:
+      world: its number. compared: joint_states messages compared. joints: their joint names.
+      exact: every compared value equal to the bit.
+      max_position, max_velocity: the largest difference (rad or m; rad/s or m/s).
+      first: where they first part at all: (sim time, period number, joint, |difference|), or None.
+      horizon: sim seconds from the world's (re)start until a difference first exceeds
+        `tolerance` (None: never, within the recording); `tolerance` as given.
+      time, error: (n,) the compared messages' sim times and their largest position difference.
+      skipped: joint_states names that are no hinge or slide joint of the model (not compared).
+    """
+
+    world: int
+    compared: int
+    joints: list[str]
+    exact: bool
+    max_position: float
+    max_velocity: float
+    first: tuple[float, int, str, float] | None
+    horizon: float | None
+    tolerance: float
+    time: np.ndarray
+    error: np.ndarray
+    skipped: list[str]
+
+    def line(self) -> str:
+        """One line for the terminal."""
+        head = f"world {self.world}: {self.compared} joint_states compared"
+        if not self.compared:
+            return f"{head}: none (not recorded, or the world never ran)"
+        if self.exact:
+            return f"{head}: bit-exact (every position and velocity of {len(self.joints)} joints equal to the bit)"
+        t, period, joint, diff = self.first
+        horizon = "the whole recording" if self.horizon is None else f"{self.horizon:.3f} s"
+        return (
+            f"{head}: they part at t={t:.3f} s (period {period}), {joint} first ({diff:.3g}); largest difference "
+            f"{self.max_position:.3g} (position), {self.max_velocity:.3g} (velocity); within {self.tolerance:g} for {horizon}"
+        )
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["time"], d["error"] = self.time.tolist(), self.error.tolist()
+        return d
+
+
+def compare(
+    model: mujoco.MjModel, world: int, run: Trajectory, headers: np.ndarray, states: JointStates | None, tolerance: float
+) -> Comparison:
+    """Measure `run` (physics.rerun of `world`) against its recorded `states`."""
+    empty = np.zeros(0)
+    if states is None:
+        return Comparison(world, 0, [], False, np.nan, np.nan, None, None, tolerance, empty, empty, [])
+    joints, qadr, vadr, skipped = [], [], [], []
+    for name in states.names:
+        j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if j < 0 or int(model.jnt_type[j]) not in _MOVING:
+            skipped.append(name)
+            continue
+        joints.append(name)
+        qadr.append(model.jnt_qposadr[j])
+        vadr.append(model.jnt_dofadr[j])
+    columns = [states.names.index(n) for n in joints]
+    stamps = _stamps(headers[:, 1])
+    at = np.searchsorted(stamps, states.stamps)
+    found = (at < len(stamps)) & (stamps[np.minimum(at, len(stamps) - 1)] == states.stamps)
+    rows, at = np.flatnonzero(found), at[found]
+    ran = ~np.isnan(run.qpos[at, 0]) if model.nq else np.ones(len(at), bool)
+    rows, at = rows[ran], at[ran]
+    dpos = np.abs(states.position[np.ix_(rows, columns)] - run.qpos[np.ix_(at, qadr)])
+    dvel = np.abs(states.velocity[np.ix_(rows, columns)] - run.qvel[np.ix_(at, vadr)])
+    worst = np.maximum(dpos, np.nan_to_num(dvel)) if dpos.size else np.zeros((len(rows), 0))
+    step_error = worst.max(axis=1) if worst.size else np.zeros(len(rows))
+    time = headers[at, 1]
+    first = None
+    parted = np.flatnonzero(step_error > 0)
+    if parted.size:
+        i = parted[0]
+        j = int(np.argmax(worst[i]))
+        first = (float(time[i]), int(headers[at[i], 0]), joints[j], float(worst[i, j]))
+    beyond = np.flatnonzero(step_error > tolerance)
+    horizon = float(time[beyond[0]] - run.since[at[beyond[0]]]) if beyond.size else None
+    return Comparison(
+        world=world, compared=len(rows), joints=joints, exact=len(rows) > 0 and not parted.size,
+        max_position=float(dpos.max()) if dpos.size else 0.0, max_velocity=float(np.nanmax(dvel)) if dvel.size else 0.0,
+        first=first, horizon=horizon, tolerance=tolerance, time=time, error=step_error, skipped=skipped,
+    )  # fmt: skip
+
+
+def _stamps(times: np.ndarray) -> np.ndarray:
+    """Sim times (s) as the recorder stamps them (ns, as ros_bridge's stamp_of rounds)."""
+    sec = np.floor(times)
+    return (sec.astype(np.int64) * 1_000_000_000 + np.round((times - sec) * 1e9).astype(np.int64))

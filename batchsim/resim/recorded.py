@@ -1,0 +1,168 @@
+"""A recording, read for re-simulation: its inputs' layout and model, each world's starts and
+inputs, and its recorded joint states. ResimError, one line, for a file that cannot be re-run."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Sequence
+
+import numpy as np
+
+from batchsim.resim.layout import (
+    INPUTS_TOPIC,
+    METADATA,
+    MODEL_ATTACHMENT,
+    STARTS_TOPIC,
+    InputsLayout,
+    model_hash,
+    unpack,
+)
+
+
+class ResimError(Exception):
+    """A recording that cannot be re-run as asked; its message is one line."""
+
+
+@dataclasses.dataclass
+class Start:
+    """A world's (re)start: the period it starts in, its state (mjSTATE_INTEGRATION), its draw
+    number and its drawn model values."""
+
+    period: int
+    state: np.ndarray
+    draw: int
+    params: dict[str, np.ndarray]
+
+
+@dataclasses.dataclass
+class JointStates:
+    """A world's recorded sensor_msgs/JointState: `stamps` (n,) int ns, `names`, `position` and
+    `velocity` (n, njoint)."""
+
+    stamps: np.ndarray
+    names: list[str]
+    position: np.ndarray
+    velocity: np.ndarray
+
+
+@dataclasses.dataclass
+class WorldRecord:
+    """What the file holds of one world: its number, namespace, starts, every period's inputs
+    (rows of the layout's input width) and its joint states (None where not recorded)."""
+
+    world: int
+    namespace: str
+    starts: list[Start]
+    inputs: np.ndarray
+    joint_states: JointStates | None
+
+
+@dataclasses.dataclass
+class Recorded:
+    """A recording's re-simulation facts: `meta` (the batchsim_resim record), `layout`, the MJB
+    `model` bytes, the periods' `headers` (n, 3: number, sim time, steps) and per world asked its
+    WorldRecord."""
+
+    meta: dict[str, str]
+    layout: InputsLayout
+    model: bytes
+    headers: np.ndarray
+    worlds: dict[int, WorldRecord]
+
+
+def read(path: str, worlds: Sequence[int] | None = None) -> Recorded:
+    """The re-simulation facts of `path` for `worlds` (fleet numbers; None: every recorded one)."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    try:
+        stream = open(path, "rb")
+    except OSError as e:
+        raise ResimError(f"{path}: {e.strerror or e}") from None
+    with stream:
+        try:
+            reader = make_reader(stream)
+            meta = next((dict(m.metadata) for m in reader.iter_metadata() if m.name == METADATA), None)
+            if meta is None:
+                raise ResimError(
+                    f"{path} holds no physics inputs (recorded with --no-record-inputs, by a fleet of several groups, "
+                    "or before batchsim recorded them): it cannot be re-run; record it again"
+                )
+            model = next((a.data for a in reader.iter_attachments() if a.name == MODEL_ATTACHMENT), None)
+            if model is None or model_hash(model) != meta["model_sha256"]:
+                raise ResimError(f"{path}: its model attachment is missing or does not match its hash")
+            layout = InputsLayout.from_json(meta["layout"])
+            recorded = json.loads(meta["worlds"])
+            namespaces = json.loads(meta["namespaces"])
+            chosen = list(recorded) if worlds is None else list(dict.fromkeys(worlds))
+            missing = [w for w in chosen if w not in recorded]
+            if missing:
+                raise ResimError(f"{path} does not hold world {missing[0]} (it recorded worlds {_ranges(recorded)})")
+            rows = {w: recorded.index(w) for w in chosen}
+            return _read_messages(reader, meta, layout, model, rows, {w: namespaces[recorded.index(w)] for w in chosen})
+        except (McapError, ValueError, KeyError, EOFError) as e:
+            raise ResimError(f"{path}: not a readable batchsim recording ({e})") from None
+
+
+def _read_messages(reader, meta, layout: InputsLayout, model: bytes, rows: dict[int, int], namespaces: dict[int, str]) -> Recorded:
+    from mcap_ros2.decoder import DecoderFactory
+
+    js_topics = {f"/{ns.strip('/')}/joint_states" if ns.strip("/") else "/joint_states": w for w, ns in namespaces.items()}
+    worlds = list(rows)
+    picked = np.array([rows[w] for w in worlds], np.intp)
+    headers: list[np.ndarray] = []
+    inputs: list[np.ndarray] = []
+    starts: dict[int, list[Start]] = {w: [] for w in worlds}
+    states: dict[int, list] = {w: [] for w in worlds}
+    decoders: dict[int, object] = {}
+    factory = DecoderFactory()
+    for schema, channel, message in reader.iter_messages(topics=[INPUTS_TOPIC, STARTS_TOPIC, *js_topics]):
+        if channel.topic == INPUTS_TOPIC:
+            header, values = unpack(message.data)
+            headers.append(header)
+            inputs.append(values[picked])
+        elif channel.topic == STARTS_TOPIC:
+            header, values = unpack(message.data)
+            for row in values:
+                world, draw, state, params = layout.split_start(row)
+                if world in starts:
+                    starts[world].append(Start(int(header[0]), state.copy(), draw, params))
+        else:
+            decode = decoders.get(channel.id)
+            if decode is None:
+                decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
+            states[js_topics[channel.topic]].append((message.log_time, decode(message.data)))
+    if not headers:
+        raise ResimError("it holds no /batchsim/inputs messages: nothing to re-run")
+    order = np.argsort([h[0] for h in headers], kind="stable")
+    stacked = np.stack(inputs)[order]  # (nperiod, nworld, width)
+    out = {}
+    for k, w in enumerate(worlds):
+        out[w] = WorldRecord(w, namespaces[w], sorted(starts[w], key=lambda s: s.period), stacked[:, k], _joint_states(states[w]))
+    return Recorded(meta, layout, model, np.stack(headers)[order], out)
+
+
+def _joint_states(messages: list) -> JointStates | None:
+    """A world's JointState messages as arrays (the first message's joint order)."""
+    if not messages:
+        return None
+    messages.sort(key=lambda m: m[0])
+    names = list(messages[0][1].name)
+    stamps = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for _, m in messages], np.int64)
+    position = np.array([list(m.position) for _, m in messages], np.float64).reshape(len(messages), -1)
+    velocity = np.array([list(m.velocity) or [np.nan] * len(names) for _, m in messages], np.float64).reshape(len(messages), -1)
+    return JointStates(stamps, names, position, velocity)
+
+
+def _ranges(worlds: Sequence[int]) -> str:
+    """[0, 1, 2, 5] -> '0-2,5'."""
+    out, ws = [], sorted(worlds)
+    i = 0
+    while i < len(ws):
+        j = i
+        while j + 1 < len(ws) and ws[j + 1] == ws[j] + 1:
+            j += 1
+        out.append(f"{ws[i]}" if i == j else f"{ws[i]}-{ws[j]}")
+        i = j + 1
+    return ",".join(out)

@@ -1,0 +1,136 @@
+"""`batchsim resim` as a user runs it: a randomized 64-arm fleet recorded over real DDS while a
+client sends trajectory goals, a trajectory topic command and resets, then worlds picked from the
+file re-run to the bit on cpu; mjx and warp recordings re-run on cpu report where they part and
+their horizon; a recording without inputs, another model, a world not recorded: one line, exit 2.
+Domains 56-59 belong to this file."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from ros_fleet import Fleet, batchsim_process, domain_id, release_domain, stack_messages
+
+from batchsim.controllers import default_controllers
+
+pytestmark = pytest.mark.ros
+
+ARM_JOINTS = [f"joint{i}" for i in range(1, 7)]
+JTC = "joint_trajectory_controller"
+RANDOMIZE = """randomize:
+  seed: 5
+  redraw_on_reset: true
+  fields:
+    - field: body_mass
+      scale: {uniform: [0.7, 1.3]}
+    - field: dof_damping
+      scale: {uniform: [0.5, 2.0]}
+  start_pose:
+    add: {normal: [0.0, 0.05]}
+"""
+
+
+def _resim(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "batchsim.cli", "resim", *args], capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """A 64-world randomized recording with goals, a topic command and resets in it."""
+    ros = stack_messages()
+    tmp = tmp_path_factory.mktemp("resim")
+    (tmp / "rand.yaml").write_text(RANDOMIZE)
+    path = tmp / "run.mcap"
+    args = ["--worlds", "64", "--randomize", str(tmp / "rand.yaml"), "--record", str(path), "--duration", "20", "--quiet"]
+    args += ["--controllers", str(default_controllers("arm"))]  # past 16 worlds none by default
+    with Fleet(domain_id(56), args, tmp / "fleet.log") as fleet:
+        js = fleet.latest(ros["JointState"], "/world_13/joint_states")
+        fleet.wait(lambda: js.count > 0, 60, "joint_states")
+        client = ros["ActionClient"](fleet.node, ros["FJT"], f"/world_13/{JTC}/follow_joint_trajectory")
+        assert client.wait_for_server(timeout_sec=40), fleet.log()
+        time.sleep(1.0)  # the server sees the client too (tests/test_ros_stack.py says why)
+
+        def trajectory(positions, seconds):
+            point = ros["JointTrajectoryPoint"](
+                positions=[float(p) for p in positions], time_from_start=ros["Duration"](sec=int(seconds), nanosec=0)
+            )
+            return ros["JointTrajectory"](joint_names=ARM_JOINTS, points=[point])
+
+        goal = ros["FJT"].Goal(trajectory=trajectory([0.5, -0.4, 0.6, 0.3, -0.5, 0.7], 1))
+        assert fleet.send_goal(client, goal).accepted
+        fleet.publish(ros["JointTrajectory"], f"/world_40/{JTC}/joint_trajectory", trajectory([-0.6, 0.3, -0.5, 0.2, 0.4, -0.3], 1))
+        from std_srvs.srv import Trigger
+
+        time.sleep(1.5)
+        assert fleet.call(Trigger, "/world_13/reset", Trigger.Request()).success  # a fresh draw and start
+        assert fleet.send_goal(client, ros["FJT"].Goal(trajectory=trajectory([0.2] * 6, 1))).accepted
+        fleet.proc.wait(timeout=120)  # --duration: the fleet ends, and the recorder finishes the file
+        log = fleet.log()
+    assert "recording:" in log, log
+    return path, tmp
+
+
+def test_worlds_of_a_randomized_64_world_recording_rerun_bit_exact(recording):
+    path, tmp = recording
+    out = tmp / "resim.json"
+    done = _resim(str(path), "--worlds", "0,13,40,63", "--json", str(out), "--plot", str(tmp / "resim.png"))
+    assert done.returncode == 0, done.stderr
+    worlds = {r["world"]: r for r in json.loads(out.read_text())["worlds"]}
+    for w in (0, 13, 40, 63):
+        assert worlds[w]["exact"] and worlds[w]["compared"] > 500, (w, done.stdout)
+        assert f"world {w}: " in done.stdout and "bit-exact" in done.stdout
+    # the goals and the topic command moved worlds 13 and 40: the re-run followed them
+    assert max(worlds[13]["error"]) == 0 and (tmp / "resim.png").stat().st_size > 1000
+
+
+def test_what_cannot_be_rerun_is_one_line_each(recording):
+    path, tmp = recording
+    missing = _resim(str(path), "--worlds", "64")
+    assert missing.returncode == 2 and missing.stderr.count("\n") == 1
+    assert "does not hold world 64 (it recorded worlds 0-63)" in missing.stderr
+    other = _resim(str(path), "--worlds", "3", "--model", "rover")
+    assert other.returncode == 2 and "--model rover is not the model" in other.stderr and other.stderr.count("\n") == 1
+    same = _resim(str(path), "--worlds", "3", "--model", "arm")
+    assert same.returncode == 0 and "bit-exact" in same.stdout, same.stderr
+
+
+def _record(tmp, args, name):
+    domain = domain_id(57)
+    try:
+        proc = batchsim_process([*args, "--record", str(tmp / name), "--quiet"], domain, tmp / f"{name}.log")
+        assert proc.wait(timeout=600) == 0, (tmp / f"{name}.log").read_text()
+    finally:
+        release_domain(domain)
+    return tmp / name
+
+
+def test_a_recording_without_inputs_is_refused_in_one_line(tmp_path):
+    path = _record(tmp_path, ["--worlds", "2", "--duration", "0.2", "--rtf", "0", "--no-record-inputs"], "plain.mcap")
+    done = _resim(str(path))
+    assert done.returncode == 2 and done.stderr.count("\n") == 1
+    assert "holds no physics inputs" in done.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["mjx", "warp"])
+def test_a_gpu_backends_recording_rerun_on_cpu_reports_its_divergence_and_horizon(tmp_path, backend):
+    pytest.importorskip({"mjx": "mujoco.mjx", "warp": "mujoco_warp"}[backend])
+    (tmp_path / "rand.yaml").write_text(RANDOMIZE)
+    args = ["--backend", backend, "--worlds", "2", "--duration", "1", "--rtf", "0", "--randomize", str(tmp_path / "rand.yaml")]
+    path = _record(tmp_path, args, f"{backend}.mcap")
+    out = tmp_path / "resim.json"
+    done = _resim(str(path), "--tolerance", "1e-3", "--json", str(out))
+    assert done.returncode == 0, done.stderr
+    results = json.loads(out.read_text())["worlds"]
+    assert json.loads(out.read_text())["backend"] == backend
+    for r in results:
+        assert r["compared"] == 100 and not r["exact"], r  # 1 s at 100 Hz; its own kernels: not to the bit
+        t, period, joint, diff = r["first"]
+        assert joint in ARM_JOINTS and 0 < diff and period >= 0
+        assert r["horizon"] is None or r["horizon"] > 0
+        assert np.isfinite(r["max_position"])
+    assert "parts at t=" in done.stdout and f"a {backend} recording re-run" in done.stderr
