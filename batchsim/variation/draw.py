@@ -82,7 +82,7 @@ def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 @dataclasses.dataclass(frozen=True)
-class _Target:
+class Target:
     """Where one entry writes in one MjModel field: rows (objects), columns (None: a 1-D
     field), and the sign a drawn value takes (a gain stored negated in biasprm)."""
 
@@ -93,10 +93,14 @@ class _Target:
 
 
 @dataclasses.dataclass(frozen=True)
-class _Entry:
+class Entry:
+    """One `fields` entry resolved: its targets (the first is the entry's own field; a gain's
+    first is where kp or kv lives in gainprm or biasprm), the shape of one world's draw
+    (objects, columns; (1, 1) per world) and its stream."""
+
     spec: FieldVariation
-    targets: tuple[_Target, ...]
-    shape: tuple[int, int]  # (objects, columns) of one world's draw; (1, 1) per world
+    targets: tuple[Target, ...]
+    shape: tuple[int, int]
     stream: np.uint64
 
 
@@ -115,6 +119,7 @@ class Bound:
       fields: every MjModel field a draw writes, in order: those the entries name, then the
         derived ones (body_subtreemass follows body_mass, as mj_setConst computes it).
       where: each field's entry as messages name it (`file: randomize.fields[2]`).
+      entries: the `fields` entries resolved (Entry), in order.
     """
 
     def __init__(self, variation: Variation, m: mujoco.MjModel):
@@ -122,7 +127,7 @@ class Bound:
         self._m = m
         self._nominal: dict[str, np.ndarray] = {}
         self.where: dict[str, str] = {}  # each field's first entry (file: randomize.fields[i]), for messages
-        self._entries = [self._resolve(e) for e in variation.fields]
+        self.entries = [self._resolve(e) for e in variation.fields]
         self.fields = list(self._nominal)
         self._subtree = "body_mass" in self._nominal
         if self._subtree and "body_subtreemass" not in self._nominal:
@@ -145,11 +150,7 @@ class Bound:
         worlds = np.asarray(worlds, np.int64)
         n = len(worlds)
         out = {f: np.broadcast_to(v, (n, *v.shape)).copy() for f, v in self._nominal.items()}
-        for entry in self._entries:
-            nobj, ncol = entry.shape
-            values = self._sample(entry.spec.draw, entry.stream, worlds, counters, nobj * ncol).reshape(
-                n, nobj, ncol
-            )
+        for entry, values in zip(self.entries, self.entry_draws(worlds, counters), strict=True):
             op = entry.spec.operation
             for target in entry.targets:
                 array = out[target.field]
@@ -173,6 +174,15 @@ class Bound:
         if self._subtree:
             out["body_subtreemass"] = subtree_mass(self._m, out["body_mass"])
         return out
+
+    def entry_draws(self, worlds: np.ndarray, counters: np.ndarray) -> list[np.ndarray]:
+        """What each entry draws for the listed worlds before it changes a field (the factor of a
+        `scale`, the offset of an `add`, the value of a `set`): per entry `(n, *entry.shape)`."""
+        worlds = np.asarray(worlds, np.int64)
+        return [
+            self._sample(e.spec.draw, e.stream, worlds, counters, e.shape[0] * e.shape[1]).reshape(len(worlds), *e.shape)
+            for e in self.entries
+        ]
 
     def start_qpos(self, worlds: np.ndarray, counters: np.ndarray, qpos: np.ndarray) -> np.ndarray | None:
         """(n, nq) start positions: `qpos` (nq,) with each listed world's noise added to the
@@ -257,7 +267,7 @@ class Bound:
         return values
 
     # --- resolving names against the model ---
-    def _resolve(self, spec: FieldVariation) -> _Entry:
+    def _resolve(self, spec: FieldVariation) -> Entry:
         m = self._m
         if spec.field in ("actuator_kp", "actuator_kv"):
             targets = _gain_targets(m, spec, self._rows(spec, "actuator_gainprm"))
@@ -267,7 +277,7 @@ class Bound:
             values = self._field(spec.field, spec.where + ".field")
             rows = self._rows(spec, spec.field)
             primary_cols = self._columns(spec, values)
-            targets = [_Target(spec.field, rows, primary_cols)]
+            targets = [Target(spec.field, rows, primary_cols)]
         ncol = 1 if primary_cols is None else len(primary_cols)
         for other in spec.also:
             values = self._field(other, spec.where + ".also")
@@ -279,13 +289,13 @@ class Bound:
                 raise VariationError(
                     f"{spec.where}.also: {other} does not hold the objects {spec.field} holds"
                 )
-            targets.append(_Target(other, rows, None if values.ndim == 1 else np.arange(values.shape[1])))
+            targets.append(Target(other, rows, None if values.ndim == 1 else np.arange(values.shape[1])))
         for target in targets:
             self._nominal.setdefault(target.field, nominal(m, target.field))
             self.where.setdefault(target.field, spec.where)
         self._check_sign(spec, targets)
         shape = (len(rows), ncol) if spec.per is Per.OBJECT else (1, 1)
-        return _Entry(spec, tuple(targets), shape, counter_rng.stream_id(spec.stream))
+        return Entry(spec, tuple(targets), shape, counter_rng.stream_id(spec.stream))
 
     def _field(self, name: str, where: str) -> np.ndarray:
         m = self._m
@@ -347,7 +357,7 @@ class Bound:
             )
         return cols
 
-    def _check_sign(self, spec: FieldVariation, targets: list[_Target]) -> None:
+    def _check_sign(self, spec: FieldVariation, targets: list[Target]) -> None:
         """Refuse an entry that can make a positive value non-positive, or a non-negative one negative."""
         low, _ = spec.draw.support()
         for target in targets:
@@ -404,7 +414,7 @@ def object_kind(m: mujoco.MjModel, field: str) -> mujoco.mjtObj | None:
     return None
 
 
-def _gain_targets(m: mujoco.MjModel, spec: FieldVariation, rows: np.ndarray) -> list[_Target]:
+def _gain_targets(m: mujoco.MjModel, spec: FieldVariation, rows: np.ndarray) -> list[Target]:
     """Where a position actuator's kp or kv lives: kp in gainprm[0] and -biasprm[1], kv in
     -biasprm[2] (and in gainprm[0] of a velocity actuator, whose biasprm[1] is 0)."""
     gain, bias = m.actuator_gainprm, m.actuator_biasprm
@@ -431,21 +441,21 @@ def _gain_targets(m: mujoco.MjModel, spec: FieldVariation, rows: np.ndarray) -> 
             kv_velocity.append(a)
         elif position:
             kv_position.append(a)
-    targets: list[_Target] = []
+    targets: list[Target] = []
     if kp_rows:
         r = np.array(kp_rows)
         targets += [
-            _Target("actuator_gainprm", r, np.array([0])),
-            _Target("actuator_biasprm", r, np.array([1]), -1.0),
+            Target("actuator_gainprm", r, np.array([0])),
+            Target("actuator_biasprm", r, np.array([1]), -1.0),
         ]
     if kv_velocity:
         r = np.array(kv_velocity)
         targets += [
-            _Target("actuator_gainprm", r, np.array([0])),
-            _Target("actuator_biasprm", r, np.array([2]), -1.0),
+            Target("actuator_gainprm", r, np.array([0])),
+            Target("actuator_biasprm", r, np.array([2]), -1.0),
         ]
     if kv_position:
-        targets.append(_Target("actuator_biasprm", np.array(kv_position), np.array([2]), -1.0))
+        targets.append(Target("actuator_biasprm", np.array(kv_position), np.array([2]), -1.0))
     if not targets:
         raise VariationError(f"{spec.where}.field: the model has no actuator with a {spec.field[9:]} to vary")
     if spec.per is Per.OBJECT and len(targets) > 2:
