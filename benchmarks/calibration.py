@@ -29,7 +29,14 @@ def main() -> None:
     parser.add_argument("--grid", default="32x5,128x2,128x5,512x5", help="worlds x rounds, comma separated")
     parser.add_argument("--seconds", type=float, default=6.0, help="the bag's length")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--backend", default="cpu", help="where the worlds of each round run (cpu, warp, mjx)")
     args = parser.parse_args()
+    import platform
+
+    import mujoco
+
+    print(f"# {platform.node()}: {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}; MuJoCo {mujoco.__version__}; "
+          f"backend {args.backend}")  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         path = synthetic.write_bag(Path(tmp) / "real.mcap", "arm", synthetic.HIDDEN_ARM, seconds=args.seconds, seed=1)
         spec = batchsim.load("arm")
@@ -47,7 +54,7 @@ def main() -> None:
         for cell in args.grid.split(","):
             worlds, rounds = (int(v) for v in cell.split("x"))
             start = time.perf_counter()
-            fit = calibrate(bag, "arm", synthetic.RANGES_ARM, controllers, FitOptions(worlds, rounds, seed=args.seed))
+            fit = calibrate(bag, "arm", synthetic.RANGES_ARM, controllers, FitOptions(worlds, rounds, seed=args.seed, backend=args.backend))
             wall = time.perf_counter() - start
             got = {p.label: v for p, v in zip(fit.params, fit.fitted.tolist(), strict=True)}
             fitted = [got[label] for label in labels]
