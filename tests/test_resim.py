@@ -45,26 +45,21 @@ def test_inputs_message_is_a_float64_multi_array_any_reader_decodes():
         L.unpack(data[:-8])  # one value short
 
 
-def _record(nworld: int, periods: int, nstep: int, rng) -> tuple:
-    """Step a randomized cpu system as the loop does, with random commands and resets, keeping
-    what the recording keeps: each period's inputs after write(), starts, joint positions."""
-    sim = batchsim.make("arm", nworld, "cpu", randomize=RANDOMIZE)
-    sim.configure()
-    sim.activate()
-    layout = L.layout_of(sim.model, sim.physics_inputs([0]), sim.world_params([0]))
+def _record(sim, periods: int, nstep: int, drive) -> tuple:
+    """Step `sim` (configured, active) as the loop does, `drive(k)` before each write() (commands,
+    resets: it returns the worlds it reset), keeping what the recording keeps: each period's
+    inputs after write(), the (re)starts, and the joint state the bridge's snapshot takes."""
+    nworld = sim.nworld
+    layout = L.layout_of(sim.model, sim.physics_inputs([0]), sim.world_params([0]), _held(sim))
     worlds = np.arange(nworld)
     need = np.ones(nworld, bool)
     headers, inputs, positions, velocities = [], [], [], []
     starts: dict[int, list[Start]] = {w: [] for w in worlds}
     for k in range(periods):
         sim.read()
-        if k and k % 40 == 0:  # a reset of two worlds: fresh draws, a fresh start pose
-            chosen = rng.choice(nworld, 2, replace=False)
-            sim.reset(chosen)
-            need[chosen] = True
-        positions.append(sim.qstate()[0][:, :6].copy())  # what the bridge's snapshot takes: after a reset
-        velocities.append(sim.qstate()[1][:, :6].copy())
-        sim.command[:] = rng.uniform(-1, 1, sim.command.shape)
+        need[drive(k)] = True
+        positions.append(sim.qstate()[0].copy())  # what the bridge's snapshot takes: after a reset
+        velocities.append(sim.qstate()[1].copy())
         sim.write()
         header = np.array([k, k * nstep * sim.dt, nstep])  # the loop's clock: a reset world's own time restarts
         for w in np.flatnonzero(need):
@@ -75,25 +70,109 @@ def _record(nworld: int, periods: int, nstep: int, rng) -> tuple:
         headers.append(header)
         inputs.append(layout.input_row(sim.frozen, sim.physics_inputs(worlds)))
         sim.step(nstep)
-    return sim, layout, np.array(headers), np.stack(inputs), starts, np.stack(positions), np.stack(velocities)
+    return layout, np.array(headers), np.stack(inputs), starts, np.stack(positions), np.stack(velocities)
+
+
+def _held(sim) -> tuple[int, int]:
+    base = sim.base_velocity
+    return (base.qposadr, base.dofadr) if base is not None else (-1, -1)
+
+
+def _rerun_all(sim, recorded, joints: dict[str, tuple[int, int]]) -> list:
+    """Every world re-run against its recorded hinge/slide joints `joints` (name -> (qposadr, dofadr))."""
+    layout, headers, inputs, starts, pos, vel = recorded
+    model = L.load_model(L.model_bytes(sim.model))
+    stamps = _stamps(headers[:, 1])
+    names = list(joints)
+    qadr, vadr = [a for a, _ in joints.values()], [b for _, b in joints.values()]
+    out = []
+    for w in range(sim.nworld):
+        states = JointStates(stamps, names, pos[:, w][:, qadr], vel[:, w][:, vadr])
+        record = WorldRecord(w, f"world_{w}", starts[w], inputs[:, w], states)
+        out.append(compare(model, w, rerun(model, layout, headers, record), headers, states, 1e-9))
+    return out
 
 
 def test_a_rerun_of_a_randomized_world_with_resets_and_commands_is_bit_exact():
     rng = np.random.default_rng(1)
-    sim, layout, headers, inputs, starts, pos, vel = _record(6, 150, 5, rng)
-    assert sum(len(s) for s in starts.values()) > 6, "no world was reset"
-    names = [f"joint{i}" for i in range(1, 7)]
-    stamps = _stamps(headers[:, 1])
-    model = L.load_model(L.model_bytes(sim.model))
-    for w in range(6):
-        record = WorldRecord(w, f"world_{w}", starts[w], inputs[:, w], JointStates(stamps, names, pos[:, w], vel[:, w]))
-        result = compare(model, w, rerun(model, layout, headers, record), headers, record.joint_states, 1e-9)
+    sim = batchsim.make("arm", 6, "cpu", randomize=RANDOMIZE)
+    sim.configure()
+    sim.activate()
+
+    def drive(k: int) -> np.ndarray:
+        chosen = rng.choice(6, 2, replace=False) if k and k % 40 == 0 else np.zeros(0, np.intp)
+        if chosen.size:  # a reset of two worlds: fresh draws, a fresh start pose
+            sim.reset(chosen)
+        sim.command[:] = rng.uniform(-1, 1, sim.command.shape)
+        return chosen
+
+    recorded = _record(sim, 150, 5, drive)
+    assert sum(len(s) for s in recorded[3].values()) > 6, "no world was reset"
+    joints = {f"joint{i}": (i - 1, i - 1) for i in range(1, 7)}
+    for result in _rerun_all(sim, recorded, joints):
         assert result.compared == 150 and result.exact, result.line()
-        assert np.abs(vel[:, w]).max() > 0.5  # it moved
+    assert np.abs(recorded[5]).max() > 0.5  # they moved
     # the comparison can fail: world 0's re-run against world 1's recorded states
-    record = WorldRecord(0, "world_0", starts[0], inputs[:, 0], JointStates(stamps, names, pos[:, 1], vel[:, 1]))
-    result = compare(model, 0, rerun(model, layout, headers, record), headers, record.joint_states, 1e-9)
+    layout, headers, inputs, starts, pos, vel = recorded
+    model = L.load_model(L.model_bytes(sim.model))
+    states = JointStates(_stamps(headers[:, 1]), list(joints), pos[:, 1, :6], vel[:, 1, :6])
+    record = WorldRecord(0, "world_0", starts[0], inputs[:, 0], states)
+    result = compare(model, 0, rerun(model, layout, headers, record), headers, states, 1e-9)
     assert not result.exact and result.first is not None and result.horizon is not None
+
+
+def test_the_plugins_inputs_rerun_bit_exact(tmp_path):
+    """A free base held by the BaseVelocityPlugin and pushed by the ExternalWrenchPlugin."""
+    from batchsim.plugins.base_velocity import PLUGIN_TYPE as BASE
+    from batchsim.plugins.external_wrench import PLUGIN_TYPE as WRENCH
+    from batchsim.plugins.external_wrench import ExternalWrench
+
+    path = tmp_path / "base.xml"
+    path.write_text(PLUGIN_MODEL)
+    plugins = {"base": {"type": BASE, "body": "base"}, "push": {"type": WRENCH}}
+    sim = batchsim.make(str(path), 3, "cpu", sensors={"/**": {"ros__parameters": {"mujoco_plugins": plugins}}})
+    sim.configure()
+    sim.activate()
+
+    def drive(k: int) -> np.ndarray:
+        if k == 2:
+            sim.set_base_velocity([[0.4, 0.1, 0.3], [0.0, 0.0, 0.0], [-0.2, 0.3, -0.5]])
+        if k == 5:
+            sim.apply_wrench(ExternalWrench("arm", force=(0, 30.0, 0), duration=0.1), worlds=[1, 2])
+        sim.command[:] = 0.8 * np.sin(0.1 * k + np.arange(3))[:, None]
+        return np.zeros(0, np.intp)
+
+    recorded = _record(sim, 60, 10, drive)
+    assert recorded[0].base_velocity and recorded[0].nbody == sim.model.nbody
+    assert np.abs(recorded[2][:, 1:, -6 * sim.model.nbody :]).max() > 0  # a wrench was recorded
+    results = _rerun_all(sim, recorded, {"arm_joint": (7, 6)})
+    for result in results:
+        assert result.compared == 60 and result.exact, result.line()
+    # the free joint too: the held base and the pushed arm moved it, and the re-run follows
+    layout, headers, inputs, starts, pos, vel = recorded
+    model = L.load_model(L.model_bytes(sim.model))
+    record = WorldRecord(2, "world_2", starts[2], inputs[:, 2], None)
+    run = rerun(model, layout, headers, record)
+    assert np.array_equal(run.qpos, pos[:, 2]) and np.abs(pos[-1, 2, :2] - pos[0, 2, :2]).max() > 0.1
+
+
+PLUGIN_MODEL = """
+<mujoco model="resim_plugins">
+  <option timestep="0.002"/>
+  <worldbody>
+    <geom type="plane" size="5 5 0.1"/>
+    <body name="base" pos="0 0 0.2">
+      <freejoint name="base_joint"/>
+      <geom type="box" size="0.2 0.15 0.05" mass="20"/>
+      <body name="arm" pos="0 0 0.06">
+        <joint name="arm_joint" type="hinge" axis="0 0 1" damping="5"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.025" mass="2"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><position name="arm_joint" joint="arm_joint" kp="200"/></actuator>
+</mujoco>
+"""
 
 
 def _stamps(times: np.ndarray) -> np.ndarray:
