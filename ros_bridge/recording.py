@@ -220,6 +220,7 @@ class Recording(Participant):
         self._used: set[str] = set()
         self._said = False  # the recorder said how it ended
         self._ready = False  # the recorder said it has the file open
+        self._stopping = False  # asked to stop: the recorder is finishing the file
         self._geometry: bytes | None = None  # the robots' geoms, for the file (view_plan.py)
         self._next_watch = 0.0
         self._sensor_bits = np.array(self.spec.sensors, np.uint8)  # (nsensor,) or (0,)
@@ -278,6 +279,8 @@ class Recording(Participant):
         if self._leader is not self:
             return False, "the fleet's first group records every group"
         if self._proc is not None:
+            if self._stopping:  # the ring is the old recorder's until it has drained it
+                return False, f"still finishing {self.path}: ask again in a moment"
             return False, f"already recording to {self.path}"
         problem = path_problem(path)
         if problem is not None:
@@ -313,6 +316,7 @@ class Recording(Participant):
         if self._proc is None:
             return False, "not recording"
         self._set_recording(False)
+        self._stopping = True
         try:
             self._proc.stdin.close()  # EOF: drain the ring, write the summary, exit
         except OSError:
@@ -438,4 +442,4 @@ class Recording(Participant):
             print(line, file=sys.stderr, flush=True)
         if self._status is not None:
             os.close(self._status)
-        self._proc, self._status = None, None
+        self._proc, self._status, self._stopping = None, None, False

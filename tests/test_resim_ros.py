@@ -74,9 +74,9 @@ def recording(tmp_path_factory):
         from std_srvs.srv import SetBool
 
         assert fleet.call(SetBool, "/batchsim/record", SetBool.Request(data=False)).success
-        deadline = time.monotonic() + 20  # the first file is being finished meanwhile ("already recording")
-        while not fleet.call(SetBool, "/batchsim/record", SetBool.Request(data=True)).success:
-            assert time.monotonic() < deadline, fleet.log()
+        deadline = time.monotonic() + 20  # the first file is being finished meanwhile
+        while not (answer := fleet.call(SetBool, "/batchsim/record", SetBool.Request(data=True))).success:
+            assert answer.message.startswith("still finishing") and time.monotonic() < deadline, answer.message
             time.sleep(0.2)
         time.sleep(0.3)
         assert fleet.send_goal(client, ros["FJT"].Goal(trajectory=trajectory([-0.3] * 6, 1))).accepted
