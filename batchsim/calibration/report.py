@@ -12,6 +12,7 @@ import numpy as np
 from batchsim.calibration.fit import Fit
 from batchsim.calibration.parameters import Parameter
 from batchsim.calibration.search import BoxSearch, Round
+from batchsim.plotting import pyplot
 from batchsim.variation import Operation
 
 
@@ -91,13 +92,7 @@ def yaml_block(fit: Fit, header: str) -> str:
 
 def plot(fit: Fit, path: Path, title: str) -> Path:
     """Two panels: the RMS error per joint before and after, and the best error per round."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise RuntimeError("--plot needs matplotlib: pip install matplotlib") from None
+    plt = pyplot()
     joints = fit.before.joints
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     x = np.arange(len(joints))

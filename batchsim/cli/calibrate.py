@@ -12,11 +12,11 @@ one line, exit 2.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 
 from batchsim.cli.analysis_args import calibrate_parser
 from batchsim.cli.args import UsageError
+from batchsim.cli.reports import write_reports
 
 
 def calibrate(argv: Sequence[str]) -> int:
@@ -79,12 +79,6 @@ def calibrate(argv: Sequence[str]) -> int:
         )
         args.out.write_text(yaml_block(fit, header))
         print(f"wrote {args.out}")
-    if args.json is not None:
-        args.json.write_text(json.dumps(as_json(fit, about), indent=1))
-        print(f"wrote {args.json}")
-    if args.plot is not None:
-        try:
-            print(f"wrote {plot(fit, args.plot, f'calibration of {args.model} against {args.file}')}")
-        except RuntimeError as e:
-            raise UsageError(str(e)) from None
+    title = f"calibration of {args.model} against {args.file}"
+    write_reports(args.json, lambda: as_json(fit, about), args.plot, lambda path: plot(fit, path, title))
     return 0

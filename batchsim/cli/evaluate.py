@@ -10,13 +10,13 @@ draws and the command that runs one alone (batchsim.evaluation).
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from collections.abc import Sequence
 
 import batchsim
 from batchsim.cli.args import UsageError, evaluate_parser
+from batchsim.cli.reports import write_reports
 from batchsim.controllers import load_controllers
 from batchsim.evaluation.episodes import EvalOptions, find_policy, run_episodes
 from batchsim.evaluation.report import as_json, plot, table
@@ -67,12 +67,5 @@ def evaluate(argv: Sequence[str]) -> int:
         "world_offset": args.world_offset,
         "backend": args.backend,
     }
-    if args.json is not None:
-        args.json.write_text(json.dumps(as_json(results, about), indent=1))
-        print(f"wrote {args.json}")
-    if args.plot is not None:
-        try:
-            print(f"wrote {plot(results, args.plot, title)}")
-        except RuntimeError as e:
-            raise UsageError(str(e)) from None
+    write_reports(args.json, lambda: as_json(results, about), args.plot, lambda path: plot(results, path, title))
     return 0

@@ -5,7 +5,6 @@ within the tolerance."""
 
 from __future__ import annotations
 
-import json
 import sys
 import time as wallclock
 from collections.abc import Sequence
@@ -13,6 +12,8 @@ from collections.abc import Sequence
 from batchsim import startup
 from batchsim.cli.analysis_args import resim_parser
 from batchsim.cli.args import UsageError
+from batchsim.cli.reports import write_reports
+from batchsim.plotting import pyplot
 
 
 def resim(argv: Sequence[str]) -> int:
@@ -61,21 +62,17 @@ def resim(argv: Sequence[str]) -> int:
         print(result.line())
     if backend != "cpu":
         say(f"a {backend} recording re-run on MuJoCo's C step parts from it: {backend} computes with kernels of its own (float32 on a GPU)")
-    if args.json is not None:
-        args.json.write_text(json.dumps({"file": args.file, "backend": backend, "worlds": [r.to_json() for r in results]}, indent=1))
-    if args.plot is not None:
-        _plot(results, args.plot, args.tolerance)
+    document = lambda: {"file": args.file, "backend": backend, "worlds": [r.to_json() for r in results]}  # noqa: E731
+    write_reports(args.json, document, args.plot, lambda path: _plot(results, path, args.tolerance))
     say(f"done in {wallclock.monotonic() - began:.1f} s")
     return 0
 
 
 def _plot(results, path, tolerance: float) -> None:
     """The largest difference over time, per world (log scale; bit-exact worlds on the floor)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import numpy as np
+
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(8, 4))
     for r in results:

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from batchsim.evaluation.episodes import Results
+from batchsim.plotting import pyplot
 
 
 def _stat(values: np.ndarray) -> str:
@@ -93,13 +94,7 @@ def as_json(results: Results, about: dict[str, Any]) -> dict[str, Any]:
 def plot(results: Results, path: Path, title: str) -> Path:
     """Three panels: each world's success rate (sorted), the tracking errors against the
     tolerance, and the error over the last episode (median, 5-95 % band, the worst world)."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise RuntimeError("--plot needs matplotlib: pip install 'batchsim[bench]'") from None
+    plt = pyplot()
     o = results.options
     fig, (a, b, c) = plt.subplots(1, 3, figsize=(15, 4.2))
     rates = np.sort(results.world_success())
