@@ -291,6 +291,10 @@ class Engine:
             mujoco.mj_getState(m, d, out[k], what)
         return out
 
+    def set_physics_state(self, worlds: np.ndarray, states: np.ndarray) -> None:
+        """Write whole mjSTATE_INTEGRATION states `(n, nstate)` into `worlds` (a re-run's start)."""
+        raise NotImplementedError(f"the {self.name} backend cannot write a whole physics state: re-run on cpu")
+
     def set_model_fields(self, worlds: np.ndarray, params: dict[str, np.ndarray]) -> None:
         """Make `params[field][worlds]` the engine's values of each field for those worlds.
         `params` holds every world's (field -> (nworld, *shape) float64), the listed rows new;

@@ -38,7 +38,6 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import mujoco
 import numpy as np
 
 from batchsim.backends import varying_backends
@@ -50,6 +49,7 @@ from batchsim.parts.face import RUNNING, FaceParts, SystemFace
 from batchsim.parts.failures import FailureLog, ensure_log_dir
 from batchsim.parts.poses import BodyPoses
 from batchsim.parts.readings import Readings
+from batchsim.parts.resimulation import Resimulation
 from batchsim.parts.sensing import Sensing
 from batchsim.plugins import BaseDrive, Wrenches
 from batchsim.types import (
@@ -76,7 +76,7 @@ class Parts(FaceParts):
     draws: WorldDraws
 
 
-class BatchedSystem(SystemFace):
+class BatchedSystem(SystemFace, Resimulation):
     """`nworld` copies of one robot on `engine`, behind ros2_control's SystemInterface.
 
     Attributes (valid from on_configure on):
@@ -335,32 +335,6 @@ class BatchedSystem(SystemFace):
         rows = worlds_index(worlds, self.nworld)
         qpos, qvel = self.engine.qstate(np.arange(self.nworld) if rows is None else rows)
         return qpos.astype(np.float64), qvel.astype(np.float64)
-
-    def _rows(self, worlds: Sequence[int] | np.ndarray | None) -> np.ndarray:
-        rows = worlds_index(worlds, self.nworld)
-        return np.arange(self.nworld) if rows is None else rows
-
-    def physics_state(self, worlds: Sequence[int] | np.ndarray) -> np.ndarray:
-        """The listed worlds' whole physics state `(n, mj_stateSize(model, INTEGRATION))` float64, laid
-        out as `mujoco.mj_getState(..., mjSTATE_INTEGRATION)` lays it out: what stepping them needs
-        (time, qpos, qvel, act, warmstart, ctrl, applied forces, mocap, ...). Exact on cpu; a GPU
-        engine's time, qpos, qvel and ctrl (float32 made float64) over the model's defaults."""
-        self._require("read the physics state", RUNNING)
-        return self.engine.physics_state(self._rows(worlds))
-
-    def physics_inputs(self, worlds: Sequence[int] | np.ndarray) -> dict[str, np.ndarray]:
-        """What the listed worlds' physics takes in the steps that follow a write(), beyond its state:
-        `ctrl` `(n, nu)` (after the PIDs and transmissions), and where the plugins run
-        `base_velocity` `(n, 3)` (the held body-frame vx, vy, wz; NaN: none held) and `xfrc_applied`
-        `(n, nbody * 6)`. float64 copies (re-simulation records them: batchsim.resim)."""
-        rows = self._rows(worlds)
-        out = {"ctrl": self.engine.ctrl()[rows].astype(np.float64)}
-        staged = self.parts.base_drive.staged
-        if self.parts.base_drive.velocity is not None:
-            out["base_velocity"] = np.full((len(rows), 3), np.nan) if staged is None else staged[rows].copy()
-        if self.parts.wrenches.configured:
-            out["xfrc_applied"] = self.engine.physics_state(rows, int(mujoco.mjtState.mjSTATE_XFRC_APPLIED))
-        return out
 
     def set_qstate(self, worlds: Sequence[int] | np.ndarray | None, qpos: Any, qvel: Any) -> None:
         """Teleport: write whole `qpos` `(n, nq)` and `qvel` `(n, nv)` rows into all or the listed

@@ -49,6 +49,7 @@ from batchsim.controllers import ControllerManager
 from batchsim.controllers.topics import Output
 from batchsim.loop import OptionError, SimLoop
 from ros_bridge.host import BridgeHost
+from ros_bridge.input_recording import InputTap
 from ros_bridge.options import BridgeOptions, Reliability, default_workers
 from ros_bridge.plan import FleetPlan, build_plan
 from ros_bridge.recording import Recording
@@ -123,6 +124,10 @@ def open_bridge(
     workers = min(workers, sim.nworld)
     plan, fills, inputs = build_plan(sim, loop.control_rate, options, manager, max(1, workers), extra_outputs=outputs)
     readers = [c for c in manager if not c.command_interfaces] if manager is not None else []
+    tap = None  # a recording that keeps inputs keeps what the controllers take too (batchsim resim --controllers)
+    if plan.recording is not None and plan.recording.inputs is not None:
+        tap = InputTap()
+        inputs = tap.wrap(inputs)
     host = BridgeHost(
         sim,
         loop,
@@ -142,12 +147,16 @@ def open_bridge(
     recording = None
     if plan.recording is not None:  # MCAP: with --record from the first period, else on request
         recording = Recording(plan, host.memory, loop)
+        if tap is not None:
+            tap.target = recording.inputs
+            if host.manager_link is not None:
+                host.manager_link.tap = tap
         host.on_close.append(recording.close)
         loop.participants.insert(loop.participants.index(host) + 1, recording)
-    # the web view's camera request: the picked world's camera, rendered as if subscribed
+    # the web view's camera request: each browser's picked world's camera, rendered as if subscribed
     camera = view_camera(host.memory) if plan.view is not None else None
     if plan.sensors is not None:  # cameras and lidars: rendered and scanned right after the host's update
-        # a recording wants its cameras too, and the view the camera of the world it shows
+        # a recording wants its cameras too, and the view the camera of each world its browsers show
         feed = SensorFeed(sim, host.memory, plan.sensors, recording, camera)
         loop.participants.insert(loop.participants.index(host) + 1, feed)
     if manager is not None and manager not in loop.participants:

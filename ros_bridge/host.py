@@ -416,8 +416,7 @@ class BridgeHost(Participant):
                 self._done(j, ticket, self.loop.sim_time, ok=True)
         self.trajectories.take(trajectories, reset_rows, bool(resets), good, rejected, later=later)
         for index, world, goal in cancels:
-            controller = self.manager_link.manager[self.plan.actions[index].controller]
-            controller.cancel(np.array([world]), np.array([goal]))
+            self.manager_link.cancel(self.plan.actions[index].controller, world, goal)
         return anything
 
     def _refused(
@@ -439,10 +438,10 @@ class BridgeHost(Participant):
     def _gripper_goal(self, payload: np.ndarray) -> None:
         """A GripperCommand goal to its controller; a refused one is marked for its worker."""
         index, world, goal, position, max_effort = decode_gripper_goal(payload)
-        controller = self.manager_link.manager[self.plan.actions[index].controller]
-        refused = controller.set_goals(np.array([world]), np.array([goal]), np.array([position]), np.array([max_effort]))
+        name = self.plan.actions[index].controller
+        refused = self.manager_link.gripper_goal(name, world, goal, position, max_effort)
         for _, reason in refused:
-            self.rejections.put(world, self._period, f"{controller.name}/gripper_cmd", reason)
+            self.rejections.put(world, self._period, f"{name}/gripper_cmd", reason)
             self.refusals.refuse([world], [goal], Refusal.INVALID, [reason])
 
     def _done(self, worker: int, ticket: int, time: float, ok: bool, message: str = "") -> None:

@@ -135,7 +135,8 @@ def manager_spec(sim: Contract, manager: ControllerManager, control_rate: float)
 
 class ManagerLink:
     """Keeps the shared active masks (protocol/active.py) equal to `manager`'s; carries out
-    switch requests.
+    switch requests, parameter sets, goal cancels and gripper goals, and tells `tap` of each (a
+    recording that keeps the controllers' inputs: ros_bridge/input_recording.py; None: nobody).
 
     Args:
       manager: the controllers.
@@ -145,6 +146,7 @@ class ManagerLink:
 
     def __init__(self, manager: ControllerManager, memory: Memory, world_names: list[str]):
         self.manager = manager
+        self.tap: Any = None
         self.active = ActiveWriter(memory)
         self.names = [c.name for c in manager]
         self.world_names = world_names
@@ -154,6 +156,7 @@ class ManagerLink:
     def switch(self, payload: np.ndarray) -> tuple[int, int, bool, str]:
         """A SWITCH request: (ticket, world, ok, message) to answer with."""
         ticket, world, activate, deactivate, strictness, asap = decode_switch(payload)
+        self._tell("switch", world, activate=list(activate), deactivate=list(deactivate), strictness=strictness, asap=asap)
         try:
             result = self.manager.switch(np.array([world]), activate, deactivate, strictness, asap)
         except ValueError as e:  # an unknown strictness
@@ -171,5 +174,20 @@ class ManagerLink:
         name = document.get("controller")
         if name not in self.names:
             return ticket, False, f"no controller named {name!r}"
+        self._tell("parameters", world, controller=name, values=document.get("values", {}))
         why = self.manager[name].set_parameters(np.array([world]), document.get("values", {}))
         return ticket, not why, why
+
+    def cancel(self, controller: str, world: int, goal: int) -> None:
+        """A goal's cancel, to its controller."""
+        self._tell("cancel", world, controller=controller, goal=int(goal))
+        self.manager[controller].cancel(np.array([world]), np.array([goal]))
+
+    def gripper_goal(self, controller: str, world: int, goal: int, position: float, max_effort: float) -> list:
+        """A GripperCommand goal, to its controller: its refusals."""
+        self._tell("gripper", world, controller=controller, goal=int(goal), position=float(position), max_effort=float(max_effort))
+        return self.manager[controller].set_goals(np.array([world]), np.array([goal]), np.array([position]), np.array([max_effort]))
+
+    def _tell(self, kind: str, world: int, **what: Any) -> None:
+        if self.tap is not None:
+            self.tap.control(kind, int(world), what)

@@ -41,7 +41,7 @@ from batchsim.resim.layout import InputsLayout
 from ros_bridge.input_recording import InputRecording
 from ros_bridge.options import RecordOptions
 from ros_bridge.outputs import OutputSpec
-from ros_bridge.protocol.input_ring import INPUTS, STARTS, ring_arrays
+from ros_bridge.protocol.input_ring import INPUTS, STARTS, event_arrays, ring_arrays
 from ros_bridge.protocol.recording import (
     RecordWriter,
     put_answer,
@@ -98,6 +98,7 @@ class RecordSpec:
             nrow = len(self.worlds)
             arrays += ring_arrays(INPUTS, nrow, self.inputs.input_width)
             arrays += ring_arrays(STARTS, 1, self.inputs.start_width, least=max(256, 4 * nrow))
+            arrays += event_arrays()
         return arrays
 
 

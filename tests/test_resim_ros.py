@@ -66,6 +66,11 @@ def recording(tmp_path_factory):
         from std_srvs.srv import Trigger
 
         time.sleep(1.5)
+        # world 40's trajectory controller switched off and on again: the controllers' re-run takes that too
+        switch, base = ros["srv"].SwitchController, "/world_40/controller_manager/switch_controller"
+        assert fleet.call(switch, base, switch.Request(deactivate_controllers=[JTC], strictness=2)).ok
+        time.sleep(0.3)
+        assert fleet.call(switch, base, switch.Request(activate_controllers=[JTC], strictness=2)).ok
         assert fleet.call(Trigger, "/world_13/reset", Trigger.Request()).success  # a fresh draw and start
         assert fleet.send_goal(client, ros["FJT"].Goal(trajectory=trajectory([0.2] * 6, 1))).accepted
         time.sleep(0.5)
@@ -99,6 +104,24 @@ def test_worlds_of_a_randomized_64_world_recording_rerun_bit_exact(recording):
     assert max(worlds[13]["error"]) == 0 and (tmp / "resim.png").stat().st_size > 1000
 
 
+def test_the_controllers_rerun_from_the_messages_they_took(recording):
+    """The world's JointTrajectoryController again, from its goals and topic trajectory: the same
+    commands and ctrl to the bit; with open_loop_control off, the commands part where a goal starts."""
+    path, tmp = recording
+    out = tmp / "controllers.json"
+    done = _resim(str(path), "--worlds", "13,40", "--model", "arm", "--controllers", "--json", str(out))
+    assert done.returncode == 0, done.stderr
+    verdicts = {v["world"]: v for v in json.loads(out.read_text())["controllers"]}
+    assert verdicts[13]["exact"] and verdicts[13]["events"] == 2, done.stdout  # two goals, one after a reset
+    assert verdicts[40]["exact"] and verdicts[40]["events"] == 3, done.stdout  # a joint_trajectory message, two switches
+    assert "world 13: " in done.stdout and done.stdout.count("bit-exact") == 4
+    changed = tmp / "closed_loop.yaml"
+    changed.write_text(default_controllers("arm").read_text().replace("open_loop_control: true", "open_loop_control: false"))
+    other = _resim(str(path), "--worlds", "13", "--model", "arm", "--controllers", str(changed))
+    assert other.returncode == 0, other.stderr
+    assert "the commands part at t=" in other.stdout and "/position first" in other.stdout, other.stdout
+
+
 def test_a_recording_started_mid_run_by_the_service_reruns_bit_exact(recording):
     path, tmp = recording
     second = path.with_name("run_2.mcap")
@@ -108,6 +131,9 @@ def test_a_recording_started_mid_run_by_the_service_reruns_bit_exact(recording):
     worlds = {r["world"]: r for r in json.loads(out.read_text())["worlds"]}
     assert worlds[13]["exact"] and worlds[40]["exact"], done.stdout
     assert max(np.abs(np.diff(worlds[13]["time"]))) < 0.02  # every period of the world compared
+    # its controllers' state at the recording's start is not in the file: not re-run, and said
+    mid = _resim(str(second), "--worlds", "40", "--model", "arm", "--controllers")
+    assert mid.returncode == 0 and "no fresh start in the recording (it began mid-run)" in mid.stdout, mid.stdout
 
 
 def test_what_cannot_be_rerun_is_one_line_each(recording):

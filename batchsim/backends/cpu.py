@@ -44,6 +44,11 @@ _DIVERGED_WARNINGS = slice(int(_W.mjWARN_BADQPOS), int(_W.mjWARN_BADCTRL) + 1)
 _WATCHED = slice(_OVERFLOW_WARNINGS.start, _DIVERGED_WARNINGS.stop)
 assert _OVERFLOW_WARNINGS.stop == _DIVERGED_WARNINGS.start
 _DEVICE_ARRAYS = ("qpos", "qvel", "qfrc_actuator", "sensordata", "time")
+# MjData's fields of mjSTATE_INTEGRATION (set_physics_state writes each into the batch's rows)
+_STATE_FIELDS = (
+    "time", "qpos", "qvel", "act", "qacc_warmstart", "ctrl", "qfrc_applied", "xfrc_applied", "eq_active",
+    "mocap_pos", "mocap_quat", "userdata", "plugin_state",
+)  # fmt: skip
 
 
 class CpuEngine(Engine):
@@ -249,6 +254,19 @@ class CpuEngine(Engine):
             self._batch.get_data(int(w), d)
             mujoco.mj_getState(m, d, out[k], what)
         return out
+
+    def set_physics_state(self, worlds: np.ndarray, states: np.ndarray) -> None:
+        """Through a MjData per world: mj_setState, then its state fields into the batch's rows."""
+        m = self.model
+        d = mujoco.MjData(m)
+        for k, w in enumerate(worlds):
+            self._batch.get_data(int(w), d)
+            mujoco.mj_setState(m, d, states[k], INTEGRATION)
+            for field in _STATE_FIELDS:
+                value = getattr(d, field)
+                if np.size(value):
+                    self._batch.bind(field)[int(w)] = value
+        self._batch.forward(ids=np.sort(worlds).astype(np.int32))
 
     def _kinematics_now(self, worlds: np.ndarray, rows: np.ndarray, xpos: np.ndarray, xquat: np.ndarray) -> None:
         """xpos/xquat of the current state into the `rows` (bool) of `worlds`: mj_kinematics per world."""

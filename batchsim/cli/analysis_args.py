@@ -19,6 +19,11 @@ def resim_parser() -> argparse.ArgumentParser:
     p.add_argument("file", help="an MCAP file written by batchsim --record (with its inputs)")
     p.add_argument("--worlds", type=world_list, default=None, metavar="I,J-K,...", help="the worlds re-run (default: every recorded world)")
     p.add_argument("--model", default=None, help="re-run this model (a name or MJCF file) in place of the recording's own; refused unless it is the recorded one")
+    p.add_argument(
+        "--controllers", nargs="?", const="", default=None, metavar="FILE",
+        help="re-run the world's controllers too, from the messages they took (the controller_manager YAML the run "
+        "used; without FILE, the model's own); needs --model",
+    )  # fmt: skip
     p.add_argument("--tolerance", type=float, default=1e-6, help="the horizon: how long each world stays within this error (rad, m, rad/s, m/s)")
     p.add_argument("--json", type=Path, default=None, help="write each world's result here")
     p.add_argument("--plot", type=Path, default=None, help="write the error over time here (.png, .svg, .pdf)")

@@ -5,6 +5,7 @@ within the tolerance."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time as wallclock
 from collections.abc import Sequence
@@ -26,6 +27,7 @@ def resim(argv: Sequence[str]) -> int:
     except ModuleNotFoundError as e:
         raise UsageError(f"resim needs {e.name}: {startup.install_command('record')}") from None
     from batchsim.resim.compare import compare
+    from batchsim.resim.controllers import rerun_controllers
     from batchsim.resim.layout import load_model, model_bytes, model_hash
     from batchsim.resim.physics import rerun
     from batchsim.resim.recorded import ResimError, read
@@ -36,6 +38,8 @@ def resim(argv: Sequence[str]) -> int:
     except ResimError as e:
         raise UsageError(str(e)) from None
     model = load_model(recorded.model)
+    if args.controllers is not None and args.model is None:
+        raise UsageError("--controllers re-runs the robot's controllers: name its model with --model (the recorded one)")
     if args.model is not None:
         import batchsim
 
@@ -51,21 +55,45 @@ def resim(argv: Sequence[str]) -> int:
         f"re-running {len(recorded.worlds)} world(s) of {args.file} ({len(recorded.headers)} periods, recorded on "
         f"{backend}, MuJoCo {recorded.meta['mujoco']}) on MuJoCo's C step"
     )
-    results = []
+    controllers = _controllers(args) if args.controllers is not None else None
+    results, controlled = [], []
     for w, world in recorded.worlds.items():
         if not world.starts:
             say(f"world {w}: the recording holds no start of it (its start was dropped): cannot be re-run")
             continue
-        run = rerun(model, recorded.layout, recorded.headers, world)
+        if controllers is not None:
+            try:
+                run, verdict = rerun_controllers(args.model, controllers, recorded, world)
+            except ResimError as e:
+                raise UsageError(str(e)) from None
+            controlled.append((w, verdict))
+            print(verdict.line(w))
+        else:
+            run = rerun(model, recorded.layout, recorded.headers, world)
         result = compare(model, w, run, recorded.headers, world.joint_states, args.tolerance)
         results.append(result)
         print(result.line())
     if backend != "cpu":
         say(f"a {backend} recording re-run on MuJoCo's C step parts from it: {backend} computes with kernels of its own (float32 on a GPU)")
-    document = lambda: {"file": args.file, "backend": backend, "worlds": [r.to_json() for r in results]}  # noqa: E731
+    document = lambda: {  # noqa: E731
+        "file": args.file, "backend": backend, "worlds": [r.to_json() for r in results],
+        "controllers": [{"world": w, **dataclasses.asdict(v)} for w, v in controlled],
+    }  # fmt: skip
     write_reports(args.json, document, args.plot, lambda path: _plot(results, path, args.tolerance))
     say(f"done in {wallclock.monotonic() - began:.1f} s")
     return 0
+
+
+def _controllers(args) -> str:
+    """--controllers' file, or the model's own controllers."""
+    from batchsim.controllers import default_controllers
+
+    if args.controllers:
+        return args.controllers
+    own = default_controllers(str(args.model))
+    if own is None:
+        raise UsageError(f"--controllers: {args.model} has no controllers of its own; name the YAML the run used")
+    return str(own)
 
 
 def _plot(results, path, tolerance: float) -> None:

@@ -18,6 +18,8 @@ import numpy as np
 
 INPUTS_TOPIC = "/batchsim/inputs"
 STARTS_TOPIC = "/batchsim/starts"
+EVENTS_TOPIC = "/batchsim/controller_inputs"  # std_msgs/String: one JSON document per input (controller_events.py)
+EVENTS_TYPE = "std_msgs/msg/String"
 MSG_TYPE = "std_msgs/msg/Float64MultiArray"
 MODEL_ATTACHMENT = "batchsim/model.mjb"
 METADATA = "batchsim_resim"  # the MCAP metadata record naming the layout
@@ -36,6 +38,8 @@ class InputsLayout:
       nstate: values of mjSTATE_INTEGRATION.
       params: each varied model field and its shape (world_params' order), in start rows after the state.
       held_base: the free joint's qposadr and dofadr whose velocity the BaseVelocityPlugin holds; (-1, -1): none.
+      ncommand: command interface values per world, last in an input row: `command` as the
+        controllers (and the bridge's plain commands) left it for write().
     """
 
     nu: int
@@ -44,16 +48,18 @@ class InputsLayout:
     nstate: int
     params: tuple[tuple[str, tuple[int, ...]], ...] = ()
     held_base: tuple[int, int] = (-1, -1)
+    ncommand: int = 0
 
     @property
     def input_width(self) -> int:
-        """An input row: frozen (0/1), ctrl, then the plugins' values."""
-        return 1 + self.nu + 3 * self.base_velocity + 6 * self.nbody
+        """An input row: frozen (0/1), ctrl, the plugins' values, the command interfaces."""
+        return 1 + self.nu + 3 * self.base_velocity + 6 * self.nbody + self.ncommand
 
     @property
     def start_width(self) -> int:
-        """A start row: the world's number, its draw number, its state, its model values."""
-        return 2 + self.nstate + sum(int(np.prod(shape)) for _, shape in self.params)
+        """A start row: the world's number, its draw number, whether it starts afresh (the run's
+        first period or a reset: its controllers start afresh too), its state, its model values."""
+        return 3 + self.nstate + sum(int(np.prod(shape)) for _, shape in self.params)
 
     def input_row(self, frozen: np.ndarray, inputs: dict[str, np.ndarray]) -> np.ndarray:
         """(n, input_width) rows from the contract's physics_inputs and the frozen flags."""
@@ -62,6 +68,8 @@ class InputsLayout:
             parts.append(inputs["base_velocity"])
         if self.nbody:
             parts.append(inputs["xfrc_applied"])
+        if self.ncommand:
+            parts.append(inputs["command"])
         return np.concatenate(parts, axis=1)
 
     def split_inputs(self, rows: np.ndarray) -> dict[str, np.ndarray]:
@@ -71,23 +79,29 @@ class InputsLayout:
         if self.base_velocity:
             out["base_velocity"], at = rows[:, at : at + 3], at + 3
         if self.nbody:
-            out["xfrc_applied"] = rows[:, at : at + 6 * self.nbody].reshape(len(rows), self.nbody, 6)
+            out["xfrc_applied"], at = rows[:, at : at + 6 * self.nbody].reshape(len(rows), self.nbody, 6), at + 6 * self.nbody
+        if self.ncommand:
+            out["command"] = rows[:, at : at + self.ncommand]
         return out
 
-    def start_row(self, worlds: np.ndarray, draws: np.ndarray, state: np.ndarray, params: dict[str, np.ndarray]) -> np.ndarray:
-        """(n, start_width) rows: world numbers, draw numbers, mjSTATE_INTEGRATION states, model values."""
+    def start_row(
+        self, worlds: np.ndarray, draws: np.ndarray, fresh: np.ndarray, state: np.ndarray, params: dict[str, np.ndarray]
+    ) -> np.ndarray:
+        """(n, start_width) rows: world numbers, draw numbers, fresh flags, mjSTATE_INTEGRATION
+        states, model values."""
         n = len(worlds)
         flat = [params[f].reshape(n, -1) for f, _ in self.params]
-        return np.concatenate([np.asarray(worlds, np.float64)[:, None], np.asarray(draws, np.float64)[:, None], state, *flat], axis=1)
+        head = np.stack([np.asarray(worlds, np.float64), np.asarray(draws, np.float64), np.asarray(fresh, np.float64)], 1)
+        return np.concatenate([head, state, *flat], axis=1)
 
-    def split_start(self, row: np.ndarray) -> tuple[int, int, np.ndarray, dict[str, np.ndarray]]:
-        """A start row -> (world, draw number, state, field -> value)."""
-        at = 2 + self.nstate
+    def split_start(self, row: np.ndarray) -> tuple[int, int, bool, np.ndarray, dict[str, np.ndarray]]:
+        """A start row -> (world, draw number, fresh, state, field -> value)."""
+        at = 3 + self.nstate
         params = {}
         for field, shape in self.params:
             size = int(np.prod(shape))
             params[field], at = row[at : at + size].reshape(shape), at + size
-        return int(row[0]), int(row[1]), row[2 : 2 + self.nstate], params
+        return int(row[0]), int(row[1]), bool(row[2]), row[3 : 3 + self.nstate], params
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self))
@@ -96,17 +110,22 @@ class InputsLayout:
     def from_json(cls, text: str) -> InputsLayout:
         d = json.loads(text)
         d["params"] = tuple((f, tuple(shape)) for f, shape in d["params"])
-        d["held_base"] = tuple(d.get("held_base", (-1, -1)))
+        d["held_base"] = tuple(d["held_base"])
         return cls(**d)
 
 
 def layout_of(
-    model: mujoco.MjModel, inputs: dict[str, np.ndarray], params: dict[str, np.ndarray], held_base: tuple[int, int] = (-1, -1)
+    model: mujoco.MjModel,
+    inputs: dict[str, np.ndarray],
+    params: dict[str, np.ndarray],
+    held_base: tuple[int, int] = (-1, -1),
+    ncommand: int = 0,
 ) -> InputsLayout:
-    """The layout of a system's rows, from one world's physics_inputs and world_params, and the
-    held base's (qposadr, dofadr) where a BaseVelocityPlugin runs."""
+    """The layout of a system's rows, from one world's physics_inputs and world_params, the
+    held base's (qposadr, dofadr) where a BaseVelocityPlugin runs, and its command interfaces."""
     return InputsLayout(
         held_base=held_base,
+        ncommand=ncommand,
         nu=int(model.nu),
         base_velocity="base_velocity" in inputs,
         nbody=int(model.nbody) if "xfrc_applied" in inputs else 0,
@@ -131,7 +150,19 @@ def load_model(data: bytes) -> mujoco.MjModel:
     return mujoco.MjModel.from_binary_path("model.mjb", {"model.mjb": data})
 
 
-# --- std_msgs/msg/Float64MultiArray in CDR (little endian) ---
+# --- std_msgs/msg/String and Float64MultiArray in CDR (little endian) ---
+def pack_string(text: str) -> bytes:
+    """A std_msgs/String."""
+    data = text.encode() + b"\x00"
+    return _CDR_LE + struct.pack("<I", len(data)) + data
+
+
+def unpack_string(data: bytes) -> str:
+    (length,) = struct.unpack_from("<I", data, 4)
+    return data[8 : 8 + length - 1].decode()
+
+
+
 def pack(header: np.ndarray, rows: np.ndarray, labels: tuple[str, str] = ("worlds", "values")) -> bytes:
     """A Float64MultiArray: `header` (data_offset values) then `rows` (n, width), row-major."""
     n, width = rows.shape

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from batchsim.resim.layout import (
+    EVENTS_TOPIC,
     INPUTS_TOPIC,
     METADATA,
     MODEL_ATTACHMENT,
@@ -17,6 +18,7 @@ from batchsim.resim.layout import (
     InputsLayout,
     model_hash,
     unpack,
+    unpack_string,
 )
 
 
@@ -27,12 +29,14 @@ class ResimError(Exception):
 @dataclasses.dataclass
 class Start:
     """A world's (re)start: the period it starts in, its state (mjSTATE_INTEGRATION), its draw
-    number and its drawn model values."""
+    number and its drawn model values; `fresh`: at the run's first period or a reset (its
+    controllers start afresh too), not a recording begun mid-run."""
 
     period: int
     state: np.ndarray
     draw: int
     params: dict[str, np.ndarray]
+    fresh: bool = True
 
 
 @dataclasses.dataclass
@@ -61,14 +65,16 @@ class WorldRecord:
 @dataclasses.dataclass
 class Recorded:
     """A recording's re-simulation facts: `meta` (the batchsim_resim record), `layout`, the MJB
-    `model` bytes, the periods' `headers` (n, 3: number, sim time, steps) and per world asked its
-    WorldRecord."""
+    `model` bytes, the periods' `headers` (n, 3: number, sim time, steps), per world asked its
+    WorldRecord, and the controllers' inputs (`events`: each a JSON document of
+    ros_bridge/input_recording.py's, in period order)."""
 
     meta: dict[str, str]
     layout: InputsLayout
     model: bytes
     headers: np.ndarray
     worlds: dict[int, WorldRecord]
+    events: list[dict] = dataclasses.field(default_factory=list)
 
 
 def read(path: str, worlds: Sequence[int] | None = None) -> Recorded:
@@ -117,7 +123,8 @@ def _read_messages(reader, meta, layout: InputsLayout, model: bytes, rows: dict[
     states: dict[int, list] = {w: [] for w in worlds}
     decoders: dict[int, object] = {}
     factory = DecoderFactory()
-    for schema, channel, message in reader.iter_messages(topics=[INPUTS_TOPIC, STARTS_TOPIC, *js_topics]):
+    events: list[dict] = []
+    for schema, channel, message in reader.iter_messages(topics=[INPUTS_TOPIC, STARTS_TOPIC, EVENTS_TOPIC, *js_topics]):
         if channel.topic == INPUTS_TOPIC:
             header, values = unpack(message.data)
             headers.append(header)
@@ -125,9 +132,11 @@ def _read_messages(reader, meta, layout: InputsLayout, model: bytes, rows: dict[
         elif channel.topic == STARTS_TOPIC:
             header, values = unpack(message.data)
             for row in values:
-                world, draw, state, params = layout.split_start(row)
+                world, draw, fresh, state, params = layout.split_start(row)
                 if world in starts:
-                    starts[world].append(Start(int(header[0]), state.copy(), draw, params))
+                    starts[world].append(Start(int(header[0]), state.copy(), draw, params, fresh))
+        elif channel.topic == EVENTS_TOPIC:
+            events.append(json.loads(unpack_string(message.data)))
         else:
             decode = decoders.get(channel.id)
             if decode is None:
@@ -140,7 +149,7 @@ def _read_messages(reader, meta, layout: InputsLayout, model: bytes, rows: dict[
     out = {}
     for k, w in enumerate(worlds):
         out[w] = WorldRecord(w, namespaces[w], sorted(starts[w], key=lambda s: s.period), stacked[:, k], _joint_states(states[w]))
-    return Recorded(meta, layout, model, np.stack(headers)[order], out)
+    return Recorded(meta, layout, model, np.stack(headers)[order], out, sorted(events, key=lambda e: e["period"]))
 
 
 def _joint_states(messages: list) -> JointStates | None:

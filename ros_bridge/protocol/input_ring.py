@@ -14,9 +14,11 @@ from __future__ import annotations
 import numpy as np
 
 from batchsim.memory import Memory
+from batchsim.memory import ring_arrays as byte_ring_arrays
 from ros_bridge.protocol.recording import MAX_SLOTS, MIN_SLOTS, RING_BYTES
 
-INPUTS, STARTS = "rin", "rst"
+INPUTS, STARTS, EVENTS = "rin", "rst", "rev"  # EVENTS: a byte ring (batchsim.memory.Ring) of JSON documents
+EVENT_BYTES = 8 << 20
 
 
 def ring_arrays(name: str, rows: int, width: int, least: int = MIN_SLOTS) -> list[tuple[str, tuple[int, ...], str]]:
@@ -73,3 +75,8 @@ class RowRing:
             out.append((self.meta[s].copy(), self.rows[s, :nrow].copy()))
         self.pos[1] = read + len(out)
         return out
+
+
+def event_arrays() -> list[tuple[str, tuple[int, ...], str]]:
+    """The event ring's Layout entries: its bytes, and how many documents found it full."""
+    return [*byte_ring_arrays(EVENTS, EVENT_BYTES), (f"{EVENTS}.dropped", (1,), "i8")]

@@ -300,6 +300,14 @@ class ShardedSystem(SystemFace):
         """Not on a fleet over several devices (physics_state)."""
         raise NotImplementedError("a fleet over several devices does not record its physics inputs: use one device")
 
+    def set_physics_state(self, worlds: Sequence[int] | np.ndarray | None, states: Any) -> None:
+        """Not on a fleet over several devices (physics_state)."""
+        raise NotImplementedError("a fleet over several devices does not take a whole physics state: use one device")
+
+    def set_world_params(self, worlds: Sequence[int] | np.ndarray | None, params: Any) -> None:
+        """Not on a fleet over several devices (physics_state)."""
+        raise NotImplementedError("a fleet over several devices does not take model values per world: use one device")
+
     def set_qstate(self, worlds: Sequence[int] | np.ndarray | None, qpos: Any, qvel: Any) -> None:
         """As BatchedSystem.set_qstate (the fleet's world numbers)."""
         self._require("write the joint state", RUNNING)
