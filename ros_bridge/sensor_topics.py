@@ -32,7 +32,7 @@ the blocks (RGB only for worlds that want RGB, depth likewise). So a camera nobo
 subscribes to is never rendered. A recording of camera or lidar topics (ros_bridge/recording.py)
 adds its want bits for the recorded worlds while it runs, and with `--rtf 0` a sample waits
 for the recorder to have taken the one before it; the web view adds RGB for the camera of the
-world it shows (ros_bridge/view_plan.py's ViewCamera).
+world each of its browsers shows (ros_bridge/view_plan.py's ViewCamera).
 """
 
 from __future__ import annotations

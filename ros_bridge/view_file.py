@@ -1,12 +1,13 @@
 """`batchsim view FILE`: a recording (`batchsim --record`) in the web view, scrubbed through.
 
-The page is the live view's (ros_bridge/worker/view.py's FleetScene); the robots' geoms come
+The page is the live view's (ros_bridge/worker/view_scene.py's FleetScene); the robots' geoms come
 from the recording's `batchsim/view_geometry.npz` attachment, their poses from its `/tf` and
 `/tf_static`: each world's anchor frames composed up to the fleet frame, at most FRAME_RATE
-frames per sim second, and the picked world's joint positions from its `joint_states`. A
-slider picks the sim time and `play` runs it at real time. The worlds' status comes from the
-recording's `/diagnostics` (worker/status_recording.py): each world is tinted and the picked
-one's status said as the live view does; a recording without it says so. The file is read as
+frames per sim second, and each browser's picked world's joint positions from its
+`joint_states` (every browser keeps its own pick, view_scene.py's Pick). A slider picks the sim
+time and `play` runs it at real time, the same for every browser. The worlds' status comes
+from the recording's `/diagnostics` (worker/status_recording.py): each world is tinted and a
+picked one's status said as the live view does; a recording without it says so. The file is read as
 a stream: one cut short shows what was complete, after one line that says so.
 
 A recording of a fleet of several groups of worlds (batchsim.fleet.groups) carries each group's
@@ -31,7 +32,7 @@ from ros_bridge.mcap_index import IndexedFile, NoIndex
 from ros_bridge.naming import frame
 from ros_bridge.recording_file import ReplayError, check_file, cut_short_errors
 from ros_bridge.view_plan import GEOMETRY, ViewSpec, geometry_from_bytes
-from ros_bridge.worker.view_scene import FleetScene, ScenePart, qmul, rotate
+from ros_bridge.worker.view_scene import CONTROLS_ORDER, FleetScene, ScenePart, qmul, rotate
 from ros_bridge.world_status import from_values, status_text
 
 FRAME_RATE = 30.0  # frames per sim second kept from the recording
@@ -311,41 +312,44 @@ class RecordingView:
         gui = scene.server.gui
         self.t0, self.t1 = t0, t1 = float(rec.times[0]), float(rec.times[-1])
         self.step = step = float(np.median(np.diff(rec.times))) if len(rec.times) > 1 else 0.01
-        self.slider = gui.add_slider("sim time (s)", min=t0, max=max(t1, t0 + step), step=step, initial_value=t0)
-        self.play = gui.add_checkbox("play", False)
-        if not rec.has_status:
-            scene.world_text.content = "the worlds' status is not in this recording (record /diagnostics)"
-        self.shown = (-1, -1)
+        self.slider = gui.add_slider("sim time (s)", min=t0, max=max(t1, t0 + step), step=step, initial_value=t0, order=CONTROLS_ORDER)
+        self.play = gui.add_checkbox("play", False, order=CONTROLS_ORDER + 1)
         self.shown_frame = -1
         self._last = wallclock.monotonic()
 
     def update(self) -> None:
-        """Play on (while `play`), and show the slider's time and the picked world where either changed."""
+        """Play on (while `play`), and show the slider's time where it changed, and each browser's
+        picked world where it or the time changed."""
         rec, scene = self.rec, self.scene
         now = wallclock.monotonic()
         if self.play.value:
             self.slider.value = self.t0 + (self.slider.value - self.t0 + now - self._last) % max(self.t1 - self.t0, self.step)
         self._last = now
         k = int(np.clip(np.searchsorted(rec.times, self.slider.value), 0, len(rec.times) - 1))
-        w = scene.picked
-        if (k, w) == self.shown:
-            return
-        self.shown = (k, w)
-        scene.show_part()
         if k != self.shown_frame:  # the frame's poses, computed for the frame shown
             self.shown_frame = k
             for p, (frames, rows) in enumerate(self.anchors):
                 scene.draw(rec.anchor_poses(k, frames, rows), p)
-        if rec.has_status:
-            scene.tint(rec.status[k], rec.flags[k])
-            name = rec.namespaces[w] or "/"
-            scene.world_text.content = f"**{name}** (world {w}): {status_text(int(rec.status[k, w]), int(rec.flags[k, w]))}"
-        scene.fleet_text.content = (
-            f"**{len(rec.namespaces)} worlds** · {self.path} · sim time {rec.times[k]:.2f} s of {self.t0:.2f} .. {self.t1:.2f} s"
-        )
-        t, q = rec.joint_series(w, float(rec.times[k]))
-        if len(t):
-            scene.plot_joints(t, q)
+            if rec.has_status:
+                scene.tint(rec.status[k], rec.flags[k])
+            scene.fleet_text.content = (
+                f"**{len(rec.namespaces)} worlds** · {self.path} · sim time {rec.times[k]:.2f} s of {self.t0:.2f} .. {self.t1:.2f} s"
+            )
+        for pick in scene.picks():
+            w = pick.world
+            if pick.panel == (k, w):
+                continue
+            pick.panel = (k, w)
+            with pick.client.atomic():
+                pick.show_part()
+                if rec.has_status:
+                    name = rec.namespaces[w] or "/"
+                    pick.world_text.content = f"**{name}** (world {w}): {status_text(int(rec.status[k, w]), int(rec.flags[k, w]))}"
+                else:
+                    pick.world_text.content = "the worlds' status is not in this recording (record /diagnostics)"
+                t, q = rec.joint_series(w, float(rec.times[k]))
+                if len(t):
+                    pick.plot_joints(t, q)
 
 
 def serve(path: str, host: str, port: int, say: Callable[[str], None], stop: Callable[[], bool] = lambda: False) -> None:

@@ -6,10 +6,11 @@ the page and its updates never takes the loop's interpreter. It reads the snapsh
 workers read: each world's status and flags, and the tf channel's body poses (the moving
 frames' ends, tf_plan.py), from which every visible geom's pose follows by a fixed offset
 computed here once. So the view costs the loop only the tf channel's copy, which it asks
-for through `view.want` while it runs. Where the fleet has cameras, the panel shows the picked
-world's camera image: the view process writes (world, camera) into `view.camera`, and the
-physics side (`ViewCamera`, asked by sensor_topics.py's SensorFeed) ORs WANT_RGB into that
-world's want bits, so that one camera renders as if subscribed; the view reads its block.
+for through `view.want` while it runs. Where the fleet has cameras, each browser's panel shows
+its picked world's camera image: the view process writes the distinct (world, camera) pairs
+its browsers show into `view.camera` (up to MAX_VIEW_CAMERAS), and the physics side
+(`ViewCamera`, asked by sensor_topics.py's SensorFeed) ORs WANT_RGB into those worlds' want
+bits, so those cameras render as if subscribed; the view reads their blocks.
 
 A fleet of several groups of worlds (batchsim.fleet.groups) is one view: each group's bridge
 has its own plan (its own ViewSpec: its robots' geoms) and shared memory, and one view process
@@ -212,19 +213,20 @@ def recording_geometry(sim: Contract, tf) -> bytes:
 
 
 class ViewCamera:
-    """The physics side of the view's camera image: the view process's request
-    (protocol/sensor_blocks.py's CameraRequest: the world and camera the page shows) becomes
-    WANT_RGB in that world's camera column of the want bits."""
+    """The physics side of the view's camera images: the view process's request
+    (protocol/sensor_blocks.py's CameraRequest: the (world, camera) pairs its browsers show, up
+    to MAX_VIEW_CAMERAS) becomes WANT_RGB in each pair's world's camera column of the want bits,
+    so each camera renders once for every world asked of it."""
 
     def __init__(self, memory) -> None:
         self.request = CameraRequest(memory)
         self.request.clear()  # nothing until the page asks (a new segment reads as world 0)
 
     def want_sensors(self, want: np.ndarray) -> None:
-        """OR the view's camera into `want` ((nworld, nsensor), the workers' want bits)."""
-        asked = self.request.asked()
-        if asked is not None and asked[0] < want.shape[0] and asked[1] < want.shape[1]:
-            want[asked] |= WANT_RGB
+        """OR the view's cameras into `want` ((nworld, nsensor), the workers' want bits)."""
+        for world, camera in self.request.asked():
+            if world < want.shape[0] and camera < want.shape[1]:
+                want[world, camera] |= WANT_RGB
 
 
 def view_camera(memory) -> ViewCamera | None:

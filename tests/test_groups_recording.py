@@ -33,6 +33,7 @@ need("viser")
 import yaml  # noqa: E402
 from mcap.reader import NonSeekingReader, make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
+from view_clients import connect, wait  # noqa: E402
 
 from batchsim import cli  # noqa: E402
 
@@ -228,9 +229,12 @@ def test_a_recording_of_groups_in_the_view_draws_each_world_with_its_groups_robo
             at = handles[moving].batched_positions - scene.grid[list(part.worlds)]
             assert np.allclose(at[0], at[1], atol=1e-3), (p, at)
             assert np.linalg.norm(at[0]) < 5.0  # near the world's origin, not at another cell
-        scene.picker.value = 3
+        browser, pick = connect(scene)  # a browser's own pick (tests/view_clients.py)
+        browser.type_world(3)
+        wait(lambda: pick.world == 3, 10, "world 3 picked")
         view.update()
-        assert scene.world_text.content == "**world_3** (world 3): running"
+        assert pick.world_text.content == "**world_3** (world 3): running"
+        browser.close()
     finally:
         view.scene.server.stop()
     log = tmp_path / "view.log"

@@ -1,8 +1,9 @@
 """The live web view of a fleet of two groups of worlds (ros_bridge/bridge.py's join_bridges): one
 view process for both groups' bridges, and the page's data as it makes it (worker/view.py's
 FleetView over every group's plan and snapshot): each world drawn with its own group's robots in
-its own cell of the fleet's grid, the picked world's panel (status, camera image) from its own
-group. The page in a browser: tests/test_view.py.
+its own cell of the fleet's grid, a browser's picked world's panel (status, camera image) from
+its own group, and each browser (a websocket client, tests/view_clients.py) its own pick. The
+page in a browser: tests/test_view.py.
 
 The fleet: group `arms`, 2 worlds of an arm (worlds 0 and 1), and group `yard`, 2 worlds of an
 arm beside a rover (worlds 2 and 3), each group's bridge in this process (workers=0) on its own
@@ -22,6 +23,8 @@ from ros_fleet import LOCALHOST, domain_id, release_domain
 rclpy = need("rclpy")
 need("viser")
 
+from view_clients import connect, wait  # noqa: E402
+
 import batchsim  # noqa: E402
 from batchsim.cli.runner import group_options  # noqa: E402
 from batchsim.loop import SimLoop  # noqa: E402
@@ -38,6 +41,7 @@ def _free_port() -> int:
 def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypatch):
     from ros_bridge.bridge import join_bridges, open_bridge
     from ros_bridge.options import BridgeOptions, ViewOptions
+    from ros_bridge.protocol.sensor_blocks import CameraRequest
     from ros_bridge.worker.view import PANEL_RATE, UPDATE_RATE, FleetView
 
     domain = domain_id(62)
@@ -51,7 +55,7 @@ def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypat
         loops.append(SimLoop(sim, control_rate=100.0, rtf=0.0))
     loops[0].join(loops[1])
     options = BridgeOptions(workers=0, view=ViewOptions(port=_free_port()))
-    bridges, live = [], None
+    bridges, live, browsers = [], None, []
     try:
         for (group, sim), loop in zip(groups, loops, strict=True):
             bridges.append(open_bridge(sim, loop, group_options(options, group)))
@@ -85,21 +89,68 @@ def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypat
         base = next(k for k, g in enumerate(yard) if g.name.startswith("rover/") and g.anchor >= 0)
         drawn = scene.handles[1][base].batched_positions[:, :2] - scene.grid[[2, 3], :2]
         assert np.allclose(drawn[:, 1], 2.0, atol=0.3)  # the rover where the fleet file put it (y = 2)
-        assert scene.image is not None and not scene.image.visible  # world 0's group has no camera
+        a, pick = connect(scene)  # a browser on the page: its own pick, world 0 at first
+        browsers.append(a)
+        shown()
+        assert pick.image is not None and not pick.image.visible  # world 0's group has no camera
         for world in (3, 1):  # a world of the second group, then of the first: each its own group's status
-            scene.picker.value = world
+            a.type_world(world)
+            wait(lambda world=world: pick.world == world, 10, f"world {world} picked")
             shown()
-            assert scene.world_text.content == f"**world_{world}** (world {world}): running"
+            assert pick.world_text.content == f"**world_{world}** (world {world}): running"
             if world == 3:  # the rover's camera, of world 3 (its group's second world), rendered for the page
-                assert scene.image.visible and scene.image.label == "rover/front_camera (world 3)"
-                assert bridges[1].camera.request.asked() == (1, 0) and bridges[0].camera is None
+                assert pick.image.visible and pick.image.label == "rover/front_camera (world 3)"
+                assert bridges[1].camera.request.asked() == {(1, 0)} and bridges[0].camera is None
                 for _ in range(50):
-                    if scene.image.image.std() > 5:  # not the grey it shows until a frame comes
+                    if pick.image.image.std() > 5:  # not the grey it shows until a frame comes
                         break
                     shown()
-                assert scene.image.image.shape == (12, 16, 3) and scene.image.image.std() > 5
+                assert pick.image.image.shape == (12, 16, 3) and pick.image.image.std() > 5
             else:
-                assert not scene.image.visible and bridges[1].camera.request.asked() is None
+                assert not pick.image.visible and bridges[1].camera.request.asked() == set()
+        # issue 46: a second browser keeps its own pick, status, plot and camera image: the first
+        # browser on world 3, the second clicks world 2 (the yard's first world), each its own camera
+        a.type_world(3)
+        b, other = connect(scene)
+        browsers.append(b)
+        yard_mesh = scene.handles[1][base].name  # instance k: the yard's k-th world
+        b.click(yard_mesh, 0)
+        wait(lambda: pick.world == 3 and other.world == 2, 10, "both browsers' picks")
+        for _ in range(50):
+            shown()
+            if pick.image.image.std() > 5 and other.image.image.std() > 5:
+                break
+        assert bridges[1].camera.request.asked() == {(1, 0), (0, 0)}  # both worlds' camera, one render
+        for p, world in ((pick, 3), (other, 2)):
+            assert p.world_text.content == f"**world_{world}** (world {world}): running"
+            assert p.image.label == f"rover/front_camera (world {world})" and p.image.image.std() > 5
+            assert p.history_world == world  # its plot's history (this fleet's groups plot no joints)
+        # beyond the cameras the view renders at once (MAX_VIEW_CAMERAS; here 1), the later browser's label says so
+        yard = live.groups[1]
+        yard.camera, full = CameraRequest({"view.camera": bridges[1].host.memory["view.camera"][:1]}), yard.camera
+        full.clear()  # the request's first row only, from here
+        shown()
+        assert bridges[1].camera.request.asked() == {(1, 0)} and pick.image.label == "rover/front_camera (world 3)"
+        assert other.image.label.startswith("rover/front_camera (world 2): not shown, the view renders")
+        yard.camera = full
+        shown()
+        assert bridges[1].camera.request.asked() == {(1, 0), (0, 0)} and other.image.label == "rover/front_camera (world 2)"
+        b.type_world(0)  # the second browser to the arms' world 0: no camera, the arms' plot; the first's unmoved
+        wait(lambda: other.world == 0, 10, "world 0 picked")
+        shown()
+        assert bridges[1].camera.request.asked() == {(1, 0)}
+        assert not other.image.visible and other.history_world == 0
+        assert other.world_text.content == "**world_0** (world 0): running"
+        assert pick.world == 3 and pick.world_text.content == "**world_3** (world 3): running" and pick.image.visible
+        assert pick.history_world == 3 and pick.image.label == "rover/front_camera (world 3)"
+        b.type_world(2)
+        wait(lambda: other.world == 2, 10, "world 2 picked")
+        shown()
+        assert bridges[1].camera.request.asked() == {(1, 0), (0, 0)}
+        b.close()  # a browser that leaves is forgotten, and its camera no longer rendered
+        wait(lambda: len(scene.picks()) == 1, 10, "the second browser forgotten")
+        shown()
+        assert bridges[1].camera.request.asked() == {(1, 0)}
         # the poses every update, the panel's text PANEL_RATE times a second (at 20 Hz a page on
         # software WebGL fell behind its messages for good): counted where the page would get them
         sent: list[str] = []
@@ -122,6 +173,8 @@ def test_the_live_view_draws_every_groups_worlds_with_their_own_robots(monkeypat
             shown()
         assert len(sent) == 20 * PANEL_RATE / UPDATE_RATE, sent
     finally:
+        for browser in browsers:
+            browser.close()
         if live is not None:
             live.want(False)
             live.scene.server.stop()

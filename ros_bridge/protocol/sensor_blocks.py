@@ -1,8 +1,8 @@
 """The sensor blocks: one camera's or lidar's images or scans of every world in shared
 memory, seqlocked per world (the writer in the loop's process, the reader in a worker);
 and what is asked of them: the want bits the workers set per world and sensor
-(`sensors.want`: `WantWriter`, read by the loop with `wanted`) and the camera image the web
-view shows (`view.camera`: `CameraRequest`). No rclpy here. The layout of the blocks is
+(`sensors.want`: `WantWriter`, read by the loop with `wanted`) and the camera images the web
+view shows, one per browser (`view.camera`: `CameraRequest`). No rclpy here. The layout of the blocks is
 ros_bridge/sensor_topics.py's (`SensorPlan.arrays`).
 
 Each reader keeps its own `seen` (the seq it last took, per world): the workers one each for
@@ -101,27 +101,45 @@ def wanted(memory) -> np.ndarray:
     return memory["sensors.want"].copy()
 
 
+MAX_VIEW_CAMERAS = 8  # the (world, camera) pairs the web view asks for at once: one per browser, at most
+
+
 def camera_request_arrays() -> list[tuple[str, tuple[int, ...], str]]:
-    """The (world, camera index) whose image the web view shows; -1 while it shows none."""
-    return [("view.camera", (2,), "i8")]
+    """The (world, camera index) pairs whose images the web view shows, one per row (its
+    browsers', each its picked world's); -1 in a row it does not use."""
+    return [("view.camera", (MAX_VIEW_CAMERAS, 2), "i8")]
 
 
 class CameraRequest:
-    """The view process asks (`ask`, `clear`); the loop reads (`asked`) and renders that
-    camera of that world as though someone subscribed to its image."""
+    """The view process asks (`ask`, `clear`); the loop reads (`asked`) and renders each pair's
+    camera of its world as though someone subscribed to its image (one render per camera,
+    batched over the worlds asked). A torn read (a row's world new, its camera old) renders one
+    period's wrong image: the view shows only frames rendered after it asked."""
 
     def __init__(self, memory):
-        self._request = memory["view.camera"]
+        self._request = memory["view.camera"].reshape(-1, 2)
 
-    def ask(self, world: int, camera: int) -> None:
-        self._request[:] = (world, camera)
+    @property
+    def slots(self) -> int:
+        """How many distinct pairs it holds at once (MAX_VIEW_CAMERAS)."""
+        return self._request.shape[0]
+
+    def ask(self, pairs) -> list[tuple[int, int]]:
+        """Ask for `pairs` ((world, camera) each, the first most wanted) in place of what was
+        asked: the first `slots` distinct ones. Returns those, in order; the others wait."""
+        held = list(dict.fromkeys((int(w), int(c)) for w, c in pairs))[: self.slots]
+        rows = np.full(self._request.shape, -1, np.int64)
+        if held:
+            rows[: len(held)] = held
+        self._request[:] = rows
+        return held
 
     def clear(self) -> None:
         self._request[:] = -1
 
-    def asked(self) -> tuple[int, int] | None:
-        world, camera = self._request.tolist()
-        return None if world < 0 or camera < 0 else (world, camera)
+    def asked(self) -> set[tuple[int, int]]:
+        """The distinct (world, camera) pairs asked for (empty while the view shows none)."""
+        return {(w, c) for w, c in self._request.tolist() if w >= 0 and c >= 0}
 
 
 def gaps(before: np.ndarray, after: np.ndarray) -> np.ndarray:
