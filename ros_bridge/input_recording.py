@@ -53,6 +53,7 @@ class InputRecording:
         self.plan, self.loop, self._alive = plan, loop, alive
         self.layout: InputsLayout = plan.recording.inputs
         self._worlds = np.array(plan.recording.worlds, np.intp)
+        self._every = np.array_equal(self._worlds, np.arange(plan.nworld))
         self._row = np.full(plan.nworld, -1, np.intp)
         self._row[self._worlds] = np.arange(len(self._worlds))
         self._inputs, self._starts = RowRing(memory, INPUTS), RowRing(memory, STARTS)
@@ -111,10 +112,11 @@ class InputRecording:
             for row in starts:
                 self._wait_for(self._starts)
                 self._starts.put(header, row[None])
-        inputs = sim.physics_inputs(worlds)
-        inputs["command"] = sim.command[worlds]
+        every = self._every  # every world recorded: whole arrays, no index (this runs every period)
+        inputs = sim.physics_inputs(None if every else worlds)
+        inputs["command"] = sim.command if every else sim.command[worlds]
         self._wait_for(self._inputs)
-        self._inputs.put(header, self.layout.input_row(sim.frozen[worlds], inputs))
+        self._inputs.put(header, self.layout.input_row(sim.frozen if every else sim.frozen[worlds], inputs))
 
     def event(self, topic: str, worlds: np.ndarray, rows: np.ndarray | None = None, batch=None) -> None:
         """A controller input (InputTap): `rows` (n, width) for `worlds`, or a TrajectoryBatch;

@@ -36,18 +36,21 @@ class Resimulation:
         self._require("read the physics state", RUNNING)
         return self.engine.physics_state(self._rows_of(worlds))
 
-    def physics_inputs(self, worlds: Sequence[int] | np.ndarray) -> dict[str, np.ndarray]:
+    def physics_inputs(self, worlds: Sequence[int] | np.ndarray | None = None) -> dict[str, np.ndarray]:
         """What the listed worlds' physics takes in the steps that follow a write(), beyond its state:
         `ctrl` `(n, nu)` (after the PIDs and transmissions), and where the plugins run
         `base_velocity` `(n, 3)` (the held body-frame vx, vy, wz; NaN: none held) and `xfrc_applied`
-        `(n, nbody * 6)`. float64 copies (re-simulation records them: batchsim.resim)."""
-        rows = self._rows_of(worlds)
-        out = {"ctrl": self.engine.ctrl()[rows].astype(np.float64)}
+        `(n, nbody * 6)`. float64 copies, for all (None) or the listed worlds (re-simulation records
+        them: batchsim.resim)."""
+        rows = worlds_index(worlds, self.nworld)  # None: every world, no index array (every period while recording)
+        take = slice(None) if rows is None else rows
+        out = {"ctrl": self.engine.ctrl()[take].astype(np.float64)}
         drive = self.parts.base_drive
         if drive.velocity is not None:
-            out["base_velocity"] = np.full((len(rows), 3), np.nan) if drive.staged is None else drive.staged[rows].copy()
+            n = self.nworld if rows is None else len(rows)
+            out["base_velocity"] = np.full((n, 3), np.nan) if drive.staged is None else drive.staged[take].copy()
         if self.parts.wrenches.configured:
-            out["xfrc_applied"] = self.engine.physics_state(rows, _XFRC)
+            out["xfrc_applied"] = self.engine.physics_state(self._rows_of(worlds), _XFRC)
         return out
 
     def set_physics_state(self, worlds: Sequence[int] | np.ndarray, states: Any) -> None:
