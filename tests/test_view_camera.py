@@ -21,13 +21,18 @@ from ros_bridge.sensor_topics import SensorFeed, sensor_plan
 from ros_bridge.view_plan import ViewCamera
 
 
-def test_the_views_request_wants_exactly_that_worlds_camera_and_dropping_it_clears_it():
+def _rovers() -> tuple:
+    """Three rovers with a small camera, their sensor plan, the view's request in plain arrays."""
     sim = batchsim.make("rover", 3, "cpu", sensors={"sensors": {"camera_resolution": [16, 12], "camera_rate": 50}})
     sim.configure()
     sim.activate()
     plan = sensor_plan(sim)
     memory = {name: np.zeros(shape, dtype) for name, shape, dtype in [*plan.arrays(3), *camera_request_arrays()]}
-    camera = ViewCamera(memory)
+    return sim, plan, memory, ViewCamera(memory)
+
+
+def test_the_views_request_wants_exactly_that_worlds_camera_and_dropping_it_clears_it():
+    sim, plan, memory, camera = _rovers()
     assert (memory["view.camera"] == -1).all()  # a new segment's zeros would ask for world 0
     feed = SensorFeed(sim, memory, plan, None, camera)
     block = SensorBlock(memory, "cam0", ("rgb", "depth"))
@@ -61,12 +66,7 @@ def test_the_views_request_wants_exactly_that_worlds_camera_and_dropping_it_clea
 def test_each_browsers_world_camera_renders_up_to_the_limit():
     """Two browsers showing worlds 0 and 2: both worlds' camera renders in the one batched render;
     a pair asked twice is asked once, and beyond MAX_VIEW_CAMERAS distinct pairs the rest wait."""
-    sim = batchsim.make("rover", 3, "cpu", sensors={"sensors": {"camera_resolution": [16, 12], "camera_rate": 50}})
-    sim.configure()
-    sim.activate()
-    plan = sensor_plan(sim)
-    memory = {name: np.zeros(shape, dtype) for name, shape, dtype in [*plan.arrays(3), *camera_request_arrays()]}
-    camera = ViewCamera(memory)
+    sim, plan, memory, camera = _rovers()
     feed = SensorFeed(sim, memory, plan, None, camera)
     block = SensorBlock(memory, "cam0", ("rgb", "depth"))
     view = CameraRequest(memory)  # the view process's side of the same array
