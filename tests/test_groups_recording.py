@@ -265,7 +265,7 @@ def test_the_record_service_records_every_group(depot, tmp_path):
         deadline = time.monotonic() + 10
         # the recorder said its last line; until its process is seen gone (a watch later), a start is refused
         while not (started := fleet.call(SetBool, "/batchsim/record", SetBool.Request(data=True))).success:
-            assert started.message.startswith("already recording") and time.monotonic() < deadline, started.message
+            assert started.message.startswith("still finishing") and time.monotonic() < deadline, started.message
             time.sleep(0.2)
         assert started.success and started.message == f"recording to {tmp_path / 'live_2.mcap'}", started.message
         time.sleep(1.5)
