@@ -143,3 +143,18 @@ def test_a_file_cut_short_reads_up_to_its_last_chunk():
             messages.append((channel.topic, m.log_time, m.publish_time, m.sequence, m.data))
     assert len(messages) > 1000
     assert messages == _read(NonSeekingReader(io.BytesIO(ours)))[: len(messages)]
+
+
+def test_the_views_summary_reader_sees_what_mcaps_does():
+    """ros_bridge/mcap_index.py reads a file's summary itself (chunk indexes' offsets as NumPy):
+    its channels, schemas and per-chunk offsets are mcap's reader's, on files of both writers."""
+    from ros_bridge.mcap_index import NoIndex, read_summary
+
+    for data in _files():
+        channels, schemas, chunks = read_summary(io.BytesIO(data))
+        summary = SeekingReader(io.BytesIO(data)).get_summary()
+        assert channels == summary.channels and schemas == summary.schemas and len(chunks) > 3
+        ours = {c.start: dict(zip(c.offsets["channel"].tolist(), c.offsets["offset"].tolist(), strict=True)) for c in chunks}
+        assert ours == {c.chunk_start_offset: c.message_index_offsets for c in summary.chunk_indexes}
+        with pytest.raises(NoIndex):
+            read_summary(io.BytesIO(data[: len(data) // 2]))  # cut short: no footer
