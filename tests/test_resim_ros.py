@@ -94,9 +94,12 @@ def recording(tmp_path_factory):
 def test_worlds_of_a_randomized_64_world_recording_rerun_bit_exact(recording):
     path, tmp = recording
     out = tmp / "resim.json"
-    done = _resim(str(path), "--worlds", "0,13,40,63", "--json", str(out), "--plot", str(tmp / "resim.png"))
+    done = _resim(str(path), "--worlds", "0,13,40,63", "--tf", "--json", str(out), "--plot", str(tmp / "resim.png"))
     assert done.returncode == 0, done.stderr
     worlds = {r["world"]: r for r in json.loads(out.read_text())["worlds"]}
+    frames = {r["world"]: r for r in json.loads(out.read_text())["tf"]}
+    for w in (0, 13, 40, 63):  # /tf too: the same body poses, made into the same transforms
+        assert frames[w]["exact"] and frames[w]["compared"] > 200 and not frames[w]["unknown"], (w, done.stdout)
     for w in (0, 13, 40, 63):
         assert worlds[w]["exact"] and worlds[w]["compared"] > 200, (w, done.stdout)
         assert f"world {w}: " in done.stdout and "bit-exact" in done.stdout
@@ -126,10 +129,13 @@ def test_a_recording_started_mid_run_by_the_service_reruns_bit_exact(recording):
     path, tmp = recording
     second = path.with_name("run_2.mcap")
     out = tmp / "resim2.json"
-    done = _resim(str(second), "--worlds", "13,40", "--json", str(out))
+    done = _resim(str(second), "--worlds", "13,40", "--tf", "--json", str(out))
     assert done.returncode == 0, done.stderr
     worlds = {r["world"]: r for r in json.loads(out.read_text())["worlds"]}
     assert worlds[13]["exact"] and worlds[40]["exact"], done.stdout
+    # /tf from the second period on (the first one's poses came from a step before the recording)
+    frames = {r["world"]: r for r in json.loads(out.read_text())["tf"]}
+    assert frames[13]["exact"] and frames[13]["compared"] == worlds[13]["compared"] - 1, done.stdout
     assert max(np.abs(np.diff(worlds[13]["time"]))) < 0.02  # every period of the world compared
     # its controllers' state at the recording's start is not in the file: not re-run, and said
     mid = _resim(str(second), "--worlds", "40", "--model", "arm", "--controllers")

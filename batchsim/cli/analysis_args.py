@@ -24,6 +24,7 @@ def resim_parser() -> argparse.ArgumentParser:
         help="re-run the world's controllers too, from the messages they took (the controller_manager YAML the run "
         "used; without FILE, the model's own); needs --model",
     )  # fmt: skip
+    p.add_argument("--tf", action="store_true", help="compare the recorded /tf too (decodes every /tf message: slow on large fleets)")
     p.add_argument("--tolerance", type=float, default=1e-6, help="the horizon: how long each world stays within this error (rad, m, rad/s, m/s)")
     p.add_argument("--json", type=Path, default=None, help="write each world's result here")
     p.add_argument("--plot", type=Path, default=None, help="write the error over time here (.png, .svg, .pdf)")

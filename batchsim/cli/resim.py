@@ -26,7 +26,7 @@ def resim(argv: Sequence[str]) -> int:
         import mcap_ros2  # noqa: F401
     except ModuleNotFoundError as e:
         raise UsageError(f"resim needs {e.name}: {startup.install_command('record')}") from None
-    from batchsim.resim.compare import compare
+    from batchsim.resim.compare import compare, compare_tf
     from batchsim.resim.controllers import rerun_controllers
     from batchsim.resim.layout import load_model, model_bytes, model_hash
     from batchsim.resim.physics import rerun
@@ -34,7 +34,7 @@ def resim(argv: Sequence[str]) -> int:
 
     began = wallclock.monotonic()
     try:
-        recorded = read(args.file, args.worlds)
+        recorded = read(args.file, args.worlds, tf=args.tf)
     except ResimError as e:
         raise UsageError(str(e)) from None
     model = load_model(recorded.model)
@@ -56,28 +56,33 @@ def resim(argv: Sequence[str]) -> int:
         f"{backend}, MuJoCo {recorded.meta['mujoco']}) on MuJoCo's C step"
     )
     controllers = _controllers(args) if args.controllers is not None else None
-    results, controlled = [], []
+    results, controlled, tfs = [], [], []
     for w, world in recorded.worlds.items():
         if not world.starts:
             say(f"world {w}: the recording holds no start of it (its start was dropped): cannot be re-run")
             continue
         if controllers is not None:
             try:
-                run, verdict = rerun_controllers(args.model, controllers, recorded, world)
+                run, verdict = rerun_controllers(args.model, controllers, recorded, world, poses=args.tf)
             except ResimError as e:
                 raise UsageError(str(e)) from None
             controlled.append((w, verdict))
             print(verdict.line(w))
         else:
-            run = rerun(model, recorded.layout, recorded.headers, world)
+            run = rerun(model, recorded.layout, recorded.headers, world, poses=args.tf)
         result = compare(model, w, run, recorded.headers, world.joint_states, args.tolerance)
         results.append(result)
         print(result.line())
+        if args.tf:
+            frames = compare_tf(model, run, recorded.headers, world.tf)
+            tfs.append((w, frames))
+            print(frames.line(w))
     if backend != "cpu":
         say(f"a {backend} recording re-run on MuJoCo's C step parts from it: {backend} computes with kernels of its own (float32 on a GPU)")
     document = lambda: {  # noqa: E731
         "file": args.file, "backend": backend, "worlds": [r.to_json() for r in results],
         "controllers": [{"world": w, **dataclasses.asdict(v)} for w, v in controlled],
+        "tf": [{"world": w, **dataclasses.asdict(v)} for w, v in tfs],
     }  # fmt: skip
     write_reports(args.json, document, args.plot, lambda path: _plot(results, path, args.tolerance))
     say(f"done in {wallclock.monotonic() - began:.1f} s")

@@ -10,8 +10,9 @@ import dataclasses
 import mujoco
 import numpy as np
 
+from batchsim.model.frames import frame_tree, relative_transforms
 from batchsim.resim.physics import Trajectory
-from batchsim.resim.recorded import JointStates
+from batchsim.resim.recorded import JointStates, TfStates
 
 _MOVING = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
 
@@ -111,3 +112,53 @@ def _stamps(times: np.ndarray) -> np.ndarray:
     """Sim times (s) as the recorder stamps them (ns, as ros_bridge's stamp_of rounds)."""
     sec = np.floor(times)
     return (sec.astype(np.int64) * 1_000_000_000 + np.round((times - sec) * 1e9).astype(np.int64))
+
+
+@dataclasses.dataclass
+class TfComparison:
+    """A world's re-run body poses against its recorded /tf: `compared` messages, `exact`, the
+    `largest` difference (m or unit quaternion), and where they first part: (sim time, frame,
+    |difference|), or None; `unknown`: recorded frames the model has no body for."""
+
+    compared: int
+    exact: bool
+    largest: float
+    first: tuple[float, str, float] | None
+    unknown: list[str]
+
+    def line(self, world: int) -> str:
+        head = f"world {world}: {self.compared} /tf messages compared"
+        if not self.compared:
+            return f"{head}: none"
+        if self.exact:
+            return f"{head}: bit-exact"
+        t, frame, diff = self.first
+        return f"{head}: they part at t={t:.3f} s, {frame} first ({diff:.3g}); largest difference {self.largest:.3g}"
+
+
+def compare_tf(model: mujoco.MjModel, run: Trajectory, headers: np.ndarray, tf: TfStates | None) -> TfComparison:
+    """The moving transforms the re-run's body poses make (batchsim.model.frames, as the bridge
+    makes /tf) against the recorded ones, at every recorded stamp where the re-run knows them."""
+    if tf is None or run.xpos is None:
+        return TfComparison(0, False, 0.0, None, [])
+    tree = frame_tree(model)
+    index = {name: k for k, name in enumerate(tree.names)}
+    known = [k for k, (_, child) in enumerate(tf.pairs) if child in index]
+    unknown = [child for _, child in tf.pairs if child not in index]
+    frames = np.array([index[tf.pairs[k][1]] for k in known], np.intp)
+    stamps = _stamps(headers[:, 1])
+    at = np.searchsorted(stamps, tf.stamps)
+    found = (at < len(stamps)) & (stamps[np.minimum(at, len(stamps) - 1)] == tf.stamps)
+    rows, at = np.flatnonzero(found), at[found]
+    ran = ~np.isnan(run.xpos[at, 0, 0])
+    rows, at = rows[ran], at[ran]
+    t, r = relative_transforms(tree, run.xpos[at], run.xquat[at])
+    ours = np.concatenate([t[:, frames], r[:, frames]], axis=2)
+    diff = np.abs(ours - tf.values[rows][:, known])
+    worst = diff.max(axis=2) if diff.size else np.zeros((len(rows), len(known)))
+    parted = np.argwhere(worst > 0)
+    first = None
+    if parted.size:
+        i, j = parted[0]
+        first = (float(headers[at[i], 1]), tf.pairs[known[j]][1], float(worst[i, j]))
+    return TfComparison(len(rows), len(rows) > 0 and first is None, float(worst.max()) if worst.size else 0.0, first, unknown)

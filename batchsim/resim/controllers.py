@@ -128,6 +128,7 @@ class _Check(Participant):
         self.layout, self.headers = recorded.layout, recorded.headers
         self.k = -1
         self.state: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))
+        self.poses, self.pose = False, (np.zeros(0), np.zeros(0))
         self.command_diff = np.full((len(self.headers), len(names)), np.nan)
         self.ctrl_diff = np.full((len(self.headers), recorded.layout.nu), np.nan)
 
@@ -141,6 +142,8 @@ class _Check(Participant):
 
     def update(self, sim: Any, time: float, period: float) -> None:
         self.state = tuple(a[0] for a in sim.qstate([0]))  # the period's start (after a fresh start's reset)
+        if self.poses:  # what /tf is made from at this period
+            self.pose = tuple(np.asarray(a[0], np.float64) for a in sim.body_poses([0]))
         row = self.layout.split_inputs(self.world.inputs[self.k : self.k + 1])
         claimed = self.claimed()
         self.command_diff[self.k] = np.where(claimed, np.abs(sim.command[0] - row["command"][0]), 0.0)
@@ -168,9 +171,10 @@ class _Check(Participant):
 
 
 def rerun_controllers(
-    model: str | Path, controllers: str | Path, recorded: Recorded, world: WorldRecord
+    model: str | Path, controllers: str | Path, recorded: Recorded, world: WorldRecord, poses: bool = False
 ) -> tuple[Trajectory, ControllerComparison]:
-    """Re-run `world` of `recorded` with `controllers` (a controller_manager YAML) on `model`."""
+    """Re-run `world` of `recorded` with `controllers` (a controller_manager YAML) on `model`;
+    with `poses`, keep the body poses the system shows at each period's start (/tf's)."""
     import batchsim
     from batchsim.controllers import load_controllers
 
@@ -198,6 +202,9 @@ def rerun_controllers(
     loop.participants[:] = [feed, manager, check]
     n = len(headers)
     qpos, qvel, since = np.full((n, m.nq), np.nan), np.full((n, m.nv), np.nan), np.full(n, np.nan)
+    xpos = np.full((n, m.nbody, 3), np.nan) if poses else None
+    xquat = np.full((n, m.nbody, 4), np.nan) if poses else None
+    check.poses = poses
     ran = np.zeros(n, bool)
     running, t0 = False, np.nan
     for k in range(n):
@@ -213,7 +220,9 @@ def rerun_controllers(
         loop.run_period(int(headers[k, 2]))
         ran[k] = True
         qpos[k], qvel[k], since[k] = check.state[0], check.state[1], t0
-    return Trajectory(qpos, qvel, since), check.comparison(ran, feed.applied)
+        if poses:
+            xpos[k], xquat[k] = check.pose
+    return Trajectory(qpos, qvel, since, xpos, xquat), check.comparison(ran, feed.applied)
 
 
 def _batch(doc: dict) -> TrajectoryBatch:

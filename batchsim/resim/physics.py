@@ -22,11 +22,16 @@ _INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION
 class Trajectory:
     """The re-run's state at each period's start: `qpos` (nperiod, nq), `qvel` (nperiod, nv),
     NaN where the world was not running (before its first start, frozen); `since` (nperiod,) the
-    sim time of the world's last (re)start, NaN where none."""
+    sim time of the world's last (re)start, NaN where none. Where asked for, `xpos` (nperiod,
+    nbody, 3) and `xquat` (nperiod, nbody, 4): the body poses the system shows at the period's
+    start (its last step's kinematics, taken before that step's last substep; a fresh start's
+    own), which /tf is made from; NaN where unknown (a start mid-run)."""
 
     qpos: np.ndarray
     qvel: np.ndarray
     since: np.ndarray
+    xpos: np.ndarray | None = None
+    xquat: np.ndarray | None = None
 
 
 def with_params(model: mujoco.MjModel, params: dict[str, np.ndarray]) -> mujoco.MjModel:
@@ -45,11 +50,16 @@ def with_params(model: mujoco.MjModel, params: dict[str, np.ndarray]) -> mujoco.
     return m
 
 
-def rerun(model: mujoco.MjModel, layout: InputsLayout, headers: np.ndarray, world: WorldRecord) -> Trajectory:
-    """Re-step `world` through every period of `headers` (n, 3: number, time, steps)."""
+def rerun(
+    model: mujoco.MjModel, layout: InputsLayout, headers: np.ndarray, world: WorldRecord, poses: bool = False
+) -> Trajectory:
+    """Re-step `world` through every period of `headers` (n, 3: number, time, steps); with
+    `poses`, keep the body poses of each period's start too."""
     n = len(headers)
     qpos, qvel = np.full((n, model.nq), np.nan), np.full((n, model.nv), np.nan)
     since = np.full(n, np.nan)
+    xpos = np.full((n, model.nbody, 3), np.nan) if poses else None
+    xquat = np.full((n, model.nbody, 4), np.nan) if poses else None
     starts = {s.period: s for s in world.starts}
     number = headers[:, 0].astype(np.int64)
     m, d, running, t0 = model, None, False, np.nan
@@ -62,6 +72,8 @@ def rerun(model: mujoco.MjModel, layout: InputsLayout, headers: np.ndarray, worl
             d = mujoco.MjData(m)
             mujoco.mj_setState(m, d, start.state, _INTEGRATION)
             running, t0 = True, float(headers[k, 1])
+            if start.fresh:  # a reset's (or the run's first) poses: its own state's kinematics
+                mujoco.mj_kinematics(m, d)
         if not running:
             continue
         inputs = layout.split_inputs(world.inputs[k : k + 1])
@@ -69,6 +81,8 @@ def rerun(model: mujoco.MjModel, layout: InputsLayout, headers: np.ndarray, worl
             running = False
             continue
         qpos[k], qvel[k], since[k] = d.qpos, d.qvel, t0
+        if poses and (start is None or start.fresh):
+            xpos[k], xquat[k] = d.xpos, d.xquat
         d.ctrl[:] = inputs["ctrl"][0]
         if layout.nbody:
             d.xfrc_applied[:] = inputs["xfrc_applied"][0]
@@ -79,4 +93,4 @@ def rerun(model: mujoco.MjModel, layout: InputsLayout, headers: np.ndarray, worl
             if held is not None:
                 d.qvel[held_at] = held
             mujoco.mj_step(m, d)
-    return Trajectory(qpos, qvel, since)
+    return Trajectory(qpos, qvel, since, xpos, xquat)

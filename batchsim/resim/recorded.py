@@ -51,15 +51,27 @@ class JointStates:
 
 
 @dataclasses.dataclass
+class TfStates:
+    """A world's recorded moving transforms (/tf): `stamps` (n,) int ns, `pairs` its (parent,
+    child) frames without the namespace, `values` (n, npair, 7): translation xyz, rotation xyzw."""
+
+    stamps: np.ndarray
+    pairs: list[tuple[str, str]]
+    values: np.ndarray
+
+
+@dataclasses.dataclass
 class WorldRecord:
     """What the file holds of one world: its number, namespace, starts, every period's inputs
-    (rows of the layout's input width) and its joint states (None where not recorded)."""
+    (rows of the layout's input width), its joint states (None where not recorded) and, where
+    asked for, its /tf."""
 
     world: int
     namespace: str
     starts: list[Start]
     inputs: np.ndarray
     joint_states: JointStates | None
+    tf: TfStates | None = None
 
 
 @dataclasses.dataclass
@@ -77,8 +89,9 @@ class Recorded:
     events: list[dict] = dataclasses.field(default_factory=list)
 
 
-def read(path: str, worlds: Sequence[int] | None = None) -> Recorded:
-    """The re-simulation facts of `path` for `worlds` (fleet numbers; None: every recorded one)."""
+def read(path: str, worlds: Sequence[int] | None = None, tf: bool = False) -> Recorded:
+    """The re-simulation facts of `path` for `worlds` (fleet numbers; None: every recorded one);
+    with `tf`, their /tf too (every /tf message decoded: slow on large fleets)."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
@@ -106,12 +119,14 @@ def read(path: str, worlds: Sequence[int] | None = None) -> Recorded:
             if missing:
                 raise ResimError(f"{path} does not hold world {missing[0]} (it recorded worlds {_ranges(recorded)})")
             rows = {w: recorded.index(w) for w in chosen}
-            return _read_messages(reader, meta, layout, model, rows, {w: namespaces[recorded.index(w)] for w in chosen})
+            return _read_messages(reader, meta, layout, model, rows, {w: namespaces[recorded.index(w)] for w in chosen}, tf)
         except (McapError, ValueError, KeyError, EOFError) as e:
             raise ResimError(f"{path}: not a readable batchsim recording ({e})") from None
 
 
-def _read_messages(reader, meta, layout: InputsLayout, model: bytes, rows: dict[int, int], namespaces: dict[int, str]) -> Recorded:
+def _read_messages(
+    reader, meta, layout: InputsLayout, model: bytes, rows: dict[int, int], namespaces: dict[int, str], tf: bool
+) -> Recorded:
     from mcap_ros2.decoder import DecoderFactory
 
     js_topics = {f"/{ns.strip('/')}/joint_states" if ns.strip("/") else "/joint_states": w for w, ns in namespaces.items()}
@@ -124,7 +139,10 @@ def _read_messages(reader, meta, layout: InputsLayout, model: bytes, rows: dict[
     decoders: dict[int, object] = {}
     factory = DecoderFactory()
     events: list[dict] = []
-    for schema, channel, message in reader.iter_messages(topics=[INPUTS_TOPIC, STARTS_TOPIC, EVENTS_TOPIC, *js_topics]):
+    prefixes = {f"{ns.strip('/')}/": w for w, ns in namespaces.items()}
+    transforms: dict[int, list] = {w: [] for w in worlds}
+    topics = [INPUTS_TOPIC, STARTS_TOPIC, EVENTS_TOPIC, *js_topics, *(["/tf"] if tf else [])]
+    for schema, channel, message in reader.iter_messages(topics=topics):
         if channel.topic == INPUTS_TOPIC:
             header, values = unpack(message.data)
             headers.append(header)
@@ -137,6 +155,11 @@ def _read_messages(reader, meta, layout: InputsLayout, model: bytes, rows: dict[
                     starts[world].append(Start(int(header[0]), state.copy(), draw, params, fresh))
         elif channel.topic == EVENTS_TOPIC:
             events.append(json.loads(unpack_string(message.data)))
+        elif channel.topic == "/tf":
+            decode = decoders.get(channel.id)
+            if decode is None:
+                decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
+            _split_tf(decode(message.data), prefixes, transforms)
         else:
             decode = decoders.get(channel.id)
             if decode is None:
@@ -148,8 +171,36 @@ def _read_messages(reader, meta, layout: InputsLayout, model: bytes, rows: dict[
     stacked = np.stack(inputs)[order]  # (nperiod, nworld, width)
     out = {}
     for k, w in enumerate(worlds):
-        out[w] = WorldRecord(w, namespaces[w], sorted(starts[w], key=lambda s: s.period), stacked[:, k], _joint_states(states[w]))
+        out[w] = WorldRecord(
+            w, namespaces[w], sorted(starts[w], key=lambda s: s.period), stacked[:, k], _joint_states(states[w]),
+            _tf_states(transforms[w]) if tf else None,
+        )  # fmt: skip
     return Recorded(meta, layout, model, np.stack(headers)[order], out, sorted(events, key=lambda e: e["period"]))
+
+
+def _split_tf(msg, prefixes: dict[str, int], out: dict[int, list]) -> None:
+    """A /tf message's transforms, per world asked for (by its frames' namespace prefix)."""
+    per: dict[int, list] = {}
+    stamp = None
+    for t in msg.transforms:
+        head, _, child = t.child_frame_id.partition("/")
+        w = prefixes.get(head + "/")
+        if w is None:
+            continue
+        stamp = t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec
+        r, v = t.transform.rotation, t.transform.translation
+        per.setdefault(w, []).append((t.header.frame_id.partition("/")[2], child, (v.x, v.y, v.z, r.x, r.y, r.z, r.w)))
+    for w, rows in per.items():
+        out[w].append((stamp, rows))
+
+
+def _tf_states(messages: list) -> TfStates | None:
+    if not messages:
+        return None
+    messages.sort(key=lambda m: m[0])
+    pairs = [(parent, child) for parent, child, _ in messages[0][1]]
+    values = np.array([[v for _, _, v in rows] for _, rows in messages], np.float64)
+    return TfStates(np.array([m[0] for m in messages], np.int64), pairs, values)
 
 
 def _joint_states(messages: list) -> JointStates | None:
