@@ -12,8 +12,8 @@ import yaml
 pytest.importorskip("mcap_ros2")
 
 from batchsim.calibration import synthetic  # noqa: E402
-from batchsim.calibration.search import BoxSearch, quadratic_minimum  # noqa: E402
 from batchsim.cli import main  # noqa: E402
+from batchsim.variation.search import BoxSearch, quadratic_minimum  # noqa: E402
 
 #: what the end-to-end test asks of the fit, as factors of nominal: masses trade off against each
 #: other in joint2's sag (measured: within 6 %), damping and the servo gain stand out (within 1 %)

@@ -30,8 +30,8 @@ from batchsim.calibration.parameters import (
     round_variation,
 )
 from batchsim.calibration.replay import WorldErrors, replay_worlds
-from batchsim.calibration.search import BoxSearch, Round, quadratic_minimum
 from batchsim.variation import Variation, VariationError, load
+from batchsim.variation.search import BoxSearch, Round, quadratic_minimum
 
 
 @dataclasses.dataclass(frozen=True)

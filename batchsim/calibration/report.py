@@ -11,9 +11,9 @@ import numpy as np
 
 from batchsim.calibration.fit import Fit
 from batchsim.calibration.parameters import Parameter
-from batchsim.calibration.search import BoxSearch, Round
 from batchsim.plotting import pyplot
 from batchsim.variation import Operation
+from batchsim.variation.search import BoxSearch, Round
 
 
 def _draw_text(p: Parameter, value: float) -> str:

@@ -1,7 +1,8 @@
 """Per-world randomization: what varies per world (spec.py), each world's draw (draw.py), the
 system's part that holds every world's draws and applies them at reset (worlds.py), what was
-drawn, as a table (report.py), and the seeded counter hash draws and sensor noise come from
-(counter_rng.py).
+drawn, as a table (report.py), the seeded counter hash draws and sensor noise come from
+(counter_rng.py), and the batched search that narrows draws toward a target (search.py: the
+cross-entropy search of `batchsim calibrate`, batchsim.calibration).
 
     variation = batchsim.variation.load("randomize.yaml")   # or a mapping
     sim = batchsim.make("arm", 1024, "warp", randomize=variation)
