@@ -8,8 +8,9 @@ import json
 import numpy as np
 import pytest
 import yaml
+from conftest import need
 
-pytest.importorskip("mcap_ros2")
+need("mcap_ros2")
 
 from batchsim.calibration import synthetic  # noqa: E402
 from batchsim.cli import main  # noqa: E402

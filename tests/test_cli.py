@@ -361,9 +361,10 @@ def test_help_names_every_command_and_every_flag_the_docs_give():
 
     page = (Path(__file__).parent.parent / "docs" / "cli.md").read_text()
     block = page.split("## The command", 1)[1].split("```", 2)[1]
-    helps = {cmd: " ".join(batchsim_cli(*cmd.split(), "--help").stdout.split()) for cmd in ("", "info", "replay", "view", "evaluate")}
+    commands = ("", "info", "replay", "view", "evaluate", "resim", "calibrate")
+    helps = {cmd: " ".join(batchsim_cli(*cmd.split(), "--help").stdout.split()) for cmd in commands}
     main = helps[""]
-    for command in ("batchsim info", "batchsim replay", "batchsim view", "batchsim evaluate", "--ros-args"):
+    for command in ("batchsim info", "batchsim replay", "batchsim view", "batchsim evaluate", "batchsim resim", "batchsim calibrate", "--ros-args"):
         assert command in main, command
     flags = set(re.findall(r"--[a-z][a-z0-9-]*", block))
     assert len(flags) > 30

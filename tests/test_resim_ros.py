@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import need
 from ros_fleet import Fleet, batchsim_process, domain_id, release_domain, stack_messages
 
 from batchsim.controllers import default_controllers
@@ -173,7 +174,7 @@ def test_a_recording_without_inputs_is_refused_in_one_line(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", ["mjx", "warp"])
 def test_a_gpu_backends_recording_rerun_on_cpu_reports_its_divergence_and_horizon(tmp_path, backend):
-    pytest.importorskip({"mjx": "mujoco.mjx", "warp": "mujoco_warp"}[backend])
+    need({"mjx": "mujoco.mjx", "warp": "mujoco_warp"}[backend])
     (tmp_path / "rand.yaml").write_text(RANDOMIZE)
     args = ["--backend", backend, "--worlds", "2", "--duration", "1", "--rtf", "0", "--randomize", str(tmp_path / "rand.yaml")]
     path = _record(tmp_path, args, f"{backend}.mcap")
