@@ -190,3 +190,31 @@ def test_a_gpu_backends_recording_rerun_on_cpu_reports_its_divergence_and_horizo
         assert r["horizon"] is None or r["horizon"] > 0
         assert np.isfinite(r["max_position"])
     assert "they part at t=" in done.stdout and f"a {backend} recording re-run" in done.stderr
+
+
+def test_a_rovers_diff_drive_odometry_reruns_bit_exact(tmp_path):
+    """The rover's diff_drive_controller driven over cmd_vel: re-run with its controllers, its
+    odom (the controller's own estimate from its wheels) comes out as recorded, to the bit."""
+    from geometry_msgs.msg import TwistStamped
+
+    path = tmp_path / "rover.mcap"
+    args = ["--model", "rover", "--worlds", "2", "--record", str(path), "--duration", "8", "--quiet"]
+    args += ["--controllers", str(default_controllers("rover"))]  # the Fleet helper's default is none
+    with Fleet(domain_id(58), args, tmp_path / "fleet.log") as fleet:
+        odom = fleet.latest(stack_messages()["Odometry"], "/world_1/diff_drive_controller/odom")
+        fleet.wait(lambda: odom.count > 0, 60, "odom")
+        fleet.advertise(TwistStamped, "/world_1/diff_drive_controller/cmd_vel")
+        fleet.wait_subscribed("/world_1/diff_drive_controller/cmd_vel")
+        drive = TwistStamped()
+        drive.twist.linear.x, drive.twist.angular.z = 0.5, 0.8
+        for _ in range(30):
+            fleet.publish(TwistStamped, "/world_1/diff_drive_controller/cmd_vel", drive)
+            time.sleep(0.05)
+        fleet.proc.wait(timeout=120)
+    out = tmp_path / "rover.json"
+    done = _resim(str(path), "--model", "rover", "--controllers", "--json", str(out))
+    assert done.returncode == 0, done.stderr
+    assert "world 1: 800 diff_drive_controller/odom messages compared: bit-exact" in done.stdout, done.stdout
+    verdicts = {v["world"]: v for v in json.loads(out.read_text())["controllers"]}
+    assert verdicts[1]["exact"] and verdicts[1]["events"] > 5, done.stdout
+    assert abs(odom.msg.pose.pose.position.x) + abs(odom.msg.pose.pose.position.y) > 0.1  # it drove

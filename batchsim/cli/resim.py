@@ -26,15 +26,16 @@ def resim(argv: Sequence[str]) -> int:
         import mcap_ros2  # noqa: F401
     except ModuleNotFoundError as e:
         raise UsageError(f"resim needs {e.name}: {startup.install_command('record')}") from None
-    from batchsim.resim.compare import compare, compare_tf
-    from batchsim.resim.controllers import rerun_controllers
+    from batchsim.resim.compare import compare, compare_series, compare_tf
+    from batchsim.resim.controllers import odometry_topics, rerun_controllers
     from batchsim.resim.layout import load_model, model_bytes, model_hash
     from batchsim.resim.physics import rerun
     from batchsim.resim.recorded import ResimError, read
 
     began = wallclock.monotonic()
     try:
-        recorded = read(args.file, args.worlds, tf=args.tf)
+        odometry = odometry_topics(args.model, _controllers(args)) if args.controllers is not None and args.model else []
+        recorded = read(args.file, args.worlds, tf=args.tf, odometry=odometry)
     except ResimError as e:
         raise UsageError(str(e)) from None
     model = load_model(recorded.model)
@@ -68,6 +69,8 @@ def resim(argv: Sequence[str]) -> int:
                 raise UsageError(str(e)) from None
             controlled.append((w, verdict))
             print(verdict.line(w))
+            for topic, ours in verdict.odometry.items():
+                print(compare_series(topic, w, recorded.headers, ours, world.odometry.get(topic)))
         else:
             run = rerun(model, recorded.layout, recorded.headers, world, poses=args.tf)
         result = compare(model, w, run, recorded.headers, world.joint_states, args.tolerance)
@@ -81,7 +84,7 @@ def resim(argv: Sequence[str]) -> int:
         say(f"a {backend} recording re-run on MuJoCo's C step parts from it: {backend} computes with kernels of its own (float32 on a GPU)")
     document = lambda: {  # noqa: E731
         "file": args.file, "backend": backend, "worlds": [r.to_json() for r in results],
-        "controllers": [{"world": w, **dataclasses.asdict(v)} for w, v in controlled],
+        "controllers": [{"world": w, **{k: x for k, x in dataclasses.asdict(v).items() if k != "odometry"}} for w, v in controlled],
         "tf": [{"world": w, **dataclasses.asdict(v)} for w, v in tfs],
     }  # fmt: skip
     write_reports(args.json, document, args.plot, lambda path: _plot(results, path, args.tolerance))

@@ -162,3 +162,28 @@ def compare_tf(model: mujoco.MjModel, run: Trajectory, headers: np.ndarray, tf: 
         i, j = parted[0]
         first = (float(headers[at[i], 1]), tf.pairs[known[j]][1], float(worst[i, j]))
     return TfComparison(len(rows), len(rows) > 0 and first is None, float(worst.max()) if worst.size else 0.0, first, unknown)
+
+
+def compare_series(
+    what: str, world: int, headers: np.ndarray, ours: np.ndarray, recorded: tuple[np.ndarray, np.ndarray] | None
+) -> str:
+    """One line: the re-run's per-period values `ours` (nperiod, k; NaN rows not run) against a
+    recorded series (stamps ns, (n, k)) of topic `what`: bit-exact, or where they first part."""
+    if recorded is None:
+        return f"world {world}: {what} not recorded"
+    stamps, values = recorded
+    periods = _stamps(headers[:, 1])
+    at = np.searchsorted(periods, stamps)
+    found = (at < len(periods)) & (periods[np.minimum(at, len(periods) - 1)] == stamps)
+    rows, at = np.flatnonzero(found), at[found]
+    ran = ~np.isnan(ours[at, 0])
+    rows, at = rows[ran], at[ran]
+    diff = np.abs(ours[at] - values[rows])
+    head = f"world {world}: {len(rows)} {what} messages compared"
+    if not len(rows):
+        return f"{head}: none"
+    parted = np.flatnonzero(diff.max(axis=1) > 0)
+    if not parted.size:
+        return f"{head}: bit-exact"
+    i = parted[0]
+    return f"{head}: they part at t={headers[at[i], 1]:.3f} s ({diff[i].max():.3g}); largest difference {diff.max():.3g}"

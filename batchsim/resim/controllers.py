@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from batchsim.controllers.topics import TrajectoryBatch
+from batchsim.controllers.topics import MessageKind, TrajectoryBatch
 from batchsim.loop import Participant, SimLoop
 from batchsim.resim.physics import Trajectory
 from batchsim.resim.recorded import Recorded, ResimError, WorldRecord
@@ -44,6 +44,8 @@ class ControllerComparison:
     max_command: float
     max_ctrl: float
     events: int
+    # per Odometry topic its controller publishes, the re-run's (nperiod, 13) values (NaN: not run)
+    odometry: dict[str, np.ndarray] = dataclasses.field(default_factory=dict, repr=False)
 
     def line(self, world: int) -> str:
         head = f"world {world} (controllers re-run, {self.periods} periods, {self.events} controller inputs)"
@@ -129,6 +131,9 @@ class _Check(Participant):
         self.k = -1
         self.state: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))
         self.poses, self.pose = False, (np.zeros(0), np.zeros(0))
+        outputs = [o for c in manager for o in c.topics().outputs if o.kind is MessageKind.ODOMETRY]
+        self.odometry = [(o.topic, o.read) for o in outputs]
+        self.odometry_values = {o.topic: np.full((len(self.headers), 13), np.nan) for o in outputs}
         self.command_diff = np.full((len(self.headers), len(names)), np.nan)
         self.ctrl_diff = np.full((len(self.headers), recorded.layout.nu), np.nan)
 
@@ -142,6 +147,9 @@ class _Check(Participant):
 
     def update(self, sim: Any, time: float, period: float) -> None:
         self.state = tuple(a[0] for a in sim.qstate([0]))  # the period's start (after a fresh start's reset)
+        for topic, read in self.odometry:  # what the bridge publishes of this period, after the controllers
+            rows = read()
+            self.odometry_values[topic][self.k] = np.concatenate([rows[f][0] for f in _ODOMETRY_FIELDS])
         if self.poses:  # what /tf is made from at this period
             self.pose = tuple(np.asarray(a[0], np.float64) for a in sim.body_poses([0]))
         row = self.layout.split_inputs(self.world.inputs[self.k : self.k + 1])
@@ -168,6 +176,18 @@ class _Check(Participant):
             int(ran.sum()), bool(ran.any()) and cmd is None and ctl is None, cmd, ctl,
             worst(self.command_diff), worst(self.ctrl_diff), applied,
         )  # fmt: skip
+
+
+_ODOMETRY_FIELDS = ("position", "orientation", "linear", "angular")  # nav_msgs/Odometry's, as the bridge fills it
+
+
+def odometry_topics(model: str | Path, controllers: str | Path) -> list[str]:
+    """The nav_msgs/Odometry topics `controllers` publish (a diff drive's `odom`), namespace-relative."""
+    import batchsim
+    from batchsim.controllers import load_controllers
+
+    manager = load_controllers(controllers, batchsim.load(model), 1)
+    return [o.topic for c in manager for o in c.topics().outputs if o.kind is MessageKind.ODOMETRY]
 
 
 def rerun_controllers(
@@ -222,7 +242,9 @@ def rerun_controllers(
         qpos[k], qvel[k], since[k] = check.state[0], check.state[1], t0
         if poses:
             xpos[k], xquat[k] = check.pose
-    return Trajectory(qpos, qvel, since, xpos, xquat), check.comparison(ran, feed.applied)
+    verdict = check.comparison(ran, feed.applied)
+    verdict.odometry = {t: v for t, v in check.odometry_values.items()}
+    return Trajectory(qpos, qvel, since, xpos, xquat), verdict
 
 
 def _batch(doc: dict) -> TrajectoryBatch:

@@ -72,6 +72,9 @@ class WorldRecord:
     inputs: np.ndarray
     joint_states: JointStates | None
     tf: TfStates | None = None
+    # nav_msgs/Odometry topics asked for (relative to the namespace) -> (stamps (n,) ns, (n, 13)
+    # position xyz, orientation xyzw, linear xyz, angular xyz)
+    odometry: dict[str, tuple[np.ndarray, np.ndarray]] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
@@ -89,9 +92,10 @@ class Recorded:
     events: list[dict] = dataclasses.field(default_factory=list)
 
 
-def read(path: str, worlds: Sequence[int] | None = None, tf: bool = False) -> Recorded:
+def read(path: str, worlds: Sequence[int] | None = None, tf: bool = False, odometry: Sequence[str] = ()) -> Recorded:
     """The re-simulation facts of `path` for `worlds` (fleet numbers; None: every recorded one);
-    with `tf`, their /tf too (every /tf message decoded: slow on large fleets)."""
+    with `tf`, their /tf too (every /tf message decoded: slow on large fleets); and the
+    nav_msgs/Odometry `odometry` topics (relative to each world's namespace) where recorded."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
@@ -119,17 +123,19 @@ def read(path: str, worlds: Sequence[int] | None = None, tf: bool = False) -> Re
             if missing:
                 raise ResimError(f"{path} does not hold world {missing[0]} (it recorded worlds {_ranges(recorded)})")
             rows = {w: recorded.index(w) for w in chosen}
-            return _read_messages(reader, meta, layout, model, rows, {w: namespaces[recorded.index(w)] for w in chosen}, tf)
+            namespaces_of = {w: namespaces[recorded.index(w)] for w in chosen}
+            return _read_messages(reader, meta, layout, model, rows, namespaces_of, tf, tuple(odometry))
         except (McapError, ValueError, KeyError, EOFError) as e:
             raise ResimError(f"{path}: not a readable batchsim recording ({e})") from None
 
 
 def _read_messages(
-    reader, meta, layout: InputsLayout, model: bytes, rows: dict[int, int], namespaces: dict[int, str], tf: bool
+    reader, meta, layout: InputsLayout, model: bytes, rows: dict[int, int], namespaces: dict[int, str], tf: bool,
+    odometry: tuple[str, ...],
 ) -> Recorded:
     from mcap_ros2.decoder import DecoderFactory
 
-    js_topics = {f"/{ns.strip('/')}/joint_states" if ns.strip("/") else "/joint_states": w for w, ns in namespaces.items()}
+    js_topics = {_topic(ns, "joint_states"): w for w, ns in namespaces.items()}
     worlds = list(rows)
     picked = np.array([rows[w] for w in worlds], np.intp)
     headers: list[np.ndarray] = []
@@ -141,7 +147,9 @@ def _read_messages(
     events: list[dict] = []
     prefixes = {f"{ns.strip('/')}/": w for w, ns in namespaces.items()}
     transforms: dict[int, list] = {w: [] for w in worlds}
-    topics = [INPUTS_TOPIC, STARTS_TOPIC, EVENTS_TOPIC, *js_topics, *(["/tf"] if tf else [])]
+    odom_topics = {_topic(ns, t): (w, t) for w, ns in namespaces.items() for t in odometry}
+    odoms: dict[tuple[int, str], list] = {key: [] for key in odom_topics.values()}
+    topics = [INPUTS_TOPIC, STARTS_TOPIC, EVENTS_TOPIC, *js_topics, *odom_topics, *(["/tf"] if tf else [])]
     for schema, channel, message in reader.iter_messages(topics=topics):
         if channel.topic == INPUTS_TOPIC:
             header, values = unpack(message.data)
@@ -155,6 +163,14 @@ def _read_messages(
                     starts[world].append(Start(int(header[0]), state.copy(), draw, params, fresh))
         elif channel.topic == EVENTS_TOPIC:
             events.append(json.loads(unpack_string(message.data)))
+        elif channel.topic in odom_topics:
+            decode = decoders.get(channel.id)
+            if decode is None:
+                decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
+            m = decode(message.data)
+            p, q, v, a = m.pose.pose.position, m.pose.pose.orientation, m.twist.twist.linear, m.twist.twist.angular
+            stamp = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+            odoms[odom_topics[channel.topic]].append((stamp, (p.x, p.y, p.z, q.x, q.y, q.z, q.w, v.x, v.y, v.z, a.x, a.y, a.z)))
         elif channel.topic == "/tf":
             decode = decoders.get(channel.id)
             if decode is None:
@@ -174,8 +190,20 @@ def _read_messages(
         out[w] = WorldRecord(
             w, namespaces[w], sorted(starts[w], key=lambda s: s.period), stacked[:, k], _joint_states(states[w]),
             _tf_states(transforms[w]) if tf else None,
+            {t: _series(odoms[(w, t)]) for t in odometry if odoms[(w, t)]},
         )  # fmt: skip
     return Recorded(meta, layout, model, np.stack(headers)[order], out, sorted(events, key=lambda e: e["period"]))
+
+
+def _topic(namespace: str, topic: str) -> str:
+    """A world's topic as the bridge names it: `/<ns>/<topic>`, or `/<topic>` at the root."""
+    ns = namespace.strip("/")
+    return f"/{ns}/{topic.strip('/')}" if ns else f"/{topic.strip('/')}"
+
+
+def _series(rows: list) -> tuple[np.ndarray, np.ndarray]:
+    rows.sort(key=lambda r: r[0])
+    return np.array([r[0] for r in rows], np.int64), np.array([r[1] for r in rows], np.float64)
 
 
 def _split_tf(msg, prefixes: dict[str, int], out: dict[int, list]) -> None:
