@@ -82,12 +82,7 @@ def compare(
         qadr.append(model.jnt_qposadr[j])
         vadr.append(model.jnt_dofadr[j])
     columns = [states.names.index(n) for n in joints]
-    stamps = _stamps(headers[:, 1])
-    at = np.searchsorted(stamps, states.stamps)
-    found = (at < len(stamps)) & (stamps[np.minimum(at, len(stamps) - 1)] == states.stamps)
-    rows, at = np.flatnonzero(found), at[found]
-    ran = ~np.isnan(run.qpos[at, 0]) if model.nq else np.ones(len(at), bool)
-    rows, at = rows[ran], at[ran]
+    rows, at = _matched(headers, states.stamps, ~np.isnan(run.qpos[:, 0]) if model.nq else np.ones(len(headers), bool))
     dpos = np.abs(states.position[np.ix_(rows, columns)] - run.qpos[np.ix_(at, qadr)])
     dvel = np.abs(states.velocity[np.ix_(rows, columns)] - run.qvel[np.ix_(at, vadr)])
     worst = np.maximum(dpos, np.nan_to_num(dvel)) if dpos.size else np.zeros((len(rows), 0))
@@ -106,6 +101,17 @@ def compare(
         max_position=float(dpos.max()) if dpos.size else 0.0, max_velocity=float(np.nanmax(dvel)) if dvel.size else 0.0,
         first=first, horizon=horizon, tolerance=tolerance, time=time, error=step_error, skipped=skipped,
     )  # fmt: skip
+
+
+def _matched(headers: np.ndarray, stamps: np.ndarray, ran: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The recorded messages (`stamps`, ns) stamped with a period's start where the re-run ran
+    (`ran`, (nperiod,) bool): (their rows, their periods' rows in `headers`)."""
+    periods = _stamps(headers[:, 1])
+    at = np.searchsorted(periods, stamps)
+    found = (at < len(periods)) & (periods[np.minimum(at, len(periods) - 1)] == stamps)
+    rows, at = np.flatnonzero(found), at[found]
+    keep = ran[at]
+    return rows[keep], at[keep]
 
 
 def _stamps(times: np.ndarray) -> np.ndarray:
@@ -146,12 +152,7 @@ def compare_tf(model: mujoco.MjModel, run: Trajectory, headers: np.ndarray, tf: 
     known = [k for k, (_, child) in enumerate(tf.pairs) if child in index]
     unknown = [child for _, child in tf.pairs if child not in index]
     frames = np.array([index[tf.pairs[k][1]] for k in known], np.intp)
-    stamps = _stamps(headers[:, 1])
-    at = np.searchsorted(stamps, tf.stamps)
-    found = (at < len(stamps)) & (stamps[np.minimum(at, len(stamps) - 1)] == tf.stamps)
-    rows, at = np.flatnonzero(found), at[found]
-    ran = ~np.isnan(run.xpos[at, 0, 0])
-    rows, at = rows[ran], at[ran]
+    rows, at = _matched(headers, tf.stamps, ~np.isnan(run.xpos[:, 0, 0]))
     t, r = relative_transforms(tree, run.xpos[at], run.xquat[at])
     ours = np.concatenate([t[:, frames], r[:, frames]], axis=2)
     diff = np.abs(ours - tf.values[rows][:, known])
@@ -172,12 +173,7 @@ def compare_series(
     if recorded is None:
         return f"world {world}: {what} not recorded"
     stamps, values = recorded
-    periods = _stamps(headers[:, 1])
-    at = np.searchsorted(periods, stamps)
-    found = (at < len(periods)) & (periods[np.minimum(at, len(periods) - 1)] == stamps)
-    rows, at = np.flatnonzero(found), at[found]
-    ran = ~np.isnan(ours[at, 0])
-    rows, at = rows[ran], at[ran]
+    rows, at = _matched(headers, stamps, ~np.isnan(ours[:, 0]))
     diff = np.abs(ours[at] - values[rows])
     head = f"world {world}: {len(rows)} {what} messages compared"
     if not len(rows):

@@ -129,6 +129,8 @@ class _Check(Participant):
         self.manager, self.names, self.actuators, self.world = manager, names, actuators, world
         self.layout, self.headers = recorded.layout, recorded.headers
         self.k = -1
+        # per controller, its live active mask (a view that follows switches) and its command columns
+        self._claims = [(manager.active(c.name), [names.index(n) for n in c.command_interfaces]) for c in manager]
         self.state: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))
         self.poses, self.pose = False, (np.zeros(0), np.zeros(0))
         outputs = [o for c in manager for o in c.topics().outputs if o.kind is MessageKind.ODOMETRY]
@@ -140,9 +142,9 @@ class _Check(Participant):
     def claimed(self) -> np.ndarray:
         """(ncommand,) bool: the interfaces an active controller claims in the world."""
         out = np.zeros(len(self.names), bool)
-        for c in self.manager:
-            if self.manager.active(c.name)[0]:
-                out[[self.names.index(n) for n in c.command_interfaces]] = True
+        for active, columns in self._claims:
+            if active[0]:
+                out[columns] = True
         return out
 
     def update(self, sim: Any, time: float, period: float) -> None:
