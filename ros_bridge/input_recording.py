@@ -74,9 +74,9 @@ class InputRecording:
         self._fresh[:] = False
         self._periods = 0
 
-    def source(self) -> dict:
+    def source(self, group: str = "") -> dict:
         """What the file holds beside the rings' topics: the model's MJB, and the run's facts (the
-        `batchsim_resim` metadata record)."""
+        `batchsim_resim` metadata record; in a fleet of several groups, one per group, naming it)."""
         sim = self.loop.sim
         data = model_bytes(sim.model)
         worlds = self.plan.recording.worlds
@@ -91,6 +91,7 @@ class InputRecording:
                 "timestep": repr(sim.dt),
                 "worlds": json.dumps([self.plan.world_offset + w for w in worlds]),
                 "namespaces": json.dumps([self.plan.namespaces[w] for w in worlds]),
+                "group": group,
             },
         }
 

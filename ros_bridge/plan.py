@@ -350,7 +350,7 @@ def build_plan(
         widths = [c.width for c in channels]
         tf_channel = tf.channel if tf else None
         recording = record_spec(options.record, outputs, widths, tf_channel, options.clock, nworld, sensors)
-        if options.record.inputs and not options.record.group and recording.worlds:  # what resim needs (batchsim.resim)
+        if options.record.inputs and recording.worlds:  # what resim needs (batchsim.resim)
             recording = dataclasses.replace(recording, inputs=inputs_layout(sim))
     view = None
     if options.view is not None:

@@ -300,7 +300,7 @@ class Recording(Participant):
         # a recording stopped before its recorder said ready still holds start..stop
         self._set_recording(True)
         groups = [(r.plan, r.geometry(), name) for r, name in zip((self, *self._followers), self._names, strict=True)]
-        resim = self.inputs.source() if self.inputs is not None and not self._followers else None
+        resim = [r.inputs.source(name) if r.inputs is not None else None for r, name in zip((self, *self._followers), self._names, strict=True)]
         self._proc.stdin.write(pickle.dumps((groups, os.path.abspath(path), resim)))
         self._proc.stdin.flush()
         if wait:

@@ -124,22 +124,50 @@ def test_one_file_holds_every_groups_worlds_under_their_fleet_namespaces(recorde
     assert json.loads(meta["namespaces"]) == ["world_0", "world_1", "world_2", "world_3"]
     groups = json.loads(meta["groups"])
     assert [(g["name"], g["worlds"]) for g in groups] == [("arms", [0, 1]), ("yard", [2, 3])]
-    assert sorted(attachments) == sorted(g["geometry"] for g in groups) == [
-        "batchsim/view_geometry.arms.npz", "batchsim/view_geometry.yard.npz"
-    ]
+    geometry = sorted(a for a in attachments if "view_geometry" in a)
+    assert geometry == sorted(g["geometry"] for g in groups) == ["batchsim/view_geometry.arms.npz", "batchsim/view_geometry.yard.npz"]
+    # what `batchsim resim` needs, per group: its model and its inputs' topics (batchsim.resim.layout.resim_names)
+    assert sorted(a for a in attachments if a.endswith(".mjb")) == ["batchsim/arms/model.mjb", "batchsim/yard/model.mjb"]
+    assert len(times["/batchsim/arms/inputs"]) == len(times["/batchsim/yard/inputs"]) == PERIODS
     with open(recorded, "rb") as f:  # in sim-time order in the file: a replay paces by it
         logged = [m.log_time for _s, _c, m in NonSeekingReader(f).iter_messages(log_time_order=False)]
     assert logged == sorted(logged)
+
+
+def _resim(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "batchsim.cli", "resim", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_every_world_of_a_fleet_of_groups_reruns_bit_exact_from_its_groups_inputs(recorded, depot, tmp_path):
+    """Each group records its own inputs and model; `batchsim resim` re-runs each world from its
+    group's, each robot's joint_states compared (tests/test_resim_ros.py has the rest of resim)."""
+    done = _resim(str(recorded), "--tf")
+    assert done.returncode == 0, done.stderr
+    for w, joints in ((0, 6), (1, 6), (2, 8), (3, 8)):
+        assert f"world {w}: {PERIODS * (1 if joints == 6 else 2)} joint_states compared: bit-exact (every position and velocity of {joints} joints" in done.stdout, done.stdout
+        assert f"world {w}: {PERIODS} /tf messages compared: bit-exact" in done.stdout, done.stdout
+    assert "re-running 2 world(s) of group arms" in done.stderr and "re-running 2 world(s) of group yard" in done.stderr
+    # --model names one group's model (its fleet file): the other group's worlds are refused, the group named
+    arms = tmp_path / "arms.yaml"
+    arms.write_text(yaml.safe_dump({"robots": DEPOT["groups"][0]["robots"]}))
+    refused = _resim(str(recorded), "--model", str(arms))
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+    assert "is not the model" in refused.stderr and "(group yard, world 2)" in refused.stderr
+    mine = _resim(str(recorded), "--model", str(arms), "--worlds", "0,1")
+    assert mine.returncode == 0 and mine.stdout.count("bit-exact") == 2, mine.stdout + mine.stderr
 
 
 def test_the_first_group_leads_where_none_of_its_worlds_is_recorded_and_a_topic_may_be_one_groups(depot, tmp_path):
     path = tmp_path / "yard.mcap"
     _record(depot, path, 61, "--record-worlds", "3", "--record-topics", "rover/joint_states,/clock")
     summary, metadata, attachments, times, _ = _read(path)
-    assert sorted(times) == ["/clock", "/world_3/rover/joint_states"]
+    assert sorted(t for t in times if not t.startswith("/batchsim/")) == ["/clock", "/world_3/rover/joint_states"]
+    assert sorted(t for t in times if t.startswith("/batchsim/")) == ["/batchsim/yard/inputs", "/batchsim/yard/starts"]
     assert len(times["/clock"]) == PERIODS and times["/world_3/rover/joint_states"] == times["/clock"]
     assert json.loads(metadata["batchsim"]["worlds"]) == [3]
-    assert attachments == ["batchsim/view_geometry.yard.npz"]  # group arms has no world in it
+    assert sorted(attachments) == ["batchsim/view_geometry.yard.npz", "batchsim/yard/model.mjb"]  # group arms has no world in it
+    done = _resim(str(path))  # the one topic recorded is compared: the rover's
+    assert done.returncode == 0 and "world 3: 100 joint_states compared: bit-exact (every position and velocity of 2 joints" in done.stdout, done.stdout
 
 
 @pytest.mark.parametrize(
@@ -278,3 +306,6 @@ def test_the_record_service_records_every_group(depot, tmp_path):
         for w, robot in ROBOTS:
             assert len(times[f"/world_{w}/{robot}/joint_states"]) > 10, (file, w, robot)
         assert len(times["/clock"]) > 10
+    # the second began mid-run: each group's worlds re-run from the states its start took
+    done = _resim(str(tmp_path / "live_2.mcap"))
+    assert done.returncode == 0 and done.stdout.count("bit-exact") == 4, done.stdout + done.stderr

@@ -88,8 +88,8 @@ def _rerun_all(sim, recorded, joints: dict[str, tuple[int, int]]) -> list:
     out = []
     for w in range(sim.nworld):
         states = JointStates(stamps, names, pos[:, w][:, qadr], vel[:, w][:, vadr])
-        record = WorldRecord(w, f"world_{w}", starts[w], inputs[:, w], states)
-        out.append(compare(model, w, rerun(model, layout, headers, record), headers, states, 1e-9))
+        record = WorldRecord(w, f"world_{w}", starts[w], inputs[:, w], [states])
+        out.append(compare(model, w, rerun(model, layout, headers, record), headers, [states], 1e-9))
     return out
 
 
@@ -116,8 +116,8 @@ def test_a_rerun_of_a_randomized_world_with_resets_and_commands_is_bit_exact():
     layout, headers, inputs, starts, pos, vel = recorded
     model = L.load_model(L.model_bytes(sim.model))
     states = JointStates(_stamps(headers[:, 1]), list(joints), pos[:, 1, :6], vel[:, 1, :6])
-    record = WorldRecord(0, "world_0", starts[0], inputs[:, 0], states)
-    result = compare(model, 0, rerun(model, layout, headers, record), headers, states, 1e-9)
+    record = WorldRecord(0, "world_0", starts[0], inputs[:, 0], [states])
+    result = compare(model, 0, rerun(model, layout, headers, record), headers, [states], 1e-9)
     assert not result.exact and result.first is not None and result.horizon is not None
 
 
@@ -152,7 +152,7 @@ def test_the_plugins_inputs_rerun_bit_exact(tmp_path):
     # the free joint too: the held base and the pushed arm moved it, and the re-run follows
     layout, headers, inputs, starts, pos, vel = recorded
     model = L.load_model(L.model_bytes(sim.model))
-    record = WorldRecord(2, "world_2", starts[2], inputs[:, 2], None)
+    record = WorldRecord(2, "world_2", starts[2], inputs[:, 2], [])
     run = rerun(model, layout, headers, record)
     assert np.array_equal(run.qpos, pos[:, 2]) and np.abs(pos[-1, 2, :2] - pos[0, 2, :2]).max() > 0.1
 

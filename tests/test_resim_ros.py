@@ -10,6 +10,7 @@ import json
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,8 @@ from conftest import need
 from ros_fleet import Fleet, batchsim_process, domain_id, release_domain, stack_messages
 
 from batchsim.controllers import default_controllers
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 pytestmark = pytest.mark.ros
 
@@ -192,29 +195,51 @@ def test_a_gpu_backends_recording_rerun_on_cpu_reports_its_divergence_and_horizo
     assert "they part at t=" in done.stdout and f"a {backend} recording re-run" in done.stderr
 
 
-def test_a_rovers_diff_drive_odometry_reruns_bit_exact(tmp_path):
-    """The rover's diff_drive_controller driven over cmd_vel: re-run with its controllers, its
-    odom (the controller's own estimate from its wheels) comes out as recorded, to the bit."""
+def test_a_world_of_an_arm_and_a_rover_reruns_bit_exact_with_their_controllers(tmp_path):
+    """Two robots in every world (examples/fleets/arm_and_rover.yaml): the rover driven over
+    cmd_vel, the arm over its joint_trajectory topic. Each robot's joint_states (its own topic,
+    its own joint names) is compared, and re-run with the robots' own controllers, the rover's
+    odom (the diff drive's estimate from its wheels) comes out as recorded, to the bit."""
     from geometry_msgs.msg import TwistStamped
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-    path = tmp_path / "rover.mcap"
-    args = ["--model", "rover", "--worlds", "2", "--record", str(path), "--duration", "8", "--quiet"]
-    args += ["--controllers", str(default_controllers("rover"))]  # the Fleet helper's default is none
+    ros = stack_messages()
+    path = tmp_path / "cell.mcap"
+    fleet_file = str(EXAMPLES / "fleets" / "arm_and_rover.yaml")
+    args = ["--fleet", fleet_file, "--worlds", "2", "--record", str(path), "--duration", "8", "--controllers", "default"]
+    cmd_vel, jtc = "/world_1/rover/diff_drive_controller/cmd_vel", f"/world_1/arm/{JTC}/joint_trajectory"
     with Fleet(domain_id(58), args, tmp_path / "fleet.log") as fleet:
-        odom = fleet.latest(stack_messages()["Odometry"], "/world_1/diff_drive_controller/odom")
-        fleet.wait(lambda: odom.count > 0, 60, "odom")
-        fleet.advertise(TwistStamped, "/world_1/diff_drive_controller/cmd_vel")
-        fleet.wait_subscribed("/world_1/diff_drive_controller/cmd_vel")
+        odom = fleet.latest(ros["Odometry"], "/world_1/rover/diff_drive_controller/odom")
+        arm = fleet.latest(ros["JointState"], "/world_1/arm/joint_states")
+        fleet.wait(lambda: odom.count > 0 and arm.count > 0, 60, "odom and the arm's joint_states")
+        fleet.advertise(TwistStamped, cmd_vel)
+        fleet.advertise(JointTrajectory, jtc)
+        fleet.wait_subscribed(cmd_vel)
+        fleet.wait_subscribed(jtc)
+        point = JointTrajectoryPoint(positions=[0.4, -0.3, 0.5, 0.0, 0.2, 0.0])
+        point.time_from_start.sec = 1
+        fleet.publish(JointTrajectory, jtc, JointTrajectory(joint_names=ARM_JOINTS, points=[point]))
         drive = TwistStamped()
         drive.twist.linear.x, drive.twist.angular.z = 0.5, 0.8
         for _ in range(30):
-            fleet.publish(TwistStamped, "/world_1/diff_drive_controller/cmd_vel", drive)
+            fleet.publish(TwistStamped, cmd_vel, drive)
             time.sleep(0.05)
         fleet.proc.wait(timeout=120)
-    out = tmp_path / "rover.json"
-    done = _resim(str(path), "--model", "rover", "--controllers", "--json", str(out))
+    out = tmp_path / "cell.json"
+    done = _resim(str(path), "--model", fleet_file, "--controllers", "--json", str(out))
     assert done.returncode == 0, done.stderr
-    assert "world 1: 800 diff_drive_controller/odom messages compared: bit-exact" in done.stdout, done.stdout
+    lines = done.stdout
+    assert "world 1: 800 rover/diff_drive_controller/odom messages compared: bit-exact" in lines, lines
+    assert "world 1: 1600 joint_states compared: bit-exact (every position and velocity of 8 joints" in lines, lines
+    result = {r["world"]: r for r in json.loads(out.read_text())["worlds"]}[1]
+    assert result["joints"][:2] == ["arm/joint1", "arm/joint2"] and "rover/left_wheel_joint" in result["joints"]
     verdicts = {v["world"]: v for v in json.loads(out.read_text())["controllers"]}
-    assert verdicts[1]["exact"] and verdicts[1]["events"] > 5, done.stdout
+    assert verdicts[1]["exact"] and verdicts[1]["events"] > 5, lines
     assert abs(odom.msg.pose.pose.position.x) + abs(odom.msg.pose.pose.position.y) > 0.1  # it drove
+    assert abs(arm.msg.position[0] - 0.4) < 0.05, arm.msg.position  # the arm went where it was sent
+    # the physics alone, no --model: each robot's joint states, bit-exact
+    physics = _resim(str(path), "--worlds", "0,1")
+    assert physics.returncode == 0 and physics.stdout.count("1600 joint_states compared: bit-exact") == 2, physics.stdout
+    # a robot's --controllers FILE in a fleet is refused: the fleet file names each robot's own
+    refused = _resim(str(path), "--model", fleet_file, "--controllers", str(default_controllers("arm")))
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "a fleet's robots" in refused.stderr

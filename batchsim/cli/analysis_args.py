@@ -18,7 +18,7 @@ def resim_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("file", help="an MCAP file written by batchsim --record (with its inputs)")
     p.add_argument("--worlds", type=world_list, default=None, metavar="I,J-K,...", help="the worlds re-run (default: every recorded world)")
-    p.add_argument("--model", default=None, help="re-run this model (a name or MJCF file) in place of the recording's own; refused unless it is the recorded one")
+    p.add_argument("--model", default=None, help="re-run this model (a name, an MJCF file or a fleet file) in place of the recording's own; refused unless it is the recorded one")
     p.add_argument(
         "--controllers", nargs="?", const="", default=None, metavar="FILE",
         help="re-run the world's controllers too, from the messages they took (the controller_manager YAML the run "

@@ -33,57 +33,63 @@ def resim(argv: Sequence[str]) -> int:
     from batchsim.resim.recorded import ResimError, read
 
     began = wallclock.monotonic()
-    try:
-        odometry = odometry_topics(args.model, _controllers(args)) if args.controllers is not None and args.model else []
-        recorded = read(args.file, args.worlds, tf=args.tf, odometry=odometry)
-    except ResimError as e:
-        raise UsageError(str(e)) from None
-    model = load_model(recorded.model)
     if args.controllers is not None and args.model is None:
         raise UsageError("--controllers re-runs the robot's controllers: name its model with --model (the recorded one)")
+    try:
+        odometry = odometry_topics(args.model, _controllers(args)) if args.controllers is not None else []
+        groups = read(args.file, args.worlds, tf=args.tf, odometry=odometry)
+    except ResimError as e:
+        raise UsageError(str(e)) from None
+    say = lambda line: print(f"batchsim: {line}", file=sys.stderr)  # noqa: E731
     if args.model is not None:
         import batchsim
 
-        theirs = model_hash(model_bytes(batchsim.load(args.model).mjmodel))
-        if theirs != recorded.meta["model_sha256"]:
-            raise UsageError(
-                f"--model {args.model} is not the model {args.file} was recorded with (SHA-256 {theirs[:12]} against "
-                f"{recorded.meta['model_sha256'][:12]}): a re-run of another model says nothing about the recording"
-            )
-    backend = recorded.meta["backend"]
-    say = lambda line: print(f"batchsim: {line}", file=sys.stderr)  # noqa: E731
-    say(
-        f"re-running {len(recorded.worlds)} world(s) of {args.file} ({len(recorded.headers)} periods, recorded on "
-        f"{backend}, MuJoCo {recorded.meta['mujoco']}) on MuJoCo's C step"
-    )
-    controllers = _controllers(args) if args.controllers is not None else None
+        theirs = model_hash(model_bytes(batchsim.make(args.model, 1, "cpu").model))
+        for recorded in groups:
+            if theirs != recorded.meta["model_sha256"]:
+                of = f" (group {recorded.group}, world {next(iter(recorded.worlds))})" if recorded.group else ""
+                raise UsageError(
+                    f"--model {args.model} is not the model {args.file} was recorded with{of} (SHA-256 {theirs[:12]} "
+                    f"against {recorded.meta['model_sha256'][:12]}): a re-run of another model says nothing about the recording"
+                )
+    controllers = _controllers(args) if args.controllers is not None else None  # None with a fleet: its robots' own
+    backends = []
     results, controlled, tfs = [], [], []
-    for w, world in recorded.worlds.items():
-        if not world.starts:
-            say(f"world {w}: the recording holds no start of it (its start was dropped): cannot be re-run")
-            continue
-        if controllers is not None:
-            try:
-                run, verdict = rerun_controllers(args.model, controllers, recorded, world, poses=args.tf)
-            except ResimError as e:
-                raise UsageError(str(e)) from None
-            controlled.append((w, verdict))
-            print(verdict.line(w))
-            for topic, ours in verdict.odometry.items():
-                print(compare_series(topic, w, recorded.headers, ours, world.odometry.get(topic)))
-        else:
-            run = rerun(model, recorded.layout, recorded.headers, world, poses=args.tf)
-        result = compare(model, w, run, recorded.headers, world.joint_states, args.tolerance)
-        results.append(result)
-        print(result.line())
-        if args.tf:
-            frames = compare_tf(model, run, recorded.headers, world.tf)
-            tfs.append((w, frames))
-            print(frames.line(w))
-    if backend != "cpu":
+    for recorded in groups:
+        model = load_model(recorded.model)
+        backend = recorded.meta["backend"]
+        backends.append(backend)
+        group = f" of group {recorded.group}" if recorded.group else ""
+        say(
+            f"re-running {len(recorded.worlds)} world(s){group} of {args.file} ({len(recorded.headers)} periods, recorded "
+            f"on {backend}, MuJoCo {recorded.meta['mujoco']}) on MuJoCo's C step"
+        )
+        for w, world in recorded.worlds.items():
+            if not world.starts:
+                say(f"world {w}: the recording holds no start of it (its start was dropped): cannot be re-run")
+                continue
+            if args.controllers is not None:
+                try:
+                    run, verdict = rerun_controllers(args.model, controllers, recorded, world, poses=args.tf)
+                except ResimError as e:
+                    raise UsageError(str(e)) from None
+                controlled.append((w, verdict))
+                print(verdict.line(w))
+                for topic, ours in verdict.odometry.items():
+                    print(compare_series(topic, w, recorded.headers, ours, world.odometry.get(topic)))
+            else:
+                run = rerun(model, recorded.layout, recorded.headers, world, poses=args.tf)
+            result = compare(model, w, run, recorded.headers, world.joint_states, args.tolerance)
+            results.append(result)
+            print(result.line())
+            if args.tf:
+                frames = compare_tf(model, run, recorded.headers, world.tf)
+                tfs.append((w, frames))
+                print(frames.line(w))
+    for backend in dict.fromkeys(b for b in backends if b != "cpu"):
         say(f"a {backend} recording re-run on MuJoCo's C step parts from it: {backend} computes with kernels of its own (float32 on a GPU)")
     document = lambda: {  # noqa: E731
-        "file": args.file, "backend": backend, "worlds": [r.to_json() for r in results],
+        "file": args.file, "backend": backends[0] if backends else None, "worlds": [r.to_json() for r in results],
         "controllers": [{"world": w, **{k: x for k, x in dataclasses.asdict(v).items() if k != "odometry"}} for w, v in controlled],
         "tf": [{"world": w, **dataclasses.asdict(v)} for w, v in tfs],
     }  # fmt: skip
@@ -92,10 +98,15 @@ def resim(argv: Sequence[str]) -> int:
     return 0
 
 
-def _controllers(args) -> str:
-    """--controllers' file, or the model's own controllers."""
+def _controllers(args) -> str | None:
+    """--controllers' file, or the model's own controllers (None: a fleet file's, each robot's own)."""
     from batchsim.controllers import default_controllers
+    from batchsim.fleet import is_fleet_file
 
+    if is_fleet_file(args.model):
+        if args.controllers:
+            raise UsageError(f"--controllers {args.controllers}: a fleet's robots take their own controllers (the fleet file names them): give --controllers alone")
+        return None
     if args.controllers:
         return args.controllers
     own = default_controllers(str(args.model))

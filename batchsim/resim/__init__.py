@@ -15,9 +15,12 @@ A recording (`batchsim --record`, ros_bridge/recording.py) carries what re-runni
 - `/batchsim/controller_inputs` (std_msgs/String, a JSON document each): every message the
   controllers took (ros_bridge/input_recording.py).
 
+A fleet of several groups (several models) records each group's apart: `/batchsim/<group>/...`,
+its model as `batchsim/<group>/model.mjb`, its own metadata record (layout.resim_names).
+
     batchsim resim run.mcap --worlds 731         # re-run world 731: bit-exact, or where it parts
 
 recorded.py reads a file; physics.py re-steps one world with raw MuJoCo; controllers.py re-runs
 it with its controllers too (`--controllers`); compare.py measures a re-run against the
-recorded joint states, /tf and odometry.
+recorded joint states (each robot's, in a world of several), /tf and odometry.
 """

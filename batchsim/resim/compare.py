@@ -6,6 +6,7 @@ they part, and how long the re-run stays within a tolerance of the recording (it
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import mujoco
 import numpy as np
@@ -22,7 +23,8 @@ class Comparison:
     """One world's re-run against its recording.
 
     Attributes:
-      world: its number. compared: joint_states messages compared. joints: their joint names.
+      world: its number. compared: joint_states messages compared (of every robot's topic).
+      joints: their joint names.
       exact: every compared value equal to the bit.
       max_position, max_velocity: the largest difference (rad or m; rad/s or m/s).
       first: where they first part at all: (sim time, period number, joint, |difference|), or None.
@@ -66,40 +68,57 @@ class Comparison:
 
 
 def compare(
-    model: mujoco.MjModel, world: int, run: Trajectory, headers: np.ndarray, states: JointStates | None, tolerance: float
+    model: mujoco.MjModel, world: int, run: Trajectory, headers: np.ndarray, states: Sequence[JointStates], tolerance: float
 ) -> Comparison:
-    """Measure `run` (physics.rerun of `world`) against its recorded `states`."""
+    """Measure `run` (physics.rerun of `world`) against its recorded joint `states` (one per
+    joint_states topic: a world of several robots has one per robot)."""
     empty = np.zeros(0)
-    if states is None:
+    if not states:
         return Comparison(world, 0, [], False, np.nan, np.nan, None, None, tolerance, empty, empty, [])
-    joints, qadr, vadr, skipped = [], [], [], []
-    for name in states.names:
-        j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
-        if j < 0 or int(model.jnt_type[j]) not in _MOVING:
-            skipped.append(name)
+    ran = ~np.isnan(run.qpos[:, 0]) if model.nq else np.ones(len(headers), bool)
+    joints, skipped, compared = [], [], 0
+    error = np.full(len(headers), np.nan)  # per period, the largest difference of any topic compared in it
+    max_position = max_velocity = 0.0
+    firsts = []  # per topic where it first parts: (period row, joint, |difference|)
+    for topic in states:
+        names, qadr, vadr, columns = [], [], [], []
+        for c, name in enumerate(topic.names):
+            j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+            if j < 0 or int(model.jnt_type[j]) not in _MOVING:
+                skipped.append(name)
+                continue
+            names.append(name)
+            columns.append(c)
+            qadr.append(model.jnt_qposadr[j])
+            vadr.append(model.jnt_dofadr[j])
+        joints += names
+        rows, at = _matched(headers, topic.stamps, ran)
+        compared += len(rows)
+        dpos = np.abs(topic.position[np.ix_(rows, columns)] - run.qpos[np.ix_(at, qadr)])
+        dvel = np.abs(topic.velocity[np.ix_(rows, columns)] - run.qvel[np.ix_(at, vadr)])
+        if not dpos.size:
+            error[at] = np.fmax(error[at], 0.0)
             continue
-        joints.append(name)
-        qadr.append(model.jnt_qposadr[j])
-        vadr.append(model.jnt_dofadr[j])
-    columns = [states.names.index(n) for n in joints]
-    rows, at = _matched(headers, states.stamps, ~np.isnan(run.qpos[:, 0]) if model.nq else np.ones(len(headers), bool))
-    dpos = np.abs(states.position[np.ix_(rows, columns)] - run.qpos[np.ix_(at, qadr)])
-    dvel = np.abs(states.velocity[np.ix_(rows, columns)] - run.qvel[np.ix_(at, vadr)])
-    worst = np.maximum(dpos, np.nan_to_num(dvel)) if dpos.size else np.zeros((len(rows), 0))
-    step_error = worst.max(axis=1) if worst.size else np.zeros(len(rows))
-    time = headers[at, 1]
+        worst = np.maximum(dpos, np.nan_to_num(dvel))
+        error[at] = np.fmax(error[at], worst.max(axis=1))
+        max_position, max_velocity = max(max_position, float(dpos.max())), max(max_velocity, float(np.nanmax(dvel)))
+        parted = np.flatnonzero(worst.max(axis=1) > 0)
+        if parted.size:
+            i = parted[0]
+            j = int(np.argmax(worst[i]))
+            firsts.append((int(at[i]), names[j], float(worst[i, j])))
+    compared_at = np.flatnonzero(~np.isnan(error))
+    time, step_error = headers[compared_at, 1], error[compared_at]
     first = None
-    parted = np.flatnonzero(step_error > 0)
-    if parted.size:
-        i = parted[0]
-        j = int(np.argmax(worst[i]))
-        first = (float(time[i]), int(headers[at[i], 0]), joints[j], float(worst[i, j]))
+    if firsts:
+        k, joint, diff = min(firsts, key=lambda f: f[0])
+        first = (float(headers[k, 1]), int(headers[k, 0]), joint, diff)
     beyond = np.flatnonzero(step_error > tolerance)
-    horizon = float(time[beyond[0]] - run.since[at[beyond[0]]]) if beyond.size else None
+    horizon = float(time[beyond[0]] - run.since[compared_at[beyond[0]]]) if beyond.size else None
     return Comparison(
-        world=world, compared=len(rows), joints=joints, exact=len(rows) > 0 and not parted.size,
-        max_position=float(dpos.max()) if dpos.size else 0.0, max_velocity=float(np.nanmax(dvel)) if dvel.size else 0.0,
-        first=first, horizon=horizon, tolerance=tolerance, time=time, error=step_error, skipped=skipped,
+        world=world, compared=compared, joints=joints, exact=compared > 0 and first is None,
+        max_position=max_position, max_velocity=max_velocity, first=first, horizon=horizon, tolerance=tolerance,
+        time=time, error=step_error, skipped=skipped,
     )  # fmt: skip
 
 

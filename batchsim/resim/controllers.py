@@ -183,22 +183,37 @@ class _Check(Participant):
 _ODOMETRY_FIELDS = ("position", "orientation", "linear", "angular")  # nav_msgs/Odometry's, as the bridge fills it
 
 
-def odometry_topics(model: str | Path, controllers: str | Path) -> list[str]:
+def odometry_topics(model: str | Path, controllers: str | Path | None) -> list[str]:
     """The nav_msgs/Odometry topics `controllers` publish (a diff drive's `odom`), namespace-relative."""
     import batchsim
-    from batchsim.controllers import load_controllers
 
-    manager = load_controllers(controllers, batchsim.load(model), 1)
+    manager = _manager(controllers, batchsim.make(model, 1, "cpu").spec)
     return [o.topic for c in manager for o in c.topics().outputs if o.kind is MessageKind.ODOMETRY]
 
 
-def rerun_controllers(
-    model: str | Path, controllers: str | Path, recorded: Recorded, world: WorldRecord, poses: bool = False
-) -> tuple[Trajectory, ControllerComparison]:
-    """Re-run `world` of `recorded` with `controllers` (a controller_manager YAML) on `model`;
-    with `poses`, keep the body poses the system shows at each period's start (/tf's)."""
-    import batchsim
+def _manager(controllers: str | Path | None, spec: Any) -> Any:
+    """One world's controller manager: `controllers` (a controller_manager YAML), or in a world of
+    several robots (a fleet file's model) each robot's own, as the fleet ran them."""
     from batchsim.controllers import load_controllers
+    from batchsim.controllers.robots import load_fleet_controllers
+
+    if spec.robots and not controllers:
+        manager = load_fleet_controllers(spec, 1)
+        if manager is None:
+            raise ResimError("--controllers: no robot of the fleet has controllers")
+        return manager
+    if controllers is None:
+        raise ResimError("--controllers: name the controller_manager YAML the run used")
+    return load_controllers(controllers, spec, 1)
+
+
+def rerun_controllers(
+    model: str | Path, controllers: str | Path | None, recorded: Recorded, world: WorldRecord, poses: bool = False
+) -> tuple[Trajectory, ControllerComparison]:
+    """Re-run `world` of `recorded` with `controllers` (a controller_manager YAML; None: a fleet
+    file's robots' own) on `model` (a model, or a fleet file of several robots per world); with
+    `poses`, keep the body poses the system shows at each period's start (/tf's)."""
+    import batchsim
 
     layout = recorded.layout
     if layout.base_velocity or layout.nbody:
@@ -211,7 +226,7 @@ def rerun_controllers(
     sim = batchsim.make(model, 1, "cpu")
     sim.configure()
     sim.activate()
-    manager = load_controllers(controllers, sim.spec, 1)
+    manager = _manager(controllers, sim.spec)
     inputs = {inp.topic: inp for c in manager for inp in c.topics().inputs}
     headers = recorded.headers
     nstep0 = int(headers[0, 2])

@@ -28,6 +28,26 @@ _CDR_LE = b"\x00\x01\x00\x00"
 
 
 @dataclasses.dataclass(frozen=True)
+class ResimNames:
+    """Where one group's re-simulation facts are in a file: its three topics and its model's
+    attachment. A fleet of one group has the plain names; in a fleet of several groups (several
+    models, batchsim.fleet.groups) each group has its own, and its METADATA record says which."""
+
+    inputs: str
+    starts: str
+    events: str
+    model: str
+
+
+def resim_names(group: str = "") -> ResimNames:
+    """The names of `group`'s facts ("": a fleet of one group)."""
+    if not group:
+        return ResimNames(INPUTS_TOPIC, STARTS_TOPIC, EVENTS_TOPIC, MODEL_ATTACHMENT)
+    base = f"/batchsim/{group}"
+    return ResimNames(f"{base}/inputs", f"{base}/starts", f"{base}/controller_inputs", f"batchsim/{group}/model.mjb")
+
+
+@dataclasses.dataclass(frozen=True)
 class InputsLayout:
     """The columns of a recording's input and start rows.
 

@@ -10,13 +10,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from batchsim.resim.layout import (
-    EVENTS_TOPIC,
-    INPUTS_TOPIC,
     METADATA,
-    MODEL_ATTACHMENT,
-    STARTS_TOPIC,
     InputsLayout,
+    ResimNames,
     model_hash,
+    resim_names,
     unpack,
     unpack_string,
 )
@@ -41,8 +39,9 @@ class Start:
 
 @dataclasses.dataclass
 class JointStates:
-    """A world's recorded sensor_msgs/JointState: `stamps` (n,) int ns, `names`, `position` and
-    `velocity` (n, njoint)."""
+    """One recorded sensor_msgs/JointState topic of a world: `stamps` (n,) int ns, `names` (the
+    model's joint names: a robot's own prefixed `<robot>/` in a world of several robots),
+    `position` and `velocity` (n, njoint)."""
 
     stamps: np.ndarray
     names: list[str]
@@ -63,14 +62,15 @@ class TfStates:
 @dataclasses.dataclass
 class WorldRecord:
     """What the file holds of one world: its number, namespace, starts, every period's inputs
-    (rows of the layout's input width), its joint states (None where not recorded) and, where
-    asked for, its /tf."""
+    (rows of the layout's input width), its joint states (one per recorded joint_states topic:
+    the world's, or each robot's of a world of several; empty where none was recorded) and,
+    where asked for, its /tf."""
 
     world: int
     namespace: str
     starts: list[Start]
     inputs: np.ndarray
-    joint_states: JointStates | None
+    joint_states: list[JointStates]
     tf: TfStates | None = None
     # nav_msgs/Odometry topics asked for (relative to the namespace) -> (stamps (n,) ns, (n, 13)
     # position xyz, orientation xyzw, linear xyz, angular xyz)
@@ -79,10 +79,11 @@ class WorldRecord:
 
 @dataclasses.dataclass
 class Recorded:
-    """A recording's re-simulation facts: `meta` (the batchsim_resim record), `layout`, the MJB
-    `model` bytes, the periods' `headers` (n, 3: number, sim time, steps), per world asked its
+    """A recording's re-simulation facts, of one group of its fleet (its only one, or one of
+    several models'): `meta` (the group's batchsim_resim record), `layout`, the MJB `model`
+    bytes, the periods' `headers` (n, 3: number, sim time, steps), per world asked its
     WorldRecord, and the controllers' inputs (`events`: each a JSON document of
-    ros_bridge/input_recording.py's, in period order)."""
+    ros_bridge/input_recording.py's, in period order). `group`: its name ("": a fleet of one)."""
 
     meta: dict[str, str]
     layout: InputsLayout
@@ -90,11 +91,13 @@ class Recorded:
     headers: np.ndarray
     worlds: dict[int, WorldRecord]
     events: list[dict] = dataclasses.field(default_factory=list)
+    group: str = ""
 
 
-def read(path: str, worlds: Sequence[int] | None = None, tf: bool = False, odometry: Sequence[str] = ()) -> Recorded:
-    """The re-simulation facts of `path` for `worlds` (fleet numbers; None: every recorded one);
-    with `tf`, their /tf too (every /tf message decoded: slow on large fleets); and the
+def read(path: str, worlds: Sequence[int] | None = None, tf: bool = False, odometry: Sequence[str] = ()) -> list[Recorded]:
+    """The re-simulation facts of `path` for `worlds` (fleet numbers; None: every recorded one),
+    one Recorded per group of the fleet that holds any of them (a fleet of one model: one); with
+    `tf`, their /tf too (every /tf message decoded: slow on large fleets); and the
     nav_msgs/Odometry `odometry` topics (relative to each world's namespace) where recorded."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
@@ -106,42 +109,55 @@ def read(path: str, worlds: Sequence[int] | None = None, tf: bool = False, odome
     with stream:
         try:
             reader = make_reader(stream)
-            meta = next((dict(m.metadata) for m in reader.iter_metadata() if m.name == METADATA), None)
-            if meta is None:
+            metadata = [(m.name, dict(m.metadata)) for m in reader.iter_metadata()]
+            metas = [meta for name, meta in metadata if name == METADATA]
+            if not metas:
                 raise ResimError(
-                    f"{path} holds no physics inputs (recorded with --no-record-inputs, by a fleet of several groups, "
-                    "or before batchsim recorded them): it cannot be re-run; record it again"
+                    f"{path} holds no physics inputs (recorded with --no-record-inputs, by a fleet over several devices, or before batchsim recorded "
+                    "them): it cannot be re-run; record it again"
                 )
-            model = next((a.data for a in reader.iter_attachments() if a.name == MODEL_ATTACHMENT), None)
-            if model is None or model_hash(model) != meta["model_sha256"]:
-                raise ResimError(f"{path}: its model attachment is missing or does not match its hash")
-            layout = InputsLayout.from_json(meta["layout"])
-            recorded = json.loads(meta["worlds"])
-            namespaces = json.loads(meta["namespaces"])
+            recorded = [w for meta in metas for w in json.loads(meta["worlds"])]
             chosen = list(recorded) if worlds is None else list(dict.fromkeys(worlds))
             missing = [w for w in chosen if w not in recorded]
             if missing:
+                everything = next((json.loads(m["worlds"]) for name, m in metadata if name == "batchsim"), [])
+                if missing[0] in everything:
+                    raise ResimError(f"{path} recorded world {missing[0]} without its inputs (a fleet over several devices): it cannot be re-run")
                 raise ResimError(f"{path} does not hold world {missing[0]} (it recorded worlds {_ranges(recorded)})")
-            rows = {w: recorded.index(w) for w in chosen}
-            namespaces_of = {w: namespaces[recorded.index(w)] for w in chosen}
-            return _read_messages(reader, meta, layout, model, rows, namespaces_of, tf, tuple(odometry))
+            attachments = {a.name: a.data for a in reader.iter_attachments()}
+            out = []
+            for meta in metas:
+                names = resim_names(meta.get("group", ""))
+                model = attachments.get(names.model)
+                if model is None or model_hash(model) != meta["model_sha256"]:
+                    raise ResimError(f"{path}: its model attachment {names.model} is missing or does not match its hash")
+                theirs = json.loads(meta["worlds"])
+                mine = [w for w in chosen if w in theirs]
+                if not mine:
+                    continue
+                namespaces = json.loads(meta["namespaces"])
+                rows = {w: theirs.index(w) for w in mine}
+                namespaces_of = {w: namespaces[theirs.index(w)] for w in mine}
+                layout = InputsLayout.from_json(meta["layout"])
+                out.append(_read_messages(reader, meta, layout, model, rows, namespaces_of, tf, tuple(odometry), names))
+            return out
         except (McapError, ValueError, KeyError, EOFError) as e:
             raise ResimError(f"{path}: not a readable batchsim recording ({e})") from None
 
 
 def _read_messages(
     reader, meta, layout: InputsLayout, model: bytes, rows: dict[int, int], namespaces: dict[int, str], tf: bool,
-    odometry: tuple[str, ...],
+    odometry: tuple[str, ...], names: ResimNames,
 ) -> Recorded:
     from mcap_ros2.decoder import DecoderFactory
 
-    js_topics = {_topic(ns, "joint_states"): w for w, ns in namespaces.items()}
+    js_topics = _joint_state_topics(reader, namespaces)  # topic -> (world, the joint names' prefix)
     worlds = list(rows)
     picked = np.array([rows[w] for w in worlds], np.intp)
     headers: list[np.ndarray] = []
     inputs: list[np.ndarray] = []
     starts: dict[int, list[Start]] = {w: [] for w in worlds}
-    states: dict[int, list] = {w: [] for w in worlds}
+    states: dict[str, list] = {t: [] for t in js_topics}
     decoders: dict[int, object] = {}
     factory = DecoderFactory()
     events: list[dict] = []
@@ -149,19 +165,19 @@ def _read_messages(
     transforms: dict[int, list] = {w: [] for w in worlds}
     odom_topics = {_topic(ns, t): (w, t) for w, ns in namespaces.items() for t in odometry}
     odoms: dict[tuple[int, str], list] = {key: [] for key in odom_topics.values()}
-    topics = [INPUTS_TOPIC, STARTS_TOPIC, EVENTS_TOPIC, *js_topics, *odom_topics, *(["/tf"] if tf else [])]
+    topics = [names.inputs, names.starts, names.events, *js_topics, *odom_topics, *(["/tf"] if tf else [])]
     for schema, channel, message in reader.iter_messages(topics=topics):
-        if channel.topic == INPUTS_TOPIC:
+        if channel.topic == names.inputs:
             header, values = unpack(message.data)
             headers.append(header)
             inputs.append(values[picked])
-        elif channel.topic == STARTS_TOPIC:
+        elif channel.topic == names.starts:
             header, values = unpack(message.data)
             for row in values:
                 world, draw, fresh, state, params = layout.split_start(row)
                 if world in starts:
                     starts[world].append(Start(int(header[0]), state.copy(), draw, params, fresh))
-        elif channel.topic == EVENTS_TOPIC:
+        elif channel.topic == names.events:
             events.append(json.loads(unpack_string(message.data)))
         elif channel.topic in odom_topics:
             decode = decoders.get(channel.id)
@@ -180,25 +196,46 @@ def _read_messages(
             decode = decoders.get(channel.id)
             if decode is None:
                 decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
-            states[js_topics[channel.topic]].append((message.log_time, decode(message.data)))
+            states[channel.topic].append((message.log_time, decode(message.data)))
     if not headers:
-        raise ResimError("it holds no /batchsim/inputs messages: nothing to re-run")
+        raise ResimError(f"it holds no {names.inputs} messages: nothing to re-run")
     order = np.argsort([h[0] for h in headers], kind="stable")
     stacked = np.stack(inputs)[order]  # (nperiod, nworld, width)
     out = {}
     for k, w in enumerate(worlds):
+        joint_states = [_joint_states(states[t], prefix) for t, (v, prefix) in js_topics.items() if v == w and states[t]]
         out[w] = WorldRecord(
-            w, namespaces[w], sorted(starts[w], key=lambda s: s.period), stacked[:, k], _joint_states(states[w]),
+            w, namespaces[w], sorted(starts[w], key=lambda s: s.period), stacked[:, k], joint_states,
             _tf_states(transforms[w]) if tf else None,
             {t: _series(odoms[(w, t)]) for t in odometry if odoms[(w, t)]},
         )  # fmt: skip
-    return Recorded(meta, layout, model, np.stack(headers)[order], out, sorted(events, key=lambda e: e["period"]))
+    events.sort(key=lambda e: e["period"])
+    return Recorded(meta, layout, model, np.stack(headers)[order], out, events, meta.get("group", ""))
 
 
 def _topic(namespace: str, topic: str) -> str:
     """A world's topic as the bridge names it: `/<ns>/<topic>`, or `/<topic>` at the root."""
     ns = namespace.strip("/")
     return f"/{ns}/{topic.strip('/')}" if ns else f"/{topic.strip('/')}"
+
+
+def _joint_state_topics(reader, namespaces: dict[int, str]) -> dict[str, tuple[int, str]]:
+    """The recorded sensor_msgs/JointState topics of the worlds asked for -> (world, prefix): a
+    world's own `<ns>/joint_states` (prefix ""), and in a world of several robots each robot's
+    `<ns>/<robot>/joint_states`, whose joints the model names `<robot>/<joint>`."""
+    summary = reader.get_summary()
+    channels = summary.channels.values() if summary is not None else ()
+    out = {}
+    for w, ns in namespaces.items():
+        root = _topic(ns, "")
+        for channel in channels:
+            rest = channel.topic.removeprefix(root) if channel.topic.startswith(root) else None
+            if rest is None or not rest.endswith("joint_states"):
+                continue
+            robot = rest.removesuffix("joint_states")
+            if robot == "" or (len(robot) > 1 and robot.find("/") == len(robot) - 1):  # "" or "<robot>/"
+                out[channel.topic] = (w, robot)
+    return out
 
 
 def _series(rows: list) -> tuple[np.ndarray, np.ndarray]:
@@ -231,12 +268,11 @@ def _tf_states(messages: list) -> TfStates | None:
     return TfStates(np.array([m[0] for m in messages], np.int64), pairs, values)
 
 
-def _joint_states(messages: list) -> JointStates | None:
-    """A world's JointState messages as arrays (the first message's joint order)."""
-    if not messages:
-        return None
+def _joint_states(messages: list, prefix: str) -> JointStates:
+    """A topic's JointState messages as arrays (the first message's joint order), its joint names
+    prefixed as the model names them."""
     messages.sort(key=lambda m: m[0])
-    names = list(messages[0][1].name)
+    names = [prefix + n for n in messages[0][1].name]
     stamps = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for _, m in messages], np.int64)
     position = np.array([list(m.position) for _, m in messages], np.float64).reshape(len(messages), -1)
     velocity = np.array([list(m.velocity) or [np.nan] * len(names) for _, m in messages], np.float64).reshape(len(messages), -1)

@@ -37,7 +37,7 @@ from std_msgs.msg import String
 
 from batchsim.memory import Memory
 from batchsim.resim.layout import METADATA as RESIM_METADATA
-from batchsim.resim.layout import MODEL_ATTACHMENT
+from batchsim.resim.layout import resim_names
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.protocol.commands import RejectionWriter
@@ -97,7 +97,7 @@ class McapRecording:
         plan: FleetPlan | Sequence[tuple[FleetPlan, bytes | None, str]],
         stream: BinaryIO,
         memories: Sequence[Memory] | None = None,
-        resim: dict | None = None,
+        resim: Sequence[dict | None] | None = None,
     ):
         groups = [(plan, None, "")] if isinstance(plan, FleetPlan) else list(plan)
         self.spec = groups[0][0].recording
@@ -134,11 +134,16 @@ class McapRecording:
         for _, geometry, name in groups:  # the robots' geoms, for `batchsim view FILE` (ros_bridge/view_plan.py)
             if geometry is not None:
                 self.writer.add_attachment(0, 0, geometry_attachment(name if len(groups) > 1 else None), "application/x-npz", geometry)
-        self.inputs: InputTopics | None = None
-        if resim is not None and memories[0] is not None:  # every period's inputs, for `batchsim resim` (batchsim.resim)
-            self.writer.add_metadata(RESIM_METADATA, resim["meta"])
-            self.writer.add_attachment(0, 0, MODEL_ATTACHMENT, "application/x-mujoco-mjb", resim["model"])
-            self.inputs = InputTopics(memories[0], len(self.groups[0].namespaces), self.channel, self._add)
+        # every period's inputs, for `batchsim resim` (batchsim.resim): per group that records them, its
+        # model, its METADATA record (several groups: one each, naming its group) and its topics
+        self.inputs: list[InputTopics] = []
+        for g, (source, memory, (_, _, name)) in enumerate(zip(resim or (), memories, groups, strict=False)):
+            if source is None or memory is None:
+                continue
+            names = resim_names(name)
+            self.writer.add_metadata(RESIM_METADATA, source["meta"])
+            self.writer.add_attachment(0, 0, names.model, "application/x-mujoco-mjb", source["model"])
+            self.inputs.append(InputTopics(memory, len(self.groups[g].namespaces), self.channel, self._add, names))
 
     def channel(self, topic: str, msg_type: str, depth: int = 10, latched: bool = False) -> int:
         """The channel of `topic` (its `msg_type`'s schema registered once), with the QoS rosbag2
@@ -168,10 +173,13 @@ class McapRecording:
         return self.writer.messages
 
     def write(self, period: RecordedPeriod, group: int = 0) -> None:
-        """One period's messages of `group`'s worlds, as the workers would have published them."""
+        """One period's messages of `group`'s worlds, as the workers would have published them
+        (after every group's inputs stamped at or before it: the file stays in log-time order)."""
         g = self.groups[group]
         sec, nanosec = stamp_of(period.time)
         t = sec * 1_000_000_000 + nanosec
+        for inputs in self.inputs:
+            inputs.take(t)
         if self._latched:
             self._write_latched(t, sec, nanosec)
         if group == 0 and self.clock_channel >= 0 and (t != self._last_clock or period.forced):
@@ -236,8 +244,8 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the physics process, which stops us
     stopping = []
     signal.signal(signal.SIGTERM, lambda signum, frame: stopping.append(signum))
-    try:  # per group (one, or a fleet's several, the first's first): (plan, geometry, name); the file; the
-        # model and facts for re-simulation, where inputs are recorded (ros_bridge/input_recording.py)
+    try:  # per group (one, or a fleet's several, the first's first): (plan, geometry, name); the file; per
+        # group, the model and facts for re-simulation where inputs are recorded (ros_bridge/input_recording.py)
         groups, path, resim = pickle.load(sys.stdin.buffer)
     except (EOFError, pickle.UnpicklingError):
         return 0
@@ -264,8 +272,6 @@ def main(argv: list[str] | None = None) -> int:
                 recording.write(period, group)
             for s in sensors:
                 s.take()
-            if recording.inputs is not None:
-                recording.inputs.take()
             if wallclock.monotonic() - flushed >= CHUNK_SECONDS:
                 recording.flush()
                 flushed = wallclock.monotonic()
@@ -276,15 +282,14 @@ def main(argv: list[str] | None = None) -> int:
             recording.write(period, group)
         for s in sensors:
             s.take()
-        if recording.inputs is not None:
-            recording.inputs.take(final=True)
+        for inputs in recording.inputs:
+            inputs.take()  # every one left
         recording.finish()
         stream.close()
         dropped = reader.dropped()
         lost = f"; {dropped} periods dropped (the recorder fell behind the loop)" if dropped else ""
         lost += missed_line(sum(s.missed for s in sensors))
-        if recording.inputs is not None:
-            lost += recording.inputs.lost_line()
+        lost += "".join(inputs.lost_line() for inputs in recording.inputs)
         status.write(f"recording: {recording.messages} messages in {path}{lost}\n")
         return 0
     except OSError as e:  # a full disk, a path that went away: the recording stops, the loop goes on
