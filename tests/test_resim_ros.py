@@ -225,6 +225,11 @@ def test_a_world_of_an_arm_and_a_rover_reruns_bit_exact_with_their_controllers(t
             fleet.publish(TwistStamped, cmd_vel, drive)
             time.sleep(0.05)
         fleet.proc.wait(timeout=120)
+    from mcap.reader import NonSeekingReader
+
+    with open(path, "rb") as f:  # in log-time order, the inputs among the rest (a replay paces by it)
+        logged = [m.log_time for _s, _c, m in NonSeekingReader(f).iter_messages(log_time_order=False)]
+    assert logged == sorted(logged)
     out = tmp_path / "cell.json"
     done = _resim(str(path), "--model", fleet_file, "--controllers", "--json", str(out))
     assert done.returncode == 0, done.stderr
