@@ -22,7 +22,7 @@ import numpy as np
 
 from batchsim.controllers.topics import Input, MessageKind
 from batchsim.memory import Ring
-from batchsim.resim.layout import InputsLayout, layout_of, model_bytes, model_hash
+from batchsim.resim.layout import InputsLayout, effort_sources, layout_of, model_bytes, model_hash
 from ros_bridge.protocol.input_ring import EVENTS, INPUTS, STARTS, RowRing
 from ros_bridge.protocol.recording import recording
 
@@ -92,6 +92,8 @@ class InputRecording:
                 "worlds": json.dumps([self.plan.world_offset + w for w in worlds]),
                 "namespaces": json.dumps([self.plan.namespaces[w] for w in worlds]),
                 "group": group,
+                # where each joint's effort is read from (the engine field, its index, the sign): resim compares it
+                "effort": json.dumps(effort_sources(sim.spec.state)),
             },
         }
 

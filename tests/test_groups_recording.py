@@ -144,7 +144,7 @@ def test_every_world_of_a_fleet_of_groups_reruns_bit_exact_from_its_groups_input
     done = _resim(str(recorded), "--tf")
     assert done.returncode == 0, done.stderr
     for w, joints in ((0, 6), (1, 6), (2, 8), (3, 8)):
-        assert f"world {w}: {PERIODS * (1 if joints == 6 else 2)} joint_states compared: bit-exact (every position and velocity of {joints} joints" in done.stdout, done.stdout
+        assert f"world {w}: {PERIODS * (1 if joints == 6 else 2)} joint_states compared: bit-exact (every position, velocity and effort of {joints} joints" in done.stdout, done.stdout
         assert f"world {w}: {PERIODS} /tf messages compared: bit-exact" in done.stdout, done.stdout
     assert "re-running 2 world(s) of group arms" in done.stderr and "re-running 2 world(s) of group yard" in done.stderr
     # --model names one group's model (its fleet file): the other group's worlds are refused, the group named
@@ -167,7 +167,7 @@ def test_the_first_group_leads_where_none_of_its_worlds_is_recorded_and_a_topic_
     assert json.loads(metadata["batchsim"]["worlds"]) == [3]
     assert sorted(attachments) == ["batchsim/view_geometry.yard.npz", "batchsim/yard/model.mjb"]  # group arms has no world in it
     done = _resim(str(path))  # the one topic recorded is compared: the rover's
-    assert done.returncode == 0 and "world 3: 100 joint_states compared: bit-exact (every position and velocity of 2 joints" in done.stdout, done.stdout
+    assert done.returncode == 0 and "world 3: 100 joint_states compared: bit-exact (every position, velocity and effort of 2 joints" in done.stdout, done.stdout
 
 
 @pytest.mark.parametrize(

@@ -53,10 +53,12 @@ def _record(sim, periods: int, nstep: int, drive) -> tuple:
     layout = L.layout_of(sim.model, sim.physics_inputs([0]), sim.world_params([0]), _held(sim), sim.command.shape[1])
     worlds = np.arange(nworld)
     need = np.ones(nworld, bool)
-    headers, inputs, positions, velocities = [], [], [], []
+    headers, inputs, positions, velocities, efforts = [], [], [], [], []
+    columns = [k for k, n in enumerate(sim.export_state_interfaces()) if n.endswith("/effort")]
     starts: dict[int, list[Start]] = {w: [] for w in worlds}
     for k in range(periods):
         sim.read()
+        efforts.append(sim.state[:, columns].copy())  # what the broadcaster shows of the last step
         need[drive(k)] = True
         positions.append(sim.qstate()[0].copy())  # what the bridge's snapshot takes: after a reset
         velocities.append(sim.qstate()[1].copy())
@@ -70,7 +72,7 @@ def _record(sim, periods: int, nstep: int, drive) -> tuple:
         headers.append(header)
         inputs.append(layout.input_row(sim.frozen, {**sim.physics_inputs(worlds), "command": sim.command.copy()}))
         sim.step(nstep)
-    return layout, np.array(headers), np.stack(inputs), starts, np.stack(positions), np.stack(velocities)
+    return layout, np.array(headers), np.stack(inputs), starts, np.stack(positions), np.stack(velocities), np.stack(efforts)
 
 
 def _held(sim) -> tuple[int, int]:
@@ -80,16 +82,19 @@ def _held(sim) -> tuple[int, int]:
 
 def _rerun_all(sim, recorded, joints: dict[str, tuple[int, int]]) -> list:
     """Every world re-run against its recorded hinge/slide joints `joints` (name -> (qposadr, dofadr))."""
-    layout, headers, inputs, starts, pos, vel = recorded
+    layout, headers, inputs, starts, pos, vel, eff = recorded
     model = L.load_model(L.model_bytes(sim.model))
     stamps = _stamps(headers[:, 1])
     names = list(joints)
     qadr, vadr = [a for a, _ in joints.values()], [b for _, b in joints.values()]
+    sources = L.effort_sources(sim.spec.state)  # as the recording keeps them
+    column = {j: k for k, j in enumerate(sources)}  # eff's columns: the effort state interfaces in order
     out = []
     for w in range(sim.nworld):
-        states = JointStates(stamps, names, pos[:, w][:, qadr], vel[:, w][:, vadr])
+        effort = np.stack([eff[:, w, column[n]] for n in names], axis=1)
+        states = JointStates(stamps, names, pos[:, w][:, qadr], vel[:, w][:, vadr], effort)
         record = WorldRecord(w, f"world_{w}", starts[w], inputs[:, w], [states])
-        out.append(compare(model, w, rerun(model, layout, headers, record), headers, [states], 1e-9))
+        out.append(compare(model, w, rerun(model, layout, headers, record, effort=sources), headers, [states], 1e-9))
     return out
 
 
@@ -111,14 +116,23 @@ def test_a_rerun_of_a_randomized_world_with_resets_and_commands_is_bit_exact():
     joints = {f"joint{i}": (i - 1, i - 1) for i in range(1, 7)}
     for result in _rerun_all(sim, recorded, joints):
         assert result.compared == 150 and result.exact, result.line()
-    assert np.abs(recorded[5]).max() > 0.5  # they moved
+        assert result.efforts == 6 * (150 - len(recorded[3][result.world])), result  # but in each start's period
+    assert np.abs(recorded[5]).max() > 0.5 and np.abs(recorded[6]).max() > 1.0  # they moved, their servos pushed
     # the comparison can fail: world 0's re-run against world 1's recorded states
-    layout, headers, inputs, starts, pos, vel = recorded
+    layout, headers, inputs, starts, pos, vel, eff = recorded
     model = L.load_model(L.model_bytes(sim.model))
     states = JointStates(_stamps(headers[:, 1]), list(joints), pos[:, 1, :6], vel[:, 1, :6])
     record = WorldRecord(0, "world_0", starts[0], inputs[:, 0], [states])
     result = compare(model, 0, rerun(model, layout, headers, record), headers, [states], 1e-9)
     assert not result.exact and result.first is not None and result.horizon is not None
+    # ... and on effort alone: world 0's own positions and velocities, its efforts changed in one period
+    effort = eff[:, 0].copy()
+    effort[77, 2] += 1e-9
+    states = JointStates(_stamps(headers[:, 1]), list(joints), pos[:, 0, :6], vel[:, 0, :6], effort)
+    record = WorldRecord(0, "world_0", starts[0], inputs[:, 0], [states])
+    result = compare(model, 0, rerun(model, layout, headers, record, effort=L.effort_sources(sim.spec.state)), headers, [states], 1e-9)
+    assert not result.exact and result.horizon is None and result.max_position == result.max_velocity == 0.0
+    assert result.first[1:3] == (77, "joint3 (effort)") and "1e-09 (effort)" in result.line(), result.line()
 
 
 def test_the_plugins_inputs_rerun_bit_exact(tmp_path):
@@ -150,7 +164,7 @@ def test_the_plugins_inputs_rerun_bit_exact(tmp_path):
     for result in results:
         assert result.compared == 60 and result.exact, result.line()
     # the free joint too: the held base and the pushed arm moved it, and the re-run follows
-    layout, headers, inputs, starts, pos, vel = recorded
+    layout, headers, inputs, starts, pos, vel, _ = recorded
     model = L.load_model(L.model_bytes(sim.model))
     record = WorldRecord(2, "world_2", starts[2], inputs[:, 2], [])
     run = rerun(model, layout, headers, record)

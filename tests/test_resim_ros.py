@@ -235,8 +235,9 @@ def test_a_world_of_an_arm_and_a_rover_reruns_bit_exact_with_their_controllers(t
     assert done.returncode == 0, done.stderr
     lines = done.stdout
     assert "world 1: 800 rover/diff_drive_controller/odom messages compared: bit-exact" in lines, lines
-    assert "world 1: 1600 joint_states compared: bit-exact (every position and velocity of 8 joints" in lines, lines
+    assert "world 1: 1600 joint_states compared: bit-exact (every position, velocity and effort of 8 joints" in lines, lines
     result = {r["world"]: r for r in json.loads(out.read_text())["worlds"]}[1]
+    assert result["efforts"] == 8 * 799 and any(abs(e) > 1.0 for e in arm.msg.effort), arm.msg.effort  # but at the start
     assert result["joints"][:2] == ["arm/joint1", "arm/joint2"] and "rover/left_wheel_joint" in result["joints"]
     verdicts = {v["world"]: v for v in json.loads(out.read_text())["controllers"]}
     assert verdicts[1]["exact"] and verdicts[1]["events"] > 5, lines
@@ -244,7 +245,7 @@ def test_a_world_of_an_arm_and_a_rover_reruns_bit_exact_with_their_controllers(t
     assert abs(arm.msg.position[0] - 0.4) < 0.05, arm.msg.position  # the arm went where it was sent
     # the physics alone, no --model: each robot's joint states, bit-exact
     physics = _resim(str(path), "--worlds", "0,1")
-    assert physics.returncode == 0 and physics.stdout.count("1600 joint_states compared: bit-exact") == 2, physics.stdout
+    assert physics.returncode == 0 and physics.stdout.count("1600 joint_states compared: bit-exact (every position, velocity and effort") == 2, physics.stdout
     # a robot's --controllers FILE in a fleet is refused: the fleet file names each robot's own
     refused = _resim(str(path), "--model", fleet_file, "--controllers", str(default_controllers("arm")))
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "a fleet's robots" in refused.stderr

@@ -6,6 +6,7 @@ within the tolerance."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 import time as wallclock
 from collections.abc import Sequence
@@ -60,6 +61,7 @@ def resim(argv: Sequence[str]) -> int:
         backend = recorded.meta["backend"]
         backends.append(backend)
         group = f" of group {recorded.group}" if recorded.group else ""
+        effort = json.loads(recorded.meta.get("effort", "{}"))  # where each joint's effort was read from
         say(
             f"re-running {len(recorded.worlds)} world(s){group} of {args.file} ({len(recorded.headers)} periods, recorded "
             f"on {backend}, MuJoCo {recorded.meta['mujoco']}) on MuJoCo's C step"
@@ -78,7 +80,7 @@ def resim(argv: Sequence[str]) -> int:
                 for topic, ours in verdict.odometry.items():
                     print(compare_series(topic, w, recorded.headers, ours, world.odometry.get(topic)))
             else:
-                run = rerun(model, recorded.layout, recorded.headers, world, poses=args.tf)
+                run = rerun(model, recorded.layout, recorded.headers, world, poses=args.tf, effort=effort)
             result = compare(model, w, run, recorded.headers, world.joint_states, args.tolerance)
             results.append(result)
             print(result.line())

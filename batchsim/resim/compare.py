@@ -26,11 +26,15 @@ class Comparison:
       world: its number. compared: joint_states messages compared (of every robot's topic).
       joints: their joint names.
       exact: every compared value equal to the bit.
-      max_position, max_velocity: the largest difference (rad or m; rad/s or m/s).
-      first: where they first part at all: (sim time, period number, joint, |difference|), or None.
-      horizon: sim seconds from the world's (re)start until a difference first exceeds
-        `tolerance` (None: never, within the recording); `tolerance` as given.
-      time, error: (n,) the compared messages' sim times and their largest position difference.
+      max_position, max_velocity, max_effort: the largest difference (rad or m; rad/s or m/s;
+        N m or N). Effort is compared where the recording says where it was read from, from
+        the period after each (re)start (the system shows its reset's, or the step before the
+        recording began); `efforts`: how many effort values were compared.
+      first: where they first part at all: (sim time, period number, joint, |difference|), or
+        None; the joint is named "<joint> (effort)" where its effort parts first.
+      horizon: sim seconds from the world's (re)start until a position or velocity difference
+        first exceeds `tolerance` (None: never, within the recording); `tolerance` as given.
+      time, error: (n,) the compared messages' sim times and their largest position or velocity difference.
       skipped: joint_states names that are no hinge or slide joint of the model (not compared).
     """
 
@@ -46,19 +50,24 @@ class Comparison:
     time: np.ndarray
     error: np.ndarray
     skipped: list[str]
+    max_effort: float = 0.0
+    efforts: int = 0
 
     def line(self) -> str:
         """One line for the terminal."""
         head = f"world {self.world}: {self.compared} joint_states compared"
         if not self.compared:
             return f"{head}: none (not recorded, or the world never ran)"
+        what = "position, velocity and effort" if self.efforts else "position and velocity"
         if self.exact:
-            return f"{head}: bit-exact (every position and velocity of {len(self.joints)} joints equal to the bit)"
+            return f"{head}: bit-exact (every {what} of {len(self.joints)} joints equal to the bit)"
         t, period, joint, diff = self.first
         horizon = "the whole recording" if self.horizon is None else f"{self.horizon:.3f} s"
+        effort = f", {self.max_effort:.3g} (effort)" if self.efforts else ""
         return (
             f"{head}: they part at t={t:.3f} s (period {period}), {joint} first ({diff:.3g}); largest difference "
-            f"{self.max_position:.3g} (position), {self.max_velocity:.3g} (velocity); within {self.tolerance:g} for {horizon}"
+            f"{self.max_position:.3g} (position), {self.max_velocity:.3g} (velocity){effort}; within {self.tolerance:g} "
+            f"for {horizon}"
         )
 
     def to_json(self) -> dict:
@@ -70,15 +79,16 @@ class Comparison:
 def compare(
     model: mujoco.MjModel, world: int, run: Trajectory, headers: np.ndarray, states: Sequence[JointStates], tolerance: float
 ) -> Comparison:
-    """Measure `run` (physics.rerun of `world`) against its recorded joint `states` (one per
-    joint_states topic: a world of several robots has one per robot)."""
+    """Measure `run` (physics.rerun of `world`, or the controllers' re-run) against its recorded
+    joint `states` (one per joint_states topic: a world of several robots has one per robot);
+    effort too, for the joints whose effort the re-run knows (`run.effort`)."""
     empty = np.zeros(0)
     if not states:
         return Comparison(world, 0, [], False, np.nan, np.nan, None, None, tolerance, empty, empty, [])
     ran = ~np.isnan(run.qpos[:, 0]) if model.nq else np.ones(len(headers), bool)
-    joints, skipped, compared = [], [], 0
+    joints, skipped, compared, efforts = [], [], 0, 0
     error = np.full(len(headers), np.nan)  # per period, the largest difference of any topic compared in it
-    max_position = max_velocity = 0.0
+    max_position = max_velocity = max_effort = 0.0
     firsts = []  # per topic where it first parts: (period row, joint, |difference|)
     for topic in states:
         names, qadr, vadr, columns = [], [], [], []
@@ -107,6 +117,16 @@ def compare(
             i = parted[0]
             j = int(np.argmax(worst[i]))
             firsts.append((int(at[i]), names[j], float(worst[i, j])))
+        deff = _effort_differences(run, topic, rows, at, names, columns)
+        if deff is not None:
+            efforts += int(np.count_nonzero(~np.isnan(deff)))
+            deff = np.nan_to_num(deff)
+            max_effort = max(max_effort, float(deff.max()))
+            parted = np.flatnonzero(deff.max(axis=1) > 0)
+            if parted.size:
+                i = parted[0]
+                j = int(np.argmax(deff[i]))
+                firsts.append((int(at[i]), f"{names[j]} (effort)", float(deff[i, j])))
     compared_at = np.flatnonzero(~np.isnan(error))
     time, step_error = headers[compared_at, 1], error[compared_at]
     first = None
@@ -118,8 +138,25 @@ def compare(
     return Comparison(
         world=world, compared=compared, joints=joints, exact=compared > 0 and first is None,
         max_position=max_position, max_velocity=max_velocity, first=first, horizon=horizon, tolerance=tolerance,
-        time=time, error=step_error, skipped=skipped,
+        time=time, error=step_error, skipped=skipped, max_effort=max_effort, efforts=efforts,
     )  # fmt: skip
+
+
+def _effort_differences(
+    run: Trajectory, topic: JointStates, rows: np.ndarray, at: np.ndarray, names: list[str], columns: list[int]
+) -> np.ndarray | None:
+    """(len(rows), len(names)) |recorded - re-run| effort, NaN where either is unknown (a joint
+    whose source the recording does not say, a (re)start's period); None: nothing to compare."""
+    if not run.effort or topic.effort is None:
+        return None
+    ours = np.full((len(at), len(names)), np.nan)
+    for j, name in enumerate(names):
+        series = run.effort.get(name)
+        if series is not None:
+            ours[:, j] = series[at]
+    if np.isnan(ours).all():
+        return None
+    return np.abs(topic.effort[np.ix_(rows, columns)] - ours)
 
 
 def _matched(headers: np.ndarray, stamps: np.ndarray, ran: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

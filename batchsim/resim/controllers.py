@@ -125,8 +125,14 @@ class _Check(Participant):
     """After the controller manager: the unclaimed interfaces' recorded commands in, then the
     commands and (after write) the ctrl measured against the recording's."""
 
-    def __init__(self, manager: Any, names: list[str], actuators: list[str], recorded: Recorded, world: WorldRecord):
+    def __init__(
+        self, manager: Any, names: list[str], actuators: list[str], recorded: Recorded, world: WorldRecord, states: list[str]
+    ):
         self.manager, self.names, self.actuators, self.world = manager, names, actuators, world
+        # per joint with an effort state interface, its column, and the effort shown at each period's start
+        self._effort_columns = {n.removesuffix("/effort"): k for k, n in enumerate(states) if n.endswith("/effort")}
+        self.effort = {j: np.full(len(recorded.headers), np.nan) for j in self._effort_columns}
+        self.starts = {s.period for s in world.starts if s.fresh}
         self.layout, self.headers = recorded.layout, recorded.headers
         self.k = -1
         # per controller, its live active mask (a view that follows switches) and its command columns
@@ -149,6 +155,9 @@ class _Check(Participant):
 
     def update(self, sim: Any, time: float, period: float) -> None:
         self.state = tuple(a[0] for a in sim.qstate([0]))  # the period's start (after a fresh start's reset)
+        if int(self.headers[self.k, 0]) not in self.starts:  # read() before a start's reset shows the last run's
+            for joint, column in self._effort_columns.items():
+                self.effort[joint][self.k] = sim.state[0, column]
         for topic, read in self.odometry:  # what the bridge publishes of this period, after the controllers
             rows = read()
             self.odometry_values[topic][self.k] = np.concatenate([rows[f][0] for f in _ODOMETRY_FIELDS])
@@ -235,7 +244,7 @@ def rerun_controllers(
     names = list(sim.export_command_interfaces())
     m = sim.model
     actuators = [m.actuator(i).name or f"actuator {i}" for i in range(m.nu)]
-    check = _Check(manager, names, actuators, recorded, world)
+    check = _Check(manager, names, actuators, recorded, world, list(sim.export_state_interfaces()))
     loop.participants[:] = [feed, manager, check]
     n = len(headers)
     qpos, qvel, since = np.full((n, m.nq), np.nan), np.full((n, m.nv), np.nan), np.full(n, np.nan)
@@ -261,7 +270,7 @@ def rerun_controllers(
             xpos[k], xquat[k] = check.pose
     verdict = check.comparison(ran, feed.applied)
     verdict.odometry = {t: v for t, v in check.odometry_values.items()}
-    return Trajectory(qpos, qvel, since, xpos, xquat), verdict
+    return Trajectory(qpos, qvel, since, xpos, xquat, check.effort or None), verdict
 
 
 def _batch(doc: dict) -> TrajectoryBatch:

@@ -154,6 +154,13 @@ def layout_of(
     )
 
 
+def effort_sources(state_columns) -> dict[str, list]:
+    """Where each joint's effort is read from, as a recording keeps it (its metadata's `effort`):
+    joint -> [field (StateSource's value), index, sign], from the spec's `<joint>/effort` state
+    columns (batchsim.model.spec.StateColumn)."""
+    return {c.name.removesuffix("/effort"): [c.source.value, c.index, c.sign] for c in state_columns if c.name.endswith("/effort")}
+
+
 def model_bytes(model: mujoco.MjModel) -> bytes:
     """The compiled model as MuJoCo's binary MJB: exactly the model, meshes and all."""
     buf = np.empty(mujoco.mj_sizeModel(model), np.uint8)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Mapping, Sequence
 
 import mujoco
 import numpy as np
@@ -16,6 +17,7 @@ from batchsim.resim.layout import InputsLayout
 from batchsim.resim.recorded import WorldRecord
 
 _INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION
+EFFORT_FIELDS = ("qfrc_actuator", "sensordata")  # the fields (StateSource) a joint's effort is read from
 
 
 @dataclasses.dataclass
@@ -32,6 +34,10 @@ class Trajectory:
     since: np.ndarray
     xpos: np.ndarray | None = None
     xquat: np.ndarray | None = None
+    # per joint, the effort the system shows at the period's start (nperiod,): NaN in a
+    # (re)start's period (the system shows its reset's, or the step before the recording began),
+    # where not running, and where unknown
+    effort: dict[str, np.ndarray] | None = None
 
 
 def with_params(model: mujoco.MjModel, params: dict[str, np.ndarray]) -> mujoco.MjModel:
@@ -51,10 +57,12 @@ def with_params(model: mujoco.MjModel, params: dict[str, np.ndarray]) -> mujoco.
 
 
 def rerun(
-    model: mujoco.MjModel, layout: InputsLayout, headers: np.ndarray, world: WorldRecord, poses: bool = False
+    model: mujoco.MjModel, layout: InputsLayout, headers: np.ndarray, world: WorldRecord, poses: bool = False,
+    effort: Mapping[str, Sequence] | None = None,
 ) -> Trajectory:
     """Re-step `world` through every period of `headers` (n, 3: number, time, steps); with
-    `poses`, keep the body poses of each period's start too."""
+    `poses`, keep the body poses of each period's start too; with `effort` (per joint, where
+    the recording says its effort is read from: [field, index, sign]), each joint's effort."""
     n = len(headers)
     qpos, qvel = np.full((n, model.nq), np.nan), np.full((n, model.nv), np.nan)
     since = np.full(n, np.nan)
@@ -65,6 +73,8 @@ def rerun(
     m, d, running, t0 = model, None, False, np.nan
     qposadr, dofadr = layout.held_base
     held_at = dofadr + np.array(HELD_DOFS) if dofadr >= 0 else None
+    sources = {j: (f, int(i), float(sign)) for j, (f, i, sign) in (effort or {}).items() if f in EFFORT_FIELDS}
+    efforts = {j: np.full(n, np.nan) for j in sources}
     for k in range(n):
         start = starts.get(int(number[k]))
         if start is not None:
@@ -81,6 +91,9 @@ def rerun(
             running = False
             continue
         qpos[k], qvel[k], since[k] = d.qpos, d.qvel, t0
+        if start is None:  # the last step's, as read() shows it
+            for j, (f, i, sign) in sources.items():
+                efforts[j][k] = sign * getattr(d, f)[i]
         if poses and (start is None or start.fresh):
             xpos[k], xquat[k] = d.xpos, d.xquat
         d.ctrl[:] = inputs["ctrl"][0]
@@ -93,4 +106,4 @@ def rerun(
             if held is not None:
                 d.qvel[held_at] = held
             mujoco.mj_step(m, d)
-    return Trajectory(qpos, qvel, since, xpos, xquat)
+    return Trajectory(qpos, qvel, since, xpos, xquat, efforts if sources else None)

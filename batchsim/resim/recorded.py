@@ -41,12 +41,13 @@ class Start:
 class JointStates:
     """One recorded sensor_msgs/JointState topic of a world: `stamps` (n,) int ns, `names` (the
     model's joint names: a robot's own prefixed `<robot>/` in a world of several robots),
-    `position` and `velocity` (n, njoint)."""
+    `position`, `velocity` and `effort` (n, njoint; NaN where a message has none)."""
 
     stamps: np.ndarray
     names: list[str]
     position: np.ndarray
     velocity: np.ndarray
+    effort: np.ndarray | None = None
 
 
 @dataclasses.dataclass
@@ -276,7 +277,8 @@ def _joint_states(messages: list, prefix: str) -> JointStates:
     stamps = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for _, m in messages], np.int64)
     position = np.array([list(m.position) for _, m in messages], np.float64).reshape(len(messages), -1)
     velocity = np.array([list(m.velocity) or [np.nan] * len(names) for _, m in messages], np.float64).reshape(len(messages), -1)
-    return JointStates(stamps, names, position, velocity)
+    effort = np.array([list(m.effort) or [np.nan] * len(names) for _, m in messages], np.float64).reshape(len(messages), -1)
+    return JointStates(stamps, names, position, velocity, effort)
 
 
 def _ranges(worlds: Sequence[int]) -> str:
