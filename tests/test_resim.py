@@ -13,6 +13,7 @@ from batchsim.resim import layout as L
 from batchsim.resim.compare import compare
 from batchsim.resim.physics import rerun
 from batchsim.resim.recorded import JointStates, Start, WorldRecord
+from batchsim.stamps import stamp_ns, stamp_of, stamps_ns
 
 RANDOMIZE = {
     "seed": 3,
@@ -190,12 +191,6 @@ PLUGIN_MODEL = """
 """
 
 
-def _stamps(times: np.ndarray) -> np.ndarray:
-    from ros_bridge.worker.messages import stamp_of
-
-    return np.array([s * 1_000_000_000 + n for s, n in map(stamp_of, times)], np.int64)
-
-
 def test_physics_state_is_mujocos_whole_state_on_cpu():
     import mujoco
 
@@ -212,3 +207,18 @@ def test_physics_state_is_mujocos_whole_state_on_cpu():
     mujoco.mj_setState(m, d, state[0], mujoco.mjtState.mjSTATE_INTEGRATION)
     assert d.time == sim.time[2] and np.array_equal(d.qpos, sim.qstate([2])[0][0])
     assert np.any(d.qacc_warmstart != 0)  # the warm start too: what makes a re-run bit-exact
+
+
+def _stamps(times: np.ndarray) -> np.ndarray:
+    """The stamps the bridge gives `times`, one at a time (batchsim.stamps.stamp_ns)."""
+    return np.array([stamp_ns(t) for t in times], np.int64)
+
+
+def test_a_period_is_matched_to_its_messages_by_the_stamp_the_bridge_gives_it():
+    """resim's vectorised stamps (batchsim.stamps.stamps_ns) are the bridge's (stamp_of), to the
+    nanosecond, on a loop's accumulated clocks and at the edges of a second and of rounding."""
+    clocks = np.cumsum(np.full(20_000, 0.01)), np.cumsum(np.full(5000, 0.002)), np.cumsum(np.full(3000, 1 / 300))
+    edges = np.array([0.0, 0.9999999995, 0.9999999994999, 1.0000000005, 2.5e-10, 1.5e-9, 7 - 1e-12, 123456.789012345])
+    for times in (*clocks, edges):
+        assert np.array_equal(stamps_ns(times), _stamps(times))
+    assert stamp_of(0.9999999995) == (1, 0) and stamp_ns(1.25) == 1_250_000_000

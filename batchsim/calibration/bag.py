@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from batchsim.controllers.topics import MessageKind
+from batchsim.stamps import message_ns
 
 JOINT_STATE = MessageKind.JOINT_STATE.value
 
@@ -87,10 +88,6 @@ class RealBag:
 
 def _seconds(stamp: Any) -> float:
     return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
-
-
-def _nanoseconds(stamp: Any) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def _namespace(topic: str, suffix: str) -> str:
@@ -196,7 +193,7 @@ def _assemble(
             f"(its joints: {', '.join(joints)})"
         )
     # integer nanoseconds until the first stamp is taken off: a float64 of 1.7e9 s keeps only 0.2 us
-    stamps = np.array([_nanoseconds(m.header.stamp) for _, m in states], np.int64)
+    stamps = np.array([message_ns(m.header.stamp) for _, m in states], np.int64)
     logs = np.array([t for t, _ in states], np.int64)
     if not stamps.any():  # a driver that leaves stamps unset: its log times are its clock
         stamps = logs.copy()
@@ -240,7 +237,7 @@ def _command(time: float, relative: str, msg: Any, first: int) -> Command:
             return None
         return np.asarray(values, np.float64).reshape(len(points), len(names))
 
-    stamp = _nanoseconds(msg.header.stamp)
+    stamp = message_ns(msg.header.stamp)
     start = 0.0 if stamp == 0 else max((stamp - first) * 1e-9, 1e-9)  # 0 means "at once" to the controller
     return Command(
         time,

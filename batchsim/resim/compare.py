@@ -14,6 +14,7 @@ import numpy as np
 from batchsim.model.frames import frame_tree, relative_transforms
 from batchsim.resim.physics import Trajectory
 from batchsim.resim.recorded import JointStates, TfStates
+from batchsim.stamps import stamps_ns
 
 _MOVING = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
 
@@ -162,18 +163,12 @@ def _effort_differences(
 def _matched(headers: np.ndarray, stamps: np.ndarray, ran: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The recorded messages (`stamps`, ns) stamped with a period's start where the re-run ran
     (`ran`, (nperiod,) bool): (their rows, their periods' rows in `headers`)."""
-    periods = _stamps(headers[:, 1])
+    periods = stamps_ns(headers[:, 1])
     at = np.searchsorted(periods, stamps)
     found = (at < len(periods)) & (periods[np.minimum(at, len(periods) - 1)] == stamps)
     rows, at = np.flatnonzero(found), at[found]
     keep = ran[at]
     return rows[keep], at[keep]
-
-
-def _stamps(times: np.ndarray) -> np.ndarray:
-    """Sim times (s) as the recorder stamps them (ns, as ros_bridge's stamp_of rounds)."""
-    sec = np.floor(times)
-    return (sec.astype(np.int64) * 1_000_000_000 + np.round((times - sec) * 1e9).astype(np.int64))
 
 
 @dataclasses.dataclass

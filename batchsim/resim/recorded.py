@@ -18,6 +18,7 @@ from batchsim.resim.layout import (
     unpack,
     unpack_string,
 )
+from batchsim.stamps import message_ns
 
 
 class ResimError(Exception):
@@ -186,7 +187,7 @@ def _read_messages(
                 decode = decoders[channel.id] = factory.decoder_for(channel.message_encoding, schema)
             m = decode(message.data)
             p, q, v, a = m.pose.pose.position, m.pose.pose.orientation, m.twist.twist.linear, m.twist.twist.angular
-            stamp = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+            stamp = message_ns(m.header.stamp)
             odoms[odom_topics[channel.topic]].append((stamp, (p.x, p.y, p.z, q.x, q.y, q.z, q.w, v.x, v.y, v.z, a.x, a.y, a.z)))
         elif channel.topic == "/tf":
             decode = decoders.get(channel.id)
@@ -253,7 +254,7 @@ def _split_tf(msg, prefixes: dict[str, int], out: dict[int, list]) -> None:
         w = prefixes.get(head + "/")
         if w is None:
             continue
-        stamp = t.header.stamp.sec * 1_000_000_000 + t.header.stamp.nanosec
+        stamp = message_ns(t.header.stamp)
         r, v = t.transform.rotation, t.transform.translation
         per.setdefault(w, []).append((t.header.frame_id.partition("/")[2], child, (v.x, v.y, v.z, r.x, r.y, r.z, r.w)))
     for w, rows in per.items():
@@ -274,7 +275,7 @@ def _joint_states(messages: list, prefix: str) -> JointStates:
     prefixed as the model names them."""
     messages.sort(key=lambda m: m[0])
     names = [prefix + n for n in messages[0][1].name]
-    stamps = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for _, m in messages], np.int64)
+    stamps = np.array([message_ns(m.header.stamp) for _, m in messages], np.int64)
     position = np.array([list(m.position) for _, m in messages], np.float64).reshape(len(messages), -1)
     velocity = np.array([list(m.velocity) or [np.nan] * len(names) for _, m in messages], np.float64).reshape(len(messages), -1)
     effort = np.array([list(m.effort) or [np.nan] * len(names) for _, m in messages], np.float64).reshape(len(messages), -1)

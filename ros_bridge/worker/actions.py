@@ -52,6 +52,7 @@ from rclpy.task import Future
 from batchsim.controllers.joint_names import JointOrder
 from batchsim.controllers.topics import GoalOutcome
 from batchsim.memory import Memory
+from batchsim.stamps import stamp_of
 from ros_bridge.action_plan import (
     STATUS_COLUMNS,
     GripperActionSpec,
@@ -64,7 +65,7 @@ from ros_bridge.protocol.active import ActiveReader
 from ros_bridge.protocol.demand import ChannelDemand
 from ros_bridge.protocol.goals import RefusalReader, held, hold, release
 from ros_bridge.protocol.requests import Kind
-from ros_bridge.worker.messages import Trajectory, parse_trajectory, seconds, stamp_of
+from ros_bridge.worker.messages import Trajectory, parse_trajectory, seconds
 from ros_bridge.worker.on_request import OnRequest
 from ros_bridge.worker.services import GOAL_RATE, LoopRequests
 

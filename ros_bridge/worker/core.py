@@ -44,6 +44,7 @@ from std_msgs.msg import Float64, Float64MultiArray
 
 from batchsim.controllers.topics import MessageKind
 from batchsim.memory import Memory, Ring
+from batchsim.stamps import stamp_of
 from ros_bridge.interfaces import available
 from ros_bridge.naming import topic_name, worlds_label
 from ros_bridge.options import Reliability
@@ -58,7 +59,7 @@ from ros_bridge.worker.conflicts import check_conflicts
 from ros_bridge.worker.diagnostics import Diagnostics
 from ros_bridge.worker.graph_scan import GraphScan
 from ros_bridge.worker.intake import Intake
-from ros_bridge.worker.messages import MESSAGE_TYPES, clock_payload, stamp_of
+from ros_bridge.worker.messages import MESSAGE_TYPES, clock_payload
 from ros_bridge.worker.sensors import SensorPublishers
 from ros_bridge.worker.services import LoopRequests, create_loop_services
 from ros_bridge.worker.snapshot import Output

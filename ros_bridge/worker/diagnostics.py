@@ -25,11 +25,11 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
 from batchsim.memory import Memory
+from batchsim.stamps import stamp_of
 from ros_bridge import world_status
 from ros_bridge.protocol.commands import Problem, RejectionWriter, bad_commands
 from ros_bridge.protocol.liveness import PhysicsWatch, hung
 from ros_bridge.protocol.world_params import read_line
-from ros_bridge.worker.messages import stamp_of
 
 
 class Diagnostics:

@@ -13,8 +13,8 @@ import numpy as np
 
 from batchsim.memory import Memory, Ring
 from batchsim.resim.layout import EVENTS_TYPE, MSG_TYPE, ResimNames, pack, pack_string
+from batchsim.stamps import stamp_ns
 from ros_bridge.protocol.input_ring import EVENTS, INPUTS, STARTS, RowRing
-from ros_bridge.worker.messages import stamp_of
 
 
 class InputTopics:
@@ -47,8 +47,7 @@ class InputTopics:
         self._held_inputs += self._inputs.take(self._nrow)
         for _kind, payload in self._events.take():
             text = payload.tobytes().rstrip(b"\x00").decode()
-            sec, nanosec = stamp_of(json.loads(text)["time"])
-            self._held_events.append((sec * 1_000_000_000 + nanosec, text))
+            self._held_events.append((stamp_ns(json.loads(text)["time"]), text))
         due = lambda stamp: upto is None or stamp <= upto  # noqa: E731
         out: list[tuple[int, int, int, bytes]] = []  # (stamp, rank, channel, data): sorted, written
         starts: dict[float, list[tuple[np.ndarray, np.ndarray]]] = {}
@@ -83,5 +82,4 @@ class InputTopics:
 
 def _stamp(header: np.ndarray) -> int:
     """A period's sim time, in ns (the messages' log time, as the other topics' stamps)."""
-    sec, nanosec = stamp_of(float(header[1]))
-    return sec * 1_000_000_000 + nanosec
+    return stamp_ns(float(header[1]))

@@ -259,15 +259,6 @@ def clock_payload(sec: int, nanosec: int) -> bytes:
     return _CLOCK.pack(_CDR_LE, sec, nanosec)
 
 
-def stamp_of(time: float) -> tuple[int, int]:
-    """(sec, nanosec) of a sim time in seconds, nanosec in [0, 1e9)."""
-    sec = int(np.floor(time))
-    nanosec = int(round((time - sec) * 1e9))
-    if nanosec >= 1_000_000_000:
-        sec, nanosec = sec + 1, nanosec - 1_000_000_000
-    return sec, nanosec
-
-
 def value_markers(n: int) -> np.ndarray:
     """n distinct finite doubles that no message of ours holds by chance (~1e300, tagged)."""
     bits = np.uint64(0x7E3A_5C00_0000_00A5) | (np.arange(n, dtype=np.uint64) << np.uint64(8))

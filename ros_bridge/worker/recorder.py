@@ -38,6 +38,7 @@ from std_msgs.msg import String
 from batchsim.memory import Memory
 from batchsim.resim.layout import METADATA as RESIM_METADATA
 from batchsim.resim.layout import resim_names
+from batchsim.stamps import stamp_of
 from ros_bridge.naming import topic_name
 from ros_bridge.plan import FLAG_FROZEN, FleetPlan
 from ros_bridge.protocol.commands import RejectionWriter
@@ -45,7 +46,7 @@ from ros_bridge.protocol.recording import GroupsReader, RecordedPeriod, RecordRe
 from ros_bridge.view_plan import geometry_attachment
 from ros_bridge.worker.input_topics import InputTopics
 from ros_bridge.worker.mcap_file import BlockWriter
-from ros_bridge.worker.messages import clock_payload, stamp_of
+from ros_bridge.worker.messages import clock_payload
 from ros_bridge.worker.process import die_with_parent
 from ros_bridge.worker.schemas import qos_metadata, schema_text
 from ros_bridge.worker.sensor_recording import SensorRecording, missed_line

@@ -20,10 +20,10 @@ from collections.abc import Callable
 import numpy as np
 
 from batchsim.sensors import Lidar
+from batchsim.stamps import stamp_of
 from ros_bridge.plan import FleetPlan
 from ros_bridge.protocol.sensor_blocks import PART_BITS, SensorBlock, missed
 from ros_bridge.worker.mcap_file import BlockWriter
-from ros_bridge.worker.messages import stamp_of
 from ros_bridge.worker.sensor_messages import Framing, topic_framing
 from ros_bridge.worker.sensors import under
 

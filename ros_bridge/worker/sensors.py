@@ -23,10 +23,10 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import CameraInfo, Image, LaserScan, PointCloud2
 
+from batchsim.stamps import stamp_of
 from ros_bridge.naming import topic_name
 from ros_bridge.protocol.sensor_blocks import PART_BITS, WantWriter, gaps
 from ros_bridge.sensor_topics import SensorPlan, SensorTopic, TopicKind
-from ros_bridge.worker.messages import stamp_of
 from ros_bridge.worker.sensor_messages import Framing, topic_framing
 
 POLL_EVERY = 16  # camera messages between two looks at the lidars' blocks (SensorPublishers.publish)
