@@ -36,16 +36,20 @@ def resim(argv: Sequence[str]) -> int:
     began = wallclock.monotonic()
     if args.controllers is not None and args.model is None:
         raise UsageError("--controllers re-runs the robot's controllers: name its model with --model (the recorded one)")
+    controllers = _controllers(args) if args.controllers is not None else None  # None with a fleet: its robots' own
+    ours = None  # --model's one-world system: its hash, and its controllers' odometry topics
+    if args.model is not None:
+        import batchsim
+
+        ours = batchsim.make(args.model, 1, "cpu")
     try:
-        odometry = odometry_topics(args.model, _controllers(args)) if args.controllers is not None else []
+        odometry = odometry_topics(ours.spec, controllers) if args.controllers is not None else []
         groups = read(args.file, args.worlds, tf=args.tf, odometry=odometry)
     except ResimError as e:
         raise UsageError(str(e)) from None
     say = lambda line: print(f"batchsim: {line}", file=sys.stderr)  # noqa: E731
-    if args.model is not None:
-        import batchsim
-
-        theirs = model_hash(model_bytes(batchsim.make(args.model, 1, "cpu").model))
+    if ours is not None:
+        theirs = model_hash(model_bytes(ours.model))
         for recorded in groups:
             if theirs != recorded.meta["model_sha256"]:
                 of = f" (group {recorded.group}, world {next(iter(recorded.worlds))})" if recorded.group else ""
@@ -53,7 +57,6 @@ def resim(argv: Sequence[str]) -> int:
                     f"--model {args.model} is not the model {args.file} was recorded with{of} (SHA-256 {theirs[:12]} "
                     f"against {recorded.meta['model_sha256'][:12]}): a re-run of another model says nothing about the recording"
                 )
-    controllers = _controllers(args) if args.controllers is not None else None  # None with a fleet: its robots' own
     backends = []
     results, controlled, tfs = [], [], []
     for recorded in groups:

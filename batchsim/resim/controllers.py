@@ -192,11 +192,10 @@ class _Check(Participant):
 _ODOMETRY_FIELDS = ("position", "orientation", "linear", "angular")  # nav_msgs/Odometry's, as the bridge fills it
 
 
-def odometry_topics(model: str | Path, controllers: str | Path | None) -> list[str]:
-    """The nav_msgs/Odometry topics `controllers` publish (a diff drive's `odom`), namespace-relative."""
-    import batchsim
-
-    manager = _manager(controllers, batchsim.make(model, 1, "cpu").spec)
+def odometry_topics(spec: Any, controllers: str | Path | None) -> list[str]:
+    """The nav_msgs/Odometry topics `controllers` publish (a diff drive's `odom`) on the robot
+    `spec` (a system's), namespace-relative."""
+    manager = _manager(controllers, spec)
     return [o.topic for c in manager for o in c.topics().outputs if o.kind is MessageKind.ODOMETRY]
 
 

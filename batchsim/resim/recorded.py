@@ -227,16 +227,18 @@ def _joint_state_topics(reader, namespaces: dict[int, str]) -> dict[str, tuple[i
     `<ns>/<robot>/joint_states`, whose joints the model names `<robot>/<joint>`."""
     summary = reader.get_summary()
     channels = summary.channels.values() if summary is not None else ()
+    roots = {_topic(ns, ""): w for w, ns in namespaces.items()}  # "/world_3/" -> 3
     out = {}
-    for w, ns in namespaces.items():
-        root = _topic(ns, "")
-        for channel in channels:
-            rest = channel.topic.removeprefix(root) if channel.topic.startswith(root) else None
-            if rest is None or not rest.endswith("joint_states"):
-                continue
-            robot = rest.removesuffix("joint_states")
-            if robot == "" or (len(robot) > 1 and robot.find("/") == len(robot) - 1):  # "" or "<robot>/"
-                out[channel.topic] = (w, robot)
+    for channel in channels:  # once each, whatever the worlds asked (a 1024-world file has thousands)
+        head = channel.topic.removesuffix("joint_states")
+        if head == channel.topic:
+            continue
+        if head in roots:  # <ns>/joint_states
+            out[channel.topic] = (roots[head], "")
+            continue
+        root, _, robot = head[:-1].rpartition("/")  # <ns>/<robot>/joint_states
+        if robot and f"{root}/" in roots:
+            out[channel.topic] = (roots[f"{root}/"], f"{robot}/")
     return out
 
 
